@@ -1,0 +1,26 @@
+"""beehave: high- and low-level multi-task robot behaviour.
+
+Subclass :class:`Behavior` and :class:`Action` for deliberate decisions (threads, type
+locks, runtime switching with :class:`HighLevelBehaviorManager`), :class:`Logic` and
+:class:`HAL` for reactions over a :class:`Blackboard` (asyncio,
+:class:`LowLevelBehaviorManager`).
+"""
+
+from beehave.action import Action
+from beehave.behavior import Behavior, Idle
+from beehave.errors import (ActionTypeBusy, AlreadyStarted, BeehaveError, ChildFailed,
+                            ConfigError, Interrupted, InvalidParameters, ManagerShutdown,
+                            NotASubclass, SwitchSuperseded, UnknownBehavior, UnknownHAL,
+                            UnknownLogic, UnknownNameError)
+from beehave.events import Event, EventKind
+from beehave.highlevel import HighLevelBehaviorManager
+from beehave.status import Status
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Action", "ActionTypeBusy", "AlreadyStarted", "BeehaveError", "Behavior", "ChildFailed",
+    "ConfigError", "Event", "EventKind", "HighLevelBehaviorManager", "Idle", "Interrupted",
+    "InvalidParameters", "ManagerShutdown", "NotASubclass", "Status", "SwitchSuperseded",
+    "UnknownBehavior", "UnknownHAL", "UnknownLogic", "UnknownNameError",
+]

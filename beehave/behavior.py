@@ -1,0 +1,168 @@
+"""Behavior: decides what the robot does, by starting actions and sub-behaviours."""
+
+from __future__ import annotations
+
+import time
+from typing import Any, TypeVar
+
+from beehave.action import Action
+from beehave.errors import ChildFailed, Interrupted, NotASubclass
+from beehave.runnable import Runnable
+from beehave.status import Status
+
+A = TypeVar("A", bound=Action)
+B = TypeVar("B", bound="Behavior")
+
+
+class Behavior(Runnable):
+    """Subclass it and write :meth:`run`, which decides and starts actions.
+
+    ``run`` executes in the behaviour's own thread. Actions and sub-behaviours started
+    here never outlive the behaviour: when ``run`` returns (or the behaviour is
+    interrupted) the ones still running are interrupted and waited for, up to the
+    manager's ``stop_timeout_s``; those that ignore the interrupt become STUCK.
+
+    A child that fails is surfaced: unless you ``wait()`` for it yourself, the next
+    ``sleep``/``start_*`` call (or the end of ``run``) raises :class:`ChildFailed`.
+    Catch it to carry on.
+    """
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> Behavior:
+        self = super().__new__(cls)
+        self._children: list[Runnable] = []
+        self._unobserved_failures: list[Runnable] = []
+        self._accepting = True
+        return self  # type: ignore[return-value]
+
+    def start_action(self, action: A, *, preempt: bool = False) -> A:
+        """Start ``action`` in its own thread and return it (the handle).
+
+        Raises :class:`ActionTypeBusy` naming the holder when its ``action_type`` is
+        taken. With ``preempt=True`` the holder is interrupted and waited for (its
+        ``safe_state`` included, at most ``stop_timeout_s``), then ``action`` starts.
+        """
+        if not isinstance(action, Action):
+            raise NotASubclass(f"{self.path}: start_action() takes an Action instance, "
+                               f"got {action!r}; use start_behavior() for behaviours")
+        manager = self._before_start(action)
+        manager._locks.acquire(action, preempt=preempt, timeout_s=manager.stop_timeout_s,
+                               cancelled=lambda: self._interrupt_requested)
+        try:
+            self._adopt(action)
+        except BaseException:
+            manager._locks.release(action)
+            raise
+        action._start_thread()
+        return action
+
+    def start_behavior(self, behavior: B) -> B:
+        """Start ``behavior`` as a sub-behaviour in its own thread and return it."""
+        if not isinstance(behavior, Behavior):
+            raise NotASubclass(f"{self.path}: start_behavior() takes a Behavior instance, "
+                               f"got {behavior!r}; use start_action() for actions")
+        self._before_start(behavior)
+        self._adopt(behavior)
+        behavior._start_thread()
+        return behavior
+
+    @property
+    def children(self) -> list[Runnable]:
+        """The actions and sub-behaviours started and not yet cleaned up."""
+        with self._cond:
+            return list(self._children)
+
+    # ------------------------------------------------------------------ driver
+    def _before_start(self, child: Runnable) -> Any:
+        manager = self._manager
+        if manager is None or self._status is not Status.RUNNING:
+            raise Interrupted(f"{self.path}: cannot start {child.name!r}: the behaviour is "
+                              f"{self._status.name}, not running")
+        with self._cond:
+            self._raise_pending()
+            self._prune()
+        if self._interrupt_requested:
+            raise Interrupted(f"{self.path}: interrupted; not starting {child.name!r}")
+        child._attach(self, manager)
+        return manager
+
+    def _adopt(self, child: Runnable) -> None:
+        with self._cond:
+            # Checked under the same lock the interrupt takes, so no child escapes it.
+            if self._interrupt_requested or not self._accepting:
+                raise Interrupted(f"{self.path}: interrupted; not starting {child.name!r}")
+            self._children.append(child)
+
+    def _prune(self) -> None:
+        """Forget children whose threads are over (keeps long-running behaviours small)."""
+        done = [c for c in self._children if c._decided.is_set() and c.status is not Status.STUCK
+                and not c.alive]
+        if done:
+            self._children = [c for c in self._children if c not in done]
+
+    def _on_interrupt(self, deadline: float | None) -> None:
+        with self._cond:
+            children = list(self._children)
+        for child in children:
+            child._interrupt(deadline)
+
+    def _after_run(self, error: BaseException | None) -> BaseException | None:
+        assert self._manager is not None
+        with self._cond:
+            self._accepting = False
+            children = list(self._children)
+            deadline = self._stop_deadline
+        if deadline is None:
+            deadline = time.monotonic() + self._manager.stop_timeout_s
+        for child in children:
+            child._interrupt(deadline)
+        for child in children:
+            if not child._wait_decided(deadline):
+                child._mark_stuck()
+        for child in children:
+            if child.status is not Status.STUCK and child._thread is not None:
+                child._thread.join()  # it has decided; its thread is just finishing
+        with self._cond:
+            if error is None and not self._interrupt_requested and self._unobserved_failures:
+                failed = self._unobserved_failures[0]
+                error = ChildFailed(failed)
+                error.__cause__ = failed.error
+        return error
+
+    def _mark_stuck(self) -> None:
+        super()._mark_stuck()
+        for child in self.children:
+            child._mark_stuck()
+
+    def _child_ended(self, child: Runnable) -> None:
+        with self._cond:
+            if child.status is Status.FAILED:
+                self._unobserved_failures.append(child)
+                self._cond.notify_all()
+
+    def _observed(self, child: Runnable) -> None:
+        with self._cond:
+            if child in self._unobserved_failures:
+                self._unobserved_failures.remove(child)
+
+    def _wake_reason(self) -> bool:
+        return self._interrupt_requested or bool(self._unobserved_failures)
+
+    def _raise_pending(self) -> None:
+        if self._unobserved_failures:
+            failed = self._unobserved_failures.pop(0)
+            raise ChildFailed(failed) from failed.error
+
+    def _snapshot(self) -> dict[str, Any]:
+        snap = super()._snapshot()
+        snap["kind"] = "behavior"
+        snap["children"] = [c._snapshot() for c in self.children]
+        return snap
+
+
+class Idle(Behavior):
+    """The built-in safe behaviour: starts nothing, so nothing moves. Runs when nothing
+    else does, and after a top-level behaviour ended."""
+
+    def run(self) -> None:
+        while self.sleep(3600.0):
+            pass

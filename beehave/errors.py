@@ -1,0 +1,125 @@
+"""Every error beehave raises derives from :class:`BeehaveError`.
+
+Messages name the actor and the thing (behaviour name, action type, blackboard key, HAL
+name) and, for a bad name, what exists.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+
+class BeehaveError(Exception):
+    """Root of all beehave errors."""
+
+
+class UnknownNameError(BeehaveError, KeyError):
+    """A name (behaviour, logic, HAL …) that is not registered.
+
+    ``.kind`` is what was looked up, ``.name`` the bad name and ``.choices`` the valid names.
+    """
+
+    kind = "name"
+
+    def __init__(self, name: str, choices: Iterable[str]) -> None:
+        self.name = name
+        self.choices = sorted(choices)
+        listed = ", ".join(repr(c) for c in self.choices) or "none"
+        super().__init__(f"unknown {self.kind} {name!r}; registered: {listed}")
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0])
+
+
+class UnknownBehavior(UnknownNameError):
+    kind = "behavior"
+
+
+class UnknownLogic(UnknownNameError):
+    kind = "logic"
+
+
+class UnknownHAL(UnknownNameError):
+    kind = "HAL"
+
+
+class InvalidParameters(BeehaveError, TypeError):
+    """Parameters that a behaviour's (or logic's) constructor rejects.
+
+    Raised by ``register`` and ``switch`` before anything is stopped, so the running
+    behaviour keeps running.
+    """
+
+
+class ActionTypeBusy(BeehaveError):
+    """``start_action`` found the action type locked by another action.
+
+    ``.action_type``, ``.holder`` (the running action) and ``.since`` (its lock time,
+    ``time.monotonic()``) say who has it.
+    """
+
+    def __init__(self, action_type: str, holder: Any, since: float, *, reason: str = "") -> None:
+        import time
+
+        self.action_type = action_type
+        self.holder = holder
+        self.since = since
+        owner = getattr(holder, "parent", None)
+        owner_txt = f" of behavior {owner.name!r}" if owner is not None else ""
+        held = time.monotonic() - since
+        extra = f" ({reason})" if reason else ""
+        super().__init__(
+            f"action type {action_type!r} is held by {type(holder).__name__} "
+            f"{getattr(holder, 'name', '?')!r}{owner_txt} "
+            f"(status {holder.status.name}) for {held:.3f} s{extra}"
+        )
+
+
+class Interrupted(BeehaveError):
+    """Raised inside a behaviour's thread when a framework call cannot go on because the
+    behaviour was interrupted (e.g. while waiting for a preempted type lock). Letting it
+    propagate out of ``run`` ends the behaviour as INTERRUPTED, not FAILED."""
+
+
+class ChildFailed(BeehaveError):
+    """An action or sub-behaviour failed and its behaviour had not waited for it.
+
+    Raised in the behaviour's thread at its next framework call (``sleep``, ``start_*``) or
+    when its ``run`` returns; ``.child`` is the failed handle, ``__cause__`` its error.
+    Catch it to carry on; uncaught, it fails the behaviour in turn.
+    """
+
+    def __init__(self, child: Any) -> None:
+        self.child = child
+        super().__init__(
+            f"{type(child).__name__} {child.name!r} failed: {child.error!r}"
+        )
+
+
+class SwitchSuperseded(BeehaveError):
+    """A ``switch`` request was overtaken by a later one before it took effect."""
+
+
+class ManagerShutdown(BeehaveError):
+    """The manager was shut down (or never started) and cannot do what was asked."""
+
+
+class AlreadyStarted(BeehaveError):
+    """A behaviour, action or logic object was started twice; create a new one."""
+
+
+class BlackboardError(BeehaveError):
+    """A blackboard key or pattern that is not valid."""
+
+
+class HALError(BeehaveError):
+    """A HAL plugin that cannot be loaded or used."""
+
+
+class ConfigError(BeehaveError):
+    """A configuration file or value that is not valid."""
+
+
+class NotASubclass(BeehaveError, TypeError):
+    """Something registered or started that is not the kind of class beehave expects."""

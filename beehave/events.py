@@ -1,0 +1,105 @@
+"""Lifecycle events: what the managers tell observers (logging, ROS bridge, web view)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+
+class EventKind(Enum):
+    """What happened."""
+
+    STARTED = "started"
+    """A behaviour, action or logic began to run."""
+    ENDED = "ended"
+    """It ended; ``status`` and ``error`` say how."""
+    STUCK = "stuck"
+    """It ignored its interrupt for ``stop_timeout_s``; its safe state was forced."""
+    STUCK_RELEASED = "stuck_released"
+    """A STUCK action's thread finally ended and its type lock was released."""
+    SAFE_STATE_FAILED = "safe_state_failed"
+    """``safe_state()`` raised; the error is attached."""
+    SWITCH_REQUESTED = "switch_requested"
+    SWITCH_COMPLETED = "switch_completed"
+    SWITCH_SUPERSEDED = "switch_superseded"
+    SWITCH_REJECTED = "switch_rejected"
+    """Unknown name or parameters the constructor rejects; nothing was stopped."""
+    FALLBACK = "fallback"
+    """A top-level behaviour (or logic) ended on its own; the manager started its fallback."""
+    LOCK_REJECTED = "lock_rejected"
+    LOCK_PREEMPTED = "lock_preempted"
+    RESTARTED = "restarted"
+    """A HAL whose run() crashed was restarted."""
+
+
+@dataclass(frozen=True)
+class Event:
+    """One lifecycle event. ``subject`` is the path of the thing (``tour/drive``)."""
+
+    kind: EventKind
+    subject: str
+    status: str | None = None
+    error: BaseException | None = None
+    detail: dict[str, Any] = field(default_factory=dict)
+    stamp: float = field(default_factory=time.time)
+
+    def as_dict(self) -> dict[str, Any]:
+        """A JSON-serialisable form."""
+        return {
+            "kind": self.kind.value,
+            "subject": self.subject,
+            "status": self.status,
+            "error": None if self.error is None else repr(self.error),
+            "detail": self.detail,
+            "stamp": self.stamp,
+        }
+
+
+EventCallback = Callable[[Event], None]
+
+
+class EventBus:
+    """Delivers events synchronously, in the thread that produced them.
+
+    Keep callbacks short (hand work to your own queue): they run inside the framework's
+    driver. A callback that raises is logged with its traceback and stays subscribed; it
+    is an observer and must not break what it observes.
+    """
+
+    def __init__(self, logger: logging.Logger | None = None) -> None:
+        self._subscribers: tuple[EventCallback, ...] = ()
+        self._lock = threading.Lock()
+        self._log = logger or log
+
+    def subscribe(self, callback: EventCallback) -> Callable[[], None]:
+        """Call ``callback(event)`` for every event; returns a function that unsubscribes."""
+        with self._lock:
+            self._subscribers = (*self._subscribers, callback)
+
+        def unsubscribe() -> None:
+            with self._lock:
+                self._subscribers = tuple(s for s in self._subscribers if s is not callback)
+
+        return unsubscribe
+
+    def emit(self, event: Event) -> None:
+        level = logging.WARNING if event.kind in _WARN else logging.DEBUG
+        if self._log.isEnabledFor(level):
+            self._log.log(level, "%s %s%s%s", event.kind.value, event.subject,
+                          f" {event.status}" if event.status else "",
+                          f" error={event.error!r}" if event.error else "")
+        for callback in self._subscribers:
+            try:
+                callback(event)
+            except Exception:
+                self._log.exception("event subscriber %r raised on %s", callback, event.kind)
+
+
+_WARN = {EventKind.STUCK, EventKind.SAFE_STATE_FAILED, EventKind.FALLBACK, EventKind.RESTARTED}

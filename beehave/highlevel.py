@@ -1,0 +1,355 @@
+"""HighLevelBehaviorManager: runs exactly one top-level behaviour and switches at runtime."""
+
+from __future__ import annotations
+
+import enum
+import inspect
+import logging
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any
+
+from beehave.behavior import Behavior, Idle
+from beehave.errors import (BeehaveError, ConfigError, InvalidParameters, ManagerShutdown,
+                            NotASubclass, SwitchSuperseded, UnknownBehavior)
+from beehave.events import Event, EventBus, EventCallback, EventKind
+from beehave.locks import TypeLocks
+from beehave.runnable import Runnable, current
+from beehave.status import Status
+
+log = logging.getLogger(__name__)
+
+IDLE = "idle"
+
+
+class ManagerState(enum.Enum):
+    NEW = "new"
+    RUNNING = "running"
+    STOPPING = "stopping"
+    STOPPED = "stopped"
+
+
+@dataclass
+class _Request:
+    name: str
+    behavior: Behavior
+    fallback_from: Behavior | None = None
+    done: threading.Event = field(default_factory=threading.Event)
+    error: BeehaveError | None = None
+
+    def finish(self, error: BeehaveError | None = None) -> None:
+        self.error = error
+        self.done.set()
+
+
+class HighLevelBehaviorManager:
+    """Runs exactly one top-level behaviour at a time, registered by name.
+
+    ``switch(name)`` interrupts the running one, waits until every sub-behaviour and
+    action has ended (at most ``stop_timeout_s``; stragglers become STUCK and their
+    ``safe_state()`` is forced) and starts the next. Switches are executed one at a time
+    by the manager's own thread; concurrent requests resolve to the latest, the earlier
+    ones raise :class:`SwitchSuperseded`.
+
+    Options (keyword-only): ``default`` is the behaviour started by :meth:`start`;
+    ``stop_timeout_s`` bounds every stop; ``node`` is an rclpy node the ROS 2 bridge may
+    use; ``gil_switch_interval_s`` lowers Python's thread switch interval (process-wide)
+    so that a CPU-bound thread delays an interrupt by at most about that much — pass
+    None to leave the interpreter's setting alone.
+    """
+
+    def __init__(self, *, default: str = IDLE, stop_timeout_s: float = 2.0,
+                 node: Any = None, gil_switch_interval_s: float | None = 0.001,
+                 history_len: int = 100) -> None:
+        if not isinstance(stop_timeout_s, (int, float)) or stop_timeout_s <= 0:
+            raise ConfigError(f"stop_timeout_s must be a positive number, got {stop_timeout_s!r}")
+        self.default = default
+        self.stop_timeout_s = float(stop_timeout_s)
+        self.node = node
+        self.events = EventBus(log)
+        self._gil_switch_interval_s = gil_switch_interval_s
+        self._locks = TypeLocks(self.events)
+        self._registry: dict[str, tuple[type[Behavior], dict[str, Any]]] = {IDLE: (Idle, {})}
+        self._cond = threading.Condition()
+        self._state = ManagerState.NEW
+        self._pending: list[_Request] = []
+        self._worker: threading.Thread | None = None
+        self._top: Behavior | None = None
+        self._top_name: str | None = None
+        self._stuck: set[Runnable] = set()
+        self._history: deque[dict[str, Any]] = deque(maxlen=history_len)
+
+    # ------------------------------------------------------------------ registry
+    def register(self, name: str, behavior_cls: type[Behavior], **params: Any) -> None:
+        """Make ``behavior_cls`` switchable as ``name``; ``params`` go to its constructor
+        (a ``switch`` may override them). Parameters the constructor cannot take are
+        rejected here, not later."""
+        if not isinstance(name, str) or not name:
+            raise ConfigError(f"behavior name must be a non-empty str, got {name!r}")
+        if name == IDLE:
+            raise ConfigError("'idle' is built in (the safe behaviour) and cannot be replaced")
+        if not (isinstance(behavior_cls, type) and issubclass(behavior_cls, Behavior)):
+            raise NotASubclass(f"register({name!r}, …) needs a Behavior subclass, "
+                               f"got {behavior_cls!r}")
+        _check_params(name, behavior_cls, params, partial=True)
+        with self._cond:
+            self._registry[name] = (behavior_cls, dict(params))
+
+    @property
+    def names(self) -> list[str]:
+        """The registered behaviour names (``idle`` included)."""
+        with self._cond:
+            return sorted(self._registry)
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Start the manager's thread and the ``default`` behaviour. Idempotent."""
+        with self._cond:
+            if self._state is not ManagerState.NEW:
+                if self._state is ManagerState.RUNNING:
+                    return
+                raise ManagerShutdown("this HighLevelBehaviorManager was shut down; create a new one")
+            if self.default not in self._registry:
+                raise UnknownBehavior(self.default, self._registry)
+            if self._gil_switch_interval_s is not None:
+                sys.setswitchinterval(min(sys.getswitchinterval(), self._gil_switch_interval_s))
+            self._state = ManagerState.RUNNING
+            self._worker = threading.Thread(target=self._work, name="beehave:high-level",
+                                            daemon=True)
+            self._worker.start()
+        self.switch(self.default)
+
+    def shutdown(self) -> None:
+        """Stop the top-level behaviour (bounded by ``stop_timeout_s``), end the manager's
+        thread, and wait (again at most ``stop_timeout_s``) for STUCK threads to end."""
+        with self._cond:
+            if self._state in (ManagerState.NEW, ManagerState.STOPPED):
+                self._state = ManagerState.STOPPED
+                return
+            self._state = ManagerState.STOPPING
+            self._cond.notify_all()
+            worker = self._worker
+        if worker is not None and worker is not threading.current_thread():
+            worker.join()
+        deadline = time.monotonic() + self.stop_timeout_s
+        with self._cond:
+            stuck = list(self._stuck)
+        for item in stuck:
+            if item._thread is not None:
+                item._thread.join(max(0.0, deadline - time.monotonic()))
+        leftover = [s.path for s in stuck if s.alive]
+        if leftover:
+            log.warning("shutdown: STUCK threads still running after %.1f s: %s",
+                        self.stop_timeout_s, leftover)
+        with self._cond:
+            self._state = ManagerState.STOPPED
+
+    def __enter__(self) -> HighLevelBehaviorManager:
+        self.start()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.shutdown()
+
+    # ------------------------------------------------------------------ switching
+    def switch(self, name: str, **params: Any) -> Behavior:
+        """Replace the top-level behaviour by a new ``name`` behaviour and return it.
+
+        Returns once the old behaviour has ended (or was declared STUCK after
+        ``stop_timeout_s``) and the new one runs. Raises :class:`UnknownBehavior` (listing
+        the names) or :class:`InvalidParameters` before anything is stopped, and
+        :class:`SwitchSuperseded` when a later request overtook this one. Called from a
+        behaviour of this manager, it only queues the request (waiting would wait for
+        itself) and returns the new, not yet started, behaviour.
+        """
+        if self._state is ManagerState.NEW:
+            self.start()
+        try:
+            behavior = self._construct(name, params)
+        except BeehaveError as exc:
+            self.events.emit(Event(EventKind.SWITCH_REJECTED, name, error=exc))
+            raise
+        request = _Request(name, behavior)
+        with self._cond:
+            if self._state is not ManagerState.RUNNING:
+                raise ManagerShutdown(f"cannot switch to {name!r}: the manager is "
+                                      f"{self._state.value}")
+            self._pending.append(request)
+            self._cond.notify_all()
+        self.events.emit(Event(EventKind.SWITCH_REQUESTED, name, detail={"params": _jsonable(params)}))
+        caller = current()
+        if caller is not None and caller._manager is self:
+            return behavior
+        request.done.wait()
+        if request.error is not None:
+            raise request.error
+        return behavior
+
+    @property
+    def current(self) -> str | None:
+        """The name of the running top-level behaviour (None while switching)."""
+        return self._top_name
+
+    @property
+    def top(self) -> Behavior | None:
+        """The running top-level behaviour object."""
+        return self._top
+
+    def subscribe(self, callback: EventCallback) -> Callable[[], None]:
+        """Receive every lifecycle :class:`~beehave.events.Event`; returns an unsubscribe
+        function. Callbacks run in the thread that produced the event: keep them short."""
+        return self.events.subscribe(callback)
+
+    @property
+    def history(self) -> list[dict[str, Any]]:
+        """Ended top-level behaviours, oldest first: name, status, error, duration."""
+        with self._cond:
+            return list(self._history)
+
+    def snapshot(self) -> dict[str, Any]:
+        """A JSON-serialisable picture of what runs now."""
+        top = self._top
+        with self._cond:
+            stuck = sorted(s.path for s in self._stuck)
+            history = list(self._history)[-10:]
+        return {
+            "time": time.time(),
+            "state": self._state.value,
+            "current": self._top_name,
+            "top": None if top is None else top._snapshot(),
+            "locks": self._locks.snapshot(),
+            "stuck": stuck,
+            "history": history,
+        }
+
+    # ------------------------------------------------------------------ the manager thread
+    def _construct(self, name: str, params: dict[str, Any]) -> Behavior:
+        with self._cond:
+            entry = self._registry.get(name)
+            if entry is None:
+                raise UnknownBehavior(name, self._registry)
+        cls, registered = entry
+        merged = {**registered, **params}
+        _check_params(name, cls, merged, partial=False)
+        try:
+            behavior = cls(**merged)
+        except Exception as exc:
+            raise InvalidParameters(f"behavior {name!r} ({cls.__name__}) rejected its "
+                                    f"parameters {_jsonable(merged)}: {exc}") from exc
+        behavior.name = name
+        return behavior
+
+    def _work(self) -> None:
+        while True:
+            with self._cond:
+                while not self._pending and self._state is ManagerState.RUNNING:
+                    self._cond.wait()
+                requests, self._pending = self._pending, []
+                stopping = self._state is not ManagerState.RUNNING
+            if stopping:
+                for request in requests:
+                    request.finish(ManagerShutdown("the manager is shutting down"))
+                self._stop_top()
+                return
+            *superseded, latest = requests
+            for request in superseded:
+                self._supersede(request, latest)
+            if latest.fallback_from is not None and latest.fallback_from is not self._top:
+                latest.finish()
+                continue
+            self._stop_top()
+            with self._cond:
+                overtaken = bool(self._pending)
+            if overtaken:
+                self._supersede(latest, None)
+                continue
+            self._start_top(latest)
+
+    def _supersede(self, request: _Request, by: _Request | None) -> None:
+        later = f" by {by.name!r}" if by is not None else " by a later request"
+        request.finish(SwitchSuperseded(f"switch to {request.name!r} was superseded{later}"))
+        self.events.emit(Event(EventKind.SWITCH_SUPERSEDED, request.name))
+
+    def _stop_top(self) -> None:
+        top = self._top
+        if top is None:
+            return
+        self._top_name = None
+        deadline = time.monotonic() + self.stop_timeout_s
+        top._interrupt(deadline)
+        # The behaviour itself gives up on its children at `deadline`; allow it a moment
+        # to record that before declaring the behaviour itself STUCK.
+        if not top._wait_decided(deadline + _MARGIN_S):
+            top._mark_stuck()
+        elif top._thread is not None:
+            top._thread.join()
+        self._top = None
+
+    def _start_top(self, request: _Request) -> None:
+        behavior = request.behavior
+        behavior._attach(None, self)
+        self._top = behavior
+        self._top_name = request.name
+        behavior._start_thread()
+        request.finish()
+        detail: dict[str, Any] = {}
+        if request.fallback_from is not None:
+            ended = request.fallback_from
+            detail = {"after": ended.name, "status": ended.status.name}
+            self.events.emit(Event(EventKind.FALLBACK, ended.path, ended.status.name,
+                                   ended.error, {"to": request.name}))
+        self.events.emit(Event(EventKind.SWITCH_COMPLETED, request.name, detail=detail))
+
+    # ------------------------------------------------------------------ callbacks from items
+    def _node_ended(self, node: Runnable, was_stuck: bool) -> None:
+        """Called in the item's own thread, as the last thing it does."""
+        with self._cond:
+            if was_stuck:
+                self._stuck.discard(node)
+            if node.parent is not None:
+                return
+            self._history.append({"name": node.name, "status": node.status.name,
+                                  "error": None if node.error is None else repr(node.error),
+                                  "duration_s": node.duration_s})
+            ended_on_its_own = (node is self._top and not node.interrupted
+                                and self._state is ManagerState.RUNNING and not self._pending)
+            if ended_on_its_own:
+                # Nothing else is asked for: fall back to the safe behaviour.
+                self._pending.append(_Request(IDLE, Idle(), fallback_from=node))
+                self._cond.notify_all()
+
+    def _stuck_add(self, node: Runnable) -> None:
+        with self._cond:
+            if node.alive:
+                self._stuck.add(node)
+
+
+_MARGIN_S = 0.05
+
+
+def _check_params(name: str, cls: type[Behavior], params: dict[str, Any], *, partial: bool) -> None:
+    try:
+        signature = inspect.signature(cls)
+    except (TypeError, ValueError):  # builtins without a signature: let the call decide
+        return
+    try:
+        (signature.bind_partial if partial else signature.bind)(**params)
+    except TypeError as exc:
+        accepted = [p for p in signature.parameters if p not in ("args", "kwargs")]
+        raise InvalidParameters(
+            f"behavior {name!r} ({cls.__name__}) rejects parameters {_jsonable(params)}: "
+            f"{exc}; it accepts: {', '.join(accepted) or 'no parameters'}") from exc
+
+
+def _jsonable(params: dict[str, Any]) -> dict[str, Any]:
+    return {k: v if isinstance(v, (str, int, float, bool, type(None))) else repr(v)
+            for k, v in params.items()}
+
+
+__all__ = ["HighLevelBehaviorManager", "ManagerState", "Status"]

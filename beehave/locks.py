@@ -1,0 +1,128 @@
+"""Type locks: at most one running action per ``action_type``, across all behaviours."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from beehave.errors import ActionTypeBusy, Interrupted
+from beehave.events import Event, EventBus, EventKind
+from beehave.status import Status
+
+if TYPE_CHECKING:
+    from beehave.action import Action
+
+
+@dataclass
+class _Hold:
+    holder: Action
+    since: float
+
+
+class TypeLocks:
+    """The lock table of one manager.
+
+    A lock is taken before the action's thread starts and released after its
+    ``safe_state()`` ran, when its thread is about to end — so a STUCK action keeps its
+    type until its ``run`` really returns. Preempting callers queue in FIFO order and the
+    lock passes straight to the head of the queue: no third action can slip in between.
+    """
+
+    def __init__(self, events: EventBus) -> None:
+        self._cond = threading.Condition(threading.RLock())
+        self._held: dict[str, _Hold] = {}
+        self._queues: dict[str, deque[Action]] = {}
+        self._events = events
+
+    def acquire(self, action: Action, *, preempt: bool, timeout_s: float,
+                cancelled: Callable[[], bool]) -> None:
+        """Take ``action.action_type`` for ``action`` or raise :class:`ActionTypeBusy`.
+
+        With ``preempt`` the holder is interrupted and the call waits up to ``timeout_s``
+        for it to end; a holder that ignores the interrupt is marked STUCK (its safe state
+        forced) and ActionTypeBusy is raised. Raises :class:`Interrupted` when
+        ``cancelled()`` becomes true while waiting.
+        """
+        kind = action.action_type
+        with self._cond:
+            queue = self._queues.setdefault(kind, deque())
+            hold = self._held.get(kind)
+            if hold is None and not queue:
+                self._take(kind, action)
+                return
+            if not preempt:
+                blocker = hold.holder if hold else queue[0]
+                self._events.emit(Event(EventKind.LOCK_REJECTED, action.path, detail={
+                    "action_type": kind, "holder": blocker.path}))
+                if hold is None:  # only preemptors waiting: name the one that wins next
+                    raise ActionTypeBusy(kind, blocker, time.monotonic(),
+                                         reason="it is waiting to preempt the type")
+                raise ActionTypeBusy(kind, hold.holder, hold.since)
+            queue.append(action)
+            deadline = time.monotonic() + timeout_s
+            interrupted: set[int] = set()
+            stuck_holder: _Hold | None = None
+            try:
+                while True:
+                    hold = self._held.get(kind)
+                    if hold is None and queue[0] is action:
+                        self._take(kind, action)
+                        return
+                    if cancelled():
+                        raise Interrupted(f"{action.path}: interrupted while waiting to "
+                                          f"preempt action type {kind!r}")
+                    if hold is not None and hold.holder.status is Status.STUCK:
+                        raise ActionTypeBusy(kind, hold.holder, hold.since,
+                                             reason="the holder is STUCK")
+                    if hold is not None and id(hold.holder) not in interrupted:
+                        interrupted.add(id(hold.holder))
+                        self._events.emit(Event(EventKind.LOCK_PREEMPTED, hold.holder.path,
+                                                detail={"action_type": kind,
+                                                        "by": action.path}))
+                        hold.holder.interrupt()
+                        continue
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        stuck_holder = hold
+                        break
+                    self._cond.wait(remaining)
+            finally:
+                queue.remove(action)
+                self._cond.notify_all()
+        # Outside the lock: safe_state() is user code.
+        assert stuck_holder is not None
+        stuck_holder.holder._mark_stuck()
+        raise ActionTypeBusy(kind, stuck_holder.holder, stuck_holder.since,
+                             reason=f"it ignored its interrupt for {timeout_s} s and is STUCK")
+
+    def _take(self, kind: str, action: Action) -> None:
+        self._held[kind] = _Hold(action, time.monotonic())
+        action._locked_at = self._held[kind].since
+
+    def release(self, action: Action) -> None:
+        with self._cond:
+            hold = self._held.get(action.action_type)
+            if hold is not None and hold.holder is action:
+                del self._held[action.action_type]
+                self._cond.notify_all()
+
+    def poke(self) -> None:
+        """Wake preempting waiters so they re-check whether their caller was interrupted."""
+        with self._cond:
+            self._cond.notify_all()
+
+    def holder(self, action_type: str) -> Action | None:
+        with self._cond:
+            hold = self._held.get(action_type)
+            return None if hold is None else hold.holder
+
+    def snapshot(self) -> dict[str, dict[str, Any]]:
+        now = time.monotonic()
+        with self._cond:
+            return {kind: {"holder": h.holder.path, "class": type(h.holder).__name__,
+                           "status": h.holder.status.name, "held_s": now - h.since}
+                    for kind, h in sorted(self._held.items())}

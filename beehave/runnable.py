@@ -1,0 +1,238 @@
+"""The lifecycle that Behavior and Action share: one thread, one Status, cooperative interrupts.
+
+This module is the driver; users subclass :class:`beehave.Behavior` or
+:class:`beehave.Action` and never this class directly. Every status transition happens
+here, under the object's own condition variable, so observers never see a half-made change.
+"""
+
+from __future__ import annotations
+
+import abc
+import threading
+import time
+import traceback
+from typing import TYPE_CHECKING, Any
+
+from beehave.errors import AlreadyStarted, Interrupted
+from beehave.events import Event, EventKind
+from beehave.status import Status
+
+if TYPE_CHECKING:
+    from beehave.behavior import Behavior
+    from beehave.highlevel import HighLevelBehaviorManager
+
+_local = threading.local()
+
+
+def current() -> Runnable | None:
+    """The behaviour or action whose thread is calling, or None."""
+    return getattr(_local, "node", None)
+
+
+class Runnable(abc.ABC):
+    """A unit of work that runs :meth:`run` in a thread of its own, owned by its parent."""
+
+    #: Shown in snapshots and events; defaults to the class name. Set it in ``__init__``.
+    name: str
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> Runnable:
+        # Runtime state lives here so that subclasses need not call super().__init__().
+        self = super().__new__(cls)
+        self.name = cls.__name__
+        self.result: Any = None
+        self.error: BaseException | None = None
+        self.parent: Behavior | None = None
+        self.started_at: float | None = None  # time.monotonic()
+        self.ended_at: float | None = None
+        self._manager: HighLevelBehaviorManager | None = None
+        self._status = Status.PENDING
+        self._interrupt_requested = False
+        self._stop_deadline: float | None = None
+        self._cond = threading.Condition(threading.Lock())
+        self._decided = threading.Event()
+        self._thread: threading.Thread | None = None
+        return self
+
+    # ------------------------------------------------------------------ user hooks
+    @abc.abstractmethod
+    def run(self) -> Any:
+        """Do the work. Called once, in this object's own thread.
+
+        Check :attr:`interrupted` (or use :meth:`sleep`) often and return soon after it
+        becomes true. The return value becomes :attr:`result`; an exception makes the
+        status FAILED with the exception on :attr:`error`.
+        """
+
+    # ------------------------------------------------------------------ handle API
+    @property
+    def status(self) -> Status:
+        return self._status
+
+    @property
+    def interrupted(self) -> bool:
+        """True once an interrupt was requested: wind down and return."""
+        return self._interrupt_requested
+
+    @property
+    def path(self) -> str:
+        """``parent/…/name``: where this sits in the running tree."""
+        return self.name if self.parent is None else f"{self.parent.path}/{self.name}"
+
+    @property
+    def alive(self) -> bool:
+        """True while its thread runs (a STUCK item stays alive until its ``run`` returns)."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def sleep(self, seconds: float) -> bool:
+        """Wait ``seconds``; return False at once when interrupted, True otherwise."""
+        deadline = time.monotonic() + seconds
+        with self._cond:
+            while not self._wake_reason():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._cond.wait(remaining)
+            self._raise_pending()
+            return not self._interrupt_requested
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until the outcome is decided (any final status, STUCK included).
+
+        Returns False on timeout. A behaviour that waits for its own child this way has
+        seen the outcome, so a failure of that child is not raised again as ChildFailed.
+        """
+        done = self._decided.wait(timeout)
+        if done and self.parent is not None:
+            self.parent._observed(self)
+        return done
+
+    def interrupt(self) -> None:
+        """Ask it to stop (cooperatively). Safe from any thread; idempotent."""
+        self._interrupt(None)
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.path!r} {self._status.name}>"
+
+    # ------------------------------------------------------------------ driver
+    def _attach(self, parent: Behavior | None, manager: HighLevelBehaviorManager) -> None:
+        with self._cond:
+            if self._manager is not None:
+                raise AlreadyStarted(
+                    f"{type(self).__name__} {self.name!r} was already started "
+                    f"(status {self._status.name}); create a new object for each run")
+            self._manager = manager
+            self.parent = parent
+
+    def _start_thread(self) -> None:
+        thread = threading.Thread(target=self._main, name=f"beehave:{self.path}", daemon=True)
+        with self._cond:
+            self._thread = thread
+            self._status = Status.RUNNING
+            self.started_at = time.monotonic()
+        thread.start()
+
+    def _main(self) -> None:
+        _local.node = self
+        assert self._manager is not None
+        self._manager.events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name))
+        error: BaseException | None = None
+        try:
+            self.result = self.run()
+        except BaseException as exc:  # recorded on the handle and surfaced to the parent
+            error = exc
+        error = self._after_run(error)
+        self._finish(error)
+
+    def _after_run(self, error: BaseException | None) -> BaseException | None:
+        """Behavior ends its children here; returns the error that decides the status."""
+        return error
+
+    def _finish(self, error: BaseException | None) -> None:
+        with self._cond:
+            was_stuck = self._status is Status.STUCK
+            if was_stuck:
+                status = Status.STUCK
+            elif error is None:
+                status = Status.INTERRUPTED if self._interrupt_requested else Status.SUCCEEDED
+            elif isinstance(error, Interrupted) and self._interrupt_requested:
+                status = Status.INTERRUPTED
+            else:
+                status = Status.FAILED
+            if status is Status.FAILED:
+                self.error = error
+                self._traceback = "".join(traceback.format_exception(error))
+            self._status = status
+            self.ended_at = time.monotonic()
+        if not was_stuck and status is not Status.SUCCEEDED:
+            self._enter_safe_state()
+        self._release()
+        self._decided.set()
+        assert self._manager is not None
+        kind = EventKind.STUCK_RELEASED if was_stuck else EventKind.ENDED
+        self._manager.events.emit(Event(kind, self.path, status.name, self.error,
+                                        {"duration_s": self.duration_s}))
+        if self.parent is not None:
+            self.parent._child_ended(self)
+        self._manager._node_ended(self, was_stuck)
+
+    def _mark_stuck(self) -> None:
+        """Its owner stopped waiting: force the safe state; the thread may end later."""
+        with self._cond:
+            if self._status is not Status.RUNNING:
+                return
+            self._status = Status.STUCK
+            self.ended_at = time.monotonic()
+        assert self._manager is not None
+        self._manager._stuck_add(self)
+        self._manager.events.emit(Event(EventKind.STUCK, self.path, Status.STUCK.name))
+        self._enter_safe_state()
+        self._decided.set()
+
+    def _interrupt(self, deadline: float | None) -> None:
+        with self._cond:
+            if self._interrupt_requested:
+                return
+            self._interrupt_requested = True
+            self._stop_deadline = deadline
+            self._cond.notify_all()
+        self._on_interrupt(deadline)
+
+    def _on_interrupt(self, deadline: float | None) -> None:
+        """Behavior passes the interrupt to its children; Action wakes lock waiters."""
+
+    def _enter_safe_state(self) -> None:
+        """Action calls ``safe_state()``; a behaviour has no hardware of its own."""
+
+    def _release(self) -> None:
+        """Action releases its type lock (after its safe state)."""
+
+    def _wake_reason(self) -> bool:
+        return self._interrupt_requested
+
+    def _raise_pending(self) -> None:
+        """Behavior raises ChildFailed here; called with ``_cond`` held."""
+
+    def _wait_decided(self, deadline: float) -> bool:
+        return self._decided.wait(max(0.0, deadline - time.monotonic()))
+
+    @property
+    def duration_s(self) -> float | None:
+        if self.started_at is None:
+            return None
+        end = self.ended_at if self.ended_at is not None else time.monotonic()
+        return end - self.started_at
+
+    def _snapshot(self) -> dict[str, Any]:
+        started_wall = None
+        if self.started_at is not None:
+            started_wall = time.time() - (time.monotonic() - self.started_at)
+        return {
+            "name": self.name,
+            "path": self.path,
+            "class": type(self).__name__,
+            "status": self._status.name,
+            "started_at": started_wall,
+            "duration_s": self.duration_s,
+            "alive": self.alive,
+            "error": None if self.error is None else repr(self.error),
+        }

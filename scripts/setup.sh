@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Idempotent set-up: Debian packages when missing, then a virtualenv with everything.
+set -euo pipefail
+venv=${1:-.venv}
+export DEBIAN_FRONTEND=noninteractive
+
+need_apt=()
+command -v dot >/dev/null 2>&1 || need_apt+=(graphviz)
+if [ ${#need_apt[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ]; then
+    apt-get update -qq && apt-get install -y -qq "${need_apt[@]}" >/dev/null
+  else
+    echo "setup: missing Debian packages (${need_apt[*]}); install them with apt-get" >&2
+  fi
+fi
+
+[ -x "$venv/bin/python" ] || python3 -m venv "$venv"
+"$venv/bin/python" -m pip install -q --upgrade pip
+# torch first and pinned: anything unpinned would pull the CUDA build.
+"$venv/bin/python" -m pip install -q "torch==2.13.0"
+"$venv/bin/python" -m pip install -q -e ".[fast,ros,sim,engines,nn,dev]"
