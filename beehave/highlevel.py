@@ -293,17 +293,17 @@ class HighLevelBehaviorManager:
 
     def _start_top(self, request: _Request) -> None:
         behavior = request.behavior
+        detail: dict[str, Any] = {}
+        ended = request.fallback_from
+        if ended is not None:
+            detail = {"after": ended.name, "status": ended.status.name}
+            self.events.emit(Event(EventKind.FALLBACK, ended.path, ended.status.name,
+                                   ended.error, {"to": request.name}))
         behavior._attach(None, self)
         self._top = behavior
         self._top_name = request.name
         behavior._start_thread()
         request.finish()
-        detail: dict[str, Any] = {}
-        if request.fallback_from is not None:
-            ended = request.fallback_from
-            detail = {"after": ended.name, "status": ended.status.name}
-            self.events.emit(Event(EventKind.FALLBACK, ended.path, ended.status.name,
-                                   ended.error, {"to": request.name}))
         self.events.emit(Event(EventKind.SWITCH_COMPLETED, request.name, detail=detail))
 
     # ------------------------------------------------------------------ callbacks from items
@@ -316,12 +316,14 @@ class HighLevelBehaviorManager:
                 return
             self._history.append({"name": node.name, "status": node.status.name,
                                   "error": None if node.error is None else repr(node.error),
-                                  "duration_s": node.duration_s})
+                                  "elapsed_s": node.elapsed_s})
             ended_on_its_own = (node is self._top and not node.interrupted
                                 and self._state is ManagerState.RUNNING and not self._pending)
             if ended_on_its_own:
                 # Nothing else is asked for: fall back to the safe behaviour.
-                self._pending.append(_Request(IDLE, Idle(), fallback_from=node))
+                idle = Idle()
+                idle.name = IDLE
+                self._pending.append(_Request(IDLE, idle, fallback_from=node))
                 self._cond.notify_all()
 
     def _stuck_add(self, node: Runnable) -> None:

@@ -170,7 +170,7 @@ class Runnable(abc.ABC):
         assert self._manager is not None
         kind = EventKind.STUCK_RELEASED if was_stuck else EventKind.ENDED
         self._manager.events.emit(Event(kind, self.path, status.name, self.error,
-                                        {"duration_s": self.duration_s}))
+                                        {"elapsed_s": self.elapsed_s}))
         if self.parent is not None:
             self.parent._child_ended(self)
         self._manager._node_ended(self, was_stuck)
@@ -216,7 +216,7 @@ class Runnable(abc.ABC):
         return self._decided.wait(max(0.0, deadline - time.monotonic()))
 
     @property
-    def duration_s(self) -> float | None:
+    def elapsed_s(self) -> float | None:
         if self.started_at is None:
             return None
         end = self.ended_at if self.ended_at is not None else time.monotonic()
@@ -232,7 +232,7 @@ class Runnable(abc.ABC):
             "class": type(self).__name__,
             "status": self._status.name,
             "started_at": started_wall,
-            "duration_s": self.duration_s,
+            "elapsed_s": self.elapsed_s,
             "alive": self.alive,
             "error": None if self.error is None else repr(self.error),
         }

@@ -1,0 +1,350 @@
+"""HAL plugins: what the low level knows about hardware, and the manager that loads them.
+
+A HAL (hardware abstraction layer) keeps blackboard entries current (battery, buttons,
+pose …) and offers methods that logics call to drive the hardware (LEDs, display …)::
+
+    class BatteryHAL(HAL):
+        name = "battery"
+
+        async def run(self) -> None:          # optional: keep the blackboard current
+            while True:
+                self.blackboard.set("battery/percentage", read_adc())
+                await asyncio.sleep(0.5)
+
+        def safe_state(self) -> None:         # optional: leave the hardware predictable
+            ...
+
+Logics ask for a HAL by name (``await self.hal("battery")``); the :class:`HALManager`
+loads it on first request, shares the one instance among all logics, and stops it (then
+calls ``safe_state()``) when the last logic using it ends. A ``run()`` that raises is
+restarted with bounded exponential backoff; meanwhile the HAL's entries read as stale.
+
+HALs are found by the name given to :meth:`HALManager.register`, or through the
+``beehave.hals`` entry-point group, so a third-party package can add one::
+
+    [project.entry-points."beehave.hals"]
+    battery = "my_robot.hals:BatteryHAL"
+"""
+
+from __future__ import annotations
+
+import asyncio
+import importlib.metadata
+import inspect
+import logging
+import time
+from collections.abc import Awaitable
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, TypeVar
+
+from beehave.blackboard import Blackboard, BlackboardClient
+from beehave.errors import HALError, InvalidParameters, ManagerShutdown, UnknownHAL
+from beehave.events import Event, EventBus, EventKind
+from beehave.status import Status
+
+log = logging.getLogger(__name__)
+
+__all__ = ["HAL", "HALManager", "ENTRY_POINT_GROUP"]
+
+ENTRY_POINT_GROUP = "beehave.hals"
+
+H = TypeVar("H", bound="HAL")
+
+
+class HAL:
+    """Base class of HAL plugins. Nothing must be overridden; set the ``name``.
+
+    The manager creates the instance (``self.blackboard`` is already there in
+    ``__init__``, which receives the parameters given to :meth:`HALManager.register`) and
+    runs, in this order: :meth:`on_load`, :meth:`run` (as a supervised task), and at unload
+    :meth:`safe_state`. Calling ``super().__init__()`` is not needed.
+    """
+
+    name: ClassVar[str] = ""
+    """The name logics ask for (``await self.hal("debug")``)."""
+
+    blackboard: BlackboardClient
+    """The blackboard, writing as ``"hal:<name>"``."""
+    status: Status
+    """RUNNING while loaded and its ``run`` is healthy; FAILED between a crash and its
+    restart; INTERRUPTED once unloaded."""
+    error: BaseException | None
+    """The last exception ``run`` raised (kept after a restart)."""
+    restarts: int
+    """How many times ``run`` was restarted after a crash."""
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> HAL:
+        self = super().__new__(cls)
+        self.status = Status.PENDING
+        self.error = None
+        self.restarts = 0
+        return self
+
+    async def on_load(self) -> None:
+        """Called once when the HAL is loaded, before any logic gets it: open devices,
+        publish the initial state. Raising here makes the load fail with :class:`HALError`."""
+
+    async def run(self) -> None:
+        """Keep the blackboard current (optional). Runs as a task while the HAL is loaded;
+        cancelled at unload. If it raises, it is called again after a backoff, on the same
+        instance, so it must be restartable. Returning ends it for good (the HAL stays
+        loaded)."""
+
+    def safe_state(self) -> None | Awaitable[None]:
+        """Leave the hardware predictable (LEDs off, motors stopped). Called once when the
+        HAL is unloaded; may be a coroutine function."""
+        return None
+
+
+@dataclass
+class _Loaded:
+    hal: HAL
+    owners: list[object] = field(default_factory=list)
+    ready: asyncio.Task[None] | None = None
+    task: asyncio.Task[None] | None = None
+    loaded_at: float = field(default_factory=time.monotonic)
+
+
+_ANON = object()
+
+
+class HALManager:
+    """Loads HAL plugins on request, shares them, restarts crashed ones, unloads unused ones.
+
+    ``backoff_initial_s`` is the first restart delay after a crash; it doubles per crash up
+    to ``backoff_max_s`` and starts again from the beginning once ``run`` stayed up for
+    ``backoff_max_s``. Loading and releasing happen in the low level's loop.
+    """
+
+    def __init__(self, blackboard: Blackboard | None = None, *, events: EventBus | None = None,
+                 backoff_initial_s: float = 0.1, backoff_max_s: float = 5.0) -> None:
+        self.blackboard = blackboard if blackboard is not None else Blackboard()
+        self.events = events if events is not None else EventBus(log)
+        self.backoff_initial_s = backoff_initial_s
+        self.backoff_max_s = backoff_max_s
+        self._registry: dict[str, tuple[type[HAL], dict[str, Any]]] = {}
+        self._entry_points: dict[str, importlib.metadata.EntryPoint] | None = None
+        self._loaded: dict[str, _Loaded] = {}
+        self._closed = False
+
+    # -- registry ------------------------------------------------------------------------
+
+    def register(self, hal_cls: type[HAL], *, name: str | None = None, **params: Any) -> None:
+        """Make ``hal_cls`` loadable under ``name`` (default: its ``name`` attribute);
+        ``params`` go to its constructor. Registering replaces an entry point of that name."""
+        if not (isinstance(hal_cls, type) and issubclass(hal_cls, HAL)):
+            raise HALError(f"{hal_cls!r} is not a HAL subclass")
+        hal_name = name or hal_cls.name
+        if not hal_name:
+            raise HALError(f"HAL class {hal_cls.__qualname__} has no name; set the class "
+                           "attribute `name` or pass name=")
+        check_params(hal_cls, hal_name, params)
+        self._registry[hal_name] = (hal_cls, dict(params))
+
+    def _discover(self) -> dict[str, importlib.metadata.EntryPoint]:
+        if self._entry_points is None:
+            eps = importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)
+            self._entry_points = {ep.name: ep for ep in eps}
+        return self._entry_points
+
+    def available(self) -> list[str]:
+        """Every HAL name that can be loaded: registered ones and entry points."""
+        return sorted({*self._registry, *self._discover()})
+
+    def resolve(self, name: str) -> tuple[type[HAL], dict[str, Any]]:
+        """The class and parameters ``name`` stands for; imports an entry point if needed."""
+        if name in self._registry:
+            return self._registry[name]
+        ep = self._discover().get(name)
+        if ep is None:
+            raise UnknownHAL(name, self.available())
+        try:
+            cls = ep.load()
+        except Exception as exc:
+            raise HALError(f"HAL {name!r}: cannot import entry point {ep.value!r} of group "
+                           f"{ENTRY_POINT_GROUP!r}: {exc!r}") from exc
+        if not (isinstance(cls, type) and issubclass(cls, HAL)):
+            raise HALError(f"HAL {name!r}: entry point {ep.value!r} is {cls!r}, not a HAL "
+                           "subclass")
+        self._registry[name] = (cls, {})
+        return self._registry[name]
+
+    # -- loading -------------------------------------------------------------------------
+
+    @property
+    def loaded(self) -> dict[str, HAL]:
+        """The HALs that are loaded now, by name."""
+        return {n: e.hal for n, e in self._loaded.items() if e.ready is None}
+
+    def refs(self, name: str) -> int:
+        """How many references hold ``name`` loaded (0 when it is not loaded)."""
+        entry = self._loaded.get(name)
+        return 0 if entry is None else len(entry.owners)
+
+    async def load(self, name: str, *, owner: object | None = None) -> HAL:
+        """Load HAL ``name`` if needed and return the shared instance.
+
+        Each call takes one reference for ``owner``; one owner holds at most one reference
+        (a logic asking twice gets the same instance). Without an owner every call takes a
+        reference of its own; give it back with :meth:`release`. Raises
+        :class:`~beehave.errors.UnknownHAL` listing the available names.
+        """
+        if self._closed:
+            raise ManagerShutdown(f"HAL manager is shut down; cannot load HAL {name!r}")
+        entry = self._loaded.get(name)
+        if entry is None:
+            cls, params = self.resolve(name)
+            hal = cls.__new__(cls)
+            entry = _Loaded(hal)
+            self._loaded[name] = entry
+            entry.ready = asyncio.get_running_loop().create_task(
+                self._start(name, entry, cls, params), name=f"hal:{name}:load")
+        key = _ANON if owner is None else owner
+        if key is _ANON or not any(o is key for o in entry.owners):
+            entry.owners.append(key)
+        try:
+            if entry.ready is not None:
+                await asyncio.shield(entry.ready)
+        except BaseException:
+            await self.release(name, owner=owner)
+            raise
+        return entry.hal
+
+    async def _start(self, name: str, entry: _Loaded, cls: type[HAL],
+                     params: dict[str, Any]) -> None:
+        hal = entry.hal
+        client = self.blackboard.client(f"hal:{name}")
+        hal.blackboard = client
+        try:
+            hal.__init__(**params)  # type: ignore[misc]  # __new__ ran above, on purpose
+            await hal.on_load()
+        except Exception as exc:
+            self._loaded.pop(name, None)
+            client.close()
+            hal.status = Status.FAILED
+            hal.error = exc
+            self.events.emit(Event(EventKind.ENDED, f"hal:{name}", Status.FAILED.name, exc))
+            raise HALError(f"HAL {name!r} failed to load: {exc!r}") from exc
+        hal.status = Status.RUNNING
+        entry.task = asyncio.get_running_loop().create_task(self._supervise(name, hal),
+                                                            name=f"hal:{name}")
+        entry.ready = None
+        self.events.emit(Event(EventKind.STARTED, f"hal:{name}", Status.RUNNING.name))
+
+    async def _supervise(self, name: str, hal: HAL) -> None:
+        delay = self.backoff_initial_s
+        writer = f"hal:{name}"
+        while True:
+            started = time.monotonic()
+            try:
+                await hal.run()
+                return
+            except Exception as exc:
+                hal.status = Status.FAILED
+                hal.error = exc
+                stale = self.blackboard.mark_stale(writer=writer)
+                if time.monotonic() - started >= self.backoff_max_s:
+                    delay = self.backoff_initial_s
+                self.events.emit(Event(EventKind.ENDED, writer, Status.FAILED.name, exc,
+                                       {"restart_in_s": delay, "stale_keys": stale}))
+            await asyncio.sleep(delay)
+            hal.restarts += 1
+            hal.status = Status.RUNNING
+            self.events.emit(Event(EventKind.RESTARTED, writer, Status.RUNNING.name, hal.error,
+                                   {"restarts": hal.restarts, "after_s": delay}))
+            delay = min(delay * 2, self.backoff_max_s)
+
+    async def release(self, name: str, *, owner: object | None = None) -> None:
+        """Give back ``owner``'s reference; the last one unloads the HAL (cancels ``run``,
+        calls ``safe_state()``, marks its entries stale). Unknown references are ignored."""
+        entry = self._loaded.get(name)
+        if entry is None:
+            return
+        key = _ANON if owner is None else owner
+        for i, o in enumerate(entry.owners):
+            if o is key:
+                del entry.owners[i]
+                break
+        else:
+            return
+        if not entry.owners and entry.ready is None:
+            await self._unload(name, entry)
+
+    async def _unload(self, name: str, entry: _Loaded) -> None:
+        if self._loaded.get(name) is entry:
+            del self._loaded[name]
+        hal = entry.hal
+        writer = f"hal:{name}"
+        task = entry.task
+        if task is not None and not task.done():
+            task.cancel()
+            await _wait_ignoring_cancel(task)
+        try:
+            result = hal.safe_state()
+            if inspect.isawaitable(result):
+                await result
+        except Exception as exc:
+            hal.error = exc
+            self.events.emit(Event(EventKind.SAFE_STATE_FAILED, writer, hal.status.name, exc))
+        hal.blackboard.close()
+        self.blackboard.mark_stale(writer=writer)
+        hal.status = Status.INTERRUPTED
+        self.events.emit(Event(EventKind.ENDED, writer, Status.INTERRUPTED.name))
+
+    async def unload(self, name: str) -> None:
+        """Unload HAL ``name`` now, whoever holds it (used at shutdown)."""
+        entry = self._loaded.get(name)
+        if entry is None:
+            return
+        if entry.ready is not None:
+            await _wait_ignoring_cancel(entry.ready)
+            if self._loaded.get(name) is not entry:
+                return
+        entry.owners.clear()
+        await self._unload(name, entry)
+
+    async def close(self) -> None:
+        """Unload every HAL and refuse new loads."""
+        self._closed = True
+        for name in list(self._loaded):
+            await self.unload(name)
+
+    def snapshot(self) -> dict[str, dict[str, Any]]:
+        """``{name: {status, refs, restarts, error, loaded_s}}`` for the loaded HALs."""
+        now = time.monotonic()
+        return {name: {"status": e.hal.status.name, "refs": len(e.owners),
+                       "restarts": e.hal.restarts,
+                       "error": None if e.hal.error is None else repr(e.hal.error),
+                       "loaded_s": round(now - e.loaded_at, 3)}
+                for name, e in list(self._loaded.items())}
+
+
+async def _wait_ignoring_cancel(task: asyncio.Future[Any]) -> None:
+    """Wait for ``task`` to end even if we are cancelled meanwhile (then re-raise), so no
+    task outlives its owner."""
+    cancelled = False
+    while not task.done():
+        try:
+            await asyncio.wait({task})
+        except asyncio.CancelledError:
+            cancelled = True
+    if cancelled:
+        raise asyncio.CancelledError
+
+
+def check_params(cls: type, name: str, params: dict[str, Any]) -> None:
+    """Raise :class:`InvalidParameters` when ``cls(**params)`` would be rejected by its
+    ``__init__`` (checked before anything is started or stopped)."""
+    init = cls.__init__  # type: ignore[misc]
+    if init is object.__init__:
+        if params:
+            raise InvalidParameters(f"{cls.__qualname__} {name!r} takes no parameters, got "
+                                    f"{sorted(params)}")
+        return
+    try:
+        inspect.signature(init).bind(None, **params)
+    except TypeError as exc:
+        raise InvalidParameters(f"{cls.__qualname__} {name!r} rejects parameters "
+                                f"{sorted(params)}: {exc}") from exc
+    except ValueError:  # no signature available: let the constructor decide
+        pass
