@@ -6,7 +6,7 @@ lock); :meth:`Behavior.start_action` takes it and the action gives it back when 
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Self
 
 from beehave.events import Event, EventKind
 from beehave.runnable import Runnable
@@ -49,11 +49,15 @@ class Action(Runnable):
             raise TypeError(f"{cls.__name__}.action_type must be a str, "
                             f"not {type(cls.action_type).__name__}")
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> Action:
+    #: The exception ``safe_state()`` raised, if it did.
+    safe_state_error: BaseException | None
+    _locked_at: float | None
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
-        self.safe_state_error: BaseException | None = None
-        self._locked_at: float | None = None
-        return self  # type: ignore[return-value]
+        self.safe_state_error = None
+        self._locked_at = None
+        return self
 
     def safe_state(self) -> None:
         """Leave the hardware this action controls predictable (e.g. zero velocity).

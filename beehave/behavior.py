@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from typing import Any, TypeVar
+from typing import Any, Self, TypeVar
 
 from beehave.action import Action
 from beehave.errors import ChildFailed, Interrupted, NotASubclass
@@ -27,12 +27,16 @@ class Behavior(Runnable):
     Catch it to carry on.
     """
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> Behavior:
+    _children: list[Runnable]
+    _unobserved_failures: list[Runnable]
+    _accepting: bool
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
-        self._children: list[Runnable] = []
-        self._unobserved_failures: list[Runnable] = []
+        self._children = []
+        self._unobserved_failures = []
         self._accepting = True
-        return self  # type: ignore[return-value]
+        return self
 
     def start_action(self, action: A, *, preempt: bool = False) -> A:
         """Start ``action`` in its own thread and return it (the handle).

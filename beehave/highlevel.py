@@ -317,9 +317,10 @@ class HighLevelBehaviorManager:
             self._history.append({"name": node.name, "status": node.status.name,
                                   "error": None if node.error is None else repr(node.error),
                                   "elapsed_s": node.elapsed_s})
-            ended_on_its_own = (node is self._top and not node.interrupted
+            ended_on_its_own = (isinstance(node, Behavior) and node is self._top and not node.interrupted
                                 and self._state is ManagerState.RUNNING and not self._pending)
             if ended_on_its_own:
+                assert isinstance(node, Behavior)
                 # Nothing else is asked for: fall back to the safe behaviour.
                 idle = Idle()
                 idle.name = IDLE

@@ -11,7 +11,7 @@ import abc
 import threading
 import time
 import traceback
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Self
 
 from beehave.errors import AlreadyStarted, Interrupted
 from beehave.events import Event, EventKind
@@ -34,23 +34,40 @@ class Runnable(abc.ABC):
 
     #: Shown in snapshots and events; defaults to the class name. Set it in ``__init__``.
     name: str
+    #: ``run``'s return value once SUCCEEDED.
+    result: Any
+    #: The exception ``run`` raised (FAILED), with its ``__traceback__``.
+    error: BaseException | None
+    #: The behaviour that started it (None for a top-level behaviour).
+    parent: Behavior | None
+    started_at: float | None
+    ended_at: float | None
+    _manager: HighLevelBehaviorManager | None
+    _status: Status
+    _interrupt_requested: bool
+    _stop_deadline: float | None
+    _cond: threading.Condition
+    _decided: threading.Event
+    _thread: threading.Thread | None
+    _traceback: str
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> Runnable:
+    def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         # Runtime state lives here so that subclasses need not call super().__init__().
         self = super().__new__(cls)
         self.name = cls.__name__
-        self.result: Any = None
-        self.error: BaseException | None = None
-        self.parent: Behavior | None = None
-        self.started_at: float | None = None  # time.monotonic()
-        self.ended_at: float | None = None
-        self._manager: HighLevelBehaviorManager | None = None
+        self.result = None
+        self.error = None
+        self.parent = None
+        self.started_at = None  # time.monotonic()
+        self.ended_at = None
+        self._manager = None
+        self._traceback = ""
         self._status = Status.PENDING
         self._interrupt_requested = False
-        self._stop_deadline: float | None = None
+        self._stop_deadline = None
         self._cond = threading.Condition(threading.Lock())
         self._decided = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._thread = None
         return self
 
     # ------------------------------------------------------------------ user hooks
