@@ -8,10 +8,22 @@ locks, runtime switching with :class:`HighLevelBehaviorManager`), :class:`Logic`
 
 from beehave.action import Action
 from beehave.behavior import Behavior, Idle
-from beehave.errors import (ActionTypeBusy, AlreadyStarted, BeehaveError, ChildFailed,
-                            ConfigError, Interrupted, InvalidParameters, ManagerShutdown,
-                            NotASubclass, SwitchSuperseded, UnknownBehavior, UnknownHAL,
-                            UnknownLogic, UnknownNameError)
+from beehave.errors import (
+                            ActionTypeBusy,
+                            AlreadyStarted,
+                            BeehaveError,
+                            ChildFailed,
+                            ConfigError,
+                            Interrupted,
+                            InvalidParameters,
+                            ManagerShutdown,
+                            NotASubclass,
+                            SwitchSuperseded,
+                            UnknownBehavior,
+                            UnknownHAL,
+                            UnknownLogic,
+                            UnknownNameError,
+)
 from beehave.events import Event, EventKind
 from beehave.highlevel import HighLevelBehaviorManager
 from beehave.status import Status

@@ -123,8 +123,8 @@ class Behavior(Runnable):
             if not child._wait_decided(deadline):
                 child._mark_stuck()
         for child in children:
-            if child.status is not Status.STUCK and child._thread is not None:
-                child._thread.join()  # it has decided; its thread is just finishing
+            if child.status is not Status.STUCK:
+                child._join()  # it has decided; its clean-up is just finishing
         with self._cond:
             if error is None and not self._interrupt_requested and self._unobserved_failures:
                 failed = self._unobserved_failures[0]

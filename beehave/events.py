@@ -90,7 +90,8 @@ class EventBus:
         return unsubscribe
 
     def emit(self, event: Event) -> None:
-        level = logging.WARNING if event.kind in _WARN else logging.DEBUG
+        warn = event.kind in _WARN or (event.kind is EventKind.FALLBACK and event.error is not None)
+        level = logging.WARNING if warn else logging.DEBUG
         if self._log.isEnabledFor(level):
             self._log.log(level, "%s %s%s%s", event.kind.value, event.subject,
                           f" {event.status}" if event.status else "",
@@ -102,4 +103,4 @@ class EventBus:
                 self._log.exception("event subscriber %r raised on %s", callback, event.kind)
 
 
-_WARN = {EventKind.STUCK, EventKind.SAFE_STATE_FAILED, EventKind.FALLBACK, EventKind.RESTARTED}
+_WARN = {EventKind.STUCK, EventKind.SAFE_STATE_FAILED, EventKind.RESTARTED}

@@ -12,15 +12,23 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any
+from typing import Any, Self
 
 from beehave.behavior import Behavior, Idle
-from beehave.errors import (BeehaveError, ConfigError, InvalidParameters, ManagerShutdown,
-                            NotASubclass, SwitchSuperseded, UnknownBehavior)
+from beehave.errors import (
+    BeehaveError,
+    ConfigError,
+    InvalidParameters,
+    ManagerShutdown,
+    NotASubclass,
+    SwitchSuperseded,
+    UnknownBehavior,
+)
 from beehave.events import Event, EventBus, EventCallback, EventKind
 from beehave.locks import TypeLocks
 from beehave.runnable import Runnable, current
 from beehave.status import Status
+from beehave.threads import WorkerPool
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +61,8 @@ class HighLevelBehaviorManager:
     ``switch(name)`` interrupts the running one, waits until every sub-behaviour and
     action has ended (at most ``stop_timeout_s``; stragglers become STUCK and their
     ``safe_state()`` is forced) and starts the next. Switches are executed one at a time
-    by the manager's own thread; concurrent requests resolve to the latest, the earlier
-    ones raise :class:`SwitchSuperseded`.
+    one at a time; concurrent requests resolve to the latest, the earlier ones raise
+    :class:`SwitchSuperseded`.
 
     Options (keyword-only): ``default`` is the behaviour started by :meth:`start`;
     ``stop_timeout_s`` bounds every stop; ``node`` is an rclpy node the ROS 2 bridge may
@@ -78,10 +86,12 @@ class HighLevelBehaviorManager:
         self._cond = threading.Condition()
         self._state = ManagerState.NEW
         self._pending: list[_Request] = []
-        self._worker: threading.Thread | None = None
+        self._switch_lock = threading.Lock()
+        self._executor: int | None = None  # the thread executing switches now
         self._top: Behavior | None = None
         self._top_name: str | None = None
         self._stuck: set[Runnable] = set()
+        self._pool = WorkerPool()
         self._history: deque[dict[str, Any]] = deque(maxlen=history_len)
 
     # ------------------------------------------------------------------ registry
@@ -113,43 +123,32 @@ class HighLevelBehaviorManager:
             if self._state is not ManagerState.NEW:
                 if self._state is ManagerState.RUNNING:
                     return
-                raise ManagerShutdown("this HighLevelBehaviorManager was shut down; create a new one")
+                raise ManagerShutdown(
+                    "this HighLevelBehaviorManager was shut down; create a new one")
             if self.default not in self._registry:
                 raise UnknownBehavior(self.default, self._registry)
             if self._gil_switch_interval_s is not None:
                 sys.setswitchinterval(min(sys.getswitchinterval(), self._gil_switch_interval_s))
             self._state = ManagerState.RUNNING
-            self._worker = threading.Thread(target=self._work, name="beehave:high-level",
-                                            daemon=True)
-            self._worker.start()
         self.switch(self.default)
 
     def shutdown(self) -> None:
-        """Stop the top-level behaviour (bounded by ``stop_timeout_s``), end the manager's
-        thread, and wait (again at most ``stop_timeout_s``) for STUCK threads to end."""
+        """Stop the top-level behaviour (bounded by ``stop_timeout_s``), then join the
+        manager's threads, waiting at most ``stop_timeout_s`` more for STUCK ones."""
         with self._cond:
             if self._state in (ManagerState.NEW, ManagerState.STOPPED):
                 self._state = ManagerState.STOPPED
                 return
             self._state = ManagerState.STOPPING
-            self._cond.notify_all()
-            worker = self._worker
-        if worker is not None and worker is not threading.current_thread():
-            worker.join()
-        deadline = time.monotonic() + self.stop_timeout_s
-        with self._cond:
-            stuck = list(self._stuck)
-        for item in stuck:
-            if item._thread is not None:
-                item._thread.join(max(0.0, deadline - time.monotonic()))
-        leftover = [s.path for s in stuck if s.alive]
+        self._process()
+        leftover = self._pool.shutdown(timeout_s=self.stop_timeout_s)
         if leftover:
             log.warning("shutdown: STUCK threads still running after %.1f s: %s",
-                        self.stop_timeout_s, leftover)
+                        self.stop_timeout_s, [t.name for t in leftover])
         with self._cond:
             self._state = ManagerState.STOPPED
 
-    def __enter__(self) -> HighLevelBehaviorManager:
+    def __enter__(self) -> Self:
         self.start()
         return self
 
@@ -182,11 +181,16 @@ class HighLevelBehaviorManager:
                                       f"{self._state.value}")
             self._pending.append(request)
             self._cond.notify_all()
-        self.events.emit(Event(EventKind.SWITCH_REQUESTED, name, detail={"params": _jsonable(params)}))
+        self.events.emit(Event(EventKind.SWITCH_REQUESTED, name,
+                               detail={"params": _jsonable(params)}))
+        if threading.get_ident() == self._executor:
+            return behavior  # asked from an event callback during a switch: the loop runs it
         caller = current()
         if caller is not None and caller._manager is self:
+            self._process_later()
             return behavior
-        request.done.wait()
+        self._process()
+        request.done.wait()  # set already, unless another thread is executing it
         if request.error is not None:
             raise request.error
         return behavior
@@ -245,11 +249,20 @@ class HighLevelBehaviorManager:
         behavior.name = name
         return behavior
 
-    def _work(self) -> None:
+    def _process(self) -> None:
+        """Execute pending requests, latest first. Runs in the thread that asked for a
+        switch (saving two thread hand-offs per switch), or in a pool thread for requests
+        made from inside a behaviour (fallbacks, self-switches). One at a time."""
+        with self._switch_lock:
+            self._executor = threading.get_ident()
+            try:
+                self._process_locked()
+            finally:
+                self._executor = None
+
+    def _process_locked(self) -> None:
         while True:
             with self._cond:
-                while not self._pending and self._state is ManagerState.RUNNING:
-                    self._cond.wait()
                 requests, self._pending = self._pending, []
                 stopping = self._state is not ManagerState.RUNNING
             if stopping:
@@ -257,11 +270,13 @@ class HighLevelBehaviorManager:
                     request.finish(ManagerShutdown("the manager is shutting down"))
                 self._stop_top()
                 return
+            if not requests:
+                return
             *superseded, latest = requests
             for request in superseded:
                 self._supersede(request, latest)
             if latest.fallback_from is not None and latest.fallback_from is not self._top:
-                latest.finish()
+                latest.finish()  # something else replaced it already
                 continue
             self._stop_top()
             with self._cond:
@@ -270,6 +285,12 @@ class HighLevelBehaviorManager:
                 self._supersede(latest, None)
                 continue
             self._start_top(latest)
+
+    def _process_later(self) -> None:
+        try:
+            self._pool.submit("beehave:switch", self._process)
+        except RuntimeError:  # the pool is shut down: shutdown() processes what is left
+            pass
 
     def _supersede(self, request: _Request, by: _Request | None) -> None:
         later = f" by {by.name!r}" if by is not None else " by a later request"
@@ -287,8 +308,8 @@ class HighLevelBehaviorManager:
         # to record that before declaring the behaviour itself STUCK.
         if not top._wait_decided(deadline + _MARGIN_S):
             top._mark_stuck()
-        elif top._thread is not None:
-            top._thread.join()
+        else:
+            top._join()
         self._top = None
 
     def _start_top(self, request: _Request) -> None:
@@ -309,28 +330,29 @@ class HighLevelBehaviorManager:
     # ------------------------------------------------------------------ callbacks from items
     def _node_ended(self, node: Runnable, was_stuck: bool) -> None:
         """Called in the item's own thread, as the last thing it does."""
-        with self._cond:
-            if was_stuck:
+        if was_stuck:
+            with self._cond:
                 self._stuck.discard(node)
-            if node.parent is not None:
-                return
+        if node.parent is not None:
+            return
+        with self._cond:
             self._history.append({"name": node.name, "status": node.status.name,
                                   "error": None if node.error is None else repr(node.error),
                                   "elapsed_s": node.elapsed_s})
-            ended_on_its_own = (isinstance(node, Behavior) and node is self._top and not node.interrupted
-                                and self._state is ManagerState.RUNNING and not self._pending)
+            ended_on_its_own = (isinstance(node, Behavior) and node is self._top
+                                and not node.interrupted and self._state is ManagerState.RUNNING and not self._pending)
             if ended_on_its_own:
                 assert isinstance(node, Behavior)
                 # Nothing else is asked for: fall back to the safe behaviour.
                 idle = Idle()
                 idle.name = IDLE
                 self._pending.append(_Request(IDLE, idle, fallback_from=node))
-                self._cond.notify_all()
+        if ended_on_its_own:
+            self._process_later()
 
     def _stuck_add(self, node: Runnable) -> None:
         with self._cond:
-            if node.alive:
-                self._stuck.add(node)
+            self._stuck.add(node)
 
 
 _MARGIN_S = 0.05

@@ -48,7 +48,8 @@ class Runnable(abc.ABC):
     _stop_deadline: float | None
     _cond: threading.Condition
     _decided: threading.Event
-    _thread: threading.Thread | None
+    _started: bool
+    _ended: threading.Event
     _traceback: str
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
@@ -67,7 +68,8 @@ class Runnable(abc.ABC):
         self._stop_deadline = None
         self._cond = threading.Condition(threading.Lock())
         self._decided = threading.Event()
-        self._thread = None
+        self._started = False
+        self._ended = threading.Event()
         return self
 
     # ------------------------------------------------------------------ user hooks
@@ -97,8 +99,9 @@ class Runnable(abc.ABC):
 
     @property
     def alive(self) -> bool:
-        """True while its thread runs (a STUCK item stays alive until its ``run`` returns)."""
-        return self._thread is not None and self._thread.is_alive()
+        """True while its ``run`` or clean-up executes (a STUCK item stays alive until its
+        ``run`` returns)."""
+        return self._started and not self._ended.is_set()
 
     def sleep(self, seconds: float) -> bool:
         """Wait ``seconds``; return False at once when interrupted, True otherwise."""
@@ -141,24 +144,32 @@ class Runnable(abc.ABC):
             self.parent = parent
 
     def _start_thread(self) -> None:
-        thread = threading.Thread(target=self._main, name=f"beehave:{self.path}", daemon=True)
+        assert self._manager is not None
         with self._cond:
-            self._thread = thread
+            self._started = True
             self._status = Status.RUNNING
             self.started_at = time.monotonic()
-        thread.start()
+        self._manager._pool.submit(f"beehave:{self.path}", self._main)
 
     def _main(self) -> None:
         _local.node = self
-        assert self._manager is not None
-        self._manager.events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name))
-        error: BaseException | None = None
         try:
-            self.result = self.run()
-        except BaseException as exc:  # recorded on the handle and surfaced to the parent
-            error = exc
-        error = self._after_run(error)
-        self._finish(error)
+            assert self._manager is not None
+            self._manager.events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name))
+            error: BaseException | None = None
+            try:
+                self.result = self.run()
+            except BaseException as exc:  # recorded on the handle and surfaced to the parent
+                error = exc
+            error = self._after_run(error)
+            self._finish(error)
+        finally:
+            _local.node = None
+            self._ended.set()
+
+    def _join(self, timeout: float | None = None) -> bool:
+        """Wait until its ``run`` and clean-up are over (the thread goes back to the pool)."""
+        return self._ended.wait(timeout)
 
     def _after_run(self, error: BaseException | None) -> BaseException | None:
         """Behavior ends its children here; returns the error that decides the status."""
@@ -194,13 +205,14 @@ class Runnable(abc.ABC):
 
     def _mark_stuck(self) -> None:
         """Its owner stopped waiting: force the safe state; the thread may end later."""
+        assert self._manager is not None
         with self._cond:
             if self._status is not Status.RUNNING:
                 return
             self._status = Status.STUCK
             self.ended_at = time.monotonic()
-        assert self._manager is not None
-        self._manager._stuck_add(self)
+            # Under our lock, so that _finish cannot remove it before it is added.
+            self._manager._stuck_add(self)
         self._manager.events.emit(Event(EventKind.STUCK, self.path, Status.STUCK.name))
         self._enter_safe_state()
         self._decided.set()

@@ -11,8 +11,8 @@ from __future__ import annotations
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from beehave.action import Action
@@ -81,8 +81,8 @@ class ScriptedAction(Action):
         try:
             completed = self.sleep(self.duration_s)
             if not completed and self.ignore_interrupt_s > 0:
-                timeout = None if self.ignore_interrupt_s == float("inf") else self.ignore_interrupt_s
-                self.release.wait(timeout)
+                forever = self.ignore_interrupt_s == float("inf")
+                self.release.wait(None if forever else self.ignore_interrupt_s)
             if self.raises is not None:
                 raise self.raises
             return self.scripted_result

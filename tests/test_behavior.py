@@ -5,8 +5,14 @@ from __future__ import annotations
 import threading
 from typing import Any
 
-from beehave import (Behavior, ChildFailed, HighLevelBehaviorManager, Interrupted,
-                     NotASubclass, Status)
+from beehave import (
+    Behavior,
+    ChildFailed,
+    HighLevelBehaviorManager,
+    Interrupted,
+    NotASubclass,
+    Status,
+)
 from beehave.testing import ScriptedAction, Timeline
 
 

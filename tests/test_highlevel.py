@@ -9,8 +9,15 @@ from typing import Any
 
 import pytest
 
-from beehave import (Behavior, HighLevelBehaviorManager, InvalidParameters,
-                     ManagerShutdown, Status, SwitchSuperseded, UnknownBehavior)
+from beehave import (
+    Behavior,
+    HighLevelBehaviorManager,
+    InvalidParameters,
+    ManagerShutdown,
+    Status,
+    SwitchSuperseded,
+    UnknownBehavior,
+)
 from beehave.errors import ConfigError, NotASubclass
 from beehave.testing import ScriptedAction, beehave_threads, wait_until
 
@@ -186,7 +193,8 @@ def test_concurrent_switches_latest_wins(hl: HighLevelBehaviorManager) -> None:
     assert len(outcomes) == 8
     winners = [i for i, o in outcomes.items() if not isinstance(o, SwitchSuperseded)]
     assert winners, "at least the last request succeeds"
-    running = [o for o in outcomes.values() if isinstance(o, Behavior) and o.status is Status.RUNNING]
+    running = [o for o in outcomes.values()
+               if isinstance(o, Behavior) and o.status is Status.RUNNING]
     assert len(running) == 1 and running[0].name == hl.current
     superseded = [o for o in outcomes.values() if isinstance(o, SwitchSuperseded)]
     assert all("superseded" in str(s) for s in superseded)

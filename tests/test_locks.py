@@ -110,7 +110,7 @@ def test_preempting_a_holder_that_ignores_its_interrupt(two: Parallel, hl) -> No
         two.right.start_action(ScriptedAction("driving"), preempt=True)
     assert hl.snapshot()["locks"]["driving"]["status"] == "STUCK"
     stubborn.release.set()
-    stubborn._thread.join(2)
+    assert stubborn._join(2)
     # … then it is free, and the safe state was not called a second time.
     two.right.start_action(ScriptedAction("driving"))
     assert stubborn.safe_state_calls == 1 and stubborn.status is Status.STUCK

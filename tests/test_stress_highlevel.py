@@ -12,8 +12,7 @@ import threading
 import time
 from typing import Any
 
-from beehave import (ActionTypeBusy, Behavior, BeehaveError, HighLevelBehaviorManager,
-                     Status)
+from beehave import ActionTypeBusy, BeehaveError, Behavior, HighLevelBehaviorManager, Status
 from beehave.testing import ScriptedAction, Timeline, beehave_threads, wait_until
 
 TYPES = ["driving", "lifting", "sound", "leds"]
@@ -74,7 +73,8 @@ class Worker(Behavior):
             self.world.top_exit()
 
 
-def operate(hl: HighLevelBehaviorManager, world: World, seed: int, errors: list[BaseException]) -> None:
+def operate(hl: HighLevelBehaviorManager, world: World, seed: int,
+            errors: list[BaseException]) -> None:
     rng = random.Random(seed)
     try:
         for _ in range(OPS_PER_THREAD):
@@ -106,7 +106,8 @@ def test_random_operations_keep_every_invariant() -> None:
         hl.register(name, Worker, world=world)
     hl.register("idle_plus", Worker, world=world, seed=0)
     with hl:
-        threads = [threading.Thread(target=operate, args=(hl, world, i, errors)) for i in range(THREADS)]
+        threads = [threading.Thread(target=operate, args=(hl, world, i, errors))
+                   for i in range(THREADS)]
         for t in threads:
             t.start()
         for t in threads:
