@@ -340,7 +340,8 @@ class HighLevelBehaviorManager:
                                   "error": None if node.error is None else repr(node.error),
                                   "elapsed_s": node.elapsed_s})
             ended_on_its_own = (isinstance(node, Behavior) and node is self._top
-                                and not node.interrupted and self._state is ManagerState.RUNNING and not self._pending)
+                                and not node.interrupted and not self._pending
+                                and self._state is ManagerState.RUNNING)
             if ended_on_its_own:
                 assert isinstance(node, Behavior)
                 # Nothing else is asked for: fall back to the safe behaviour.
