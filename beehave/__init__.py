@@ -8,6 +8,7 @@ locks, runtime switching with :class:`HighLevelBehaviorManager`), :class:`Logic`
 
 from beehave.action import Action
 from beehave.behavior import Behavior, Idle
+from beehave.blackboard import Blackboard, BlackboardClient, Change
 from beehave.errors import (
                             ActionTypeBusy,
                             AlreadyStarted,
@@ -25,14 +26,19 @@ from beehave.errors import (
                             UnknownNameError,
 )
 from beehave.events import Event, EventKind
+from beehave.hal import HAL, HALManager
 from beehave.highlevel import HighLevelBehaviorManager
+from beehave.logic import Logic
+from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.status import Status
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "Action", "ActionTypeBusy", "AlreadyStarted", "BeehaveError", "Behavior", "ChildFailed",
-    "ConfigError", "Event", "EventKind", "HighLevelBehaviorManager", "Idle", "Interrupted",
-    "InvalidParameters", "ManagerShutdown", "NotASubclass", "Status", "SwitchSuperseded",
-    "UnknownBehavior", "UnknownHAL", "UnknownLogic", "UnknownNameError",
+    "HAL", "Action", "ActionTypeBusy", "AlreadyStarted", "BeehaveError", "Behavior",
+    "Blackboard", "BlackboardClient", "Change", "ChildFailed", "ConfigError", "Event",
+    "EventKind", "HALManager", "HighLevelBehaviorManager", "Idle", "Interrupted",
+    "InvalidParameters", "Logic", "LowLevelBehaviorManager", "ManagerShutdown",
+    "NotASubclass", "Status", "SwitchSuperseded", "UnknownBehavior", "UnknownHAL",
+    "UnknownLogic", "UnknownNameError",
 ]

@@ -47,7 +47,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from numbers import Real
-from typing import Any
+from typing import Any, Self
 
 from beehave.errors import BlackboardError
 
@@ -214,7 +214,7 @@ class Subscription:
             self.closed = True
             self.board._unsubscribe(self)
 
-    def __enter__(self) -> Subscription:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -288,13 +288,13 @@ class Watcher(Subscription):
         key = next(iter(pending))
         return pending.pop(key)
 
-    async def __aenter__(self) -> Watcher:
+    async def __aenter__(self) -> Self:
         return self
 
     async def __aexit__(self, *exc: object) -> None:
         self.close()
 
-    def __enter__(self) -> Watcher:
+    def __enter__(self) -> Self:
         return self
 
 

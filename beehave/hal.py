@@ -35,7 +35,7 @@ import logging
 import time
 from collections.abc import Awaitable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar, Self, TypeVar
 
 from beehave.blackboard import Blackboard, BlackboardClient
 from beehave.errors import HALError, InvalidParameters, ManagerShutdown, UnknownHAL
@@ -73,7 +73,7 @@ class HAL:
     restarts: int
     """How many times ``run`` was restarted after a crash."""
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> HAL:
+    def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
         self.status = Status.PENDING
         self.error = None

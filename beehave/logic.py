@@ -34,7 +34,7 @@ import asyncio
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Any, TypeVar, overload
+from typing import Any, Self, TypeVar, overload
 
 from beehave.blackboard import Blackboard, BlackboardClient
 from beehave.errors import AlreadyStarted, BeehaveError, ChildFailed, HALError
@@ -84,7 +84,7 @@ class Logic(abc.ABC):
     _child_failure: Logic | None
     _ending: bool
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> Logic:
+    def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         # Runtime state lives here so subclasses need not call super().__init__().
         self = super().__new__(cls)
         self.name = cls.__name__

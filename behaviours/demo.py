@@ -11,14 +11,14 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from beehave import (Action, ActionTypeBusy, Behavior, Event, EventKind,
-                     HighLevelBehaviorManager)
+from beehave import Action, ActionTypeBusy, Behavior, Event, EventKind, HighLevelBehaviorManager
 
 TICK_S = 0.05
 
@@ -125,24 +125,24 @@ class Maintenance(Behavior):
             pass
 
 
-def _tree(snapshot: dict[str, object], robot: PointRobot, log: list[str]) -> Group:
+def _tree(snapshot: dict[str, Any], robot: PointRobot, log: list[str]) -> Group:
     table = Table(title=f"top-level: {snapshot['current']}", expand=False)
     for column in ("path", "status", "type", "elapsed"):
         table.add_column(column)
 
-    def add(node: dict[str, object], depth: int = 0) -> None:
+    def add(node: dict[str, Any], depth: int = 0) -> None:
         elapsed = node.get("elapsed_s") or 0.0
         status = str(node["status"])
         colour = {"RUNNING": "green", "INTERRUPTED": "yellow", "FAILED": "red",
                   "STUCK": "magenta"}.get(status, "white")
         table.add_row("  " * depth + str(node["name"]), Text(status, style=colour),
                       str(node.get("action_type", "")), f"{float(elapsed):.2f} s")
-        for child in node.get("children", []):  # type: ignore[union-attr]
+        for child in node.get("children", []):
             add(child, depth + 1)
 
     if snapshot["top"]:
-        add(snapshot["top"])  # type: ignore[arg-type]
-    locks = ", ".join(f"{k}→{v['holder']}" for k, v in snapshot["locks"].items())  # type: ignore[union-attr]
+        add(snapshot["top"])
+    locks = ", ".join(f"{k}→{v['holder']}" for k, v in snapshot["locks"].items())
     state = Text(f"robot x={robot.x_m:5.2f} m  v={robot.speed_mps:4.2f} m/s  "
                  f"lift={robot.lift_m:4.2f} m   locks: {locks or '-'}")
     return Group(table, state, Text("\n".join(log[-8:]), style="dim"))

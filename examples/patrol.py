@@ -77,8 +77,10 @@ def main() -> None:
         charge = hl.switch("charge")  # returns once patrol and its drive have ended
         print("switched; speed right after the switch:", robot.speed_mps)
         charge.wait(10)
-        print("charge:", charge.status.name, charge.result, "| now running:", hl.current)
-        print(hl.snapshot()["history"])
+        print("charge:", charge.status.name, charge.result)
+        # When a top-level behaviour ends on its own, the manager runs "idle" again.
+        for record in hl.history:
+            print(f"  {record['name']:>7} {record['status']:<12} {record['elapsed_s']:.2f} s")
 
 
 if __name__ == "__main__":

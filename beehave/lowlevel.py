@@ -1,0 +1,429 @@
+"""The low-level behaviour manager: one asyncio loop of logics, a blackboard and HALs.
+
+::
+
+    ll = LowLevelBehaviorManager(default="led")
+    ll.register("led", LedLogic, threshold=20)
+    ll.register("display", DisplayLogic)
+    ll.hals.register(DebugHAL)
+    with ll:                       # the loop runs in its own thread
+        ll.switch("display")       # from any thread: returns once "display" runs
+        ll.blackboard.get("battery/percentage")
+
+or, inside an asyncio program, ``await ll.run()`` (until :meth:`shutdown` or cancellation)
+and ``await ll.switch_async("display")`` from coroutines in that loop.
+
+Exactly one top-level logic runs at a time. ``switch`` cancels it and its sub-logics, waits
+until they have ended (at most ``stop_timeout_s``; a logic that ignores its cancellation
+is reported STUCK), then starts the new one. The ``default`` logic runs when nothing else
+was selected and whenever a top-level logic ends on its own; a crash is kept on
+``last_failed`` and reported as a FALLBACK event.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import enum
+import functools
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Coroutine
+from typing import Any, Self, TypeVar
+
+from beehave.blackboard import Blackboard, Subscription, Watcher
+from beehave.errors import (
+    AlreadyStarted,
+    BeehaveError,
+    InvalidParameters,
+    ManagerShutdown,
+    NotASubclass,
+    UnknownLogic,
+)
+from beehave.events import Event, EventBus, EventCallback, EventKind
+from beehave.hal import HALManager, _wait_ignoring_cancel, check_params
+from beehave.logic import Logic, Runtime, stop_logics
+from beehave.status import Status
+
+log = logging.getLogger(__name__)
+
+__all__ = ["LowLevelBehaviorManager", "new_event_loop"]
+
+T = TypeVar("T")
+
+
+def new_event_loop() -> asyncio.AbstractEventLoop:
+    """A new event loop: uvloop's when it is installed (the ``fast`` extra), else asyncio's."""
+    try:
+        import uvloop
+    except ImportError:
+        return asyncio.new_event_loop()
+    return uvloop.new_event_loop()
+
+
+class _Phase(enum.Enum):
+    NEW = "new"
+    RUNNING = "running"
+    STOPPING = "stopping"
+    STOPPED = "stopped"
+
+
+class LowLevelBehaviorManager:
+    """Runs the low level: the switchable top-level logic, the blackboard and the HALs.
+
+    ``default``: the logic (registered name) that runs when none is selected.
+    ``stop_timeout_s``: how long a switch waits for a cancelled logic before reporting it
+    STUCK and going on. ``hal_backoff_initial_s`` / ``hal_backoff_max_s``: restart delays
+    of a crashed HAL. ``use_uvloop``: run the context manager's loop on uvloop if installed.
+    """
+
+    def __init__(self, *, default: str | None = None, blackboard: Blackboard | None = None,
+                 stop_timeout_s: float = 2.0, hal_backoff_initial_s: float = 0.1,
+                 hal_backoff_max_s: float = 5.0, use_uvloop: bool = True) -> None:
+        self.events = EventBus(log)
+        self.blackboard = blackboard if blackboard is not None else Blackboard()
+        if self.blackboard.on_error is None:
+            self.blackboard.on_error = self._subscriber_failed
+        self.hals = HALManager(self.blackboard, events=self.events,
+                               backoff_initial_s=hal_backoff_initial_s,
+                               backoff_max_s=hal_backoff_max_s)
+        self.default = default
+        self.stop_timeout_s = stop_timeout_s
+        self.use_uvloop = use_uvloop
+        self.last_failed: Logic | None = None
+        """The last top-level logic that crashed (its ``.error`` says how)."""
+        self.history: deque[Logic] = deque(maxlen=32)
+        """The top-level logics that ended, oldest first (the last 32)."""
+        self._runtime = Runtime(self.blackboard, self.hals, self.events, stop_timeout_s)
+        self._registry: dict[str, tuple[type[Logic], dict[str, Any]]] = {}
+        self._top: Logic | None = None
+        self._selected: tuple[str, dict[str, Any]] | None = None
+        self._phase = _Phase.NEW
+        self._phase_lock = threading.Lock()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop_tid: int | None = None
+        self._stop: asyncio.Event | None = None
+        self._switch_lock: asyncio.Lock | None = None
+        self._inflight: set[asyncio.Task[Any]] = set()
+        self._started = threading.Event()
+        self._stopped = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._thread_error: BaseException | None = None
+
+    # -- registry ------------------------------------------------------------------------
+
+    def register(self, name: str, logic_cls: type[Logic], **params: Any) -> None:
+        """Make ``logic_cls`` selectable as top-level logic ``name``; ``params`` go to its
+        constructor (checked now: :class:`~beehave.errors.InvalidParameters`)."""
+        if not (isinstance(logic_cls, type) and issubclass(logic_cls, Logic)):
+            raise NotASubclass(f"register({name!r}, …) needs a Logic subclass, got {logic_cls!r}")
+        check_params(logic_cls, name, params)
+        self._registry[name] = (logic_cls, dict(params))
+
+    @property
+    def registered(self) -> list[str]:
+        return sorted(self._registry)
+
+    def _create(self, name: str, params: dict[str, Any]) -> Logic:
+        """Resolve and construct before anything is stopped, so a bad request changes
+        nothing."""
+        try:
+            cls, base = self._registry[name]
+        except KeyError:
+            err = UnknownLogic(name, self._registry)
+            self.events.emit(Event(EventKind.SWITCH_REJECTED, name, error=err))
+            raise err from None
+        merged = {**base, **params}
+        try:
+            check_params(cls, name, merged)
+            logic = cls(**merged)
+        except InvalidParameters as err:
+            self.events.emit(Event(EventKind.SWITCH_REJECTED, name, error=err))
+            raise
+        except Exception as exc:
+            self.events.emit(Event(EventKind.SWITCH_REJECTED, name, error=exc))
+            raise InvalidParameters(f"logic {name!r}: {cls.__qualname__}(**{merged!r}) "
+                                    f"raised {exc!r}") from exc
+        logic.name = name
+        return logic
+
+    # -- state ---------------------------------------------------------------------------
+
+    @property
+    def current(self) -> str | None:
+        """The name of the running top-level logic (None when none runs)."""
+        top = self._top
+        return top.name if top is not None and top.status is Status.RUNNING else None
+
+    @property
+    def logic(self) -> Logic | None:
+        """The running top-level logic's handle."""
+        return self._top
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop | None:
+        """The loop the low level runs in (None before start and after shutdown)."""
+        return self._loop
+
+    @property
+    def running(self) -> bool:
+        return self._phase is _Phase.RUNNING
+
+    def subscribe(self, callback: EventCallback) -> Callable[[], None]:
+        """Call ``callback(event)`` for every lifecycle event (logics, switches, HALs);
+        returns a function that unsubscribes. Callbacks run in the loop's thread."""
+        return self.events.subscribe(callback)
+
+    def snapshot(self) -> dict[str, Any]:
+        """A JSON-serialisable view: running logic tree, HALs, blackboard, last failure."""
+        if self._in_foreign_thread():
+            try:
+                return self.call(self._snapshot_async())
+            except ManagerShutdown:
+                pass
+        return self._snapshot()
+
+    async def _snapshot_async(self) -> dict[str, Any]:
+        return self._snapshot()
+
+    def _snapshot(self) -> dict[str, Any]:
+        top = self._top
+        failed = self.last_failed
+        return {
+            "phase": self._phase.value,
+            "current": self.current,
+            "default": self.default,
+            "registered": self.registered,
+            "logic": None if top is None else top.snapshot(),
+            "stuck": sorted(lg.path for lg in self._runtime.stuck),
+            "last_failed": None if failed is None else {
+                "name": failed.name, "error": repr(failed.error),
+                "ended_at": failed.ended_at},
+            "hals": self.hals.snapshot(),
+            "blackboard": self.blackboard.snapshot(),
+            "loop": None if self._loop is None else type(self._loop).__module__,
+        }
+
+    # -- switching -----------------------------------------------------------------------
+
+    def switch(self, name: str, **params: Any) -> Logic | None:
+        """Make ``name`` the top-level logic; callable from any thread but the loop's.
+
+        From another thread it blocks until the old logic (and its sub-logics) has ended and
+        the new one runs, and returns the new logic. Before the manager runs it only
+        records the choice (returns None). Inside the loop use :meth:`switch_async` — a
+        blocking call there would deadlock, so it raises. Unknown names raise
+        :class:`~beehave.errors.UnknownLogic` listing the registered ones; nothing is
+        stopped then. Switching to the running logic's name restarts it.
+        """
+        with self._phase_lock:
+            if self._phase is _Phase.NEW:
+                self._create(name, params)  # validate now; the object itself is discarded
+                self._selected = (name, dict(params))
+                return None
+            if self._phase is not _Phase.RUNNING:
+                raise ManagerShutdown(f"low-level manager is {self._phase.value}; cannot "
+                                      f"switch to {name!r}")
+        if not self._in_foreign_thread():
+            raise BeehaveError(f"switch({name!r}) was called inside the low level's loop, "
+                               f"where blocking would deadlock; use `await "
+                               f"ll.switch_async({name!r})`")
+        return self.call(self.switch_async(name, **params))
+
+    async def switch_async(self, name: str, **params: Any) -> Logic:
+        """:meth:`switch` for coroutines running in the low level's loop."""
+        if self._phase is not _Phase.RUNNING or self._switch_lock is None:
+            raise ManagerShutdown(f"low-level manager is {self._phase.value}; cannot switch "
+                                  f"to {name!r}")
+        logic = self._create(name, params)
+        began = time.monotonic()
+        old_name = self.current
+        self.events.emit(Event(EventKind.SWITCH_REQUESTED, name, detail={"from": old_name}))
+        async with self._switch_lock:
+            old = self._top
+            self._top = None
+            if old is not None:
+                await stop_logics([old], self._runtime)
+            if self._phase is not _Phase.RUNNING:
+                raise ManagerShutdown(f"low-level manager shut down while switching to "
+                                      f"{name!r}")
+            self._start_top(logic)
+        self.events.emit(Event(EventKind.SWITCH_COMPLETED, name, Status.RUNNING.name,
+                               detail={"from": old_name,
+                                       "duration_s": round(time.monotonic() - began, 6)}))
+        return logic
+
+    def _start_top(self, logic: Logic) -> None:
+        logic._start(self._runtime, parent=None, name=None)
+        self._top = logic
+        task = logic.task
+        assert task is not None
+        task.add_done_callback(functools.partial(self._top_done, logic))
+
+    def _top_done(self, logic: Logic, _task: asyncio.Task[None]) -> None:
+        self._top_ended(logic)
+
+    def _top_ended(self, logic: Logic) -> None:
+        self.history.append(logic)
+        if logic.status is Status.FAILED:
+            self.last_failed = logic
+        if logic is not self._top or self._phase is not _Phase.RUNNING:
+            return  # switched away or shutting down: the switch started the next one
+        self._top = None
+        nxt = self.default if self.default is not None and logic.name != self.default else None
+        self.events.emit(Event(EventKind.FALLBACK, logic.path, logic.status.name, logic.error,
+                               {"next": nxt}))
+        if nxt is None:
+            return
+        try:
+            self._start_top(self._create(nxt, {}))
+        except BeehaveError as err:  # reported by _create as SWITCH_REJECTED
+            log.error("default logic %r cannot start: %r", nxt, err)
+
+    # -- running -------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Run the low level in the current loop until :meth:`shutdown` or cancellation;
+        then stop the logics, unload the HALs (safe states) and close the watchers."""
+        loop = asyncio.get_running_loop()
+        with self._phase_lock:
+            if self._phase is not _Phase.NEW:
+                raise AlreadyStarted(f"low-level manager is {self._phase.value}; create a "
+                                     "new one to run again")
+            self._loop = loop
+            self._loop_tid = threading.get_ident()
+            self._stop = asyncio.Event()
+            self._switch_lock = asyncio.Lock()
+            self.blackboard.bind(loop)
+            self._phase = _Phase.RUNNING
+            selected = self._selected
+        try:
+            name, params = selected if selected is not None else (self.default, {})
+            if name is not None:
+                self._start_top(self._create(name, params))
+            self._started.set()
+            await self._stop.wait()
+        finally:
+            with self._phase_lock:
+                self._phase = _Phase.STOPPING
+            teardown = loop.create_task(self._teardown(), name="beehave-lowlevel-teardown")
+            try:
+                await _wait_ignoring_cancel(teardown)
+            finally:
+                with self._phase_lock:
+                    self._phase = _Phase.STOPPED
+                    self._loop = None
+                    self._loop_tid = None
+                self._started.set()
+                self._stopped.set()
+            teardown.result()
+
+    async def _teardown(self) -> None:
+        me = asyncio.current_task()
+        top = self._top
+        self._top = None
+        if top is not None:
+            await stop_logics([top], self._runtime)
+        inflight = {t for t in self._inflight if t is not me and not t.done()}
+        if inflight:
+            await asyncio.wait(inflight, timeout=self.stop_timeout_s)
+        if self._runtime.stuck:  # one more chance for logics that ignored cancellation
+            await stop_logics(list(self._runtime.stuck), self._runtime)
+        await self.hals.close()
+        for sub in self.blackboard.subscriptions:
+            if isinstance(sub, Watcher) and sub.loop is asyncio.get_running_loop():
+                sub.close()
+        self.blackboard.unbind()
+
+    def shutdown(self) -> None:
+        """Stop everything: the top-level logic and its sub-logics, then the HALs.
+
+        From another thread it waits until the low level has stopped (and its thread, when
+        started as a context manager, has ended); inside the loop it only asks. Idempotent.
+        """
+        with self._phase_lock:
+            if self._phase is _Phase.NEW:
+                self._phase = _Phase.STOPPED
+                self._stopped.set()
+                self._started.set()
+                return
+            loop, stop = self._loop, self._stop
+        if loop is not None and stop is not None:
+            if self._in_foreign_thread():
+                try:
+                    loop.call_soon_threadsafe(stop.set)
+                except RuntimeError:  # loop already closed
+                    pass
+            else:
+                stop.set()
+                return
+        self._stopped.wait()
+        thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join()
+
+    def call(self, coro: Coroutine[Any, Any, T], *, timeout_s: float | None = None) -> T:
+        """Run ``coro`` in the low level's loop from another thread and return its result
+        (a tracked task: shutdown waits for it)."""
+        loop = self._loop
+        if loop is None or self._phase is not _Phase.RUNNING:
+            coro.close()
+            raise ManagerShutdown(f"low-level manager is {self._phase.value}")
+        if not self._in_foreign_thread():
+            coro.close()
+            raise BeehaveError("call() blocks; inside the loop, await the coroutine instead")
+        future: concurrent.futures.Future[T] = asyncio.run_coroutine_threadsafe(
+            self._tracked(coro), loop)
+        return future.result(timeout_s)
+
+    async def _tracked(self, coro: Coroutine[Any, Any, T]) -> T:
+        task = asyncio.current_task()
+        assert task is not None
+        self._inflight.add(task)
+        try:
+            return await coro
+        finally:
+            self._inflight.discard(task)
+
+    def _in_foreign_thread(self) -> bool:
+        return self._loop_tid is not None and threading.get_ident() != self._loop_tid
+
+    def _subscriber_failed(self, sub: Subscription, exc: BaseException) -> None:
+        self.events.emit(Event(EventKind.ENDED, f"blackboard:{sub.pattern}",
+                               Status.FAILED.name, exc))
+
+    # -- context manager: the loop in its own thread ---------------------------------------
+
+    def __enter__(self) -> Self:
+        if self._thread is not None or self._phase is not _Phase.NEW:
+            raise AlreadyStarted(f"low-level manager is {self._phase.value}")
+        self._thread = threading.Thread(target=self._thread_main, name="beehave-lowlevel",
+                                        daemon=True)
+        self._thread.start()
+        self._started.wait()
+        if self._stopped.is_set():  # run() failed while starting
+            self._thread.join()
+            raise self._thread_error or ManagerShutdown("low-level manager stopped at start")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+    def _thread_main(self) -> None:
+        loop = new_event_loop() if self.use_uvloop else asyncio.new_event_loop()
+        asyncio.set_event_loop(loop)
+        try:
+            loop.run_until_complete(self.run())
+        except BaseException as exc:  # raised again by __enter__ when it happens at start
+            self._thread_error = exc
+            log.error("low-level manager stopped with an error", exc_info=exc)
+        finally:
+            try:
+                loop.run_until_complete(loop.shutdown_asyncgens())
+            finally:
+                asyncio.set_event_loop(None)
+                loop.close()
+                self._started.set()
+                self._stopped.set()

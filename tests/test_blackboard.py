@@ -1,0 +1,392 @@
+"""Blackboard contract: keys, patterns, threads, slow watchers, freshness, deadband."""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import json
+import threading
+from typing import Any
+
+import pytest
+
+from beehave.blackboard import Blackboard, Change, Subscription, matches
+from beehave.errors import BlackboardError
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+# -- keys and patterns ----------------------------------------------------------------------
+
+def test_set_then_get_returns_the_value_and_default_for_missing_keys() -> None:
+    bb = Blackboard()
+    bb.set("battery/percentage", 42.0)
+    assert bb.get("battery/percentage") == 42.0
+    assert bb.get("battery/voltage") is None
+    assert bb.get("battery/voltage", 7) == 7
+    assert "battery/percentage" in bb and "battery/voltage" not in bb
+    assert bb.keys() == ["battery/percentage"]
+
+
+@pytest.mark.parametrize("key", ["", "/a", "a/", "a//b", "a b", "a/*", "led*", 5])
+def test_invalid_keys_raise_blackboard_error_naming_the_key(key: Any) -> None:
+    bb = Blackboard()
+    with pytest.raises(BlackboardError, match="invalid blackboard key") as info:
+        bb.set(key, 1)
+    assert repr(key) in str(info.value)
+
+
+@pytest.mark.parametrize("pattern", ["", "a//b", "led*/x", "a/b c"])
+def test_invalid_patterns_raise_blackboard_error_naming_the_pattern(pattern: str) -> None:
+    with pytest.raises(BlackboardError, match="invalid blackboard pattern") as info:
+        Blackboard().subscribe(pattern, lambda c: None)
+    assert repr(pattern) in str(info.value)
+
+
+@pytest.mark.parametrize("pattern, key, expected", [
+    ("battery/percentage", "battery/percentage", True),
+    ("battery/percentage", "battery/voltage", False),
+    ("leds/*", "leds/front", True),
+    ("leds/*", "leds/front/left", False),
+    ("leds/*", "leds", False),
+    ("*/percentage", "battery/percentage", True),
+    ("*", "battery", True),
+    ("*", "battery/percentage", False),
+    ("battery/**", "battery", True),
+    ("battery/**", "battery/percentage", True),
+    ("battery/**", "battery/cells/3", True),
+    ("battery/**", "batteryx/a", False),
+    ("**", "anything/at/all", True),
+    ("**/x", "a/b/x", True),
+    ("**/x", "x", True),
+    ("a/**/z", "a/b/c/z", True),
+    ("a/**/z", "a/z", True),
+    ("a/**/z", "a/b/c", False),
+])
+def test_pattern_matching_table(pattern: str, key: str, expected: bool) -> None:
+    assert matches(pattern, key) is expected
+    bb = Blackboard()
+    seen: list[str] = []
+    bb.subscribe(pattern, lambda c: seen.append(c.key))
+    bb.set(key, 1)
+    assert seen == ([key] if expected else [])
+
+
+# -- synchronous use (no loop) ----------------------------------------------------------------
+
+def test_without_a_loop_callbacks_run_synchronously_in_the_writer_thread() -> None:
+    bb = Blackboard()
+    seen: list[tuple[str, Any, int]] = []
+    bb.subscribe("leds/*", lambda c: seen.append((c.key, c.value, threading.get_ident())))
+    bb.set("leds/front", "red")
+    assert seen == [("leds/front", "red", threading.get_ident())]
+
+
+def test_change_carries_key_value_stamp_and_the_entry_remembers_its_writer() -> None:
+    bb = Blackboard()
+    changes: list[Change] = []
+    bb.subscribe("**", changes.append)
+    bb.client("hal:debug").set("battery/percentage", 50.0)
+    (change,) = changes
+    assert (change.key, change.value, change.writer) == ("battery/percentage", 50.0, "hal:debug")
+    assert change.stamp > 0 and change.stale is False
+    entry = bb.entry("battery/percentage")
+    assert entry is not None and entry.writer == "hal:debug"
+
+
+def test_closed_subscription_receives_nothing_more() -> None:
+    bb = Blackboard()
+    seen: list[Any] = []
+    sub = bb.subscribe("a", lambda c: seen.append(c.value))
+    bb.set("a", 1)
+    sub.close()
+    bb.set("a", 2)
+    assert seen == [1] and sub.closed and sub not in bb.subscriptions
+
+
+def test_subscription_made_after_a_key_exists_receives_its_changes() -> None:
+    bb = Blackboard()
+    bb.set("pose/x", 1.0)  # the key's subscriber index is built here
+    seen: list[float] = []
+    bb.subscribe("pose/*", lambda c: seen.append(c.value))
+    bb.set("pose/x", 2.0)
+    assert seen == [2.0]
+
+
+def test_a_raising_callback_is_recorded_closed_and_reported_while_the_writer_goes_on() -> None:
+    reported: list[tuple[Subscription, BaseException]] = []
+    bb = Blackboard(on_error=lambda sub, exc: reported.append((sub, exc)))
+    good: list[int] = []
+
+    def bad(change: Change) -> None:
+        raise ValueError("observer bug")
+
+    sub = bb.subscribe("a", bad)
+    bb.subscribe("a", lambda c: good.append(c.value))
+    bb.set("a", 1)
+    bb.set("a", 2)
+    assert isinstance(sub.error, ValueError) and sub.closed
+    assert reported == [(sub, sub.error)]
+    assert good == [1, 2] and bb.get("a") == 2
+
+
+# -- watchers and the loop ---------------------------------------------------------------------
+
+def test_watch_yields_current_entries_first_then_changes() -> None:
+    async def main() -> list[tuple[str, Any]]:
+        bb = Blackboard()
+        bb.set("battery/percentage", 80.0)
+        got: list[tuple[str, Any]] = []
+        async with bb.watch("battery/*") as watcher:
+            bb.set("battery/charging", True)
+            async for change in watcher:
+                got.append((change.key, change.value))
+                if len(got) == 2:
+                    break
+        return got
+
+    assert asyncio.run(main()) == [("battery/percentage", 80.0), ("battery/charging", True)]
+
+
+def test_watch_with_initial_false_yields_only_later_changes() -> None:
+    async def main() -> Change:
+        bb = Blackboard()
+        bb.set("a", 1)
+        watcher = bb.watch("a", initial=False)
+        bb.set("a", 2)
+        return await anext(watcher)
+
+    assert asyncio.run(main()).value == 2
+
+
+def test_slow_watcher_coalesces_to_the_latest_value_per_key_and_never_blocks_writers() -> None:
+    async def main() -> tuple[list[tuple[str, Any]], int, int]:
+        bb = Blackboard()
+        watcher = bb.watch("k/*")
+        for i in range(10_000):  # the watcher does not get to run meanwhile
+            bb.set("k/a", i)
+            bb.set("k/b", -i)
+        pending = watcher.pending
+        got = [(c.key, c.value) for c in (await anext(watcher), await anext(watcher))]
+        return got, pending, watcher.coalesced
+
+    got, pending, coalesced = asyncio.run(main())
+    assert pending == 2  # bounded by the number of keys, not of writes
+    assert got == [("k/a", 9_999), ("k/b", -9_999)]
+    assert coalesced == 2 * 10_000 - 2
+
+
+def test_closing_a_watcher_ends_its_iteration() -> None:
+    async def main() -> list[Any]:
+        bb = Blackboard()
+        watcher = bb.watch("a")
+        got: list[Any] = []
+
+        async def consume() -> None:
+            async for change in watcher:
+                got.append(change.value)
+
+        task = asyncio.create_task(consume())
+        bb.set("a", 1)
+        await asyncio.sleep(0)
+        watcher.close()
+        await asyncio.wait_for(task, 2)
+        return got
+
+    assert asyncio.run(main()) == [1]
+
+
+def test_watch_outside_a_loop_raises_blackboard_error() -> None:
+    with pytest.raises(BlackboardError, match="running asyncio loop"):
+        Blackboard().watch("a")
+
+
+def test_set_from_another_thread_is_visible_at_once_and_delivered_in_the_loop_thread() -> None:
+    async def main() -> tuple[Any, int, int]:
+        bb = Blackboard()
+        bb.bind()
+        loop_thread = threading.get_ident()
+        delivered = asyncio.Event()
+        callback_threads: list[int] = []
+
+        def on_change(change: Change) -> None:
+            callback_threads.append(threading.get_ident())
+            delivered.set()
+
+        bb.subscribe("a", on_change)
+        seen_by_writer: list[Any] = []
+
+        def writer() -> None:
+            bb.set("a", 7)
+            seen_by_writer.append(bb.get("a"))  # read-your-writes in the writer's thread
+
+        thread = threading.Thread(target=writer)
+        thread.start()
+        thread.join()
+        await asyncio.wait_for(delivered.wait(), 2)
+        bb.unbind()
+        return seen_by_writer[0], callback_threads[0], loop_thread
+
+    seen, callback_thread, loop_thread = asyncio.run(main())
+    assert seen == 7
+    assert callback_thread == loop_thread
+
+
+# -- freshness, staleness, deadband ------------------------------------------------------------
+
+def test_entry_older_than_max_age_reads_as_stale() -> None:
+    clock = FakeClock()
+    bb = Blackboard(clock=clock)
+    bb.declare("battery/percentage", max_age_s=1.0)
+    assert bb.is_stale("battery/percentage")  # never written
+    bb.set("battery/percentage", 50.0)
+    clock.now += 0.5
+    assert not bb.is_stale("battery/percentage")
+    assert bb.get("battery/percentage", fresh=True) == 50.0
+    clock.now += 1.0
+    assert bb.is_stale("battery/percentage")
+    entry = bb.entry("battery/percentage")
+    assert entry is not None and entry.stale and entry.value == 50.0
+    assert bb.get("battery/percentage", "unknown", fresh=True) == "unknown"
+    assert bb.get("battery/percentage") == 50.0
+    bb.set("battery/percentage", 49.0)
+    assert not bb.is_stale("battery/percentage")
+
+
+def test_bound_blackboard_tells_watchers_when_an_entry_goes_stale() -> None:
+    async def main() -> list[tuple[Any, bool]]:
+        bb = Blackboard()
+        bb.bind()
+        bb.declare("sensor/range", max_age_s=0.03)
+        got: list[tuple[Any, bool]] = []
+        async with bb.watch("sensor/range", initial=False) as watcher:
+            bb.set("sensor/range", 1.5)
+            async for change in watcher:
+                got.append((change.value, change.stale))
+                if change.stale:
+                    break
+        bb.unbind()
+        return got
+
+    assert asyncio.run(asyncio.wait_for(main(), 5)) == [(1.5, False), (1.5, True)]
+
+
+def test_mark_stale_by_writer_flags_only_that_writers_entries_until_rewritten() -> None:
+    bb = Blackboard()
+    seen: list[tuple[str, bool]] = []
+    bb.subscribe("**", lambda c: seen.append((c.key, c.stale)))
+    bb.client("hal:debug").set("battery/percentage", 50.0)
+    bb.client("logic:led").set("leds/wanted", "red")
+    assert bb.mark_stale(writer="hal:debug") == ["battery/percentage"]
+    assert bb.is_stale("battery/percentage") and not bb.is_stale("leds/wanted")
+    assert seen[-1] == ("battery/percentage", True)
+    bb.client("hal:debug").set("battery/percentage", 49.0)
+    assert not bb.is_stale("battery/percentage")
+
+
+def test_deadband_publishes_only_relevant_changes_but_keeps_the_entry_fresh() -> None:
+    clock = FakeClock()
+    bb = Blackboard(clock=clock)
+    bb.declare("pose/x", deadband=0.01, max_age_s=1.0)
+    seen: list[float] = []
+    bb.subscribe("pose/x", lambda c: seen.append(c.value))
+    for x in (0.0, 0.004, 0.009, 0.012, 0.015, 0.0221, 0.5):
+        clock.now += 0.6
+        bb.set("pose/x", x)
+    # compared with the last *published* value, so slow drift is published eventually
+    assert seen == [0.0, 0.012, 0.0221, 0.5]
+    clock.now += 0.6
+    bb.set("pose/x", 0.501)  # irrelevant, but the sensor is alive
+    clock.now += 0.6
+    assert not bb.is_stale("pose/x") and bb.get("pose/x") == 0.5
+
+
+def test_deadband_on_number_sequences_uses_euclidean_distance() -> None:
+    bb = Blackboard()
+    bb.declare("pose/xy", deadband=0.01)
+    seen: list[Any] = []
+    bb.subscribe("pose/xy", lambda c: seen.append(c.value))
+    for pose in ((0.0, 0.0), (0.006, 0.006), (0.008, 0.008), ("n/a",), (0.0, 0.0)):
+        bb.set("pose/xy", pose)
+    assert seen == [(0.0, 0.0), (0.008, 0.008), ("n/a",), (0.0, 0.0)]
+
+
+def test_declare_rejects_negative_limits_naming_the_key() -> None:
+    with pytest.raises(BlackboardError, match="'pose/x'"):
+        Blackboard().declare("pose/x", deadband=-1)
+
+
+def test_snapshot_is_json_serialisable_with_values_stamps_and_stale_flags() -> None:
+    bb = Blackboard()
+    bb.declare("sensor/never", max_age_s=1.0)
+    bb.client("hal:debug").set("battery/percentage", 50.0)
+    bb.set("odd/value", object())
+    bb.set("odd/nan", float("nan"))
+    bb.set("nested/dict", {"a": (1, 2)})
+    bb.mark_stale(writer="hal:debug")
+    snap = json.loads(json.dumps(bb.snapshot()))
+    assert snap["battery/percentage"]["value"] == 50.0
+    assert snap["battery/percentage"]["stale"] is True
+    assert snap["battery/percentage"]["writer"] == "hal:debug"
+    assert isinstance(snap["battery/percentage"]["stamp"], float)
+    assert snap["sensor/never"] == {"value": None, "stamp": None, "stale": True,
+                                    "writer": None, "age_s": None}
+    assert snap["odd/value"]["value"].startswith("<object")
+    assert snap["nested/dict"]["value"] == {"a": [1, 2]}
+    assert list(bb.snapshot("battery/**")) == ["battery/percentage"]
+
+
+# -- stress ----------------------------------------------------------------------------------
+
+def test_stress_4_threads_x_10000_sets_with_50_watchers_lose_no_final_value() -> None:
+    n_threads, n_sets, n_watchers = 4, 10_000, 50
+    keys = [f"stress/t{i}" for i in range(n_threads)]
+
+    async def main() -> tuple[list[dict[str, Any]], int, int]:
+        bb = Blackboard()
+        bb.bind()
+        loop = asyncio.get_running_loop()
+        finals = {k: n_sets - 1 for k in keys}
+        max_pending = 0
+        max_board_pending = 0
+
+        async def watcher(index: int) -> dict[str, Any]:
+            nonlocal max_pending, max_board_pending
+            last: dict[str, Any] = {}
+            async with bb.watch("stress/*") as changes:
+                async for change in changes:
+                    last[change.key] = change.value
+                    max_pending = max(max_pending, changes.pending)
+                    max_board_pending = max(max_board_pending, len(bb._pending))
+                    if last == finals:
+                        return last
+                    if index % 5 == 0:  # some watchers are slow
+                        await asyncio.sleep(0.0005)
+            return last
+
+        tasks = [asyncio.create_task(watcher(i)) for i in range(n_watchers)]
+        await asyncio.sleep(0)
+
+        def writer(key: str) -> None:
+            for i in range(n_sets):
+                bb.set(key, i)
+
+        threads = [threading.Thread(target=writer, args=(k,)) for k in keys]
+        gc.collect()
+        for t in threads:
+            t.start()
+        await loop.run_in_executor(None, lambda: [t.join() for t in threads])
+        results = await asyncio.wait_for(asyncio.gather(*tasks), 20)
+        bb.unbind()
+        return results, max_pending, max_board_pending
+
+    results, max_pending, max_board_pending = asyncio.run(main())
+    assert all(r == {k: n_sets - 1 for k in keys} for r in results)
+    assert max_pending <= n_threads          # one pending change per key per watcher
+    assert max_board_pending <= n_threads    # one pending hand-over per key

@@ -1,0 +1,257 @@
+"""HALManager contract: discovery, sharing, reference counting, crash and restart."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from typing import Any
+
+import pytest
+
+from beehave.blackboard import Blackboard
+from beehave.errors import HALError, InvalidParameters, UnknownHAL
+from beehave.events import Event, EventBus, EventKind
+from beehave.hal import HAL, HALManager
+from beehave.logic import Logic
+from beehave.lowlevel import LowLevelBehaviorManager
+from beehave.status import Status
+from hal.debug import DebugHAL, DebugRobot
+
+WAIT_S = 5.0
+
+
+def manager_with_events(**kwargs: Any) -> tuple[HALManager, list[Event]]:
+    events: list[Event] = []
+    bus = EventBus()
+    bus.subscribe(events.append)
+    return HALManager(Blackboard(), events=bus, **kwargs), events
+
+
+def wait_until(predicate: Any, timeout_s: float = WAIT_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not reached")
+        time.sleep(0.002)
+
+
+# -- registry and discovery -------------------------------------------------------------------
+
+def test_unknown_hal_lists_registered_and_entry_point_names() -> None:
+    class Lidar(HAL):
+        name = "lidar"
+
+    manager = HALManager()
+    manager.register(Lidar)
+
+    async def main() -> None:
+        await manager.load("nope")
+
+    with pytest.raises(UnknownHAL) as info:
+        asyncio.run(main())
+    assert "'nope'" in str(info.value)
+    assert info.value.choices == ["debug", "lidar"]
+
+
+def test_debug_hal_is_found_through_the_entry_point_group_without_registering() -> None:
+    cls, params = HALManager().resolve("debug")
+    assert cls is DebugHAL and params == {}
+
+
+def test_register_rejects_non_hals_nameless_hals_and_bad_parameters() -> None:
+    class Nameless(HAL):
+        pass
+
+    manager = HALManager()
+    with pytest.raises(HALError, match="not a HAL subclass"):
+        manager.register(dict)  # type: ignore[arg-type]
+    with pytest.raises(HALError, match="Nameless has no name"):
+        manager.register(Nameless)
+    with pytest.raises(InvalidParameters, match="'debug'.*wheels"):
+        manager.register(DebugHAL, wheels=3)
+
+
+def test_hal_whose_on_load_raises_fails_the_load_with_hal_error_and_stays_unloaded() -> None:
+    class Broken(HAL):
+        name = "broken"
+
+        async def on_load(self) -> None:
+            raise OSError("no such device")
+
+    manager, events = manager_with_events()
+    manager.register(Broken)
+
+    async def main() -> None:
+        await manager.load("broken")
+
+    with pytest.raises(HALError, match="'broken' failed to load.*no such device"):
+        asyncio.run(main())
+    assert manager.loaded == {}
+    assert [(e.kind, e.status) for e in events] == [(EventKind.ENDED, "FAILED")]
+
+
+def test_concurrent_loads_create_one_instance() -> None:
+    manager = HALManager()
+    created: list[HAL] = []
+
+    class Counted(HAL):
+        name = "counted"
+
+        def __init__(self) -> None:
+            created.append(self)
+
+        async def on_load(self) -> None:
+            await asyncio.sleep(0.01)
+
+    manager.register(Counted)
+
+    async def main() -> tuple[HAL, HAL]:
+        a, b = await asyncio.gather(manager.load("counted", owner=1),
+                                    manager.load("counted", owner=2))
+        refs = manager.refs("counted")
+        await manager.close()
+        assert refs == 2
+        return a, b
+
+    a, b = asyncio.run(main())
+    assert a is b and created == [a]
+
+
+# -- crash and restart ------------------------------------------------------------------------
+
+def test_crashed_hal_is_restarted_its_entries_stale_meanwhile_and_events_say_so() -> None:
+    manager, events = manager_with_events(backoff_initial_s=0.05, backoff_max_s=1.0)
+    robot = DebugRobot()
+    manager.register(DebugHAL, robot=robot)
+
+    async def main() -> dict[str, Any]:
+        hal = await manager.load("debug")
+        assert isinstance(hal, DebugHAL)
+        bb = manager.blackboard
+        await asyncio.sleep(0)
+        assert not bb.is_stale("battery/percentage")
+        hal.crash(RuntimeError("bus error"))
+        while hal.status is not Status.FAILED:
+            await asyncio.sleep(0.001)
+        during = {"stale": bb.is_stale("battery/percentage"), "status": hal.status}
+        robot.set_battery(42)  # the robot changes while its driver is down
+        during["value"] = bb.get("battery/percentage")
+        while hal.restarts == 0 or bb.is_stale("battery/percentage"):
+            await asyncio.sleep(0.001)
+        after = {"stale": bb.is_stale("battery/percentage"), "value":
+                 bb.get("battery/percentage"), "status": hal.status, "runs": hal.runs,
+                 "same": manager.loaded["debug"] is hal, "error": hal.error}
+        await manager.close()
+        return {"during": during, "after": after}
+
+    got = asyncio.run(asyncio.wait_for(main(), WAIT_S))
+    assert got["during"] == {"stale": True, "status": Status.FAILED, "value": 100.0}
+    after = got["after"]
+    assert after["stale"] is False and after["value"] == 42.0
+    assert after["status"] is Status.RUNNING and after["runs"] == 2 and after["same"]
+    assert isinstance(after["error"], RuntimeError)
+    kinds = [(e.kind, e.status) for e in events if e.subject == "hal:debug"]
+    assert kinds[:3] == [(EventKind.STARTED, "RUNNING"), (EventKind.ENDED, "FAILED"),
+                         (EventKind.RESTARTED, "RUNNING")]
+    failed = next(e for e in events if e.kind is EventKind.ENDED and e.status == "FAILED")
+    assert "battery/percentage" in failed.detail["stale_keys"]
+    assert str(failed.error) == "bus error"
+
+
+def test_restart_backoff_doubles_and_is_bounded() -> None:
+    manager, events = manager_with_events(backoff_initial_s=0.005, backoff_max_s=0.02)
+    manager.register(DebugHAL)
+
+    async def main() -> int:
+        hal = await manager.load("debug")
+        assert isinstance(hal, DebugHAL)
+        hal.fail_runs = 5
+        hal.crash()
+        while hal.restarts < 6:
+            await asyncio.sleep(0.002)
+        await manager.close()
+        return hal.restarts
+
+    assert asyncio.run(asyncio.wait_for(main(), WAIT_S)) == 6
+    delays = [e.detail["after_s"] for e in events if e.kind is EventKind.RESTARTED]
+    assert delays == [0.005, 0.01, 0.02, 0.02, 0.02, 0.02]
+
+
+# -- logics sharing HALs across switches -------------------------------------------------------
+
+class UsesDebug(Logic):
+    """Holds the debug HAL and starts a sub-logic that holds it too."""
+
+    def __init__(self, color: str = "green") -> None:
+        self.color = color
+        self.hal_seen: list[HAL] = []
+        self.ready = threading.Event()
+
+    async def run(self) -> None:
+        hal = await self.hal("debug", DebugHAL)
+        self.hal_seen.append(hal)
+        hal.set_leds(self.color)
+        child = self.start_logic(ChildUsesDebug(self.hal_seen), name="child")
+        await child.ready.wait()
+        self.ready.set()
+        await asyncio.Event().wait()
+
+
+class ChildUsesDebug(Logic):
+    def __init__(self, seen: list[HAL]) -> None:
+        self.seen = seen
+        self.ready = asyncio.Event()
+
+    async def run(self) -> None:
+        self.seen.append(await self.hal("debug"))
+        self.ready.set()
+        await asyncio.Event().wait()
+
+
+def test_switching_logics_while_hals_are_shared() -> None:
+    robot = DebugRobot()
+    ll = LowLevelBehaviorManager(stop_timeout_s=0.5)
+    ll.register("green", UsesDebug, color="green")
+    ll.register("blue", UsesDebug, color="blue")
+    ll.hals.register(DebugHAL, robot=robot)
+    with ll:
+        first = ll.switch("green")
+        assert isinstance(first, UsesDebug) and first.ready.wait(WAIT_S)
+        hal = first.hal_seen[0]
+        assert first.hal_seen == [hal, hal]              # parent and child share it
+        assert ll.hals.refs("debug") == 2
+        assert robot.led_color == "green"
+        for _ in range(5):                              # switch back and forth
+            for name in ("blue", "green"):
+                logic = ll.switch(name)
+                assert isinstance(logic, UsesDebug) and logic.ready.wait(WAIT_S)
+                assert ll.hals.refs("debug") == 2
+                assert robot.led_color == name
+        last = ll.logic
+        assert isinstance(last, UsesDebug)
+        assert isinstance(hal, DebugHAL) and hal.safe_states == 1
+        assert hal.status is Status.INTERRUPTED         # unloaded when "green" #1 ended
+        current = ll.hals.loaded["debug"]
+        assert current is last.hal_seen[0] and current.status is Status.RUNNING
+    assert ll.hals.loaded == {}
+    assert robot.led_color == "off"                     # safe state at shutdown
+    assert list(robot.led_history).count("off") == 11   # one safe state per unload
+
+
+def test_wrong_hal_kind_raises_hal_error_naming_both_classes() -> None:
+    class WantsOther(Logic):
+        async def run(self) -> None:
+            await self.hal("debug", UsesDebugHAL)
+
+    class UsesDebugHAL(HAL):
+        name = "other"
+
+    ll = LowLevelBehaviorManager(default="wants")
+    ll.register("wants", WantsOther)
+    with ll:
+        wait_until(lambda: ll.last_failed is not None)
+        error = ll.last_failed.error if ll.last_failed else None
+        wait_until(lambda: ll.hals.loaded == {})  # its reference was given back
+    assert isinstance(error, HALError)
+    assert "DebugHAL" in str(error) and "UsesDebugHAL" in str(error)
