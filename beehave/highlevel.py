@@ -15,6 +15,7 @@ from types import TracebackType
 from typing import Any, Self
 
 from beehave.behavior import Behavior, Idle
+from beehave.blackboard import Blackboard
 from beehave.errors import (
     BeehaveError,
     ConfigError,
@@ -66,19 +67,24 @@ class HighLevelBehaviorManager:
 
     Options (keyword-only): ``default`` is the behaviour started by :meth:`start`;
     ``stop_timeout_s`` bounds every stop; ``node`` is an rclpy node the ROS 2 bridge may
-    use; ``gil_switch_interval_s`` lowers Python's thread switch interval (process-wide)
+    use; ``blackboard`` is what behaviours read as ``self.blackboard`` (default: a new,
+    empty one); ``gil_switch_interval_s`` lowers Python's thread switch interval (process-wide)
     so that a CPU-bound thread delays an interrupt by at most about that much — pass
     None to leave the interpreter's setting alone.
     """
 
     def __init__(self, *, default: str = IDLE, stop_timeout_s: float = 2.0,
-                 node: Any = None, gil_switch_interval_s: float | None = 0.001,
+                 node: Any = None, blackboard: Blackboard | None = None,
+                 gil_switch_interval_s: float | None = 0.001,
                  history_len: int = 100) -> None:
         if not isinstance(stop_timeout_s, (int, float)) or stop_timeout_s <= 0:
             raise ConfigError(f"stop_timeout_s must be a positive number, got {stop_timeout_s!r}")
         self.default = default
         self.stop_timeout_s = float(stop_timeout_s)
         self.node = node
+        #: What behaviours and actions read as ``self.blackboard``: the low level's
+        #: blackboard when both run in one process, or a read-only mirror fed over ROS 2.
+        self.blackboard = blackboard if blackboard is not None else Blackboard()
         self.events = EventBus(log)
         self._gil_switch_interval_s = gil_switch_interval_s
         self._locks = TypeLocks(self.events)

@@ -13,12 +13,13 @@ import time
 import traceback
 from typing import TYPE_CHECKING, Any, Self
 
-from beehave.errors import AlreadyStarted, Interrupted
+from beehave.errors import AlreadyStarted, Interrupted, ManagerShutdown
 from beehave.events import Event, EventKind
 from beehave.status import Status
 
 if TYPE_CHECKING:
     from beehave.behavior import Behavior
+    from beehave.blackboard import Blackboard
     from beehave.highlevel import HighLevelBehaviorManager
 
 _local = threading.local()
@@ -96,6 +97,20 @@ class Runnable(abc.ABC):
     def path(self) -> str:
         """``parent/…/name``: where this sits in the running tree."""
         return self.name if self.parent is None else f"{self.parent.path}/{self.name}"
+
+    @property
+    def blackboard(self) -> Blackboard:
+        """The manager's blackboard (the robot's state as the low level sees it)."""
+        if self._manager is None:
+            raise ManagerShutdown(f"{self.name!r} is not started: it has no blackboard yet")
+        return self._manager.blackboard
+
+    @property
+    def manager(self) -> HighLevelBehaviorManager:
+        """The manager this runs under (set when it is started)."""
+        if self._manager is None:
+            raise ManagerShutdown(f"{self.name!r} is not started: it has no manager yet")
+        return self._manager
 
     @property
     def alive(self) -> bool:

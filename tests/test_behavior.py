@@ -230,3 +230,22 @@ def test_snapshot_shows_the_tree(hl: HighLevelBehaviorManager) -> None:
     assert child["path"] == "scripted/nav" and child["action_type"] == "driving"
     assert child["elapsed_s"] >= 0 and child["started_at"] > 0
     assert snap["locks"]["driving"]["holder"] == "scripted/nav"
+
+
+def test_behaviours_and_actions_read_the_managers_blackboard(
+        hl: HighLevelBehaviorManager) -> None:
+    hl.blackboard.set("battery/percentage", 55.0)
+    seen: list[object] = []
+
+    class Reads(ScriptedAction):
+        def run(self) -> object:
+            seen.append(self.blackboard.get("battery/percentage"))
+            return None
+
+    def body(b: Behavior) -> None:
+        seen.append(b.blackboard.get("battery/percentage"))
+        b.start_action(Reads()).wait()
+
+    top = run_top(hl, body)
+    assert top.wait(2)
+    assert seen == [55.0, 55.0]
