@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from typing import Any, Self, TypeVar
+from typing import Any, ClassVar, Self, TypeVar
 
 from beehave.action import Action
 from beehave.errors import ChildFailed, Interrupted, NotASubclass
@@ -26,6 +26,11 @@ class Behavior(Runnable):
     ``sleep``/``start_*`` call (or the end of ``run``) raises :class:`ChildFailed`.
     Catch it to carry on.
     """
+
+    #: The top-level logic the low level should run while this is the top-level behaviour
+    #: (a name registered with the LowLevelBehaviorManager), or None to leave it alone.
+    #: Carried over ROS 2 in ``beehave/high_level/state``.
+    logic: ClassVar[str | None] = None
 
     _children: list[Runnable]
     _unobserved_failures: list[Runnable]

@@ -53,7 +53,8 @@ from beehave.errors import BlackboardError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Blackboard", "BlackboardClient", "Change", "Subscription", "Watcher", "matches"]
+__all__ = ["Blackboard", "BlackboardClient", "BlackboardView", "Change", "Subscription", "Watcher",
+           "matches"]
 
 _SEGMENT = re.compile(r"[^/*\s]+")
 _KEY = re.compile(r"[^/*\s]+(?:/[^/*\s]+)*")
@@ -710,3 +711,37 @@ class BlackboardClient:
     def __repr__(self) -> str:
         return f"BlackboardClient(writer={self.writer!r})"
 
+
+
+class BlackboardView:
+    """A read-only view of a :class:`Blackboard` (what the high level sees of the low
+    level's blackboard: a mirror fed over ROS 2). Writing raises, so that a value written
+    to the mirror is never silently lost."""
+
+    def __init__(self, board: Blackboard, *, why: str = "it is read-only") -> None:
+        self._board = board
+        self._why = why
+
+    def get(self, key: str, default: Any = None, *, fresh: bool = False) -> Any:
+        return self._board.get(key, default, fresh=fresh)
+
+    def entry(self, key: str) -> Change | None:
+        return self._board.entry(key)
+
+    def is_stale(self, key: str) -> bool:
+        return self._board.is_stale(key)
+
+    def keys(self, pattern: str = "**") -> list[str]:
+        return self._board.keys(pattern)
+
+    def snapshot(self, pattern: str = "**") -> dict[str, dict[str, Any]]:
+        return self._board.snapshot(pattern)
+
+    def subscribe(self, pattern: str, callback: ChangeCallback) -> Subscription:
+        return self._board.subscribe(pattern, callback)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._board
+
+    def set(self, key: str, value: Any, *, writer: str | None = None) -> None:
+        raise BlackboardError(f"cannot set {key!r}: {self._why}")

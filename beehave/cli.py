@@ -31,12 +31,50 @@ def _demo(_: argparse.Namespace) -> int:
     return 0
 
 
+def _run(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from beehave.config import load_config
+    from beehave.errors import BeehaveError
+    from beehave.robot import Robot
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        logging.getLogger("beehave").info("signal %d: shutting down", signum)
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    try:
+        config = load_config(args.config)
+        robot = Robot(config, only=args.only)
+    except BeehaveError as exc:
+        print(f"beehave run: {exc}", file=sys.stderr)
+        return 2
+    with robot:
+        parts = "high and low level" if args.only is None else f"{args.only} level only"
+        print(f"beehave: robot {config.namespace!r} running ({parts}); Ctrl-C to stop",
+              flush=True)
+        stop.wait(args.duration_s)
+    print("beehave: stopped cleanly", flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="beehave", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="log beehave events")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="run the console demo of both managers")
     demo.set_defaults(func=_demo)
+    run = sub.add_parser("run", help="run a robot from its configuration file (ROS 2)")
+    run.add_argument("config", help="the robot configuration (YAML)")
+    run.add_argument("--only", choices=["high", "low"], default=None,
+                     help="run one manager only (the other runs elsewhere)")
+    run.add_argument("--duration-s", type=float, default=None,
+                     help="stop after this many seconds (default: until Ctrl-C/SIGTERM)")
+    run.set_defaults(func=_run)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")

@@ -72,12 +72,17 @@ class HAL:
     """The last exception ``run`` raised (kept after a restart)."""
     restarts: int
     """How many times ``run`` was restarted after a crash."""
+    node: Any
+    """The low level's ROS 2 node when it runs under ROS (``beehave run``), else None."""
+    events: EventBus
+    """The low level's event bus: report what goes wrong outside ``run`` here."""
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
         self.status = Status.PENDING
         self.error = None
         self.restarts = 0
+        self.node = None
         return self
 
     async def on_load(self) -> None:
@@ -94,6 +99,10 @@ class HAL:
         """Leave the hardware predictable (LEDs off, motors stopped). Called once when the
         HAL is unloaded; may be a coroutine function."""
         return None
+
+    def on_unload(self) -> None:
+        """Release what :meth:`on_load` acquired (devices, ROS entities). Called once at
+        unload, after :meth:`safe_state` (which may still use them)."""
 
 
 @dataclass
@@ -126,6 +135,8 @@ class HALManager:
         self._entry_points: dict[str, importlib.metadata.EntryPoint] | None = None
         self._loaded: dict[str, _Loaded] = {}
         self._closed = False
+        #: Handed to every HAL as ``hal.node`` (the low level's ROS node, or None).
+        self.node: Any = None
 
     # -- registry ------------------------------------------------------------------------
 
@@ -215,6 +226,8 @@ class HALManager:
         hal = entry.hal
         client = self.blackboard.client(f"hal:{name}")
         hal.blackboard = client
+        hal.node = self.node
+        hal.events = self.events
         try:
             hal.__init__(**params)  # type: ignore[misc]  # __new__ ran above, on purpose
             await hal.on_load()
@@ -286,6 +299,12 @@ class HALManager:
         except Exception as exc:
             hal.error = exc
             self.events.emit(Event(EventKind.SAFE_STATE_FAILED, writer, hal.status.name, exc))
+        try:
+            hal.on_unload()
+        except Exception as exc:
+            hal.error = exc
+            self.events.emit(Event(EventKind.ENDED, writer, Status.FAILED.name, exc,
+                                   {"phase": "on_unload"}))
         hal.blackboard.close()
         self.blackboard.mark_stale(writer=writer)
         hal.status = Status.INTERRUPTED

@@ -15,7 +15,8 @@ from types import TracebackType
 from typing import Any, Self
 
 from beehave.behavior import Behavior, Idle
-from beehave.blackboard import Blackboard
+from beehave.blackboard import Blackboard, BlackboardView
+from beehave.clock import WallClock
 from beehave.errors import (
     BeehaveError,
     ConfigError,
@@ -66,15 +67,19 @@ class HighLevelBehaviorManager:
     :class:`SwitchSuperseded`.
 
     Options (keyword-only): ``default`` is the behaviour started by :meth:`start`;
-    ``stop_timeout_s`` bounds every stop; ``node`` is an rclpy node the ROS 2 bridge may
-    use; ``blackboard`` is what behaviours read as ``self.blackboard`` (default: a new,
-    empty one); ``gil_switch_interval_s`` lowers Python's thread switch interval (process-wide)
-    so that a CPU-bound thread delays an interrupt by at most about that much — pass
-    None to leave the interpreter's setting alone.
+    ``stop_timeout_s`` bounds every stop; ``node`` is the rclpy node on which behaviours
+    and actions create their ROS entities (``self.ros``); ``blackboard`` holds what they
+    read as ``self.blackboard`` (default: a new, empty one; under ROS 2, the mirror of the
+    low level's); ``clock`` is what ``sleep`` follows (:class:`~beehave.clock.SimClock` for
+    simulation time; ``stop_timeout_s`` stays wall time); ``gil_switch_interval_s`` lowers
+    Python's thread switch interval (process-wide) so that a CPU-bound thread delays an
+    interrupt by at most about that much — pass None to leave the interpreter's setting
+    alone.
     """
 
     def __init__(self, *, default: str = IDLE, stop_timeout_s: float = 2.0,
                  node: Any = None, blackboard: Blackboard | None = None,
+                 clock: WallClock | None = None,
                  gil_switch_interval_s: float | None = 0.001,
                  history_len: int = 100) -> None:
         if not isinstance(stop_timeout_s, (int, float)) or stop_timeout_s <= 0:
@@ -85,6 +90,11 @@ class HighLevelBehaviorManager:
         #: What behaviours and actions read as ``self.blackboard``: the low level's
         #: blackboard when both run in one process, or a read-only mirror fed over ROS 2.
         self.blackboard = blackboard if blackboard is not None else Blackboard()
+        self.blackboard_view = BlackboardView(
+            self.blackboard, why="behaviours and actions read the low level's blackboard; "
+                                 "they change the robot through actions")
+        #: What ``sleep`` and the ROS helpers' timeouts follow (sim time with ``SimClock``).
+        self.clock = clock if clock is not None else WallClock()
         self.events = EventBus(log)
         self._gil_switch_interval_s = gil_switch_interval_s
         self._locks = TypeLocks(self.events)
@@ -173,6 +183,29 @@ class HighLevelBehaviorManager:
         behaviour of this manager, it only queues the request (waiting would wait for
         itself) and returns the new, not yet started, behaviour.
         """
+        request = self._enqueue(name, params)
+        behavior = request.behavior
+        if threading.get_ident() == self._executor:
+            return behavior  # asked from an event callback during a switch: the loop runs it
+        caller = current()
+        if caller is not None and caller._manager is self:
+            self._process_later()
+            return behavior
+        self._process()
+        request.done.wait()  # set already, unless another thread is executing it
+        if request.error is not None:
+            raise request.error
+        return behavior
+
+    def request_switch(self, name: str, **params: Any) -> Behavior:
+        """Like :meth:`switch`, but returns at once (after checking the name and the
+        parameters); the switch happens in a manager thread. For callers that must not
+        block, e.g. ROS parameter callbacks."""
+        request = self._enqueue(name, params)
+        self._process_later()
+        return request.behavior
+
+    def _enqueue(self, name: str, params: dict[str, Any]) -> _Request:
         if self._state is ManagerState.NEW:
             self.start()
         try:
@@ -186,20 +219,9 @@ class HighLevelBehaviorManager:
                 raise ManagerShutdown(f"cannot switch to {name!r}: the manager is "
                                       f"{self._state.value}")
             self._pending.append(request)
-            self._cond.notify_all()
         self.events.emit(Event(EventKind.SWITCH_REQUESTED, name,
                                detail={"params": _jsonable(params)}))
-        if threading.get_ident() == self._executor:
-            return behavior  # asked from an event callback during a switch: the loop runs it
-        caller = current()
-        if caller is not None and caller._manager is self:
-            self._process_later()
-            return behavior
-        self._process()
-        request.done.wait()  # set already, unless another thread is executing it
-        if request.error is not None:
-            raise request.error
-        return behavior
+        return request
 
     @property
     def current(self) -> str | None:

@@ -13,16 +13,19 @@ import time
 import traceback
 from typing import TYPE_CHECKING, Any, Self
 
-from beehave.errors import AlreadyStarted, Interrupted, ManagerShutdown
+from beehave.clock import WallClock
+from beehave.errors import AlreadyStarted, ConfigError, Interrupted, ManagerShutdown
 from beehave.events import Event, EventKind
 from beehave.status import Status
 
 if TYPE_CHECKING:
     from beehave.behavior import Behavior
-    from beehave.blackboard import Blackboard
+    from beehave.blackboard import BlackboardView
     from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.ros.io import RosIO
 
 _local = threading.local()
+_WALL = WallClock()
 
 
 def current() -> Runnable | None:
@@ -50,6 +53,7 @@ class Runnable(abc.ABC):
     _cond: threading.Condition
     _decided: threading.Event
     _started: bool
+    _ros: RosIO | None
     _ended: threading.Event
     _traceback: str
 
@@ -70,6 +74,7 @@ class Runnable(abc.ABC):
         self._cond = threading.Condition(threading.Lock())
         self._decided = threading.Event()
         self._started = False
+        self._ros = None
         self._ended = threading.Event()
         return self
 
@@ -99,11 +104,33 @@ class Runnable(abc.ABC):
         return self.name if self.parent is None else f"{self.parent.path}/{self.name}"
 
     @property
-    def blackboard(self) -> Blackboard:
-        """The manager's blackboard (the robot's state as the low level sees it)."""
+    def blackboard(self) -> BlackboardView:
+        """The robot's state as the low level sees it: a read-only view of the manager's
+        blackboard (over ROS 2, a mirror of the low level's). To change the robot, start
+        an action; to tell the low level something, choose its logic (``Behavior.logic``)."""
         if self._manager is None:
             raise ManagerShutdown(f"{self.name!r} is not started: it has no blackboard yet")
-        return self._manager.blackboard
+        return self._manager.blackboard_view
+
+    @property
+    def ros(self) -> RosIO:
+        """Robot I/O over ROS 2 on the manager's node: ``publisher``, ``subscription``,
+        ``client``, ``call``, ``timer`` and ``latest`` (see :mod:`beehave.ros.io`).
+        Everything created here is destroyed when this behaviour or action ends, whatever
+        its status — after ``safe_state()``, which may still use it."""
+        manager = self.manager
+        with self._cond:
+            if self._ros is None:
+                if manager.node is None:
+                    raise ConfigError(
+                        f"{self.path}: self.ros needs a ROS node: run the robot with "
+                        f"`beehave run ROBOT.yaml`, or pass node= to HighLevelBehaviorManager")
+                from beehave.ros.io import RosIO
+
+                self._ros = RosIO(manager.node, owner=self.path, cond=self._cond,
+                                  interrupted=lambda: self._interrupt_requested,
+                                  clock=manager.clock)
+            return self._ros
 
     @property
     def manager(self) -> HighLevelBehaviorManager:
@@ -120,13 +147,9 @@ class Runnable(abc.ABC):
 
     def sleep(self, seconds: float) -> bool:
         """Wait ``seconds``; return False at once when interrupted, True otherwise."""
-        deadline = time.monotonic() + seconds
+        clock = self._manager.clock if self._manager is not None else _WALL
         with self._cond:
-            while not self._wake_reason():
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                self._cond.wait(remaining)
+            clock.wait(self._cond, self._wake_reason, seconds)
             self._raise_pending()
             return not self._interrupt_requested
 
@@ -208,6 +231,8 @@ class Runnable(abc.ABC):
             self.ended_at = time.monotonic()
         if not was_stuck and status is not Status.SUCCEEDED:
             self._enter_safe_state()
+        if self._ros is not None:
+            self._ros.destroy_all()
         self._release()
         self._decided.set()
         assert self._manager is not None

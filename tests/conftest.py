@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import os
+import random
 from collections.abc import Iterator
 
 import pytest
 
 from beehave import Event, HighLevelBehaviorManager
 from beehave.testing import beehave_threads
+
+# ROS 2 isolation: only this machine, and a domain of our own for this test run (child
+# processes inherit both).
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(1, 100)))
 
 
 @pytest.fixture

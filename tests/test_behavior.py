@@ -249,3 +249,20 @@ def test_behaviours_and_actions_read_the_managers_blackboard(
     top = run_top(hl, body)
     assert top.wait(2)
     assert seen == [55.0, 55.0]
+
+
+def test_behaviours_cannot_write_the_blackboard(hl: HighLevelBehaviorManager) -> None:
+    from beehave.errors import BlackboardError
+
+    errors: list[BaseException] = []
+
+    def body(b: Behavior) -> None:
+        try:
+            b.blackboard.set("leds/color", "red")
+        except BlackboardError as exc:
+            errors.append(exc)
+
+    top = run_top(hl, body)
+    assert top.wait(2)
+    assert errors and "'leds/color'" in str(errors[0]) and "actions" in str(errors[0])
+    assert hl.blackboard.get("leds/color") is None

@@ -1,0 +1,78 @@
+"""Clocks: how long ``sleep`` and timeouts last — wall time, or the simulation's time.
+
+Behaviours and actions never call ``time.sleep``; ``self.sleep(s)`` and the waits of the
+ROS helpers ask their manager's clock. :class:`WallClock` is the default; with
+``use_sim_time`` the ROS bridge installs a :class:`SimClock` fed from ``/clock``, so a
+``sleep(1.0)`` lasts one simulated second however fast the simulation runs.
+``stop_timeout_s`` always stays wall time: a paused simulation must not stop a switch from
+ending.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import threading
+import time
+from collections.abc import Callable
+
+
+class WallClock:
+    """Monotonic wall time."""
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def wait(self, cond: threading.Condition, predicate: Callable[[], bool],
+             timeout_s: float | None) -> bool:
+        """With ``cond`` held: wait until ``predicate()`` or ``timeout_s`` passed (whoever
+        changes what the predicate reads notifies ``cond``). Returns ``predicate()``."""
+        return cond.wait_for(predicate, timeout_s)
+
+
+Clock = WallClock
+
+
+class SimClock(WallClock):
+    """Time from a simulation: :meth:`set_time` moves it (the ROS bridge calls it for every
+    ``/clock`` message) and wakes the waits whose deadline passed. Before the first
+    ``set_time`` it reads 0."""
+
+    def __init__(self) -> None:
+        self._now = 0.0
+        self._lock = threading.Lock()
+        self._waiters: list[tuple[float, int, threading.Condition]] = []
+        self._ids = itertools.count()
+
+    def now(self) -> float:
+        return self._now
+
+    def set_time(self, t_s: float) -> None:
+        with self._lock:
+            self._now = max(self._now, t_s)
+            due: list[threading.Condition] = []
+            while self._waiters and self._waiters[0][0] <= self._now:
+                due.append(heapq.heappop(self._waiters)[2])
+        for cond in due:
+            with cond:
+                cond.notify_all()
+
+    def wait(self, cond: threading.Condition, predicate: Callable[[], bool],
+             timeout_s: float | None) -> bool:
+        if timeout_s is None:
+            return cond.wait_for(predicate)
+        deadline = self._now + timeout_s
+        entry = (deadline, next(self._ids), cond)
+        with self._lock:
+            heapq.heappush(self._waiters, entry)
+        try:
+            while not predicate():
+                if self._now >= deadline:
+                    return predicate()
+                cond.wait()  # woken by set_time() past the deadline, or by the notifier
+            return True
+        finally:
+            with self._lock:
+                if entry in self._waiters:
+                    self._waiters.remove(entry)
+                    heapq.heapify(self._waiters)

@@ -1,0 +1,135 @@
+"""Robot configuration files (YAML) for ``beehave run``.
+
+::
+
+    namespace: emili                     # the robot's ROS namespace
+    stop_timeout_s: 2.0
+    use_sim_time: false                  # sleep/timeouts follow /clock when true
+    behaviors:                           # top-level behaviours, by import path
+      tour:
+        class: behaviours.demo:Delivery
+        params: {goal_m: 3.0}
+    default_behavior: idle
+    logics:
+      leds: {class: "behaviours.logics:LedLogic", params: {threshold: 20}}
+    default_logic: leds
+    hals:                                # a name (entry point) or a class with params
+      - debug
+      - {class: "hal.emili:EmiliBaseHAL", name: base, params: {}}
+    ros:
+      blackboard_rate_hz: 100.0
+      snapshot_period_s: 1.0
+      state_period_s: 1.0
+
+Errors name the file, the key path and what was expected.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from beehave.errors import ConfigError
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+
+class ClassSpec(_Strict):
+    class_: str = Field(alias="class", description="import path, `package.module:Class`")
+    params: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("class_")
+    @classmethod
+    def _import_path(cls, value: str) -> str:
+        if ":" not in value or value.startswith(":") or value.endswith(":"):
+            raise ValueError(f"expected 'package.module:Class', got {value!r}")
+        return value
+
+
+class HALSpec(ClassSpec):
+    name: str | None = None
+
+
+class RosOptions(_Strict):
+    blackboard_rate_hz: float = Field(100.0, gt=0)
+    snapshot_period_s: float = Field(1.0, gt=0)
+    state_period_s: float = Field(1.0, gt=0)
+
+
+class RobotConfig(_Strict):
+    namespace: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
+    stop_timeout_s: float = Field(2.0, gt=0)
+    use_sim_time: bool = False
+    behaviors: dict[str, ClassSpec] = Field(default_factory=dict)
+    default_behavior: str = "idle"
+    logics: dict[str, ClassSpec] = Field(default_factory=dict)
+    default_logic: str | None = None
+    hals: list[str | HALSpec] = Field(default_factory=list)
+    ros: RosOptions = Field(default_factory=lambda: RosOptions())
+    source: str = Field("<dict>", exclude=True)
+
+
+def load_config(path: str | Path) -> RobotConfig:
+    """Read and validate a robot configuration file."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"robot configuration {str(path)!r} does not exist") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    return parse_config(data, source=str(path))
+
+
+def parse_config(data: Any, *, source: str = "<dict>") -> RobotConfig:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping at the top level, got "
+                          f"{type(data).__name__}")
+    try:
+        config = RobotConfig.model_validate({**data, "source": source})
+    except ValidationError as exc:
+        problems = "; ".join(_describe(err) for err in exc.errors())
+        raise ConfigError(f"{source}: {problems}") from None
+    names = {"idle", *config.behaviors}
+    if config.default_behavior not in names:
+        raise ConfigError(f"{source}: default_behavior: {config.default_behavior!r} is not "
+                          f"one of the behaviors ({', '.join(sorted(names))})")
+    if config.default_logic is not None and config.default_logic not in config.logics:
+        raise ConfigError(f"{source}: default_logic: {config.default_logic!r} is not one of "
+                          f"the logics ({', '.join(sorted(config.logics)) or 'none'})")
+    return config
+
+
+def _describe(err: Any) -> str:
+    loc = ".".join(str(p) for p in err["loc"]) or "<top>"
+    if err["type"] == "extra_forbidden" and len(err["loc"]) == 1:
+        keys = ", ".join(k for k in RobotConfig.model_fields if k != "source")
+        return f"{loc}: unknown key; valid keys: {keys}"
+    return f"{loc}: {err['msg']} (got {err['input']!r:.60})"
+
+
+def import_class(path: str, *, where: str) -> type:
+    """``package.module:Class`` → the class; errors name ``where`` (file and key path)."""
+    module_name, _, attr = path.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ConfigError(f"{where}: cannot import module {module_name!r}: {exc}") from exc
+    try:
+        obj = module
+        for part in attr.split("."):
+            obj = getattr(obj, part)
+    except AttributeError:
+        public = sorted(n for n in vars(module) if not n.startswith("_")
+                        and isinstance(getattr(module, n), type))
+        raise ConfigError(f"{where}: module {module_name!r} has no {attr!r}; classes there: "
+                          f"{', '.join(public) or 'none'}") from None
+    if not isinstance(obj, type):
+        raise ConfigError(f"{where}: {path!r} is not a class")
+    return obj

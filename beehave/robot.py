@@ -1,0 +1,134 @@
+"""One robot: the two managers, their ROS 2 nodes and the bridges between them.
+
+``beehave run ROBOT.yaml`` builds a :class:`Robot` from a configuration file. Both
+managers run in one process by default; ``only="high"`` / ``only="low"`` runs one of them,
+so the pair can be split across processes or machines — they only talk over ROS 2.
+"""
+
+from __future__ import annotations
+
+import logging
+from types import TracebackType
+from typing import TYPE_CHECKING, Literal, Self
+
+from beehave.behavior import Behavior
+from beehave.clock import SimClock
+from beehave.config import RobotConfig, import_class
+from beehave.errors import ConfigError, NotASubclass
+from beehave.hal import HAL
+from beehave.highlevel import HighLevelBehaviorManager
+from beehave.logic import Logic
+from beehave.lowlevel import LowLevelBehaviorManager
+
+if TYPE_CHECKING:
+    from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
+    from beehave.ros.context import RosContext
+
+log = logging.getLogger(__name__)
+
+Only = Literal["high", "low"] | None
+
+HIGH_NODE = "beehave_high_level"
+LOW_NODE = "beehave_low_level"
+
+
+class Robot:
+    """Builds, starts and stops a robot described by a :class:`RobotConfig`.
+
+    Use it as a context manager. :meth:`shutdown` interrupts the actions (safe states
+    applied), stops the logics and HALs, destroys the nodes and joins every thread.
+    """
+
+    def __init__(self, config: RobotConfig, *, only: Only = None) -> None:
+        if only not in (None, "high", "low"):
+            raise ConfigError(f"only must be 'high', 'low' or None, got {only!r}")
+        self.config = config
+        self.only = only
+        self.high: HighLevelBehaviorManager | None = None
+        self.low: LowLevelBehaviorManager | None = None
+        self._build()
+        self._ros: RosContext | None = None
+        self._bridges: list[HighLevelBridge | LowLevelBridge] = []
+        self._started = False
+
+    def _build(self) -> None:
+        cfg = self.config
+        if self.only in (None, "high"):
+            hl = HighLevelBehaviorManager(default=cfg.default_behavior,
+                                          stop_timeout_s=cfg.stop_timeout_s,
+                                          clock=SimClock() if cfg.use_sim_time else None)
+            for name, spec in cfg.behaviors.items():
+                cls = import_class(spec.class_, where=f"{cfg.source}: behaviors.{name}.class")
+                if not issubclass(cls, Behavior):
+                    raise NotASubclass(f"{cfg.source}: behaviors.{name}.class: "
+                                       f"{spec.class_!r} is not a Behavior subclass")
+                hl.register(name, cls, **spec.params)
+            self.high = hl
+        if self.only in (None, "low"):
+            ll = LowLevelBehaviorManager(default=cfg.default_logic,
+                                         stop_timeout_s=cfg.stop_timeout_s)
+            for name, spec in cfg.logics.items():
+                cls = import_class(spec.class_, where=f"{cfg.source}: logics.{name}.class")
+                if not issubclass(cls, Logic):
+                    raise NotASubclass(f"{cfg.source}: logics.{name}.class: "
+                                       f"{spec.class_!r} is not a Logic subclass")
+                ll.register(name, cls, **spec.params)
+            for i, hal in enumerate(cfg.hals):
+                if isinstance(hal, str):
+                    ll.hals.resolve(hal)  # an unknown name fails now, listing the names
+                    continue
+                cls = import_class(hal.class_, where=f"{cfg.source}: hals.{i}.class")
+                if not issubclass(cls, HAL):
+                    raise NotASubclass(f"{cfg.source}: hals.{i}.class: {hal.class_!r} is not "
+                                       f"a HAL subclass")
+                ll.hals.register(cls, name=hal.name, **hal.params)
+            self.low = ll
+
+    def start(self) -> None:
+        from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
+        from beehave.ros.context import RosContext
+
+        cfg = self.config
+        ros = self._ros = RosContext()
+        try:
+            ros.start()
+            if self.low is not None:
+                node = ros.create_node(LOW_NODE, namespace=cfg.namespace,
+                                       use_sim_time=cfg.use_sim_time)
+                self.low.hals.node = node
+                self.low.__enter__()
+                self._bridges.append(LowLevelBridge(
+                    self.low, node, blackboard_rate_hz=cfg.ros.blackboard_rate_hz,
+                    snapshot_period_s=cfg.ros.snapshot_period_s))
+            if self.high is not None:
+                node = ros.create_node(HIGH_NODE, namespace=cfg.namespace,
+                                       use_sim_time=cfg.use_sim_time)
+                self._bridges.append(HighLevelBridge(
+                    self.high, node, state_period_s=cfg.ros.state_period_s))
+                self.high.start()
+        except BaseException:
+            self.shutdown()
+            raise
+        self._started = True
+
+    def shutdown(self) -> None:
+        """Stop everything, in the order that keeps the robot safe: actions first (their
+        safe states may still publish), then the bridges, the logics and HALs, the nodes."""
+        if self.high is not None:
+            self.high.shutdown()
+        for bridge in reversed(self._bridges):
+            bridge.destroy()
+        self._bridges.clear()
+        if self.low is not None:
+            self.low.shutdown()
+        if self._ros is not None:
+            self._ros.shutdown()
+            self._ros = None
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.shutdown()

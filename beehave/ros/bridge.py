@@ -1,0 +1,391 @@
+"""The two managers as ROS 2 nodes, and what flows between them.
+
+Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
+
+``beehave/blackboard`` — from the low level; reliable, transient-local (depth 1)::
+
+    {"schema": "beehave/blackboard/1", "kind": "changes" | "snapshot", "seq": 17,
+     "stamp": 1795240691.67,            # time.time() of publication
+     "entries": {"battery/percentage": {"value": 54.0, "stamp": 1795240691.6,
+                                         "stale": false, "writer": "hal:debug"}, ...},
+     "removed": []}                     # reserved; keys are never removed today
+
+  ``changes`` carries the entries that changed since the previous message, batched at
+  ``blackboard_rate_hz``; ``snapshot`` carries every entry and comes every
+  ``snapshot_period_s`` and whenever changes have settled, so the message a late joiner
+  receives (transient-local keeps the last one) is usually a full snapshot, and always is
+  within ``snapshot_period_s``.
+
+``beehave/high_level/state`` — from the high level; reliable, transient-local (depth 1)::
+
+    {"schema": "beehave/high_level/state/1", "stamp": ..., "behavior": "tour",
+     "logic": "navigation_leds" | null,   # the top-level behaviour's `logic` attribute
+     "running": [{"path": "tour/Navigation", "kind": "action", "class": "Navigation",
+                  "action_type": "driving", "status": "RUNNING"}, ...],
+     "locks": {"driving": "tour/Navigation"}, "stuck": []}
+
+  The low level writes it into its blackboard: ``high_level/behavior``,
+  ``high_level/logic``, ``high_level/running`` (that list), ``high_level/locks`` (that dict),
+  and switches its top-level logic to ``logic`` when it is set.
+
+Parameters: the high-level node's ``behavior`` (string) switches the top-level behaviour;
+the low-level node's ``logic`` switches the top-level logic. Unknown names are refused
+(``SetParametersResult.successful`` false; the reason lists the registered names).
+Service ``beehave/stop`` (std_srvs/Trigger) on the high-level node switches to ``idle``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from beehave.blackboard import Change
+from beehave.clock import SimClock
+from beehave.errors import BeehaveError
+from beehave.events import Event, EventKind
+from beehave.highlevel import IDLE, HighLevelBehaviorManager
+from beehave.lowlevel import LowLevelBehaviorManager
+
+log = logging.getLogger(__name__)
+
+BLACKBOARD_TOPIC = "beehave/blackboard"
+STATE_TOPIC = "beehave/high_level/state"
+STOP_SERVICE = "beehave/stop"
+BLACKBOARD_SCHEMA = "beehave/blackboard/1"
+STATE_SCHEMA = "beehave/high_level/state/1"
+MIRROR_WRITER = "ros:low_level"
+
+#: Reliable + transient-local, depth 1: a late joiner gets the last message.
+LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def _string_param(node: Node, name: str, value: str, description: str) -> None:
+    # dynamic_typing: our own callback refuses non-strings, with a reason naming the choices
+    # (rclpy's type check would only say "expected '4' got '2'").
+    node.declare_parameter(name, value, ParameterDescriptor(
+        description=description, dynamic_typing=True))
+
+
+class _ParamGuard:
+    """Lets a node set its own switch parameter (to show the current name) without the
+    change being taken as a new switch request."""
+
+    def __init__(self) -> None:
+        self._local = threading.local()
+
+    def __enter__(self) -> None:
+        self._local.active = True
+
+    def __exit__(self, *exc: object) -> None:
+        self._local.active = False
+
+    @property
+    def active(self) -> bool:
+        return bool(getattr(self._local, "active", False))
+
+
+def _switch_param_callback(param_name: str, names: Callable[[], list[str]],
+                           current: Callable[[], str | None],
+                           request: Callable[[str], None], guard: _ParamGuard,
+                           kind: str) -> Callable[[list[Parameter[Any]]], SetParametersResult]:
+    def on_set(params: list[Parameter[Any]]) -> SetParametersResult:
+        for param in params:
+            if param.name != param_name or guard.active:
+                continue
+            value = param.value
+            if not isinstance(value, str):
+                return SetParametersResult(successful=False, reason=(
+                    f"parameter {param_name!r} must be a string naming a {kind}, got "
+                    f"{type(value).__name__}; registered: {', '.join(names())}"))
+            if value not in names():
+                return SetParametersResult(successful=False, reason=(
+                    f"unknown {kind} {value!r}; registered: {', '.join(names())}"))
+            if value == current():
+                continue  # already running: setting it again changes nothing
+            try:
+                request(value)
+            except BeehaveError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    return on_set
+
+
+class HighLevelBridge:
+    """Puts a :class:`HighLevelBehaviorManager` on a ROS 2 node.
+
+    Publishes ``beehave/high_level/state`` on every lifecycle change (at most
+    ``state_rate_hz``) and every ``state_period_s``; mirrors ``beehave/blackboard`` into
+    ``manager.blackboard`` (what behaviours read); serves the ``behavior`` parameter and the
+    ``beehave/stop`` service; feeds a :class:`~beehave.clock.SimClock` from ``/clock`` when
+    the manager has one. :meth:`destroy` removes all of it (the node stays).
+    """
+
+    def __init__(self, manager: HighLevelBehaviorManager, node: Node, *,
+                 state_rate_hz: float = 50.0, state_period_s: float = 1.0) -> None:
+        self.manager = manager
+        self.node = node
+        manager.node = node
+        self._guard = _ParamGuard()
+        self._dirty = threading.Event()
+        self._last_seq = -1
+        self.mirror_complete = False
+        _string_param(node, "behavior", manager.current or manager.default,
+                      "the top-level behaviour; set it to switch")
+        node.add_on_set_parameters_callback(_switch_param_callback(
+            "behavior", lambda: manager.names, lambda: manager.current,
+            self._request, self._guard, "behavior"))
+        self._state_pub = node.create_publisher(String, STATE_TOPIC, LATCHED)
+        self._bb_sub = node.create_subscription(String, BLACKBOARD_TOPIC, self._on_blackboard,
+                                                LATCHED)
+        self._stop_srv = node.create_service(Trigger, STOP_SERVICE, self._on_stop)
+        self._fast = node.create_timer(1.0 / state_rate_hz, self._publish_if_dirty)
+        self._slow = node.create_timer(state_period_s, self._dirty.set)
+        self._clock_sub = None
+        if isinstance(manager.clock, SimClock):
+            from rosgraph_msgs.msg import Clock as ClockMsg
+
+            sim_clock = manager.clock
+            self._clock_sub = node.create_subscription(
+                ClockMsg, "/clock",
+                lambda m: sim_clock.set_time(m.clock.sec + m.clock.nanosec * 1e-9), 10)
+        self._unsubscribe = manager.subscribe(self._on_event)
+        self._dirty.set()
+
+    def _request(self, name: str) -> None:
+        self.manager.request_switch(name)
+
+    def _on_stop(self, _req: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            self.manager.request_switch(IDLE)
+        except BeehaveError as exc:
+            response.success, response.message = False, str(exc)
+        else:
+            response.success, response.message = True, "switching to idle"
+        return response
+
+    def _on_event(self, event: Event) -> None:
+        if event.kind in _STATE_EVENTS:
+            self._dirty.set()
+        if event.kind is EventKind.SWITCH_COMPLETED:
+            with self._guard:
+                try:
+                    self.node.set_parameters([Parameter("behavior", value=event.subject)])
+                except Exception:  # the node may be going away during shutdown
+                    log.debug("could not update parameter 'behavior'", exc_info=True)
+
+    def state(self) -> dict[str, Any]:
+        """The message published on ``beehave/high_level/state``."""
+        snap = self.manager.snapshot()
+        running: list[dict[str, Any]] = []
+
+        def walk(node: dict[str, Any] | None) -> None:
+            if node is None:
+                return
+            if node["status"] == "RUNNING":
+                running.append({"path": node["path"], "kind": node["kind"],
+                                "class": node["class"], "status": node["status"],
+                                "action_type": node.get("action_type")})
+            for child in node.get("children", []):
+                walk(child)
+
+        walk(snap["top"])
+        top = self.manager.top
+        return {"schema": STATE_SCHEMA, "stamp": time.time(), "behavior": snap["current"],
+                "logic": None if top is None else type(top).logic, "running": running,
+                "locks": {k: v["holder"] for k, v in snap["locks"].items()},
+                "stuck": snap["stuck"]}
+
+    def _publish_if_dirty(self) -> None:
+        if not self._dirty.is_set():
+            return
+        self._dirty.clear()
+        self._state_pub.publish(String(data=json.dumps(self.state())))
+
+    def _on_blackboard(self, msg: String) -> None:
+        try:
+            data = json.loads(msg.data)
+            if data.get("schema") != BLACKBOARD_SCHEMA:
+                raise ValueError(f"schema {data.get('schema')!r}, expected {BLACKBOARD_SCHEMA!r}")
+            kind, entries = data["kind"], data["entries"]
+            if kind not in ("changes", "snapshot") or not isinstance(entries, dict):
+                raise ValueError(f"kind {kind!r} / entries {type(entries).__name__}")
+        except (ValueError, KeyError, TypeError) as exc:
+            log.error("malformed message on %s ignored: %s (%.200s)",
+                      self.node.resolve_topic_name(BLACKBOARD_TOPIC), exc, msg.data)
+            self.manager.events.emit(Event(EventKind.ENDED, f"ros:{BLACKBOARD_TOPIC}",
+                                           "FAILED", exc, {"message": msg.data[:200]}))
+            return
+        board = self.manager.blackboard
+        for key, entry in entries.items():
+            if board.get(key, _MISSING) != entry.get("value") or key not in board:
+                board.set(key, entry.get("value"), writer=entry.get("writer") or MIRROR_WRITER)
+            if entry.get("stale"):
+                board.mark_stale(pattern=key)
+        self._last_seq = int(data.get("seq", -1))
+        if kind == "snapshot":
+            self.mirror_complete = True
+
+    def destroy(self) -> None:
+        self._unsubscribe()
+        for timer in (self._fast, self._slow):
+            self.node.destroy_timer(timer)
+        self.node.destroy_publisher(self._state_pub)
+        self.node.destroy_subscription(self._bb_sub)
+        if self._clock_sub is not None:
+            self.node.destroy_subscription(self._clock_sub)
+        self.node.destroy_service(self._stop_srv)
+
+
+_MISSING = object()
+_STATE_EVENTS = {EventKind.STARTED, EventKind.ENDED, EventKind.STUCK,
+                 EventKind.STUCK_RELEASED, EventKind.SWITCH_COMPLETED, EventKind.FALLBACK}
+
+
+class LowLevelBridge:
+    """Puts a running :class:`LowLevelBehaviorManager` on a ROS 2 node.
+
+    Publishes its blackboard on ``beehave/blackboard`` (batched changes at
+    ``blackboard_rate_hz``, full snapshots every ``snapshot_period_s`` and when changes
+    settle), writes ``beehave/high_level/state`` into the blackboard under ``high_level/``
+    and follows its ``logic``, and serves the ``logic`` parameter.
+    """
+
+    def __init__(self, manager: LowLevelBehaviorManager, node: Node, *,
+                 blackboard_rate_hz: float = 100.0, snapshot_period_s: float = 1.0) -> None:
+        self.manager = manager
+        self.node = node
+        self._guard = _ParamGuard()
+        self._lock = threading.Lock()
+        self._pending: dict[str, Change] = {}
+        self._seq = 0
+        self._last_kind = "snapshot"
+        self._requested_logic: str | None = None
+        _string_param(node, "logic", manager.current or manager.default or "",
+                      "the top-level logic; set it to switch")
+        node.add_on_set_parameters_callback(_switch_param_callback(
+            "logic", lambda: manager.registered, lambda: manager.current,
+            self._request, self._guard, "logic"))
+        self._pub = node.create_publisher(String, BLACKBOARD_TOPIC, LATCHED)
+        self._state_sub = node.create_subscription(String, STATE_TOPIC, self._on_state, LATCHED)
+        self._batch = node.create_timer(1.0 / blackboard_rate_hz, self._publish_changes)
+        self._snap = node.create_timer(snapshot_period_s, self._publish_snapshot)
+        self._bb_sub = manager.blackboard.subscribe("**", self._on_change)
+        self._unsubscribe = manager.subscribe(self._on_event)
+        self._publish_snapshot()
+
+    # -- blackboard → ROS ------------------------------------------------------------------
+    def _on_change(self, change: Change) -> None:
+        with self._lock:
+            self._pending[change.key] = change
+
+    def _message(self, kind: str, entries: dict[str, dict[str, Any]]) -> String:
+        self._seq += 1
+        self._last_kind = kind
+        return String(data=json.dumps({"schema": BLACKBOARD_SCHEMA, "kind": kind,
+                                       "seq": self._seq, "stamp": time.time(),
+                                       "entries": entries, "removed": []}))
+
+    def _publish_changes(self) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, {}
+        if pending:
+            entries = {k: _entry(c) for k, c in pending.items()}
+            self._pub.publish(self._message("changes", entries))
+        elif self._last_kind == "changes":
+            self._publish_snapshot()  # settled: leave a full picture for late joiners
+
+    def _publish_snapshot(self) -> None:
+        board = self.manager.blackboard
+        entries = {}
+        for key in board.keys():
+            change = board.entry(key)
+            if change is not None:
+                entries[key] = _entry(change)
+        with self._lock:
+            self._pending.clear()  # the snapshot contains them
+        self._pub.publish(self._message("snapshot", entries))
+
+    # -- ROS → low level -------------------------------------------------------------------
+    def _on_state(self, msg: String) -> None:
+        try:
+            state = json.loads(msg.data)
+            if state.get("schema") != STATE_SCHEMA:
+                raise ValueError(f"schema {state.get('schema')!r}, expected {STATE_SCHEMA!r}")
+        except (ValueError, TypeError) as exc:
+            log.error("malformed message on %s ignored: %s (%.200s)",
+                      self.node.resolve_topic_name(STATE_TOPIC), exc, msg.data)
+            self.manager.events.emit(Event(EventKind.ENDED, f"ros:{STATE_TOPIC}", "FAILED",
+                                           exc, {"message": msg.data[:200]}))
+            return
+        board = self.manager.blackboard
+        writer = "ros:high_level"
+        board.set("high_level/behavior", state.get("behavior"), writer=writer)
+        board.set("high_level/logic", state.get("logic"), writer=writer)
+        board.set("high_level/running", state.get("running", []), writer=writer)
+        board.set("high_level/locks", state.get("locks", {}), writer=writer)
+        logic = state.get("logic")
+        if logic and logic != self._requested_logic:
+            self._requested_logic = logic
+            if logic not in self.manager.registered:
+                log.error("high level asks for logic %r, which is not registered (%s)",
+                          logic, ", ".join(self.manager.registered))
+            elif logic != self.manager.current:
+                self._request(logic)
+        elif not logic:
+            self._requested_logic = None
+
+    def _request(self, name: str) -> None:
+        loop = self.manager.loop
+        if loop is None:
+            raise BeehaveError(f"the low level is not running; cannot switch to {name!r}")
+        future = asyncio.run_coroutine_threadsafe(self.manager.switch_async(name), loop)
+        future.add_done_callback(_log_failure(f"switch to logic {name!r}"))
+
+    def _on_event(self, event: Event) -> None:
+        if event.kind is EventKind.SWITCH_COMPLETED or event.kind is EventKind.FALLBACK:
+            current = self.manager.current
+            if current is None:
+                return
+            with self._guard:
+                try:
+                    self.node.set_parameters([Parameter("logic", value=current)])
+                except Exception:
+                    log.debug("could not update parameter 'logic'", exc_info=True)
+
+    def destroy(self) -> None:
+        self._unsubscribe()
+        self._bb_sub.close()
+        self.node.destroy_timer(self._batch)
+        self.node.destroy_timer(self._snap)
+        self.node.destroy_publisher(self._pub)
+        self.node.destroy_subscription(self._state_sub)
+
+
+def _entry(change: Change) -> dict[str, Any]:
+    d = change.as_dict()
+    return {"value": d["value"], "stamp": d["stamp"], "stale": d["stale"],
+            "writer": d["writer"]}
+
+
+def _log_failure(what: str) -> Callable[[Any], None]:
+    def done(future: Any) -> None:
+        exc = future.exception()
+        if exc is not None:
+            log.error("%s failed: %r", what, exc)
+
+    return done

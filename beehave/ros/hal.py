@@ -1,0 +1,154 @@
+"""RosHAL: a HAL that maps ROS 2 topics to blackboard entries and offers outputs.
+
+Declare what comes in and what goes out; the base class creates the subscriptions and
+publishers on the low level's node when the HAL is loaded and destroys them at unload::
+
+    class BatteryHAL(RosHAL):
+        name = "battery"
+        inputs = [TopicInput("battery_state", BatteryState,
+                             lambda m: {"battery/percentage": m.percentage * 100.0,
+                                        "battery/charging": m.power_supply_status == 1},
+                             max_age_s=2.0)]
+        outputs = {"leds": TopicOutput("leds", ColorRGBA)}
+
+        def set_leds(self, r: float, g: float, b: float) -> None:
+            self.publish("leds", ColorRGBA(r=r, g=g, b=b, a=1.0))
+
+A conversion returns either one value (stored under ``key``) or a dict of key → value (then
+leave ``key`` None). A conversion that raises is reported (event + log) and that message is
+skipped; the entries keep their last values and become stale after ``max_age_s``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from rclpy.qos import QoSProfile
+
+from beehave.errors import HALError
+from beehave.events import Event, EventKind
+from beehave.hal import HAL
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TopicInput:
+    """``topic`` (relative to the robot namespace) of ``msg_type``, converted by
+    ``convert(msg)`` into the blackboard under ``key`` (or a dict of keys)."""
+
+    topic: str
+    msg_type: type
+    convert: Callable[[Any], Any]
+    key: str | None = None
+    max_age_s: float | None = None
+    deadband: float | None = None
+    qos: QoSProfile | int = 10
+
+
+@dataclass(frozen=True)
+class TopicOutput:
+    topic: str
+    msg_type: type
+    qos: QoSProfile | int = 10
+
+
+class RosHAL(HAL):
+    """Base of HALs backed by ROS 2 topics and services (see the module docstring)."""
+
+    inputs: ClassVar[Sequence[TopicInput]] = ()
+    outputs: ClassVar[Mapping[str, TopicOutput]] = {}
+
+    async def on_load(self) -> None:
+        if self.node is None:
+            raise HALError(f"HAL {self.name!r} talks to the robot over ROS 2 and needs the low "
+                           "level's node: run the robot with `beehave run ROBOT.yaml`")
+        self._entities: list[tuple[str, Any]] = []
+        self._publishers: dict[str, Any] = {}
+        self._loop = asyncio.get_running_loop()
+        for spec in self.inputs:
+            for key in ([spec.key] if spec.key else []):
+                self.blackboard.declare(key, max_age_s=spec.max_age_s, deadband=spec.deadband)
+            sub = self.node.create_subscription(spec.msg_type, spec.topic,
+                                                self._input_callback(spec), spec.qos)
+            self._entities.append(("subscription", sub))
+        for name, out in self.outputs.items():
+            pub = self.node.create_publisher(out.msg_type, out.topic, out.qos)
+            self._publishers[name] = pub
+            self._entities.append(("publisher", pub))
+
+    def _input_callback(self, spec: TopicInput) -> Callable[[Any], None]:
+        declared: set[str] = set()
+
+        def on_message(msg: Any) -> None:  # in the ROS executor thread
+            try:
+                value = spec.convert(msg)
+                if spec.key is not None:
+                    self.blackboard.set(spec.key, value)
+                    return
+                if not isinstance(value, dict):
+                    raise TypeError(f"convert() must return a dict of key → value when "
+                                    f"TopicInput.key is None, got {type(value).__name__}")
+                for key, item in value.items():
+                    if key not in declared and (spec.max_age_s or spec.deadband):
+                        self.blackboard.declare(key, max_age_s=spec.max_age_s,
+                                                deadband=spec.deadband)
+                        declared.add(key)
+                    self.blackboard.set(key, item)
+            except Exception as exc:
+                log.error("HAL %r: cannot convert a message on %s: %r", self.name,
+                          spec.topic, exc)
+                self.error = exc
+                self._report(exc, spec.topic)
+
+        return on_message
+
+    def _report(self, exc: BaseException, topic: str) -> None:
+        # Events are delivered in the loop's thread, like every other low-level event.
+        self._loop.call_soon_threadsafe(self.events.emit, Event(
+            EventKind.ENDED, f"hal:{self.name}:{topic}", "FAILED", exc))
+
+    def publish(self, output: str, msg: Any) -> None:
+        """Publish ``msg`` on the declared output ``output``."""
+        try:
+            pub = self._publishers[output]
+        except (KeyError, AttributeError):
+            raise HALError(f"HAL {self.name!r} has no output {output!r}; declared: "
+                           f"{', '.join(sorted(self.outputs)) or 'none'}") from None
+        pub.publish(msg)
+
+    async def call(self, srv_type: type, service: str, request: Any, *,
+                   timeout_s: float = 5.0) -> Any:
+        """Call a ROS service from a logic without blocking the loop."""
+        client = self.node.create_client(srv_type, service)
+        try:
+            deadline = self._loop.time() + timeout_s
+            while not client.service_is_ready():
+                if self._loop.time() > deadline:
+                    raise HALError(f"HAL {self.name!r}: service {service!r} not available "
+                                   f"after {timeout_s} s")
+                await asyncio.sleep(0.05)
+            future = client.call_async(request)
+            done: asyncio.Future[Any] = self._loop.create_future()
+
+            def finished(f: Any) -> None:
+                def resolve() -> None:
+                    if not done.done():
+                        done.set_result(f.result())
+
+                self._loop.call_soon_threadsafe(resolve)
+
+            future.add_done_callback(finished)
+            return await asyncio.wait_for(done, timeout_s)
+        finally:
+            self.node.destroy_client(client)
+
+    def on_unload(self) -> None:
+        for kind, entity in reversed(getattr(self, "_entities", [])):
+            getattr(self.node, f"destroy_{kind}")(entity)
+        self._entities = []
+        self._publishers = {}

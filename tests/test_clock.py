@@ -1,0 +1,51 @@
+"""Clocks: sleep follows simulated time when the manager has a SimClock."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from beehave import Behavior, HighLevelBehaviorManager, Status
+from beehave.clock import SimClock
+
+
+def test_sleep_follows_sim_time() -> None:
+    clock = SimClock()
+    woke = threading.Event()
+    entered = threading.Event()
+
+    class Nap(Behavior):
+        def run(self) -> bool:
+            entered.set()
+            ok = self.sleep(10.0)  # ten simulated seconds
+            woke.set()
+            return ok
+
+    with HighLevelBehaviorManager(clock=clock, stop_timeout_s=0.5) as hl:
+        hl.register("nap", Nap)
+        nap = hl.switch("nap")
+        assert entered.wait(2)
+        clock.set_time(5.0)
+        assert not woke.wait(0.05)  # half-way in sim time: still asleep
+        clock.set_time(10.5)
+        assert woke.wait(2)
+        assert nap.wait(2) and nap.result is True and nap.status is Status.SUCCEEDED
+
+
+def test_interrupt_wakes_a_sim_time_sleep_when_the_clock_stands_still() -> None:
+    clock = SimClock()  # never advanced: a paused simulation
+    entered = threading.Event()
+
+    class Nap(Behavior):
+        def run(self) -> None:
+            entered.set()
+            self.sleep(10.0)
+
+    with HighLevelBehaviorManager(clock=clock, stop_timeout_s=0.5) as hl:
+        hl.register("nap", Nap)
+        nap = hl.switch("nap")
+        assert entered.wait(2)
+        t0 = time.monotonic()
+        hl.switch("idle")  # stop_timeout_s is wall time: a paused sim cannot block it
+        assert time.monotonic() - t0 < 0.5
+        assert nap.status is Status.INTERRUPTED

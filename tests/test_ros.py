@@ -1,0 +1,211 @@
+"""The two managers as ROS 2 nodes, over real DDS (localhost, a domain of our own).
+
+Observed the way any ROS 2 tool would: a plain rclpy node sets parameters, calls services
+and listens to topics.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+from geometry_msgs.msg import Twist  # noqa: E402
+from ros_probe import Probe, last_json  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+
+from beehave import Action, Behavior  # noqa: E402
+from beehave.config import load_config, parse_config  # noqa: E402
+from beehave.errors import ConfigError, Interrupted  # noqa: E402
+from beehave.robot import Robot  # noqa: E402
+from beehave.testing import beehave_threads, wait_until  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+CONFIG = HERE / "data" / "rosbot.yaml"
+HIGH = "/rosbot/beehave_high_level"
+LOW = "/rosbot/beehave_low_level"
+
+
+@pytest.fixture
+def probe() -> Iterator[Probe]:
+    p = Probe()
+    yield p
+    p.close()
+
+
+@pytest.fixture
+def robot() -> Iterator[Robot]:
+    before = set(beehave_threads())
+    with Robot(load_config(CONFIG)) as r:
+        yield r
+    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before], 3), \
+        [t.name for t in beehave_threads() if t not in before]
+
+
+def observe_switch(probe: Probe) -> dict[str, Any]:
+    """Switch to patrol by parameter and collect what happens on the robot's topics."""
+    cmd = probe.record(Twist, "/rosbot/cmd_vel")
+    board = probe.record(String, "/rosbot/beehave/blackboard", latched=True)
+    state = probe.record(String, "/rosbot/beehave/high_level/state", latched=True)
+    assert probe.wait(lambda: bool(board) and bool(state)), "no latched state arrived"
+    result = probe.set_param(HIGH, "behavior", "patrol")
+    assert result.successful, result.reason
+    assert probe.wait(lambda: any(m.linear.x == pytest.approx(0.3) for m in cmd))
+    assert probe.wait(lambda: (last_json(state) or {}).get("behavior") == "patrol")
+
+    def mode_is_driving() -> bool:
+        return any(json.loads(m.data)["entries"].get("mode", {}).get("value") == "driving"
+                   for m in list(board))
+
+    assert probe.wait(mode_is_driving), "the low level did not follow Patrol.logic"
+    stop = probe.trigger("/rosbot/beehave/stop")
+    assert stop.success, stop.message
+    assert probe.wait(lambda: (last_json(state) or {}).get("behavior") == "idle")
+    assert probe.wait(lambda: bool(cmd) and cmd[-1].linear.x == 0.0), "no zero velocity"
+    # The Cruise action's publisher is destroyed with the action.
+    assert probe.wait(lambda: probe.publishers("/rosbot/cmd_vel") == 0)
+    return {"state": last_json(state), "param": probe.get_param(HIGH, "behavior")}
+
+
+def test_parameter_switch_state_blackboard_and_stop(robot: Robot, probe: Probe) -> None:
+    seen = observe_switch(probe)
+    assert seen["param"] == "idle"  # the parameter follows the running behaviour
+    assert robot.high is not None and robot.high.current == "idle"
+    # The high level's read-only mirror holds the low level's blackboard …
+    assert wait_until(lambda: robot.high.blackboard.get("mode") == "driving")
+    assert robot.high.blackboard.get("battery/percentage") is not None  # from the debug HAL
+    # … and the low level knows what the high level does.
+    assert robot.low is not None
+    assert wait_until(lambda: robot.low.blackboard.get("high_level/behavior") == "idle")
+
+
+def test_unknown_or_mistyped_names_are_rejected_with_reasons(robot: Robot, probe: Probe) -> None:
+    result = probe.set_param(HIGH, "behavior", "patroll")
+    assert not result.successful
+    assert "'patroll'" in result.reason and "idle, parked, patrol" in result.reason
+    result = probe.set_param(HIGH, "behavior", 3)
+    assert not result.successful and "must be a string" in result.reason
+    result = probe.set_param(LOW, "logic", "disco")
+    assert not result.successful and "driving, parked" in result.reason
+    assert robot.high is not None and robot.high.current == "parked"
+
+
+def test_logic_parameter_switches_the_low_level(robot: Robot, probe: Probe) -> None:
+    assert robot.low is not None
+    assert wait_until(lambda: robot.low.current == "parked")
+    result = probe.set_param(LOW, "logic", "driving")
+    assert result.successful, result.reason
+    assert wait_until(lambda: robot.low.blackboard.get("mode") == "driving")
+    assert wait_until(lambda: probe.get_param(LOW, "logic") == "driving")
+
+
+def test_late_joiner_gets_the_blackboard(robot: Robot, probe: Probe) -> None:
+    assert robot.low is not None
+    assert wait_until(lambda: robot.low.blackboard.get("mode") == "parked")
+    assert robot.high is not None
+    assert wait_until(lambda: robot.high.blackboard.get("mode") == "parked")
+    late = probe.record(String, "/rosbot/beehave/blackboard", latched=True)
+    assert probe.wait(lambda: bool(late))
+    first = json.loads(late[0].data)
+    assert first["schema"] == "beehave/blackboard/1"
+    assert first["kind"] == "snapshot" and first["entries"]["mode"]["value"] == "parked"
+
+
+def test_action_io_helpers_and_interrupted_wait(robot: Robot, probe: Probe) -> None:
+    assert robot.high is not None
+    waiting = threading.Event()
+    outcome: list[Any] = []
+
+    class WaitForGo(Action):
+        action_type = "listening"
+
+        def run(self) -> str:
+            go = self.ros.latest(String, "go")
+            waiting.set()
+            msg = go.wait_for(lambda m: m.data == "go", timeout_s=30.0)
+            return msg.data
+
+    class Listener(Behavior):
+        def run(self) -> None:
+            first = self.start_action(WaitForGo())
+            first.wait()
+            outcome.append(first.result)
+            second = self.start_action(WaitForGo())
+            outcome.append(second)
+            while self.sleep(1.0):
+                pass
+
+    robot.high.register("listener", Listener)
+    robot.high.switch("listener")
+    assert waiting.wait(5)
+    pub = probe.node.create_publisher(String, "/rosbot/go", 10)
+    assert probe.wait(lambda: pub.get_subscription_count() >= 1)
+    pub.publish(String(data="wait"))
+    pub.publish(String(data="go"))
+    assert wait_until(lambda: len(outcome) == 2)
+    assert outcome[0] == "go"
+    second = outcome[1]
+    robot.high.switch("parked")  # interrupts the second wait, which would take 30 s
+    assert isinstance(second.error, Interrupted) or second.status.name == "INTERRUPTED"
+    assert probe.wait(lambda: pub.get_subscription_count() == 0)  # its subscription is gone
+
+
+def test_config_errors_name_file_and_key() -> None:
+    with pytest.raises(ConfigError, match=r"namespace"):
+        parse_config({"namespace": "9bad"}, source="r.yaml")
+    with pytest.raises(ConfigError, match=r"default_behavior: 'tour' is not one of"):
+        parse_config({"namespace": "r", "default_behavior": "tour"}, source="r.yaml")
+    with pytest.raises(ConfigError, match=r"behaviors.x.class: cannot import module 'nope'"):
+        Robot(parse_config({"namespace": "r",
+                            "behaviors": {"x": {"class": "nope:X"}}}, source="r.yaml"))
+    with pytest.raises(ConfigError, match=r"r.yaml: behaviors.x.class.*has no 'Nope'"):
+        Robot(parse_config({"namespace": "r",
+                            "behaviors": {"x": {"class": "rosbot:Nope"}}}, source="r.yaml"))
+    with pytest.raises(ConfigError, match=r"behaviours: unknown key; valid keys: namespace"):
+        parse_config({"namespace": "r", "behaviours": {}}, source="r.yaml")
+
+
+def _spawn(*args: str) -> subprocess.Popen[str]:
+    env = {**os.environ, "PYTHONPATH": str(HERE)}
+    return subprocess.Popen([sys.executable, "-m", "beehave.cli", *args], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def test_two_processes_behave_like_one(probe: Probe) -> None:
+    low = _spawn("run", str(CONFIG), "--only", "low")
+    high = _spawn("run", str(CONFIG), "--only", "high")
+    try:
+        seen = observe_switch(probe)
+        assert seen["param"] == "idle"
+    finally:
+        outputs = []
+        for proc in (high, low):
+            proc.send_signal(signal.SIGTERM)
+        for proc in (high, low):
+            out, _ = proc.communicate(timeout=20)
+            outputs.append(out)
+    for proc, out in zip((high, low), outputs, strict=True):
+        assert proc.returncode == 0, out
+        assert "stopped cleanly" in out, out
+
+
+def test_plain_rclpy_client_process(robot: Robot) -> None:
+    """A separate process, knowing nothing of beehave, switches and reads the blackboard."""
+    script = HERE / "data" / "plain_client.py"
+    proc = subprocess.run([sys.executable, str(script), "/rosbot"], capture_output=True,
+                          text=True, timeout=60, env=dict(os.environ))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["set_behavior"] is True
+    assert report["mode"] == "driving"
+    assert robot.high is not None and robot.high.current == "patrol"
