@@ -17,7 +17,7 @@
       - debug
       - {class: "hal.emili:EmiliBaseHAL", name: base, params: {}}
     ros:
-      blackboard_rate_hz: 100.0
+      blackboard_rate_hz: 2000.0
       snapshot_period_s: 1.0
       state_period_s: 1.0
 
@@ -57,7 +57,7 @@ class HALSpec(ClassSpec):
 
 
 class RosOptions(_Strict):
-    blackboard_rate_hz: float = Field(100.0, gt=0)
+    blackboard_rate_hz: float = Field(2000.0, gt=0)
     snapshot_period_s: float = Field(1.0, gt=0)
     state_period_s: float = Field(1.0, gt=0)
 

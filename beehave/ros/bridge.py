@@ -10,11 +10,17 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
                                          "stale": false, "writer": "hal:debug"}, ...},
      "removed": []}                     # reserved; keys are never removed today
 
-  ``changes`` carries the entries that changed since the previous message, batched at
-  ``blackboard_rate_hz``; ``snapshot`` carries every entry and comes every
-  ``snapshot_period_s`` and whenever changes have settled, so the message a late joiner
-  receives (transient-local keeps the last one) is usually a full snapshot, and always is
-  within ``snapshot_period_s``.
+  ``changes`` carries the entries that changed since the previous message. Changes are
+  published at the end of the loop iteration that made them (so changes made together
+  travel together), unless the previous message left less than ``1/blackboard_rate_hz``
+  ago; then they wait for the rest of that interval together with every other change that
+  comes meanwhile (only the newest value per key). So a quiet blackboard reaches the high
+  level in about a hundred microseconds, and a busy one costs at most
+  ``blackboard_rate_hz`` messages a second. ``snapshot`` carries every entry and comes every
+  ``snapshot_period_s`` and ``settle_s`` after the last change. A late joiner receives the
+  last message at once (transient-local keeps one): the full state when the blackboard is
+  quiet, else a batch of changes followed by a full snapshot within ``snapshot_period_s``.
+  The high level's mirror sets ``HighLevelBridge.mirror_complete`` at its first snapshot.
 
 ``beehave/high_level/state`` — from the high level; reliable, transient-local (depth 1)::
 
@@ -259,14 +265,15 @@ _STATE_EVENTS = {EventKind.STARTED, EventKind.ENDED, EventKind.STUCK,
 class LowLevelBridge:
     """Puts a running :class:`LowLevelBehaviorManager` on a ROS 2 node.
 
-    Publishes its blackboard on ``beehave/blackboard`` (batched changes at
-    ``blackboard_rate_hz``, full snapshots every ``snapshot_period_s`` and when changes
+    Publishes its blackboard on ``beehave/blackboard`` (changes at once, batched above
+    ``blackboard_rate_hz``; full snapshots every ``snapshot_period_s`` and when changes
     settle), writes ``beehave/high_level/state`` into the blackboard under ``high_level/``
     and follows its ``logic``, and serves the ``logic`` parameter.
     """
 
     def __init__(self, manager: LowLevelBehaviorManager, node: Node, *,
-                 blackboard_rate_hz: float = 100.0, snapshot_period_s: float = 1.0) -> None:
+                 blackboard_rate_hz: float = 2000.0, snapshot_period_s: float = 1.0,
+                 settle_s: float = 0.2) -> None:
         self.manager = manager
         self.node = node
         self._guard = _ParamGuard()
@@ -274,6 +281,11 @@ class LowLevelBridge:
         self._pending: dict[str, Change] = {}
         self._seq = 0
         self._last_kind = "snapshot"
+        self._min_interval_s = 1.0 / blackboard_rate_hz
+        self._settle_s = settle_s
+        self._last_publish = 0.0
+        self._flush_handle: asyncio.Handle | None = None
+        self._settle_handle: asyncio.TimerHandle | None = None
         self._requested_logic: str | None = None
         _string_param(node, "logic", manager.current or manager.default or "",
                       "the top-level logic; set it to switch")
@@ -282,7 +294,6 @@ class LowLevelBridge:
             self._request, self._guard, "logic"))
         self._pub = node.create_publisher(String, BLACKBOARD_TOPIC, LATCHED)
         self._state_sub = node.create_subscription(String, STATE_TOPIC, self._on_state, LATCHED)
-        self._batch = node.create_timer(1.0 / blackboard_rate_hz, self._publish_changes)
         self._snap = node.create_timer(snapshot_period_s, self._publish_snapshot)
         self._bb_sub = manager.blackboard.subscribe("**", self._on_change)
         self._unsubscribe = manager.subscribe(self._on_event)
@@ -290,24 +301,47 @@ class LowLevelBridge:
 
     # -- blackboard → ROS ------------------------------------------------------------------
     def _on_change(self, change: Change) -> None:
+        # In the low level's loop thread (the blackboard is bound to it).
         with self._lock:
             self._pending[change.key] = change
+            if self._flush_handle is not None:
+                return  # a flush is already due: this change goes with it
+            wait_s = self._last_publish + self._min_interval_s - time.monotonic()
+        loop = self.manager.loop
+        if loop is None:
+            self._publish_changes()
+        elif wait_s > 0:
+            self._flush_handle = loop.call_later(wait_s, self._publish_changes)
+        else:
+            # At the end of this loop iteration: changes made together travel together.
+            self._flush_handle = loop.call_soon(self._publish_changes)
 
     def _message(self, kind: str, entries: dict[str, dict[str, Any]]) -> String:
         self._seq += 1
         self._last_kind = kind
+        self._last_publish = time.monotonic()
         return String(data=json.dumps({"schema": BLACKBOARD_SCHEMA, "kind": kind,
                                        "seq": self._seq, "stamp": time.time(),
                                        "entries": entries, "removed": []}))
 
     def _publish_changes(self) -> None:
         with self._lock:
+            self._flush_handle = None
             pending, self._pending = self._pending, {}
-        if pending:
-            entries = {k: _entry(c) for k, c in pending.items()}
-            self._pub.publish(self._message("changes", entries))
-        elif self._last_kind == "changes":
-            self._publish_snapshot()  # settled: leave a full picture for late joiners
+            if not pending:
+                return
+            msg = self._message("changes", {k: _entry(c) for k, c in pending.items()})
+        self._pub.publish(msg)
+        loop = self.manager.loop
+        if loop is not None:
+            if self._settle_handle is not None:
+                self._settle_handle.cancel()
+            self._settle_handle = loop.call_later(self._settle_s, self._settled)
+
+    def _settled(self) -> None:
+        self._settle_handle = None
+        if self._last_kind == "changes":
+            self._publish_snapshot()  # leave a full picture for late joiners
 
     def _publish_snapshot(self) -> None:
         board = self.manager.blackboard
@@ -318,7 +352,8 @@ class LowLevelBridge:
                 entries[key] = _entry(change)
         with self._lock:
             self._pending.clear()  # the snapshot contains them
-        self._pub.publish(self._message("snapshot", entries))
+            msg = self._message("snapshot", entries)
+        self._pub.publish(msg)
 
     # -- ROS → low level -------------------------------------------------------------------
     def _on_state(self, msg: String) -> None:
@@ -370,7 +405,9 @@ class LowLevelBridge:
     def destroy(self) -> None:
         self._unsubscribe()
         self._bb_sub.close()
-        self.node.destroy_timer(self._batch)
+        for handle in (self._flush_handle, self._settle_handle):
+            if handle is not None:
+                handle.cancel()
         self.node.destroy_timer(self._snap)
         self.node.destroy_publisher(self._pub)
         self.node.destroy_subscription(self._state_sub)

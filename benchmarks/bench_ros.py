@@ -1,0 +1,182 @@
+"""Blackboard change → high-level mirror over ROS 2: latency and sustained rate.
+
+Targets (issue 4): cross-process p50 ≤ 300 µs and p99 ≤ 1 ms at 1 kHz of changes;
+≥ 5,000 changes/s sustained without losing the latest value. Same-process figures and a
+bare rclpy String round trip (the floor) are measured in the same run.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import subprocess
+import sys
+import threading
+import time
+from typing import Any
+
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(101, 200)))
+
+from std_msgs.msg import String  # noqa: E402
+
+from beehave.highlevel import HighLevelBehaviorManager  # noqa: E402
+from beehave.lowlevel import LowLevelBehaviorManager  # noqa: E402
+from beehave.ros.bridge import HighLevelBridge, LowLevelBridge  # noqa: E402
+from beehave.ros.context import RosContext  # noqa: E402
+from benchmarks._util import median, percentile, report  # noqa: E402
+
+N_PACED = 2000
+N_BURST = 50_000
+
+
+class Mirror:
+    """A high level with its bridge; records when `bench/t` values arrive."""
+
+    def __init__(self, namespace: str) -> None:
+        self.ros = RosContext()
+        self.node = self.ros.create_node("beehave_high_level", namespace=namespace)
+        self.hl = HighLevelBehaviorManager()
+        self.bridge = HighLevelBridge(self.hl, self.node)
+        self.latencies: list[float] = []
+        self.done = threading.Event()
+        self.finished_at = 0.0
+        self.hl.blackboard.subscribe("bench/t", self._on_t)
+        self.hl.blackboard.subscribe("bench/done", self._on_done)
+        self.ros.start()
+
+    def _on_t(self, change: Any) -> None:
+        self.latencies.append(time.monotonic() - change.value)
+
+    def _on_done(self, change: Any) -> None:
+        self.finished_at = time.monotonic()
+        self.done.set()
+
+    def close(self) -> None:
+        self.bridge.destroy()
+        self.hl.shutdown()
+        self.ros.shutdown()
+
+
+def floor_roundtrip(n: int) -> list[float]:
+    """Bare rclpy: a String published in one process context, received in another."""
+    a, b = RosContext(), RosContext()
+    pub_node, sub_node = a.create_node("floor_pub"), b.create_node("floor_sub")
+    got = threading.Event()
+    stamps: list[float] = []
+
+    def on_msg(msg: String) -> None:
+        stamps.append(time.monotonic() - float(msg.data))
+        got.set()
+
+    sub_node.create_subscription(String, "floor", on_msg, 10)
+    pub = pub_node.create_publisher(String, "floor", 10)
+    a.start()
+    b.start()
+    while pub.get_subscription_count() == 0:
+        time.sleep(0.01)
+    time.sleep(0.2)
+    for _ in range(n):
+        got.clear()
+        pub.publish(String(data=repr(time.monotonic())))
+        got.wait(1.0)
+        time.sleep(0.001)
+    a.shutdown()
+    b.shutdown()
+    return stamps
+
+
+def same_process(n: int) -> list[float]:
+    mirror = Mirror("bench_same")
+    low_ros = RosContext()
+    node = low_ros.create_node("beehave_low_level", namespace="bench_same")
+    low_ros.start()
+    with LowLevelBehaviorManager() as ll:
+        bridge = LowLevelBridge(ll, node)
+        time.sleep(1.0)  # discovery
+
+        async def paced() -> None:
+            import asyncio
+
+            start = time.monotonic()
+            for i in range(n):
+                ll.blackboard.set("bench/t", time.monotonic())
+                await asyncio.sleep(max(0.0, start + (i + 1) * 0.001 - time.monotonic()))
+
+        ll.call(paced())
+        time.sleep(0.3)
+        bridge.destroy()
+    low_ros.shutdown()
+    mirror.close()
+    return mirror.latencies
+
+
+def child(namespace: str, mode: str, n: int, rate_hz: float) -> subprocess.Popen[str]:
+    proc = subprocess.Popen([sys.executable, "-m", "benchmarks._ros_low_level", namespace,
+                             mode, str(n), str(rate_hz)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+    return proc
+
+
+def cross_process_paced(n: int) -> list[float]:
+    mirror = Mirror("bench_cross")
+    proc = child("bench_cross", "paced", n, 1000.0)
+    time.sleep(1.5)  # discovery
+    assert proc.stdin is not None
+    proc.stdin.write("go\n")
+    proc.stdin.flush()
+    deadline = time.monotonic() + n / 1000.0 + 10
+    while len(mirror.latencies) < n and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.stdin.write("stop\n")
+    proc.stdin.flush()
+    proc.wait(20)
+    mirror.close()
+    return mirror.latencies
+
+
+def cross_process_burst(n: int) -> dict[str, Any]:
+    mirror = Mirror("bench_burst")
+    proc = child("bench_burst", "burst", n, 0.0)
+    time.sleep(1.5)
+    assert proc.stdin is not None
+    proc.stdin.write("go\n")
+    proc.stdin.flush()
+    ok = mirror.done.wait(60)
+    board = mirror.hl.blackboard
+    done = board.get("bench/done") or {}
+    finals = [board.get(f"bench/k{k}") for k in range(10)]
+    expected = [n - 10 + ((k - n) % 10) for k in range(10)]
+    proc.stdin.write("stop\n")
+    proc.stdin.flush()
+    proc.wait(20)
+    mirror.close()
+    return {"arrived": ok, "writer_elapsed_s": done.get("elapsed_s", float("nan")),
+            "latest_values_kept": finals == expected}
+
+
+def main() -> list[dict[str, Any]]:
+    rows = []
+    floor = floor_roundtrip(1000)
+    rows.append(report("ros_string_floor_cross_context_p50", median(floor) * 1e6, "us", None,
+                       None, p99_us=round(percentile(floor, 99) * 1e6, 1)))
+    same = same_process(N_PACED)
+    rows.append(report("mirror_same_process_p50", median(same) * 1e6, "us", None, None,
+                       p99_us=round(percentile(same, 99) * 1e6, 1), n=len(same)))
+    cross = cross_process_paced(N_PACED)
+    p50, p99 = median(cross), percentile(cross, 99)
+    rows.append(report("mirror_cross_process_1khz_p50", p50 * 1e6, "us", "<= 300 us",
+                       p50 <= 300e-6, n=len(cross)))
+    rows.append(report("mirror_cross_process_1khz_p99", p99 * 1e6, "us", "<= 1000 us",
+                       p99 <= 1e-3))
+    burst = cross_process_burst(N_BURST)
+    rate = N_BURST / burst["writer_elapsed_s"]
+    rows.append(report("mirror_sustained_changes_per_s", rate, "changes/s", ">= 5000",
+                       rate >= 5000 and burst["arrived"] and burst["latest_values_kept"],
+                       latest_values_kept=burst["latest_values_kept"]))
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,107 @@
+"""RosHAL: topic → blackboard inputs with conversion, outputs, clean unload."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+from std_msgs.msg import ColorRGBA, Float64  # noqa: E402
+
+from beehave import Event, Logic, LowLevelBehaviorManager  # noqa: E402
+from beehave.errors import HALError  # noqa: E402
+from beehave.ros.context import RosContext  # noqa: E402
+from beehave.ros.hal import RosHAL, TopicInput, TopicOutput  # noqa: E402
+from beehave.testing import wait_until  # noqa: E402
+
+from ros_probe import Probe  # noqa: E402
+
+
+def to_percent(msg: Float64) -> float:
+    if msg.data < 0:
+        raise ValueError(f"negative charge {msg.data}")
+    return msg.data * 100.0
+
+
+class BatteryLeds(RosHAL):
+    name = "battery_leds"
+    inputs = [TopicInput("charge", Float64, to_percent, key="battery/percentage",
+                         max_age_s=0.3)]
+    outputs = {"leds": TopicOutput("leds", ColorRGBA)}
+
+    def show(self, red: float, green: float) -> None:
+        self.publish("leds", ColorRGBA(r=red, g=green, b=0.0, a=1.0))
+
+    def safe_state(self) -> None:
+        self.show(0.0, 0.0)  # lights off; the publisher still exists here
+
+
+class Mirror(Logic):
+    """Red below 20 %, green otherwise."""
+
+    async def run(self) -> Any:
+        hal = await self.hal("battery_leds")
+        assert isinstance(hal, BatteryLeds)
+        async for change in self.blackboard.watch("battery/percentage"):
+            if not change.stale:
+                hal.show(1.0, 0.0) if change.value < 20 else hal.show(0.0, 1.0)
+
+
+@pytest.fixture
+def setup() -> Iterator[tuple[LowLevelBehaviorManager, Probe, list[Event]]]:
+    ros = RosContext()
+    node = ros.create_node("beehave_low_level", namespace="halbot")
+    ros.start()
+    ll = LowLevelBehaviorManager(default="mirror", stop_timeout_s=1.0)
+    ll.register("mirror", Mirror)
+    ll.hals.register(BatteryLeds)
+    ll.hals.node = node
+    events: list[Event] = []
+    ll.subscribe(events.append)
+    probe = Probe()
+    with ll:
+        yield ll, probe, events
+    probe.close()
+    ros.shutdown()
+
+
+def test_inputs_outputs_staleness_and_unload(setup: tuple[LowLevelBehaviorManager, Probe,
+                                                          list[Event]]) -> None:
+    ll, probe, events = setup
+    leds = probe.record(ColorRGBA, "/halbot/leds")
+    charge = probe.node.create_publisher(Float64, "/halbot/charge", 10)
+    assert probe.wait(lambda: charge.get_subscription_count() == 1)
+    charge.publish(Float64(data=0.5))
+    assert probe.wait(lambda: bool(leds) and leds[-1].g == 1.0)
+    assert ll.blackboard.get("battery/percentage") == 50.0
+    assert ll.blackboard.entry("battery/percentage").writer == "hal:battery_leds"  # type: ignore[union-attr]
+    charge.publish(Float64(data=0.1))
+    assert probe.wait(lambda: leds[-1].r == 1.0)
+    # Silence makes the entry stale after max_age_s.
+    assert wait_until(lambda: ll.blackboard.is_stale("battery/percentage"), 3)
+    # A message the conversion rejects is reported, not dropped silently.
+    charge.publish(Float64(data=-1.0))
+    assert wait_until(lambda: any(e.error is not None and "negative charge" in str(e.error)
+                                  for e in events), 3)
+    # Unloading (switching to no logic) runs safe_state (lights off) and destroys the
+    # subscription and publisher.
+    ll.default = None
+    ll.shutdown()
+    assert probe.wait(lambda: leds[-1].r == 0.0 and leds[-1].g == 0.0)
+    assert probe.wait(lambda: charge.get_subscription_count() == 0)
+    assert probe.wait(lambda: probe.publishers("/halbot/leds") == 0)
+
+
+def test_without_a_node_the_load_fails_clearly() -> None:
+    ll = LowLevelBehaviorManager()
+    ll.hals.register(BatteryLeds)
+
+    async def main() -> None:
+        with pytest.raises(HALError, match="needs the low level's node"):
+            await ll.hals.load("battery_leds")
+
+    asyncio.run(main())
