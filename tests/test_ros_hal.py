@@ -10,6 +10,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 
+from ros_probe import Probe  # noqa: E402
 from std_msgs.msg import ColorRGBA, Float64  # noqa: E402
 
 from beehave import Event, Logic, LowLevelBehaviorManager  # noqa: E402
@@ -17,8 +18,6 @@ from beehave.errors import HALError  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
 from beehave.ros.hal import RosHAL, TopicInput, TopicOutput  # noqa: E402
 from beehave.testing import wait_until  # noqa: E402
-
-from ros_probe import Probe  # noqa: E402
 
 
 def to_percent(msg: Float64) -> float:
