@@ -1,0 +1,132 @@
+"""The physics simulation alone: real-time factor at 240 Hz for 1, 10 and 25 EMILIs.
+
+Each robot drives a circle, commanded at 10 Hz from an ``on_step`` callback (as the ROS
+wrapper will), with its 360-beam laser at 10 Hz and its other sensors at 50 Hz, in the
+simulation's own thread at ``real_time_factor=None``. Beside it, a floor: the same URDFs
+on the same floor and walls stepped by bare pybullet (wheel motors set once, no sensors),
+so the wrapper's cost per robot-step shows.
+
+Targets (issue: for the later full stack, printed here for the sim alone): 1 robot ≥ 10×
+real time, 10 robots ≥ 2×. Reference measured on this kind of machine: a husky (mesh
+model) steps at about 7,300 robot-steps/s.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import pybullet
+from pybullet_utils.bullet_client import BulletClient
+
+from benchmarks._util import report
+from robots.robot import URDF_DIR
+from robots.sim import Simulation, _quiet_stdout
+from robots.world import World, world_from_dict
+
+RATE_HZ = 240.0
+SPACING_M = 4.0
+COLUMNS = 5
+
+
+def fleet_world(n: int) -> World:
+    """``n`` EMILIs on a grid, 4 m apart, inside four walls, with a shelf row."""
+    rows = math.ceil(n / COLUMNS)
+    width, depth = COLUMNS * SPACING_M + 2, rows * SPACING_M + 2
+    robots = [{"namespace": f"emili{i}", "kind": "emili",
+               "start": {"x_m": 3 + (i % COLUMNS) * SPACING_M,
+                         "y_m": 3 + (i // COLUMNS) * SPACING_M, "yaw_deg": 0}}
+              for i in range(n)]
+    walls = [{"from_m": [0, 0], "to_m": [width, 0]}, {"from_m": [0, depth], "to_m": [width, depth]},
+             {"from_m": [0, 0], "to_m": [0, depth]}, {"from_m": [width, 0], "to_m": [width, depth]}]
+    return world_from_dict({
+        "name": f"fleet{n}", "floor": {"size_m": [width, depth]}, "walls": walls,
+        "shelves": [{"center_m": [width / 2, depth - 0.6], "size_m": [width - 4, 0.6]}],
+        "robots": robots})
+
+
+def bare(world: World, duration_s: float) -> float:
+    """Robot-steps per wall second for the same bodies stepped by bare pybullet."""
+    with _quiet_stdout():
+        client = BulletClient(connection_mode=pybullet.DIRECT)
+    try:
+        client.setGravity(0, 0, -9.81)
+        client.setTimeStep(1 / RATE_HZ)
+        w, d = world.floor.size_m
+        floor = client.createCollisionShape(client.GEOM_BOX, halfExtents=[w / 2, d / 2, 0.05])
+        client.createMultiBody(0, floor, -1, [w / 2, d / 2, -0.05])
+        for wall in world.walls:
+            (ax, ay), (bx, by) = wall.from_m, wall.to_m
+            shape = client.createCollisionShape(
+                client.GEOM_BOX, halfExtents=[math.hypot(bx - ax, by - ay) / 2, 0.1, 0.75])
+            client.createMultiBody(0, shape, -1, [(ax + bx) / 2, (ay + by) / 2, 0.75],
+                                   client.getQuaternionFromEuler(
+                                       [0, 0, math.atan2(by - ay, bx - ax)]))
+        for spec in world.robots:
+            body = client.loadURDF(str(URDF_DIR / "emili.urdf"),
+                                   [spec.start.x_m, spec.start.y_m, 0.102])
+            client.setJointMotorControlArray(body, [0, 1], client.VELOCITY_CONTROL,
+                                             targetVelocities=[4.25, 5.75], forces=[40, 40])
+        step = client.stepSimulation
+        steps = 0
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < duration_s:
+            for _ in range(24):
+                step()
+            steps += 24
+        wall_s = time.perf_counter() - t0
+        return steps * len(world.robots) / wall_s
+    finally:
+        client.disconnect()
+
+
+def wrapped(world: World, duration_s: float) -> tuple[float, float]:
+    """(robot-steps per wall second, real-time factor) of the Simulation's own thread."""
+    sim = Simulation(world, rate_hz=RATE_HZ, real_time_factor=None)
+    robots = list(sim.robots.values())
+
+    def command(time_s: float) -> None:
+        for robot in robots:
+            robot.set_cmd_vel(0.5, 0.3)
+
+    sim.on_step(command, rate_hz=10.0)
+    try:
+        steps0 = sim.steps
+        t0 = time.perf_counter()
+        sim.start()
+        time.sleep(duration_s)
+        sim.stop()
+        wall_s = time.perf_counter() - t0
+        steps = sim.steps - steps0
+        assert all(r.scan() is not None for r in robots)
+        return steps * len(robots) / wall_s, steps / RATE_HZ / wall_s
+    finally:
+        sim.close()
+
+
+def main() -> list[dict[str, Any]]:
+    rows = []
+    targets = {1: 10.0, 10: 2.0}
+    for n in (1, 10, 25):
+        world = fleet_world(n)
+        duration_s = 2.0 if n == 1 else 3.0
+        floor_rsps = bare(world, duration_s)
+        rows.append(report(f"sim_bare_pybullet_{n}_robots", floor_rsps, "robot-steps/s",
+                           None, None, real_time_factor=round(floor_rsps / n / RATE_HZ, 2)))
+        rsps, factor = wrapped(world, duration_s)
+        rows.append(report(f"sim_{n}_robots_robot_steps", rsps, "robot-steps/s", None, None,
+                           rate_hz=RATE_HZ, scan_rate_hz=10.0, sensor_rate_hz=50.0))
+        target = targets.get(n)
+        rows.append(report(f"sim_{n}_robots_real_time_factor", factor, "x",
+                           f">= {target:g} x" if target else None,
+                           (factor >= target) if target else None))
+        overhead_us = (1 / rsps - 1 / floor_rsps) * 1e6
+        rows.append(report(f"sim_{n}_robots_wrapper_overhead_per_robot_step", overhead_us,
+                           "us", None, None,
+                           note="sensors, lasers, commands and snapshots over bare stepping"))
+    return rows
+
+
+if __name__ == "__main__":
+    main()
