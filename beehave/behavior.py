@@ -74,6 +74,20 @@ class Behavior(Runnable):
         behavior._start_thread()
         return behavior
 
+    def on_child_ended(self, child: Runnable) -> None:
+        """Optional hook: ``child`` (an action or sub-behaviour of this one) has ended.
+
+        Called in the child's thread, after its status is final: keep it short — set an
+        event or post to a queue that your ``run`` waits on (decision engines do).
+        """
+
+    def on_interrupt(self) -> None:
+        """Optional hook: this behaviour was asked to stop (its children already were).
+
+        Called in the interrupting thread; keep it short — wake whatever ``run`` waits on
+        besides ``self.sleep`` (which wakes by itself).
+        """
+
     @property
     def children(self) -> list[Runnable]:
         """The actions and sub-behaviours started and not yet cleaned up."""
@@ -113,6 +127,7 @@ class Behavior(Runnable):
             children = list(self._children)
         for child in children:
             child._interrupt(deadline)
+        self.on_interrupt()
 
     def _after_run(self, error: BaseException | None) -> BaseException | None:
         assert self._manager is not None
@@ -147,6 +162,7 @@ class Behavior(Runnable):
             if child.status is Status.FAILED:
                 self._unobserved_failures.append(child)
                 self._cond.notify_all()
+        self.on_child_ended(child)
 
     def _observed(self, child: Runnable) -> None:
         with self._cond:

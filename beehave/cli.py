@@ -75,6 +75,14 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--duration-s", type=float, default=None,
                      help="stop after this many seconds (default: until Ctrl-C/SIGTERM)")
     run.set_defaults(func=_run)
+    graph = sub.add_parser("graph", add_help=False,
+                           help="render a behaviour's state machine or tree (see graph -h)")
+    graph.set_defaults(func=None, passthrough="graph")
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "graph":  # its own parser, with its own --help
+        from beehave.engines.graph import graph_main
+
+        return graph_main(argv[1:])
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")

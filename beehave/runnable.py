@@ -104,6 +104,12 @@ class Runnable(abc.ABC):
         return self.name if self.parent is None else f"{self.parent.path}/{self.name}"
 
     @property
+    def stop_deadline(self) -> float | None:
+        """When a switch interrupted this, the ``time.monotonic()`` by which it must have
+        stopped (after that its stragglers are declared STUCK); None otherwise."""
+        return self._stop_deadline
+
+    @property
     def blackboard(self) -> BlackboardView:
         """The robot's state as the low level sees it: a read-only view of the manager's
         blackboard (over ROS 2, a mirror of the low level's). To change the robot, start

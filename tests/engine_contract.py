@@ -1,0 +1,132 @@
+"""The contract every decision engine keeps; each engine's test module inherits it.
+
+A subclass says how to build two small structures with its engine; the tests here check
+that the engine starts what it decided, decides from the blackboard, stops cleanly when
+interrupted mid-action (safe state applied once), surfaces failures as errors with the
+action's error as cause, can be driven again, and can run a sub-behaviour that another
+engine drives.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any
+
+from beehave import HighLevelBehaviorManager, Status
+from beehave.engines import (
+    DecisionEngine,
+    EngineBehavior,
+    EngineError,
+    State,
+    StateMachineEngine,
+    Transition,
+)
+from beehave.engines.engine import StartLike
+from beehave.runnable import Runnable
+from beehave.testing import ScriptedAction, wait_until
+
+
+class Recorder:
+    """A factory of ScriptedActions that remembers every action it built."""
+
+    def __init__(self, label: str, action_type: str = "scripted", **kwargs: Any) -> None:
+        self.label, self.action_type, self.kwargs = label, action_type, kwargs
+        self.built: list[ScriptedAction] = []
+        self.__name__ = label
+
+    def __call__(self) -> ScriptedAction:
+        action = ScriptedAction(self.action_type, name=self.label, **self.kwargs)
+        self.built.append(action)
+        return action
+
+
+def run(hl: HighLevelBehaviorManager, engine: DecisionEngine) -> EngineBehavior:
+    hl.register("engine", EngineBehavior, engine=engine)
+    behavior = hl.switch("engine")
+    assert isinstance(behavior, EngineBehavior)
+    return behavior
+
+
+class EngineContract(abc.ABC):
+    """Inherit it in ``tests/test_<engine>.py`` and write the two builders."""
+
+    @abc.abstractmethod
+    def single(self, start: StartLike) -> DecisionEngine:
+        """An engine that starts ``start`` once and ends successfully when it succeeded
+        (fails when it failed)."""
+
+    @abc.abstractmethod
+    def choice(self, key: str, if_true: StartLike, if_false: StartLike) -> DecisionEngine:
+        """An engine that starts ``if_true`` when blackboard ``key`` is true, else
+        ``if_false``, and ends successfully when that succeeded."""
+
+    # ---------------------------------------------------------------------------- tests
+    def test_starts_the_action_and_succeeds_when_it_did(
+            self, hl: HighLevelBehaviorManager) -> None:
+        act = Recorder("act", duration_s=0.01, result=42)
+        behavior = run(hl, self.single(act))
+        assert behavior.wait(5)
+        assert behavior.status is Status.SUCCEEDED, behavior.error
+        (action,) = act.built
+        assert action.status is Status.SUCCEEDED and action.parent is behavior
+
+    def test_decides_from_the_blackboard(self, hl: HighLevelBehaviorManager) -> None:
+        for flag in (True, False):
+            yes, no = Recorder("yes", duration_s=0.01), Recorder("no", duration_s=0.01)
+            hl.blackboard.set("go", flag)
+            behavior = run(hl, self.choice("go", yes, no))
+            assert behavior.wait(5)
+            assert behavior.status is Status.SUCCEEDED, behavior.error
+            assert (len(yes.built), len(no.built)) == ((1, 0) if flag else (0, 1))
+
+    def test_interrupt_mid_action_interrupts_it_and_applies_its_safe_state(
+            self, hl: HighLevelBehaviorManager) -> None:
+        act = Recorder("long", duration_s=30)
+        behavior = run(hl, self.single(act))
+        assert wait_until(lambda: bool(act.built) and act.built[0].status is Status.RUNNING)
+        hl.switch("idle")
+        (action,) = act.built
+        assert behavior.status is Status.INTERRUPTED
+        assert action.status is Status.INTERRUPTED and not action.alive
+        assert action.safe_state_calls == 1
+
+    def test_a_failed_action_fails_the_behaviour_with_its_error_as_cause(
+            self, hl: HighLevelBehaviorManager) -> None:
+        boom = RuntimeError("lift overload")
+        act = Recorder("lift", raises=boom)
+        behavior = run(hl, self.single(act))
+        assert behavior.wait(5)
+        assert behavior.status is Status.FAILED
+        assert isinstance(behavior.error, EngineError), behavior.error
+        assert behavior.error.__cause__ is boom
+        assert act.built[0].safe_state_calls == 1
+
+    def test_the_engine_can_be_driven_again_after_it_ended(
+            self, hl: HighLevelBehaviorManager) -> None:
+        act = Recorder("again", duration_s=0.01)
+        engine = self.single(act)
+        for _ in range(2):
+            behavior = run(hl, engine)
+            assert behavior.wait(5)
+            assert behavior.status is Status.SUCCEEDED, behavior.error
+        assert len(act.built) == 2
+
+    def test_runs_a_sub_behaviour_that_a_state_machine_drives(
+            self, hl: HighLevelBehaviorManager) -> None:
+        inner = Recorder("inner", duration_s=0.01)
+        subs: list[Runnable] = []
+
+        def sub_behavior() -> EngineBehavior:
+            machine = StateMachineEngine(
+                [State("work", start=inner), State("done", final=True)],
+                [Transition("work", "done", on="succeeded")], initial="work")
+            behavior = EngineBehavior(machine, name="sub")
+            subs.append(behavior)
+            return behavior
+
+        behavior = run(hl, self.single(sub_behavior))
+        assert behavior.wait(5)
+        assert behavior.status is Status.SUCCEEDED, behavior.error
+        (sub,) = subs
+        assert sub.status is Status.SUCCEEDED and sub.result == "done"
+        assert inner.built[0].status is Status.SUCCEEDED and inner.built[0].parent is sub
