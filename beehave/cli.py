@@ -79,6 +79,10 @@ def main(argv: list[str] | None = None) -> int:
                            help="render a behaviour's state machine or tree (see graph -h)")
     graph.set_defaults(func=None, passthrough="graph")
     argv = sys.argv[1:] if argv is None else argv
+    # Import paths in configuration files and specs are looked up from the current
+    # directory too, as `python -m` does.
+    if "" not in sys.path and "." not in sys.path:
+        sys.path.insert(0, "")
     if argv and argv[0] == "graph":  # its own parser, with its own --help
         from beehave.engines.graph import graph_main
 
