@@ -28,9 +28,9 @@ EMILI:
 ``lift/command``          std_msgs/Float64           in     target height, 0–0.3 m
 ``lift/state``            std_msgs/Float64           out    50 Hz; the height now (m)
 ``leds``                  std_msgs/ColorRGBA         in     the LED strip colour (0–1)
-``leds/state``            std_msgs/ColorRGBA         out    on change and 1 Hz
+``leds/state``            std_msgs/ColorRGBA         out    on change and 1 Hz; latched
 ``display``               std_msgs/String            in     the text on the display
-``display/state``         std_msgs/String            out    on change and 1 Hz
+``display/state``         std_msgs/String            out    on change and 1 Hz; latched
 ``sound``                 std_msgs/String            in     a sound's name to play
 ``line_sensor``           std_msgs/Float64           out    50 Hz; lateral offset of the
                                                             tape (m, + = tape to the left);

@@ -69,6 +69,7 @@ class RosHAL(HAL):
                            "level's node: run the robot with `beehave run ROBOT.yaml`")
         self._entities: list[tuple[str, Any]] = []
         self._publishers: dict[str, Any] = {}
+        self._closed = False
         self._loop = asyncio.get_running_loop()
         for spec in self.inputs:
             for key in ([spec.key] if spec.key else []):
@@ -85,6 +86,8 @@ class RosHAL(HAL):
         declared: set[str] = set()
 
         def on_message(msg: Any) -> None:  # in the ROS executor thread
+            if self._closed:
+                return  # unloading: a late message must not make stale entries fresh
             try:
                 value = spec.convert(msg)
                 if spec.key is not None:
@@ -148,6 +151,7 @@ class RosHAL(HAL):
             self.node.destroy_client(client)
 
     def on_unload(self) -> None:
+        self._closed = True
         for kind, entity in reversed(getattr(self, "_entities", [])):
             getattr(self.node, f"destroy_{kind}")(entity)
         self._entities = []

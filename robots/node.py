@@ -1,0 +1,501 @@
+"""The sim node: a running :class:`~robots.sim.Simulation` on ROS 2, as the robots' topic
+contract (:mod:`robots.topics`) describes it, and ``beehave sim`` to run one.
+
+::
+
+    from beehave.ros.context import RosContext
+    from robots.node import SimNode
+    from robots.sim import Simulation
+
+    sim = Simulation("warehouse", real_time_factor=1.0)
+    ros = RosContext()
+    node = SimNode(sim, ros)        # creates the nodes, publishers and subscriptions
+    ros.start(); sim.start()
+    ...
+    sim.stop(); node.destroy(); ros.shutdown(); sim.close()
+
+Nodes. One rclpy node per robot, named ``sim`` in the robot's namespace (``/emili1/sim``,
+``/kobuki1/sim``), so every topic name is the contract's relative one and
+``ros2 node info /emili1/sim`` shows exactly one robot's interface; plus one node ``/sim``
+that publishes ``/clock``. All of them are created through the caller's
+:class:`~beehave.ros.context.RosContext` and served by its executor thread.
+
+Threads. Readings are published from the sim thread (``Simulation.on_step`` callbacks; an
+rclpy publish is thread-safe), so each message carries the sim time of the step it
+describes: ``odom`` and the 50 Hz sensors from one callback every ``round(rate_hz / 50)``
+steps (48 Hz at the default 240 Hz), ``battery_state`` every ``round(rate_hz / 5)`` steps,
+``scan`` from the 50 Hz callback when the robot has a newer scan, and ``/clock`` from a
+callback on every step that publishes whenever another ``1 / clock_rate_hz`` of sim time
+has passed (exactly 100 Hz on average, whatever the physics rate). Commands arrive in the
+executor thread and go straight to the robot's thread-safe setters.
+
+Refused commands. A command the robot cannot take (NaN velocity, lift height out of range,
+LED channel outside 0–1, unknown Kobuki colour or sound, empty sound name) is logged as an
+error naming the robot, the topic, the value and what is valid, counted in
+:attr:`SimNode.rejected` by the topic's full name, and dropped: the robot keeps its
+previous state and the node goes on.
+
+State echoes. ``leds/state`` and ``display/state`` are published when they change (checked
+at 50 Hz, so changes made through the Python API show too) and every
+``STATE_ECHO_PERIOD_S``; their publishers are latched (reliable, transient-local, depth 1),
+so a late subscriber that asks for transient-local gets the state at once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from types import FrameType, TracebackType
+from typing import Any, Self
+
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Twist
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import BatteryState, LaserScan
+from std_msgs.msg import ColorRGBA, Float64, Header, Int32, String
+
+from beehave.ros.context import RosContext
+from robots import topics
+from robots.emili import Emili
+from robots.kobuki import LED_COLORS, Kobuki
+from robots.robot import SimRobot
+from robots.sim import SimState, Simulation
+
+log = logging.getLogger(__name__)
+
+__all__ = ["STATE_QOS", "SimNode", "sim_main"]
+
+NODE_NAME = "sim"
+"""The name of every node the sim node creates (one per robot namespace, one at ``/``)."""
+
+STATE_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+"""QoS of the state echoes (``leds/state``, ``display/state``): latched."""
+
+SENSOR_QOS = 10
+"""QoS of the streams and commands: reliable, volatile, depth 10 (rclpy's default)."""
+
+
+def stamp(time_s: float) -> Time:
+    """A builtin_interfaces/Time for ``time_s`` seconds of sim time."""
+    sec, nanosec = divmod(round(time_s * 1e9), 1_000_000_000)
+    return Time(sec=int(sec), nanosec=int(nanosec))
+
+
+class _RobotPorts:
+    """One robot's node, publishers and subscriptions (the parts every robot has)."""
+
+    def __init__(self, owner: SimNode, robot: SimRobot, node: Node) -> None:
+        self.owner = owner
+        self.robot = robot
+        self.node = node
+        self.ns = robot.namespace
+        self._odom_pub = node.create_publisher(Odometry, topics.ODOM, SENSOR_QOS)
+        self._scan_pub = node.create_publisher(LaserScan, topics.SCAN, SENSOR_QOS)
+        self._battery_pub = node.create_publisher(BatteryState, topics.BATTERY, SENSOR_QOS)
+        self._odom_msg = Odometry()
+        self._odom_msg.header.frame_id = topics.MAP_FRAME
+        self._odom_msg.child_frame_id = f"{self.ns}/base_link"
+        self._last_scan_s = -math.inf
+        lim = robot.limits
+        self.subscribe(Twist, topics.CMD_VEL, self._on_cmd_vel,
+                       f"finite numbers (clamped to |linear.x| <= {lim.max_linear_mps} m/s, "
+                       f"|angular.z| <= {lim.max_angular_rps:.4g} rad/s)")
+
+    # ---- commands (executor thread) -------------------------------------------------
+
+    def subscribe(self, msg_type: type, topic: str, apply: Callable[[Any], str | None],
+                  valid: str) -> None:
+        """Subscribe ``topic``; ``apply(msg)`` takes the command, or returns a description
+        of the value when it refuses it (then the refusal is logged and counted)."""
+        full = self.node.resolve_topic_name(topic)
+
+        def on_message(msg: Any) -> None:
+            try:
+                refused = apply(msg)
+            except Exception as exc:  # the robot refused it: report, keep the node alive
+                refused = f"{msg!r:.120} ({exc})"
+            if refused is not None:
+                self.owner._reject(self.ns, full, refused, valid)
+
+        self.node.create_subscription(msg_type, topic, on_message, SENSOR_QOS)
+
+    def _on_cmd_vel(self, msg: Twist) -> str | None:
+        v, w = msg.linear.x, msg.angular.z
+        if not (math.isfinite(v) and math.isfinite(w)):
+            return f"linear.x={v}, angular.z={w}"
+        self.robot.set_cmd_vel(v, w)
+        return None
+
+    # ---- readings (sim thread) ------------------------------------------------------
+
+    def publish_fast(self, time_s: float, echo: bool) -> None:
+        """At the odometry / sensor rate: odom, a new scan, the kind's sensors."""
+        o = self.robot.odometry()
+        msg = self._odom_msg
+        msg.header.stamp = stamp(o.time_s)
+        pose = msg.pose.pose
+        pose.position.x, pose.position.y = o.x_m, o.y_m
+        pose.orientation.z = math.sin(o.yaw_rad / 2.0)
+        pose.orientation.w = math.cos(o.yaw_rad / 2.0)
+        msg.twist.twist.linear.x = o.linear_mps
+        msg.twist.twist.angular.z = o.angular_rps
+        self._odom_pub.publish(msg)
+        scan = self.robot.scan()
+        if scan is not None and scan.time_s > self._last_scan_s:
+            self._last_scan_s = scan.time_s
+            self._scan_pub.publish(LaserScan(
+                header=self._header(scan.time_s), angle_min=scan.angle_min_rad,
+                angle_max=scan.angle_max_rad, angle_increment=scan.angle_increment_rad,
+                time_increment=0.0, scan_time=scan.scan_time_s, range_min=scan.range_min_m,
+                range_max=scan.range_max_m, ranges=list(scan.ranges_m)))
+        self.publish_parts(time_s, echo)
+
+    def publish_parts(self, time_s: float, echo: bool) -> None:
+        """The kind's own sensors; ``echo``: republish the states that only go out on
+        change."""
+
+    def publish_battery(self) -> None:
+        b = self.robot.battery()
+        self._battery_pub.publish(BatteryState(
+            header=self._header(b.time_s), voltage=b.voltage_v, current=b.current_a,
+            temperature=math.nan, charge=math.nan, capacity=math.nan,
+            design_capacity=math.nan, percentage=b.fraction,
+            power_supply_status=(BatteryState.POWER_SUPPLY_STATUS_CHARGING if b.charging
+                                 else BatteryState.POWER_SUPPLY_STATUS_DISCHARGING),
+            power_supply_health=BatteryState.POWER_SUPPLY_HEALTH_GOOD,
+            power_supply_technology=BatteryState.POWER_SUPPLY_TECHNOLOGY_LION,
+            present=True))
+
+    def _header(self, time_s: float) -> Header:
+        return Header(stamp=stamp(time_s), frame_id=f"{self.ns}/base_link")
+
+
+class _EmiliPorts(_RobotPorts):
+    robot: Emili
+
+    def __init__(self, owner: SimNode, robot: Emili, node: Node) -> None:
+        super().__init__(owner, robot, node)
+        self._lift_pub = node.create_publisher(Float64, topics.LIFT_STATE, SENSOR_QOS)
+        self._line_pub = node.create_publisher(Float64, topics.LINE_SENSOR, SENSOR_QOS)
+        self._leds_pub = node.create_publisher(ColorRGBA, topics.LEDS_STATE, STATE_QOS)
+        self._display_pub = node.create_publisher(String, topics.DISPLAY_STATE, STATE_QOS)
+        self._leds_sent: tuple[float, float, float] | None = None
+        self._display_sent: str | None = None
+        self.subscribe(Float64, topics.LIFT_COMMAND, self._on_lift,
+                       f"a height of 0–{robot.lift_max_m} m")
+        self.subscribe(ColorRGBA, topics.LEDS, self._on_leds, "r, g, b each 0–1 (a ignored)")
+        self.subscribe(String, topics.DISPLAY, self._on_display, "any text")
+        self.subscribe(String, topics.SOUND, self._on_sound, "any non-empty sound name")
+
+    def _on_lift(self, msg: Float64) -> str | None:
+        height = msg.data
+        if not 0.0 <= height <= self.robot.lift_max_m:  # also refuses NaN
+            return f"lift height {height} m"
+        self.robot.set_lift(height)
+        return None
+
+    def _on_leds(self, msg: ColorRGBA) -> str | None:
+        rgb = (msg.r, msg.g, msg.b)
+        if not all(0.0 <= c <= 1.0 for c in rgb):
+            return f"LED colour r={msg.r}, g={msg.g}, b={msg.b}"
+        self.robot.set_leds(*rgb)
+        return None
+
+    def _on_display(self, msg: String) -> None:
+        self.robot.set_display(msg.data)
+
+    def _on_sound(self, msg: String) -> str | None:
+        if not msg.data:
+            return "sound ''"
+        self.robot.play_sound(msg.data)
+        return None
+
+    def publish_parts(self, time_s: float, echo: bool) -> None:
+        robot = self.robot
+        self._lift_pub.publish(Float64(data=robot.lift_height()))
+        offset = robot.line_sensor()
+        self._line_pub.publish(Float64(data=math.nan if offset is None else offset))
+        leds = robot.leds()
+        if echo or leds != self._leds_sent:
+            self._leds_sent = leds
+            self._leds_pub.publish(ColorRGBA(r=leds[0], g=leds[1], b=leds[2], a=1.0))
+        text = robot.display()
+        if echo or text != self._display_sent:
+            self._display_sent = text
+            self._display_pub.publish(String(data=text))
+
+
+def _mask(*bits: bool) -> Int32:
+    return Int32(data=sum(1 << i for i, on in enumerate(bits) if on))
+
+
+class _KobukiPorts(_RobotPorts):
+    robot: Kobuki
+
+    def __init__(self, owner: SimNode, robot: Kobuki, node: Node) -> None:
+        super().__init__(owner, robot, node)
+        self._bumpers_pub = node.create_publisher(Int32, topics.BUMPERS, SENSOR_QOS)
+        self._cliffs_pub = node.create_publisher(Int32, topics.CLIFFS, SENSOR_QOS)
+        self._wheel_drop_pub = node.create_publisher(Int32, topics.WHEEL_DROP, SENSOR_QOS)
+        self._buttons_pub = node.create_publisher(Int32, topics.BUTTONS, SENSOR_QOS)
+        colours = ", ".join(LED_COLORS)
+        self.subscribe(String, topics.KOBUKI_LED1, self._on_led(0), colours)
+        self.subscribe(String, topics.KOBUKI_LED2, self._on_led(1), colours)
+        self.subscribe(String, topics.SOUND, self._on_sound, ", ".join(robot.sound_names or ()))
+
+    def _on_led(self, index: int) -> Callable[[String], str | None]:
+        def apply(msg: String) -> str | None:
+            if msg.data not in LED_COLORS:
+                return f"LED colour {msg.data!r}"
+            leds = list(self.robot.leds())
+            leds[index] = msg.data  # a colour name: checked just above
+            self.robot.set_leds(leds[0], leds[1])
+            return None
+
+        return apply
+
+    def _on_sound(self, msg: String) -> str | None:
+        if msg.data not in (self.robot.sound_names or ()):
+            return f"sound {msg.data!r}"
+        self.robot.play_sound(msg.data)
+        return None
+
+    def publish_parts(self, time_s: float, echo: bool) -> None:
+        robot = self.robot
+        b, c, w = robot.bumpers(), robot.cliffs(), robot.wheel_drop()
+        self._bumpers_pub.publish(_mask(b.left, b.center, b.right))
+        self._cliffs_pub.publish(_mask(c.left, c.center, c.right))
+        self._wheel_drop_pub.publish(_mask(w.left, w.right))
+        self._buttons_pub.publish(_mask(*robot.buttons()))
+
+
+_PORTS: dict[type[SimRobot], type[_RobotPorts]] = {Emili: _EmiliPorts, Kobuki: _KobukiPorts}
+
+
+class SimNode:
+    """Puts every robot of ``sim`` on ROS 2 through ``ros`` (see the module docstring).
+
+    Creating it creates the nodes, publishers, subscriptions and the sim's ``on_step``
+    callbacks; it publishes whenever the simulation steps (the sim thread, or ``step()``
+    by hand) and takes commands whenever ``ros``'s executor spins. The creator owns it and
+    ends it with :meth:`destroy` (or a ``with`` block) — before ``ros.shutdown()``, since
+    publishing into a shut-down context would end the sim thread with an error.
+
+    ``clock_rate_hz``: how often ``/clock`` is published, per second of sim time.
+    """
+
+    def __init__(self, sim: Simulation, ros: RosContext, *,
+                 clock_rate_hz: float = topics.CLOCK_RATE_HZ) -> None:
+        if not clock_rate_hz > 0:
+            raise ValueError(f"clock_rate_hz must be positive, got {clock_rate_hz}")
+        self.sim = sim
+        self.ros = ros
+        self.clock_period_s = 1.0 / clock_rate_hz
+        self.rejected: Counter[str] = Counter()
+        """Refused commands, by the topic's full name (``/emili1/lift/command``)."""
+        self._lock = threading.Lock()
+        self._destroyed = False
+        self._next_clock_s = sim.time_s
+        self._next_echo_s = sim.time_s
+        self._nodes: list[Node] = []
+        self._removers: list[Callable[[], None]] = []
+        try:
+            clock_node = self._node("/")
+            self._clock_pub = clock_node.create_publisher(Clock, topics.CLOCK, SENSOR_QOS)
+            self.ports: dict[str, _RobotPorts] = {}
+            for ns, robot in sim.robots.items():
+                ports = _PORTS[type(robot)]
+                self.ports[ns] = ports(self, robot, self._node(ns))
+            self._removers = [
+                sim.on_step(self._on_clock_step),
+                sim.on_step(self._on_fast_step, rate_hz=topics.ODOM_RATE_HZ),
+                sim.on_step(self._on_battery_step, rate_hz=topics.BATTERY_RATE_HZ),
+            ]
+        except BaseException:
+            self.destroy()
+            raise
+        log.debug("sim node: %d robot(s) on ROS 2: %s", len(self.ports), ", ".join(self.ports))
+
+    @property
+    def nodes(self) -> list[Node]:
+        """The rclpy nodes: ``/sim`` (the clock) and one ``/<ns>/sim`` per robot."""
+        return list(self._nodes)
+
+    def _node(self, namespace: str) -> Node:
+        node = self.ros.create_node(NODE_NAME, namespace=namespace)
+        self._nodes.append(node)
+        return node
+
+    # ---- sim thread -----------------------------------------------------------------
+
+    def _on_clock_step(self, time_s: float) -> None:
+        # Every step, but cheap: one comparison unless a clock tick is due.
+        if time_s + 1e-9 < self._next_clock_s:
+            return
+        self._next_clock_s = max(self._next_clock_s + self.clock_period_s, time_s)
+        self._clock_pub.publish(Clock(clock=stamp(time_s)))
+
+    def _on_fast_step(self, time_s: float) -> None:
+        echo = time_s + 1e-9 >= self._next_echo_s
+        if echo:
+            self._next_echo_s = time_s + topics.STATE_ECHO_PERIOD_S
+        for ports in self.ports.values():
+            ports.publish_fast(time_s, echo)
+
+    def _on_battery_step(self, time_s: float) -> None:
+        for ports in self.ports.values():
+            ports.publish_battery()
+
+    # ---- executor thread ------------------------------------------------------------
+
+    def _reject(self, namespace: str, topic: str, value: str, valid: str) -> None:
+        with self._lock:
+            self.rejected[topic] += 1
+        log.error("sim: robot %r refused %s on %s; valid: %s (the robot keeps its state)",
+                  namespace, value, topic, valid)
+
+    # ---- lifecycle ------------------------------------------------------------------
+
+    def destroy(self) -> None:
+        """Remove the ``on_step`` callbacks, wait until none is running, then destroy the
+        publishers, subscriptions and nodes. Idempotent; the simulation keeps running."""
+        with self._lock:
+            if self._destroyed:
+                return
+            self._destroyed = True
+        for remove in self._removers:
+            remove()
+        self._removers = []
+        if self.sim.state is not SimState.CLOSED:
+            # Runs between two steps: after it, no callback of ours is in flight.
+            self.sim.call(lambda client: None)
+        for node in reversed(self._nodes):
+            self.ros.executor.remove_node(node)
+            node.destroy_node()
+        self._nodes = []
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.destroy()
+
+    def __repr__(self) -> str:
+        return (f"<SimNode robots={list(self.ports)} rejected={sum(self.rejected.values())}"
+                f"{' destroyed' if self._destroyed else ''}>")
+
+
+# ---- beehave sim ------------------------------------------------------------------------
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="beehave sim",
+        description="Run a simulated world and put its robots on ROS 2 (topics per robot "
+                    "namespace, /clock in sim time) until Ctrl-C or SIGTERM.")
+    parser.add_argument("world", nargs="?", default="warehouse",
+                        help="a shipped world's name or a world YAML file (default: warehouse)")
+    speed = parser.add_mutually_exclusive_group()
+    speed.add_argument("--real-time-factor", type=float, default=1.0, metavar="X",
+                       help="sim seconds per wall-clock second (default: 1.0)")
+    speed.add_argument("--fast", action="store_true",
+                       help="as fast as the machine goes (no pacing)")
+    parser.add_argument("--duration-s", type=float, default=None, metavar="N",
+                        help="stop after N wall-clock seconds (default: until Ctrl-C)")
+    return parser
+
+
+def sim_main(argv: list[str]) -> int:
+    """``beehave sim [WORLD] [--real-time-factor X | --fast] [--duration-s N]``.
+
+    Prints one line when the robots are on ROS 2 and one when everything has stopped;
+    SIGINT and SIGTERM stop it cleanly (sim thread stopped, nodes destroyed, executor
+    joined). Returns 0, 1 when the simulation failed, 2 for bad arguments or a bad world.
+    """
+    parser = _parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, or a usage error argparse has printed
+        return int(exc.code or 0) if not isinstance(exc.code, str) else 2
+    if args.real_time_factor <= 0 or not math.isfinite(args.real_time_factor):
+        print(f"beehave sim: --real-time-factor must be a positive number, got "
+              f"{args.real_time_factor}; use --fast for no pacing", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=logging.WARNING,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    from beehave.errors import BeehaveError
+
+    world: str | Path = args.world
+    if str(world).endswith((".yaml", ".yml")):
+        world = Path(world)
+    try:
+        sim = Simulation(world, real_time_factor=None if args.fast else args.real_time_factor)
+    except BeehaveError as exc:
+        print(f"beehave sim: {exc}", file=sys.stderr)
+        return 2
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        log.info("signal %d: stopping the simulation", signum)
+        stop.set()
+
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, on_signal)
+    code = 0
+    ros: RosContext | None = None
+    node: SimNode | None = None
+    try:
+        ros = RosContext()
+        node = SimNode(sim, ros)
+        ros.start()
+        sim.start()
+        speed = "as fast as possible" if args.fast else f"{args.real_time_factor:g}x real time"
+        robots = ", ".join(f"{ns} ({r.kind})" for ns, r in sim.robots.items()) or "no robots"
+        print(f"beehave sim: world {sim.world.name!r} running {speed}: {robots}; "
+              f"/clock at {topics.CLOCK_RATE_HZ:g} Hz; Ctrl-C to stop", flush=True)
+        deadline = None if args.duration_s is None else time.monotonic() + args.duration_s
+        # Wake now and then to notice a failed simulation (an on_step callback raised).
+        while not stop.wait(0.5 if deadline is None
+                            else max(0.0, min(0.5, deadline - time.monotonic()))):
+            if sim.state is SimState.FAILED:
+                code = 1
+                break
+            if deadline is not None and time.monotonic() >= deadline:
+                break
+    finally:
+        try:
+            sim.stop()
+        except BeehaveError as exc:
+            print(f"beehave sim: {exc}", file=sys.stderr)
+            code = 1
+        finally:
+            if node is not None:
+                node.destroy()
+            if ros is not None:
+                ros.shutdown()
+            sim.close()
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+    print("beehave sim: stopped cleanly" if code == 0 else "beehave sim: stopped after an "
+          "error", flush=True)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(sim_main(sys.argv[1:]))
