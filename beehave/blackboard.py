@@ -225,6 +225,10 @@ class Subscription:
         return f"{type(self).__name__}({self.pattern!r}{', closed' if self.closed else ''})"
 
 
+_FAIRNESS_STREAK = 64
+"""A watcher yields to the loop after this many changes handed out without waiting."""
+
+
 class Watcher(Subscription):
     """An async iterator over the changes of keys matching a pattern.
 
@@ -240,6 +244,7 @@ class Watcher(Subscription):
         """How many changes were replaced by a newer one before this watcher took them."""
         self._pending: dict[str, Change] = {}
         self._waiter: asyncio.Future[None] | None = None
+        self._streak = 0  # changes handed out in a row without suspending
 
     @property
     def pending(self) -> int:
@@ -275,8 +280,28 @@ class Watcher(Subscription):
     def __aiter__(self) -> Watcher:
         return self
 
+    async def next(self, timeout_s: float | None = None) -> Change | None:
+        """The next change, or None when none came within ``timeout_s`` — for logics that
+        also act on time (blinking, timeouts). Cancellation-safe; do not build this with
+        ``asyncio.wait_for(watcher.__anext__(), …)``: on Python 3.11 ``wait_for`` can
+        swallow a cancellation that arrives as a change does, leaving the logic STUCK."""
+        try:
+            async with asyncio.timeout(timeout_s):
+                return await self.__anext__()
+        except TimeoutError:
+            return None
+
     async def __anext__(self) -> Change:
         pending = self._pending
+        if pending:
+            self._streak += 1
+            if self._streak >= _FAIRNESS_STREAK:
+                # A logic that writes what it watches would otherwise never suspend:
+                # the loop (and its cancellation) would starve.
+                self._streak = 0
+                await asyncio.sleep(0)
+        else:
+            self._streak = 0
         while not pending:
             if self.closed:
                 raise StopAsyncIteration

@@ -1,4 +1,4 @@
-"""The ``beehave`` command line: ``beehave demo``."""
+"""The ``beehave`` command line: ``demo``, ``run``, ``sim``, ``graph``."""
 
 from __future__ import annotations
 
@@ -7,13 +7,28 @@ import logging
 import sys
 
 
-def _demo(_: argparse.Namespace) -> int:
+def _demo(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from rich.console import Console
 
-    # The demos live with the ready-made behaviours, not in the framework.
+    console = Console()
+    if not args.console:
+        # The demos live with the ready-made behaviours, not in the framework.
+        from behaviours.sim_demo import run_sim_demo
+
+        console.rule("[bold]beehave — EMILI and Kobuki in the simulated warehouse")
+        speed = None if args.fast else args.real_time_factor
+        sim_problems = run_sim_demo(console, real_time_factor=speed, out_dir=Path(args.out))
+        for problem in sim_problems:
+            console.print(f"[red]FAILED:[/] {problem}")
+        if sim_problems:
+            return 1
+        console.print("[green]demo OK[/]: every goal was reached in the physics")
+        return 0
+
     from behaviours.demo import run_highlevel_demo
 
-    console = Console()
     console.rule("[bold]beehave — high level: behaviours, actions, type locks, switching")
     problems = run_highlevel_demo(console)
     try:
@@ -66,7 +81,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="beehave", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="log beehave events")
     sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="run the console demo of both managers")
+    demo = sub.add_parser("demo", help="EMILI and Kobuki in the simulated warehouse "
+                                       "(--console: the managers alone, no simulation)")
+    demo.add_argument("--real-time-factor", type=float, default=1.0,
+                      help="simulation speed (1 = real time)")
+    demo.add_argument("--fast", action="store_true", help="simulate as fast as possible")
+    demo.add_argument("--out", default="out", help="where to write the picture")
+    demo.add_argument("--console", action="store_true",
+                      help="the console demo of the two managers, without simulation")
     demo.set_defaults(func=_demo)
     run = sub.add_parser("run", help="run a robot from its configuration file (ROS 2)")
     run.add_argument("config", help="the robot configuration (YAML)")
@@ -77,7 +99,10 @@ def main(argv: list[str] | None = None) -> int:
     run.set_defaults(func=_run)
     graph = sub.add_parser("graph", add_help=False,
                            help="render a behaviour's state machine or tree (see graph -h)")
-    graph.set_defaults(func=None, passthrough="graph")
+    graph.set_defaults(func=None)
+    sim = sub.add_parser("sim", add_help=False,
+                         help="run the simulation and its ROS 2 node (see sim -h)")
+    sim.set_defaults(func=None)
     argv = sys.argv[1:] if argv is None else argv
     # Import paths in configuration files and specs are looked up from the current
     # directory too, as `python -m` does.
@@ -87,6 +112,10 @@ def main(argv: list[str] | None = None) -> int:
         from beehave.engines.graph import graph_main
 
         return graph_main(argv[1:])
+    if argv and argv[0] == "sim":
+        from robots.node import sim_main
+
+        return sim_main(argv[1:])
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")

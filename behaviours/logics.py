@@ -122,7 +122,6 @@ class EmiliLedLogic(Logic):
         return "idle"
 
     async def run(self) -> None:
-        import asyncio
 
         leds = cast(_RgbLeds, await self.hal("emili_leds"))
         await self.hal("battery")
@@ -130,15 +129,16 @@ class EmiliLedLogic(Logic):
                    "lifting": ORANGE, "idle": DIM_WHITE}
         watcher = self.blackboard.watch("**")
         shown: tuple[float, float, float] | None = None
+        shown_mode: str | None = None
         blink_on = True
         while True:
-            try:
-                await asyncio.wait_for(watcher.__anext__(), self.blink_s)
-            except TimeoutError:
+            if await watcher.next(self.blink_s) is None:
                 blink_on = not blink_on
             battery = self.blackboard.get(BATTERY_KEY, fresh=True)
             mode = self.pattern(battery, running_classes(self.blackboard.get("high_level/running")))
-            self.blackboard.set("leds/pattern", mode)
+            if mode != shown_mode:  # only changes: this logic watches what it writes
+                self.blackboard.set("leds/pattern", mode)
+                shown_mode = mode
             colour = (YELLOW if blink_on else OFF) if mode == "lane_following" else colours[mode]
             if colour != shown:
                 leds.set_color(*colour)

@@ -220,7 +220,10 @@ class DebugHAL(HAL):
             while True:
                 timeout = self.tick_s if self.drain_pct_per_s > 0 else None
                 try:
-                    await asyncio.wait_for(self._wake.wait(), timeout)
+                    # asyncio.timeout, not wait_for: on Python 3.11 wait_for can swallow a
+                    # cancellation that arrives as the inner wait completes.
+                    async with asyncio.timeout(timeout):
+                        await self._wake.wait()
                 except TimeoutError:
                     self.robot.drain(self.drain_pct_per_s * self.tick_s)
                     continue

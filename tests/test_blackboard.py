@@ -390,3 +390,68 @@ def test_stress_4_threads_x_10000_sets_with_50_watchers_lose_no_final_value() ->
     assert all(r == {k: n_sets - 1 for k in keys} for r in results)
     assert max_pending <= n_threads          # one pending change per key per watcher
     assert max_board_pending <= n_threads    # one pending hand-over per key
+
+
+def test_watcher_next_times_out_and_is_cancellation_safe() -> None:
+    """Cancelling a logic while it waits with a timeout must end it, even when a change
+    arrives at the same moment (asyncio.wait_for on 3.11 can swallow that cancellation)."""
+    import asyncio
+
+    from beehave.blackboard import Blackboard
+
+    async def main() -> None:
+        bb = Blackboard()
+        bb.bind(asyncio.get_running_loop())
+        watcher = bb.watch("**", initial=False)
+        assert await watcher.next(0.01) is None
+        bb.set("a", 1)
+        change = await watcher.next(1.0)
+        assert change is not None and change.value == 1
+
+        async def logic() -> None:
+            while True:
+                await watcher.next(0.001)
+
+        loop = asyncio.get_running_loop()
+        for i in range(300):
+            task = loop.create_task(logic())
+            await asyncio.sleep(0)
+            # The change and the cancellation reach the logic in the same loop iteration.
+            bb.set("a", i)
+            task.cancel()
+            done, _ = await asyncio.wait({task}, timeout=1.0)
+            assert task in done, "the cancelled logic kept running"
+
+    asyncio.run(main())
+
+
+def test_a_logic_that_writes_what_it_watches_does_not_starve_the_loop() -> None:
+    import asyncio
+
+    from beehave.blackboard import Blackboard
+
+    async def main() -> None:
+        bb = Blackboard()
+        bb.bind(asyncio.get_running_loop())
+        watcher = bb.watch("**", initial=False)
+
+        async def echo() -> None:
+            bb.set("x", 0)
+            async for change in watcher:
+                bb.set("x", change.value + 1)  # feeds its own watcher, forever
+
+        other_ran = asyncio.Event()
+        task = asyncio.get_running_loop().create_task(echo())
+
+        async def other() -> None:
+            other_ran.set()
+
+        asyncio.get_running_loop().create_task(other())
+        async with asyncio.timeout(5):
+            await other_ran.wait()
+        task.cancel()
+        async with asyncio.timeout(5):
+            await asyncio.wait({task})
+        assert task.cancelled()
+
+    asyncio.run(main())

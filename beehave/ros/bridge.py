@@ -147,6 +147,8 @@ class HighLevelBridge:
         self.node = node
         manager.node = node
         self._guard = _ParamGuard()
+        self._io = threading.Lock()  # publishing vs. destroy(), which runs in another thread
+        self._closed = False
         self._dirty = threading.Event()
         self._last_seq = -1
         self.mirror_complete = False
@@ -220,7 +222,10 @@ class HighLevelBridge:
         if not self._dirty.is_set():
             return
         self._dirty.clear()
-        self._state_pub.publish(String(data=json.dumps(self.state())))
+        msg = String(data=json.dumps(self.state()))
+        with self._io:
+            if not self._closed:
+                self._state_pub.publish(msg)
 
     def _on_blackboard(self, msg: String) -> None:
         try:
@@ -247,6 +252,8 @@ class HighLevelBridge:
             self.mirror_complete = True
 
     def destroy(self) -> None:
+        with self._io:
+            self._closed = True
         self._unsubscribe()
         for timer in (self._fast, self._slow):
             self.node.destroy_timer(timer)
@@ -277,7 +284,8 @@ class LowLevelBridge:
         self.manager = manager
         self.node = node
         self._guard = _ParamGuard()
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # also orders publishing before destroy()
+        self._closed = False
         self._pending: dict[str, Change] = {}
         self._seq = 0
         self._last_kind = "snapshot"
@@ -331,7 +339,9 @@ class LowLevelBridge:
             if not pending:
                 return
             msg = self._message("changes", {k: _entry(c) for k, c in pending.items()})
-        self._pub.publish(msg)
+            if self._closed:
+                return
+            self._pub.publish(msg)
         loop = self.manager.loop
         if loop is not None:
             if self._settle_handle is not None:
@@ -353,7 +363,9 @@ class LowLevelBridge:
         with self._lock:
             self._pending.clear()  # the snapshot contains them
             msg = self._message("snapshot", entries)
-        self._pub.publish(msg)
+            if self._closed:
+                return
+            self._pub.publish(msg)
 
     # -- ROS → low level -------------------------------------------------------------------
     def _on_state(self, msg: String) -> None:
@@ -403,6 +415,8 @@ class LowLevelBridge:
                     log.debug("could not update parameter 'logic'", exc_info=True)
 
     def destroy(self) -> None:
+        with self._lock:
+            self._closed = True
         self._unsubscribe()
         self._bb_sub.close()
         for handle in (self._flush_handle, self._settle_handle):

@@ -146,7 +146,8 @@ class RosHAL(HAL):
                 self._loop.call_soon_threadsafe(resolve)
 
             future.add_done_callback(finished)
-            return await asyncio.wait_for(done, timeout_s)
+            async with asyncio.timeout(timeout_s):  # not wait_for: see Watcher.next
+                return await done
         finally:
             self.node.destroy_client(client)
 

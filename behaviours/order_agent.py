@@ -1,0 +1,61 @@
+"""Another agent that orders a beehave robot around: publishes one order on
+``<ns>/orders`` and prints the robot's progress until the order is reached, failed or
+rejected. A plain rclpy program; it imports nothing of beehave's framework.
+
+    python -m behaviours.order_agent emili1 --station emili_charging
+    python -m behaviours.order_agent emili1 --goal 12.0 3.5 --id o7
+
+Exit status 0 when the order was reached, 1 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import rclpy
+from std_msgs.msg import String
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="order_agent", description=__doc__)
+    parser.add_argument("namespace")
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("--station")
+    where.add_argument("--goal", nargs=2, type=float, metavar=("X_M", "Y_M"))
+    parser.add_argument("--id", default="order-1")
+    parser.add_argument("--timeout-s", type=float, default=300.0)
+    args = parser.parse_args(argv)
+    order = {"id": args.id, **({"station": args.station} if args.station
+                               else {"goal": args.goal})}
+    rclpy.init()
+    node = rclpy.create_node("order_agent")
+    outcome: dict[str, str] = {}
+
+    def on_progress(msg: String) -> None:
+        report = json.loads(msg.data)
+        if report.get("id") != args.id:
+            return
+        print(json.dumps(report), flush=True)
+        if report["status"] in ("reached", "failed", "rejected"):
+            outcome["status"] = report["status"]
+
+    node.create_subscription(String, f"/{args.namespace}/orders/progress", on_progress, 10)
+    pub = node.create_publisher(String, f"/{args.namespace}/orders", 10)
+    deadline = time.monotonic() + args.timeout_s
+    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)  # wait until the robot listens
+    time.sleep(0.3)  # let its progress publisher be discovered too
+    pub.publish(String(data=json.dumps(order)))
+    print(json.dumps({"sent": order}), flush=True)
+    while "status" not in outcome and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    node.destroy_node()
+    rclpy.shutdown()
+    return 0 if outcome.get("status") == "reached" else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,230 @@
+"""The main demo (``beehave demo``): the paper's evaluation on simulated robots.
+
+One EMILI and one Kobuki in the default warehouse, each a beehave robot (two managers,
+their ROS 2 nodes) driven by the pybullet sim node:
+
+1. EMILI tours: drives to the drop-off (a chime plays beside the driving, from a
+   sub-behaviour), lifts there, heads for the pick-up; its LEDs are light blue while it
+   navigates. The Kobuki wanders and backs off whenever a bumper hits something.
+2. Midway to the pick-up EMILI is switched to ``commanded``: the tour is interrupted and
+   the wheels stop; another agent — a separate process — orders it to its charging
+   station over ROS 2 and follows its progress.
+3. Then ``maintenance``: lift down, nothing moves.
+
+At the end it writes a top-down picture and a summary, and exits 0 only when the goals
+were reached in the physics (positions within tolerance, lift height reached, the robot
+stopped after the switch).
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console, Group
+from rich.live import Live
+from rich.table import Table
+from rich.text import Text
+from robots.node import SimNode
+
+from beehave.config import load_config
+from beehave.robot import Robot
+from beehave.ros.context import RosContext
+from robots.sim import Simulation
+from robots.world import load_world
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "robots" / "config"
+
+
+@dataclass
+class Findings:
+    dropoff_error_m: float | None = None
+    lift_m: float | None = None
+    led_while_navigating: tuple[float, float, float] | None = None
+    stop_after_switch_s: float | None = None
+    commanded_error_m: float | None = None
+    agent_exit: int | None = None
+    maintenance_lift_m: float | None = None
+    kobuki_travel_m: float = 0.0
+    kobuki_bumps: int = 0
+    notes: list[str] = field(default_factory=list)
+
+
+def _rgb(color: tuple[float, float, float]) -> str:
+    return "#{:02x}{:02x}{:02x}".format(*(int(max(0, min(1, c)) * 255) for c in color))
+
+
+def _panel(sim: Simulation, emili: Robot, kobuki: Robot, phase: str) -> Group:
+    table = Table(title=f"sim time {sim.time_s:6.1f} s   ×{sim.measured_real_time_factor():.1f}"
+                        f" real time   phase: {phase}")
+    for col in ("robot", "behaviour", "running", "pose", "speed", "battery", "LEDs"):
+        table.add_column(col)
+    for robot, handle in ((emili, sim.robot("emili1")), (kobuki, sim.robot("kobuki1"))):
+        assert robot.high is not None
+        snap = robot.high.snapshot()
+        running = _running_actions(snap["top"])
+        odom = handle.odometry()
+        leds: Any = getattr(handle, "leds", lambda: "")()
+        rgb = isinstance(leds, tuple) and len(leds) == 3 and all(
+            isinstance(v, float) for v in leds)
+        led_cell = Text("■■■", style=_rgb(leds)) if rgb else Text(" ".join(map(str, leds)))
+        table.add_row(handle.namespace, str(snap["current"]), ", ".join(running) or "-",
+                      f"({odom.x_m:5.2f}, {odom.y_m:5.2f})", f"{odom.linear_mps:4.2f} m/s",
+                      f"{handle.battery().percentage:4.1f} %", led_cell)
+    return Group(table)
+
+
+def _running_actions(node: dict[str, Any] | None) -> list[str]:
+    if node is None:
+        return []
+    names = [node["name"]] if node["kind"] == "action" and node["status"] == "RUNNING" else []
+    for child in node.get("children", []):
+        names += _running_actions(child)
+    return names
+
+
+def _wait(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase: str,
+          predicate: Any, timeout_sim_s: float) -> bool:
+    deadline = sim.time_s + timeout_sim_s
+    while sim.time_s < deadline:
+        if predicate():
+            return True
+        if live is not None:
+            live.update(_panel(sim, emili, kobuki, phase))
+        time.sleep(0.05)
+    return bool(predicate())
+
+
+def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
+                 out_dir: Path = Path("out"), live_display: bool = True) -> list[str]:
+    """Run the scenario; return the problems (empty when every goal was reached)."""
+    world = load_world("warehouse")
+    dropoff = world.station("emili_dropoff")
+    charging = world.station("emili_charging")
+    found = Findings()
+    problems: list[str] = []
+    sim = Simulation(world, real_time_factor=real_time_factor)
+    ros = RosContext()
+    node = SimNode(sim, ros)
+    emili = Robot(load_config(CONFIG_DIR / "emili.yaml"))
+    kobuki = Robot(load_config(CONFIG_DIR / "kobuki.yaml"))
+    e1, k1 = sim.emili("emili1"), sim.kobuki("kobuki1")
+    live = Live(console=console, refresh_per_second=8) if live_display else None
+    try:
+        ros.start()
+        sim.start()
+        emili.start()
+        kobuki.start()
+        assert emili.high is not None and kobuki.high is not None
+        if live is not None:
+            live.start()
+        kobuki.high.switch("wander")
+        tour = emili.high.switch("tour")
+
+        # 1. the tour reaches the drop-off, lifts, and heads for the pick-up
+        def at_dropoff_done() -> bool:
+            return "emili_dropoff" in getattr(tour, "visited", [])
+
+        def navigating() -> bool:
+            assert emili.low is not None
+            running = emili.low.blackboard.get("high_level/running") or []
+            return any(item.get("class") == "Navigation" for item in running)
+
+        if _wait(sim, live, emili, kobuki, "tour: driving", navigating, 10.0):
+            _wait(sim, live, emili, kobuki, "tour: driving", lambda: e1.leds()[2] > 0.9, 5.0)
+            r, g, b = e1.leds()
+            found.led_while_navigating = (round(r, 2), round(g, 2), round(b, 2))
+        if not _wait(sim, live, emili, kobuki, "tour: to the drop-off", at_dropoff_done, 90.0):
+            problems.append(f"EMILI did not complete the drop-off stop: {tour.status.name} "
+                            f"{tour.error!r}")
+        else:
+            pose = e1.pose()
+            found.dropoff_error_m = math.hypot(pose.x_m - dropoff.center_m[0],
+                                               pose.y_m - dropoff.center_m[1])
+            heights = getattr(tour, "lift_heights", [])
+            found.lift_m = heights[0] if heights else None
+            # 2. midway to the pick-up: switch to commanded
+            _wait(sim, live, emili, kobuki, "tour: to the pick-up",
+                  lambda: e1.odometry().linear_mps > 0.3, 30.0)
+            _wait(sim, live, emili, kobuki, "tour: to the pick-up",
+                  lambda: False, 2.0)  # drive a little further
+            t_switch = sim.time_s
+            emili.high.switch("commanded")
+            _wait(sim, live, emili, kobuki, "switched: stopping",
+                  lambda: abs(e1.cmd_vel()[0]) < 1e-6 and abs(e1.cmd_vel()[1]) < 1e-6, 5.0)
+            found.stop_after_switch_s = sim.time_s - t_switch
+            agent = subprocess.Popen(
+                [sys.executable, "-m", "behaviours.order_agent", "emili1", "--station",
+                 "emili_charging", "--id", "demo-1", "--timeout-s", "600"],
+                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            _wait(sim, live, emili, kobuki, "commanded: to the charging station",
+                  lambda: agent.poll() is not None, 120.0)
+            if agent.poll() is None:
+                agent.kill()
+            out, _ = agent.communicate(timeout=10)
+            found.agent_exit = agent.returncode
+            found.notes.append(out.strip().splitlines()[-1] if out.strip() else "")
+            pose = e1.pose()
+            found.commanded_error_m = math.hypot(pose.x_m - charging.center_m[0],
+                                                 pose.y_m - charging.center_m[1])
+            # 3. maintenance
+            emili.high.switch("maintenance")
+            _wait(sim, live, emili, kobuki, "maintenance",
+                  lambda: e1.lift_height() < 0.005 and emili.high is not None
+                  and emili.high.top is not None and len(emili.high.top.children) >= 2, 15.0)
+            found.maintenance_lift_m = e1.lift_height()
+        path = k1.path()
+        found.kobuki_travel_m = sum(math.hypot(b[0] - a[0], b[1] - a[1])
+                                    for a, b in zip(path, path[1:], strict=False))
+        wander = kobuki.high.top
+        for child in wander.children if wander is not None else []:
+            found.kobuki_bumps += int(getattr(child, "bumps", 0))
+    finally:
+        if live is not None:
+            live.stop()
+        out_dir.mkdir(parents=True, exist_ok=True)
+        picture = out_dir / "demo.png"
+        try:
+            sim.render_topdown(picture)
+        except Exception as exc:  # the picture is a by-product; report it
+            problems.append(f"could not render {picture}: {exc!r}")
+        emili.shutdown()
+        kobuki.shutdown()
+        node.destroy()
+        sim.close()
+        ros.shutdown()
+
+    checks = [
+        ("EMILI reached the drop-off (±0.3 m)", found.dropoff_error_m is not None
+         and found.dropoff_error_m <= 0.3, f"{found.dropoff_error_m}"),
+        ("lift reached 0.2 m at the drop-off", found.lift_m is not None
+         and abs(found.lift_m - 0.2) <= 0.01, f"{found.lift_m}"),
+        ("LEDs light blue while navigating", found.led_while_navigating is not None
+         and found.led_while_navigating[2] > 0.9, f"{found.led_while_navigating}"),
+        ("wheels stopped within 0.2 s (sim) of the switch", found.stop_after_switch_s
+         is not None and found.stop_after_switch_s <= 0.2, f"{found.stop_after_switch_s}"),
+        ("another process's order was reached", found.agent_exit == 0, f"{found.agent_exit}"),
+        ("EMILI reached the charging station (±0.3 m)", found.commanded_error_m is not None
+         and found.commanded_error_m <= 0.3, f"{found.commanded_error_m}"),
+        ("maintenance lowered the lift", found.maintenance_lift_m is not None
+         and found.maintenance_lift_m < 0.01, f"{found.maintenance_lift_m}"),
+        ("Kobuki wandered (> 1 m)", found.kobuki_travel_m > 1.0,
+         f"{found.kobuki_travel_m:.2f} m, {found.kobuki_bumps} bump(s)"),
+    ]
+    summary = Table(title="demo summary")
+    summary.add_column("check")
+    summary.add_column("result")
+    summary.add_column("measured")
+    for name, ok, measured in checks:
+        summary.add_row(name, Text("ok", style="green") if ok else Text("FAILED", style="red"),
+                        measured)
+        if not ok:
+            problems.append(f"{name}: measured {measured}")
+    console.print(summary)
+    console.print(f"picture: {out_dir / 'demo.png'}")
+    return problems
