@@ -1,0 +1,191 @@
+"""The robots' behaviours in the physics: beehave robots (both managers, ROS 2) driving the
+pybullet EMILI and Kobuki through the sim node, faster than real time.
+
+Each test builds a small world for what it checks, so the outcome does not depend on the
+others.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("pybullet")
+pytest.importorskip("rclpy")
+
+from beehave import Behavior, Status  # noqa: E402
+from beehave.config import load_config  # noqa: E402
+from beehave.robot import Robot  # noqa: E402
+from beehave.ros.context import RosContext  # noqa: E402
+from beehave.testing import beehave_threads, wait_until  # noqa: E402
+from behaviours.actions import LaneFollowing, Lift, Navigation  # noqa: E402
+from behaviours.logics import LIGHT_BLUE, RED, EmiliDisplayLogic  # noqa: E402
+from robots.node import SimNode  # noqa: E402
+from robots.sim import Simulation  # noqa: E402
+from robots.world import world_from_dict  # noqa: E402
+
+CONFIG = Path(__file__).resolve().parent.parent / "robots" / "config"
+
+
+def hall(*, robots: list[dict[str, Any]], obstacles: list[dict[str, Any]] | None = None,
+         lanes: list[dict[str, Any]] | None = None) -> Any:
+    return world_from_dict({
+        "name": "test_hall", "floor": {"size_m": [12, 8]},
+        "walls": [{"from_m": [0, 0.1], "to_m": [12, 0.1]}, {"from_m": [0, 7.9], "to_m": [12, 7.9]},
+                  {"from_m": [0.1, 0], "to_m": [0.1, 8]}, {"from_m": [11.9, 0], "to_m": [11.9, 8]}],
+        "obstacles": obstacles or [], "lanes": lanes or [],
+        "stations": [{"name": "dock", "kind": "charging", "center_m": [10.5, 6.5]},
+                     {"name": "target", "kind": "dropoff", "center_m": [8.0, 2.0]}],
+        "robots": robots})
+
+
+EMILI = {"namespace": "emili1", "kind": "emili", "start": {"x_m": 2.0, "y_m": 2.0}}
+KOBUKI = {"namespace": "kobuki1", "kind": "kobuki", "start": {"x_m": 2.0, "y_m": 6.0}}
+
+
+@contextmanager
+def stack(world: Any, *configs: str, real_time_factor: float | None = None,
+          ) -> Iterator[tuple[Simulation, dict[str, Robot]]]:
+    """The sim (as fast as it goes, by default), its ROS node, and a beehave robot per
+    config."""
+    before = set(beehave_threads())
+    sim = Simulation(world, real_time_factor=real_time_factor)
+    ros = RosContext()
+    node = SimNode(sim, ros)
+    robots = {name: Robot(load_config(CONFIG / f"{name}.yaml")) for name in configs}
+    try:
+        ros.start()
+        sim.start()
+        for robot in robots.values():
+            robot.start()
+        yield sim, robots
+    finally:
+        for robot in robots.values():
+            robot.shutdown()
+        sim.stop()
+        node.destroy()
+        ros.shutdown()
+        sim.close()
+    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before], 5)
+
+
+class Do(Behavior):
+    """Runs one action and returns it (the test inspects it)."""
+
+    def __init__(self, action: Any) -> None:
+        self.action = action
+
+    def run(self) -> Any:
+        self.start_action(self.action).wait()
+        return self.action
+
+
+def run_action(robot: Robot, action: Any, timeout_s: float = 120.0) -> Any:
+    assert robot.high is not None
+    robot.high.register("do", Do, action=action)
+    top = robot.high.switch("do")
+    assert top.wait(timeout_s), f"{action!r} did not finish"
+    return action
+
+
+def test_navigation_reaches_a_station_within_tolerance() -> None:
+    with stack(hall(robots=[EMILI]), "emili") as (sim, robots):
+        nav = run_action(robots["emili"], Navigation((8.0, 2.0), tolerance_m=0.15))
+        assert nav.status is Status.SUCCEEDED, nav.error
+        pose = sim.robot("emili1").pose()
+        assert math.hypot(pose.x_m - 8.0, pose.y_m - 2.0) <= 0.2
+
+
+def test_navigation_stops_for_an_obstacle_and_waits() -> None:
+    pillar = {"center_m": [5.0, 2.0], "radius_m": 0.3, "height_m": 2.0}
+    with stack(hall(robots=[EMILI], obstacles=[pillar]), "emili") as (sim, robots):
+        emili = robots["emili"]
+        assert emili.high is not None
+        nav = Navigation((8.0, 2.0), stop_distance_m=0.9, blocked_timeout_s=600)
+        emili.high.register("do", Do, action=nav)
+        emili.high.switch("do")
+        robot = sim.robot("emili1")
+        assert wait_until(lambda: nav.blocked, 60)
+        start = sim.time_s
+        assert wait_until(lambda: sim.time_s > start + 3.0, 60)  # 3 s of sim time blocked
+        pose = robot.pose()
+        gap = math.hypot(5.0 - pose.x_m, 2.0 - pose.y_m) - 0.3
+        assert 0.3 < gap < 0.9, gap  # stopped in front of it, did not touch it
+        assert abs(robot.odometry().linear_mps) < 0.02
+        assert nav.status is Status.RUNNING  # waiting for the way to clear
+
+
+def test_lane_following_keeps_the_lateral_error_small() -> None:
+    lane = {"name": "main", "points_m": [[1.0, 2.0], [10.0, 2.0], [10.0, 5.0]]}
+    emili = {**EMILI, "start": {"x_m": 1.5, "y_m": 2.05, "yaw_deg": 5}}
+    with stack(hall(robots=[emili], lanes=[lane]), "emili") as (sim, robots):
+        follow = run_action(robots["emili"], LaneFollowing(distance_m=6.0, speed_mps=0.3))
+        assert follow.status is Status.SUCCEEDED, follow.error
+        assert follow.result >= 6.0
+        assert follow.max_abs_offset_m < 0.04, follow.max_abs_offset_m
+        assert abs(sim.robot("emili1").pose().y_m - 2.0) < 0.05
+
+
+def test_lift_reaches_its_height_and_leds_show_navigation() -> None:
+    with stack(hall(robots=[EMILI]), "emili") as (sim, robots):
+        emili = robots["emili"]
+        lift = run_action(emili, Lift(0.25))
+        assert lift.status is Status.SUCCEEDED and abs(lift.result - 0.25) <= 0.005
+        assert abs(sim.emili("emili1").lift_height() - 0.25) <= 0.005
+        assert emili.high is not None and emili.low is not None
+        emili.high.register("go", Do, action=Navigation((9.0, 6.0)))
+        emili.high.switch("go")
+        # The LED logic turns light blue on the blackboard and on the simulated strip.
+        assert wait_until(lambda: emili.low.blackboard.get("leds/pattern") == "navigation", 30)
+        assert wait_until(lambda: sim.emili("emili1").leds() == pytest.approx(LIGHT_BLUE), 30)
+
+
+def test_switch_during_navigation_stops_the_wheels_within_0_2_s() -> None:
+    with stack(hall(robots=[EMILI]), "emili") as (sim, robots):
+        emili = robots["emili"]
+        assert emili.high is not None
+        robot = sim.robot("emili1")
+        emili.high.register("go", Do, action=Navigation((10.0, 6.0), speed_mps=0.6))
+        emili.high.switch("go")
+        assert wait_until(lambda: robot.odometry().linear_mps > 0.4, 60)
+        t0 = sim.time_s
+        emili.high.switch("maintenance")
+        assert wait_until(lambda: robot.cmd_vel() == (0.0, 0.0), 10)
+        assert sim.time_s - t0 <= 0.2
+        assert emili.high.current == "maintenance"
+        assert wait_until(lambda: abs(robot.odometry().linear_mps) < 0.02, 30)
+
+
+def test_kobuki_bumper_stops_it() -> None:
+    kobuki = {**KOBUKI, "start": {"x_m": 9.5, "y_m": 6.0, "yaw_deg": 0}}
+    # Reaction time is measured in sim time: run at a modest speed-up so that the
+    # milliseconds the messages take in wall time do not inflate it.
+    with stack(hall(robots=[kobuki]), "kobuki", real_time_factor=2.0) as (sim, robots):
+        k = robots["kobuki"]
+        assert k.high is not None
+        robot = sim.kobuki("kobuki1")
+        k.high.switch("wander")
+        assert wait_until(lambda: robot.bumpers().any(), 60), "never reached the wall"
+        hit_at = sim.time_s
+        # It stops pushing at once, then backs off.
+        assert wait_until(lambda: robot.cmd_vel()[0] <= 0.0, 10)
+        assert sim.time_s - hit_at <= 0.2
+        assert wait_until(lambda: not robot.bumpers().any(), 30)
+        top = k.high.top
+        assert top is not None and top.children and top.children[0].bumps >= 1
+
+
+def test_low_battery_turns_the_leds_red_and_shows_the_symbol() -> None:
+    weak = {**EMILI, "battery": {"capacity_wh": 20, "initial_fraction": 0.12}}
+    with stack(hall(robots=[weak]), "emili") as (sim, robots):
+        emili = robots["emili"]
+        assert emili.low is not None
+        assert wait_until(lambda: emili.low.blackboard.get("leds/pattern") == "battery_low", 30)
+        assert wait_until(lambda: sim.emili("emili1").leds() == pytest.approx(RED), 30)
+        assert wait_until(
+            lambda: sim.emili("emili1").display() == EmiliDisplayLogic.BATTERY_LOW, 30)
