@@ -51,7 +51,9 @@ def test_unknown_hal_lists_registered_and_entry_point_names() -> None:
     with pytest.raises(UnknownHAL) as info:
         asyncio.run(main())
     assert "'nope'" in str(info.value)
-    assert info.value.choices == ["debug", "lidar"]
+    # the registered one and every entry point of the installed packages
+    assert {"debug", "lidar", "odometry", "kobuki_bumpers"} <= set(info.value.choices)
+    assert info.value.choices == sorted(info.value.choices)
 
 
 def test_debug_hal_is_found_through_the_entry_point_group_without_registering() -> None:
