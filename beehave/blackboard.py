@@ -29,6 +29,8 @@ Slow watchers
     keys, and the last value written is always delivered.
 
 Freshness and relevance
+    Writing the value a key already holds (same type, equal) only refreshes the entry's
+    freshness and stamp: nobody is woken, since nothing changed.
     :meth:`Blackboard.declare` gives a key a ``max_age_s`` (the entry becomes stale when no
     one wrote it for that long; bound to a loop, watchers receive a ``stale=True`` change)
     and a numeric ``deadband`` (a new value closer than ``deadband`` to the last published
@@ -112,6 +114,16 @@ def _jsonable(value: Any) -> Any:
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
     return repr(value)
+
+
+def _same(old: Any, new: Any) -> bool:
+    """Whether writing ``new`` over ``old`` changes nothing (same type, equal value)."""
+    if type(old) is not type(new):
+        return False
+    try:
+        return bool(old == new)
+    except Exception:  # values whose comparison fails (numpy arrays …) count as changes
+        return False
 
 
 def check_key(key: object) -> str:
@@ -415,8 +427,9 @@ class Blackboard:
         old = slot.change
         deadband = slot.deadband
         now = self._clock()
-        if (deadband is not None and old is not None and not old.stale
-                and _within(old.value, value, deadband)):
+        if old is not None and not old.stale and (
+                _same(old.value, value) if deadband is None
+                else _within(old.value, value, deadband)):
             # Not a relevant change: the sensor is alive (freshness), nobody is woken.
             slot.change = Change(slot.key, old.value, time.time(), now, writer)
             return None

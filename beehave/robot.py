@@ -21,6 +21,8 @@ from beehave.logic import Logic
 from beehave.lowlevel import LowLevelBehaviorManager
 
 if TYPE_CHECKING:
+    from rclpy.node import Node
+
     from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
     from beehave.ros.context import RosContext
 
@@ -37,9 +39,13 @@ class Robot:
 
     Use it as a context manager. :meth:`shutdown` interrupts the actions (safe states
     applied), stops the logics and HALs, destroys the nodes and joins every thread.
+    ``ros``: a :class:`~beehave.ros.context.RosContext` to share with other robots in the
+    same process (one executor thread, one DDS participant); the robot then destroys only
+    its own nodes.
     """
 
-    def __init__(self, config: RobotConfig, *, only: Only = None) -> None:
+    def __init__(self, config: RobotConfig, *, only: Only = None,
+                 ros: RosContext | None = None) -> None:
         if only not in (None, "high", "low"):
             raise ConfigError(f"only must be 'high', 'low' or None, got {only!r}")
         self.config = config
@@ -48,7 +54,9 @@ class Robot:
         self.low: LowLevelBehaviorManager | None = None
         self._build()
         self._ros: RosContext | None = None
+        self._shared_ros = ros
         self._bridges: list[HighLevelBridge | LowLevelBridge] = []
+        self._nodes: list[Node] = []
         self._started = False
 
     def _build(self) -> None:
@@ -89,12 +97,15 @@ class Robot:
         from beehave.ros.context import RosContext
 
         cfg = self.config
-        ros = self._ros = RosContext()
+        ros = self._shared_ros or RosContext()
+        self._ros = ros
         try:
             ros.start()
             if self.low is not None:
-                node = ros.create_node(LOW_NODE, namespace=cfg.namespace,
-                                       use_sim_time=cfg.use_sim_time)
+                # The low level runs on wall time (asyncio); only the high level follows
+                # /clock, so each robot subscribes to it once, not once per node.
+                node = ros.create_node(LOW_NODE, namespace=cfg.namespace)
+                self._nodes.append(node)
                 self.low.hals.node = node
                 self.low.__enter__()
                 self._bridges.append(LowLevelBridge(
@@ -103,6 +114,7 @@ class Robot:
             if self.high is not None:
                 node = ros.create_node(HIGH_NODE, namespace=cfg.namespace,
                                        use_sim_time=cfg.use_sim_time)
+                self._nodes.append(node)
                 self._bridges.append(HighLevelBridge(
                     self.high, node, state_period_s=cfg.ros.state_period_s))
                 self.high.start()
@@ -122,7 +134,11 @@ class Robot:
         if self.low is not None:
             self.low.shutdown()
         if self._ros is not None:
-            self._ros.shutdown()
+            if self._ros is not self._shared_ros:
+                self._ros.shutdown()
+            else:
+                for node in self._nodes:
+                    self._ros.destroy_node(node)
             self._ros = None
 
     def __enter__(self) -> Self:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import random
 
+from geometry_msgs.msg import Twist
 from std_msgs.msg import Int32
 
 from beehave import Behavior, Status
@@ -25,7 +26,7 @@ class BumperWander(_Drive):
         self.stop_latency_s: list[float] = []
 
     def run(self) -> int:
-        self._open()
+        self._cmd = self.ros.publisher(Twist, topics.CMD_VEL)  # no odometry needed
         bumpers = self.ros.latest(Int32, topics.BUMPERS)
         clock = self.manager.clock
         start = clock.now()

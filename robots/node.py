@@ -142,7 +142,24 @@ class _RobotPorts:
     # ---- readings (sim thread) ------------------------------------------------------
 
     def publish_fast(self, time_s: float, echo: bool) -> None:
-        """At the odometry / sensor rate: odom, a new scan, the kind's sensors."""
+        """At the odometry / sensor rate: odom, a new scan, the kind's sensors. A stream
+        nobody subscribes to is not built (the message costs more than the publish)."""
+        if self._odom_pub.get_subscription_count():
+            self._publish_odom()
+        self.robot.scan_enabled = self._scan_pub.get_subscription_count() > 0
+        scan = self.robot.scan()
+        if scan is not None and scan.time_s > self._last_scan_s:
+            self._last_scan_s = scan.time_s
+            if self._scan_pub.get_subscription_count():
+                self._scan_pub.publish(LaserScan(
+                    header=self._header(scan.time_s), angle_min=scan.angle_min_rad,
+                    angle_max=scan.angle_max_rad, angle_increment=scan.angle_increment_rad,
+                    time_increment=0.0, scan_time=scan.scan_time_s,
+                    range_min=scan.range_min_m, range_max=scan.range_max_m,
+                    ranges=list(scan.ranges_m)))
+        self.publish_parts(time_s, echo)
+
+    def _publish_odom(self) -> None:
         o = self.robot.odometry()
         msg = self._odom_msg
         msg.header.stamp = stamp(o.time_s)
@@ -153,21 +170,14 @@ class _RobotPorts:
         msg.twist.twist.linear.x = o.linear_mps
         msg.twist.twist.angular.z = o.angular_rps
         self._odom_pub.publish(msg)
-        scan = self.robot.scan()
-        if scan is not None and scan.time_s > self._last_scan_s:
-            self._last_scan_s = scan.time_s
-            self._scan_pub.publish(LaserScan(
-                header=self._header(scan.time_s), angle_min=scan.angle_min_rad,
-                angle_max=scan.angle_max_rad, angle_increment=scan.angle_increment_rad,
-                time_increment=0.0, scan_time=scan.scan_time_s, range_min=scan.range_min_m,
-                range_max=scan.range_max_m, ranges=list(scan.ranges_m)))
-        self.publish_parts(time_s, echo)
 
     def publish_parts(self, time_s: float, echo: bool) -> None:
         """The kind's own sensors; ``echo``: republish the states that only go out on
         change."""
 
     def publish_battery(self) -> None:
+        if not self._battery_pub.get_subscription_count():
+            return
         b = self.robot.battery()
         self._battery_pub.publish(BatteryState(
             header=self._header(b.time_s), voltage=b.voltage_v, current=b.current_a,
@@ -225,9 +235,11 @@ class _EmiliPorts(_RobotPorts):
 
     def publish_parts(self, time_s: float, echo: bool) -> None:
         robot = self.robot
-        self._lift_pub.publish(Float64(data=robot.lift_height()))
-        offset = robot.line_sensor()
-        self._line_pub.publish(Float64(data=math.nan if offset is None else offset))
+        if self._lift_pub.get_subscription_count():
+            self._lift_pub.publish(Float64(data=robot.lift_height()))
+        if self._line_pub.get_subscription_count():
+            offset = robot.line_sensor()
+            self._line_pub.publish(Float64(data=math.nan if offset is None else offset))
         leds = robot.leds()
         if echo or leds != self._leds_sent:
             self._leds_sent = leds
@@ -275,11 +287,17 @@ class _KobukiPorts(_RobotPorts):
 
     def publish_parts(self, time_s: float, echo: bool) -> None:
         robot = self.robot
-        b, c, w = robot.bumpers(), robot.cliffs(), robot.wheel_drop()
-        self._bumpers_pub.publish(_mask(b.left, b.center, b.right))
-        self._cliffs_pub.publish(_mask(c.left, c.center, c.right))
-        self._wheel_drop_pub.publish(_mask(w.left, w.right))
-        self._buttons_pub.publish(_mask(*robot.buttons()))
+        if self._bumpers_pub.get_subscription_count():
+            b = robot.bumpers()
+            self._bumpers_pub.publish(_mask(b.left, b.center, b.right))
+        if self._cliffs_pub.get_subscription_count():
+            c = robot.cliffs()
+            self._cliffs_pub.publish(_mask(c.left, c.center, c.right))
+        if self._wheel_drop_pub.get_subscription_count():
+            w = robot.wheel_drop()
+            self._wheel_drop_pub.publish(_mask(w.left, w.right))
+        if self._buttons_pub.get_subscription_count():
+            self._buttons_pub.publish(_mask(*robot.buttons()))
 
 
 _PORTS: dict[type[SimRobot], type[_RobotPorts]] = {Emili: _EmiliPorts, Kobuki: _KobukiPorts}
@@ -383,8 +401,7 @@ class SimNode:
             # Runs between two steps: after it, no callback of ours is in flight.
             self.sim.call(lambda client: None)
         for node in reversed(self._nodes):
-            self.ros.executor.remove_node(node)
-            node.destroy_node()
+            self.ros.destroy_node(node)
         self._nodes = []
 
     def __enter__(self) -> Self:

@@ -53,6 +53,15 @@ class RosContext:
         self.executor.add_node(node)
         return node
 
+    def destroy_node(self, node: Node) -> None:
+        """Take ``node`` off the executor and destroy it (before :meth:`shutdown`)."""
+        with self._lock:
+            if node not in self._nodes:
+                return
+            self._nodes.remove(node)
+        self.executor.remove_node(node)
+        node.destroy_node()
+
     def start(self) -> None:
         """Start the executor thread (idempotent)."""
         with self._lock:
