@@ -2,9 +2,10 @@
 
 Targets (issue 5), physics at 240 Hz: full stack, 1 robot ≥ 10× and 10 robots ≥ 2× real
 time. The wandering Kobukis read their bumpers, not their lasers, so the sim node leaves
-the lasers off in both runs (it casts them only while someone subscribes to ``scan``). Each figure is beside the sim alone in the same run (same world, robots driving
-from an on_step callback instead of beehave), and the framework's overhead per robot-step
-is printed. Kobukis wander (bumper-reactive) with their LED logic; one shared RosContext
+the lasers off in both runs (it casts them only while someone subscribes to ``scan``).
+Each figure is beside the sim alone in the same run (same world, robots driving from an
+on_step callback instead of beehave), and the framework's overhead per robot-step is
+printed. Kobukis wander (bumper-reactive) with their LED logic; one shared RosContext
 (one executor thread, one DDS participant) for the sim node and all robots.
 """
 
