@@ -199,20 +199,24 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
         sim.close()
         ros.shutdown()
 
+    def m(value: float | None, unit: str) -> str:
+        return "-" if value is None else f"{value:.3f} {unit}"
+
     checks = [
         ("EMILI reached the drop-off (±0.3 m)", found.dropoff_error_m is not None
-         and found.dropoff_error_m <= 0.3, f"{found.dropoff_error_m}"),
+         and found.dropoff_error_m <= 0.3, m(found.dropoff_error_m, "m off")),
         ("lift reached 0.2 m at the drop-off", found.lift_m is not None
-         and abs(found.lift_m - 0.2) <= 0.01, f"{found.lift_m}"),
+         and abs(found.lift_m - 0.2) <= 0.01, m(found.lift_m, "m")),
         ("LEDs light blue while navigating", found.led_while_navigating is not None
          and found.led_while_navigating[2] > 0.9, f"{found.led_while_navigating}"),
         ("wheels stopped within 0.2 s (sim) of the switch", found.stop_after_switch_s
-         is not None and found.stop_after_switch_s <= 0.2, f"{found.stop_after_switch_s}"),
-        ("another process's order was reached", found.agent_exit == 0, f"{found.agent_exit}"),
+         is not None and found.stop_after_switch_s <= 0.2, m(found.stop_after_switch_s, "s")),
+        ("another process's order was reached", found.agent_exit == 0,
+         f"exit status {found.agent_exit}"),
         ("EMILI reached the charging station (±0.3 m)", found.commanded_error_m is not None
-         and found.commanded_error_m <= 0.3, f"{found.commanded_error_m}"),
+         and found.commanded_error_m <= 0.3, m(found.commanded_error_m, "m off")),
         ("maintenance lowered the lift", found.maintenance_lift_m is not None
-         and found.maintenance_lift_m < 0.01, f"{found.maintenance_lift_m}"),
+         and found.maintenance_lift_m < 0.01, m(found.maintenance_lift_m, "m")),
         ("Kobuki wandered (> 1 m)", found.kobuki_travel_m > 1.0,
          f"{found.kobuki_travel_m:.2f} m, {found.kobuki_bumps} bump(s)"),
     ]
