@@ -30,11 +30,11 @@ from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
-from robots.node import SimNode
 
 from beehave.config import load_config
 from beehave.robot import Robot
 from beehave.ros.context import RosContext
+from robots.node import SimNode
 from robots.sim import Simulation
 from robots.world import load_world
 
