@@ -7,6 +7,7 @@ from typing import Any, ClassVar, Self, TypeVar
 
 from beehave.action import Action
 from beehave.errors import ChildFailed, Interrupted, NotASubclass
+from beehave.events import Event, EventKind
 from beehave.runnable import Runnable
 from beehave.status import Status
 
@@ -35,11 +36,13 @@ class Behavior(Runnable):
     _children: list[Runnable]
     _unobserved_failures: list[Runnable]
     _accepting: bool
+    _hook_errors: list[Exception]
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
         self._children = []
         self._unobserved_failures = []
+        self._hook_errors = []
         self._accepting = True
         return self
 
@@ -54,8 +57,12 @@ class Behavior(Runnable):
             raise NotASubclass(f"{self.path}: start_action() takes an Action instance, "
                                f"got {action!r}; use start_behavior() for behaviours")
         manager = self._before_start(action)
-        manager._locks.acquire(action, preempt=preempt, timeout_s=manager.stop_timeout_s,
-                               cancelled=lambda: self._interrupt_requested)
+        try:
+            manager._locks.acquire(action, preempt=preempt, timeout_s=manager.stop_timeout_s,
+                                   cancelled=lambda: self._interrupt_requested)
+        except BaseException:
+            action._detach()  # not started: the caller may try the same object again
+            raise
         try:
             self._adopt(action)
         except BaseException:
@@ -127,7 +134,10 @@ class Behavior(Runnable):
             children = list(self._children)
         for child in children:
             child._interrupt(deadline)
-        self.on_interrupt()
+        try:
+            self.on_interrupt()
+        except Exception as exc:  # must not break the switch that is interrupting us
+            self._hook_failed("on_interrupt", exc)
 
     def _after_run(self, error: BaseException | None) -> BaseException | None:
         assert self._manager is not None
@@ -144,9 +154,12 @@ class Behavior(Runnable):
                 child._mark_stuck()
         for child in children:
             if child.status is not Status.STUCK:
-                child._join()  # it has decided; its clean-up is just finishing
+                # It has decided; its clean-up is just finishing (bounded all the same).
+                child._join(max(0.0, deadline - time.monotonic()) + 0.05)
         with self._cond:
-            if error is None and not self._interrupt_requested and self._unobserved_failures:
+            if error is None and self._hook_errors:
+                error = self._hook_errors[0]
+            elif error is None and not self._interrupt_requested and self._unobserved_failures:
                 failed = self._unobserved_failures[0]
                 error = ChildFailed(failed)
                 error.__cause__ = failed.error
@@ -157,12 +170,27 @@ class Behavior(Runnable):
         for child in self.children:
             child._mark_stuck()
 
-    def _child_ended(self, child: Runnable) -> None:
+    def _record_child_end(self, child: Runnable) -> None:
         with self._cond:
             if child.status is Status.FAILED:
                 self._unobserved_failures.append(child)
                 self._cond.notify_all()
-        self.on_child_ended(child)
+
+    def _call_child_hook(self, child: Runnable) -> None:
+        try:
+            self.on_child_ended(child)
+        except Exception as exc:
+            self._hook_failed("on_child_ended", exc)
+
+    def _hook_failed(self, hook: str, exc: Exception) -> None:
+        """A user hook raised: surface it in this behaviour's thread (next framework call,
+        or the end of run) and report it as an event — never log-and-drop."""
+        with self._cond:
+            self._hook_errors.append(exc)
+            self._cond.notify_all()
+        if self._manager is not None:
+            self._manager.events.emit(Event(EventKind.HOOK_FAILED, self.path,
+                                            self._status.name, exc, {"hook": hook}))
 
     def _observed(self, child: Runnable) -> None:
         with self._cond:
@@ -170,9 +198,12 @@ class Behavior(Runnable):
                 self._unobserved_failures.remove(child)
 
     def _wake_reason(self) -> bool:
-        return self._interrupt_requested or bool(self._unobserved_failures)
+        return (self._interrupt_requested or bool(self._unobserved_failures)
+                or bool(self._hook_errors))
 
     def _raise_pending(self) -> None:
+        if self._hook_errors:
+            raise self._hook_errors.pop(0)
         if self._unobserved_failures:
             failed = self._unobserved_failures.pop(0)
             raise ChildFailed(failed) from failed.error

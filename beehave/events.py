@@ -26,6 +26,9 @@ class EventKind(Enum):
     """A STUCK action's thread finally ended and its type lock was released."""
     SAFE_STATE_FAILED = "safe_state_failed"
     """``safe_state()`` raised; the error is attached."""
+    HOOK_FAILED = "hook_failed"
+    """An optional hook (``on_child_ended``, ``on_interrupt``) raised; the error is attached
+    and raised again in the behaviour's own thread."""
     SWITCH_REQUESTED = "switch_requested"
     SWITCH_COMPLETED = "switch_completed"
     SWITCH_SUPERSEDED = "switch_superseded"
@@ -103,4 +106,5 @@ class EventBus:
                 self._log.exception("event subscriber %r raised on %s", callback, event.kind)
 
 
-_WARN = {EventKind.STUCK, EventKind.SAFE_STATE_FAILED, EventKind.RESTARTED}
+_WARN = {EventKind.STUCK, EventKind.SAFE_STATE_FAILED, EventKind.HOOK_FAILED,
+         EventKind.RESTARTED}

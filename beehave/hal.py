@@ -243,6 +243,8 @@ class HALManager:
                                                             name=f"hal:{name}")
         entry.ready = None
         self.events.emit(Event(EventKind.STARTED, f"hal:{name}", Status.RUNNING.name))
+        if not entry.owners:  # everyone who asked for it let go while it was loading
+            await self._unload(name, entry)
 
     async def _supervise(self, name: str, hal: HAL) -> None:
         delay = self.backoff_initial_s

@@ -104,6 +104,7 @@ class HighLevelBehaviorManager:
         self._pending: list[_Request] = []
         self._switch_lock = threading.Lock()
         self._executor: int | None = None  # the thread executing switches now
+        self._stopping: Behavior | None = None  # the top-level behaviour a switch stops
         self._top: Behavior | None = None
         self._top_name: str | None = None
         self._stuck: set[Runnable] = set()
@@ -293,26 +294,41 @@ class HighLevelBehaviorManager:
             with self._cond:
                 requests, self._pending = self._pending, []
                 stopping = self._state is not ManagerState.RUNNING
-            if stopping:
+            try:
+                if not self._execute(requests, stopping=stopping):
+                    return
+            except BaseException as exc:
+                # Whatever went wrong, no caller may wait forever for its request.
+                failure = BeehaveError(f"switch failed: {exc!r}")
+                failure.__cause__ = exc
                 for request in requests:
-                    request.finish(ManagerShutdown("the manager is shutting down"))
-                self._stop_top()
-                return
-            if not requests:
-                return
-            *superseded, latest = requests
-            for request in superseded:
-                self._supersede(request, latest)
-            if latest.fallback_from is not None and latest.fallback_from is not self._top:
-                latest.finish()  # something else replaced it already
-                continue
+                    if not request.done.is_set():
+                        request.finish(failure)
+                raise
+
+    def _execute(self, requests: list[_Request], *, stopping: bool) -> bool:
+        """Carry out one batch of requests; False when there is nothing more to do."""
+        if stopping:
+            for request in requests:
+                request.finish(ManagerShutdown("the manager is shutting down"))
             self._stop_top()
-            with self._cond:
-                overtaken = bool(self._pending)
-            if overtaken:
-                self._supersede(latest, None)
-                continue
-            self._start_top(latest)
+            return False
+        if not requests:
+            return False
+        *superseded, latest = requests
+        for request in superseded:
+            self._supersede(request, latest)
+        if latest.fallback_from is not None and latest.fallback_from is not self._top:
+            latest.finish()  # something else replaced it already
+            return True
+        self._stop_top()
+        with self._cond:
+            overtaken = bool(self._pending)
+        if overtaken:
+            self._supersede(latest, None)
+            return True
+        self._start_top(latest)
+        return True
 
     def _process_later(self) -> None:
         try:
@@ -330,14 +346,13 @@ class HighLevelBehaviorManager:
         if top is None:
             return
         self._top_name = None
+        self._stopping = top  # its end is ours, not its own: no fallback to idle
         deadline = time.monotonic() + self.stop_timeout_s
         top._interrupt(deadline)
         # The behaviour itself gives up on its children at `deadline`; allow it a moment
         # to record that before declaring the behaviour itself STUCK.
-        if not top._wait_decided(deadline + _MARGIN_S):
+        if not top._wait_decided(deadline + _MARGIN_S) or not top._join(_MARGIN_S):
             top._mark_stuck()
-        else:
-            top._join()
         self._top = None
 
     def _start_top(self, request: _Request) -> None:
@@ -368,7 +383,7 @@ class HighLevelBehaviorManager:
                                   "error": None if node.error is None else repr(node.error),
                                   "elapsed_s": node.elapsed_s})
             ended_on_its_own = (isinstance(node, Behavior) and node is self._top
-                                and not node.interrupted and not self._pending
+                                and node is not self._stopping and not self._pending
                                 and self._state is ManagerState.RUNNING)
             if ended_on_its_own:
                 assert isinstance(node, Behavior)

@@ -87,6 +87,9 @@ class TypeLocks:
                         continue
                     remaining = deadline - time.monotonic()
                     if remaining <= 0:
+                        if hold is None:  # free, but promised to a preemptor ahead of us
+                            raise ActionTypeBusy(kind, queue[0], time.monotonic(),
+                                                 reason="it is waiting to preempt the type")
                         stuck_holder = hold
                         break
                     self._cond.wait(remaining)

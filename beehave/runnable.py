@@ -187,6 +187,12 @@ class Runnable(abc.ABC):
             self._manager = manager
             self.parent = parent
 
+    def _detach(self) -> None:
+        with self._cond:
+            if self._status is Status.PENDING:
+                self._manager = None
+                self.parent = None
+
     def _start_thread(self) -> None:
         assert self._manager is not None
         with self._cond:
@@ -235,32 +241,51 @@ class Runnable(abc.ABC):
                 self._traceback = "".join(traceback.format_exception(error))
             self._status = status
             self.ended_at = time.monotonic()
-        if not was_stuck and status is not Status.SUCCEEDED:
-            self._enter_safe_state()
-        if self._ros is not None:
-            self._ros.destroy_all()
-        self._release()
-        self._decided.set()
-        assert self._manager is not None
-        kind = EventKind.STUCK_RELEASED if was_stuck else EventKind.ENDED
-        self._manager.events.emit(Event(kind, self.path, status.name, self.error,
-                                        {"elapsed_s": self.elapsed_s}))
-        if self.parent is not None:
-            self.parent._child_ended(self)
-        self._manager._node_ended(self, was_stuck)
+        manager = self._manager
+        assert manager is not None
+        try:
+            if not was_stuck and status is not Status.SUCCEEDED:
+                self._enter_safe_state()
+            if self._ros is not None:
+                self._ros.destroy_all()
+            self._release()
+            with self._cond:
+                # The owner may have given up on us while safe_state() hung.
+                stuck_now = self._status is Status.STUCK
+            if self.parent is not None:
+                # Before _decided: whoever wait()s for us must find the failure recorded.
+                self.parent._record_child_end(self)
+            self._decided.set()
+            kind = EventKind.STUCK_RELEASED if stuck_now else EventKind.ENDED
+            manager.events.emit(Event(kind, self.path, self._status.name, self.error,
+                                      {"elapsed_s": self.elapsed_s}))
+            if self.parent is not None:
+                self.parent._call_child_hook(self)
+        finally:
+            manager._node_ended(self, was_stuck or self._status is Status.STUCK)
 
     def _mark_stuck(self) -> None:
-        """Its owner stopped waiting: force the safe state; the thread may end later."""
+        """Its owner stopped waiting: force the safe state; the thread may end later.
+
+        Also for an item whose clean-up hangs (a ``safe_state()`` that blocks): its status
+        was final already, it becomes STUCK so that nobody waits for it any longer, and its
+        safe state is not called a second time.
+        """
         assert self._manager is not None
         with self._cond:
-            if self._status is not Status.RUNNING:
+            if self._decided.is_set() or self._status is Status.PENDING:
                 return
+            force_safe_state = self._status is Status.RUNNING
             self._status = Status.STUCK
-            self.ended_at = time.monotonic()
+            self.ended_at = self.ended_at or time.monotonic()
             # Under our lock, so that _finish cannot remove it before it is added.
             self._manager._stuck_add(self)
         self._manager.events.emit(Event(EventKind.STUCK, self.path, Status.STUCK.name))
-        self._enter_safe_state()
+        if force_safe_state:
+            self._enter_safe_state()
+            if self._ros is not None:
+                # Whatever run() publishes from now on would undo the safe state.
+                self._ros.destroy_all()
         self._decided.set()
 
     def _interrupt(self, deadline: float | None) -> None:

@@ -63,9 +63,11 @@ def resolve_goal(goal: Goal | tuple[float, float] | str, world: str | None) -> G
         station = load_world(world).station(goal)  # UnknownStation lists the names
         return Goal(*station.center_m, name=goal)
     if (isinstance(goal, (tuple, list)) and len(goal) == 2
-            and all(isinstance(v, (int, float)) for v in goal)):
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                    and math.isfinite(v) for v in goal)):
         return Goal(float(goal[0]), float(goal[1]))
-    raise BeehaveError(f"goal must be (x_m, y_m), a station name or a Goal, got {goal!r}")
+    raise BeehaveError(f"goal must be (x_m, y_m) with finite numbers, a station name or a "
+                       f"Goal, got {goal!r}")
 
 
 def yaw_of(odom: Odometry) -> float:

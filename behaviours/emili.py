@@ -128,7 +128,11 @@ class Commanded(Behavior):
             self.report(order_id, "rejected", f"{exc}")
             return
         self.report(order_id, "accepted", goal.name or f"({goal.x_m}, {goal.y_m})")
-        nav = self.start_action(Navigation(goal, speed_mps=self.speed_mps))
+        try:
+            nav = self.start_action(Navigation(goal, speed_mps=self.speed_mps))
+        except Exception as exc:  # busy "driving" type, or we are being stopped
+            self.report(order_id, "failed", f"{exc}")
+            raise
         nav.wait()
         if nav.status is Status.SUCCEEDED:
             x, y = nav.result

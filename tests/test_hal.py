@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import threading
-import time
 from typing import Any
 
 import pytest
@@ -16,6 +15,7 @@ from beehave.hal import HAL, HALManager
 from beehave.logic import Logic
 from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.status import Status
+from beehave.testing import wait_until as _wait_until
 from hal.debug import DebugHAL, DebugRobot
 
 WAIT_S = 5.0
@@ -28,12 +28,8 @@ def manager_with_events(**kwargs: Any) -> tuple[HALManager, list[Event]]:
     return HALManager(Blackboard(), events=bus, **kwargs), events
 
 
-def wait_until(predicate: Any, timeout_s: float = WAIT_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not reached")
-        time.sleep(0.002)
+def wait_until(predicate: Any, timeout_s: float = WAIT_S) -> bool:
+    return _wait_until(predicate, timeout_s)
 
 
 # -- registry and discovery -------------------------------------------------------------------
@@ -252,8 +248,8 @@ def test_wrong_hal_kind_raises_hal_error_naming_both_classes() -> None:
     ll = LowLevelBehaviorManager(default="wants")
     ll.register("wants", WantsOther)
     with ll:
-        wait_until(lambda: ll.last_failed is not None)
+        assert wait_until(lambda: ll.last_failed is not None)
         error = ll.last_failed.error if ll.last_failed else None
-        wait_until(lambda: ll.hals.loaded == {})  # its reference was given back
+        assert wait_until(lambda: ll.hals.loaded == {})  # its reference was given back
     assert isinstance(error, HALError)
     assert "DebugHAL" in str(error) and "UsesDebugHAL" in str(error)

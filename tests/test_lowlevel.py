@@ -22,6 +22,7 @@ from beehave.events import Event, EventKind
 from beehave.logic import Logic
 from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.status import Status
+from beehave.testing import wait_until as _wait_until
 
 WAIT_S = 5.0  # safety net only; nothing here waits that long when it works
 
@@ -107,14 +108,8 @@ def events_of(ll: LowLevelBehaviorManager) -> list[Event]:
     return got
 
 
-def wait_until(predicate: Any, timeout_s: float = WAIT_S) -> None:
-    done = threading.Event()
-    import time
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not reached")
-        done.wait(0.002)
+def wait_until(predicate: Any, timeout_s: float = WAIT_S) -> bool:
+    return _wait_until(predicate, timeout_s)
 
 
 # -- registry and errors ---------------------------------------------------------------------
@@ -179,7 +174,7 @@ def test_switch_cancels_sub_logics_recursively_and_runs_their_cleanup(
     with ll:
         parent = ll.switch("parent")
         assert isinstance(parent, Parent)
-        wait_until(lambda: len(parent.kids) == 2 and parent.kids[1].children)
+        assert wait_until(lambda: len(parent.kids) == 2 and parent.kids[1].children)
         a, b = parent.kids
         assert isinstance(b, Nested) and b.grandchild is not None
         grandchild = b.grandchild
@@ -223,7 +218,7 @@ def test_crashing_top_level_logic_is_recorded_reported_and_replaced_by_default(
     with ll:
         crashing = ll.switch("crashing")
         assert crashing is not None
-        wait_until(lambda: ll.current == "idle")
+        assert wait_until(lambda: ll.current == "idle")
         assert crashing.status is Status.FAILED
         assert isinstance(crashing.error, RuntimeError)
         assert ll.last_failed is crashing
@@ -237,7 +232,7 @@ def test_failing_sub_logic_fails_its_parent_with_child_failed(
     with ll:
         parent = ll.switch("failing_child")
         assert parent is not None
-        wait_until(lambda: ll.current == "idle")
+        assert wait_until(lambda: ll.current == "idle")
         assert parent.status is Status.FAILED
         assert isinstance(parent.error, ChildFailed)
         assert isinstance(parent.error.__cause__, RuntimeError)
@@ -261,7 +256,7 @@ def test_snapshot_is_json_serialisable_and_shows_the_running_tree(
     with ll:
         parent = ll.switch("parent")
         assert isinstance(parent, Parent)
-        wait_until(lambda: len(parent.kids) == 2)
+        assert wait_until(lambda: len(parent.kids) == 2)
         snap = json.loads(json.dumps(ll.snapshot()))
     assert snap["current"] == "parent"
     assert snap["logic"]["status"] == "RUNNING"
@@ -342,7 +337,7 @@ def test_a_failing_blackboard_callback_is_reported_as_an_event() -> None:
     with manager:
         sub = manager.blackboard.subscribe("a", bad)
         manager.blackboard.set("a", 1)
-        wait_until(lambda: sub.closed)
+        assert wait_until(lambda: sub.closed)
     failed = [e for e in events if e.subject == "blackboard:a"]
     assert len(failed) == 1 and isinstance(failed[0].error, ValueError)
     assert failed[0].status == "FAILED"
@@ -359,7 +354,7 @@ def test_logic_subscriptions_and_watchers_are_closed_when_it_ends(
     ll.register("watching", Watching)
     with ll:
         ll.switch("watching")
-        wait_until(lambda: len(ll.blackboard.subscriptions) == 2)
+        assert wait_until(lambda: len(ll.blackboard.subscriptions) == 2)
         ll.switch("forever")
         assert ll.blackboard.subscriptions == ()
 
@@ -373,7 +368,7 @@ def test_logic_writes_as_logic_path() -> None:
     manager = LowLevelBehaviorManager(default="writer")
     manager.register("writer", Writer)
     with manager:
-        wait_until(lambda: manager.blackboard.get("wanted/color") == "blue")
+        assert wait_until(lambda: manager.blackboard.get("wanted/color") == "blue")
         entry = manager.blackboard.entry("wanted/color")
     assert entry is not None and entry.writer == "logic:writer"
 
@@ -391,6 +386,6 @@ def test_already_started_logic_cannot_be_started_again() -> None:
     manager = LowLevelBehaviorManager(default="twice")
     manager.register("twice", Twice)
     with manager:
-        wait_until(lambda: manager.history)
+        assert wait_until(lambda: manager.history)
         result = manager.history[-1].result
     assert "already started" in result

@@ -213,3 +213,54 @@ def test_plain_rclpy_client_process(robot: Robot) -> None:
     assert report["set_behavior"] is True
     assert report["mode"] == "driving"
     assert robot.high is not None and robot.high.current == "patrol"
+
+
+@pytest.mark.parametrize("payload", [
+    "not json", "[1]", '{"schema": "beehave/blackboard/1"}',
+    '{"schema": "beehave/blackboard/1", "kind": "changes", "seq": "x", "stamp": 1, '
+    '"entries": {"a": {"value": 1}}}',
+    '{"schema": "beehave/blackboard/1", "kind": "changes", "seq": 1, "stamp": 1, '
+    '"entries": {"bad key/": {"value": 1}}}',
+    '{"schema": "beehave/blackboard/1", "kind": "changes", "seq": 1, "stamp": 1, '
+    '"entries": {"a": 5}}',
+])
+def test_malformed_blackboard_messages_are_refused_whole(robot: Robot, probe: Probe,
+                                                         payload: str) -> None:
+    assert robot.high is not None
+    events: list[Any] = []
+    robot.high.subscribe(events.append)
+    from beehave.ros.bridge import LATCHED
+
+    pub = probe.node.create_publisher(String, "/rosbot/beehave/blackboard", LATCHED)
+    assert probe.wait(lambda: pub.get_subscription_count() >= 1)
+    pub.publish(String(data=payload))
+    assert wait_until(lambda: any(e.subject == "ros:beehave/blackboard" for e in events))
+    assert robot.high.blackboard.get("a") is None  # nothing of it was applied
+
+
+def test_service_call_from_an_action_is_interruptible(robot: Robot, probe: Probe) -> None:
+    from std_srvs.srv import Trigger
+
+    assert robot.high is not None
+    calling = threading.Event()
+
+    class CallsTheVoid(Action):
+        action_type = "service"
+
+        def run(self) -> Any:
+            calling.set()
+            return self.ros.call(Trigger, "nobody_serves_this", Trigger.Request(),
+                                 timeout_s=30.0)
+
+    class Caller(Behavior):
+        def run(self) -> None:
+            self.action = self.start_action(CallsTheVoid())
+            while self.sleep(1.0):
+                pass
+
+    robot.high.register("caller", Caller)
+    caller = robot.high.switch("caller")
+    assert calling.wait(5)
+    robot.high.switch("parked")  # well before the 30 s timeout
+    action = caller.action  # type: ignore[attr-defined]
+    assert action.status.name == "INTERRUPTED", (action.status, action.error)

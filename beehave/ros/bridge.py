@@ -48,8 +48,9 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal, TypeVar
 
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -57,10 +58,10 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from beehave.blackboard import Change
+from beehave.blackboard import Change, check_key
 from beehave.clock import SimClock
-from beehave.errors import BeehaveError
-from beehave.events import Event, EventKind
+from beehave.errors import BeehaveError, BlackboardError
+from beehave.events import Event, EventBus, EventKind
 from beehave.highlevel import IDLE, HighLevelBehaviorManager
 from beehave.lowlevel import LowLevelBehaviorManager
 
@@ -228,27 +229,16 @@ class HighLevelBridge:
                 self._state_pub.publish(msg)
 
     def _on_blackboard(self, msg: String) -> None:
-        try:
-            data = json.loads(msg.data)
-            if data.get("schema") != BLACKBOARD_SCHEMA:
-                raise ValueError(f"schema {data.get('schema')!r}, expected {BLACKBOARD_SCHEMA!r}")
-            kind, entries = data["kind"], data["entries"]
-            if kind not in ("changes", "snapshot") or not isinstance(entries, dict):
-                raise ValueError(f"kind {kind!r} / entries {type(entries).__name__}")
-        except (ValueError, KeyError, TypeError) as exc:
-            log.error("malformed message on %s ignored: %s (%.200s)",
-                      self.node.resolve_topic_name(BLACKBOARD_TOPIC), exc, msg.data)
-            self.manager.events.emit(Event(EventKind.ENDED, f"ros:{BLACKBOARD_TOPIC}",
-                                           "FAILED", exc, {"message": msg.data[:200]}))
+        data = _parse(BlackboardMessage, msg, self.node, BLACKBOARD_TOPIC, self.manager.events)
+        if data is None:
             return
         board = self.manager.blackboard
-        for key, entry in entries.items():
-            if board.get(key, _MISSING) != entry.get("value") or key not in board:
-                board.set(key, entry.get("value"), writer=entry.get("writer") or MIRROR_WRITER)
-            if entry.get("stale"):
+        for key, entry in data.entries.items():
+            board.set(key, entry.value, writer=entry.writer or MIRROR_WRITER)
+            if entry.stale:
                 board.mark_stale(pattern=key)
-        self._last_seq = int(data.get("seq", -1))
-        if kind == "snapshot":
+        self._last_seq = data.seq
+        if data.kind == "snapshot":
             self.mirror_complete = True
 
     def destroy(self) -> None:
@@ -264,7 +254,6 @@ class HighLevelBridge:
         self.node.destroy_service(self._stop_srv)
 
 
-_MISSING = object()
 _STATE_EVENTS = {EventKind.STARTED, EventKind.ENDED, EventKind.STUCK,
                  EventKind.STUCK_RELEASED, EventKind.SWITCH_COMPLETED, EventKind.FALLBACK}
 
@@ -369,23 +358,17 @@ class LowLevelBridge:
 
     # -- ROS → low level -------------------------------------------------------------------
     def _on_state(self, msg: String) -> None:
-        try:
-            state = json.loads(msg.data)
-            if state.get("schema") != STATE_SCHEMA:
-                raise ValueError(f"schema {state.get('schema')!r}, expected {STATE_SCHEMA!r}")
-        except (ValueError, TypeError) as exc:
-            log.error("malformed message on %s ignored: %s (%.200s)",
-                      self.node.resolve_topic_name(STATE_TOPIC), exc, msg.data)
-            self.manager.events.emit(Event(EventKind.ENDED, f"ros:{STATE_TOPIC}", "FAILED",
-                                           exc, {"message": msg.data[:200]}))
+        state = _parse(StateMessage, msg, self.node, STATE_TOPIC, self.manager.events)
+        if state is None:
             return
         board = self.manager.blackboard
         writer = "ros:high_level"
-        board.set("high_level/behavior", state.get("behavior"), writer=writer)
-        board.set("high_level/logic", state.get("logic"), writer=writer)
-        board.set("high_level/running", state.get("running", []), writer=writer)
-        board.set("high_level/locks", state.get("locks", {}), writer=writer)
-        logic = state.get("logic")
+        board.set("high_level/behavior", state.behavior, writer=writer)
+        board.set("high_level/logic", state.logic, writer=writer)
+        board.set("high_level/running", [item.model_dump(by_alias=True)
+                                          for item in state.running], writer=writer)
+        board.set("high_level/locks", state.locks, writer=writer)
+        logic = state.logic
         if logic and logic != self._requested_logic:
             self._requested_logic = logic
             if logic not in self.manager.registered:
@@ -425,6 +408,71 @@ class LowLevelBridge:
         self.node.destroy_timer(self._snap)
         self.node.destroy_publisher(self._pub)
         self.node.destroy_subscription(self._state_sub)
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="ignore", populate_by_name=True)
+
+
+class EntryMessage(_Message):
+    value: Any = None
+    stamp: float | None = None
+    stale: bool = False
+    writer: str | None = None
+
+
+class BlackboardMessage(_Message):
+    """``beehave/blackboard`` (see the module docstring)."""
+
+    schema_: Literal["beehave/blackboard/1"] = Field(alias="schema")
+    kind: Literal["changes", "snapshot"]
+    seq: int
+    stamp: float
+    entries: dict[str, EntryMessage]
+    removed: list[str] = []
+
+    @field_validator("entries")
+    @classmethod
+    def _keys(cls, entries: dict[str, EntryMessage]) -> dict[str, EntryMessage]:
+        for key in entries:
+            check_key(key)
+        return entries
+
+
+class RunningItem(_Message):
+    path: str
+    kind: Literal["behavior", "action"]
+    status: str
+    action_type: str | None = None
+    class_: str = Field(alias="class")
+
+
+class StateMessage(_Message):
+    """``beehave/high_level/state`` (see the module docstring)."""
+
+    schema_: Literal["beehave/high_level/state/1"] = Field(alias="schema")
+    stamp: float
+    behavior: str | None
+    logic: str | None = None
+    running: list[RunningItem] = []
+    locks: dict[str, str] = {}
+    stuck: list[str] = []
+
+
+M = TypeVar("M", bound=_Message)
+
+
+def _parse(model: type[M], msg: String, node: Node, topic: str, events: EventBus) -> M | None:
+    """The validated message, or None after reporting (log + event) what is wrong with it:
+    a malformed message is refused whole, never half-applied."""
+    try:
+        return model.model_validate_json(msg.data)
+    except (ValidationError, BlackboardError) as exc:
+        log.error("malformed message on %s refused: %s (%.200s)",
+                  node.resolve_topic_name(topic), exc, msg.data)
+        events.emit(Event(EventKind.ENDED, f"ros:{topic}", "FAILED", exc,
+                          {"message": msg.data[:200]}))
+        return None
 
 
 def _entry(change: Change) -> dict[str, Any]:

@@ -148,17 +148,37 @@ class RosIO:
         return latest
 
     def call(self, srv_type: type, name: str, request: Any, *, timeout_s: float = 5.0) -> Any:
-        """Call a service and wait for the response (raises :class:`WaitTimeout`)."""
+        """Call a service and wait for the response, ``timeout_s`` in all (the clock's
+        time). Raises :class:`WaitTimeout`, or :class:`~beehave.errors.Interrupted` as
+        soon as the owner is interrupted."""
         client = self.client(srv_type, name)
-        if not client.wait_for_service(timeout_sec=timeout_s):
-            raise WaitTimeout(f"service {self.node.resolve_service_name(name)!r} is not "
-                              f"available after {timeout_s} s")
+        cond = self._cond if self._cond is not None else threading.Condition()
+        clock = self._clock or WallClock()
+        interrupted = self._interrupted or (lambda: False)
+        deadline = clock.now() + timeout_s
+        full = self.node.resolve_service_name(name)
+        while not client.service_is_ready():  # no event for this: look in short slices
+            if interrupted():
+                raise Interrupted(f"{self.owner}: interrupted while waiting for {full!r}")
+            if clock.now() >= deadline:
+                raise WaitTimeout(f"service {full!r} is not available after {timeout_s} s")
+            with cond:
+                clock.wait(cond, interrupted, min(0.02, deadline - clock.now()))
         future = client.call_async(request)
-        done = threading.Event()
-        future.add_done_callback(lambda _: done.set())
-        if not done.wait(timeout_s):
+
+        def answered(_: Any) -> None:
+            with cond:
+                cond.notify_all()
+
+        future.add_done_callback(answered)
+        with cond:
+            clock.wait(cond, lambda: future.done() or interrupted(),
+                       max(0.0, deadline - clock.now()))
+        if not future.done():
             future.cancel()
-            raise WaitTimeout(f"service {name!r} did not answer within {timeout_s} s")
+            if interrupted():
+                raise Interrupted(f"{self.owner}: interrupted while calling {full!r}")
+            raise WaitTimeout(f"service {full!r} did not answer within {timeout_s} s")
         return future.result()
 
     @property
