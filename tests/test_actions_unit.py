@@ -8,8 +8,8 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from behaviours.actions import Goal, Lift, LiftError, resolve_goal  # noqa: E402
 from beehave.errors import BeehaveError  # noqa: E402
+from behaviours.actions import Goal, Lift, LiftError, resolve_goal  # noqa: E402
 
 
 @pytest.mark.parametrize("bad", [(math.nan, 0.0), (math.inf, 1.0), (True, 2.0), (1.0,),

@@ -10,8 +10,15 @@ from typing import Any
 
 import pytest
 
-from beehave import (Action, ActionTypeBusy, Behavior, Event, EventKind,
-                     HighLevelBehaviorManager, Status)
+from beehave import (
+    Action,
+    ActionTypeBusy,
+    Behavior,
+    Event,
+    EventKind,
+    HighLevelBehaviorManager,
+    Status,
+)
 from beehave.testing import ScriptedAction, wait_until
 
 
