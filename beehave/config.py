@@ -20,6 +20,9 @@
       blackboard_rate_hz: 2000.0
       snapshot_period_s: 1.0
       state_period_s: 1.0
+    sim:                                 # optional: run the simulation in this process
+      world: warehouse                   # (the one that runs the low level)
+      real_time_factor: 1.0              # null: as fast as possible
 
 Errors name the file, the key path and what was expected.
 """
@@ -62,6 +65,13 @@ class RosOptions(_Strict):
     state_period_s: float = Field(1.0, gt=0)
 
 
+class SimOptions(_Strict):
+    """Start the simulation (and its ROS 2 node) inside ``beehave run``."""
+
+    world: str = "warehouse"
+    real_time_factor: float | None = Field(1.0, gt=0)
+
+
 class RobotConfig(_Strict):
     namespace: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
     stop_timeout_s: float = Field(2.0, gt=0)
@@ -72,6 +82,7 @@ class RobotConfig(_Strict):
     default_logic: str | None = None
     hals: list[str | HALSpec] = Field(default_factory=list)
     ros: RosOptions = Field(default_factory=lambda: RosOptions())
+    sim: SimOptions | None = None
     source: str = Field("<dict>", exclude=True)
 
 

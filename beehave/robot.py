@@ -23,6 +23,9 @@ from beehave.lowlevel import LowLevelBehaviorManager
 if TYPE_CHECKING:
     from rclpy.node import Node
 
+    from robots.node import SimNode
+    from robots.sim import Simulation
+
     from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
     from beehave.ros.context import RosContext
 
@@ -58,6 +61,9 @@ class Robot:
         self._bridges: list[HighLevelBridge | LowLevelBridge] = []
         self._nodes: list[Node] = []
         self._started = False
+        #: The simulation, when the configuration asks for one (``sim:``).
+        self.sim: Simulation | None = None
+        self._sim_node: SimNode
 
     def _build(self) -> None:
         cfg = self.config
@@ -101,6 +107,8 @@ class Robot:
         self._ros = ros
         try:
             ros.start()
+            if cfg.sim is not None and self.only != "high":
+                self._start_sim(ros)
             if self.low is not None:
                 # The low level runs on wall time (asyncio); only the high level follows
                 # /clock, so each robot subscribes to it once, not once per node.
@@ -123,6 +131,17 @@ class Robot:
             raise
         self._started = True
 
+    def _start_sim(self, ros: RosContext) -> None:
+        from robots.node import SimNode
+        from robots.sim import Simulation
+        from robots.world import load_world
+
+        assert self.config.sim is not None
+        opts = self.config.sim
+        self.sim = Simulation(load_world(opts.world), real_time_factor=opts.real_time_factor)
+        self._sim_node = SimNode(self.sim, ros)
+        self.sim.start()
+
     def shutdown(self) -> None:
         """Stop everything, in the order that keeps the robot safe: actions first (their
         safe states may still publish), then the bridges, the logics and HALs, the nodes."""
@@ -133,6 +152,11 @@ class Robot:
         self._bridges.clear()
         if self.low is not None:
             self.low.shutdown()
+        if self.sim is not None:
+            self.sim.stop()
+            self._sim_node.destroy()
+            self.sim.close()
+            self.sim = None
         if self._ros is not None:
             if self._ros is not self._shared_ros:
                 self._ros.shutdown()

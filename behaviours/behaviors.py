@@ -273,14 +273,18 @@ class CommandedBehavior(_Wakeful):
     behaviour interrupts every commanded action (safe states applied).
     """
 
-    def __init__(self, queue: CommandQueue) -> None:
+    def __init__(self, queue: CommandQueue, *, topic: str | None = None) -> None:
         if not isinstance(queue, CommandQueue):
             raise ConfigError(f"CommandedBehavior needs a CommandQueue, got {queue!r}")
         self.queue = queue
+        self.topic = topic
         self.running: dict[str, tuple[Command, Runnable]] = {}
+        self._status_pub: Any = None
 
     def run(self) -> None:
         self.queue._add_waker(self.wake)
+        if self.topic is not None:
+            self._listen(self.topic)
         try:
             while True:
                 self._collect()
@@ -306,7 +310,7 @@ class CommandedBehavior(_Wakeful):
             for _, handle in hits:
                 handle.interrupt()
             if not hits:
-                self.queue.outcomes.append(Outcome(command.id, command.target, "CANCELLED",
+                self._outcome(Outcome(command.id, command.target, "CANCELLED",
                                                    "nothing running matched"))
             return
         try:
@@ -319,17 +323,44 @@ class CommandedBehavior(_Wakeful):
                 raise CommandError(f"action {command.target!r} built {child!r}, not an "
                                    "Action or Behavior")
         except ActionTypeBusy as busy:
-            self.queue.outcomes.append(Outcome(command.id, command.target, "BUSY", str(busy)))
+            self._outcome(Outcome(command.id, command.target, "BUSY", str(busy)))
             return
         except (ChildFailed, BeehaveError) as exc:
             if self.interrupted:
                 return
-            self.queue.outcomes.append(Outcome(command.id, command.target, "FAILED", repr(exc)))
+            self._outcome(Outcome(command.id, command.target, "FAILED", repr(exc)))
             return
         except Exception as exc:  # the factory raised: recorded as the command's failure
-            self.queue.outcomes.append(Outcome(command.id, command.target, "FAILED", repr(exc)))
+            self._outcome(Outcome(command.id, command.target, "FAILED", repr(exc)))
             return
         self.running[command.id] = (command, child)
+
+    def _listen(self, topic: str) -> None:
+        """Take commands from ``topic`` (std_msgs/String, the JSON schema of
+        :class:`CommandQueue`, relative to the robot's namespace) and report every outcome
+        and every refusal on ``<topic>/status`` (std_msgs/String, JSON)."""
+        from std_msgs.msg import String
+
+        self._status_pub = self.ros.publisher(String, f"{topic}/status")
+
+        def on_command(msg: Any) -> None:  # in the ROS executor thread
+            try:
+                self.queue.feed_json(msg.data)
+            except CommandError as exc:  # recorded in queue.rejected; answered here
+                self._publish({"status": "REJECTED", "detail": str(exc)})
+
+        self.ros.subscription(String, topic, on_command)
+
+    def _publish(self, report: dict[str, Any]) -> None:
+        if self._status_pub is not None:
+            from std_msgs.msg import String
+
+            self._status_pub.publish(String(data=json.dumps(report, default=repr)))
+
+    def _outcome(self, outcome: Outcome) -> None:
+        self.queue.outcomes.append(outcome)
+        self._publish({"id": outcome.id, "action": outcome.action, "status": outcome.status,
+                       "detail": outcome.detail})
 
     def _collect(self) -> None:
         for ident, (command, handle) in list(self.running.items()):
@@ -343,7 +374,7 @@ class CommandedBehavior(_Wakeful):
             None if handle.error is None else repr(handle.error))
         if handle.status is Status.FAILED:
             log.warning("command %s (%s) failed: %r", command.id, command.target, handle.error)
-        self.queue.outcomes.append(Outcome(command.id, command.target, handle.status.name,
+        self._outcome(Outcome(command.id, command.target, handle.status.name,
                                            detail))
 
 

@@ -264,3 +264,28 @@ def test_service_call_from_an_action_is_interruptible(robot: Robot, probe: Probe
     robot.high.switch("parked")  # well before the 30 s timeout
     action = caller.action  # type: ignore[attr-defined]
     assert action.status.name == "INTERRUPTED", (action.status, action.error)
+
+
+def test_commanded_behavior_takes_commands_from_a_ros_topic(robot: Robot, probe: Probe) -> None:
+    from behaviours.behaviors import CommandedBehavior, CommandQueue
+    from rosbot import Cruise
+
+    assert robot.high is not None
+    queue = CommandQueue({"cruise": Cruise})
+    robot.high.register("commanded", CommandedBehavior, queue=queue, topic="commands")
+    robot.high.switch("commanded")
+    cmd = probe.record(Twist, "/rosbot/cmd_vel")
+    status = probe.record(String, "/rosbot/commands/status")
+    pub = probe.node.create_publisher(String, "/rosbot/commands", 10)
+    assert probe.wait(lambda: pub.get_subscription_count() >= 1)
+    pub.publish(String(data='{"action": "cruise", "params": {"speed_mps": 0.1}, "id": "c1"}'))
+    assert probe.wait(lambda: any(m.linear.x == pytest.approx(0.1) for m in cmd))
+    pub.publish(String(data='{"action": "fly"}'))
+    pub.publish(String(data='{"cancel": "all"}'))
+    reports = lambda: [json.loads(m.data) for m in list(status)]  # noqa: E731
+    assert probe.wait(lambda: any(r.get("id") == "c1" and r["status"] == "INTERRUPTED"
+                                  for r in reports()))
+    assert any(r["status"] == "REJECTED" and "unknown action 'fly'" in r["detail"]
+               and "'cruise'" in r["detail"] for r in reports())
+    assert probe.wait(lambda: cmd[-1].linear.x == 0.0)  # Cruise's safe state
+    assert [r.received for r in queue.rejected] == ['{"action": "fly"}']

@@ -190,3 +190,24 @@ def test_low_battery_turns_the_leds_red_and_shows_the_symbol() -> None:
         assert wait_until(lambda: sim.emili("emili1").leds() == pytest.approx(RED), 30)
         assert wait_until(
             lambda: sim.emili("emili1").display() == EmiliDisplayLogic.BATTERY_LOW, 30)
+
+
+def test_beehave_run_can_start_the_simulation_itself() -> None:
+    from beehave.config import parse_config
+
+    before = set(beehave_threads())
+    config = parse_config({
+        "namespace": "emili1", "use_sim_time": True,
+        "behaviors": {"tour": {"class": "behaviours.emili:Tour",
+                               "params": {"stops": ["emili_dropoff"]}}},
+        "logics": {"emili": {"class": "behaviours.logics:EmiliLogic"}},
+        "default_logic": "emili",
+        "sim": {"world": "warehouse", "real_time_factor": None}}, source="inline")
+    with Robot(config) as robot:
+        assert robot.sim is not None and robot.high is not None
+        tour = robot.high.switch("tour")
+        assert tour.wait(120) and tour.status is Status.SUCCEEDED, tour.error
+        pose = robot.sim.robot("emili1").pose()
+        assert math.hypot(pose.x_m - 10.0, pose.y_m - 2.0) <= 0.3
+    assert robot.sim is None
+    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before], 5)
