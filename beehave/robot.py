@@ -23,11 +23,10 @@ from beehave.lowlevel import LowLevelBehaviorManager
 if TYPE_CHECKING:
     from rclpy.node import Node
 
-    from robots.node import SimNode
-    from robots.sim import Simulation
-
     from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
     from beehave.ros.context import RosContext
+    from robots.node import SimNode
+    from robots.sim import Simulation
 
 log = logging.getLogger(__name__)
 

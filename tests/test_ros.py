@@ -267,8 +267,9 @@ def test_service_call_from_an_action_is_interruptible(robot: Robot, probe: Probe
 
 
 def test_commanded_behavior_takes_commands_from_a_ros_topic(robot: Robot, probe: Probe) -> None:
-    from behaviours.behaviors import CommandedBehavior, CommandQueue
     from rosbot import Cruise
+
+    from behaviours.behaviors import CommandedBehavior, CommandQueue
 
     assert robot.high is not None
     queue = CommandQueue({"cruise": Cruise})
