@@ -21,7 +21,7 @@ def test_sim_demo_reaches_every_goal(tmp_path: Path) -> None:
     out = io.StringIO()
     # A bounded speed-up: the demo checks a reaction time in sim time (wheels stopped
     # within 0.2 s of the switch), which wall-time delays would inflate at full speed.
-    problems = run_sim_demo(Console(file=out, width=120), real_time_factor=4.0,
+    problems = run_sim_demo(Console(file=out, width=120), real_time_factor=2.0,
                             out_dir=tmp_path, live_display=False)
     assert problems == [], out.getvalue()
     picture = tmp_path / "demo.png"
