@@ -38,6 +38,10 @@ class HALContract:
     def hal_params(self) -> dict[str, Any]:
         return {}
 
+    def configure(self, manager: HALManager) -> None:
+        """Give the manager what the HAL needs besides its parameters (e.g. a ROS node in
+        ``manager.node``); called before the HAL is registered."""
+
     # -- helpers ---------------------------------------------------------------------------
 
     def run_with_manager(self, body: Callable[[HALManager, list[Event]], Awaitable[T]]) -> T:
@@ -47,6 +51,7 @@ class HALContract:
             bus.subscribe(events.append)
             manager = HALManager(Blackboard(), events=bus, backoff_initial_s=0.01,
                                  backoff_max_s=0.05)
+            self.configure(manager)
             manager.register(self.hal_cls, **self.hal_params())
             try:
                 return await asyncio.wait_for(body(manager, events), 10)

@@ -13,7 +13,7 @@ import importlib.metadata
 import math
 import os
 import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, ClassVar, TypeVar
 
@@ -28,8 +28,6 @@ from rclpy.node import Node  # noqa: E402
 import hal.emili as emili_hals  # noqa: E402
 import hal.kobuki as kobuki_hals  # noqa: E402
 from beehave import Logic, LowLevelBehaviorManager  # noqa: E402
-from beehave.blackboard import Blackboard  # noqa: E402
-from beehave.events import Event, EventBus  # noqa: E402
 from beehave.hal import ENTRY_POINT_GROUP, HAL, HALManager  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
 from beehave.testing import beehave_threads, wait_until  # noqa: E402
@@ -92,25 +90,9 @@ class SimHALContract(HALContract):
     def _rig(self, rig: Rig) -> None:
         self.rig = rig
 
-    def run_with_manager(self, body: Callable[[HALManager, list[Event]], Awaitable[T]]) -> T:
-        # As the base, plus the low level's ROS node (HALManager.node) for the HAL.
-        async def main() -> T:
-            events: list[Event] = []
-            bus = EventBus()
-            bus.subscribe(events.append)
-            manager = HALManager(Blackboard(), events=bus, backoff_initial_s=0.01,
-                                 backoff_max_s=0.05)
-            manager.node = self.rig.nodes[self.robot]
-            manager.register(self.hal_cls, **self.hal_params())
-            self.manager = manager
-            try:
-                return await asyncio.wait_for(body(manager, events), 10)
-            finally:
-                await manager.close()
-                manager.blackboard.unbind()
-                leftover = asyncio.all_tasks() - {asyncio.current_task()}
-                assert not leftover, f"tasks left by HAL {self.hal_cls.name!r}: {leftover}"
-        return asyncio.run(main())
+    def configure(self, manager: HALManager) -> None:
+        manager.node = self.rig.nodes[self.robot]  # the low level's ROS node, for the HAL
+        self.manager = manager
 
     async def settle(self, turns: int = 20) -> None:  # type: ignore[override]
         """Wait until every expected key holds a fresh value: messages need DDS, not just a
