@@ -51,12 +51,10 @@ class Action(Runnable):
 
     #: The exception ``safe_state()`` raised, if it did.
     safe_state_error: BaseException | None
-    _locked_at: float | None
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
         self.safe_state_error = None
-        self._locked_at = None
         return self
 
     def safe_state(self) -> None:

@@ -30,8 +30,6 @@ class WallClock:
         return cond.wait_for(predicate, timeout_s)
 
 
-Clock = WallClock
-
 
 class SimClock(WallClock):
     """Time from a simulation: :meth:`set_time` moves it (the ROS bridge calls it for every

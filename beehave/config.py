@@ -36,7 +36,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from beehave.errors import ConfigError
+from beehave.errors import ConfigError, NotASubclass
 
 
 class _Strict(BaseModel):
@@ -125,8 +125,9 @@ def _describe(err: Any) -> str:
     return f"{loc}: {err['msg']} (got {err['input']!r:.60})"
 
 
-def import_class(path: str, *, where: str) -> type:
-    """``package.module:Class`` → the class; errors name ``where`` (file and key path)."""
+def import_class(path: str, *, where: str, base: type[Any]) -> type[Any]:
+    """``package.module:Class`` → the class, which must derive from ``base``; errors name
+    ``where`` (file and key path)."""
     module_name, _, attr = path.partition(":")
     try:
         module = importlib.import_module(module_name)
@@ -143,4 +144,6 @@ def import_class(path: str, *, where: str) -> type:
                           f"{', '.join(public) or 'none'}") from None
     if not isinstance(obj, type):
         raise ConfigError(f"{where}: {path!r} is not a class")
+    if not issubclass(obj, base):
+        raise NotASubclass(f"{where}: {path!r} is not a {base.__name__} subclass")
     return obj

@@ -332,9 +332,17 @@ class HighLevelBehaviorManager:
 
     def _process_later(self) -> None:
         try:
-            self._pool.submit("beehave:switch", self._process)
+            self._pool.submit("beehave:switch", self._process_reporting)
         except RuntimeError:  # the pool is shut down: shutdown() processes what is left
             pass
+
+    def _process_reporting(self) -> None:
+        # Nobody waits on this thread: the requests got the error as their outcome, and
+        # observers get it as an event (not only the pool's log).
+        try:
+            self._process()
+        except Exception as exc:
+            self.events.emit(Event(EventKind.SWITCH_REJECTED, "switch", error=exc))
 
     def _supersede(self, request: _Request, by: _Request | None) -> None:
         later = f" by {by.name!r}" if by is not None else " by a later request"

@@ -104,7 +104,6 @@ class TypeLocks:
 
     def _take(self, kind: str, action: Action) -> None:
         self._held[kind] = _Hold(action, time.monotonic())
-        action._locked_at = self._held[kind].since
 
     def release(self, action: Action) -> None:
         with self._cond:
@@ -117,11 +116,6 @@ class TypeLocks:
         """Wake preempting waiters so they re-check whether their caller was interrupted."""
         with self._cond:
             self._cond.notify_all()
-
-    def holder(self, action_type: str) -> Action | None:
-        with self._cond:
-            hold = self._held.get(action_type)
-            return None if hold is None else hold.holder
 
     def snapshot(self) -> dict[str, dict[str, Any]]:
         now = time.monotonic()

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Literal, Self
 from beehave.behavior import Behavior
 from beehave.clock import SimClock
 from beehave.config import RobotConfig, import_class
-from beehave.errors import ConfigError, NotASubclass
+from beehave.errors import ConfigError
 from beehave.hal import HAL
 from beehave.highlevel import HighLevelBehaviorManager
 from beehave.logic import Logic
@@ -71,30 +71,23 @@ class Robot:
                                           stop_timeout_s=cfg.stop_timeout_s,
                                           clock=SimClock() if cfg.use_sim_time else None)
             for name, spec in cfg.behaviors.items():
-                cls = import_class(spec.class_, where=f"{cfg.source}: behaviors.{name}.class")
-                if not issubclass(cls, Behavior):
-                    raise NotASubclass(f"{cfg.source}: behaviors.{name}.class: "
-                                       f"{spec.class_!r} is not a Behavior subclass")
+                cls = import_class(spec.class_, base=Behavior,
+                                   where=f"{cfg.source}: behaviors.{name}.class")
                 hl.register(name, cls, **spec.params)
             self.high = hl
         if self.only in (None, "low"):
             ll = LowLevelBehaviorManager(default=cfg.default_logic,
                                          stop_timeout_s=cfg.stop_timeout_s)
             for name, spec in cfg.logics.items():
-                cls = import_class(spec.class_, where=f"{cfg.source}: logics.{name}.class")
-                if not issubclass(cls, Logic):
-                    raise NotASubclass(f"{cfg.source}: logics.{name}.class: "
-                                       f"{spec.class_!r} is not a Logic subclass")
-                ll.register(name, cls, **spec.params)
+                logic_cls = import_class(spec.class_, base=Logic,
+                                         where=f"{cfg.source}: logics.{name}.class")
+                ll.register(name, logic_cls, **spec.params)
             for i, hal in enumerate(cfg.hals):
                 if isinstance(hal, str):
                     ll.hals.resolve(hal)  # an unknown name fails now, listing the names
                     continue
-                cls = import_class(hal.class_, where=f"{cfg.source}: hals.{i}.class")
-                if not issubclass(cls, HAL):
-                    raise NotASubclass(f"{cfg.source}: hals.{i}.class: {hal.class_!r} is not "
-                                       f"a HAL subclass")
-                ll.hals.register(cls, name=hal.name, **hal.params)
+                hal_cls = import_class(hal.class_, base=HAL, where=f"{cfg.source}: hals.{i}.class")
+                ll.hals.register(hal_cls, name=hal.name, **hal.params)
             self.low = ll
 
     def start(self) -> None:

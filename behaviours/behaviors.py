@@ -233,6 +233,15 @@ def _short(value: Any, limit: int = 120) -> str:
     return text if len(text) <= limit else text[:limit] + "…"
 
 
+def _start_child(parent: Behavior, child: Any, *, preempt: bool, what: str) -> Runnable:
+    """Start what a factory built: an Action (with ``preempt``) or a sub-Behavior."""
+    if isinstance(child, Action):
+        return parent.start_action(child, preempt=preempt)
+    if isinstance(child, Behavior):
+        return parent.start_behavior(child)
+    raise ConfigError(f"{what} built {child!r}, not an Action or Behavior")
+
+
 class _Wakeful(Behavior):
     """A behaviour whose ``run`` waits on one event that child ends, interrupts and
     outside feeds set (so it never polls)."""
@@ -311,17 +320,11 @@ class CommandedBehavior(_Wakeful):
                 handle.interrupt()
             if not hits:
                 self._outcome(Outcome(command.id, command.target, "CANCELLED",
-                                                   "nothing running matched"))
+                                      "nothing running matched"))
             return
         try:
-            child = self.queue.actions[command.target](**command.params)
-            if isinstance(child, Action):
-                self.start_action(child, preempt=command.preempt)
-            elif isinstance(child, Behavior):
-                self.start_behavior(child)
-            else:
-                raise CommandError(f"action {command.target!r} built {child!r}, not an "
-                                   "Action or Behavior")
+            child = _start_child(self, self.queue.actions[command.target](**command.params),
+                                 preempt=command.preempt, what=f"action {command.target!r}")
         except ActionTypeBusy as busy:
             self._outcome(Outcome(command.id, command.target, "BUSY", str(busy)))
             return
@@ -440,14 +443,8 @@ class RandomBehavior(_Wakeful):
         done = 0
         while not self.interrupted and (self.steps is None or done < self.steps):
             choice, hold = self._pick(rng)
-            child = self.choices[choice](goals)
-            if isinstance(child, Action):
-                self.start_action(child, preempt=self.preempt)
-            elif isinstance(child, Behavior):
-                self.start_behavior(child)
-            else:
-                raise ConfigError(f"choice {choice!r} built {child!r}, not an Action or "
-                                  "Behavior")
+            child = _start_child(self, self.choices[choice](goals), preempt=self.preempt,
+                                 what=f"choice {choice!r}")
             deadline = time.monotonic() + hold
             while not child.status.finished:
                 remaining = deadline - time.monotonic()

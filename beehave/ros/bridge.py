@@ -151,7 +151,6 @@ class HighLevelBridge:
         self._io = threading.Lock()  # publishing vs. destroy(), which runs in another thread
         self._closed = False
         self._dirty = threading.Event()
-        self._last_seq = -1
         self.mirror_complete = False
         _string_param(node, "behavior", manager.current or manager.default,
                       "the top-level behaviour; set it to switch")
@@ -237,7 +236,6 @@ class HighLevelBridge:
             board.set(key, entry.value, writer=entry.writer or MIRROR_WRITER)
             if entry.stale:
                 board.mark_stale(pattern=key)
-        self._last_seq = data.seq
         if data.kind == "snapshot":
             self.mirror_complete = True
 
