@@ -15,7 +15,7 @@ def _demo(args: argparse.Namespace) -> int:
     console = Console()
     if not args.console:
         # The demos live with the ready-made behaviours, not in the framework.
-        from behaviours.sim_demo import run_sim_demo
+        from behaviours.demos.warehouse import run_sim_demo
 
         console.rule("[bold]beehave — EMILI and Kobuki in the simulated warehouse")
         speed = None if args.fast else args.real_time_factor
@@ -27,12 +27,12 @@ def _demo(args: argparse.Namespace) -> int:
         console.print("[green]demo OK[/]: every goal was reached in the physics")
         return 0
 
-    from behaviours.demo import run_highlevel_demo
+    from behaviours.demos.console import run_highlevel_demo
 
     console.rule("[bold]beehave — high level: behaviours, actions, type locks, switching")
     problems = run_highlevel_demo(console)
     try:
-        from behaviours.lowlevel_demo import run_lowlevel_demo
+        from behaviours.demos.lowlevel import run_lowlevel_demo
     except ImportError as exc:  # pragma: no cover - shipped together
         problems.append(f"low-level demo missing: {exc}")
     else:
@@ -113,9 +113,15 @@ def main(argv: list[str] | None = None) -> int:
 
         return graph_main(argv[1:])
     if argv and argv[0] == "sim":
-        from robots.node import sim_main
+        from beehave.errors import BeehaveError
+        from beehave.simulation import load_simulator
 
-        return sim_main(argv[1:])
+        try:
+            simulator = load_simulator()
+        except BeehaveError as exc:
+            print(f"beehave sim: {exc}", file=sys.stderr)
+            return 2
+        return simulator.main(argv[1:])
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")

@@ -7,7 +7,7 @@
     use_sim_time: false                  # sleep/timeouts follow /clock when true
     behaviors:                           # top-level behaviours, by import path
       tour:
-        class: behaviours.demo:Delivery
+        class: behaviours.demos.console:Delivery
         params: {goal_m: 3.0}
     default_behavior: idle
     logics:
@@ -21,6 +21,7 @@
       snapshot_period_s: 1.0
       state_period_s: 1.0
     sim:                                 # optional: run the simulation in this process
+      simulator: pybullet                # entry point (group beehave.simulations)
       world: warehouse                   # (the one that runs the low level)
       real_time_factor: 1.0              # null: as fast as possible
 
@@ -68,6 +69,7 @@ class RosOptions(_Strict):
 class SimOptions(_Strict):
     """Start the simulation (and its ROS 2 node) inside ``beehave run``."""
 
+    simulator: str = Field("pybullet", description="an entry point of group beehave.simulations")
     world: str = "warehouse"
     real_time_factor: float | None = Field(1.0, gt=0)
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from types import TracebackType
-from typing import TYPE_CHECKING, Literal, Self
+from typing import TYPE_CHECKING, Any, Literal, Self
 
 from beehave.behavior import Behavior
 from beehave.clock import SimClock
@@ -25,8 +25,7 @@ if TYPE_CHECKING:
 
     from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
     from beehave.ros.context import RosContext
-    from robots.node import SimNode
-    from robots.sim import Simulation
+    from beehave.simulation import RunningSimulation
 
 log = logging.getLogger(__name__)
 
@@ -60,9 +59,9 @@ class Robot:
         self._bridges: list[HighLevelBridge | LowLevelBridge] = []
         self._nodes: list[Node] = []
         self._started = False
-        #: The simulation, when the configuration asks for one (``sim:``).
-        self.sim: Simulation | None = None
-        self._sim_node: SimNode
+        #: The simulator's object, when the configuration asks for a simulation (``sim:``).
+        self.sim: Any = None
+        self._simulation: RunningSimulation | None = None
 
     def _build(self) -> None:
         cfg = self.config
@@ -124,15 +123,14 @@ class Robot:
         self._started = True
 
     def _start_sim(self, ros: RosContext) -> None:
-        from robots.node import SimNode
-        from robots.sim import Simulation
-        from robots.world import load_world
+        from beehave.simulation import load_simulator
 
         assert self.config.sim is not None
         opts = self.config.sim
-        self.sim = Simulation(load_world(opts.world), real_time_factor=opts.real_time_factor)
-        self._sim_node = SimNode(self.sim, ros)
-        self.sim.start()
+        simulator = load_simulator(opts.simulator)
+        self._simulation = simulator.start(opts.world, real_time_factor=opts.real_time_factor,
+                                           ros=ros)
+        self.sim = self._simulation.sim
 
     def shutdown(self) -> None:
         """Stop everything, in the order that keeps the robot safe: actions first (their
@@ -144,10 +142,9 @@ class Robot:
         self._bridges.clear()
         if self.low is not None:
             self.low.shutdown()
-        if self.sim is not None:
-            self.sim.stop()
-            self._sim_node.destroy()
-            self.sim.close()
+        if self._simulation is not None:
+            self._simulation.close()
+            self._simulation = None
             self.sim = None
         if self._ros is not None:
             if self._ros is not self._shared_ros:

@@ -7,8 +7,8 @@ actions they start::
     name: patrol_and_charge
     engine: state_machine
     actions:                        # aliases: a class (registry name or module:Class) + params
-      to_dock: {use: "behaviours.demo:Drive", params: {goal_m: 0.0}}
-      patrol:  {use: "behaviours.demo:Drive", params: {goal_m: 8.0, speed_mps: 0.5}}
+      to_dock: {use: "behaviours.demos.console:Drive", params: {goal_m: 0.0}}
+      patrol:  {use: "behaviours.demos.console:Drive", params: {goal_m: 8.0, speed_mps: 0.5}}
     initial: patrol
     states:
       - {name: patrol, start: patrol}

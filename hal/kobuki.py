@@ -1,8 +1,8 @@
 """HALs for the Kobuki over ROS 2: bumpers, cliffs and wheel drop, buttons, LEDs, sound.
 
 The Kobuki also has odometry, a battery and a laser: use the shared
-:class:`~hal.emili.OdometryHAL`, :class:`~hal.emili.BatteryHAL` and
-:class:`~hal.emili.LaserHAL` (re-exported here), which read the topics every robot has.
+:class:`~hal.mobile_base.OdometryHAL`, :class:`~hal.mobile_base.BatteryHAL` and
+:class:`~hal.mobile_base.LaserHAL` (re-exported here), which read the topics every robot has.
 
 ==================  ===================================================  ======================
 HAL ``name``        blackboard keys (writer ``hal:<name>``)              methods
@@ -31,7 +31,7 @@ from typing import Any
 from std_msgs.msg import Int32, String
 
 from beehave.ros.hal import RosHAL, TopicInput, TopicOutput
-from hal.emili import BatteryHAL, LaserHAL, OdometryHAL
+from hal.mobile_base import BatteryHAL, LaserHAL, OdometryHAL
 from robots import topics
 from robots.errors import CommandOutOfRange
 

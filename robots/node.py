@@ -514,5 +514,51 @@ def sim_main(argv: list[str]) -> int:
     return code
 
 
+class _RunningPybullet:
+    """A started :class:`Simulation` with its ROS 2 node (see :mod:`beehave.simulation`)."""
+
+    def __init__(self, sim: Simulation, node: SimNode) -> None:
+        self.sim = sim
+        self._node = node
+
+    def close(self) -> None:
+        try:
+            self.sim.stop()
+        finally:
+            self._node.destroy()
+            self.sim.close()
+
+
+class PybulletSimulator:
+    """The pybullet simulation as beehave's simulation plugin (entry point ``pybullet`` of
+    group ``beehave.simulations``): ``sim:`` in a robot configuration and ``beehave sim``."""
+
+    @staticmethod
+    def start(world: str, *, real_time_factor: float | None,
+              ros: RosContext) -> _RunningPybullet:
+        from robots.world import load_world
+
+        sim = Simulation(load_world(world), real_time_factor=real_time_factor)
+        try:
+            node = SimNode(sim, ros)
+        except BaseException:
+            sim.close()
+            raise
+        running = _RunningPybullet(sim, node)
+        try:
+            sim.start()
+        except BaseException:
+            running.close()
+            raise
+        return running
+
+    @staticmethod
+    def main(argv: list[str]) -> int:
+        return sim_main(argv)
+
+
+PYBULLET = PybulletSimulator()
+
+
 if __name__ == "__main__":
     sys.exit(sim_main(sys.argv[1:]))

@@ -6,7 +6,7 @@ import io
 
 from rich.console import Console
 
-from behaviours.demo import run_highlevel_demo
+from behaviours.demos.console import run_highlevel_demo
 
 
 def test_highlevel_demo_reports_no_problem() -> None:

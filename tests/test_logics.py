@@ -6,8 +6,8 @@ import io
 
 from rich.console import Console
 
+from behaviours.demos.lowlevel import run_lowlevel_demo
 from behaviours.logics import LedLogic
-from behaviours.lowlevel_demo import run_lowlevel_demo
 
 
 def test_led_logic_colour_table() -> None:

@@ -13,7 +13,7 @@ pytest.importorskip("rclpy")
 from rich.console import Console  # noqa: E402
 
 from beehave.testing import beehave_threads, wait_until  # noqa: E402
-from behaviours.sim_demo import run_sim_demo  # noqa: E402
+from behaviours.demos.warehouse import run_sim_demo  # noqa: E402
 
 
 def test_sim_demo_reaches_every_goal(tmp_path: Path) -> None:

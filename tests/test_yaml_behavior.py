@@ -8,7 +8,7 @@ import pytest
 
 from beehave import HighLevelBehaviorManager, InvalidParameters, Status
 from behaviours.behaviors import YamlBehavior, YamlBehaviorError
-from behaviours.demo import Beep, Drive, PointRobot
+from behaviours.demos.console import Beep, Drive, PointRobot
 from behaviours.yaml_schema import load_engine
 
 DATA = Path(__file__).parent / "data"

@@ -2,8 +2,8 @@
 ``<ns>/orders`` and prints the robot's progress until the order is reached, failed or
 rejected. A plain rclpy program; it imports nothing of beehave's framework.
 
-    python -m behaviours.order_agent emili1 --station emili_charging
-    python -m behaviours.order_agent emili1 --goal 12.0 3.5 --id o7
+    python -m behaviours.demos.order_agent emili1 --station emili_charging
+    python -m behaviours.demos.order_agent emili1 --goal 12.0 3.5 --id o7
 
 Exit status 0 when the order was reached, 1 otherwise.
 """

@@ -38,7 +38,7 @@ from robots.node import SimNode
 from robots.sim import Simulation
 from robots.world import load_world
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "robots" / "config"
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "robots" / "config"
 
 
 @dataclass
@@ -159,7 +159,7 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
                   lambda: abs(e1.cmd_vel()[0]) < 1e-6 and abs(e1.cmd_vel()[1]) < 1e-6, 5.0)
             found.stop_after_switch_s = sim.time_s - t_switch
             agent = subprocess.Popen(
-                [sys.executable, "-m", "behaviours.order_agent", "emili1", "--station",
+                [sys.executable, "-m", "behaviours.demos.order_agent", "emili1", "--station",
                  "emili_charging", "--id", "demo-1", "--timeout-s", "600"],
                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
             _wait(sim, live, emili, kobuki, "commanded: to the charging station",
