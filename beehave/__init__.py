@@ -15,10 +15,12 @@ from beehave.errors import (
                             BeehaveError,
                             ChildFailed,
                             ConfigError,
+                            ConstructorFailed,
                             Interrupted,
                             InvalidParameters,
                             ManagerShutdown,
                             NotASubclass,
+                            ReservedAttribute,
                             SwitchSuperseded,
                             UnknownBehavior,
                             UnknownHAL,
@@ -36,9 +38,9 @@ __version__ = "0.1.0"
 
 __all__ = [
     "HAL", "Action", "ActionTypeBusy", "AlreadyStarted", "BeehaveError", "Behavior",
-    "Blackboard", "BlackboardClient", "Change", "ChildFailed", "ConfigError", "Event",
-    "EventKind", "HALManager", "HighLevelBehaviorManager", "Idle", "Interrupted",
-    "InvalidParameters", "Logic", "LowLevelBehaviorManager", "ManagerShutdown",
-    "NotASubclass", "Status", "SwitchSuperseded", "UnknownBehavior", "UnknownHAL",
-    "UnknownLogic", "UnknownNameError",
+    "Blackboard", "BlackboardClient", "Change", "ChildFailed", "ConfigError",
+    "ConstructorFailed", "Event", "EventKind", "HALManager", "HighLevelBehaviorManager",
+    "Idle", "Interrupted", "InvalidParameters", "Logic", "LowLevelBehaviorManager",
+    "ManagerShutdown", "NotASubclass", "ReservedAttribute", "Status", "SwitchSuperseded",
+    "UnknownBehavior", "UnknownHAL", "UnknownLogic", "UnknownNameError",
 ]

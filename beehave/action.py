@@ -54,15 +54,16 @@ class Action(Runnable):
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
-        self.safe_state_error = None
+        object.__setattr__(self, "safe_state_error", None)
         return self
 
     def safe_state(self) -> None:
         """Leave the hardware this action controls predictable (e.g. zero velocity).
 
         Called exactly once whenever the action ends without success: interrupted, failed,
-        or STUCK (then from the owner's thread, while ``run`` may still be executing).
-        Not called after success. Keep it short and make it not depend on ``run``'s state.
+        or STUCK (then in a thread of its own, while ``run`` may still be executing; the
+        action keeps its type lock until both have returned). Not called after success.
+        Keep it short and make it not depend on ``run``'s state.
         """
 
     # ------------------------------------------------------------------ driver
@@ -72,10 +73,13 @@ class Action(Runnable):
         try:
             self.safe_state()
         except Exception as exc:  # recorded on the handle and reported as an event
-            self.safe_state_error = exc
+            object.__setattr__(self, "safe_state_error", exc)
             assert self._manager is not None
             self._manager.events.emit(
                 Event(EventKind.SAFE_STATE_FAILED, self.path, self.status.name, exc))
+
+    def _has_safe_state(self) -> bool:
+        return True
 
     def _release(self) -> None:
         assert self._manager is not None
@@ -91,4 +95,6 @@ class Action(Runnable):
         snap["action_type"] = self.action_type
         if self.safe_state_error is not None:
             snap["safe_state_error"] = repr(self.safe_state_error)
+        if self.safe_state_pending:
+            snap["safe_state_pending"] = True
         return snap

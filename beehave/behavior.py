@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import logging
 import time
+from collections import Counter
 from typing import Any, ClassVar, Self, TypeVar
 
 from beehave.action import Action
@@ -10,6 +12,8 @@ from beehave.errors import ChildFailed, Interrupted, NotASubclass
 from beehave.events import Event, EventKind
 from beehave.runnable import Runnable
 from beehave.status import Status
+
+log = logging.getLogger(__name__)
 
 A = TypeVar("A", bound=Action)
 B = TypeVar("B", bound="Behavior")
@@ -37,10 +41,12 @@ class Behavior(Runnable):
     _unobserved_failures: list[Runnable]
     _accepting: bool
     _hook_errors: list[Exception]
+    _names: Counter[str]
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
         self._children = []
+        self._names = Counter()
         self._unobserved_failures = []
         self._hook_errors = []
         self._accepting = True
@@ -120,6 +126,12 @@ class Behavior(Runnable):
             # Checked under the same lock the interrupt takes, so no child escapes it.
             if self._interrupt_requested or not self._accepting:
                 raise Interrupted(f"{self.path}: interrupted; not starting {child.name!r}")
+            # Paths name things in events and snapshots: a second `Drive` started by this
+            # behaviour is `Drive#2`, so the two can be told apart.
+            self._names[child.name] += 1
+            count = self._names[child.name]
+            if count > 1:
+                child.name = f"{child.name}#{count}"
             self._children.append(child)
 
     def _prune(self) -> None:
@@ -147,6 +159,12 @@ class Behavior(Runnable):
             deadline = self._stop_deadline
         if deadline is None:
             deadline = time.monotonic() + self._manager.stop_timeout_s
+        orphans = [c.path for c in children if not c._decided.is_set()]
+        if orphans and not self._interrupt_requested:
+            # A common slip: run() returned without waiting for what it started.
+            log.info("%s: run() returned while %s still ran; they are interrupted now "
+                     "(a behaviour's actions never outlive it: wait() for them to let them "
+                     "finish)", self.path, ", ".join(orphans))
         for child in children:
             child._interrupt(deadline)
         for child in children:

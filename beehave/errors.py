@@ -52,6 +52,17 @@ class InvalidParameters(BeehaveError, TypeError):
     """
 
 
+class ConstructorFailed(BeehaveError):
+    """A behaviour's (or logic's) own constructor raised although its parameters fit its
+    signature: the fault is in that ``__init__``, not in the parameters. ``__cause__`` is
+    the exception it raised."""
+
+
+class ReservedAttribute(BeehaveError, AttributeError):
+    """User code assigned an attribute that beehave owns (``status``, ``result``, ``path``
+    …) on a behaviour or action; choose another name."""
+
+
 class ActionTypeBusy(BeehaveError):
     """``start_action`` found the action type locked by another action.
 

@@ -24,6 +24,10 @@ class EventKind(Enum):
     """It ignored its interrupt for ``stop_timeout_s``; its safe state was forced."""
     STUCK_RELEASED = "stuck_released"
     """A STUCK action's thread finally ended and its type lock was released."""
+    SAFE_STATE_OVERDUE = "safe_state_overdue"
+    """The forced ``safe_state()`` of a STUCK action had not returned when the switch (or
+    shutdown) had to go on; it keeps running in a thread of its own, and the action's type
+    stays locked until it returns."""
     SAFE_STATE_FAILED = "safe_state_failed"
     """``safe_state()`` raised; the error is attached."""
     HOOK_FAILED = "hook_failed"
@@ -96,9 +100,7 @@ class EventBus:
         warn = event.kind in _WARN or (event.kind is EventKind.FALLBACK and event.error is not None)
         level = logging.WARNING if warn else logging.DEBUG
         if self._log.isEnabledFor(level):
-            self._log.log(level, "%s %s%s%s", event.kind.value, event.subject,
-                          f" {event.status}" if event.status else "",
-                          f" error={event.error!r}" if event.error else "")
+            self._log.log(level, "%s", describe(event))
         for callback in self._subscribers:
             try:
                 callback(event)
@@ -106,5 +108,19 @@ class EventBus:
                 self._log.exception("event subscriber %r raised on %s", callback, event.kind)
 
 
+def describe(event: Event) -> str:
+    """One log line for ``event``."""
+    if event.kind is EventKind.FALLBACK:
+        text = (f"{event.subject} ended {event.status or ''} on its own; "
+                f"starting {event.detail.get('to', 'the fallback')!r}")
+    else:
+        text = f"{event.kind.value} {event.subject}{f' {event.status}' if event.status else ''}"
+    if event.kind in _WARN and event.detail:
+        text += " (" + ", ".join(f"{k}={v}" for k, v in event.detail.items()) + ")"
+    if event.error is not None:
+        text += f" error={event.error!r}"
+    return text
+
+
 _WARN = {EventKind.STUCK, EventKind.SAFE_STATE_FAILED, EventKind.HOOK_FAILED,
-         EventKind.RESTARTED}
+         EventKind.RESTARTED, EventKind.SAFE_STATE_OVERDUE}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import enum
 import inspect
 import logging
+import math
 import sys
 import threading
 import time
@@ -20,6 +21,7 @@ from beehave.clock import WallClock
 from beehave.errors import (
     BeehaveError,
     ConfigError,
+    ConstructorFailed,
     InvalidParameters,
     ManagerShutdown,
     NotASubclass,
@@ -82,8 +84,10 @@ class HighLevelBehaviorManager:
                  clock: WallClock | None = None,
                  gil_switch_interval_s: float | None = 0.001,
                  history_len: int = 100) -> None:
-        if not isinstance(stop_timeout_s, (int, float)) or stop_timeout_s <= 0:
-            raise ConfigError(f"stop_timeout_s must be a positive number, got {stop_timeout_s!r}")
+        if (isinstance(stop_timeout_s, bool) or not isinstance(stop_timeout_s, (int, float))
+                or not math.isfinite(stop_timeout_s) or stop_timeout_s <= 0):
+            raise ConfigError(f"stop_timeout_s must be a positive, finite number of seconds, "
+                              f"got {stop_timeout_s!r}")
         self.default = default
         self.stop_timeout_s = float(stop_timeout_s)
         self.node = node
@@ -102,8 +106,11 @@ class HighLevelBehaviorManager:
         self._cond = threading.Condition()
         self._state = ManagerState.NEW
         self._pending: list[_Request] = []
-        self._switch_lock = threading.Lock()
-        self._executor: int | None = None  # the thread executing switches now
+        self._processing = False  # one thread executes switches: the processor
+        self._executor: int | None = None  # the processor's thread
+        self._stopped = threading.Event()
+        self._shutdown_thread: threading.Thread | None = None
+        self._recorded: set[int] = set()
         self._stopping: Behavior | None = None  # the top-level behaviour a switch stops
         self._top: Behavior | None = None
         self._top_name: str | None = None
@@ -123,6 +130,10 @@ class HighLevelBehaviorManager:
         if not (isinstance(behavior_cls, type) and issubclass(behavior_cls, Behavior)):
             raise NotASubclass(f"register({name!r}, …) needs a Behavior subclass, "
                                f"got {behavior_cls!r}")
+        if inspect.isabstract(behavior_cls):
+            missing = ", ".join(sorted(behavior_cls.__abstractmethods__))
+            raise NotASubclass(f"register({name!r}, {behavior_cls.__qualname__}): it does not "
+                               f"implement {missing}() — a Behavior must define run(self)")
         _check_params(name, behavior_cls, params, partial=True)
         with self._cond:
             self._registry[name] = (behavior_cls, dict(params))
@@ -150,20 +161,73 @@ class HighLevelBehaviorManager:
         self.switch(self.default)
 
     def shutdown(self) -> None:
-        """Stop the top-level behaviour (bounded by ``stop_timeout_s``), then join the
-        manager's threads, waiting at most ``stop_timeout_s`` more for STUCK ones."""
+        """Stop the top-level behaviour and join the manager's threads, within
+        ``stop_timeout_s`` (plus a short grace for forced safe states).
+
+        A STUCK action's thread cannot be killed: one still running then is reported (a
+        warning naming it) and left to end by itself; its type stays locked. Called from a
+        thread of this manager (a behaviour, an action, an event callback during a switch),
+        the shutdown is deferred to a thread of its own and this call returns at once — a
+        thread cannot wait for its own end; a later ``shutdown()`` from outside waits for it.
+        """
+        deferred = self._own_thread()
         with self._cond:
-            if self._state in (ManagerState.NEW, ManagerState.STOPPED):
+            if self._state is ManagerState.NEW:
                 self._state = ManagerState.STOPPED
+                self._stopped.set()
                 return
-            self._state = ManagerState.STOPPING
-        self._process()
-        leftover = self._pool.shutdown(timeout_s=self.stop_timeout_s)
-        if leftover:
-            log.warning("shutdown: STUCK threads still running after %.1f s: %s",
-                        self.stop_timeout_s, [t.name for t in leftover])
-        with self._cond:
-            self._state = ManagerState.STOPPED
+            first = self._state is ManagerState.RUNNING
+            if first:
+                self._state = ManagerState.STOPPING
+                if deferred:
+                    self._shutdown_thread = threading.Thread(
+                        target=self._shutdown_now, name="beehave:shutdown", daemon=True)
+                    self._shutdown_thread.start()
+                    return
+        if first:
+            self._shutdown_now()
+            return
+        if deferred:
+            return  # a shutdown is under way already
+        # Another thread is shutting down: wait for it (it is bounded).
+        if not self._stopped.wait(2 * self.stop_timeout_s + 1.0):
+            log.warning("shutdown: still stopping after %.1f s", 2 * self.stop_timeout_s + 1.0)
+        thread = self._shutdown_thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(1.0)
+
+    def _shutdown_now(self) -> None:
+        deadline = time.monotonic() + self.stop_timeout_s
+        try:
+            with self._cond:
+                become = not self._processing
+                if become:
+                    self._processing = True
+            if become:
+                self._run_processor(None)
+            else:
+                # A switch is under way; it sees STOPPING, starts nothing new and ends.
+                with self._cond:
+                    self._cond.wait_for(lambda: not self._processing,
+                                        self.stop_timeout_s + _GRACE_S + 2 * _MARGIN_S)
+                if self._top is not None:  # it did not make it in time: stop it ourselves
+                    self._stop_top()
+        finally:
+            leftover = self._pool.shutdown(
+                timeout_s=max(_MARGIN_S, deadline + _GRACE_S - time.monotonic()))
+            if leftover:
+                log.warning("shutdown: STUCK threads still running after %.2f s (they end "
+                            "by themselves; their types stay locked): %s",
+                            self.stop_timeout_s, [t.name for t in leftover])
+            with self._cond:
+                self._state = ManagerState.STOPPED
+            self._stopped.set()
+
+    def _own_thread(self) -> bool:
+        """True when called from a thread of this manager (one that shutdown must end)."""
+        caller = current()
+        return ((caller is not None and caller._manager is self)
+                or threading.get_ident() == self._executor or self._pool.owns_current())
 
     def __enter__(self) -> Self:
         self.start()
@@ -179,21 +243,24 @@ class HighLevelBehaviorManager:
 
         Returns once the old behaviour has ended (or was declared STUCK after
         ``stop_timeout_s``) and the new one runs. Raises :class:`UnknownBehavior` (listing
-        the names) or :class:`InvalidParameters` before anything is stopped, and
-        :class:`SwitchSuperseded` when a later request overtook this one. Called from a
-        behaviour of this manager, it only queues the request (waiting would wait for
-        itself) and returns the new, not yet started, behaviour.
+        the names), :class:`InvalidParameters` or :class:`ConstructorFailed` before anything
+        is stopped, and :class:`SwitchSuperseded` when a later request overtook this one.
+        Called from a behaviour of this manager, it only queues the request (waiting would
+        wait for itself) and returns the new, not yet started, behaviour.
         """
-        request = self._enqueue(name, params)
+        request, become = self._enqueue(name, params)
         behavior = request.behavior
         if threading.get_ident() == self._executor:
             return behavior  # asked from an event callback during a switch: the loop runs it
         caller = current()
         if caller is not None and caller._manager is self:
-            self._process_later()
+            if become:
+                self._spawn_processor()
             return behavior
-        self._process()
-        request.done.wait()  # set already, unless another thread is executing it
+        if become:
+            # Nobody is switching: execute it in this thread (saves two thread hand-offs).
+            self._run_processor(request)
+        request.done.wait()  # bounded: the processor is, and it finishes every request
         if request.error is not None:
             raise request.error
         return behavior
@@ -201,12 +268,15 @@ class HighLevelBehaviorManager:
     def request_switch(self, name: str, **params: Any) -> Behavior:
         """Like :meth:`switch`, but returns at once (after checking the name and the
         parameters); the switch happens in a manager thread. For callers that must not
-        block, e.g. ROS parameter callbacks."""
-        request = self._enqueue(name, params)
-        self._process_later()
+        block, e.g. ROS parameter callbacks. However many requests arrive, one thread
+        executes them and only the latest waiting one is kept (the others are superseded)."""
+        request, become = self._enqueue(name, params)
+        if become:
+            self._spawn_processor()
         return request.behavior
 
-    def _enqueue(self, name: str, params: dict[str, Any]) -> _Request:
+    def _enqueue(self, name: str, params: dict[str, Any]) -> tuple[_Request, bool]:
+        """Queue a request; returns it and whether the caller must run the processor."""
         if self._state is ManagerState.NEW:
             self.start()
         try:
@@ -219,10 +289,20 @@ class HighLevelBehaviorManager:
             if self._state is not ManagerState.RUNNING:
                 raise ManagerShutdown(f"cannot switch to {name!r}: the manager is "
                                       f"{self._state.value}")
-            self._pending.append(request)
+            # Latest wins: a request still waiting is superseded now, so the queue holds
+            # one request however many arrive.
+            replaced, self._pending = self._pending, [request]
+            become = not self._processing
+            if become:
+                self._processing = True
         self.events.emit(Event(EventKind.SWITCH_REQUESTED, name,
                                detail={"params": _jsonable(params)}))
-        return request
+        for old in replaced:
+            if old.fallback_from is None:
+                self._supersede(old, request)
+            else:
+                old.finish()  # a fallback is moot once something was asked for
+        return request, become
 
     @property
     def current(self) -> str | None:
@@ -272,77 +352,134 @@ class HighLevelBehaviorManager:
         _check_params(name, cls, merged, partial=False)
         try:
             behavior = cls(**merged)
+        except (ValueError, TypeError, ConfigError) as exc:
+            if isinstance(exc, BeehaveError) and not isinstance(exc, ConfigError):
+                raise ConstructorFailed(f"behavior {name!r}: {cls.__qualname__}.__init__: "
+                                        f"{exc}") from exc
+            # The parameters fit the signature (checked above); the constructor's own
+            # validation turned their values down (or the file one of them names).
+            raise InvalidParameters(
+                f"behavior {name!r}: {cls.__qualname__}.__init__ rejected the parameters "
+                f"{_jsonable(merged)}: {type(exc).__name__}: {exc}") from exc
         except Exception as exc:
-            raise InvalidParameters(f"behavior {name!r} ({cls.__name__}) rejected its "
-                                    f"parameters {_jsonable(merged)}: {exc}") from exc
+            # A bug in the constructor, not in what was asked for.
+            raise ConstructorFailed(
+                f"behavior {name!r}: {cls.__qualname__}.__init__ raised "
+                f"{type(exc).__name__}: {exc} (parameters {_jsonable(merged)})") from exc
         behavior.name = name
         return behavior
 
-    def _process(self) -> None:
-        """Execute pending requests, latest first. Runs in the thread that asked for a
-        switch (saving two thread hand-offs per switch), or in a pool thread for requests
-        made from inside a behaviour (fallbacks, self-switches). One at a time."""
-        with self._switch_lock:
-            self._executor = threading.get_ident()
-            try:
-                self._process_locked()
-            finally:
-                self._executor = None
-
-    def _process_locked(self) -> None:
-        while True:
-            with self._cond:
-                requests, self._pending = self._pending, []
-                stopping = self._state is not ManagerState.RUNNING
-            try:
-                if not self._execute(requests, stopping=stopping):
-                    return
-            except BaseException as exc:
-                # Whatever went wrong, no caller may wait forever for its request.
-                failure = BeehaveError(f"switch failed: {exc!r}")
-                failure.__cause__ = exc
-                for request in requests:
-                    if not request.done.is_set():
-                        request.finish(failure)
-                raise
-
-    def _execute(self, requests: list[_Request], *, stopping: bool) -> bool:
-        """Carry out one batch of requests; False when there is nothing more to do."""
-        if stopping:
-            for request in requests:
-                request.finish(ManagerShutdown("the manager is shutting down"))
-            self._stop_top()
-            return False
-        if not requests:
-            return False
-        *superseded, latest = requests
-        for request in superseded:
-            self._supersede(request, latest)
-        if latest.fallback_from is not None and latest.fallback_from is not self._top:
-            latest.finish()  # something else replaced it already
-            return True
-        self._stop_top()
-        with self._cond:
-            overtaken = bool(self._pending)
-        if overtaken:
-            self._supersede(latest, None)
-            return True
-        self._start_top(latest)
-        return True
-
-    def _process_later(self) -> None:
+    def _spawn_processor(self) -> None:
+        """Run the processor in a pool thread (the caller holds the processor role)."""
         try:
             self._pool.submit("beehave:switch", self._process_reporting)
-        except RuntimeError:  # the pool is shut down: shutdown() processes what is left
-            pass
+        except RuntimeError:  # the pool is shut down: nothing may start any more
+            with self._cond:
+                requests, self._pending = self._pending, []
+                self._processing = False
+                self._cond.notify_all()
+            for request in requests:
+                request.finish(ManagerShutdown("the manager is shut down"))
 
     def _process_reporting(self) -> None:
         # Nobody waits on this thread: the requests got the error as their outcome, and
         # observers get it as an event (not only the pool's log).
         try:
-            self._process()
+            self._run_processor(None)
         except Exception as exc:
             self.events.emit(Event(EventKind.SWITCH_REJECTED, "switch", error=exc))
+
+    def _run_processor(self, own: _Request | None) -> None:
+        """Execute requests until none is left. Exactly one thread holds this role at a time
+        (``_processing``, taken under ``_cond`` by whoever queued into an idle manager).
+        A ``switch()`` caller executing its ``own`` request hands the rest to a pool thread
+        once it is done, so that it returns as soon as its own switch is."""
+        self._executor = threading.get_ident()
+        requests: list[_Request] = []
+        try:
+            while True:
+                with self._cond:
+                    stopping = self._state is not ManagerState.RUNNING
+                    requests, self._pending = self._pending, []
+                    work = bool(requests) or (self._top is not None if stopping
+                                              else self._top is None)
+                    if not work:
+                        self._processing = False
+                        self._cond.notify_all()
+                        return
+                    handover = own is not None and own.done.is_set() and not stopping
+                    if handover:
+                        self._pending = requests + self._pending
+                        requests = []
+                if handover:
+                    self._executor = None
+                    self._spawn_processor()
+                    return
+                self._execute(requests, stopping=stopping)
+        except BaseException as exc:
+            # Whatever went wrong, no caller may wait forever for its request, and the
+            # processor role is given back.
+            failure = BeehaveError(f"switch failed: {exc!r}")
+            failure.__cause__ = exc
+            with self._cond:
+                requests += self._pending
+                self._pending = []
+                self._processing = False
+                self._cond.notify_all()
+            for request in requests:
+                if not request.done.is_set():
+                    request.finish(failure)
+            raise
+        finally:
+            if self._executor == threading.get_ident():
+                self._executor = None
+
+    def _execute(self, requests: list[_Request], *, stopping: bool) -> None:
+        """Carry out one batch of requests (the processor's)."""
+        if stopping:
+            for request in requests:
+                request.finish(ManagerShutdown("the manager is shutting down"))
+            self._stop_top()
+            return
+        asked = [r for r in requests if r.fallback_from is None]
+        fallbacks = [r for r in requests if r.fallback_from is not None]
+        latest: _Request
+        if asked:
+            *older, latest = asked
+            for request in older:
+                self._supersede(request, latest)
+            for request in fallbacks:
+                request.finish()  # what was asked for replaces the fallback
+        elif fallbacks:
+            *older, latest = fallbacks
+            for request in older:
+                request.finish()
+            if self._top is not None and latest.fallback_from is not self._top:
+                latest.finish()  # something else replaced the ended behaviour already
+                return
+        else:
+            # Nothing runs and nothing is asked for (a start that failed): one behaviour
+            # always runs, so the safe one.
+            log.warning("no top-level behaviour was running; starting %r", IDLE)
+            latest = self._idle_request(None)
+        self._stop_top()
+        with self._cond:
+            overtaken = any(r.fallback_from is None for r in self._pending)
+            stopping = self._state is not ManagerState.RUNNING
+        if stopping:
+            latest.finish(ManagerShutdown("the manager is shutting down"))
+        elif overtaken:
+            if latest.fallback_from is None:
+                self._supersede(latest, None)
+            else:
+                latest.finish()
+        else:
+            self._start_top(latest)
+
+    def _idle_request(self, ended: Behavior | None) -> _Request:
+        idle = Idle()
+        idle.name = IDLE
+        return _Request(IDLE, idle, fallback_from=ended)
 
     def _supersede(self, request: _Request, by: _Request | None) -> None:
         later = f" by {by.name!r}" if by is not None else " by a later request"
@@ -355,12 +492,21 @@ class HighLevelBehaviorManager:
             return
         self._top_name = None
         self._stopping = top  # its end is ours, not its own: no fallback to idle
+        stuck_before = set(self._stuck_nodes())
         deadline = time.monotonic() + self.stop_timeout_s
         top._interrupt(deadline)
         # The behaviour itself gives up on its children at `deadline`; allow it a moment
         # to record that before declaring the behaviour itself STUCK.
         if not top._wait_decided(deadline + _MARGIN_S) or not top._join(_MARGIN_S):
             top._mark_stuck()
+            with self._cond:
+                self._record_history(top)
+        # Forced safe states run in threads of their own: give them a short grace, so that
+        # the switch normally returns with the hardware safe, but never waits unbounded.
+        grace = max(deadline, time.monotonic()) + _GRACE_S
+        for node in self._stuck_nodes():
+            if node not in stuck_before:
+                node._wait_forced(grace)
         self._top = None
 
     def _start_top(self, request: _Request) -> None:
@@ -387,27 +533,47 @@ class HighLevelBehaviorManager:
         if node.parent is not None:
             return
         with self._cond:
-            self._history.append({"name": node.name, "status": node.status.name,
-                                  "error": None if node.error is None else repr(node.error),
-                                  "elapsed_s": node.elapsed_s})
+            self._record_history(node)
             ended_on_its_own = (isinstance(node, Behavior) and node is self._top
-                                and node is not self._stopping and not self._pending
-                                and self._state is ManagerState.RUNNING)
+                                and node is not self._stopping
+                                and self._state is ManagerState.RUNNING
+                                and not any(r.fallback_from is None for r in self._pending))
+            become = False
             if ended_on_its_own:
                 assert isinstance(node, Behavior)
                 # Nothing else is asked for: fall back to the safe behaviour.
-                idle = Idle()
-                idle.name = IDLE
-                self._pending.append(_Request(IDLE, idle, fallback_from=node))
-        if ended_on_its_own:
-            self._process_later()
+                self._pending.append(self._idle_request(node))
+                become = not self._processing
+                if become:
+                    self._processing = True
+        if become:
+            self._spawn_processor()
+
+    def _record_history(self, node: Runnable) -> None:
+        """With ``_cond`` held: note an ended (or STUCK) top-level behaviour, once."""
+        if id(node) in self._recorded:
+            return
+        self._recorded.add(id(node))
+        if len(self._recorded) > 4 * (self._history.maxlen or 100):
+            self._recorded = {id(n) for n in (self._top, self._stopping) if n is not None}
+        self._history.append({"name": node.name, "status": node.status.name,
+                              "error": None if node.error is None else repr(node.error),
+                              "elapsed_s": node.elapsed_s})
 
     def _stuck_add(self, node: Runnable) -> None:
         with self._cond:
             self._stuck.add(node)
 
+    def _stuck_nodes(self) -> list[Runnable]:
+        with self._cond:
+            return list(self._stuck)
+
 
 _MARGIN_S = 0.05
+_GRACE_S = 0.1
+"""How long a switch waits, after its deadline, for forced safe states (documented in
+docs/concepts.md): a STUCK action's ``safe_state()`` normally has run when ``switch()``
+returns, and one that hangs is reported (SAFE_STATE_OVERDUE) instead of blocking it."""
 
 
 def _check_params(name: str, cls: type[Behavior], params: dict[str, Any], *, partial: bool) -> None:

@@ -61,7 +61,7 @@ class TypeLocks:
                 if hold is None:  # only preemptors waiting: name the one that wins next
                     raise ActionTypeBusy(kind, blocker, time.monotonic(),
                                          reason="it is waiting to preempt the type")
-                raise ActionTypeBusy(kind, hold.holder, hold.since)
+                raise ActionTypeBusy(kind, hold.holder, hold.since, reason=_why(hold.holder))
             queue.append(action)
             deadline = time.monotonic() + timeout_s
             interrupted: set[int] = set()
@@ -77,7 +77,7 @@ class TypeLocks:
                                           f"preempt action type {kind!r}")
                     if hold is not None and hold.holder.status is Status.STUCK:
                         raise ActionTypeBusy(kind, hold.holder, hold.since,
-                                             reason="the holder is STUCK")
+                                             reason=_why(hold.holder))
                     if hold is not None and id(hold.holder) not in interrupted:
                         interrupted.add(id(hold.holder))
                         self._events.emit(Event(EventKind.LOCK_PREEMPTED, hold.holder.path,
@@ -121,5 +121,16 @@ class TypeLocks:
         now = time.monotonic()
         with self._cond:
             return {kind: {"holder": h.holder.path, "class": type(h.holder).__name__,
-                           "status": h.holder.status.name, "held_s": now - h.since}
+                           "status": h.holder.status.name, "held_s": now - h.since,
+                           "safe_state_pending": h.holder.safe_state_pending}
                     for kind, h in sorted(self._held.items())}
+
+
+def _why(holder: Action) -> str:
+    """Why a STUCK holder still has its type (empty for a running one)."""
+    if holder.status is not Status.STUCK:
+        return ""
+    if holder.safe_state_pending:
+        return ("the holder is STUCK and its forced safe_state() has not returned: the type "
+                "stays locked until it does")
+    return "the holder is STUCK: its run() ignores its interrupt; the type is free when it returns"

@@ -8,29 +8,83 @@ here, under the object's own condition variable, so observers never see a half-m
 from __future__ import annotations
 
 import abc
+import math
+import sys
+import sysconfig
 import threading
 import time
 import traceback
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Self
 
+from beehave.blackboard import Blackboard, BlackboardView, ChangeCallback, Subscription
 from beehave.clock import WallClock
-from beehave.errors import AlreadyStarted, ConfigError, Interrupted, ManagerShutdown
+from beehave.errors import (
+    AlreadyStarted,
+    ConfigError,
+    Interrupted,
+    ManagerShutdown,
+    ReservedAttribute,
+)
 from beehave.events import Event, EventKind
 from beehave.status import Status
 
 if TYPE_CHECKING:
     from beehave.behavior import Behavior
-    from beehave.blackboard import BlackboardView
     from beehave.highlevel import HighLevelBehaviorManager
     from beehave.ros.io import RosIO
 
 _local = threading.local()
+_STDLIB = sysconfig.get_paths()["stdlib"]
 _WALL = WallClock()
 
 
 def current() -> Runnable | None:
     """The behaviour or action whose thread is calling, or None."""
     return getattr(_local, "node", None)
+
+
+_RESERVED = {
+    "status": "its lifecycle status", "result": "run()'s return value",
+    "error": "the exception run() raised", "parent": "the behaviour that started it",
+    "path": "where it sits in the running tree", "interrupted": "the interrupt flag",
+    "alive": "whether its thread runs", "manager": "the manager it runs under",
+    "blackboard": "the robot's state (read-only)", "ros": "its ROS 2 I/O",
+    "stop_deadline": "the deadline of a stop", "elapsed_s": "its running time",
+    "started_at": "its start time", "ended_at": "its end time",
+    "children": "its running actions and sub-behaviours",
+    "safe_state_error": "the exception safe_state() raised",
+}
+"""Attributes beehave owns on every behaviour and action; user code that assigns one gets
+:class:`ReservedAttribute` naming it (``name`` is yours to set)."""
+
+
+class _OwnedView(BlackboardView):
+    """The blackboard as one behaviour or action sees it: its subscriptions are closed
+    when it ends, as a logic's are."""
+
+    def __init__(self, board: Blackboard, owner: str) -> None:
+        super().__init__(board, why="behaviours and actions read the low level's blackboard; "
+                                    "they change the robot through actions")
+        self._owner = owner
+        self._lock = threading.Lock()
+        self._subscriptions: list[Subscription] | None = []
+
+    def subscribe(self, pattern: str, callback: ChangeCallback) -> Subscription:
+        subscription = super().subscribe(pattern, callback)
+        with self._lock:
+            if self._subscriptions is not None:
+                self._subscriptions = [s for s in self._subscriptions if not s.closed]
+                self._subscriptions.append(subscription)
+                return subscription
+        subscription.close()
+        raise ManagerShutdown(f"{self._owner}: has ended; it cannot subscribe to {pattern!r}")
+
+    def close(self) -> None:
+        with self._lock:
+            subscriptions, self._subscriptions = self._subscriptions or [], None
+        for subscription in subscriptions:
+            subscription.close()
 
 
 class Runnable(abc.ABC):
@@ -56,16 +110,23 @@ class Runnable(abc.ABC):
     _ros: RosIO | None
     _ended: threading.Event
     _traceback: str
+    _view: _OwnedView | None
+    _interrupted_at: float | None
+    _thread_id: int | None
+    _holds: int
+    _forced: threading.Event | None
+    _overdue_reported: bool
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         # Runtime state lives here so that subclasses need not call super().__init__().
         self = super().__new__(cls)
-        self.name = cls.__name__
-        self.result = None
-        self.error = None
-        self.parent = None
-        self.started_at = None  # time.monotonic()
-        self.ended_at = None
+        init = object.__setattr__
+        init(self, "name", cls.__name__)
+        init(self, "result", None)
+        init(self, "error", None)
+        init(self, "parent", None)
+        init(self, "started_at", None)  # time.monotonic()
+        init(self, "ended_at", None)
         self._manager = None
         self._traceback = ""
         self._status = Status.PENDING
@@ -75,8 +136,32 @@ class Runnable(abc.ABC):
         self._decided = threading.Event()
         self._started = False
         self._ros = None
+        self._view = None
         self._ended = threading.Event()
+        self._interrupted_at = None
+        self._thread_id = None
+        # What keeps the type lock and the ROS entities: run(), plus a forced safe_state()
+        # while one runs. Whichever of them ends last releases them.
+        self._holds = 1
+        self._forced = None
+        self._overdue_reported = False
         return self
+
+    def __init__(self, name: str | None = None) -> None:
+        """Optional: ``super().__init__(name="front_lift")`` names it (the py_trees habit);
+        parameters of your own go to your own ``__init__``."""
+        if name is not None:
+            if not isinstance(name, str) or not name or "/" in name:
+                raise ConfigError(f"{type(self).__name__}: name must be a non-empty str "
+                                  f"without '/', got {name!r}")
+            self.name = name
+
+    def __setattr__(self, attr: str, value: Any) -> None:
+        if attr in _RESERVED:
+            raise ReservedAttribute(
+                f"{type(self).__name__}.{attr} is beehave's ({_RESERVED[attr]}) and cannot be "
+                f"assigned; store yours under another name, e.g. self.my_{attr}")
+        object.__setattr__(self, attr, value)
 
     # ------------------------------------------------------------------ user hooks
     @abc.abstractmethod
@@ -114,9 +199,13 @@ class Runnable(abc.ABC):
         """The robot's state as the low level sees it: a read-only view of the manager's
         blackboard (over ROS 2, a mirror of the low level's). To change the robot, start
         an action; to tell the low level something, choose its logic (``Behavior.logic``)."""
-        if self._manager is None:
+        manager = self._manager
+        if manager is None:
             raise ManagerShutdown(f"{self.name!r} is not started: it has no blackboard yet")
-        return self._manager.blackboard_view
+        with self._cond:
+            if self._view is None:
+                self._view = _OwnedView(manager.blackboard, self.path)
+            return self._view
 
     @property
     def ros(self) -> RosIO:
@@ -152,20 +241,23 @@ class Runnable(abc.ABC):
         return self._started and not self._ended.is_set()
 
     def sleep(self, seconds: float) -> bool:
-        """Wait ``seconds``; return False at once when interrupted, True otherwise."""
+        """Wait ``seconds`` (``math.inf``: until interrupted); return False at once when
+        interrupted, True otherwise."""
         clock = self._manager.clock if self._manager is not None else _WALL
+        timeout_s = _timeout(seconds, f"{self.path}: sleep(seconds)")
         with self._cond:
-            clock.wait(self._cond, self._wake_reason, seconds)
+            clock.wait(self._cond, self._wake_reason, timeout_s)
             self._raise_pending()
             return not self._interrupt_requested
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until the outcome is decided (any final status, STUCK included).
 
-        Returns False on timeout. A behaviour that waits for its own child this way has
-        seen the outcome, so a failure of that child is not raised again as ChildFailed.
+        Returns False on timeout (None or ``math.inf``: no timeout). A behaviour that waits
+        for its own child this way has seen the outcome, so a failure of that child is not
+        raised again as ChildFailed.
         """
-        done = self._decided.wait(timeout)
+        done = self._decided.wait(_timeout(timeout, f"{self.path}: wait(timeout)"))
         if done and self.parent is not None:
             self.parent._observed(self)
         return done
@@ -185,37 +277,41 @@ class Runnable(abc.ABC):
                     f"{type(self).__name__} {self.name!r} was already started "
                     f"(status {self._status.name}); create a new object for each run")
             self._manager = manager
-            self.parent = parent
+            object.__setattr__(self, "parent", parent)
 
     def _detach(self) -> None:
         with self._cond:
             if self._status is Status.PENDING:
                 self._manager = None
-                self.parent = None
+                object.__setattr__(self, "parent", None)
 
     def _start_thread(self) -> None:
         assert self._manager is not None
         with self._cond:
             self._started = True
             self._status = Status.RUNNING
-            self.started_at = time.monotonic()
+            object.__setattr__(self, "started_at", time.monotonic())
         self._manager._pool.submit(f"beehave:{self.path}", self._main)
 
     def _main(self) -> None:
         _local.node = self
+        self._thread_id = threading.get_ident()
+        ended = True
         try:
             assert self._manager is not None
             self._manager.events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name))
             error: BaseException | None = None
             try:
-                self.result = self.run()
+                object.__setattr__(self, "result", self.run())
             except BaseException as exc:  # recorded on the handle and surfaced to the parent
                 error = exc
             error = self._after_run(error)
-            self._finish(error)
+            ended = self._finish(error)
         finally:
             _local.node = None
-            self._ended.set()
+            self._thread_id = None
+            if ended:
+                self._ended.set()
 
     def _join(self, timeout: float | None = None) -> bool:
         """Wait until its ``run`` and clean-up are over (the thread goes back to the pool)."""
@@ -225,7 +321,10 @@ class Runnable(abc.ABC):
         """Behavior ends its children here; returns the error that decides the status."""
         return error
 
-    def _finish(self, error: BaseException | None) -> None:
+    def _finish(self, error: BaseException | None) -> bool:
+        """Decide the status, apply the safe state, release what it holds, tell the parent
+        and the manager. Returns False when a forced safe state still runs in another thread
+        (that thread ends the item's life when it returns)."""
         with self._cond:
             was_stuck = self._status is Status.STUCK
             if was_stuck:
@@ -237,17 +336,25 @@ class Runnable(abc.ABC):
             else:
                 status = Status.FAILED
             if status is Status.FAILED:
-                self.error = error
+                object.__setattr__(self, "error", error)
                 self._traceback = "".join(traceback.format_exception(error))
             self._status = status
-            self.ended_at = time.monotonic()
+            if self.ended_at is None:
+                object.__setattr__(self, "ended_at", time.monotonic())
+            self._holds -= 1
+            last = self._holds == 0
+        if was_stuck:
+            # Its owner gave up on it; the forced safe state (if any) ran or runs elsewhere.
+            if last:
+                self._end_of_life(stuck=True)
+            return last
         manager = self._manager
         assert manager is not None
+        stuck_now = False
         try:
-            if not was_stuck and status is not Status.SUCCEEDED:
+            if status is not Status.SUCCEEDED:
                 self._enter_safe_state()
-            if self._ros is not None:
-                self._ros.destroy_all()
+            self._destroy_io()
             self._release()
             with self._cond:
                 # The owner may have given up on us while safe_state() hung.
@@ -262,37 +369,149 @@ class Runnable(abc.ABC):
             if self.parent is not None:
                 self.parent._call_child_hook(self)
         finally:
-            manager._node_ended(self, was_stuck or self._status is Status.STUCK)
+            manager._node_ended(self, stuck_now)
+        return True
+
+    def _end_of_life(self, *, stuck: bool) -> None:
+        """The last of run() and a forced safe_state() has returned: give back the type lock
+        and the ROS entities, and tell the manager."""
+        manager = self._manager
+        assert manager is not None
+        try:
+            self._destroy_io()
+            self._release()
+            if self.parent is not None:
+                self.parent._record_child_end(self)
+            manager.events.emit(Event(EventKind.STUCK_RELEASED, self.path, self._status.name,
+                                      self.error, {"elapsed_s": self.elapsed_s}))
+            if self.parent is not None:
+                self.parent._call_child_hook(self)
+        finally:
+            manager._node_ended(self, stuck)
+            self._ended.set()
+
+    def _destroy_io(self) -> None:
+        """Close what this item created: its ROS entities and blackboard subscriptions."""
+        if self._ros is not None:
+            self._ros.destroy_all()
+        if self._view is not None:
+            self._view.close()
 
     def _mark_stuck(self) -> None:
         """Its owner stopped waiting: force the safe state; the thread may end later.
+
+        The forced ``safe_state()`` runs in a thread of its own, so that the owner (a
+        switch, a shutdown, a preempting behaviour) goes on within its bound; whoever must
+        see it applied waits for it with :meth:`_wait_forced`. The type lock stays held
+        until both it and ``run`` have returned.
 
         Also for an item whose clean-up hangs (a ``safe_state()`` that blocks): its status
         was final already, it becomes STUCK so that nobody waits for it any longer, and its
         safe state is not called a second time.
         """
-        assert self._manager is not None
+        manager = self._manager
+        assert manager is not None
         with self._cond:
             if self._decided.is_set() or self._status is Status.PENDING:
                 return
-            force_safe_state = self._status is Status.RUNNING
+            force_safe_state = self._status is Status.RUNNING and self._has_safe_state()
+            in_safe_state = self._status is not Status.RUNNING
             self._status = Status.STUCK
-            self.ended_at = self.ended_at or time.monotonic()
+            if self.ended_at is None:
+                object.__setattr__(self, "ended_at", time.monotonic())
+            if force_safe_state:
+                self._holds += 1
+                self._forced = threading.Event()
             # Under our lock, so that _finish cannot remove it before it is added.
-            self._manager._stuck_add(self)
-        self._manager.events.emit(Event(EventKind.STUCK, self.path, Status.STUCK.name))
+            manager._stuck_add(self)
+        manager.events.emit(Event(EventKind.STUCK, self.path, Status.STUCK.name,
+                                  detail=self._stuck_detail(in_safe_state)))
         if force_safe_state:
-            self._enter_safe_state()
-            if self._ros is not None:
-                # Whatever run() publishes from now on would undo the safe state.
-                self._ros.destroy_all()
+            try:
+                manager._pool.submit(f"beehave:safe_state:{self.path}", self._forced_safe_state)
+            except RuntimeError:  # the pool is shut down: a thread of its own, all the same
+                threading.Thread(target=self._forced_safe_state, daemon=True,
+                                 name=f"beehave:safe_state:{self.path}").start()
         self._decided.set()
+
+    def _forced_safe_state(self) -> None:
+        forced = self._forced
+        assert forced is not None
+        try:
+            self._enter_safe_state()
+            # Whatever run() publishes from now on would undo the safe state.
+            self._destroy_io()
+        finally:
+            forced.set()
+            with self._cond:
+                self._holds -= 1
+                last = self._holds == 0
+            if last:
+                self._end_of_life(stuck=True)
+
+    def _wait_forced(self, deadline: float) -> bool:
+        """Wait until a forced safe state (if any) returned, at most until ``deadline``;
+        report it (once) when it is overdue. True when none is pending."""
+        forced = self._forced
+        if forced is None or forced.wait(max(0.0, deadline - time.monotonic())):
+            return True
+        with self._cond:
+            report = not self._overdue_reported
+            self._overdue_reported = True
+        if report and self._manager is not None:
+            self._manager.events.emit(Event(
+                EventKind.SAFE_STATE_OVERDUE, self.path, self._status.name,
+                detail={"running_s": round(time.monotonic() - (self.ended_at or 0.0), 3),
+                        "at": self._where(), "action_type": getattr(self, "action_type", None)}))
+        return False
+
+    @property
+    def safe_state_pending(self) -> bool:
+        """True while a forced ``safe_state()`` (of a STUCK action) has not returned."""
+        forced = self._forced
+        return forced is not None and not forced.is_set()
+
+    def _has_safe_state(self) -> bool:
+        """Action: yes; a behaviour has no hardware of its own."""
+        return False
+
+    def _stuck_detail(self, in_safe_state: bool) -> dict[str, Any]:
+        manager = self._manager
+        timeout_s = manager.stop_timeout_s if manager is not None else None
+        since = self._interrupted_at
+        detail: dict[str, Any] = {
+            "ignored": ("nothing: its safe_state() has not returned" if in_safe_state
+                        else "its interrupt"),
+            "for_s": None if since is None else round(time.monotonic() - since, 3),
+            "stop_timeout_s": timeout_s,
+            "at": self._where(),
+        }
+        return detail
+
+    def _where(self) -> str | None:
+        """Where its thread is now (innermost Python frame), for STUCK reports."""
+        ident = self._thread_id
+        frame = sys._current_frames().get(ident) if ident is not None else None
+        if frame is None:
+            return None
+        stack = traceback.extract_stack(frame, limit=40)
+        innermost = stack[-1]
+        # The innermost frame is often the standard library (a wait, a socket read): name
+        # the user's line that called it too.
+        for summary in reversed(stack):
+            if not summary.filename.startswith(_STDLIB):
+                break
+        where = f"{summary.filename}:{summary.lineno} in {summary.name}"
+        if summary is not innermost:
+            where += f" (blocked in {innermost.name}, {Path(innermost.filename).name})"
+        return where
 
     def _interrupt(self, deadline: float | None) -> None:
         with self._cond:
             if self._interrupt_requested:
                 return
             self._interrupt_requested = True
+            self._interrupted_at = time.monotonic()
             self._stop_deadline = deadline
             self._cond.notify_all()
         self._on_interrupt(deadline)
@@ -336,3 +555,17 @@ class Runnable(abc.ABC):
             "alive": self.alive,
             "error": None if self.error is None else repr(self.error),
         }
+
+
+def _timeout(seconds: float | None, what: str) -> float | None:
+    """A timeout for the waits of threading: None for "no timeout" (None or inf)."""
+    if seconds is None:
+        return None
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or math.isnan(seconds):
+        raise ConfigError(f"{what} takes a number of seconds (math.inf for no limit), "
+                          f"got {seconds!r}")
+    if math.isinf(seconds):
+        if seconds < 0:
+            return 0.0
+        return None
+    return max(0.0, float(seconds))

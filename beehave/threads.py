@@ -78,6 +78,12 @@ class WorkerPool:
         if fresh:
             worker.thread.start()
 
+    def owns_current(self) -> bool:
+        """True when the calling thread is one of this pool's."""
+        me = threading.current_thread()
+        with self._lock:
+            return any(w.thread is me for w in self._all)
+
     def _park(self, worker: _Worker) -> bool:
         with self._lock:
             if self._closed:

@@ -1,8 +1,9 @@
 """Stress: many threads switching, starting, preempting and interrupting at random.
 
 Invariants, checked on an instrumented timeline: never two actions of one type inside
-``run`` at once, never two top-level behaviours running at once, ``safe_state`` exactly once
-per action that ended without success (never after success), no thread left behind.
+``run`` or ``safe_state`` at once (a STUCK action's forced safe state included), never two
+top-level behaviours running at once, ``safe_state`` exactly once per action that ended
+without success (never after success), no thread left behind.
 """
 
 from __future__ import annotations
@@ -33,9 +34,11 @@ class World:
         roll = rng.random()
         ignore = 0.45 if roll < 0.004 else (0.01 if roll < 0.1 else 0.0)  # a few get STUCK
         raises = RuntimeError("scripted failure") if rng.random() < 0.05 else None
+        # Some safe states take a while: the type stays locked until they have returned.
+        safe_s = 0.02 if rng.random() < 0.05 else 0.0
         action = ScriptedAction(rng.choice(TYPES), duration_s=rng.uniform(0, 0.002),
                                 ignore_interrupt_s=ignore, raises=raises,
-                                timeline=self.timeline)
+                                timeline=self.timeline, safe_state_s=safe_s)
         with self.lock:
             self.actions.append(action)
         return action
@@ -116,7 +119,7 @@ def test_random_operations_keep_every_invariant() -> None:
         # Make sure the run contains a STUCK action whatever the interleaving was.
         top: Any = hl.switch("w1", seed=1)
         stubborn = ScriptedAction("docking", duration_s=30, ignore_interrupt_s=0.45,
-                                  timeline=world.timeline)
+                                  timeline=world.timeline, safe_state_s=0.2)
         world.actions.append(top.start_action(stubborn, preempt=True))
         final: Any = hl.switch("w2", seed=2)
         assert stubborn.status is Status.STUCK
