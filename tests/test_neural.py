@@ -36,6 +36,12 @@ def fixed_policy(feature: str) -> NeuralPolicy:
 
 
 class TestNeuralContract(EngineContract):
+    description_kind = "neural_network"
+
+    def check_description_while_running(self, described: dict[str, object]) -> None:
+        assert described["last_decision"] == "no" and described["running"] == "long"
+        assert described["decisions"] == ["yes", "no"] and described["training"] is False
+
     def single(self, start: StartLike) -> DecisionEngine:
         # The missing key reads as 0.0 → "no", which is mapped to the action.
         return NeuralEngine(fixed_policy("unset/key"), {"no": start}, on_success="return",
