@@ -254,8 +254,7 @@ class StateMachineEngine(DecisionEngine):
         self._last_transition: dict[str, Any] | None = None
         self._pending: list[Runnable] = []
         self._model: _Model | None = None
-        self._tick: Callable[[], bool] | None = None
-        self._fire_cache: dict[str, Callable[[], bool]] = {}
+        self._fire_from: dict[str, dict[str, Callable[[], bool]]] = {}
 
     # -- construction --------------------------------------------------------------------
     def _sources(self, sources: Sequence[str], dest: str) -> list[str]:
@@ -309,21 +308,22 @@ class StateMachineEngine(DecisionEngine):
     def _check_event_name(self, name: str, where: str) -> None:
         if name in OUTCOMES:
             return
+        close = difflib.get_close_matches(name, OUTCOMES, n=1, cutoff=0.75)
+        hint = f": did you mean the outcome {close[0]!r}?" if close else ";"
         if self._declared is not None:
             if name not in self._declared:
                 declared = ", ".join(map(repr, sorted(self._declared))) or "none"
                 raise EngineConfigError(
-                    f"{where}: unknown event {name!r}; outcomes: {', '.join(OUTCOMES)}; "
+                    f"{where}: unknown event {name!r}{hint} outcomes: {', '.join(OUTCOMES)}; "
                     f"declared events: {declared} (declare your own under 'events')")
             return
         # Without a declaration every other name is an event of the caller's, but a
         # near miss of an outcome is a typo that would never fire.
-        close = difflib.get_close_matches(name, OUTCOMES, n=1, cutoff=0.75)
         if close:
             raise EngineConfigError(
-                f"{where}: unknown event {name!r}: did you mean the outcome {close[0]!r}? "
-                f"Outcomes: {', '.join(OUTCOMES)}; if {name!r} is an event you post, "
-                f"declare it: StateMachineEngine(..., events=[{name!r}])")
+                f"{where}: unknown event {name!r}{hint} Outcomes: {', '.join(OUTCOMES)}; "
+                f"if {name!r} is an event you post, declare it: "
+                f"StateMachineEngine(..., events=[{name!r}])")
 
     def _condition_edges(self) -> list[tuple[str, str, int, list[Guard]]]:
         edges = []
@@ -449,9 +449,13 @@ class StateMachineEngine(DecisionEngine):
             model=model, states=list(self.states), transitions=configs,
             initial=self.initial, auto_transitions=False, ignore_invalid_triggers=True,
             send_event=False)
-        self._fire_cache = {
-            name: _bound_trigger(event, model) for name, event in machine.events.items()}
-        self._tick = self._fire_cache.get(_TICK)
+        fires = {name: _bound_trigger(event, model) for name, event in machine.events.items()}
+        # Per state, only the triggers it has transitions for: firing another one would
+        # make transitions log "Can't trigger event …" at every decision step.
+        self._fire_from = {name: {} for name in self.states}
+        for tr, _when, _unless, sources in self._compiled:
+            for src in sources:
+                self._fire_from[src][tr.trigger] = fires[tr.trigger]
         return model
 
     # -- public runtime API --------------------------------------------------------------
@@ -537,18 +541,22 @@ class StateMachineEngine(DecisionEngine):
         """One decision step: posted events, the outcome of the state's starts, then the
         condition transitions. Returns True when a transition was taken. Called by
         :meth:`run`; call it yourself only from a custom ``run``."""
+        fires = self._fire_from[self._state]  # type: ignore[index]
         if self._events:
             with self._events_lock:
                 event = self._events.popleft()
-            fire = self._fire_cache.get(event)
-            if fire is not None and fire():
+            fire = fires.get(event)
+            if fire is None:
+                log.debug("event %r ignored: no transition from state %r takes it", event,
+                          self._state)
+            elif fire():
                 self._enter(context, self._model.state, event)  # type: ignore[union-attr]
                 return True
         if self._pending:
             outcome = self._outcome()
             if outcome is not None:
                 return self._settle(context, outcome)
-        tick = self._tick
+        tick = fires.get(_TICK)
         if tick is not None and tick():
             self._enter(context, self._model.state, "when")  # type: ignore[union-attr]
             return True
@@ -573,8 +581,9 @@ class StateMachineEngine(DecisionEngine):
                 handle.wait(0)  # marks the outcome as seen: no ChildFailed later
                 context.forget(handle)
         state = self._state
+        fires = self._fire_from[state]  # type: ignore[index]
         for trigger in (outcome, "done"):
-            fire = self._fire_cache.get(trigger)
+            fire = fires.get(trigger)
             if fire is not None and fire():
                 context.stop([h for h in pending if not h.status.finished])
                 self._enter(context, self._model.state, trigger)  # type: ignore[union-attr]
@@ -612,8 +621,7 @@ class StateMachineEngine(DecisionEngine):
             context.stop(self._pending)
             self._pending = []
         self._model = None
-        self._tick = None
-        self._fire_cache = {}
+        self._fire_from = {}
 
     # -- drawing -------------------------------------------------------------------------
     def to_graph(self) -> graphviz.Digraph:
