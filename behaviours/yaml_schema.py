@@ -251,16 +251,16 @@ class _Loader:
             except ImportError as exc:
                 raise self.error(path, f"cannot import module {module_name!r} for {use!r}: "
                                        f"{exc}") from None
-            target = getattr(module, attr, None)
-            if target is None:
+            found: Any = getattr(module, attr, None)
+            if found is None:
                 raise self.error(path, f"module {module_name!r} has no {attr!r}")
-            if not isinstance(target, type):
-                what = "a function" if inspect.isroutine(target) else repr(target)
+            if not isinstance(found, type):
+                what = "a function" if inspect.isroutine(found) else repr(found)
                 raise self.error(path, f"{use!r} is {what}, not an Action or Behavior class; "
                                        "an import path names a class (put a factory in the "
                                        "registry instead)")
-            self._check_class(target, use, path, "import path")
-            return target
+            self._check_class(found, use, path, "import path")
+            return found
         known = sorted({*(aliases or {}), *self.registry})
         listed = ", ".join(map(repr, known)) or "none"
         raise self.error(path, f"unknown action {use!r}; known: {listed}; or give an "

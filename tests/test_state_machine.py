@@ -22,6 +22,12 @@ from tests.engine_contract import EngineContract, Recorder, run
 
 
 class TestStateMachineContract(EngineContract):
+    description_kind = "state_machine"
+
+    def check_description_while_running(self, described: dict[str, object]) -> None:
+        assert described["state"] == "work" and described["states"] == ["work", "done"]
+        assert described["last_transition"] is None
+
     def single(self, start: StartLike) -> DecisionEngine:
         return StateMachineEngine(
             [State("work", start=start), State("done", final=True)],
