@@ -192,3 +192,17 @@ def test_importing_beehave_imports_no_engine_dependency() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_network_decisions_as_guards_are_exclusive_in_the_cycle_check() -> None:
+    policy = fixed_policy("battery")
+    states = [State("patrol"), State("charge")]
+    exclusive = StateMachineEngine(states, [
+        Transition("patrol", "charge", when=policy.condition("no")),
+        Transition("charge", "patrol", when=policy.condition("yes"))], initial="patrol")
+    assert exclusive.warnings == []
+    same = StateMachineEngine(states, [
+        Transition("patrol", "charge", when=policy.condition("no")),
+        Transition("charge", "patrol", when=policy.condition("no"))], initial="patrol")
+    (warning,) = same.warnings
+    assert "may loop" in warning and "nn: no" in warning

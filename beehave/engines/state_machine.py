@@ -371,9 +371,10 @@ class StateMachineEngine(DecisionEngine):
                             "the machine would go round without waiting, restarting what "
                             "the states start; make the guards exclusive (e.g. 'x < 20' "
                             "one way, 'x > 90' back) or trigger one of them with 'on'")
-                    maybe.append(f"condition cycle {cycle} may loop without waiting: "
-                                 f"cannot tell whether {', '.join(answer.opaque)} exclude "
-                                 "each other (it is checked while running)")
+                    maybe.append(f"condition cycle {cycle} may loop without waiting: its "
+                                 f"guards {', '.join(answer.opaque)} are callables that "
+                                 "cannot be checked before running (the running machine "
+                                 "fails after 100 transitions without waiting)")
                     continue
                 search(start, dest, [*path, dest], [*used, i], guards + more)
 
