@@ -191,3 +191,16 @@ transitions:
     assert len(built) == 2, "the wildcard re-entered its own destination"
     assert [d.status for d in built] == [Status.INTERRUPTED, Status.RUNNING]
     assert behavior.status is Status.RUNNING
+    assert hl.snapshot()["top"]["file"] == str(file)
+
+
+def test_the_example_in_the_docs_loads_without_warnings(tmp_path: Path) -> None:
+    docs = Path(__file__).parents[1] / "docs" / "yaml_behaviors.md"
+    example = docs.read_text().split("```yaml\n", 1)[1].split("```", 1)[0]
+    (tmp_path / "patrol.yaml").write_text(example)
+    (tmp_path / "docking.yaml").write_text(
+        "engine: tree\ntree: {action: {use: drive, params: {goal_m: 0.0}}}\n")
+    engine = load_engine(tmp_path / "patrol.yaml", registry=REGISTRY,
+                         inject={"robot": PointRobot()})
+    assert engine.warnings == []  # type: ignore[attr-defined]
+    assert engine.events == {"dock_now"}  # type: ignore[attr-defined]
