@@ -13,7 +13,14 @@ for any outcome no transition took), on blackboard conditions (transitions witho
         transitions=[Transition("patrol", "charge", when="battery/percentage < 20"),
                      Transition("charge", "patrol", on="succeeded"),
                      Transition("*", "done", on="shutdown")],
-        initial="patrol")
+        initial="patrol", events=["shutdown"])
+
+``"*"`` is every state but the destination (and the final states), so a wildcard never
+re-enters its own destination. Building the machine refuses what would misbehave: an
+``on`` that is neither an outcome nor a declared event, and a cycle of condition-only
+transitions whose guards can hold together (it would loop without waiting); it warns
+about unreachable states (:attr:`StateMachineEngine.warnings`). Events posted while the
+machine is not running are dropped (``post`` returns False).
 
 Leaving a state interrupts what it started and waits for it (safe states applied) before
 the next state starts anything, so consecutive states may use the same action type.
