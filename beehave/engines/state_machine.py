@@ -216,8 +216,11 @@ class _Model:
 class StateMachineEngine(DecisionEngine):
     """A state machine whose states start actions and sub-behaviours.
 
-    ``on_step(engine)`` is called in the behaviour's thread after every decision step
-    (to record or publish ``engine.state``, as the imitation example does); keep it short.
+    ``events`` declares the names you :meth:`post`; given, every ``on`` must be an
+    outcome or one of them (without it, any ``on`` that is not a near miss of an outcome
+    counts as an event). ``on_step(engine)`` is called in the behaviour's thread after
+    every decision step (to record or publish ``engine.state``, as the imitation example
+    does); keep it short. ``origin`` (a file name) prefixes the load warnings.
     """
 
     kind = "state_machine"
