@@ -59,6 +59,11 @@ class YamlBehavior(EngineBehavior):
         engine = load_engine(self.file, registry=registry, inject=inject)
         super().__init__(engine, name=name or document_name(self.file))
 
+    def _snapshot(self) -> dict[str, Any]:
+        snap = super()._snapshot()
+        snap["file"] = str(self.file)  # which file is running, beside where its engine is
+        return snap
+
 
 # -- commanded ----------------------------------------------------------------------------
 

@@ -33,6 +33,8 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from beehave.action import Action
+from beehave.behavior import Behavior
 from beehave.engines.engine import (
     DecisionEngine,
     EngineBehavior,
@@ -82,6 +84,7 @@ class BehaviorDoc(_Strict):
     initial: str | None = None
     states: list[dict[str, Any]] | None = None
     transitions: list[dict[str, Any]] | None = None
+    events: list[str] | None = None
     # tree
     tree: dict[str, Any] | None = None
     rate_hz: float = Field(default=20.0, gt=0)
@@ -95,8 +98,10 @@ class BehaviorDoc(_Strict):
         missing = [k for k in needs if getattr(self, k) is None]
         if missing:
             raise ValueError(f"engine {self.engine!r} needs key(s) {', '.join(missing)}")
-        foreign = {"state_machine": ("tree", "neural"), "tree": ("states", "neural"),
-                   "neural": ("states", "tree")}[self.engine]
+        foreign = {"state_machine": ("tree", "neural"),
+                   "tree": ("states", "transitions", "initial", "events", "neural"),
+                   "neural": ("states", "transitions", "initial", "events", "tree")
+                   }[self.engine]
         present = [k for k in foreign if getattr(self, k) is not None]
         if present:
             raise ValueError(f"key(s) {', '.join(present)} do not belong to engine "
@@ -108,17 +113,33 @@ class _Loader:
     """Resolves start entries of one document (and its inline sub-behaviours)."""
 
     def __init__(self, file: Path, registry: Mapping[str, Factory],
-                 inject: Mapping[str, Any], strict_params: bool = True) -> None:
+                 inject: Mapping[str, Any], strict_params: bool = True,
+                 chain: tuple[Path, ...] = ()) -> None:
         self.file = file
         self.strict_params = strict_params
         self.registry = registry
         self.inject = inject
+        #: The files that include this one, outermost first (to refuse include cycles).
+        self.chain = chain
+        #: Inline documents being built (a YAML alias can make one contain itself).
+        self._building: list[int] = []
 
     def error(self, key_path: str, message: str) -> YamlBehaviorError:
         return YamlBehaviorError(str(self.file), key_path, message)
 
     def build(self, data: Any, where: str = "",
               aliases: Mapping[str, ActionRef] | None = None) -> DecisionEngine:
+        if id(data) in self._building:
+            raise self.error(where, "this inline behaviour contains itself (through a YAML "
+                                    "alias); a behaviour cannot start itself")
+        self._building.append(id(data))
+        try:
+            return self._build(data, where, aliases)
+        finally:
+            self._building.pop()
+
+    def _build(self, data: Any, where: str,
+               aliases: Mapping[str, ActionRef] | None) -> DecisionEngine:
         try:
             doc = BehaviorDoc.model_validate(data)
         except ValidationError as exc:
@@ -138,7 +159,8 @@ class _Loader:
                 from beehave.engines.state_machine import StateMachineEngine
                 return StateMachineEngine.from_dict(
                     {"states": doc.states, "transitions": doc.transitions or [],
-                     "initial": doc.initial}, resolve_start=resolve, where=where)
+                     "initial": doc.initial, "events": doc.events or []},
+                    resolve_start=resolve, where=where, origin=str(self.file))
             if doc.engine == "tree":
                 from beehave.engines.tree import TreeEngine
                 assert doc.tree is not None
@@ -186,7 +208,16 @@ class _Loader:
         if isinstance(body, str):
             sub_file = (self.file.parent / body).resolve()
             registry, inject = self.registry, self.inject
-            load_engine(sub_file, registry=registry, inject=inject)  # validate now
+            chain = (*self.chain, self.file.resolve())
+            if sub_file in chain:
+                cycle = " → ".join(str(f) for f in (*chain[chain.index(sub_file):], sub_file))
+                raise self.error(path, f"behaviour files start each other in a cycle: "
+                                       f"{cycle}; a behaviour cannot start itself")
+            try:  # validate now, with the files that include it
+                _load(sub_file, registry=registry, inject=inject,
+                      strict_params=self.strict_params, chain=chain)
+            except YamlBehaviorError as exc:
+                raise self.error(path, str(exc)) from None
 
             def make_file() -> Runnable:
                 from behaviours.behaviors import YamlBehavior
@@ -206,7 +237,13 @@ class _Loader:
     def _factory(self, use: str, path: str, params: Mapping[str, Any],
                  aliases: Mapping[str, ActionRef] | None = None) -> Factory:
         if use in self.registry:
-            return self.registry[use]
+            target = self.registry[use]
+            if isinstance(target, type):
+                self._check_class(target, use, path, "registry entry")
+            elif not callable(target):
+                raise self.error(path, f"registry entry {use!r} is {target!r}: not an Action "
+                                       "or Behavior class, nor a factory returning one")
+            return target
         if ":" in use:
             module_name, _, attr = use.partition(":")
             try:
@@ -214,16 +251,27 @@ class _Loader:
             except ImportError as exc:
                 raise self.error(path, f"cannot import module {module_name!r} for {use!r}: "
                                        f"{exc}") from None
-            target = getattr(module, attr, None)
-            if target is None:
+            found: Any = getattr(module, attr, None)
+            if found is None:
                 raise self.error(path, f"module {module_name!r} has no {attr!r}")
-            if not callable(target):
-                raise self.error(path, f"{use!r} is not a class or factory")
-            return target  # type: ignore[no-any-return]
+            if not isinstance(found, type):
+                what = "a function" if inspect.isroutine(found) else repr(found)
+                raise self.error(path, f"{use!r} is {what}, not an Action or Behavior class; "
+                                       "an import path names a class (put a factory in the "
+                                       "registry instead)")
+            self._check_class(found, use, path, "import path")
+            return found
         known = sorted({*(aliases or {}), *self.registry})
         listed = ", ".join(map(repr, known)) or "none"
         raise self.error(path, f"unknown action {use!r}; known: {listed}; or give an "
                                "import path 'module:Class'")
+
+    def _check_class(self, target: type, use: str, path: str, what: str) -> None:
+        if not issubclass(target, (Action, Behavior)):
+            raise self.error(path, f"{what} {use!r} is the class {target.__module__}."
+                                   f"{target.__qualname__}, which is not an Action or "
+                                   "Behavior subclass; only actions and behaviours can be "
+                                   "started")
 
     def _bind(self, factory: Factory, use: str, path: str,
               params: Mapping[str, Any]) -> dict[str, Any]:
@@ -285,19 +333,37 @@ def build_engine(data: Any, *, file: str | Path = "<dict>",
     object, for instance), unless the file gives them. ``strict_params=False`` accepts
     missing constructor arguments (to draw a file without its robot).
     """
+    return _build(data, file=Path(file), registry=registry, inject=inject,
+                  strict_params=strict_params, chain=())
+
+
+def _build(data: Any, *, file: Path, registry: Mapping[str, Factory] | None,
+           inject: Mapping[str, Any] | None, strict_params: bool,
+           chain: tuple[Path, ...]) -> DecisionEngine:
     if not isinstance(data, Mapping):
         raise YamlBehaviorError(str(file), "", f"expected a mapping with 'engine' at the top, "
                                                f"got {type(data).__name__}")
-    return _Loader(Path(file), registry or {}, inject or {}, strict_params).build(data)
+    loader = _Loader(file, registry or {}, inject or {}, strict_params, chain)
+    try:
+        return loader.build(data)
+    except RecursionError:  # a last resort: the checks above name the usual causes
+        raise YamlBehaviorError(str(file), "", "nested too deeply (does a behaviour start "
+                                               "itself?)") from None
 
 
 def load_engine(file: str | Path, *, registry: Mapping[str, Factory] | None = None,
                 inject: Mapping[str, Any] | None = None,
                 strict_params: bool = True) -> DecisionEngine:
     """Read, validate and build the engine of a YAML behaviour file (see :func:`build_engine`)."""
-    path = Path(file)
-    return build_engine(_read(path), file=path, registry=registry, inject=inject,
-                        strict_params=strict_params)
+    return _load(Path(file), registry=registry, inject=inject, strict_params=strict_params,
+                 chain=())
+
+
+def _load(file: Path, *, registry: Mapping[str, Factory] | None,
+          inject: Mapping[str, Any] | None, strict_params: bool,
+          chain: tuple[Path, ...]) -> DecisionEngine:
+    return _build(_read(file), file=file, registry=registry, inject=inject,
+                  strict_params=strict_params, chain=chain)
 
 
 def document_name(file: str | Path) -> str:

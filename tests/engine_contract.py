@@ -10,6 +10,7 @@ engine drives.
 from __future__ import annotations
 
 import abc
+import json
 from typing import Any
 
 from beehave import HighLevelBehaviorManager, Status
@@ -48,7 +49,11 @@ def run(hl: HighLevelBehaviorManager, engine: DecisionEngine) -> EngineBehavior:
 
 
 class EngineContract(abc.ABC):
-    """Inherit it in ``tests/test_<engine>.py`` and write the two builders."""
+    """Inherit it in ``tests/test_<engine>.py``, write the two builders and name the
+    ``kind`` the engine's :meth:`~DecisionEngine.describe` reports."""
+
+    #: ``describe()["kind"]``: "state_machine", "behaviour_tree", "neural_network" …
+    description_kind: str
 
     @abc.abstractmethod
     def single(self, start: StartLike) -> DecisionEngine:
@@ -89,6 +94,24 @@ class EngineContract(abc.ABC):
         assert behavior.status is Status.INTERRUPTED
         assert action.status is Status.INTERRUPTED and not action.alive
         assert action.safe_state_calls == 1
+
+    def test_the_snapshot_shows_where_the_running_engine_is(
+            self, hl: HighLevelBehaviorManager) -> None:
+        act = Recorder("long", duration_s=30)
+        engine = self.single(act)
+        behavior = run(hl, engine)
+        assert wait_until(lambda: bool(act.built) and act.built[0].status is Status.RUNNING)
+        snap = hl.snapshot()
+        described = snap["top"]["engine"]
+        assert described["kind"] == self.description_kind
+        assert set(described) == set(engine.describe())  # values move on as it runs
+        json.dumps(snap)  # the ROS 2 state topic publishes it as JSON
+        self.check_description_while_running(described)
+        hl.switch("idle")
+        assert behavior.status is Status.INTERRUPTED
+
+    def check_description_while_running(self, described: dict[str, Any]) -> None:
+        """Engine-specific checks of ``describe()`` while ``single``'s action runs."""
 
     def test_a_failed_action_fails_the_behaviour_with_its_error_as_cause(
             self, hl: HighLevelBehaviorManager) -> None:

@@ -65,3 +65,44 @@ def test_beehave_cli_routes_graph(tmp_path) -> None:  # type: ignore[no-untyped-
     assert main(["graph", "tests/data/patrol_sm.yaml", "-o", str(out),
                  "--registry", "tests.test_yaml_behavior:REGISTRY"]) == 0
     assert "digraph" in out.read_text()
+
+
+def needs_a_robot(robot: object, speed_mps: float = 1.0) -> StateMachineEngine:
+    assert robot is None or isinstance(robot, dict)
+    return example_machine()
+
+
+def test_a_function_missing_its_arguments_says_to_pass_them_with_p(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "robot.dot"
+    assert graph_main(["tests.test_graph:needs_a_robot", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "missing a required argument: 'robot'" in err
+    assert "-p KEY=VALUE" in err and "-p robot=null" in err
+    assert "it takes: robot, speed_mps=1.0" in err
+    assert graph_main(["tests.test_graph:needs_a_robot", "-p", "robot=null", "-o",
+                       str(out)]) == 0
+    assert "digraph" in out.read_text()
+
+
+def test_a_yaml_file_without_its_registry_says_to_pass_registry(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert graph_main([str(DATA / "patrol_sm.yaml"), "-o", "unused.dot"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown action 'drive'" in err and "hint: name the file's actions with " \
+        "--registry MODULE:ATTR" in err
+    assert graph_main([str(DATA / "patrol_sm.yaml"), "--registry", "tests.test_graph:nothing"]
+                      ) == 2
+    assert "--registry 'tests.test_graph:nothing': 'tests.test_graph' has no mapping " \
+        "'nothing'" in capsys.readouterr().err
+
+
+def test_verbose_graph_logs_load_warnings(tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    spec = tmp_path / "unreachable_graph_v.yaml"
+    spec.write_text("engine: state_machine\ninitial: a\nstates:\n  - {name: a}\n"
+                    "  - {name: lonely_v}\n")
+    out = tmp_path / "u.dot"
+    assert graph_main(["-v", str(spec), "-o", str(out)]) == 0
+    assert capsys.readouterr().out.strip() == str(out)
+    assert "lonely_v" in out.read_text()

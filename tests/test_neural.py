@@ -36,6 +36,12 @@ def fixed_policy(feature: str) -> NeuralPolicy:
 
 
 class TestNeuralContract(EngineContract):
+    description_kind = "neural_network"
+
+    def check_description_while_running(self, described: dict[str, object]) -> None:
+        assert described["last_decision"] == "no" and described["running"] == "long"
+        assert described["decisions"] == ["yes", "no"] and described["training"] is False
+
     def single(self, start: StartLike) -> DecisionEngine:
         # The missing key reads as 0.0 → "no", which is mapped to the action.
         return NeuralEngine(fixed_policy("unset/key"), {"no": start}, on_success="return",
@@ -186,3 +192,17 @@ def test_importing_beehave_imports_no_engine_dependency() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_network_decisions_as_guards_are_exclusive_in_the_cycle_check() -> None:
+    policy = fixed_policy("battery")
+    states = [State("patrol"), State("charge")]
+    exclusive = StateMachineEngine(states, [
+        Transition("patrol", "charge", when=policy.condition("no")),
+        Transition("charge", "patrol", when=policy.condition("yes"))], initial="patrol")
+    assert exclusive.warnings == []
+    same = StateMachineEngine(states, [
+        Transition("patrol", "charge", when=policy.condition("no")),
+        Transition("charge", "patrol", when=policy.condition("no"))], initial="patrol")
+    (warning,) = same.warnings
+    assert "may loop" in warning and "nn: no" in warning

@@ -14,6 +14,7 @@ from beehave.engines import (
     StateMachineEngine,
     Transition,
     UnhandledOutcome,
+    UnknownEvent,
 )
 from beehave.engines.engine import Starter, StartLike, as_starter
 from beehave.testing import ScriptedAction, wait_until
@@ -21,6 +22,12 @@ from tests.engine_contract import EngineContract, Recorder, run
 
 
 class TestStateMachineContract(EngineContract):
+    description_kind = "state_machine"
+
+    def check_description_while_running(self, described: dict[str, object]) -> None:
+        assert described["state"] == "work" and described["states"] == ["work", "done"]
+        assert described["last_transition"] is None
+
     def single(self, start: StartLike) -> DecisionEngine:
         return StateMachineEngine(
             [State("work", start=start), State("done", final=True)],
@@ -99,14 +106,179 @@ def test_unhandled_failure_names_the_state_and_outcome(hl: HighLevelBehaviorMana
     assert "'lift'" in str(error) and "motor" in str(error)
 
 
-def test_condition_loops_are_reported(hl: HighLevelBehaviorManager) -> None:
+def test_a_loop_the_load_check_cannot_decide_is_stopped_while_running(
+        hl: HighLevelBehaviorManager) -> None:
+    # Two different callables: loading cannot know they hold together, so it warns…
     machine = StateMachineEngine(
         [State("a"), State("b")],
-        [Transition("a", "b", when="x"), Transition("b", "a", when="x")], initial="a")
+        [Transition("a", "b", when=lambda bb: bool(bb.get("x"))),
+         Transition("b", "a", when=lambda bb: bb.get("x") is True)], initial="a")
+    assert any("may loop" in w and "'a' → 'b' → 'a'" in w for w in machine.warnings)
     hl.blackboard.set("x", True)
+    # …and the running machine reports the loop.
     behavior = run(hl, machine)
     assert behavior.wait(5)
     assert isinstance(behavior.error, EngineConfigError) and "loop" in str(behavior.error)
+
+
+def test_a_wildcard_never_re_enters_its_destination(hl: HighLevelBehaviorManager) -> None:
+    charge = Recorder("charge", action_type="driving", duration_s=30)
+    steps: list[str | None] = []
+    stepped = threading.Condition()
+
+    def on_step(m: StateMachineEngine) -> None:
+        with stepped:
+            steps.append(m.state)
+            stepped.notify_all()
+
+    hl.blackboard.set("battery/percentage", 80)
+    machine = StateMachineEngine(
+        [State("patrol", start=Recorder("patrol", action_type="driving", duration_s=30)),
+         State("charge", start=charge)],
+        [Transition("*", "charge", when="battery/percentage < 20")], initial="patrol",
+        on_step=on_step)
+    behavior = run(hl, machine)
+    hl.blackboard.set("battery/percentage", 10)
+    assert wait_until(lambda: machine.state == "charge")
+    for level in (9, 8, 7):  # each change wakes the machine for another decision step
+        with stepped:
+            seen = len(steps)
+            hl.blackboard.set("battery/percentage", level)
+            assert stepped.wait_for(lambda n=seen: len(steps) > n, timeout=5)
+    assert len(charge.built) == 1, "the wildcard re-entered its own destination"
+    assert charge.built[0].status is Status.RUNNING and charge.built[0].safe_state_calls == 0
+    assert behavior.status is Status.RUNNING
+
+
+def test_a_wildcard_covers_every_state_but_its_destination_and_final_states() -> None:
+    machine = StateMachineEngine(
+        [State("a"), State("b"), State("c"), State("end", final=True)],
+        [Transition("*", "b", on="go"), Transition("a", "end", on="stop")], initial="a")
+    assert machine._compiled[0][3] == ["a", "c"]
+    source = machine.to_graph().source
+    assert "b -> b" not in source and "end -> b" not in source and "c -> b" in source
+
+
+@pytest.mark.parametrize(("transitions", "cycle", "witness"), [
+    # The case: two wildcards on one condition chase each other.
+    ([Transition("*", "a", when="low"), Transition("*", "b", when="low")],
+     "'a' → 'b' → 'a'", "low = True"),
+    # A state that restarts itself while a condition holds.
+    ([Transition("b", "b", when="battery/percentage < 20")], "'b' → 'b'",
+     "battery/percentage = 19"),
+    # Overlapping ranges: both hold for 4 < x < 6.
+    ([Transition("a", "b", when="x > 4"), Transition("b", "a", when="x < 6")],
+     "'a' → 'b' → 'a'", "x = 5.0"),
+    # Three states, mixed when/unless.
+    ([Transition("a", "b", when="mode == 'auto'"), Transition("b", "c", unless="docked"),
+      Transition("c", "a", when="mode != 'manual'")], "'a' → 'b' → 'c' → 'a'",
+     "mode = 'auto', docked = None"),
+])
+def test_condition_cycles_that_can_hold_together_are_rejected_at_load(
+        transitions: list[Transition], cycle: str, witness: str) -> None:
+    with pytest.raises(EngineConfigError, match="condition cycle") as info:
+        StateMachineEngine([State("a"), State("b"), State("c")], transitions, initial="a")
+    assert cycle in str(info.value) and f"holds when {witness}" in str(info.value)
+
+
+@pytest.mark.parametrize("transitions", [
+    # Hysteresis: down below 20, back above 90.
+    [Transition("a", "b", when="battery/percentage < 20"),
+     Transition("b", "a", when="battery/percentage > 90")],
+    # A cycle that an outcome closes.
+    [Transition("a", "b", when=lambda bb: bool(bb.get("x"))),
+     Transition("b", "a", on="succeeded")],
+    # A wildcard to a state that leaves on an outcome.
+    [Transition("*", "b", when="low"), Transition("b", "a", on="succeeded")],
+    [Transition("a", "b", when="x == 1"), Transition("b", "a", when="x == 2")],
+    [Transition("a", "b", when="x"), Transition("b", "a", unless="x")],
+])
+def test_exclusive_or_event_broken_cycles_load_without_warning(
+        transitions: list[Transition]) -> None:
+    machine = StateMachineEngine([State("a"), State("b")], transitions, initial="a")
+    assert machine.warnings == []
+
+
+def test_the_same_callable_as_when_and_unless_is_exclusive() -> None:
+    def needs_charge(bb: object) -> bool:
+        return False
+
+    machine = StateMachineEngine(
+        [State("patrol"), State("charge")],
+        [Transition("patrol", "charge", when=needs_charge),
+         Transition("charge", "patrol", unless=needs_charge)], initial="patrol")
+    assert machine.warnings == []
+
+
+def test_unreachable_states_are_warned_about(caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level("WARNING", logger="beehave.engines.state_machine"):
+        machine = StateMachineEngine(
+            [State("start"), State("orphan_7f3"), State("end", final=True)],
+            [Transition("start", "end", on="succeeded")], initial="start")
+    (text,) = machine.warnings
+    assert "state 'orphan_7f3' is unreachable" in text and "'start'" in text
+    assert text in caplog.messages
+
+
+def test_events_posted_while_not_running_are_dropped(hl: HighLevelBehaviorManager) -> None:
+    machine = StateMachineEngine(
+        [State("wait", start=Recorder("w", duration_s=30)), State("stopped", final=True)],
+        [Transition("*", "stopped", on="shutdown")], initial="wait")
+    assert machine.post("shutdown") is False  # nobody runs it: dropped, not kept
+    behavior = run(hl, machine)
+    assert wait_until(lambda: machine.state == "wait")
+    assert behavior.status is Status.RUNNING  # the stale event did not fire at start
+    hl.switch("idle")
+    assert machine.post("shutdown") is False
+    behavior = run(hl, machine)
+    assert wait_until(lambda: machine.state == "wait")
+    assert behavior.status is Status.RUNNING
+    assert machine.post("shutdown") is True
+    assert behavior.wait(5) and behavior.result == "stopped"
+
+
+def test_posting_an_unknown_event_or_an_outcome_raises() -> None:
+    machine = StateMachineEngine(
+        [State("a"), State("b")], [Transition("a", "b", on="shutdown")], initial="a")
+    with pytest.raises(UnknownEvent, match=r"cannot post 'shutdwon'.*events: 'shutdown'"):
+        machine.post("shutdwon")
+    with pytest.raises(UnknownEvent, match=r"'succeeded': it is an outcome"):
+        machine.post("succeeded")
+
+
+def test_a_misspelt_outcome_is_rejected() -> None:
+    with pytest.raises(EngineConfigError, match=r"transitions\[0\]\.on: unknown event "
+                                                r"'succeded': did you mean the outcome "
+                                                r"'succeeded'"):
+        StateMachineEngine([State("a"), State("b")], [Transition("a", "b", on="succeded")],
+                           initial="a")
+    with pytest.raises(EngineConfigError, match=r"unknown event 'dock_now'.*declared events: "
+                                                r"'shutdown'"):
+        StateMachineEngine([State("a"), State("b")], [Transition("a", "b", on="dock_now")],
+                           initial="a", events=["shutdown"])
+    with pytest.raises(EngineConfigError, match=r"events\[0\]: 'failed' is built in"):
+        StateMachineEngine([State("a")], [], initial="a", events=["failed"])
+
+
+def test_the_engine_description_names_the_state_and_the_last_transition(
+        hl: HighLevelBehaviorManager) -> None:
+    machine = StateMachineEngine(
+        [State("wait", start=Recorder("w", duration_s=30)), State("go"),
+         State("end", final=True)],
+        [Transition("wait", "go", on="next"), Transition("go", "end", on="finish")],
+        initial="wait")
+    behavior = run(hl, machine)
+    assert wait_until(lambda: machine.state == "wait")
+    assert hl.snapshot()["top"]["engine"] == {
+        "kind": "state_machine", "state": "wait", "states": ["wait", "go", "end"],
+        "last_transition": None}
+    machine.post("next")
+    assert wait_until(lambda: machine.state == "go")
+    engine = hl.snapshot()["top"]["engine"]
+    assert engine["state"] == "go"
+    assert {k: engine["last_transition"][k] for k in ("source", "dest", "trigger")} == {
+        "source": "wait", "dest": "go", "trigger": "next"}
+    assert behavior.status is Status.RUNNING
 
 
 @pytest.mark.parametrize(("states", "transitions", "initial", "expected"), [

@@ -25,6 +25,11 @@ Selector = py_trees.composites.Selector
 
 
 class TestTreeContract(EngineContract):
+    description_kind = "behaviour_tree"
+
+    def check_description_while_running(self, described: dict[str, object]) -> None:
+        assert described["nodes"] == [{"name": "work", "path": "work", "status": "RUNNING"}]
+
     def single(self, start: StartLike) -> DecisionEngine:
         return TreeEngine(StartLeaf("work", start), rate_hz=200)
 
@@ -135,3 +140,33 @@ def test_graph_draws_composites_and_leaves() -> None:
         BlackboardCheck("low", "battery/percentage < 20"), StartLeaf("patrol", Recorder("p"))])
     source = TreeEngine(root).to_graph().source
     assert "? root" in source and "battery/percentage < 20" in source and "patrol" in source
+
+
+def test_the_description_lists_every_node_with_its_status_in_pre_order(
+        hl: HighLevelBehaviorManager) -> None:
+    patrol = Recorder("patrol", duration_s=30)
+    hl.blackboard.set("battery/percentage", 80)
+    root = Selector("root", memory=False, children=[
+        Sequence("charge?", memory=True, children=[
+            BlackboardCheck("low", "battery/percentage < 20"),
+            StartLeaf("charge", Recorder("charge", duration_s=30))]),
+        StartLeaf("patrol", patrol), StartLeaf("patrol", Recorder("spare"))])
+    engine = TreeEngine(root, rate_hz=200)
+    run(hl, engine)
+    assert wait_until(lambda: bool(patrol.built) and patrol.built[0].status is Status.RUNNING)
+    expected = [
+        ("root", "RUNNING"),
+        ("root/charge?", "FAILURE"),
+        ("root/charge?/low", "FAILURE"),
+        ("root/charge?/charge", "INVALID"),
+        ("root/patrol[1]", "RUNNING"),
+        ("root/patrol[2]", "INVALID"),
+    ]
+
+    def seen() -> list[tuple[str, str]]:
+        return [(n["path"], n["status"]) for n in hl.snapshot()["top"]["engine"]["nodes"]]
+
+    assert wait_until(lambda: seen() == expected), seen()
+    described = hl.snapshot()["top"]["engine"]
+    assert described["kind"] == "behaviour_tree" and described["tick"] >= 1
+    assert [n["name"] for n in described["nodes"]][-2:] == ["patrol", "patrol"]

@@ -29,6 +29,7 @@ from beehave.engines.errors import (
     NotRenderable,
     TreeFailed,
     UnhandledOutcome,
+    UnknownEvent,
 )
 
 if TYPE_CHECKING:
@@ -49,7 +50,8 @@ __all__ = [
     "DecisionEngine", "DecisionFailed", "EngineBehavior", "EngineBusy", "EngineConfigError",
     "EngineContext", "EngineError", "Feature", "MissingExtra", "NeuralEngine", "NeuralPolicy",
     "NotRenderable", "StartLeaf", "Starter", "State", "StateMachineEngine", "Transition",
-    "TreeEngine", "TreeFailed", "UnhandledOutcome", "as_starter", "parse_condition",
+    "TreeEngine", "TreeFailed", "UnhandledOutcome", "UnknownEvent", "as_starter",
+    "parse_condition",
 ]
 
 

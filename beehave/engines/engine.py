@@ -376,6 +376,16 @@ class DecisionEngine(abc.ABC):
         """The engine's structure as a graphviz graph (``beehave graph`` renders it)."""
         raise NotRenderable(f"{type(self).__name__} has no graph to draw")
 
+    def describe(self) -> dict[str, Any]:
+        """Where the engine is now, as a small JSON-serialisable dict with at least
+        ``"kind"``: the current state of a state machine, the node statuses of a tree, the
+        last decision of a network. Called from other threads (the manager's
+        ``snapshot()``, the ROS 2 state topic) while the engine runs, so it only reads.
+
+        Override it in your own engine; the default names the kind only.
+        """
+        return {"kind": self.kind}
+
 
 class EngineBehavior(Behavior):
     """A behaviour that is nothing but its engine: ``run`` drives ``engine``.
@@ -408,6 +418,12 @@ class EngineBehavior(Behavior):
 
     def on_interrupt(self) -> None:
         self._wake_engine()
+
+    def _snapshot(self) -> dict[str, Any]:
+        snap = super()._snapshot()
+        # What users most want to see of a running behaviour: where its engine is.
+        snap["engine"] = self.engine.describe()
+        return snap
 
 
 def format_validation_error(exc: Any, prefix: str = "") -> str:

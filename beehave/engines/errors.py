@@ -5,7 +5,9 @@ Messages name the engine, the state or tree node, and for a bad name what exists
 
 from __future__ import annotations
 
-from beehave.errors import BeehaveError, ConfigError
+from collections.abc import Iterable
+
+from beehave.errors import BeehaveError, ConfigError, UnknownNameError
 
 
 class EngineError(BeehaveError):
@@ -23,6 +25,18 @@ class EngineBusy(EngineError):
 class EngineConfigError(EngineError, ConfigError):
     """A state machine, tree or network definition that is not valid (unknown state,
     missing initial state, bad condition …). The message names the key path or state."""
+
+
+class UnknownEvent(EngineError, UnknownNameError):
+    """``machine.post(name)`` with a name that no transition of the machine uses, or a
+    built-in outcome (the engine fires those itself). ``.choices`` lists the events the
+    machine declares."""
+
+    kind = "event"
+
+    def __init__(self, name: str, choices: Iterable[str], *, message: str) -> None:
+        super().__init__(name, choices)
+        self.args = (message,)
 
 
 class UnhandledOutcome(EngineError):

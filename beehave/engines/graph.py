@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import json
+import logging
 import sys
 from collections.abc import Mapping
 from pathlib import Path
@@ -46,12 +48,37 @@ def render_engine(engine: DecisionEngine, output: str | Path) -> Path:
     return out
 
 
+def _signature_text(obj: Any) -> str:
+    try:
+        parameters = inspect.signature(obj).parameters.values()
+    except (TypeError, ValueError):
+        return "?"
+    return ", ".join(str(p.replace(annotation=p.empty)) for p in parameters) or "nothing"
+
+
 def _engine_of(obj: Any, params: Mapping[str, Any], spec: str) -> DecisionEngine:
     if isinstance(obj, DecisionEngine):
         return obj
     if isinstance(obj, EngineBehavior):
         return obj.engine
     if callable(obj):
+        try:
+            signature = inspect.signature(obj)
+        except (TypeError, ValueError):  # no signature to check: the call will tell
+            signature = None
+        if signature is not None:
+            try:
+                signature.bind(**params)
+            except TypeError as exc:
+                given = " ".join(f"-p {k}=…" for k in params) or "no -p"
+                missing = [n for n, p in signature.parameters.items()
+                           if p.default is p.empty and n not in params
+                           and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+                example = f" (e.g. -p {missing[0]}=null)" if missing else ""
+                raise NotRenderable(
+                    f"{spec}: cannot call it with {given}: {exc}; give its arguments with "
+                    f"-p KEY=VALUE, values as JSON{example}; it takes: "
+                    f"{_signature_text(obj)}") from None
         built = obj(**params)
         if isinstance(built, DecisionEngine):
             return built
@@ -112,20 +139,48 @@ def graph_main(argv: list[str]) -> int:
                         "an injected action argument for a YAML file (JSON value)")
     parser.add_argument("--registry", metavar="MODULE:ATTR",
                         help="a mapping of action names for a YAML file's actions")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="log what loading finds (e.g. unreachable states) in detail")
     args = parser.parse_args(argv)
+    if args.verbose and not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.DEBUG,
+                            format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
-        registry = None
-        if args.registry:
-            module_name, _, attr = args.registry.partition(":")
-            registry = getattr(importlib.import_module(module_name), attr)
+        registry = _registry(args.registry) if args.registry else None
         engine = load_spec(args.spec, dict(args.param), registry)
         output = args.output or f"{Path(args.spec.split(':')[-1]).stem}.png"
         out = render_engine(engine, output)
     except (BeehaveError, ImportError, AttributeError, TypeError) as exc:
-        print(f"beehave graph: {exc}", file=sys.stderr)
+        print(f"beehave graph: {exc}{_hint(exc, args)}", file=sys.stderr)
         return 2
     print(out)
     return 0
+
+
+def _registry(text: str) -> Mapping[str, Any]:
+    module_name, sep, attr = text.partition(":")
+    if not sep or not module_name or not attr:
+        raise NotRenderable(f"--registry {text!r}: expected MODULE:ATTR (a mapping of action "
+                            "names to classes)")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise NotRenderable(f"--registry {text!r}: cannot import {module_name!r}: {exc}"
+                            ) from None
+    registry = getattr(module, attr, None)
+    if not isinstance(registry, Mapping):
+        raise NotRenderable(f"--registry {text!r}: {module_name!r} has no mapping {attr!r} "
+                            f"(got {registry!r})")
+    return registry
+
+
+def _hint(exc: BaseException, args: argparse.Namespace) -> str:
+    """What to try next, for the failures a first use runs into."""
+    text = str(exc)
+    if "unknown action" in text and not args.registry:
+        return ("\nhint: name the file's actions with --registry MODULE:ATTR (a dict of "
+                "names to Action classes), or use import paths 'module:Class' in the file")
+    return ""
 
 
 if __name__ == "__main__":

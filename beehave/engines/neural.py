@@ -392,12 +392,34 @@ class NeuralEngine(DecisionEngine):
         self.train = train
         self.teacher = teacher
         self.decision: str | None = None
+        #: The last decision taken (kept when ``decision`` is cleared to decide afresh).
+        self.last_decision: str | None = None
         self.decisions_made = 0
         self._trainer: Trainer | None = None
         self._current: Runnable | None = None
 
+    def describe(self) -> dict[str, Any]:
+        """The network's last decision and what it runs, JSON-serialisable:
+        ``{"kind": "neural_network", "last_decision": …, "running": …, "decisions": […],
+        "decisions_made": n, "training": bool, "training_steps": n, "examples": n,
+        "last_loss": …}``. Safe from any thread: it only reads."""
+        current = self._current
+        policy = self.policy
+        return {
+            "kind": "neural_network",
+            "last_decision": self.last_decision,
+            "running": None if current is None else current.name,
+            "decisions": list(policy.decisions),
+            "decisions_made": self.decisions_made,
+            "training": self._trainer is not None,
+            "training_steps": policy.steps,
+            "examples": policy.examples,
+            "last_loss": policy.last_loss,
+        }
+
     def on_start(self, context: EngineContext) -> None:
         self.decision = None
+        self.last_decision = None
         if self.train or self.teacher is not None:
             self._trainer = self.policy.start_training(
                 name=f"beehave:nn-train:{context.behavior.path}")
@@ -422,6 +444,7 @@ class NeuralEngine(DecisionEngine):
                 self.decision = None  # decide afresh; the same decision restarts it
             features = self.policy.featurize(blackboard)
             decision = self.policy.decide_features(features)
+            self.last_decision = decision
             self.decisions_made += 1
             if self.teacher is not None:
                 self.policy.add_example(features, self.teacher(blackboard))

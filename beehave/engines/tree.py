@@ -164,10 +164,47 @@ class TreeEngine(DecisionEngine):
         self.poll_s = min(0.05, 1.0 / self.rate_hz)
         self.tree = py_trees.trees.BehaviourTree(root)
         self.ticks = 0
+        # (tick, layout, statuses) after the last complete tick of a run, for describe().
+        self._seen: tuple[int, list[tuple[py_trees.behaviour.Behaviour, str]],
+                          tuple[str, ...]] | None = None
 
     @property
     def leaves(self) -> list[_EngineLeaf]:
         return [n for n in self.root.iterate() if isinstance(n, _EngineLeaf)]
+
+    def _layout(self) -> list[tuple[py_trees.behaviour.Behaviour, str]]:
+        """Every node in pre-order with its path: names from the root joined by ``/``,
+        ``[i]`` telling same-named siblings apart."""
+        out: list[tuple[py_trees.behaviour.Behaviour, str]] = []
+
+        def visit(node: py_trees.behaviour.Behaviour, path: str) -> None:
+            out.append((node, path))
+            names = [c.name for c in node.children]
+            for i, child in enumerate(node.children):
+                part = child.name if names.count(child.name) == 1 else f"{child.name}[{i}]"
+                visit(child, f"{path}/{part}")
+
+        visit(self.root, self.root.name)
+        return out
+
+    def describe(self) -> dict[str, Any]:
+        """Every node of the tree in pre-order with its py_trees status, JSON-serialisable:
+        ``{"kind": "behaviour_tree", "tick": n, "nodes": [{"name", "path", "status"}, …]}``.
+        ``path`` joins the names from the root with ``/`` (``[i]`` tells same-named
+        siblings apart); ``status`` is ``RUNNING``, ``SUCCESS``, ``FAILURE`` or
+        ``INVALID`` (not ticked, or abandoned).
+
+        Safe from any thread: while the tree runs it shows the statuses as the last
+        complete tick left them (never a tick half-way), recorded by :meth:`run`."""
+        seen = self._seen
+        if seen is not None:
+            tick, layout, statuses = seen
+        else:
+            layout = self._layout()
+            tick, statuses = self.ticks, tuple(node.status.name for node, _ in layout)
+        nodes = [{"name": node.name, "path": path, "status": status}
+                 for (node, path), status in zip(layout, statuses, strict=True)]
+        return {"kind": "behaviour_tree", "tick": tick, "nodes": nodes}
 
     # -- the driver ----------------------------------------------------------------------
     def on_start(self, context: EngineContext) -> None:
@@ -186,8 +223,11 @@ class TreeEngine(DecisionEngine):
     def run(self, context: EngineContext) -> Any:
         period_s = 1.0 / self.rate_hz
         next_tick = time.monotonic()
+        layout = self._layout()
         while not context.interrupted:
             status = self.tick()
+            # One tuple, swapped in whole: describe() never sees half a tick.
+            self._seen = (self.ticks, layout, tuple(node.status.name for node, _ in layout))
             if context.interrupted:  # leaves saw their actions interrupted: not a failure
                 return None
             if status == TreeStatus.SUCCESS:
@@ -221,6 +261,7 @@ class TreeEngine(DecisionEngine):
                          node=leaf.name) from cause
 
     def on_stop(self, context: EngineContext) -> None:
+        self._seen = None
         # Stopping the root calls terminate(INVALID) on every running node: StartLeaf
         # interrupts and waits for what it started.
         try:
