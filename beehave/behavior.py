@@ -42,9 +42,12 @@ class Behavior(Runnable):
     _accepting: bool
     _hook_errors: list[Exception]
     _names: Counter[str]
+    #: The decision engine driving this behaviour now (set by ``DecisionEngine.drive``).
+    _engine: Any
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
+        self._engine = None
         self._children = []
         self._names = Counter()
         self._unobserved_failures = []
@@ -229,6 +232,10 @@ class Behavior(Runnable):
     def _snapshot(self) -> dict[str, Any]:
         snap = super()._snapshot()
         snap["kind"] = "behavior"
+        engine = self._engine
+        if engine is not None:
+            # A behaviour whose run() calls engine.drive(self): where its engine is.
+            snap["engine"] = engine.describe()
         snap["children"] = [c._snapshot() for c in self.children]
         return snap
 

@@ -13,7 +13,7 @@ import abc
 import json
 from typing import Any
 
-from beehave import HighLevelBehaviorManager, Status
+from beehave import Behavior, HighLevelBehaviorManager, Status
 from beehave.engines import (
     DecisionEngine,
     EngineBehavior,
@@ -109,6 +109,22 @@ class EngineContract(abc.ABC):
         self.check_description_while_running(described)
         hl.switch("idle")
         assert behavior.status is Status.INTERRUPTED
+
+    def test_a_plain_behaviour_driving_the_engine_shows_it_too(
+            self, hl: HighLevelBehaviorManager) -> None:
+        act = Recorder("long", duration_s=30)
+        engine = self.single(act)
+
+        class Plain(Behavior):
+            def run(self) -> Any:
+                return engine.drive(self)
+
+        hl.register("plain", Plain)
+        hl.switch("plain")
+        assert wait_until(lambda: bool(act.built) and act.built[0].status is Status.RUNNING)
+        assert hl.snapshot()["top"]["engine"]["kind"] == self.description_kind
+        hl.switch("idle")
+        assert "engine" not in hl.snapshot()["top"]
 
     def check_description_while_running(self, described: dict[str, Any]) -> None:
         """Engine-specific checks of ``describe()`` while ``single``'s action runs."""

@@ -340,6 +340,7 @@ class DecisionEngine(abc.ABC):
         self._context = context
         if isinstance(behavior, EngineBehavior):
             behavior._engine_context = context
+        behavior._engine = self  # its snapshot shows where the engine is
         try:
             self.on_start(context)
             try:
@@ -352,6 +353,7 @@ class DecisionEngine(abc.ABC):
             finally:
                 if isinstance(behavior, EngineBehavior):
                     behavior._engine_context = None
+                behavior._engine = None
                 self._context = None
                 self._drive_lock.release()
 
@@ -421,7 +423,8 @@ class EngineBehavior(Behavior):
 
     def _snapshot(self) -> dict[str, Any]:
         snap = super()._snapshot()
-        # What users most want to see of a running behaviour: where its engine is.
+        # What users most want to see of a running behaviour: where its engine is (also
+        # before and after it drives).
         snap["engine"] = self.engine.describe()
         return snap
 
