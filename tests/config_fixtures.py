@@ -3,6 +3,9 @@
 
 from __future__ import annotations
 
+import asyncio
+import time
+
 from beehave import HAL, Behavior, Logic
 
 
@@ -41,3 +44,15 @@ class UsesBroken(Logic):
 
     async def run(self) -> None:
         await self.hal("broken")
+
+
+class BlocksTheLoop(Logic):
+    """The mistake of issue 11: ``time.sleep`` in a logic holds the whole event loop.
+    Starts blocking a moment after it starts, so the robot is up first, and says so on
+    stdout (the test waits for that line)."""
+
+    async def run(self) -> None:
+        await asyncio.sleep(0.3)
+        print("BlocksTheLoop: blocking the event loop now", flush=True)
+        while True:
+            time.sleep(0.05)  # noqa: ASYNC251 - the bug this fixture stands for
