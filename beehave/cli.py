@@ -214,7 +214,8 @@ def _parser() -> argparse.ArgumentParser:
         "run", help="run a robot from its configuration file (ROS 2)",
         description="Run a robot's two managers as ROS 2 nodes from its configuration "
                     "file (docs/ros.md) until Ctrl-C or SIGTERM; prints `stopped cleanly` "
-                    "once everything is shut down.")
+                    "once everything is shut down. A second Ctrl-C while it shuts down "
+                    "exits at once (exit 1).")
     run.add_argument("config", metavar="CONFIG.yaml", help="the robot configuration (YAML)")
     run.add_argument("--only", choices=["high", "low"], default=None,
                      help="run one manager only (the other runs in another process)")

@@ -149,6 +149,23 @@ def test_an_error_while_leaving_the_robot_is_reported_and_everything_stops(
     assert signal.getsignal(signal.SIGINT) is handler  # restored
 
 
+def test_a_failed_start_leaves_nothing_running(monkeypatch: pytest.MonkeyPatch,
+                                              capfd: pytest.CaptureFixture[str]) -> None:
+    """The default behaviour's constructor fails after the nodes, the low level and the
+    bridges are up: all of it is shut down again before the message."""
+    pytest.importorskip("rclpy")
+    from beehave.cli import main
+    from beehave.testing import wait_until
+
+    monkeypatch.syspath_prepend(str(HERE))
+    before = set(threading.enumerate())
+    assert main(["run", str(CONFIGS / "explodes.yaml")]) == 2
+    assert "behaviors.boom: behavior 'boom' (Explodes)" in capfd.readouterr().err
+    assert wait_until(lambda: not [t for t in threading.enumerate()
+                                   if t not in before and t.is_alive()], 5), \
+        [t.name for t in threading.enumerate() if t not in before]
+
+
 def test_a_blocked_event_loop_never_hangs_the_process() -> None:
     """A logic that blocks the event loop: Ctrl-C ends the process with a message and a
     non-zero status — at the first signal once shutdown is bounded, at the latest at the
