@@ -1,25 +1,86 @@
-"""The ``beehave`` command line: ``demo``, ``run``, ``sim``, ``graph``."""
+"""The ``beehave`` command line: ``demo``, ``run``, ``sim``, ``graph``.
+
+Exit status: 0 when everything went as asked, 1 when something failed while running
+(a simulation, a robot, its shutdown), 2 for bad arguments or a bad configuration; the
+message on stderr starts with ``beehave <command>:``.
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import math
+import os
+import signal
 import sys
+import threading
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from types import FrameType
 
+log = logging.getLogger("beehave.cli")
+
+DESCRIPTION = """\
+beehave: run robot behaviour (high level: behaviours and actions; low level: logics,
+blackboard and HALs) on ROS 2, and try it on simulated EMILI and Kobuki robots.
+"""
+
+EPILOG = """\
+exit status: 0 ok, 1 a failure while running, 2 bad arguments or configuration.
+`beehave graph -h` and `beehave sim -h` describe their own options.
+"""
+
+#: Image suffixes that show a picture file was meant where ``--out`` wants a folder.
+_PICTURE_SUFFIXES = (".png", ".svg", ".pdf", ".jpg", ".jpeg")
+
+
+# ---- argument types: refuse what would crash or hang later ------------------------------
+
+def _seconds(text: str) -> float:
+    """A duration on the command line: finite and not negative. ``inf`` would overflow the
+    wait and NaN never compares; "until Ctrl-C" is said by leaving the option out."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") \
+            from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(
+            f"expected a finite number of seconds >= 0, got {text!r}; leave the option out "
+            "to run until Ctrl-C or SIGTERM")
+    return value
+
+
+def _factor(text: str) -> float:
+    """A real-time factor: positive and finite; "no pacing" is ``--fast``."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(
+            f"expected a finite number > 0, got {text!r}; use --fast for no pacing")
+    return value
+
+
+# ---- beehave demo -----------------------------------------------------------------------
 
 def _demo(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from rich.console import Console
 
     console = Console()
     if not args.console:
+        out = Path(args.out)
+        if out.suffix.lower() in _PICTURE_SUFFIXES:
+            print(f"beehave demo: --out is a folder (the picture is written to "
+                  f"FOLDER/demo.png), got the file name {args.out!r}", file=sys.stderr)
+            return 2
         # The demos live with the ready-made behaviours, not in the framework.
         from behaviours.demos.warehouse import run_sim_demo
 
         console.rule("[bold]beehave — EMILI and Kobuki in the simulated warehouse")
         speed = None if args.fast else args.real_time_factor
-        sim_problems = run_sim_demo(console, real_time_factor=speed, out_dir=Path(args.out))
+        sim_problems = run_sim_demo(console, real_time_factor=speed, out_dir=out)
         for problem in sim_problems:
             console.print(f"[red]FAILED:[/] {problem}")
         if sim_problems:
@@ -46,87 +107,188 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run(args: argparse.Namespace) -> int:
-    import signal
-    import threading
+# ---- beehave run ------------------------------------------------------------------------
 
+def _is_config_error(exc: BaseException) -> bool:
+    """Errors that mean "fix the configuration" (exit 2) rather than "it failed while
+    running" (exit 1): a bad value, name, class or parameter, also when only found at
+    start (an unknown world, a default behaviour whose constructor raises)."""
+    from beehave.errors import ConfigError, InvalidParameters, NotASubclass, UnknownNameError
+
+    return isinstance(exc, ConfigError | UnknownNameError | InvalidParameters | NotASubclass)
+
+
+def _report(command: str, exc: BaseException, *, verbose: bool) -> None:
+    """One message on stderr, notes included; the traceback only with ``-v`` (an error of
+    beehave names what to fix; anything else is a bug whose traceback helps)."""
+    from beehave.errors import BeehaveError
+
+    text = str(exc) if isinstance(exc, BeehaveError) else f"{type(exc).__name__}: {exc}"
+    for note in getattr(exc, "__notes__", ()):
+        text += f"\n  {note}"
+    print(f"beehave {command}: {text}", file=sys.stderr, flush=True)
+    if verbose:
+        log.error("traceback", exc_info=exc)
+    elif not isinstance(exc, BeehaveError):
+        print(f"beehave {command}: (run `beehave -v {command} …` for the traceback)",
+              file=sys.stderr, flush=True)
+
+
+def _run(args: argparse.Namespace) -> int:
     from beehave.config import load_config
     from beehave.errors import BeehaveError
     from beehave.robot import Robot
 
     stop = threading.Event()
+    stopping = threading.Event()
 
-    def on_signal(signum: int, _frame: object) -> None:
-        logging.getLogger("beehave").info("signal %d: shutting down", signum)
+    def on_signal(signum: int, _frame: FrameType | None) -> None:
+        if stopping.is_set():
+            # A second Ctrl-C while the robot shuts down: the user wants out now. The
+            # shutdown is bounded, but a blocked logic or hardware may still hold it.
+            os.write(2, b"beehave run: second signal during shutdown: exiting at once; "
+                        b"safe states may not all have run\n")
+            os._exit(1)
+        log.info("signal %d: shutting down", signum)
         stop.set()
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    # Installed before the robot is built, so a Ctrl-C at any time ends in a clean stop.
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    phase = "start"
     try:
-        config = load_config(args.config)
-        robot = Robot(config, only=args.only)
-    except BeehaveError as exc:
-        print(f"beehave run: {exc}", file=sys.stderr)
-        return 2
-    with robot:
-        parts = "high and low level" if args.only is None else f"{args.only} level only"
-        print(f"beehave: robot {config.namespace!r} running ({parts}); Ctrl-C to stop",
-              flush=True)
-        stop.wait(args.duration_s)
+        try:
+            config = load_config(args.config)
+            robot = Robot(config, only=args.only)
+        except BeehaveError as exc:  # nothing has started yet
+            _report("run", exc, verbose=args.verbose)
+            return 2
+        with robot:
+            phase = "run"
+            parts = "high and low level" if args.only is None else f"{args.only} level only"
+            print(f"beehave: robot {config.namespace!r} running ({parts}); Ctrl-C to stop",
+                  flush=True)
+            stop.wait(args.duration_s)
+            phase = "shutdown"
+            stopping.set()
+    except Exception as exc:  # the robot has been shut down (Robot.start/__exit__ do it)
+        if phase == "shutdown":
+            exc.add_note("(raised while shutting the robot down; everything else was "
+                         "stopped)")
+        _report("run", exc, verbose=args.verbose)
+        return 2 if phase == "start" and _is_config_error(exc) else 1
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     print("beehave: stopped cleanly", flush=True)
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="beehave", description=__doc__)
-    parser.add_argument("-v", "--verbose", action="store_true", help="log beehave events")
-    sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="EMILI and Kobuki in the simulated warehouse "
-                                       "(--console: the managers alone, no simulation)")
-    demo.add_argument("--real-time-factor", type=float, default=1.0,
-                      help="simulation speed (1 = real time)")
-    demo.add_argument("--fast", action="store_true", help="simulate as fast as possible")
-    demo.add_argument("--out", default="out", help="where to write the picture")
+# ---- the parser -------------------------------------------------------------------------
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="beehave", description=DESCRIPTION, epilog=EPILOG,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="log at DEBUG level: switches, ends of behaviours and actions, "
+                             "HAL loads, ROS 2 (put it before the command)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    demo = sub.add_parser(
+        "demo", help="EMILI and Kobuki in the simulated warehouse, checking each step "
+                     "(--console: the two managers alone, no simulation)",
+        description="EMILI and Kobuki in the simulated warehouse: every step is checked, "
+                    "a top-down picture is written to FOLDER/demo.png; exit 1 when a check "
+                    "fails.")
+    speed = demo.add_mutually_exclusive_group()
+    speed.add_argument("--real-time-factor", type=_factor, default=1.0, metavar="X",
+                       help="simulated seconds per wall-clock second (default: 1.0)")
+    speed.add_argument("--fast", action="store_true",
+                       help="simulate as fast as the machine goes (no pacing)")
+    demo.add_argument("--out", default="out", metavar="FOLDER",
+                      help="folder to write the top-down picture demo.png into "
+                           "(created if needed; default: out)")
     demo.add_argument("--console", action="store_true",
-                      help="the console demo of the two managers, without simulation")
+                      help="the console demo of the two managers instead: no simulation, "
+                           "no ROS 2")
     demo.set_defaults(func=_demo)
-    run = sub.add_parser("run", help="run a robot from its configuration file (ROS 2)")
-    run.add_argument("config", help="the robot configuration (YAML)")
+    run = sub.add_parser(
+        "run", help="run a robot from its configuration file (ROS 2)",
+        description="Run a robot's two managers as ROS 2 nodes from its configuration "
+                    "file (docs/ros.md) until Ctrl-C or SIGTERM; prints `stopped cleanly` "
+                    "once everything is shut down. A second Ctrl-C while it shuts down "
+                    "exits at once (exit 1).")
+    run.add_argument("config", metavar="CONFIG.yaml", help="the robot configuration (YAML)")
     run.add_argument("--only", choices=["high", "low"], default=None,
-                     help="run one manager only (the other runs elsewhere)")
-    run.add_argument("--duration-s", type=float, default=None,
-                     help="stop after this many seconds (default: until Ctrl-C/SIGTERM)")
+                     help="run one manager only (the other runs in another process)")
+    run.add_argument("--duration-s", type=_seconds, default=None, metavar="N",
+                     help="stop after N wall-clock seconds (default: until Ctrl-C/SIGTERM)")
     run.set_defaults(func=_run)
-    graph = sub.add_parser("graph", add_help=False,
-                           help="render a behaviour's state machine or tree (see graph -h)")
-    graph.set_defaults(func=None)
-    sim = sub.add_parser("sim", add_help=False,
-                         help="run the simulation and its ROS 2 node (see sim -h)")
-    sim.set_defaults(func=None)
-    argv = sys.argv[1:] if argv is None else argv
+    # graph and sim parse their own arguments (see main); these entries are for -h.
+    sub.add_parser("graph", add_help=False,
+                   help="render a behaviour's state machine, tree or network to a picture "
+                        "(beehave graph -h)")
+    sub.add_parser("sim", add_help=False,
+                   help="run a simulated world and put its robots on ROS 2 (beehave sim -h)")
+    return parser
+
+
+def _split(argv: Sequence[str]) -> int | None:
+    """Index of the command in ``argv``: the first word that is not a global option.
+    The global options are flags without a value, so nothing else can come between."""
+    for i, arg in enumerate(argv):
+        if arg == "--":
+            return i + 1 if i + 1 < len(argv) else None
+        if not arg.startswith("-"):
+            return i
+    return None
+
+
+def _graph(argv: list[str]) -> int:
+    from beehave.engines.graph import graph_main
+
+    return graph_main(argv)
+
+
+def _sim(argv: list[str]) -> int:
+    from beehave.errors import BeehaveError
+    from beehave.simulation import load_simulator
+
+    try:
+        simulator = load_simulator()
+    except BeehaveError as exc:
+        print(f"beehave sim: {exc}", file=sys.stderr)
+        return 2
+    return simulator.main(argv)
+
+
+#: Commands that parse their own arguments (with their own ``-h``).
+_OWN_PARSERS: dict[str, Callable[[list[str]], int]] = {"graph": _graph, "sim": _sim}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
     # Import paths in configuration files and specs are looked up from the current
     # directory too, as `python -m` does.
     if "" not in sys.path and "." not in sys.path:
         sys.path.insert(0, "")
-    if argv and argv[0] == "graph":  # its own parser, with its own --help
-        from beehave.engines.graph import graph_main
-
-        return graph_main(argv[1:])
-    if argv and argv[0] == "sim":
-        from beehave.errors import BeehaveError
-        from beehave.simulation import load_simulator
-
-        try:
-            simulator = load_simulator()
-        except BeehaveError as exc:
-            print(f"beehave sim: {exc}", file=sys.stderr)
-            return 2
-        return simulator.main(argv[1:])
+    at = _split(argv)
+    command = argv[at] if at is not None else None
+    if command in _OWN_PARSERS:
+        assert at is not None and command is not None
+        # Global options first (-v, -h), then everything after the command goes to the
+        # command's own parser untouched.
+        args = parser.parse_args([*argv[:at], command])
+        _configure_logging(verbose=args.verbose)
+        return _OWN_PARSERS[command](argv[at + 1:])
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    _configure_logging(verbose=args.verbose)
     code: int = args.func(args)
     return code
+
+
+def _configure_logging(*, verbose: bool) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.WARNING,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
 
 
 if __name__ == "__main__":

@@ -32,12 +32,25 @@ from __future__ import annotations
 
 import importlib
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from beehave.errors import ConfigError, NotASubclass
+
+Seconds = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+"""A duration in seconds: positive and finite. An infinite stop timeout overflows the
+lock waits and a NaN one makes every comparison false (every action STUCK at once), so
+both are refused where they are read, with the key path."""
+
+Hertz = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+"""A rate per second: positive and finite (``inf`` would make its period 0, NaN never
+compares)."""
+
+Factor = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+"""A positive, finite multiplier (``real_time_factor``); "as fast as possible" is ``null``,
+not ``.inf``."""
 
 
 class _Strict(BaseModel):
@@ -61,9 +74,9 @@ class HALSpec(ClassSpec):
 
 
 class RosOptions(_Strict):
-    blackboard_rate_hz: float = Field(2000.0, gt=0)
-    snapshot_period_s: float = Field(1.0, gt=0)
-    state_period_s: float = Field(1.0, gt=0)
+    blackboard_rate_hz: Hertz = 2000.0
+    snapshot_period_s: Seconds = 1.0
+    state_period_s: Seconds = 1.0
 
 
 class SimOptions(_Strict):
@@ -71,12 +84,12 @@ class SimOptions(_Strict):
 
     simulator: str = Field("pybullet", description="an entry point of group beehave.simulations")
     world: str = "warehouse"
-    real_time_factor: float | None = Field(1.0, gt=0)
+    real_time_factor: Factor | None = 1.0
 
 
 class RobotConfig(_Strict):
     namespace: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
-    stop_timeout_s: float = Field(2.0, gt=0)
+    stop_timeout_s: Seconds = 2.0
     use_sim_time: bool = False
     behaviors: dict[str, ClassSpec] = Field(default_factory=dict)
     default_behavior: str = "idle"
@@ -107,8 +120,12 @@ def parse_config(data: Any, *, source: str = "<dict>") -> RobotConfig:
     try:
         config = RobotConfig.model_validate({**data, "source": source})
     except ValidationError as exc:
-        problems = "; ".join(_describe(err) for err in exc.errors())
+        problems = "; ".join(d for d in dict.fromkeys(_describe(e) for e in exc.errors()) if d)
         raise ConfigError(f"{source}: {problems}") from None
+    if "idle" in config.behaviors:
+        raise ConfigError(f"{source}: behaviors.idle: 'idle' is built in (the safe behaviour "
+                          "that runs when nothing else does) and cannot be redefined; give "
+                          "yours another name and make it default_behavior")
     names = {"idle", *config.behaviors}
     if config.default_behavior not in names:
         raise ConfigError(f"{source}: default_behavior: {config.default_behavior!r} is not "
@@ -119,12 +136,33 @@ def parse_config(data: Any, *, source: str = "<dict>") -> RobotConfig:
     return config
 
 
+_HAL_ENTRY = "a HAL name (str) or a mapping {class: 'package.module:Class', name: …, params: {…}}"
+
+
 def _describe(err: Any) -> str:
-    loc = ".".join(str(p) for p in err["loc"]) or "<top>"
-    if err["type"] == "extra_forbidden" and len(err["loc"]) == 1:
-        keys = ", ".join(k for k in RobotConfig.model_fields if k != "source")
-        return f"{loc}: unknown key; valid keys: {keys}"
+    parts = list(err["loc"])
+    if len(parts) >= 3 and parts[0] == "hals" and parts[2] in ("str", "HALSpec"):
+        # pydantic tries each member of `str | HALSpec` and reports both; say what fits.
+        if len(parts) > 3:  # inside a mapping: the HALSpec branch has the real problem
+            del parts[2]
+        elif isinstance(err["input"], dict):
+            return "" if parts[2] == "str" else f"hals.{parts[1]}: {err['msg']}"
+        else:
+            return f"hals.{parts[1]}: expected {_HAL_ENTRY} (got {err['input']!r:.60})"
+    loc = ".".join(str(p) for p in parts) or "<top>"
+    if err["type"] == "extra_forbidden":
+        return f"{loc}: unknown key; valid keys: {', '.join(_valid_keys(parts))}"
     return f"{loc}: {err['msg']} (got {err['input']!r:.60})"
+
+
+def _valid_keys(loc: list[Any]) -> list[str]:
+    """The keys allowed beside the unknown one at ``loc`` (its last element)."""
+    nested: dict[str, type[BaseModel]] = {"behaviors": ClassSpec, "logics": ClassSpec,
+                                          "hals": HALSpec, "ros": RosOptions,
+                                          "sim": SimOptions}
+    model = nested.get(str(loc[0]), RobotConfig) if len(loc) > 1 else RobotConfig
+    return [field.alias or name for name, field in model.model_fields.items()
+            if name != "source"]
 
 
 def import_class(path: str, *, where: str, base: type[Any]) -> type[Any]:

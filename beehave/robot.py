@@ -7,14 +7,17 @@ so the pair can be split across processes or machines — they only talk over RO
 
 from __future__ import annotations
 
+import functools
 import logging
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Literal, Self
 
 from beehave.behavior import Behavior
 from beehave.clock import SimClock
 from beehave.config import RobotConfig, import_class
-from beehave.errors import ConfigError
+from beehave.errors import BeehaveError, ConfigError, InvalidParameters, UnknownNameError
 from beehave.hal import HAL
 from beehave.highlevel import HighLevelBehaviorManager
 from beehave.logic import Logic
@@ -64,29 +67,46 @@ class Robot:
         self._simulation: RunningSimulation | None = None
 
     def _build(self) -> None:
+        """Import and register everything the configuration names, so a bad name or bad
+        parameters fail here, before anything starts. Every error names the file and the
+        key path (``emili.yaml: behaviors.tour.params: …``)."""
         cfg = self.config
+        src = cfg.source
         if self.only in (None, "high"):
             hl = HighLevelBehaviorManager(default=cfg.default_behavior,
                                           stop_timeout_s=cfg.stop_timeout_s,
                                           clock=SimClock() if cfg.use_sim_time else None)
             for name, spec in cfg.behaviors.items():
                 cls = import_class(spec.class_, base=Behavior,
-                                   where=f"{cfg.source}: behaviors.{name}.class")
-                hl.register(name, cls, **spec.params)
+                                   where=f"{src}: behaviors.{name}.class")
+                with _located(f"{src}: behaviors.{name}.params"):
+                    hl.register(name, cls, **spec.params)
             self.high = hl
         if self.only in (None, "low"):
             ll = LowLevelBehaviorManager(default=cfg.default_logic,
                                          stop_timeout_s=cfg.stop_timeout_s)
             for name, spec in cfg.logics.items():
                 logic_cls = import_class(spec.class_, base=Logic,
-                                         where=f"{cfg.source}: logics.{name}.class")
-                ll.register(name, logic_cls, **spec.params)
+                                         where=f"{src}: logics.{name}.class")
+                with _located(f"{src}: logics.{name}.params"):
+                    ll.register(name, logic_cls, **spec.params)
+            # Two entries of one name would silently replace each other: refuse them.
+            seen: dict[str, int] = {}
             for i, hal in enumerate(cfg.hals):
                 if isinstance(hal, str):
-                    ll.hals.resolve(hal)  # an unknown name fails now, listing the names
-                    continue
-                hal_cls = import_class(hal.class_, base=HAL, where=f"{cfg.source}: hals.{i}.class")
-                ll.hals.register(hal_cls, name=hal.name, **hal.params)
+                    hal_name = hal
+                    with _located(f"{src}: hals.{i}"):
+                        ll.hals.resolve(hal)  # an unknown name fails now, listing the names
+                else:
+                    hal_cls = import_class(hal.class_, base=HAL, where=f"{src}: hals.{i}.class")
+                    hal_name = hal.name or hal_cls.name
+                    with _located(f"{src}: hals.{i}" if not hal_name else
+                                  f"{src}: hals.{i}.params"):
+                        ll.hals.register(hal_cls, name=hal.name, **hal.params)
+                if hal_name in seen:
+                    raise ConfigError(f"{src}: hals.{i}: HAL {hal_name!r} is already given by "
+                                      f"hals.{seen[hal_name]}; list each HAL once")
+                seen[hal_name] = i
             self.low = ll
 
     def start(self) -> None:
@@ -116,9 +136,17 @@ class Robot:
                 self._nodes.append(node)
                 self._bridges.append(HighLevelBridge(
                     self.high, node, state_period_s=cfg.ros.state_period_s))
-                self.high.start()
-        except BaseException:
-            self.shutdown()
+                # The default behaviour is constructed now: name its entry when it fails.
+                default = cfg.default_behavior
+                with _located(f"{cfg.source}: behaviors.{default}" if default != "idle"
+                              else f"{cfg.source}: default_behavior",
+                              only=(InvalidParameters,)):
+                    self.high.start()
+        except BaseException as exc:
+            try:
+                self.shutdown()
+            except BeehaveError as late:  # the start error is the one to report
+                exc.add_note(f"and while shutting down after it: {late}")
             raise
         self._started = True
 
@@ -127,32 +155,59 @@ class Robot:
 
         assert self.config.sim is not None
         opts = self.config.sim
-        simulator = load_simulator(opts.simulator)
-        self._simulation = simulator.start(opts.world, real_time_factor=opts.real_time_factor,
-                                           ros=ros)
+        src = self.config.source
+        with _located(f"{src}: sim.simulator"):
+            simulator = load_simulator(opts.simulator)
+        # A world that does not exist or does not load is the configuration's fault; a
+        # simulation that fails while starting is not.
+        with _located(f"{src}: sim.world", only=(ConfigError, UnknownNameError)):
+            self._simulation = simulator.start(opts.world,
+                                               real_time_factor=opts.real_time_factor, ros=ros)
         self.sim = self._simulation.sim
 
     def shutdown(self) -> None:
         """Stop everything, in the order that keeps the robot safe: actions first (their
-        safe states may still publish), then the bridges, the logics and HALs, the nodes."""
+        safe states may still publish), then the bridges, the logics and HALs, the
+        simulation, the nodes.
+
+        Every step runs even when an earlier one fails (a logic that blocked the event
+        loop must not keep the ROS executor thread alive and the process from exiting);
+        the first error is raised afterwards, the later ones are attached as notes."""
+        errors: list[BaseException] = []
+
+        def step(what: str, fn: Callable[[], object]) -> None:
+            try:
+                fn()
+            except Exception as exc:
+                log.error("robot %r: %s failed: %s", self.config.namespace, what, exc)
+                errors.append(exc)
+
         if self.high is not None:
-            self.high.shutdown()
+            step("high-level shutdown", self.high.shutdown)
         for bridge in reversed(self._bridges):
-            bridge.destroy()
+            step(f"destroying {type(bridge).__name__}", bridge.destroy)
         self._bridges.clear()
         if self.low is not None:
-            self.low.shutdown()
+            step("low-level shutdown", self.low.shutdown)
         if self._simulation is not None:
-            self._simulation.close()
+            step("closing the simulation", self._simulation.close)
             self._simulation = None
             self.sim = None
         if self._ros is not None:
-            if self._ros is not self._shared_ros:
-                self._ros.shutdown()
+            ros = self._ros
+            if ros is not self._shared_ros:
+                step("ROS shutdown", ros.shutdown)
             else:
                 for node in self._nodes:
-                    self._ros.destroy_node(node)
+                    step(f"destroying node {node.get_name()!r}",
+                         functools.partial(ros.destroy_node, node))
+            self._nodes.clear()
             self._ros = None
+        if errors:
+            first = errors[0]
+            for later in errors[1:]:
+                first.add_note(f"also while shutting down: {type(later).__name__}: {later}")
+            raise first
 
     def __enter__(self) -> Self:
         self.start()
@@ -161,3 +216,14 @@ class Robot:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.shutdown()
+
+
+@contextmanager
+def _located(where: str, *, only: tuple[type[BaseException], ...] = (BeehaveError,)
+             ) -> Iterator[None]:
+    """Re-raise a beehave error (of the ``only`` types) as a :class:`ConfigError` that
+    starts with ``where`` (file and key path), so the user knows which line to fix."""
+    try:
+        yield
+    except only as exc:
+        raise ConfigError(f"{where}: {exc}") from exc

@@ -1,4 +1,5 @@
-"""Tutorial example (docs/tutorial.md): a patrol that can be switched to charging at runtime.
+"""Tutorial example (docs/tutorial.md, section 1): a patrol that can be switched to
+charging at runtime. The tutorial's code blocks, one after the other, are this file.
 
 Run it: ``.venv/bin/python examples/patrol.py``
 """
@@ -55,13 +56,17 @@ class Patrol(Behavior):
 class Charge(Behavior):
     def __init__(self, robot: Robot) -> None:
         self.robot = robot
+        self.speed_at_start_mps: float | None = None
+        self.refused: ActionTypeBusy | None = None
 
     def run(self) -> str:
+        # A switch starts us only after the old behaviour and its actions have ended.
+        self.speed_at_start_mps = self.robot.speed_mps
         dock = self.start_action(DriveTo(self.robot, 0.0))
         try:
             self.start_action(DriveTo(self.robot, 5.0))  # "driving" is taken by `dock`
         except ActionTypeBusy as busy:
-            print("refused:", busy)
+            self.refused = busy
         dock.wait()
         return "docked"
 
@@ -75,8 +80,9 @@ def main() -> None:
         time.sleep(1.0)
         print("patrolling at x =", round(robot.x_m, 2), "speed", robot.speed_mps)
         charge = hl.switch("charge")  # returns once patrol and its drive have ended
-        print("switched; speed right after the switch:", robot.speed_mps)
         charge.wait(10)
+        print("switched; speed right after the switch:", charge.speed_at_start_mps)
+        print("refused:", charge.refused)
         print("charge:", charge.status.name, charge.result)
         # When a top-level behaviour ends on its own, the manager runs "idle" again.
         for record in hl.history:
