@@ -17,7 +17,13 @@ from typing import TYPE_CHECKING, Any, Literal, Self
 from beehave.behavior import Behavior
 from beehave.clock import SimClock
 from beehave.config import RobotConfig, import_class
-from beehave.errors import BeehaveError, ConfigError, InvalidParameters, UnknownNameError
+from beehave.errors import (
+    BeehaveError,
+    ConfigError,
+    ConstructorFailed,
+    InvalidParameters,
+    UnknownNameError,
+)
 from beehave.hal import HAL
 from beehave.highlevel import HighLevelBehaviorManager
 from beehave.logic import Logic
@@ -140,7 +146,7 @@ class Robot:
                 default = cfg.default_behavior
                 with _located(f"{cfg.source}: behaviors.{default}" if default != "idle"
                               else f"{cfg.source}: default_behavior",
-                              only=(InvalidParameters,)):
+                              only=(InvalidParameters, ConstructorFailed)):
                     self.high.start()
         except BaseException as exc:
             try:
