@@ -32,19 +32,20 @@ import asyncio
 import importlib.metadata
 import inspect
 import logging
+import math
 import time
 from collections.abc import Awaitable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self, TypeVar
 
 from beehave.blackboard import Blackboard, BlackboardClient
-from beehave.errors import HALError, InvalidParameters, ManagerShutdown, UnknownHAL
+from beehave.errors import ConfigError, HALError, InvalidParameters, ManagerShutdown, UnknownHAL
 from beehave.events import Event, EventBus, EventKind
 from beehave.status import Status
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HAL", "HALManager", "ENTRY_POINT_GROUP"]
+__all__ = ["HAL", "HALManager", "ENTRY_POINT_GROUP", "check_duration_s"]
 
 ENTRY_POINT_GROUP = "beehave.hals"
 
@@ -129,8 +130,8 @@ class HALManager:
                  backoff_initial_s: float = 0.1, backoff_max_s: float = 5.0) -> None:
         self.blackboard = blackboard if blackboard is not None else Blackboard()
         self.events = events if events is not None else EventBus(log)
-        self.backoff_initial_s = backoff_initial_s
-        self.backoff_max_s = backoff_max_s
+        self.backoff_initial_s = check_duration_s("backoff_initial_s", backoff_initial_s)
+        self.backoff_max_s = check_duration_s("backoff_max_s", backoff_max_s)
         self._registry: dict[str, tuple[type[HAL], dict[str, Any]]] = {}
         self._entry_points: dict[str, importlib.metadata.EntryPoint] | None = None
         self._loaded: dict[str, _Loaded] = {}
@@ -369,3 +370,19 @@ def check_params(cls: type, name: str, params: dict[str, Any]) -> None:
                                 f"{sorted(params)}: {exc}") from exc
     except ValueError:  # no signature available: let the constructor decide
         pass
+
+
+def check_duration_s(name: str, value: object, *, allow_zero: bool = False) -> float:
+    """``value`` as a float when it is a finite number of seconds (> 0, or ≥ 0 with
+    ``allow_zero``); else :class:`~beehave.errors.ConfigError` naming ``name``.
+
+    Infinity and NaN are refused on purpose: an infinite timeout overflows the thread and
+    loop primitives, and NaN compares false with everything, so every wait would end at once.
+    """
+    bound = "≥ 0" if allow_zero else "> 0"
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{name} must be a number of seconds {bound}, got {value!r}")
+    seconds = float(value)
+    if not math.isfinite(seconds) or seconds < 0 or (seconds == 0 and not allow_zero):
+        raise ConfigError(f"{name} must be a finite number of seconds {bound}, got {value!r}")
+    return seconds

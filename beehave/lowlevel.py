@@ -43,7 +43,7 @@ from beehave.errors import (
     UnknownLogic,
 )
 from beehave.events import Event, EventBus, EventCallback, EventKind
-from beehave.hal import HALManager, _wait_ignoring_cancel, check_params
+from beehave.hal import HALManager, _wait_ignoring_cancel, check_duration_s, check_params
 from beehave.logic import Logic, Runtime, stop_logics
 from beehave.status import Status
 
@@ -81,7 +81,14 @@ class LowLevelBehaviorManager:
 
     def __init__(self, *, default: str | None = None, blackboard: Blackboard | None = None,
                  stop_timeout_s: float = 2.0, hal_backoff_initial_s: float = 0.1,
-                 hal_backoff_max_s: float = 5.0, use_uvloop: bool = True) -> None:
+                 hal_backoff_max_s: float = 5.0, loop_lag_warn_s: float = 0.1,
+                 hal_handover_s: float = 0.5, use_uvloop: bool = True) -> None:
+        # Checked first: nothing is built from a duration that cannot be waited for.
+        stop_timeout_s = check_duration_s("stop_timeout_s", stop_timeout_s)
+        hal_backoff_initial_s = check_duration_s("hal_backoff_initial_s", hal_backoff_initial_s)
+        hal_backoff_max_s = check_duration_s("hal_backoff_max_s", hal_backoff_max_s)
+        self.loop_lag_warn_s = check_duration_s("loop_lag_warn_s", loop_lag_warn_s)
+        self.hal_handover_s = check_duration_s("hal_handover_s", hal_handover_s, allow_zero=True)
         self.events = EventBus(log)
         self.blackboard = blackboard if blackboard is not None else Blackboard()
         if self.blackboard.on_error is None:
@@ -240,7 +247,7 @@ class LowLevelBehaviorManager:
         logic = self._create(name, params)
         began = time.monotonic()
         old_name = self.current
-        self.events.emit(Event(EventKind.SWITCH_REQUESTED, name, detail={"from": old_name}))
+        self._announce(EventKind.SWITCH_REQUESTED, name, {"from": old_name})
         async with self._switch_lock:
             old = self._top
             self._top = None
@@ -250,10 +257,25 @@ class LowLevelBehaviorManager:
                 raise ManagerShutdown(f"low-level manager shut down while switching to "
                                       f"{name!r}")
             self._start_top(logic)
-        self.events.emit(Event(EventKind.SWITCH_COMPLETED, name, Status.RUNNING.name,
-                               detail={"from": old_name,
-                                       "duration_s": round(time.monotonic() - began, 6)}))
+        self._announce(EventKind.SWITCH_COMPLETED, name,
+                       {"from": old_name, "duration_s": round(time.monotonic() - began, 6)})
         return logic
+
+    def _announce(self, kind: EventKind, name: str, detail: dict[str, Any]) -> None:
+        # Every change of the running logic -- first start, switch, fallback -- goes out as
+        # SWITCH_REQUESTED/SWITCH_COMPLETED, so whoever follows the events (the ROS
+        # ``logic`` parameter) always agrees with ``current``.
+        status = Status.RUNNING.name if kind is EventKind.SWITCH_COMPLETED else None
+        self.events.emit(Event(kind, name, status, detail=detail))
+
+    def _start_default_or_selected(self, name: str, params: dict[str, Any], *,
+                                   previous: str | None, fallback: bool) -> None:
+        detail = {"from": previous, "fallback": fallback}
+        self._announce(EventKind.SWITCH_REQUESTED, name, detail)
+        began = time.monotonic()
+        self._start_top(self._create(name, params))
+        self._announce(EventKind.SWITCH_COMPLETED, name,
+                       {**detail, "duration_s": round(time.monotonic() - began, 6)})
 
     def _start_top(self, logic: Logic) -> None:
         logic._start(self._runtime, parent=None, name=None)
@@ -278,7 +300,7 @@ class LowLevelBehaviorManager:
         if nxt is None:
             return
         try:
-            self._start_top(self._create(nxt, {}))
+            self._start_default_or_selected(nxt, {}, previous=logic.name, fallback=True)
         except BeehaveError as err:  # reported by _create as SWITCH_REJECTED
             log.error("default logic %r cannot start: %r", nxt, err)
 
@@ -302,7 +324,7 @@ class LowLevelBehaviorManager:
         try:
             name, params = selected if selected is not None else (self.default, {})
             if name is not None:
-                self._start_top(self._create(name, params))
+                self._start_default_or_selected(name, params, previous=None, fallback=False)
             self._started.set()
             await self._stop.wait()
         finally:
@@ -367,6 +389,12 @@ class LowLevelBehaviorManager:
     def call(self, coro: Coroutine[Any, Any, T], *, timeout_s: float | None = None) -> T:
         """Run ``coro`` in the low level's loop from another thread and return its result
         (a tracked task: shutdown waits for it)."""
+        if timeout_s is not None:
+            try:
+                timeout_s = check_duration_s("timeout_s", timeout_s)
+            except BeehaveError:
+                coro.close()
+                raise
         loop = self._loop
         if loop is None or self._phase is not _Phase.RUNNING:
             coro.close()
