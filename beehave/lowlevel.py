@@ -95,7 +95,8 @@ class LowLevelBehaviorManager:
             self.blackboard.on_error = self._subscriber_failed
         self.hals = HALManager(self.blackboard, events=self.events,
                                backoff_initial_s=hal_backoff_initial_s,
-                               backoff_max_s=hal_backoff_max_s)
+                               backoff_max_s=hal_backoff_max_s,
+                               stop_timeout_s=stop_timeout_s)
         self.default = default
         self.stop_timeout_s = stop_timeout_s
         self.use_uvloop = use_uvloop
