@@ -70,6 +70,13 @@ class _Phase(enum.Enum):
     STOPPED = "stopped"
 
 
+class _HandOver:
+    """The owner of HAL references between two top-level logics (see ``hal_handover_s``)."""
+
+    def __repr__(self) -> str:
+        return "<hal handover>"
+
+
 class LowLevelBehaviorManager:
     """Runs the low level: the switchable top-level logic, the blackboard and the HALs.
 
@@ -105,6 +112,10 @@ class LowLevelBehaviorManager:
         self.history: deque[Logic] = deque(maxlen=32)
         """The top-level logics that ended, oldest first (the last 32)."""
         self._runtime = Runtime(self.blackboard, self.hals, self.events, stop_timeout_s)
+        # The owner of the HAL references that an ended top-level logic hands over to its
+        # successor (see Runtime.handover); released hal_handover_s after the last handover.
+        self._handover = _HandOver()
+        self._handover_timer: asyncio.TimerHandle | None = None
         self._registry: dict[str, tuple[type[Logic], dict[str, Any]]] = {}
         self._top: Logic | None = None
         self._selected: tuple[str, dict[str, Any]] | None = None
@@ -287,6 +298,31 @@ class LowLevelBehaviorManager:
 
     def _top_done(self, logic: Logic, _task: asyncio.Task[None]) -> None:
         self._top_ended(logic)
+        self._arm_handover()
+
+    # -- HALs across a change of the top-level logic -------------------------------------
+
+    def _arm_handover(self) -> None:
+        """(Re)start the wait after which the handed-over HAL references are released: the
+        HALs the new top-level logic asked for by then stay loaded, the others unload."""
+        loop = self._loop
+        if loop is None or self._phase is not _Phase.RUNNING:
+            return
+        if self._handover_timer is not None:
+            self._handover_timer.cancel()
+        self._handover_timer = loop.call_later(self.hal_handover_s, self._handover_due)
+
+    def _handover_due(self) -> None:
+        self._handover_timer = None
+        task = asyncio.get_running_loop().create_task(self._release_handover(),
+                                                      name="beehave-lowlevel-hal-handover")
+        self._inflight.add(task)
+        task.add_done_callback(self._inflight.discard)
+
+    async def _release_handover(self) -> None:
+        for name in list(self.hals.loaded):
+            if self.hals.holds(name, self._handover):
+                await self.hals.release(name, owner=self._handover)
 
     def _top_ended(self, logic: Logic) -> None:
         self.history.append(logic)
@@ -319,6 +355,7 @@ class LowLevelBehaviorManager:
             self._loop_tid = threading.get_ident()
             self._stop = asyncio.Event()
             self._switch_lock = asyncio.Lock()
+            self._runtime.handover = self._handover
             self.blackboard.bind(loop)
             self._phase = _Phase.RUNNING
             selected = self._selected
@@ -345,6 +382,10 @@ class LowLevelBehaviorManager:
 
     async def _teardown(self) -> None:
         me = asyncio.current_task()
+        self._runtime.handover = None  # nobody comes next: logics release their HALs now
+        if self._handover_timer is not None:
+            self._handover_timer.cancel()
+            self._handover_timer = None
         top = self._top
         self._top = None
         if top is not None:
@@ -354,6 +395,7 @@ class LowLevelBehaviorManager:
             await asyncio.wait(inflight, timeout=self.stop_timeout_s)
         if self._runtime.stuck:  # one more chance for logics that ignored cancellation
             await stop_logics(list(self._runtime.stuck), self._runtime)
+        await self._release_handover()
         await self.hals.close()
         for sub in self.blackboard.subscriptions:
             if isinstance(sub, Watcher) and sub.loop is asyncio.get_running_loop():
