@@ -17,6 +17,7 @@ from beehave.errors import (
                             ConfigError,
                             Interrupted,
                             InvalidParameters,
+                            LoopBlocked,
                             ManagerShutdown,
                             NotASubclass,
                             SwitchSuperseded,
@@ -38,7 +39,7 @@ __all__ = [
     "HAL", "Action", "ActionTypeBusy", "AlreadyStarted", "BeehaveError", "Behavior",
     "Blackboard", "BlackboardClient", "Change", "ChildFailed", "ConfigError", "Event",
     "EventKind", "HALManager", "HighLevelBehaviorManager", "Idle", "Interrupted",
-    "InvalidParameters", "Logic", "LowLevelBehaviorManager", "ManagerShutdown",
+    "InvalidParameters", "Logic", "LoopBlocked", "LowLevelBehaviorManager", "ManagerShutdown",
     "NotASubclass", "Status", "SwitchSuperseded", "UnknownBehavior", "UnknownHAL",
     "UnknownLogic", "UnknownNameError",
 ]

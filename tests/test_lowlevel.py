@@ -275,7 +275,7 @@ def test_context_manager_leaves_no_thread_and_no_task(ll: LowLevelBehaviorManage
         loop = ll.loop
         assert loop is not None
         ll.switch("parent")
-        assert len(threading.enumerate()) == len(before) + 1
+        assert len(threading.enumerate()) == len(before) + 2  # the loop and its watchdog
     assert set(threading.enumerate()) == before
     assert loop.is_closed()
     assert not asyncio.all_tasks(loop)
