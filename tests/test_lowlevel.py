@@ -440,3 +440,19 @@ def test_a_call_timeout_must_be_finite(ll: LowLevelBehaviorManager) -> None:
     with ll:
         with pytest.raises(ConfigError, match="timeout_s"):
             ll.call(asyncio.sleep(0), timeout_s=float("nan"))
+
+
+def test_a_switch_whose_caller_stops_waiting_still_completes(
+        ll: LowLevelBehaviorManager) -> None:
+    async def impatient() -> bool:
+        task = asyncio.ensure_future(ll.switch_async("forever"))
+        await asyncio.sleep(0.02)   # the switch now waits for "stubborn" to end
+        task.cancel()
+        await asyncio.wait({task})
+        return task.cancelled()
+
+    with ll:
+        ll.switch("stubborn")
+        assert ll.call(impatient(), timeout_s=WAIT_S) is True
+        # the old logic is gone either way; the robot is not left without one
+        assert ll.current == "forever"
