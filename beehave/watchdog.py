@@ -160,7 +160,11 @@ class LoopWatchdog:
                 continue
             if self._stop.is_set():
                 return
-            self._held(sent)
+            try:
+                self._held(sent)
+            except Exception:  # the watchdog must outlive its own bugs: log, keep watching
+                log.exception("%s event loop watchdog failed while the loop was held",
+                              self.name)
 
     def _held(self, sent: float) -> None:
         culprit = find_culprit(self.loop, self.thread_id)
