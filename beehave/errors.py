@@ -116,6 +116,24 @@ class ManagerShutdown(BeehaveError):
     """The manager was shut down (or never started) and cannot do what was asked."""
 
 
+class LoopBlocked(BeehaveError, TimeoutError):
+    """The low level's event loop stayed blocked (a logic or HAL that does not ``await``)
+    longer than the manager's ``stop_timeout_s``, so a call into it cannot finish.
+
+    ``.culprit`` names what holds the loop (``logic 'leds'``, ``HAL 'debug'``),
+    ``.where`` the line it is stuck at (``file.py:42 in run``) and ``.blocked_s`` for how
+    long it had been blocked. Raised by calls from other threads (``switch``, ``call``)
+    and by ``shutdown()`` after it forced the HALs' safe states.
+    """
+
+    def __init__(self, message: str, *, culprit: str = "", where: str = "",
+                 blocked_s: float = 0.0) -> None:
+        super().__init__(message)
+        self.culprit = culprit
+        self.where = where
+        self.blocked_s = blocked_s
+
+
 class AlreadyStarted(BeehaveError):
     """A behaviour, action or logic object was started twice; create a new one."""
 

@@ -44,6 +44,11 @@ class EventKind(Enum):
     LOCK_PREEMPTED = "lock_preempted"
     RESTARTED = "restarted"
     """A HAL whose run() crashed was restarted."""
+    LOOP_BLOCKED = "loop_blocked"
+    """The low level's event loop did not answer for ``loop_lag_warn_s``: ``subject`` names
+    the culprit (``logic:<path>``, ``hal:<name>``), ``detail`` says where and for how long.
+    Emitted from the watchdog thread (the loop cannot), and once more with
+    ``detail["ended"]`` True from the loop when it answers again."""
 
 
 @dataclass(frozen=True)

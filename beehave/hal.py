@@ -32,19 +32,21 @@ import asyncio
 import importlib.metadata
 import inspect
 import logging
+import math
+import threading
 import time
 from collections.abc import Awaitable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self, TypeVar
 
 from beehave.blackboard import Blackboard, BlackboardClient
-from beehave.errors import HALError, InvalidParameters, ManagerShutdown, UnknownHAL
+from beehave.errors import ConfigError, HALError, InvalidParameters, ManagerShutdown, UnknownHAL
 from beehave.events import Event, EventBus, EventKind
 from beehave.status import Status
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HAL", "HALManager", "ENTRY_POINT_GROUP"]
+__all__ = ["HAL", "HALManager", "ENTRY_POINT_GROUP", "check_duration_s"]
 
 ENTRY_POINT_GROUP = "beehave.hals"
 
@@ -111,10 +113,31 @@ class _Loaded:
     owners: list[object] = field(default_factory=list)
     ready: asyncio.Task[None] | None = None
     task: asyncio.Task[None] | None = None
+    unloading: asyncio.Task[None] | None = None
     loaded_at: float = field(default_factory=time.monotonic)
+    load_began: bool = False
+    """``on_load`` was entered: from then on ``safe_state`` is owed, whatever happens."""
+    abandoned: bool = False
+    """Unloaded while ``on_load`` still ran and ignored its cancellation."""
 
 
 _ANON = object()
+
+
+def claim_safe_state(hal: HAL) -> bool:
+    """True exactly once per HAL instance: whoever gets True runs ``safe_state``.
+
+    The loop's unload and the shutdown escalation of a blocked loop (another thread) may
+    both try; the hardware must see one safe state, not two, and never none.
+    """
+    with _SAFE_STATE_LOCK:
+        if getattr(hal, "_beehave_safe_state_claimed", False):
+            return False
+        hal._beehave_safe_state_claimed = True  # type: ignore[attr-defined]
+        return True
+
+
+_SAFE_STATE_LOCK = threading.Lock()
 
 
 class HALManager:
@@ -123,17 +146,26 @@ class HALManager:
     ``backoff_initial_s`` is the first restart delay after a crash; it doubles per crash up
     to ``backoff_max_s`` and starts again from the beginning once ``run`` stayed up for
     ``backoff_max_s``. Loading and releasing happen in the low level's loop.
+
+    ``stop_timeout_s`` bounds each step of an unload: a cancelled ``run`` (or ``on_load``)
+    that has not ended by then is reported STUCK (event) and the unload goes on --
+    ``safe_state`` and ``on_unload`` run anyway, and the stuck task is cancelled again at
+    :meth:`close`. An ``async`` ``safe_state`` gets the same bound.
     """
 
     def __init__(self, blackboard: Blackboard | None = None, *, events: EventBus | None = None,
-                 backoff_initial_s: float = 0.1, backoff_max_s: float = 5.0) -> None:
+                 backoff_initial_s: float = 0.1, backoff_max_s: float = 5.0,
+                 stop_timeout_s: float = 2.0) -> None:
         self.blackboard = blackboard if blackboard is not None else Blackboard()
         self.events = events if events is not None else EventBus(log)
-        self.backoff_initial_s = backoff_initial_s
-        self.backoff_max_s = backoff_max_s
+        self.backoff_initial_s = check_duration_s("backoff_initial_s", backoff_initial_s)
+        self.backoff_max_s = check_duration_s("backoff_max_s", backoff_max_s)
+        self.stop_timeout_s = check_duration_s("stop_timeout_s", stop_timeout_s)
         self._registry: dict[str, tuple[type[HAL], dict[str, Any]]] = {}
         self._entry_points: dict[str, importlib.metadata.EntryPoint] | None = None
         self._loaded: dict[str, _Loaded] = {}
+        self._unloading: set[asyncio.Task[None]] = set()
+        self._stuck: dict[asyncio.Task[None], str] = {}
         self._closed = False
         #: Handed to every HAL as ``hal.node`` (the low level's ROS node, or None).
         self.node: Any = None
@@ -192,6 +224,11 @@ class HALManager:
         entry = self._loaded.get(name)
         return 0 if entry is None else len(entry.owners)
 
+    def holds(self, name: str, owner: object) -> bool:
+        """Whether ``owner`` holds a reference to HAL ``name``."""
+        entry = self._loaded.get(name)
+        return entry is not None and any(o is owner for o in entry.owners)
+
     async def load(self, name: str, *, owner: object | None = None) -> HAL:
         """Load HAL ``name`` if needed and return the shared instance.
 
@@ -230,14 +267,32 @@ class HALManager:
         hal.events = self.events
         try:
             hal.__init__(**params)  # type: ignore[misc]  # __new__ ran above, on purpose
-            await hal.on_load()
         except Exception as exc:
-            self._loaded.pop(name, None)
+            self._forget(name, entry)
             client.close()
             hal.status = Status.FAILED
             hal.error = exc
             self.events.emit(Event(EventKind.ENDED, f"hal:{name}", Status.FAILED.name, exc))
             raise HALError(f"HAL {name!r} failed to load: {exc!r}") from exc
+        entry.load_began = True
+        try:
+            await hal.on_load()
+        except BaseException as exc:  # also cancellation: the hardware may be half set up
+            self._forget(name, entry)
+            failed = isinstance(exc, Exception)
+            hal.status = Status.FAILED if failed else Status.INTERRUPTED
+            if failed:
+                hal.error = exc
+            if not entry.abandoned:  # else the unload that gave up on us did this already
+                await self._wind_down(name, entry)
+                self.events.emit(Event(EventKind.ENDED, f"hal:{name}", hal.status.name,
+                                       exc if failed else None, {"phase": "on_load"}))
+            if failed:
+                raise HALError(f"HAL {name!r} failed to load: {exc!r}") from exc
+            raise
+        if entry.abandoned:  # on_load ignored its cancellation; safe_state already ran
+            hal.status = Status.INTERRUPTED
+            return
         hal.status = Status.RUNNING
         entry.task = asyncio.get_running_loop().create_task(self._supervise(name, hal),
                                                             name=f"hal:{name}")
@@ -245,6 +300,10 @@ class HALManager:
         self.events.emit(Event(EventKind.STARTED, f"hal:{name}", Status.RUNNING.name))
         if not entry.owners:  # everyone who asked for it let go while it was loading
             await self._unload(name, entry)
+
+    def _forget(self, name: str, entry: _Loaded) -> None:
+        if self._loaded.get(name) is entry:
+            del self._loaded[name]
 
     async def _supervise(self, name: str, hal: HAL) -> None:
         delay = self.backoff_initial_s
@@ -285,50 +344,152 @@ class HALManager:
         if not entry.owners and entry.ready is None:
             await self._unload(name, entry)
 
+    def transfer(self, name: str, *, owner: object, to: object) -> bool:
+        """Hand ``owner``'s reference to HAL ``name`` over to ``to`` without unloading it
+        (``to`` ends up holding one reference); False when ``owner`` held none."""
+        entry = self._loaded.get(name)
+        if entry is None:
+            return False
+        for i, o in enumerate(entry.owners):
+            if o is owner:
+                if any(x is to for x in entry.owners):
+                    del entry.owners[i]
+                else:
+                    entry.owners[i] = to
+                return True
+        return False
+
     async def _unload(self, name: str, entry: _Loaded) -> None:
-        if self._loaded.get(name) is entry:
-            del self._loaded[name]
+        # The unload is a task of its own, started once: a caller that is cancelled while
+        # it waits (a logic stopped twice) must not cut it short, or safe_state would
+        # never run and the HAL's task would be destroyed while pending.
+        self._forget(name, entry)
+        if entry.unloading is None:
+            task = asyncio.get_running_loop().create_task(self._unload_now(name, entry),
+                                                          name=f"hal:{name}:unload")
+            entry.unloading = task
+            self._unloading.add(task)
+            task.add_done_callback(self._unloading.discard)
+        await _wait_ignoring_cancel(entry.unloading)
+
+    async def _unload_now(self, name: str, entry: _Loaded) -> None:
         hal = entry.hal
         writer = f"hal:{name}"
         task = entry.task
+        stuck = False
         if task is not None and not task.done():
             task.cancel()
-            await _wait_ignoring_cancel(task)
-        try:
-            result = hal.safe_state()
-            if inspect.isawaitable(result):
-                await result
-        except Exception as exc:
-            hal.error = exc
-            self.events.emit(Event(EventKind.SAFE_STATE_FAILED, writer, hal.status.name, exc))
-        try:
-            hal.on_unload()
-        except Exception as exc:
-            hal.error = exc
-            self.events.emit(Event(EventKind.ENDED, writer, Status.FAILED.name, exc,
-                                   {"phase": "on_unload"}))
+            if not await _wait_bounded(task, self.stop_timeout_s):
+                stuck = True
+                self._mark_stuck(name, hal, task, "run")
+        await self._wind_down(name, entry)
+        if not stuck:
+            hal.status = Status.INTERRUPTED
+        self.events.emit(Event(EventKind.ENDED, writer, hal.status.name))
+
+    def _mark_stuck(self, name: str, hal: HAL, task: asyncio.Task[None], phase: str) -> None:
+        hal.status = Status.STUCK
+        self._stuck[task] = name
+
+        def ended(_: asyncio.Task[None]) -> None:
+            self._stuck.pop(task, None)
+            if hal.status is Status.STUCK:
+                hal.status = Status.INTERRUPTED
+
+        task.add_done_callback(ended)
+        self.events.emit(Event(EventKind.STUCK, f"hal:{name}", Status.STUCK.name,
+                               detail={"phase": phase, "stop_timeout_s": self.stop_timeout_s}))
+        log.warning("HAL %r: %s() ignored its cancellation for %.3f s; unloading it anyway "
+                    "(safe_state runs now, the task is cancelled again at shutdown)",
+                    name, phase, self.stop_timeout_s)
+
+    async def _wind_down(self, name: str, entry: _Loaded) -> None:
+        """safe_state (once per instance, bounded), on_unload, then the entries go stale."""
+        hal = entry.hal
+        writer = f"hal:{name}"
+        if entry.load_began and claim_safe_state(hal):
+            try:
+                result = hal.safe_state()
+                if inspect.isawaitable(result):
+                    await _bounded(result, self.stop_timeout_s,
+                                   f"HAL {name!r}: safe_state() did not finish within "
+                                   f"stop_timeout_s={self.stop_timeout_s} s")
+            except Exception as exc:
+                hal.error = exc
+                self.events.emit(Event(EventKind.SAFE_STATE_FAILED, writer, hal.status.name,
+                                       exc))
+        if entry.load_began:
+            try:
+                hal.on_unload()
+            except Exception as exc:
+                hal.error = exc
+                self.events.emit(Event(EventKind.ENDED, writer, Status.FAILED.name, exc,
+                                       {"phase": "on_unload"}))
         hal.blackboard.close()
         self.blackboard.mark_stale(writer=writer)
-        hal.status = Status.INTERRUPTED
-        self.events.emit(Event(EventKind.ENDED, writer, Status.INTERRUPTED.name))
 
     async def unload(self, name: str) -> None:
-        """Unload HAL ``name`` now, whoever holds it (used at shutdown)."""
+        """Unload HAL ``name`` now, whoever holds it (used at shutdown). A HAL that is still
+        loading has its ``on_load`` cancelled (bounded by ``stop_timeout_s``)."""
         entry = self._loaded.get(name)
         if entry is None:
             return
-        if entry.ready is not None:
-            await _wait_ignoring_cancel(entry.ready)
-            if self._loaded.get(name) is not entry:
-                return
         entry.owners.clear()
+        ready = entry.ready
+        if ready is not None:
+            ready.cancel()
+            if await _wait_bounded(ready, self.stop_timeout_s):
+                return  # _start wound it down
+            entry.abandoned = True
+            self._forget(name, entry)
+            self._mark_stuck(name, entry.hal, ready, "on_load")
+            await self._wind_down(name, entry)
+            self.events.emit(Event(EventKind.ENDED, f"hal:{name}", Status.STUCK.name))
+            return
         await self._unload(name, entry)
 
     async def close(self) -> None:
-        """Unload every HAL and refuse new loads."""
+        """Unload every HAL and refuse new loads; cancel the STUCK ones once more."""
         self._closed = True
         for name in list(self._loaded):
             await self.unload(name)
+        if self._unloading:  # unloads that releases started; each is bounded
+            await _wait_bounded_all(set(self._unloading), 3 * self.stop_timeout_s)
+        stuck = {t for t in self._stuck if not t.done()}
+        for task in stuck:
+            task.cancel()
+        if stuck:
+            await _wait_bounded_all(stuck, self.stop_timeout_s)
+        for task, name in list(self._stuck.items()):
+            if not task.done():
+                log.error("HAL %r: task %r still ignores its cancellation at shutdown; it is "
+                          "abandoned", name, task.get_name())
+
+    def force_safe_states(self) -> list[str]:
+        """Run the safe state of every loaded HAL that has not had it yet, in the calling
+        thread (the escalation of a shutdown whose loop is blocked); returns their names.
+
+        An ``async`` safe_state runs in a fresh event loop of this thread, bounded by
+        ``stop_timeout_s``. Errors are logged and reported as events, never raised.
+        """
+        done: list[str] = []
+        for name, entry in list(self._loaded.items()):
+            hal = entry.hal
+            if not entry.load_began or not claim_safe_state(hal):
+                continue
+            try:
+                result = hal.safe_state()
+                if inspect.isawaitable(result):
+                    asyncio.run(_bounded(result, self.stop_timeout_s,
+                                         f"HAL {name!r}: safe_state() did not finish within "
+                                         f"stop_timeout_s={self.stop_timeout_s} s"))
+            except Exception as exc:
+                hal.error = exc
+                log.error("HAL %r: forced safe_state() raised %r", name, exc)
+                self.events.emit(Event(EventKind.SAFE_STATE_FAILED, f"hal:{name}",
+                                       hal.status.name, exc, {"forced": True}))
+            done.append(name)
+        return done
 
     def snapshot(self) -> dict[str, dict[str, Any]]:
         """``{name: {status, refs, restarts, error, loaded_s}}`` for the loaded HALs."""
@@ -342,7 +503,7 @@ class HALManager:
 
 async def _wait_ignoring_cancel(task: asyncio.Future[Any]) -> None:
     """Wait for ``task`` to end even if we are cancelled meanwhile (then re-raise), so no
-    task outlives its owner."""
+    task outlives its owner. Only for tasks that are bounded themselves."""
     cancelled = False
     while not task.done():
         try:
@@ -351,6 +512,38 @@ async def _wait_ignoring_cancel(task: asyncio.Future[Any]) -> None:
             cancelled = True
     if cancelled:
         raise asyncio.CancelledError
+
+
+async def _wait_bounded(task: asyncio.Future[Any], timeout_s: float) -> bool:
+    """Wait at most ``timeout_s`` for ``task``; True when it ended. A cancellation of the
+    waiter does not cut the (short) wait: it is raised again afterwards."""
+    await _wait_bounded_all({task}, timeout_s)
+    return task.done()
+
+
+async def _wait_bounded_all(tasks: set[asyncio.Task[Any]] | set[asyncio.Future[Any]],
+                            timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    pending = {t for t in tasks if not t.done()}
+    cancelled = False
+    while pending:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            break
+        try:
+            _, pending = await asyncio.wait(pending, timeout=remaining)
+        except asyncio.CancelledError:
+            cancelled = True
+    if cancelled:
+        raise asyncio.CancelledError
+
+
+async def _bounded(awaitable: Awaitable[Any], timeout_s: float, message: str) -> None:
+    try:
+        async with asyncio.timeout(timeout_s):
+            await awaitable
+    except TimeoutError:
+        raise HALError(message) from None
 
 
 def check_params(cls: type, name: str, params: dict[str, Any]) -> None:
@@ -369,3 +562,19 @@ def check_params(cls: type, name: str, params: dict[str, Any]) -> None:
                                 f"{sorted(params)}: {exc}") from exc
     except ValueError:  # no signature available: let the constructor decide
         pass
+
+
+def check_duration_s(name: str, value: object, *, allow_zero: bool = False) -> float:
+    """``value`` as a float when it is a finite number of seconds (> 0, or ≥ 0 with
+    ``allow_zero``); else :class:`~beehave.errors.ConfigError` naming ``name``.
+
+    Infinity and NaN are refused on purpose: an infinite timeout overflows the thread and
+    loop primitives, and NaN compares false with everything, so every wait would end at once.
+    """
+    bound = "≥ 0" if allow_zero else "> 0"
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{name} must be a number of seconds {bound}, got {value!r}")
+    seconds = float(value)
+    if not math.isfinite(seconds) or seconds < 0 or (seconds == 0 and not allow_zero):
+        raise ConfigError(f"{name} must be a finite number of seconds {bound}, got {value!r}")
+    return seconds

@@ -60,6 +60,10 @@ class Runtime:
     stop_timeout_s: float = 2.0
     stuck: set[Logic] = field(default_factory=set)
     """Logics that ignored their cancellation; the manager cancels them again at shutdown."""
+    handover: object | None = None
+    """While set, a top-level logic that ends hands its HAL references (and those of its
+    sub-logics) to this owner instead of releasing them, so the next top-level logic finds
+    the HALs it shares with the old one still loaded; the manager releases them later."""
 
 
 class Logic(abc.ABC):
@@ -251,7 +255,14 @@ class Logic(abc.ABC):
     async def _release(self, runtime: Runtime) -> None:
         if self._client is not None:
             self._client.close()
+        root = self
+        while root.parent is not None:
+            root = root.parent
+        token = runtime.handover
+        hand_over = token is not None and root._ending
         for name in self._hal_names:
+            if hand_over and runtime.hals.transfer(name, owner=self, to=token):
+                continue
             try:
                 await runtime.hals.release(name, owner=self)
             except asyncio.CancelledError:

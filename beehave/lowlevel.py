@@ -18,6 +18,13 @@ until they have ended (at most ``stop_timeout_s``; a logic that ignores its canc
 is reported STUCK), then starts the new one. The ``default`` logic runs when nothing else
 was selected and whenever a top-level logic ends on its own; a crash is kept on
 ``last_failed`` and reported as a FALLBACK event.
+
+Never block the loop: a logic or HAL that calls ``time.sleep`` or blocking I/O holds every
+other logic. A watchdog thread notices (warning and LOOP_BLOCKED event naming the culprit
+after ``loop_lag_warn_s``); calls from other threads fail with
+:class:`~beehave.errors.LoopBlocked` instead of waiting for ever once the loop has been
+blocked for ``stop_timeout_s``, and ``shutdown()`` then forces the HALs' safe states from
+its own thread and raises it.
 """
 
 from __future__ import annotations
@@ -38,14 +45,16 @@ from beehave.errors import (
     AlreadyStarted,
     BeehaveError,
     InvalidParameters,
+    LoopBlocked,
     ManagerShutdown,
     NotASubclass,
     UnknownLogic,
 )
 from beehave.events import Event, EventBus, EventCallback, EventKind
-from beehave.hal import HALManager, _wait_ignoring_cancel, check_params
+from beehave.hal import HALManager, _wait_ignoring_cancel, check_duration_s, check_params
 from beehave.logic import Logic, Runtime, stop_logics
 from beehave.status import Status
+from beehave.watchdog import LoopWatchdog
 
 log = logging.getLogger(__name__)
 
@@ -70,25 +79,48 @@ class _Phase(enum.Enum):
     STOPPED = "stopped"
 
 
+class _HandOver:
+    """The owner of HAL references between two top-level logics (see ``hal_handover_s``)."""
+
+    def __repr__(self) -> str:
+        return "<hal handover>"
+
+
 class LowLevelBehaviorManager:
     """Runs the low level: the switchable top-level logic, the blackboard and the HALs.
 
     ``default``: the logic (registered name) that runs when none is selected.
-    ``stop_timeout_s``: how long a switch waits for a cancelled logic before reporting it
-    STUCK and going on. ``hal_backoff_initial_s`` / ``hal_backoff_max_s``: restart delays
-    of a crashed HAL. ``use_uvloop``: run the context manager's loop on uvloop if installed.
+    ``stop_timeout_s``: how long a switch waits for a cancelled logic (or an unload for a
+    HAL) before reporting it STUCK and going on; also how long the loop may stay blocked
+    before calls from other threads and ``shutdown()`` give up with
+    :class:`~beehave.errors.LoopBlocked`. ``hal_backoff_initial_s`` / ``hal_backoff_max_s``:
+    restart delays of a crashed HAL. ``loop_lag_warn_s``: a callback that holds the loop
+    longer than this is reported (warning + LOOP_BLOCKED event naming it).
+    ``hal_handover_s``: after the top-level logic changed, how long the HALs the old one
+    used stay loaded for the new one to take over; those it did not ask for by then are
+    unloaded (0: unload at once). ``use_uvloop``: run the context manager's loop on uvloop
+    if installed. Every duration must be finite and positive
+    (:class:`~beehave.errors.ConfigError`).
     """
 
     def __init__(self, *, default: str | None = None, blackboard: Blackboard | None = None,
                  stop_timeout_s: float = 2.0, hal_backoff_initial_s: float = 0.1,
-                 hal_backoff_max_s: float = 5.0, use_uvloop: bool = True) -> None:
+                 hal_backoff_max_s: float = 5.0, loop_lag_warn_s: float = 0.2,
+                 hal_handover_s: float = 0.5, use_uvloop: bool = True) -> None:
+        # Checked first: nothing is built from a duration that cannot be waited for.
+        stop_timeout_s = check_duration_s("stop_timeout_s", stop_timeout_s)
+        hal_backoff_initial_s = check_duration_s("hal_backoff_initial_s", hal_backoff_initial_s)
+        hal_backoff_max_s = check_duration_s("hal_backoff_max_s", hal_backoff_max_s)
+        self.loop_lag_warn_s = check_duration_s("loop_lag_warn_s", loop_lag_warn_s)
+        self.hal_handover_s = check_duration_s("hal_handover_s", hal_handover_s, allow_zero=True)
         self.events = EventBus(log)
         self.blackboard = blackboard if blackboard is not None else Blackboard()
         if self.blackboard.on_error is None:
             self.blackboard.on_error = self._subscriber_failed
         self.hals = HALManager(self.blackboard, events=self.events,
                                backoff_initial_s=hal_backoff_initial_s,
-                               backoff_max_s=hal_backoff_max_s)
+                               backoff_max_s=hal_backoff_max_s,
+                               stop_timeout_s=stop_timeout_s)
         self.default = default
         self.stop_timeout_s = stop_timeout_s
         self.use_uvloop = use_uvloop
@@ -97,6 +129,10 @@ class LowLevelBehaviorManager:
         self.history: deque[Logic] = deque(maxlen=32)
         """The top-level logics that ended, oldest first (the last 32)."""
         self._runtime = Runtime(self.blackboard, self.hals, self.events, stop_timeout_s)
+        # The owner of the HAL references that an ended top-level logic hands over to its
+        # successor (see Runtime.handover); released hal_handover_s after the last handover.
+        self._handover = _HandOver()
+        self._handover_timer: asyncio.TimerHandle | None = None
         self._registry: dict[str, tuple[type[Logic], dict[str, Any]]] = {}
         self._top: Logic | None = None
         self._selected: tuple[str, dict[str, Any]] | None = None
@@ -111,6 +147,9 @@ class LowLevelBehaviorManager:
         self._stopped = threading.Event()
         self._thread: threading.Thread | None = None
         self._thread_error: BaseException | None = None
+        self._watchdog: LoopWatchdog | None = None
+        self._abandoned: LoopBlocked | None = None
+        self._stop_waiters: set[concurrent.futures.Future[None]] = set()
 
     # -- registry ------------------------------------------------------------------------
 
@@ -181,8 +220,8 @@ class LowLevelBehaviorManager:
         if self._in_foreign_thread():
             try:
                 return self.call(self._snapshot_async())
-            except ManagerShutdown:
-                pass
+            except (ManagerShutdown, LoopBlocked):
+                pass  # read it from here: introspection matters most when the loop is stuck
         return self._snapshot()
 
     async def _snapshot_async(self) -> dict[str, Any]:
@@ -204,7 +243,16 @@ class LowLevelBehaviorManager:
             "hals": self.hals.snapshot(),
             "blackboard": self.blackboard.snapshot(),
             "loop": None if self._loop is None else type(self._loop).__module__,
+            "loop_blocked": self._blocked_info(),
         }
+
+    def _blocked_info(self) -> dict[str, Any] | None:
+        watchdog = self._watchdog
+        blocked = self._abandoned or (watchdog.blocked() if watchdog is not None else None)
+        if blocked is None:
+            return None
+        return {"culprit": blocked.culprit, "where": blocked.where,
+                "blocked_s": round(blocked.blocked_s, 3)}
 
     # -- switching -----------------------------------------------------------------------
 
@@ -240,20 +288,44 @@ class LowLevelBehaviorManager:
         logic = self._create(name, params)
         began = time.monotonic()
         old_name = self.current
-        self.events.emit(Event(EventKind.SWITCH_REQUESTED, name, detail={"from": old_name}))
+        self._announce(EventKind.SWITCH_REQUESTED, name, {"from": old_name})
+        cancelled = False
         async with self._switch_lock:
             old = self._top
             self._top = None
             if old is not None:
-                await stop_logics([old], self._runtime)
+                try:
+                    await stop_logics([old], self._runtime)
+                except asyncio.CancelledError:
+                    # The old logic is gone either way (stop_logics waits out its bound):
+                    # finish the switch, so that a caller who stopped waiting does not
+                    # leave the robot with no logic at all; then tell it.
+                    cancelled = True
             if self._phase is not _Phase.RUNNING:
                 raise ManagerShutdown(f"low-level manager shut down while switching to "
                                       f"{name!r}")
             self._start_top(logic)
-        self.events.emit(Event(EventKind.SWITCH_COMPLETED, name, Status.RUNNING.name,
-                               detail={"from": old_name,
-                                       "duration_s": round(time.monotonic() - began, 6)}))
+        self._announce(EventKind.SWITCH_COMPLETED, name,
+                       {"from": old_name, "duration_s": round(time.monotonic() - began, 6)})
+        if cancelled:
+            raise asyncio.CancelledError
         return logic
+
+    def _announce(self, kind: EventKind, name: str, detail: dict[str, Any]) -> None:
+        # Every change of the running logic -- first start, switch, fallback -- goes out as
+        # SWITCH_REQUESTED/SWITCH_COMPLETED, so whoever follows the events (the ROS
+        # ``logic`` parameter) always agrees with ``current``.
+        status = Status.RUNNING.name if kind is EventKind.SWITCH_COMPLETED else None
+        self.events.emit(Event(kind, name, status, detail=detail))
+
+    def _start_default_or_selected(self, name: str, params: dict[str, Any], *,
+                                   previous: str | None, fallback: bool) -> None:
+        detail = {"from": previous, "fallback": fallback}
+        self._announce(EventKind.SWITCH_REQUESTED, name, detail)
+        began = time.monotonic()
+        self._start_top(self._create(name, params))
+        self._announce(EventKind.SWITCH_COMPLETED, name,
+                       {**detail, "duration_s": round(time.monotonic() - began, 6)})
 
     def _start_top(self, logic: Logic) -> None:
         logic._start(self._runtime, parent=None, name=None)
@@ -264,6 +336,31 @@ class LowLevelBehaviorManager:
 
     def _top_done(self, logic: Logic, _task: asyncio.Task[None]) -> None:
         self._top_ended(logic)
+        self._arm_handover()
+
+    # -- HALs across a change of the top-level logic -------------------------------------
+
+    def _arm_handover(self) -> None:
+        """(Re)start the wait after which the handed-over HAL references are released: the
+        HALs the new top-level logic asked for by then stay loaded, the others unload."""
+        loop = self._loop
+        if loop is None or self._phase is not _Phase.RUNNING:
+            return
+        if self._handover_timer is not None:
+            self._handover_timer.cancel()
+        self._handover_timer = loop.call_later(self.hal_handover_s, self._handover_due)
+
+    def _handover_due(self) -> None:
+        self._handover_timer = None
+        task = asyncio.get_running_loop().create_task(self._release_handover(),
+                                                      name="beehave-lowlevel-hal-handover")
+        self._inflight.add(task)
+        task.add_done_callback(self._inflight.discard)
+
+    async def _release_handover(self) -> None:
+        for name in list(self.hals.loaded):
+            if self.hals.holds(name, self._handover):
+                await self.hals.release(name, owner=self._handover)
 
     def _top_ended(self, logic: Logic) -> None:
         self.history.append(logic)
@@ -278,7 +375,7 @@ class LowLevelBehaviorManager:
         if nxt is None:
             return
         try:
-            self._start_top(self._create(nxt, {}))
+            self._start_default_or_selected(nxt, {}, previous=logic.name, fallback=True)
         except BeehaveError as err:  # reported by _create as SWITCH_REJECTED
             log.error("default logic %r cannot start: %r", nxt, err)
 
@@ -296,32 +393,55 @@ class LowLevelBehaviorManager:
             self._loop_tid = threading.get_ident()
             self._stop = asyncio.Event()
             self._switch_lock = asyncio.Lock()
+            self._runtime.handover = self._handover
             self.blackboard.bind(loop)
             self._phase = _Phase.RUNNING
             selected = self._selected
+            self._watchdog = LoopWatchdog(loop, threading.get_ident(), self.events,
+                                          warn_s=self.loop_lag_warn_s,
+                                          block_s=self.stop_timeout_s)
+            self._watchdog.start()
         try:
             name, params = selected if selected is not None else (self.default, {})
             if name is not None:
-                self._start_top(self._create(name, params))
+                self._start_default_or_selected(name, params, previous=None, fallback=False)
             self._started.set()
             await self._stop.wait()
         finally:
             with self._phase_lock:
-                self._phase = _Phase.STOPPING
+                if self._phase is _Phase.RUNNING:  # not after an abandoning shutdown
+                    self._phase = _Phase.STOPPING
             teardown = loop.create_task(self._teardown(), name="beehave-lowlevel-teardown")
             try:
                 await _wait_ignoring_cancel(teardown)
             finally:
+                watchdog, self._watchdog = self._watchdog, None
+                if watchdog is not None:
+                    watchdog.stop()
                 with self._phase_lock:
                     self._phase = _Phase.STOPPED
                     self._loop = None
                     self._loop_tid = None
                 self._started.set()
-                self._stopped.set()
+                self._mark_stopped()
             teardown.result()
+
+    def _mark_stopped(self) -> None:
+        with self._phase_lock:
+            self._stopped.set()
+            waiters, self._stop_waiters = self._stop_waiters, set()
+        for waiter in waiters:
+            try:
+                waiter.set_result(None)
+            except concurrent.futures.InvalidStateError:
+                pass
 
     async def _teardown(self) -> None:
         me = asyncio.current_task()
+        self._runtime.handover = None  # nobody comes next: logics release their HALs now
+        if self._handover_timer is not None:
+            self._handover_timer.cancel()
+            self._handover_timer = None
         top = self._top
         self._top = None
         if top is not None:
@@ -331,6 +451,7 @@ class LowLevelBehaviorManager:
             await asyncio.wait(inflight, timeout=self.stop_timeout_s)
         if self._runtime.stuck:  # one more chance for logics that ignored cancellation
             await stop_logics(list(self._runtime.stuck), self._runtime)
+        await self._release_handover()
         await self.hals.close()
         for sub in self.blackboard.subscriptions:
             if isinstance(sub, Watcher) and sub.loop is asyncio.get_running_loop():
@@ -342,6 +463,13 @@ class LowLevelBehaviorManager:
 
         From another thread it waits until the low level has stopped (and its thread, when
         started as a context manager, has ended); inside the loop it only asks. Idempotent.
+
+        Bounded even when a logic or HAL blocks the loop: once the loop has not answered
+        for ``stop_timeout_s``, the safe states of the loaded HALs are forced from this
+        thread (each at most once, bounded by ``stop_timeout_s`` together), the manager
+        is left STOPPED, and :class:`~beehave.errors.LoopBlocked` is raised naming the
+        culprit. The loop's thread is then abandoned to the code that blocks it; should it
+        ever return, the teardown finishes there (safe states are not repeated).
         """
         with self._phase_lock:
             if self._phase is _Phase.NEW:
@@ -349,7 +477,14 @@ class LowLevelBehaviorManager:
                 self._stopped.set()
                 self._started.set()
                 return
+            if self._abandoned is not None:
+                return  # already given up on, and said so
             loop, stop = self._loop, self._stop
+            waiter: concurrent.futures.Future[None] = concurrent.futures.Future()
+            if self._stopped.is_set():
+                waiter.set_result(None)
+            else:
+                self._stop_waiters.add(waiter)
         if loop is not None and stop is not None:
             if self._in_foreign_thread():
                 try:
@@ -359,14 +494,62 @@ class LowLevelBehaviorManager:
             else:
                 stop.set()
                 return
-        self._stopped.wait()
+        watchdog = self._watchdog
+        unwatch = watchdog.watch(waiter) if watchdog is not None else None
+        try:
+            waiter.result()  # resolved when stopped, failed by the watchdog when blocked
+        except LoopBlocked as blocked:
+            raise self._abandon(blocked) from None
+        finally:
+            if unwatch is not None:
+                unwatch()
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
             thread.join()
 
+    def _abandon(self, blocked: LoopBlocked) -> LoopBlocked:
+        """Shutdown's escalation when the loop does not run: force the HALs' safe states
+        from this thread, leave the manager in a defined state, say what happened."""
+        with self._phase_lock:
+            if self._abandoned is not None:
+                return self._abandoned
+            self._phase = _Phase.STOPPED
+        watchdog = self._watchdog
+        if watchdog is not None:
+            watchdog.stop()
+        forced: list[str] = []
+        # In a helper thread, so that a safe_state that blocks too cannot hang us.
+        helper = threading.Thread(target=lambda: forced.extend(self.hals.force_safe_states()),
+                                  name="beehave-lowlevel-safe-states", daemon=True)
+        helper.start()
+        helper.join(self.stop_timeout_s)
+        hals = ", ".join(repr(n) for n in forced) or "none loaded"
+        late = " (still running after stop_timeout_s: abandoned too)" if helper.is_alive() \
+            else ""
+        error = LoopBlocked(
+            f"low-level shutdown gave up: {blocked}. Safe states forced from the shutdown "
+            f"thread for HALs: {hals}{late}. The loop's thread stays blocked in "
+            f"{blocked.culprit} and is abandoned.",
+            culprit=blocked.culprit, where=blocked.where, blocked_s=blocked.blocked_s)
+        self._abandoned = error
+        log.error("%s", error)
+        return error
+
     def call(self, coro: Coroutine[Any, Any, T], *, timeout_s: float | None = None) -> T:
         """Run ``coro`` in the low level's loop from another thread and return its result
-        (a tracked task: shutdown waits for it)."""
+        (a tracked task: shutdown waits for it).
+
+        Never waits for a loop that does not run: once the loop has been blocked for
+        ``stop_timeout_s`` the call fails with :class:`~beehave.errors.LoopBlocked`
+        (naming the culprit) and the request is cancelled. ``timeout_s`` bounds the
+        coroutine itself (``TimeoutError``; it is cancelled too).
+        """
+        if timeout_s is not None:
+            try:
+                timeout_s = check_duration_s("timeout_s", timeout_s)
+            except BeehaveError:
+                coro.close()
+                raise
         loop = self._loop
         if loop is None or self._phase is not _Phase.RUNNING:
             coro.close()
@@ -374,13 +557,33 @@ class LowLevelBehaviorManager:
         if not self._in_foreign_thread():
             coro.close()
             raise BeehaveError("call() blocks; inside the loop, await the coroutine instead")
-        future: concurrent.futures.Future[T] = asyncio.run_coroutine_threadsafe(
-            self._tracked(coro), loop)
-        return future.result(timeout_s)
+        watchdog = self._watchdog
+        withdrawn = threading.Event()
+        request: concurrent.futures.Future[T] = asyncio.run_coroutine_threadsafe(
+            self._tracked(coro, withdrawn), loop)
+        # The caller waits on its own future, which either the request or the watchdog
+        # completes -- whichever comes first.
+        waiter: concurrent.futures.Future[T] = concurrent.futures.Future()
+        request.add_done_callback(functools.partial(_copy_outcome, waiter))
+        unwatch = watchdog.watch(waiter) if watchdog is not None else None
+        try:
+            return waiter.result(timeout_s)
+        except (LoopBlocked, TimeoutError):
+            withdrawn.set()  # a request the loop has not begun yet never begins
+            request.cancel()
+            raise
+        finally:
+            if unwatch is not None:
+                unwatch()
 
-    async def _tracked(self, coro: Coroutine[Any, Any, T]) -> T:
+    async def _tracked(self, coro: Coroutine[Any, Any, T],
+                       withdrawn: threading.Event | None = None) -> T:
+        if withdrawn is not None and withdrawn.is_set():
+            coro.close()
+            raise asyncio.CancelledError
         task = asyncio.current_task()
         assert task is not None
+        task.set_name(f"call:{getattr(coro, '__qualname__', 'coroutine')}")
         self._inflight.add(task)
         try:
             return await coro
@@ -411,7 +614,7 @@ class LowLevelBehaviorManager:
     def __exit__(self, *exc: object) -> None:
         self.shutdown()
 
-    def _thread_main(self) -> None:
+    def _thread_main(self) -> None:  # the loop's thread
         loop = new_event_loop() if self.use_uvloop else asyncio.new_event_loop()
         asyncio.set_event_loop(loop)
         try:
@@ -426,4 +629,17 @@ class LowLevelBehaviorManager:
                 asyncio.set_event_loop(None)
                 loop.close()
                 self._started.set()
-                self._stopped.set()
+                self._mark_stopped()
+
+
+def _copy_outcome(waiter: concurrent.futures.Future[T],
+                  request: concurrent.futures.Future[T]) -> None:
+    try:
+        if request.cancelled():
+            waiter.cancel()
+        elif (error := request.exception()) is not None:
+            waiter.set_exception(error)
+        else:
+            waiter.set_result(request.result())
+    except concurrent.futures.InvalidStateError:
+        pass  # the watchdog failed the waiter first

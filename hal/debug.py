@@ -23,12 +23,14 @@ Give several loads one robot by registering the HAL with it:
 from __future__ import annotations
 
 import asyncio
+import math
 import threading
 from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from beehave.hal import HAL
+from beehave.errors import ConfigError
+from beehave.hal import HAL, check_duration_s
 
 __all__ = ["DebugHAL", "DebugRobot"]
 
@@ -181,9 +183,10 @@ class DebugHAL(HAL):
     def __init__(self, *, robot: DebugRobot | None = None, drain_pct_per_s: float = 0.0,
                  tick_s: float = 0.05, battery_max_age_s: float | None = None) -> None:
         self.robot = robot if robot is not None else DebugRobot()
-        self.drain_pct_per_s = drain_pct_per_s
-        self.tick_s = tick_s
-        self.battery_max_age_s = battery_max_age_s
+        self.drain_pct_per_s = check_rate("drain_pct_per_s", drain_pct_per_s)
+        self.tick_s = check_duration_s("tick_s", tick_s)
+        self.battery_max_age_s = (None if battery_max_age_s is None
+                                  else check_duration_s("battery_max_age_s", battery_max_age_s))
         self.fail_runs = 0
         self.runs = 0
         """How many times ``run()`` was started."""
@@ -271,3 +274,11 @@ class DebugHAL(HAL):
             wake.set()
         else:
             loop.call_soon_threadsafe(wake.set)
+
+
+def check_rate(name: str, value: float) -> float:
+    """A finite rate ≥ 0 (``drain_pct_per_s``); else :class:`ConfigError` naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not math.isfinite(value) or value < 0:
+        raise ConfigError(f"{name} must be a finite number ≥ 0, got {value!r}")
+    return float(value)

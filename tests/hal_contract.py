@@ -45,14 +45,21 @@ class HALContract:
     # -- helpers ---------------------------------------------------------------------------
 
     def run_with_manager(self, body: Callable[[HALManager, list[Event]], Awaitable[T]]) -> T:
+        """Run ``body`` with a manager that has the HAL registered, then close the manager
+        and check what every HAL owes: no task left, and ``safe_state`` called exactly once
+        for every instance that was loaded."""
+        safe_states: dict[int, int] = {}
+        loaded: list[HAL] = []
+        counted = _counting_safe_states(self.hal_cls, loaded, safe_states)
+
         async def main() -> T:
             events: list[Event] = []
             bus = EventBus()
             bus.subscribe(events.append)
             manager = HALManager(Blackboard(), events=bus, backoff_initial_s=0.01,
-                                 backoff_max_s=0.05)
+                                 backoff_max_s=0.05, stop_timeout_s=2.0)
             self.configure(manager)
-            manager.register(self.hal_cls, **self.hal_params())
+            manager.register(counted, name=self.hal_cls.name, **self.hal_params())
             try:
                 return await asyncio.wait_for(body(manager, events), 10)
             finally:
@@ -60,7 +67,15 @@ class HALContract:
                 manager.blackboard.unbind()
                 leftover = asyncio.all_tasks() - {asyncio.current_task()}
                 assert not leftover, f"tasks left by HAL {self.hal_cls.name!r}: {leftover}"
-        return asyncio.run(main())
+                assert not any(e.kind is EventKind.STUCK for e in events), \
+                    f"HAL {self.hal_cls.name!r} ignored its cancellation at unload"
+
+        result = asyncio.run(main())
+        for hal in loaded:
+            calls = safe_states.get(id(hal), 0)
+            assert calls == 1, (f"HAL {self.hal_cls.name!r}: safe_state() ran {calls} times "
+                                "at unload, not once")
+        return result
 
     @staticmethod
     async def settle(turns: int = 20) -> None:
@@ -141,6 +156,15 @@ class HALContract:
             assert manager.snapshot()[self.hal_cls.name]["status"] == "RUNNING"
         self.run_with_manager(body)
 
+    def test_safe_state_runs_once_when_the_manager_closes_with_the_hal_loaded(self) -> None:
+        async def body(manager: HALManager, events: list[Event]) -> HAL:
+            hal = await manager.load(self.hal_cls.name, owner=object())
+            await self.settle()
+            return hal  # still held: close() must unload it, safe state included
+
+        hal = self.run_with_manager(body)
+        assert hal.status is Status.INTERRUPTED
+
     def test_found_through_its_entry_point(self) -> None:
         if self.entry_point is None:
             return  # not published as a plugin: nothing to check
@@ -148,3 +172,21 @@ class HALContract:
         assert self.entry_point in eps, f"{self.entry_point!r} not in {sorted(eps)}"
         assert eps[self.entry_point].load() is self.hal_cls
         assert HALManager().resolve(self.entry_point)[0] is self.hal_cls
+
+
+def _counting_safe_states(cls: type[HAL], loaded: list[HAL],
+                          calls: dict[int, int]) -> type[HAL]:
+    """``cls`` with its on_load and safe_state counted per instance (the plugin's own code
+    runs unchanged)."""
+
+    class Counted(cls):  # type: ignore[valid-type,misc]
+        async def on_load(self) -> None:
+            loaded.append(self)
+            await super().on_load()
+
+        def safe_state(self) -> Any:
+            calls[id(self)] = calls.get(id(self), 0) + 1
+            return super().safe_state()
+
+    Counted.__name__ = Counted.__qualname__ = cls.__name__
+    return Counted

@@ -72,3 +72,16 @@ def test_robot_rejects_unknown_buttons_and_leds_naming_what_exists() -> None:
         assert "0..1" in str(err)
     else:
         raise AssertionError("no IndexError")
+
+
+def test_debug_hal_rejects_non_finite_durations_and_rates_naming_them() -> None:
+    import pytest
+
+    from beehave.errors import ConfigError
+
+    for kwargs, name in (({"tick_s": float("inf")}, "tick_s"),
+                         ({"tick_s": float("nan")}, "tick_s"),
+                         ({"drain_pct_per_s": float("inf")}, "drain_pct_per_s"),
+                         ({"battery_max_age_s": float("nan")}, "battery_max_age_s")):
+        with pytest.raises(ConfigError, match=name):
+            DebugHAL(**kwargs)

@@ -224,19 +224,85 @@ def test_switching_logics_while_hals_are_shared() -> None:
             for name in ("blue", "green"):
                 logic = ll.switch(name)
                 assert isinstance(logic, UsesDebug) and logic.ready.wait(WAIT_S)
-                assert ll.hals.refs("debug") == 2
+                assert logic.hal_seen == [hal, hal]      # the one HAL, kept loaded
                 assert robot.led_color == name
-        last = ll.logic
-        assert isinstance(last, UsesDebug)
-        assert isinstance(hal, DebugHAL) and hal.safe_states == 1
-        assert hal.status is Status.INTERRUPTED         # unloaded when "green" #1 ended
-        current = ll.hals.loaded["debug"]
-        assert current is last.hal_seen[0] and current.status is Status.RUNNING
+        assert isinstance(hal, DebugHAL) and hal.safe_states == 0 and hal.runs == 1
+        assert ll.hals.loaded == {"debug": hal} and hal.status is Status.RUNNING
+        assert wait_until(lambda: ll.hals.refs("debug") == 2)  # the handover was given back
     assert ll.hals.loaded == {}
     assert robot.led_color == "off"                     # safe state at shutdown
-    assert list(robot.led_history).count("off") == 11   # one safe state per unload
+    assert hal.safe_states == 1 and list(robot.led_history).count("off") == 1
 
 
+# -- HALs kept across a switch (issue 9, item 13) ----------------------------------------------
+
+class CountsLoads(HAL):
+    name = "counted"
+    loads = 0
+    safe = 0
+
+    async def on_load(self) -> None:
+        type(self).loads += 1
+
+    def safe_state(self) -> None:
+        type(self).safe += 1
+
+
+class UsesCounted(Logic):
+    def __init__(self, also_debug: bool = False) -> None:
+        self.also_debug = also_debug
+        self.ready = threading.Event()
+
+    async def run(self) -> None:
+        await self.hal("counted")
+        if self.also_debug:
+            await self.hal("debug")
+        self.ready.set()
+        await asyncio.Event().wait()
+
+
+def test_a_hal_both_logics_use_stays_loaded_across_the_switch_and_the_rest_unloads() -> None:
+    CountsLoads.loads = CountsLoads.safe = 0
+    robot = DebugRobot()
+    ll = LowLevelBehaviorManager(stop_timeout_s=0.5, hal_handover_s=0.05)
+    ll.register("a", UsesCounted, also_debug=True)
+    ll.register("b", UsesCounted)
+    ll.hals.register(CountsLoads)
+    ll.hals.register(DebugHAL, robot=robot)
+    with ll:
+        first = ll.switch("a")
+        assert isinstance(first, UsesCounted) and first.ready.wait(WAIT_S)
+        counted = ll.hals.loaded["counted"]
+        second = ll.switch("b")
+        assert isinstance(second, UsesCounted) and second.ready.wait(WAIT_S)
+        # "debug" only "a" used: unloaded (safe state) once the handover time is over
+        assert wait_until(lambda: "debug" not in ll.hals.loaded)
+        assert robot.led_color == "off"
+        assert ll.hals.loaded == {"counted": counted} and ll.hals.refs("counted") == 1
+        assert (CountsLoads.loads, CountsLoads.safe) == (1, 0)
+        third = ll.switch("a")                          # and back: "counted" still the same
+        assert isinstance(third, UsesCounted) and third.ready.wait(WAIT_S)
+        assert ll.hals.loaded["counted"] is counted
+    assert (CountsLoads.loads, CountsLoads.safe) == (1, 1)
+
+
+def test_a_fallback_hands_the_hals_over_to_the_default_too() -> None:
+    class Brief(Logic):
+        async def run(self) -> None:
+            await self.hal("counted")
+
+    CountsLoads.loads = CountsLoads.safe = 0
+    ll = LowLevelBehaviorManager(default="b", stop_timeout_s=0.5, hal_handover_s=0.2)
+    ll.register("b", UsesCounted)
+    ll.register("brief", Brief)
+    ll.hals.register(CountsLoads)
+    with ll:
+        assert wait_until(lambda: ll.hals.refs("counted") == 1)
+        ll.switch("brief")                              # ends on its own: "b" comes back
+        assert wait_until(lambda: ll.current == "b" and isinstance(ll.logic, UsesCounted)
+                          and ll.logic.ready.is_set())
+        assert wait_until(lambda: ll.hals.refs("counted") == 1)
+        assert CountsLoads.loads == 1
 def test_wrong_hal_kind_raises_hal_error_naming_both_classes() -> None:
     class WantsOther(Logic):
         async def run(self) -> None:
@@ -253,3 +319,153 @@ def test_wrong_hal_kind_raises_hal_error_naming_both_classes() -> None:
         assert wait_until(lambda: ll.hals.loaded == {})  # its reference was given back
     assert isinstance(error, HALError)
     assert "DebugHAL" in str(error) and "UsesDebugHAL" in str(error)
+
+
+# -- bounded unload, safe_state exactly once (issue 9, item 12) --------------------------------
+
+class Deaf(HAL):
+    """run() and (optionally) on_load() ignore cancellation until ``let_go`` is set."""
+
+    name = "deaf"
+
+    def __init__(self, *, deaf_on_load: bool = False) -> None:
+        self.deaf_on_load = deaf_on_load
+        self.let_go = False
+        self.safe = 0
+
+    async def _deaf(self) -> None:
+        while not self.let_go:
+            try:
+                await asyncio.sleep(0.005)
+            except asyncio.CancelledError:
+                continue  # the bug under test: cancellation swallowed
+
+    async def on_load(self) -> None:
+        if self.deaf_on_load:
+            await self._deaf()
+
+    async def run(self) -> None:
+        await self._deaf()
+
+    def safe_state(self) -> None:
+        self.safe += 1
+
+
+def test_unloading_a_hal_whose_run_ignores_cancellation_is_bounded_and_reported_stuck() -> None:
+    manager, events = manager_with_events()
+    manager.stop_timeout_s = 0.1
+    manager.register(Deaf)
+
+    async def main() -> dict[str, Any]:
+        hal = await manager.load("deaf")
+        assert isinstance(hal, Deaf)
+        await asyncio.sleep(0.01)
+        # a safety net for the unfixed code, which would wait for ever
+        asyncio.get_running_loop().call_later(2.0, setattr, hal, "let_go", True)
+        await manager.release("deaf")
+        got = {"run_still_going": not hal.let_go, "status": hal.status, "safe": hal.safe,
+               "loaded": dict(manager.loaded)}
+        hal.let_go = True
+        await manager.close()
+        got["status_after"] = hal.status
+        got["leftover"] = {t for t in asyncio.all_tasks() if t.get_name().startswith("hal:")}
+        return got
+
+    got = asyncio.run(asyncio.wait_for(main(), WAIT_S))
+    assert got["run_still_going"] and got["status"] is Status.STUCK
+    assert got["safe"] == 1 and got["loaded"] == {}      # unloaded anyway, safe state ran
+    assert got["status_after"] is Status.INTERRUPTED and not got["leftover"]
+    stuck = [e for e in events if e.kind is EventKind.STUCK]
+    assert [(e.subject, e.detail["phase"]) for e in stuck] == [("hal:deaf", "run")]
+
+
+def test_safe_state_runs_although_the_releasing_owner_is_cancelled_during_the_unload() -> None:
+    class Slow(HAL):
+        name = "slow"
+        safe = 0
+
+        async def run(self) -> None:
+            try:
+                await asyncio.Event().wait()
+            finally:
+                await asyncio.sleep(0.05)  # a slow but honest stop
+
+        def safe_state(self) -> None:
+            type(self).safe += 1
+
+    manager, _ = manager_with_events()
+    manager.register(Slow)
+
+    async def main() -> set[asyncio.Task[Any]]:
+        owner = object()
+        await manager.load("slow", owner=owner)
+        await asyncio.sleep(0)
+        releaser = asyncio.create_task(manager.release("slow", owner=owner))
+        await asyncio.sleep(0.01)  # the release now waits for run() to end
+        releaser.cancel()          # its owner is stopped a second time
+        await asyncio.wait({releaser})
+        await manager.close()
+        return {t for t in asyncio.all_tasks() if t.get_name().startswith("hal:")}
+
+    leftover = asyncio.run(asyncio.wait_for(main(), WAIT_S))
+    assert Slow.safe == 1 and not leftover
+
+
+class HangsOnLoad(HAL):
+    name = "hangs"
+    safe = 0
+
+    async def on_load(self) -> None:
+        await asyncio.Event().wait()  # a device that never answers
+
+    def safe_state(self) -> None:
+        type(self).safe += 1
+
+
+class AsksForHanging(Logic):
+    async def run(self) -> None:
+        await self.hal("hangs")
+
+
+def test_a_hal_whose_on_load_hangs_does_not_hang_the_shutdown_and_gets_its_safe_state() -> None:
+    ll = LowLevelBehaviorManager(default="asks", stop_timeout_s=0.1)
+    ll.register("asks", AsksForHanging)
+    ll.hals.register(HangsOnLoad)
+    events: list[Event] = []
+    ll.subscribe(events.append)
+
+    def run() -> None:
+        with ll:
+            assert wait_until(lambda: ll.hals.refs("hangs") == 1)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(WAIT_S)
+    assert not thread.is_alive(), "shutdown hangs on a HAL whose on_load never ends"
+    assert HangsOnLoad.safe == 1
+    ended = [e for e in events if e.subject == "hal:hangs" and e.kind is EventKind.ENDED]
+    assert [(e.status, e.detail.get("phase")) for e in ended] == [("INTERRUPTED", "on_load")]
+
+
+def test_an_on_load_that_ignores_cancellation_is_reported_stuck_at_shutdown() -> None:
+    manager, events = manager_with_events()
+    manager.stop_timeout_s = 0.1
+    manager.register(Deaf, deaf_on_load=True)
+
+    async def main() -> tuple[int, set[asyncio.Task[Any]]]:
+        loading = asyncio.create_task(manager.load("deaf"))
+        await asyncio.sleep(0.01)
+        hal = manager._loaded["deaf"].hal
+        assert isinstance(hal, Deaf)
+        asyncio.get_running_loop().call_later(2.0, setattr, hal, "let_go", True)  # safety net
+        await manager.close()
+        safe = hal.safe
+        hal.let_go = True
+        await asyncio.wait({loading})
+        await asyncio.sleep(0.02)
+        return safe, {t for t in asyncio.all_tasks() if t.get_name().startswith("hal:")}
+
+    safe, leftover = asyncio.run(asyncio.wait_for(main(), WAIT_S))
+    assert safe == 1 and not leftover
+    assert [(e.kind, e.detail.get("phase")) for e in events if e.kind is EventKind.STUCK] \
+        == [(EventKind.STUCK, "on_load")]

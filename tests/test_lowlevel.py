@@ -14,6 +14,7 @@ from beehave.errors import (
     AlreadyStarted,
     BeehaveError,
     ChildFailed,
+    ConfigError,
     InvalidParameters,
     ManagerShutdown,
     UnknownLogic,
@@ -208,7 +209,9 @@ def test_switch_events_are_requested_then_completed(ll: LowLevelBehaviorManager)
     with ll:
         ll.switch("forever")
     kinds = [(e.kind, e.subject) for e in events if e.kind.name.startswith("SWITCH")]
-    assert kinds == [(EventKind.SWITCH_REQUESTED, "forever"),
+    assert kinds == [(EventKind.SWITCH_REQUESTED, "idle"),  # the default started
+                     (EventKind.SWITCH_COMPLETED, "idle"),
+                     (EventKind.SWITCH_REQUESTED, "forever"),
                      (EventKind.SWITCH_COMPLETED, "forever")]
 
 
@@ -272,7 +275,7 @@ def test_context_manager_leaves_no_thread_and_no_task(ll: LowLevelBehaviorManage
         loop = ll.loop
         assert loop is not None
         ll.switch("parent")
-        assert len(threading.enumerate()) == len(before) + 1
+        assert len(threading.enumerate()) == len(before) + 2  # the loop and its watchdog
     assert set(threading.enumerate()) == before
     assert loop.is_closed()
     assert not asyncio.all_tasks(loop)
@@ -389,3 +392,67 @@ def test_already_started_logic_cannot_be_started_again() -> None:
         assert wait_until(lambda: manager.history)
         result = manager.history[-1].result
     assert "already started" in result
+
+
+# -- every change of the running logic is announced (issue 9, item 14) -------------------------
+
+def test_a_fallback_announces_the_default_as_a_completed_switch_and_current_agrees(
+        ll: LowLevelBehaviorManager) -> None:
+    seen: list[tuple[EventKind, str, str | None]] = []
+
+    def record(event: Event) -> None:
+        if event.kind in (EventKind.SWITCH_COMPLETED, EventKind.FALLBACK):
+            # what a ROS bridge would read when it follows the events
+            seen.append((event.kind, event.subject, ll.current))
+
+    ll.subscribe(record)
+    with ll:
+        ll.switch("crashing")
+        assert wait_until(lambda: (EventKind.SWITCH_COMPLETED, "idle", "idle") in seen[2:])
+    completed = [s for s in seen if s[0] is EventKind.SWITCH_COMPLETED]
+    # the start of the default, the switch, the fallback: each names what runs now
+    assert [s[1] for s in completed] == ["idle", "crashing", "idle"]
+    assert all(subject == current for _, subject, current in completed)
+    assert seen[-2][:2] == (EventKind.FALLBACK, "crashing")
+
+
+def test_a_fallback_switch_event_says_from_where_and_why(ll: LowLevelBehaviorManager) -> None:
+    events = events_of(ll)
+    with ll:
+        ll.switch("crashing")
+        assert wait_until(lambda: any(e.kind is EventKind.SWITCH_COMPLETED
+                                      and e.detail.get("from") == "crashing" for e in events))
+    last = [e for e in events if e.kind is EventKind.SWITCH_COMPLETED][-1]
+    assert last.subject == "idle" and last.detail["fallback"] is True
+
+
+# -- non-finite numbers (issue 9, item 4) ------------------------------------------------------
+
+@pytest.mark.parametrize("option", ["stop_timeout_s", "hal_backoff_initial_s",
+                                    "hal_backoff_max_s", "loop_lag_warn_s", "hal_handover_s"])
+@pytest.mark.parametrize("value", [float("inf"), float("nan"), -1.0])
+def test_durations_must_be_finite_and_positive(option: str, value: float) -> None:
+    with pytest.raises(ConfigError, match=rf"{option}.*{value!r}"):
+        LowLevelBehaviorManager(**{option: value})
+
+
+def test_a_call_timeout_must_be_finite(ll: LowLevelBehaviorManager) -> None:
+    with ll:
+        with pytest.raises(ConfigError, match="timeout_s"):
+            ll.call(asyncio.sleep(0), timeout_s=float("nan"))
+
+
+def test_a_switch_whose_caller_stops_waiting_still_completes(
+        ll: LowLevelBehaviorManager) -> None:
+    async def impatient() -> bool:
+        task = asyncio.ensure_future(ll.switch_async("forever"))
+        await asyncio.sleep(0.02)   # the switch now waits for "stubborn" to end
+        task.cancel()
+        await asyncio.wait({task})
+        return task.cancelled()
+
+    with ll:
+        ll.switch("stubborn")
+        assert ll.call(impatient(), timeout_s=WAIT_S) is True
+        # the old logic is gone either way; the robot is not left without one
+        assert ll.current == "forever"

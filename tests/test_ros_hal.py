@@ -104,3 +104,11 @@ def test_without_a_node_the_load_fails_clearly() -> None:
             await ll.hals.load("battery_leds")
 
     asyncio.run(main())
+
+
+def test_a_non_finite_max_age_is_rejected_naming_the_topic() -> None:
+    from beehave.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"TopicInput\('charge'\)\.max_age_s.*inf"):
+        TopicInput("charge", Float64, to_percent, key="battery/percentage",
+                   max_age_s=float("inf"))

@@ -31,7 +31,7 @@ from rclpy.qos import QoSProfile
 
 from beehave.errors import HALError
 from beehave.events import Event, EventKind
-from beehave.hal import HAL
+from beehave.hal import HAL, check_duration_s
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +48,10 @@ class TopicInput:
     max_age_s: float | None = None
     deadband: float | None = None
     qos: QoSProfile | int = 10
+
+    def __post_init__(self) -> None:
+        if self.max_age_s is not None:
+            check_duration_s(f"TopicInput({self.topic!r}).max_age_s", self.max_age_s)
 
 
 @dataclass(frozen=True)
@@ -127,6 +131,7 @@ class RosHAL(HAL):
     async def call(self, srv_type: type, service: str, request: Any, *,
                    timeout_s: float = 5.0) -> Any:
         """Call a ROS service from a logic without blocking the loop."""
+        timeout_s = check_duration_s("timeout_s", timeout_s)
         client = self.node.create_client(srv_type, service)
         try:
             deadline = self._loop.time() + timeout_s

@@ -1,0 +1,183 @@
+"""The event-loop watchdog: a logic or HAL that blocks the loop is named, calls from other
+threads and shutdown stay bounded, and the HALs still get their safe states (issue 9,
+item 11)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from beehave.errors import LoopBlocked, ManagerShutdown
+from beehave.events import Event, EventKind
+from beehave.hal import HAL
+from beehave.logic import Logic
+from beehave.lowlevel import LowLevelBehaviorManager
+from beehave.testing import beehave_threads, wait_until
+from hal.debug import DebugHAL, DebugRobot
+
+WAIT_S = 5.0  # safety net only
+
+
+class Blocker(Logic):
+    """Takes the debug HAL, then blocks the loop (a blocking call instead of an await)
+    until the test lets go."""
+
+    def __init__(self, gate: threading.Event, blocking: threading.Event,
+                 use_hal: bool = False) -> None:
+        self.gate = gate
+        self.blocking = blocking
+        self.use_hal = use_hal
+
+    async def run(self) -> None:
+        if self.use_hal:
+            await self.hal("debug")
+        self.blocking.set()
+        self.gate.wait(WAIT_S * 4)  # the bug: blocks the whole loop
+        await asyncio.Event().wait()
+
+
+class Forever(Logic):
+    async def run(self) -> None:
+        await asyncio.Event().wait()
+
+
+class Sleeper(Logic):
+    async def run(self) -> None:
+        time.sleep(0.3)  # the classic mistake
+        await asyncio.Event().wait()
+
+
+@pytest.fixture
+def gate() -> Iterator[threading.Event]:
+    """Opened at the end of every test, so a blocked loop always ends."""
+    event = threading.Event()
+    before = set(beehave_threads())
+    yield event
+    event.set()
+    assert wait_until(lambda: set(beehave_threads()) <= before, WAIT_S), \
+        f"threads left: {set(beehave_threads()) - before}"
+
+
+def events_of(ll: LowLevelBehaviorManager) -> list[Event]:
+    got: list[Event] = []
+    ll.subscribe(got.append)
+    return got
+
+
+def test_a_logic_that_blocks_the_loop_is_named_in_a_warning_and_an_event(
+        caplog: pytest.LogCaptureFixture) -> None:
+    ll = LowLevelBehaviorManager(default="sleeper", loop_lag_warn_s=0.05)
+    ll.register("sleeper", Sleeper)
+    events = events_of(ll)
+    with caplog.at_level(logging.WARNING, logger="beehave.watchdog"), ll:
+        assert wait_until(lambda: any(e.kind is EventKind.LOOP_BLOCKED and e.detail["ended"]
+                                      for e in events), WAIT_S)
+    blocked = [e for e in events if e.kind is EventKind.LOOP_BLOCKED]
+    assert [e.detail["ended"] for e in blocked] == [False, True]
+    assert {e.subject for e in blocked} == {"logic:sleeper"}
+    assert all(e.detail["culprit"] == "logic 'sleeper'" for e in blocked)
+    where = blocked[0].detail["where"]
+    assert "test_loop_watchdog.py" in where and where.endswith("in run")
+    warning = next(r.getMessage() for r in caplog.records if "blocked" in r.getMessage())
+    assert "logic 'sleeper'" in warning and "await asyncio.sleep" in warning
+    assert "asyncio.to_thread" in warning
+
+
+def test_a_hal_that_blocks_the_loop_is_named() -> None:
+    class Sleepy(HAL):
+        name = "sleepy"
+
+        async def run(self) -> None:
+            time.sleep(0.3)  # a blocking driver read
+
+    class UsesSleepy(Logic):
+        async def run(self) -> None:
+            await self.hal("sleepy")
+            await asyncio.Event().wait()
+
+    ll = LowLevelBehaviorManager(default="uses", loop_lag_warn_s=0.05)
+    ll.register("uses", UsesSleepy)
+    ll.hals.register(Sleepy)
+    events = events_of(ll)
+    with ll:
+        assert wait_until(lambda: any(e.kind is EventKind.LOOP_BLOCKED for e in events))
+    first = next(e for e in events if e.kind is EventKind.LOOP_BLOCKED)
+    assert first.subject == "hal:sleepy" and first.detail["culprit"] == "HAL 'sleepy'"
+
+
+def test_a_blocking_blackboard_callback_is_found_by_its_line() -> None:
+    ll = LowLevelBehaviorManager(loop_lag_warn_s=0.05)
+    events = events_of(ll)
+
+    def slow_callback(change: Any) -> None:
+        time.sleep(0.3)
+
+    with ll:
+        ll.blackboard.subscribe("button", slow_callback)
+        ll.blackboard.set("button", True)
+        assert wait_until(lambda: any(e.kind is EventKind.LOOP_BLOCKED for e in events))
+    first = next(e for e in events if e.kind is EventKind.LOOP_BLOCKED)
+    assert first.subject == "callback"
+    assert first.detail["where"].endswith("in slow_callback")
+
+
+def test_switch_from_another_thread_fails_with_loop_blocked_instead_of_hanging(
+        gate: threading.Event) -> None:
+    blocking = threading.Event()
+    ll = LowLevelBehaviorManager(default="blocker", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
+    ll.register("blocker", Blocker, gate=gate, blocking=blocking)
+    ll.register("forever", Forever)
+    with ll:
+        assert blocking.wait(WAIT_S)
+        with pytest.raises(LoopBlocked) as info:
+            ll.switch("forever")
+        assert info.value.culprit == "logic 'blocker'"
+        assert "test_loop_watchdog.py" in info.value.where
+        assert info.value.blocked_s >= 0.2                 # it waited stop_timeout_s first
+        assert "logic 'blocker'" in str(info.value) and "asyncio.to_thread" in str(info.value)
+        with pytest.raises(LoopBlocked):                   # still blocked: fails too
+            ll.call(asyncio.sleep(0))
+        snap = ll.snapshot()                               # introspection still works
+        assert snap["loop_blocked"]["culprit"] == "logic 'blocker'"
+        gate.set()
+        assert wait_until(lambda: ll.snapshot()["loop_blocked"] is None)
+        # the loop runs again: the failed switch was withdrawn, the blocker still runs
+        assert ll.call(asyncio.sleep(0, "alive"), timeout_s=WAIT_S) == "alive"
+        assert ll.current == "blocker"
+        assert ll.snapshot()["loop_blocked"] is None
+        assert ll.switch("forever") is not None and ll.current == "forever"
+
+
+def test_leaving_the_with_block_while_the_loop_is_blocked_forces_safe_states_and_raises(
+        gate: threading.Event) -> None:
+    blocking = threading.Event()
+    robot = DebugRobot()
+    ll = LowLevelBehaviorManager(default="blocker", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
+    ll.register("blocker", Blocker, gate=gate, blocking=blocking, use_hal=True)
+    ll.hals.register(DebugHAL, robot=robot)
+    with pytest.raises(LoopBlocked) as info:
+        with ll:
+            assert blocking.wait(WAIT_S)
+            hal = ll.hals.loaded["debug"]
+            assert isinstance(hal, DebugHAL)
+            hal.set_leds("green")
+    message = str(info.value)
+    assert "logic 'blocker'" in message and "'debug'" in message
+    assert "safe states" in message.lower()
+    # a defined end: stopped, the safe state ran (from the shutdown thread), nothing accepted
+    assert robot.led_color == "off" and hal.safe_states == 1
+    assert not ll.running and ll.snapshot()["phase"] == "stopped"
+    with pytest.raises(ManagerShutdown):
+        ll.switch("blocker")
+    ll.shutdown()  # said once; a second shutdown does not raise again
+    # Should the loop ever run again, its own teardown finishes without a second safe state.
+    gate.set()
+    assert wait_until(lambda: ll.hals.loaded == {} and ll._thread is not None
+                      and not ll._thread.is_alive(), WAIT_S)
+    assert hal.safe_states == 1 and robot.led_color == "off"
