@@ -46,7 +46,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from contextlib import contextmanager
 from pathlib import Path
@@ -65,6 +65,8 @@ from robots.world import Box, Cylinder, Station, World, load_world
 
 if TYPE_CHECKING:
     from types import TracebackType
+
+    from beehave.planning import GridPlanner
 
 log = logging.getLogger(__name__)
 
@@ -543,10 +545,14 @@ class Simulation:
 
     # ---- pictures -------------------------------------------------------------------
 
-    def render_topdown(self, path: str | Path, *, scale_px_per_m: float = 40.0) -> Path:
+    def render_topdown(self, path: str | Path, *, scale_px_per_m: float = 40.0,
+                       planned: Sequence[Sequence[tuple[float, float]]] = (),
+                       planner: GridPlanner | None = None) -> Path:
         """Write a top-down PNG of the world, the robots (EMILI in its LED colour, Kobuki
         with its LEDs) and their driven paths; drawn with PIL from known geometry and the
-        robots' snapshots (no pybullet call), so safe while running. Returns the path."""
+        robots' snapshots (no pybullet call), so safe while running. ``planned`` adds
+        planned paths (waypoints), ``planner`` shades its inflated obstacles. Returns the
+        path."""
         sketches = []
         for robot in self._robots.values():
             pose = robot.pose()
@@ -560,7 +566,8 @@ class Simulation:
                 leds = ()
             sketches.append(RobotSketch(robot.namespace, robot.kind, pose.x_m, pose.y_m,
                                         pose.yaw_rad, leds, robot.path()))
-        return _render_topdown(self.world, sketches, path, scale_px_per_m=scale_px_per_m)
+        return _render_topdown(self.world, sketches, path, scale_px_per_m=scale_px_per_m,
+                               planned=planned, planner=planner)
 
     def camera_image(self, *, center_m: tuple[float, float] | None = None,
                      height_m: float = 15.0, width_px: int = 320, height_px: int = 192,
