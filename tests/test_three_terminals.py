@@ -24,9 +24,9 @@ pytest.importorskip("pybullet")
 pytest.importorskip("rclpy")
 
 from nav_msgs.msg import Odometry  # noqa: E402
+from ros_probe import Probe  # noqa: E402
 
 from robots.world import load_world  # noqa: E402
-from ros_probe import Probe  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 TOLERANCE_M = 0.15  # Navigation's default tolerance_m, which Commanded uses
