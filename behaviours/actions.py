@@ -21,6 +21,7 @@ import functools
 import json
 import logging
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,6 +34,7 @@ from beehave import Action
 from beehave.clock import SimClock
 from beehave.errors import BeehaveError, NoPath
 from beehave.planning import Disc, GridPlanner, OccupancyMap, PlannedPath, path_length_m
+from beehave.ros.io import Latest, WaitTimeout
 from robots import topics
 
 log = logging.getLogger(__name__)
@@ -95,6 +97,20 @@ def sector_min(scan: LaserScan, center_rad: float, half_width_rad: float) -> flo
             best = r
         angle += scan.angle_increment
     return best
+
+
+def first_message(latest: Latest[Any], *, timeout_s: float = 10.0) -> Any:
+    """The first message of a subscription just made (``self.ros.latest``). Finding the
+    publisher (DDS discovery) takes wall time, which at full simulation speed is many
+    seconds of sim time: give up only when ``timeout_s`` has passed on both the manager's
+    clock and the wall clock. Raises :class:`~beehave.ros.io.WaitTimeout`."""
+    wall_deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return latest.wait_for(timeout_s=timeout_s)
+        except WaitTimeout:
+            if time.monotonic() >= wall_deadline:
+                raise
 
 
 def twist(linear_mps: float = 0.0, angular_rps: float = 0.0) -> Twist:
@@ -246,7 +262,7 @@ class Navigation(_Drive):
 
     def drive(self) -> tuple[float, float]:
         scan = self.ros.latest(LaserScan, topics.SCAN)
-        odom = self.odom.wait_for(timeout_s=10.0)
+        odom = first_message(self.odom)
         clock = self.manager.clock
         start = clock.now()
         p = odom.pose.pose.position
@@ -354,7 +370,7 @@ class LaneFollowing(_Drive):
 
     def drive(self) -> float:
         line = self.ros.latest(Float64, topics.LINE_SENSOR)
-        odom = self.odom.wait_for(timeout_s=10.0)
+        odom = first_message(self.odom)
         clock = self.manager.clock
         travelled = 0.0
         last_xy = (odom.pose.pose.position.x, odom.pose.pose.position.y)
@@ -408,7 +424,7 @@ class Lift(Action):
     def run(self) -> float:
         self._cmd = self.ros.publisher(Float64, topics.LIFT_COMMAND)
         self._state = self.ros.latest(Float64, topics.LIFT_STATE)
-        self._state.wait_for(timeout_s=10.0)
+        first_message(self._state)
         self._cmd.publish(Float64(data=float(self.height_m)))
         try:
             reached = self._state.wait_for(

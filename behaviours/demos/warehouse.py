@@ -89,9 +89,13 @@ def _running_actions(node: dict[str, Any] | None) -> list[str]:
 
 
 def _wait(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase: str,
-          predicate: Any, timeout_sim_s: float) -> bool:
+          predicate: Any, timeout_sim_s: float, *, min_wall_s: float = 5.0) -> bool:
+    """Wait until ``predicate()``; give up once ``timeout_sim_s`` of sim time *and*
+    ``min_wall_s`` of wall time have passed — what runs in wall time (the low level, DDS
+    discovery) must not lose its chance when the simulation runs at full speed."""
     deadline = sim.time_s + timeout_sim_s
-    while sim.time_s < deadline:
+    wall_deadline = time.monotonic() + min_wall_s
+    while sim.time_s < deadline or time.monotonic() < wall_deadline:
         if predicate():
             return True
         if live is not None:
@@ -166,7 +170,7 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
             _wait(sim, live, emili, kobuki, "tour: to the pick-up",
                   lambda: e1.odometry().linear_mps > 0.3, 30.0)
             _wait(sim, live, emili, kobuki, "tour: to the pick-up",
-                  lambda: False, 2.0)  # drive a little further
+                  lambda: False, 2.0, min_wall_s=0.0)  # drive a little further
             # The stop is timed in the physics, by a callback on every step: polling from
             # here would add this thread's wall-time naps, ×10 in sim time at full speed.
             stopped_at: list[float] = []
