@@ -152,3 +152,8 @@ class ConfigError(BeehaveError):
 
 class NotASubclass(BeehaveError, TypeError):
     """Something registered or started that is not the kind of class beehave expects."""
+
+
+class NoPath(BeehaveError):
+    """A path planner found no way to the goal (it is off the map, inside an obstacle's
+    inflation, or cut off); the message says which."""

@@ -17,7 +17,11 @@ PlaySound          sound         —
 
 from __future__ import annotations
 
+import functools
+import json
+import logging
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,8 +31,13 @@ from sensor_msgs.msg import LaserScan
 from std_msgs.msg import Float64, String
 
 from beehave import Action
-from beehave.errors import BeehaveError
+from beehave.clock import SimClock
+from beehave.errors import BeehaveError, NoPath
+from beehave.planning import Disc, GridPlanner, OccupancyMap, PlannedPath, path_length_m
+from beehave.ros.io import Latest, WaitTimeout
 from robots import topics
+
+log = logging.getLogger(__name__)
 
 
 class NavigationError(BeehaveError):
@@ -90,6 +99,20 @@ def sector_min(scan: LaserScan, center_rad: float, half_width_rad: float) -> flo
     return best
 
 
+def first_message(latest: Latest[Any], *, timeout_s: float = 10.0) -> Any:
+    """The first message of a subscription just made (``self.ros.latest``). Finding the
+    publisher (DDS discovery) takes wall time, which at full simulation speed is many
+    seconds of sim time: give up only when ``timeout_s`` has passed on both the manager's
+    clock and the wall clock. Raises :class:`~beehave.ros.io.WaitTimeout`."""
+    wall_deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return latest.wait_for(timeout_s=timeout_s)
+        except WaitTimeout:
+            if time.monotonic() >= wall_deadline:
+                raise
+
+
 def twist(linear_mps: float = 0.0, angular_rps: float = 0.0) -> Twist:
     msg = Twist()
     msg.linear.x = float(linear_mps)
@@ -99,35 +122,113 @@ def twist(linear_mps: float = 0.0, angular_rps: float = 0.0) -> Twist:
 
 class _Drive(Action):
     """Shared by the driving actions: a cmd_vel publisher, odometry, zero velocity as the
-    safe state."""
+    safe state, and lockstep with a simulator.
+
+    Subclasses write :meth:`drive` (not ``run``) and pace their loop with :meth:`tick`.
+    Under sim time (a :class:`~beehave.clock.SimClock`) every ``tick`` asks the simulator,
+    on ``/lockstep``, to hold at the sim time the tick ends until this action has answered
+    again, so a simulation running faster than real time never outruns the control loop
+    (``docs/simulation.md``, "Lockstep"). When ``drive`` ends, however it ends, the robot
+    is commanded to stand still and the simulator is let go — in that order, so the stop
+    reaches the robot before the simulation runs on.
+    """
 
     action_type = "driving"
     rate_hz = 20.0
+    uses_odometry = True
     _cmd: Any = None
+    _lockstep: Any = None
+
+    def run(self) -> Any:
+        self._open()
+        try:
+            return self.drive()
+        finally:
+            try:
+                self.command(0.0, 0.0)
+            finally:
+                self._let_go()
+
+    def drive(self) -> Any:
+        """The control loop (runs in the action's thread); pace it with :meth:`tick`."""
+        raise NotImplementedError
 
     def _open(self) -> None:
         self._cmd = self.ros.publisher(Twist, topics.CMD_VEL)
-        self.odom = self.ros.latest(Odometry, topics.ODOM)
+        if self.uses_odometry:
+            self.odom = self.ros.latest(Odometry, topics.ODOM)
+        if isinstance(self.manager.clock, SimClock):
+            self._lockstep = self.ros.publisher(String, topics.LOCKSTEP)
+            node = self.manager.node
+            where = node.get_fully_qualified_name() if node is not None else ""
+            self._participant = f"{where}/{self.path}#{id(self):x}"
+
+    def tick(self) -> bool:
+        """Sleep one control period (``1 / rate_hz`` on the manager's clock); False when
+        interrupted. In lockstep the simulator holds where the period ends until the next
+        command or the release."""
+        clock = self.manager.clock
+        if self._lockstep is None or not isinstance(clock, SimClock):
+            return self.sleep(1.0 / self.rate_hz)
+        with clock.announcing(self._hold_at):
+            return self.sleep(1.0 / self.rate_hz)
+
+    def _hold_at(self, until_s: float | None) -> None:
+        if self._lockstep is not None:
+            self._lockstep.publish(String(data=json.dumps(
+                {"participant": self._participant, "until_s": until_s})))
+
+    def _let_go(self) -> None:
+        try:
+            self._hold_at(None)
+        except Exception:
+            # A STUCK action has lost its publishers; the sim's lockstep timeout lets go.
+            log.debug("%s: could not let the simulation go", self.name, exc_info=True)
+        self._lockstep = None
 
     def command(self, linear_mps: float, angular_rps: float) -> None:
-        self._cmd.publish(twist(linear_mps, angular_rps))
+        if self._cmd is not None:
+            self._cmd.publish(twist(linear_mps, angular_rps))
 
     def safe_state(self) -> None:
         if self._cmd is not None:
             self._cmd.publish(twist())
 
 
+@functools.lru_cache(maxsize=16)
+def world_planner(world: str, robot_radius_m: float, clearance_m: float) -> GridPlanner:
+    """The planner for a world (name or YAML path) and robot size; built once per process
+    (tens of milliseconds), then shared — planners are never modified."""
+    from robots.world import load_world, occupancy_map
+
+    return GridPlanner(occupancy_map(load_world(world)), robot_radius_m=robot_radius_m,
+                       clearance_m=clearance_m)
+
+
 class Navigation(_Drive):
-    """Drive to a point or a named station, laser-based: slow down inside
-    ``slow_distance_m`` and stop inside ``stop_distance_m`` of an obstacle ahead (distances
-    from the robot's centre, in a ±``field_half_angle_rad`` field); wait while blocked,
-    fail after ``blocked_timeout_s``. Returns the final ``(x_m, y_m)``.
+    """Drive to a point or a named station along a planned path, with a laser safety field.
+
+    With a map — ``world`` (a world name or YAML path) or ``occupancy`` (a
+    :class:`~beehave.planning.OccupancyMap`) — a :class:`~beehave.planning.GridPlanner`
+    plans around the known obstacles with ``robot_radius_m`` (circumscribed: EMILI turns on
+    the spot) plus ``clearance_m``, and the robot follows the waypoints; without one it
+    drives straight at the goal. ``planned`` is the current plan (None without a map).
+
+    Safety field: slow down inside ``slow_distance_m`` and stop inside ``stop_distance_m``
+    of an obstacle ahead (distances from the robot's centre, in a ±``field_half_angle_rad``
+    field). When blocked for ``replan_after_s`` with a map, what the laser sees ahead is
+    added to the map as obstacles and the path is planned again from where the robot
+    stands (``replans`` counts it); it waits while no way around exists, and fails after
+    ``blocked_timeout_s`` without progress. Returns the final ``(x_m, y_m)``.
     """
 
     def __init__(self, goal: Goal | tuple[float, float] | str, *, world: str | None = None,
+                 occupancy: OccupancyMap | None = None,
                  speed_mps: float = 0.5, tolerance_m: float = 0.15,
                  stop_distance_m: float = 0.75, slow_distance_m: float = 1.5,
                  field_half_angle_rad: float = 0.5, blocked_timeout_s: float = 30.0,
+                 replan_after_s: float = 3.0, robot_radius_m: float = 0.55,
+                 clearance_m: float = 0.1, waypoint_tolerance_m: float = 0.3,
                  timeout_s: float = 300.0) -> None:
         self.goal = resolve_goal(goal, world)
         if speed_mps <= 0 or tolerance_m <= 0:
@@ -136,28 +237,58 @@ class Navigation(_Drive):
         self.stop_distance_m, self.slow_distance_m = stop_distance_m, slow_distance_m
         self.field_half_angle_rad = field_half_angle_rad
         self.blocked_timeout_s, self.timeout_s = blocked_timeout_s, timeout_s
+        self.replan_after_s, self.waypoint_tolerance_m = replan_after_s, waypoint_tolerance_m
         self.name = f"Navigation→{self.goal.name or f'({self.goal.x_m:g}, {self.goal.y_m:g})'}"
         self.blocked = False
+        self.replans = 0
+        self.planned: PlannedPath | None = None
+        # Built here, not in run(): a bad map or robot size fails when the action is made.
+        if occupancy is not None:
+            self.planner: GridPlanner | None = GridPlanner(
+                occupancy, robot_radius_m=robot_radius_m, clearance_m=clearance_m)
+        elif world is not None:
+            self.planner = world_planner(world, robot_radius_m, clearance_m)
+        else:
+            self.planner = None
 
-    def run(self) -> tuple[float, float]:
-        self._open()
+    def _plan(self, planner: GridPlanner, x: float, y: float) -> list[tuple[float, float]]:
+        # The goal tolerance also lets a goal that hugs an obstacle end at the nearest
+        # reachable point rather than fail.
+        self.planned = planner.plan((x, y), (self.goal.x_m, self.goal.y_m),
+                                 goal_tolerance_m=self.tolerance_m)
+        log.info("%s: planned %.1f m via %d waypoint(s)", self.name, self.planned.length_m,
+                 len(self.planned.waypoints_m) - 2)
+        return list(self.planned.waypoints_m[1:])
+
+    def drive(self) -> tuple[float, float]:
         scan = self.ros.latest(LaserScan, topics.SCAN)
-        odom = self.odom.wait_for(timeout_s=10.0)
+        odom = first_message(self.odom)
         clock = self.manager.clock
         start = clock.now()
+        p = odom.pose.pose.position
+        planner = self.planner
+        waypoints = ([(self.goal.x_m, self.goal.y_m)] if planner is None
+                     else self._plan(planner, p.x, p.y))  # NoPath fails the action
+        seen: list[Disc] = []  # obstacles the laser found that the map does not have
         blocked_since: float | None = None
-        period = 1.0 / self.rate_hz
+        last_replan = -math.inf
         while not self.interrupted:
             odom = self.odom.get() or odom
             p = odom.pose.pose.position
-            dx, dy = self.goal.x_m - p.x, self.goal.y_m - p.y
-            dist = math.hypot(dx, dy)
-            if dist <= self.tolerance_m:
+            while len(waypoints) > 1 and math.hypot(waypoints[0][0] - p.x, waypoints[0][1] - p.y
+                                                    ) <= self.waypoint_tolerance_m:
+                waypoints.pop(0)  # corner reached: head for the next one
+            tx, ty = waypoints[0]
+            dx, dy = tx - p.x, ty - p.y
+            # Slow down for the goal, not for every corner on the way.
+            remaining = math.hypot(dx, dy) + path_length_m(waypoints)
+            dist = math.hypot(self.goal.x_m - p.x, self.goal.y_m - p.y)
+            if len(waypoints) == 1 and math.hypot(dx, dy) <= self.tolerance_m:
                 self.command(0.0, 0.0)
                 return (p.x, p.y)
             heading_err = _wrap(math.atan2(dy, dx) - yaw_of(odom))
             angular = max(-1.2, min(1.2, 2.0 * heading_err))
-            linear = min(self.speed_mps, 0.8 * dist) * max(0.0, math.cos(heading_err)) ** 2
+            linear = min(self.speed_mps, 0.8 * remaining) * max(0.0, math.cos(heading_err)) ** 2
             if abs(heading_err) > 0.8:
                 linear = 0.0  # turn on the spot first
             nearest = math.inf
@@ -167,13 +298,23 @@ class Navigation(_Drive):
             if nearest < self.stop_distance_m and linear > 0:
                 linear = 0.0
                 angular = 0.0 if abs(heading_err) < 0.8 else angular
+                now = clock.now()
                 if blocked_since is None:
-                    blocked_since = clock.now()
-                elif clock.now() - blocked_since > self.blocked_timeout_s:
+                    blocked_since = now
+                elif now - blocked_since > self.blocked_timeout_s:
                     self.command(0.0, 0.0)
                     raise NavigationError(
                         f"{self.name}: blocked by an obstacle {nearest:.2f} m ahead for "
                         f"{self.blocked_timeout_s} s at ({p.x:.2f}, {p.y:.2f})")
+                if (planner is not None and last is not None
+                        and now - max(blocked_since, last_replan) >= self.replan_after_s):
+                    last_replan = now
+                    seen += self._obstacles_ahead(last, p.x, p.y, yaw_of(odom))
+                    try:
+                        waypoints = self._plan(planner.with_obstacles(seen), p.x, p.y)
+                        self.replans += 1
+                    except NoPath as exc:  # no way around (yet): wait, try again later
+                        log.info("%s: blocked, no way around: %s", self.name, exc)
                 self.blocked = True
             else:
                 blocked_since = None
@@ -186,9 +327,22 @@ class Navigation(_Drive):
             if clock.now() - start > self.timeout_s:
                 raise NavigationError(f"{self.name}: not there after {self.timeout_s} s "
                                       f"({dist:.2f} m to go)")
-            self.sleep(period)
-        p = odom.pose.pose.position
+            self.tick()
         return (p.x, p.y)
+
+    def _obstacles_ahead(self, scan: LaserScan, x: float, y: float, yaw: float
+                         ) -> list[Disc]:
+        """The laser's hits in the safety field within ``slow_distance_m``, in map
+        coordinates, as small discs (the planner inflates them by the robot's radius)."""
+        found = []
+        angle = scan.angle_min
+        for r in scan.ranges:
+            if (abs(_wrap(angle)) <= self.field_half_angle_rad
+                    and scan.range_min <= r <= self.slow_distance_m):
+                found.append(Disc((x + r * math.cos(yaw + angle), y + r * math.sin(yaw + angle)),
+                                  0.05))
+            angle += scan.angle_increment
+        return found
 
 
 class LaneFollowing(_Drive):
@@ -214,10 +368,9 @@ class LaneFollowing(_Drive):
         self.lost_timeout_s, self.settle_m = lost_timeout_s, settle_m
         self.max_abs_offset_m = 0.0
 
-    def run(self) -> float:
-        self._open()
+    def drive(self) -> float:
         line = self.ros.latest(Float64, topics.LINE_SENSOR)
-        odom = self.odom.wait_for(timeout_s=10.0)
+        odom = first_message(self.odom)
         clock = self.manager.clock
         travelled = 0.0
         last_xy = (odom.pose.pose.position.x, odom.pose.pose.position.y)
@@ -248,7 +401,7 @@ class LaneFollowing(_Drive):
                 angular = max(-1.5, min(1.5, self.gain * offset))
                 linear = self.speed_mps / (1.0 + 6.0 * abs(offset) / 0.05)
                 self.command(max(0.08, linear), angular)
-            self.sleep(1.0 / self.rate_hz)
+            self.tick()
         self.command(0.0, 0.0)
         return travelled
 
@@ -271,7 +424,7 @@ class Lift(Action):
     def run(self) -> float:
         self._cmd = self.ros.publisher(Float64, topics.LIFT_COMMAND)
         self._state = self.ros.latest(Float64, topics.LIFT_STATE)
-        self._state.wait_for(timeout_s=10.0)
+        first_message(self._state)
         self._cmd.publish(Float64(data=float(self.height_m)))
         try:
             reached = self._state.wait_for(

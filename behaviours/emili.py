@@ -38,14 +38,16 @@ class Chime(Behavior):
 
 
 class Tour(Behavior):
-    """Visit ``stops`` (station names of ``world``) in order, ``rounds`` times; lift to
-    ``lift_m`` and back down at each. Returns the stations visited."""
+    """Visit ``stops`` (station names of ``world``) in order, ``rounds`` times, along paths
+    planned on the world's map; lift to ``lift_m`` and back down at each. Returns the
+    stations visited."""
 
     logic = "emili"
 
     def __init__(self, stops: list[str], *, world: str = "warehouse", rounds: int = 1,
                  lift_m: float = 0.2, speed_mps: float = 0.6) -> None:
         self.goals = [resolve_goal(s, world) for s in stops]  # unknown stations fail now
+        self.world = world
         self.rounds, self.lift_m, self.speed_mps = rounds, lift_m, speed_mps
         self.visited: list[str] = []
         self.lift_heights: list[float] = []
@@ -60,7 +62,7 @@ class Tour(Behavior):
 
     def visit(self, goal: Goal) -> None:
         chime = self.start_behavior(Chime())
-        nav = self.start_action(Navigation(goal, speed_mps=self.speed_mps))
+        nav = self.start_action(Navigation(goal, world=self.world, speed_mps=self.speed_mps))
         nav.wait()
         chime.interrupt()
         chime.wait()
@@ -86,7 +88,9 @@ class Commanded(Behavior):
         {"id": "o1", "status": "accepted" | "reached" | "failed" | "rejected",
          "detail": "...", "x_m": ..., "y_m": ...}
 
-    A malformed order is answered ``rejected`` with the reason; orders are served in turn.
+    A malformed order is answered ``rejected`` with the reason; orders are served in turn,
+    each along a path planned on ``world``'s map (a goal no path reaches is ``failed``,
+    saying why).
     """
 
     logic = "emili"
@@ -129,7 +133,8 @@ class Commanded(Behavior):
             return
         self.report(order_id, "accepted", goal.name or f"({goal.x_m}, {goal.y_m})")
         try:
-            nav = self.start_action(Navigation(goal, speed_mps=self.speed_mps))
+            nav = self.start_action(Navigation(goal, world=self.world,
+                                               speed_mps=self.speed_mps))
         except Exception as exc:  # busy "driving" type, or we are being stopped
             self.report(order_id, "failed", f"{exc}")
             raise

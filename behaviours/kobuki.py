@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import random
 
-from geometry_msgs.msg import Twist
 from std_msgs.msg import Int32
 
 from beehave import Behavior, Status
@@ -25,8 +24,9 @@ class BumperWander(_Drive):
         self.bumps = 0
         self.stop_latency_s: list[float] = []
 
-    def run(self) -> int:
-        self._cmd = self.ros.publisher(Twist, topics.CMD_VEL)  # no odometry needed
+    uses_odometry = False
+
+    def drive(self) -> int:
         bumpers = self.ros.latest(Int32, topics.BUMPERS)
         clock = self.manager.clock
         start = clock.now()
@@ -41,7 +41,7 @@ class BumperWander(_Drive):
                           1.5 * turn)
                 continue
             self.command(self.speed_mps, 0.0)
-            self.sleep(1.0 / self.rate_hz)
+            self.tick()
         self.command(0.0, 0.0)
         return self.bumps
 
@@ -50,7 +50,7 @@ class BumperWander(_Drive):
         end = clock.now() + duration_s
         while not self.interrupted and clock.now() < end:
             self.command(linear, angular)
-            self.sleep(1.0 / self.rate_hz)
+            self.tick()
 
 
 class Wander(Behavior):

@@ -9,6 +9,12 @@ so the wrapper's cost per robot-step shows.
 Targets (issue: for the later full stack, printed here for the sim alone): 1 robot ≥ 10×
 real time, 10 robots ≥ 2×. Reference measured on this kind of machine: a husky (mesh
 model) steps at about 7,300 robot-steps/s.
+
+The path planner (``beehave.planning``) on the warehouse map, for EMILI (0.55 m radius +
+0.1 m clearance, 0.1 m cells): building the inflated grid once, and the median time of one
+``plan`` over a set of station-to-station orders — what Navigation pays per (re-)plan and an
+agent per bid. Target: median plan ≤ 50 ms (a re-plan must not stall a 20 Hz control loop
+for more than one period).
 """
 
 from __future__ import annotations
@@ -105,8 +111,40 @@ def wrapped(world: World, duration_s: float) -> tuple[float, float]:
         sim.close()
 
 
+def planner_rows() -> list[dict[str, Any]]:
+    from beehave.planning import GridPlanner
+    from benchmarks._util import median, percentile
+    from robots.world import load_world, occupancy_map
+
+    world = load_world("warehouse")
+    floor = occupancy_map(world)
+    builds = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        planner = GridPlanner(floor, robot_radius_m=0.55, clearance_m=0.1)
+        builds.append(time.perf_counter() - t0)
+    points = [(r.start.x_m, r.start.y_m) for r in world.robots if r.kind == "emili"]
+    points += [s.center_m for s in world.stations if s.name.startswith("emili")]
+    points += [(10.0, 5.5), (3.0, 8.0), (16.5, 3.0)]
+    pairs = [(a, b) for a in points for b in points if a != b]
+    times, lengths = [], []
+    for _ in range(3):
+        for a, b in pairs:
+            t0 = time.perf_counter()
+            plan = planner.plan(a, b)
+            times.append(time.perf_counter() - t0)
+            lengths.append(plan.length_m)
+    rows = [report("planner_warehouse_build_grid", median(builds) * 1e3, "ms", None, None,
+                   cells=planner.width * planner.height)]
+    med = median(times) * 1e3
+    rows.append(report("planner_warehouse_plan_median", med, "ms", "<= 50 ms", med <= 50.0,
+                       p95_ms=round(percentile(times, 95) * 1e3, 2), plans=len(times),
+                       mean_path_m=round(sum(lengths) / len(lengths), 2)))
+    return rows
+
+
 def main() -> list[dict[str, Any]]:
-    rows = []
+    rows = planner_rows()
     targets = {1: 10.0, 10: 2.0}
     for n in (1, 10, 25):
         world = fleet_world(n)

@@ -44,6 +44,7 @@ so a late subscriber that asks for transient-local gets the state at once.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import signal
@@ -65,6 +66,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import BatteryState, LaserScan
 from std_msgs.msg import ColorRGBA, Float64, Header, Int32, String
 
+from beehave.clock import SimClock
 from beehave.ros.context import RosContext
 from robots import topics
 from robots.emili import Emili
@@ -86,6 +88,9 @@ STATE_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
 
 SENSOR_QOS = 10
 """QoS of the streams and commands: reliable, volatile, depth 10 (rclpy's default)."""
+
+LOCKSTEP_QOS = 100
+"""QoS of ``/lockstep``: reliable, deep enough for many controllers answering at once."""
 
 
 def stamp(time_s: float) -> Time:
@@ -313,17 +318,37 @@ class SimNode:
     publishing into a shut-down context would end the sim thread with an error.
 
     ``clock_rate_hz``: how often ``/clock`` is published, per second of sim time.
+
+    ``lockstep`` (default on): controllers that announce on ``/lockstep`` the sim time their
+    next control step is due (``{"participant": id, "until_s": t}``; beehave's driving
+    actions do under ``use_sim_time``) hold the simulation there until they announce again
+    or let go (``"until_s": null``); ``/clock`` is published at the held time so they wake.
+    A participant silent for ``lockstep_timeout_s`` of wall time while it holds the sim is
+    let go with a warning (counted in :attr:`dropped`): a crashed controller never
+    freezes the world.
     """
 
     def __init__(self, sim: Simulation, ros: RosContext, *,
-                 clock_rate_hz: float = topics.CLOCK_RATE_HZ) -> None:
-        if not clock_rate_hz > 0:
-            raise ValueError(f"clock_rate_hz must be positive, got {clock_rate_hz}")
+                 clock_rate_hz: float = topics.CLOCK_RATE_HZ, lockstep: bool = True,
+                 lockstep_timeout_s: float = topics.LOCKSTEP_TIMEOUT_S) -> None:
+        if not (clock_rate_hz > 0 and math.isfinite(clock_rate_hz)):
+            raise ValueError(f"clock_rate_hz must be positive and finite, got {clock_rate_hz}")
+        if not (lockstep_timeout_s > 0 and math.isfinite(lockstep_timeout_s)):
+            raise ValueError(f"lockstep_timeout_s must be positive and finite, got "
+                             f"{lockstep_timeout_s}")
         self.sim = sim
         self.ros = ros
         self.clock_period_s = 1.0 / clock_rate_hz
+        self.lockstep = lockstep
+        self.lockstep_timeout_s = float(lockstep_timeout_s)
         self.rejected: Counter[str] = Counter()
         """Refused commands, by the topic's full name (``/emili1/lift/command``)."""
+        self.dropped: Counter[str] = Counter()
+        """Lockstep participants let go because they stopped answering, by participant."""
+        self._participants: dict[str, tuple[float, float]] = {}  # id -> (until_s, heard)
+        self._hold_at_s = math.inf  # the earliest until_s: stepping below it needs no lock
+        self._held_since: float | None = None
+        self._last_clock_s = -math.inf
         self._lock = threading.Lock()
         self._destroyed = False
         self._next_clock_s = sim.time_s
@@ -333,6 +358,9 @@ class SimNode:
         try:
             clock_node = self._node("/")
             self._clock_pub = clock_node.create_publisher(Clock, topics.CLOCK, SENSOR_QOS)
+            if lockstep:
+                clock_node.create_subscription(String, topics.LOCKSTEP, self._on_lockstep,
+                                               LOCKSTEP_QOS)
             self.ports: dict[str, _RobotPorts] = {}
             for ns, robot in sim.robots.items():
                 ports = _PORTS[type(robot)]
@@ -342,6 +370,8 @@ class SimNode:
                 sim.on_step(self._on_fast_step, rate_hz=topics.ODOM_RATE_HZ),
                 sim.on_step(self._on_battery_step, rate_hz=topics.BATTERY_RATE_HZ),
             ]
+            if lockstep:
+                sim.set_gate(self._gate)
         except BaseException:
             self.destroy()
             raise
@@ -364,7 +394,45 @@ class SimNode:
         if time_s + 1e-9 < self._next_clock_s:
             return
         self._next_clock_s = max(self._next_clock_s + self.clock_period_s, time_s)
+        self._publish_clock(time_s)
+
+    def _publish_clock(self, time_s: float) -> None:
+        self._last_clock_s = time_s
         self._clock_pub.publish(Clock(clock=stamp(time_s)))
+
+    def _gate(self, time_s: float) -> bool:
+        """Hold before the next step while a participant is due (see the class doc)."""
+        if time_s + SimClock.SLACK_S < self._hold_at_s:
+            self._held_since = None
+            return False
+        now = time.monotonic()
+        if self._held_since is None:
+            self._held_since = now
+        late: list[str] = []
+        with self._lock:
+            if self._destroyed:
+                return False
+            due = [p for p, (until, _) in self._participants.items()
+                   if time_s + SimClock.SLACK_S >= until]
+            for p in due:
+                heard = self._participants[p][1]
+                if now - max(heard, self._held_since) > self.lockstep_timeout_s:
+                    del self._participants[p]
+                    self.dropped[p] += 1
+                    late.append(p)
+            self._hold_at_s = min((u for u, _ in self._participants.values()),
+                                  default=math.inf)
+            holding = len(due) > len(late)
+        for p in late:
+            log.warning("sim: lockstep participant %s did not answer within %g s (wall) at "
+                        "sim time %.3f s; the simulation goes on without it", p,
+                        self.lockstep_timeout_s, time_s)
+        if not holding:
+            self._held_since = None
+            return False
+        if self._last_clock_s < time_s:
+            self._publish_clock(time_s)  # the due controllers wake on this
+        return True
 
     def _on_fast_step(self, time_s: float) -> None:
         echo = time_s + 1e-9 >= self._next_echo_s
@@ -378,6 +446,34 @@ class SimNode:
             ports.publish_battery()
 
     # ---- executor thread ------------------------------------------------------------
+
+    def _on_lockstep(self, msg: String) -> None:
+        try:
+            data = json.loads(msg.data)
+            participant, until = data["participant"], data["until_s"]
+            if not isinstance(participant, str) or not participant:
+                raise ValueError("participant must be a non-empty string")
+            if until is not None and not (isinstance(until, int | float)
+                                          and math.isfinite(until)):
+                raise ValueError("until_s must be a finite number or null")
+        except (ValueError, KeyError, TypeError) as exc:
+            self._reject("/", topics.LOCKSTEP, f"{msg.data!r:.120} ({exc})",
+                         '{"participant": "<id>", "until_s": <sim time s> | null}')
+            return
+        with self._lock:
+            if until is None:
+                self._participants.pop(participant, None)
+            else:
+                self._participants[participant] = (float(until), time.monotonic())
+            self._hold_at_s = min((u for u, _ in self._participants.values()),
+                                  default=math.inf)
+        self.sim.wake()
+
+    @property
+    def participants(self) -> dict[str, float]:
+        """The lockstep participants now, with the sim time each holds the simulation at."""
+        with self._lock:
+            return {p: until for p, (until, _) in self._participants.items()}
 
     def _reject(self, namespace: str, topic: str, value: str, valid: str) -> None:
         with self._lock:
@@ -397,6 +493,8 @@ class SimNode:
         for remove in self._removers:
             remove()
         self._removers = []
+        if self.lockstep:
+            self.sim.set_gate(None)
         if self.sim.state is not SimState.CLOSED:
             # Runs between two steps: after it, no callback of ours is in flight.
             self.sim.call(lambda client: None)
@@ -430,13 +528,18 @@ def _parser() -> argparse.ArgumentParser:
                        help="sim seconds per wall-clock second (default: 1.0)")
     speed.add_argument("--fast", action="store_true",
                        help="as fast as the machine goes (no pacing)")
+    parser.add_argument("--no-lockstep", dest="lockstep", action="store_false",
+                        help="never hold the simulation for controllers that announce "
+                             "their next step on /lockstep (default: hold, up to "
+                             f"{topics.LOCKSTEP_TIMEOUT_S:g} s per controller)")
     parser.add_argument("--duration-s", type=float, default=None, metavar="N",
                         help="stop after N wall-clock seconds (default: until Ctrl-C)")
     return parser
 
 
 def sim_main(argv: list[str]) -> int:
-    """``beehave sim [WORLD] [--real-time-factor X | --fast] [--duration-s N]``.
+    """``beehave sim [WORLD] [--real-time-factor X | --fast] [--no-lockstep]
+    [--duration-s N]``.
 
     Prints one line when the robots are on ROS 2 and one when everything has stopped;
     SIGINT and SIGTERM stop it cleanly (sim thread stopped, nodes destroyed, executor
@@ -479,7 +582,7 @@ def sim_main(argv: list[str]) -> int:
     node: SimNode | None = None
     try:
         ros = RosContext()
-        node = SimNode(sim, ros)
+        node = SimNode(sim, ros, lockstep=args.lockstep)
         ros.start()
         sim.start()
         speed = "as fast as possible" if args.fast else f"{args.real_time_factor:g}x real time"

@@ -12,10 +12,14 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from PIL import Image, ImageDraw
 
 from robots.world import Box, Cylinder, World
+
+if TYPE_CHECKING:
+    from beehave.planning import GridPlanner
 
 RGB8 = tuple[int, int, int]
 
@@ -44,10 +48,14 @@ def _rgb8(color: Sequence[float]) -> RGB8:
 
 
 def render_topdown(world: World, robots: Sequence[RobotSketch], path: str | Path, *,
-                   scale_px_per_m: float = 40.0, margin_m: float = 0.5) -> Path:
+                   scale_px_per_m: float = 40.0, margin_m: float = 0.5,
+                   planned: Sequence[Sequence[tuple[float, float]]] = (),
+                   planner: GridPlanner | None = None) -> Path:
     """Draw ``world`` and ``robots`` from above into the PNG file ``path``; returns it.
 
     One metre is ``scale_px_per_m`` pixels; ``margin_m`` of background surrounds the floor.
+    ``planned``: planned paths (waypoint lists) drawn as white lines with their corners;
+    ``planner``: shade the cells its inflation blocks (where the robot's centre may not go).
     """
     width_m, depth_m = world.floor.size_m
     size = (round((width_m + 2 * margin_m) * scale_px_per_m),
@@ -77,6 +85,16 @@ def render_topdown(world: World, robots: Sequence[RobotSketch], path: str | Path
         draw.line([px(0, gy), px(width_m, gy)], fill=grid, width=1)
     for hole in world.holes:
         draw.polygon(rect(*hole.center_m, *hole.size_m, 0.0), fill=(10, 10, 10))
+    if planner is not None:
+        # The inflation first: walls and shelves are drawn over it, leaving their halo.
+        res = planner.resolution_m
+        halo = (floor_rgb[0], max(0, floor_rgb[1] - 45), max(0, floor_rgb[2] - 45))
+        rows, cols = planner.blocked.shape
+        for j in range(rows):
+            for i in range(cols):
+                if planner.blocked[j, i]:
+                    draw.rectangle([px(i * res, (j + 1) * res), px((i + 1) * res, j * res)],
+                                   fill=halo)
 
     for station in world.stations:
         color = STATION_COLORS[station.kind]
@@ -111,6 +129,13 @@ def render_topdown(world: World, robots: Sequence[RobotSketch], path: str | Path
             draw.polygon(rect(*obstacle.center_m, *obstacle.size_m,
                               math.radians(obstacle.yaw_deg)), fill=fill, outline=(40, 40, 40))
 
+    for plan in planned:
+        if len(plan) >= 2:
+            draw.line([px(*p) for p in plan], fill=(255, 255, 255), width=3, joint="curve")
+        for p in plan:
+            x, y = px(*p)
+            draw.ellipse([x - 4, y - 4, x + 4, y + 4], fill=(255, 255, 255),
+                         outline=(20, 20, 20))
     for i, robot in enumerate(robots):
         color = PATH_COLORS[i % len(PATH_COLORS)]
         if len(robot.path) >= 2:

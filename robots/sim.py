@@ -46,7 +46,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from contextlib import contextmanager
 from pathlib import Path
@@ -65,6 +65,8 @@ from robots.world import Box, Cylinder, Station, World, load_world
 
 if TYPE_CHECKING:
     from types import TracebackType
+
+    from beehave.planning import GridPlanner
 
 log = logging.getLogger(__name__)
 
@@ -165,6 +167,8 @@ class Simulation:
         self._queue: list[Callable[[BulletClient], None]] = []
         self._threaded = False  # the sim thread takes the queue (under _queue_lock)
         self._callbacks: list[_OnStep] = []
+        self._gate: Callable[[float], bool] | None = None
+        self._wake = threading.Event()
         self._stop_event = threading.Event()
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
@@ -228,6 +232,7 @@ class Simulation:
         thread = self._thread
         if thread is not None:
             self._stop_event.set()
+            self._wake.set()
             if thread is not threading.current_thread():
                 thread.join()
             self._thread = None
@@ -237,8 +242,8 @@ class Simulation:
                 self._state = SimState.IDLE
                 if failed and self._error is not None:
                     raise SimulationError(
-                        f"the simulation stopped at {self.time_s:.3f} s because an on_step "
-                        f"callback raised {self._error!r}") from self._error
+                        f"the simulation stopped at {self.time_s:.3f} s because a callback "
+                        f"(on_step or gate) raised {self._error!r}") from self._error
 
     def close(self) -> None:
         """Stop (see :meth:`stop`) and disconnect from pybullet. Idempotent."""
@@ -332,6 +337,25 @@ class Simulation:
 
         return remove
 
+    def set_gate(self, gate: Callable[[float], bool] | None) -> None:
+        """Hold the sim thread while ``gate(time_s)`` is True (lockstep: the sim node holds
+        it for controllers that have not answered yet). The thread asks the gate before
+        every step, again after each :meth:`wake` and at least every 20 ms (wall) while it
+        holds — so a gate may let go on a timeout — and runs queued requests (``call``,
+        LED colours) meanwhile. The gate must be quick. None removes it. Stepping by hand
+        (:meth:`step`) ignores the gate."""
+        self._gate = gate
+        self._wake.set()
+
+    def wake(self) -> None:
+        """Tell a holding sim thread to ask its gate again (the gate's answer changed)."""
+        self._wake.set()
+
+    @property
+    def stopping(self) -> bool:
+        """True once :meth:`stop` was asked for (until the thread is started again)."""
+        return self._stop_event.is_set()
+
     # ---- stepping -------------------------------------------------------------------
 
     def step(self, n: int = 1) -> None:
@@ -412,6 +436,8 @@ class Simulation:
         next_s = time.perf_counter()
         try:
             while not self._stop_event.is_set():
+                if self._gate is not None and self._held():
+                    break
                 with self._step_lock:
                     self._step_once()
                 factor = self.real_time_factor
@@ -436,6 +462,20 @@ class Simulation:
             with self._step_lock:
                 for action in pending:
                     action(self._client)
+
+    def _held(self) -> bool:
+        """Wait while the gate holds; True when a stop came meanwhile."""
+        while True:
+            self._wake.clear()  # before asking: a wake() from now on is not lost
+            gate = self._gate
+            if gate is None or not gate(self.time_s):
+                return False
+            if self._queue:
+                with self._step_lock:
+                    self._run_queue()
+            if self._stop_event.is_set():
+                return True
+            self._wake.wait(0.02)
 
     def _require_open(self, what: str) -> None:
         if self._state is SimState.CLOSED:
@@ -505,10 +545,14 @@ class Simulation:
 
     # ---- pictures -------------------------------------------------------------------
 
-    def render_topdown(self, path: str | Path, *, scale_px_per_m: float = 40.0) -> Path:
+    def render_topdown(self, path: str | Path, *, scale_px_per_m: float = 40.0,
+                       planned: Sequence[Sequence[tuple[float, float]]] = (),
+                       planner: GridPlanner | None = None) -> Path:
         """Write a top-down PNG of the world, the robots (EMILI in its LED colour, Kobuki
         with its LEDs) and their driven paths; drawn with PIL from known geometry and the
-        robots' snapshots (no pybullet call), so safe while running. Returns the path."""
+        robots' snapshots (no pybullet call), so safe while running. ``planned`` adds
+        planned paths (waypoints), ``planner`` shades its inflated obstacles. Returns the
+        path."""
         sketches = []
         for robot in self._robots.values():
             pose = robot.pose()
@@ -522,7 +566,8 @@ class Simulation:
                 leds = ()
             sketches.append(RobotSketch(robot.namespace, robot.kind, pose.x_m, pose.y_m,
                                         pose.yaw_rad, leds, robot.path()))
-        return _render_topdown(self.world, sketches, path, scale_px_per_m=scale_px_per_m)
+        return _render_topdown(self.world, sketches, path, scale_px_per_m=scale_px_per_m,
+                               planned=planned, planner=planner)
 
     def camera_image(self, *, center_m: tuple[float, float] | None = None,
                      height_m: float = 15.0, width_px: int = 320, height_px: int = 192,

@@ -20,6 +20,11 @@ topic                     type                       dir    meaning
                                                             ``power_supply_status`` CHARGING
                                                             (1) on a charging station
 ``/clock``                rosgraph_msgs/Clock        out    100 Hz of sim time
+``/lockstep``             std_msgs/String (JSON)     in     ``{"participant": id,
+                                                            "until_s": t}``: hold the sim at
+                                                            sim time t until ``id`` answers
+                                                            again; ``"until_s": null``: let
+                                                            go (``docs/simulation.md``)
 ========================  =========================  =====  ==============================
 
 EMILI:
@@ -61,6 +66,7 @@ ODOM = "odom"
 SCAN = "scan"
 BATTERY = "battery_state"
 CLOCK = "/clock"
+LOCKSTEP = "/lockstep"
 
 LIFT_COMMAND = "lift/command"
 LIFT_STATE = "lift/state"
@@ -82,6 +88,8 @@ ODOM_RATE_HZ = 50.0
 SENSOR_RATE_HZ = 50.0
 BATTERY_RATE_HZ = 5.0
 CLOCK_RATE_HZ = 100.0
+LOCKSTEP_TIMEOUT_S = 1.0
+"""Wall seconds a lockstep participant may keep the sim waiting before it is let go."""
 STATE_ECHO_PERIOD_S = 1.0
 MAP_FRAME = "map"
 

@@ -27,12 +27,15 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from robots.errors import UnknownStation, UnknownWorld, WorldError
+
+if TYPE_CHECKING:
+    from beehave.planning import OccupancyMap
 
 WORLDS_DIR = Path(__file__).parent / "worlds"
 """Where the worlds shipped with beehave live; ``load_world(name)`` looks here."""
@@ -221,6 +224,27 @@ class World(_Model):
                     row.append((x0, y0, x1, y1))
             rects.extend(row)
         return rects
+
+
+def occupancy_map(world: World) -> OccupancyMap:
+    """The world as a planner sees it (:mod:`beehave.planning`): the floor's size, with
+    walls, shelves, obstacles and holes as blocking shapes. Lanes and stations are flat
+    tape: they do not block. Robots are not on the map (they move; the laser sees them)."""
+    from beehave.planning import Disc, OccupancyMap, Rect
+
+    shapes: list[Disc | Rect] = []
+    for wall in world.walls:
+        (ax, ay), (bx, by) = wall.from_m, wall.to_m
+        shapes.append(Rect(((ax + bx) / 2, (ay + by) / 2),
+                           (math.hypot(bx - ax, by - ay), wall.thickness_m),
+                           math.atan2(by - ay, bx - ax)))
+    for box in [*world.shelves, *world.obstacles]:
+        if isinstance(box, Cylinder):
+            shapes.append(Disc(box.center_m, box.radius_m))
+        else:
+            shapes.append(Rect(box.center_m, box.size_m, math.radians(box.yaw_deg)))
+    shapes += [Rect(hole.center_m, hole.size_m) for hole in world.holes]
+    return OccupancyMap(size_m=world.floor.size_m, obstacles=tuple(shapes))
 
 
 def available_worlds() -> list[str]:

@@ -211,3 +211,41 @@ def test_beehave_run_can_start_the_simulation_itself() -> None:
         assert math.hypot(pose.x_m - 10.0, pose.y_m - 2.0) <= 0.3
     assert robot.sim is None
     assert wait_until(lambda: not [t for t in beehave_threads() if t not in before], 5)
+
+
+def test_navigation_replans_around_an_obstacle_missing_from_its_map() -> None:
+    # The map Navigation plans on has no box; the physics has one across the straight
+    # line. Blocked by it, Navigation adds what its laser sees to the map and goes around.
+    from robots.world import occupancy_map
+
+    box = {"center_m": [5.0, 2.0], "size_m": [0.6, 1.0], "height_m": 1.0}
+    with stack(hall(robots=[EMILI], obstacles=[box]), "emili") as (sim, robots):
+        stale_map = occupancy_map(hall(robots=[EMILI]))
+        nav = run_action(robots["emili"], Navigation((8.0, 2.0), occupancy=stale_map,
+                                                     replan_after_s=1.0))
+        assert nav.status is Status.SUCCEEDED, nav.error
+        assert nav.replans >= 1
+        pose = sim.robot("emili1").pose()
+        assert math.hypot(pose.x_m - 8.0, pose.y_m - 2.0) <= 0.2
+        assert nav.planned is not None and len(nav.planned.waypoints_m) >= 3
+        # It went around, never through: no point of its driven path inside the box.
+        assert not any(4.7 <= x <= 5.3 and 1.5 <= y <= 2.5
+                       for x, y in sim.robot("emili1").path())
+
+
+def test_navigation_with_a_world_map_plans_around_a_pillar() -> None:
+    # The straight line from (2, 2) to (8, 2) runs through the pillar: with the map it is
+    # never blocked, it drives around.
+    pillar = {"center_m": [5.0, 2.2], "radius_m": 0.3, "height_m": 2.0}
+    world = hall(robots=[EMILI], obstacles=[pillar])
+    from robots.world import occupancy_map
+
+    with stack(world, "emili") as (sim, robots):
+        nav = run_action(robots["emili"], Navigation((8.0, 2.0),
+                                                     occupancy=occupancy_map(world)))
+        assert nav.status is Status.SUCCEEDED, nav.error
+        assert nav.replans == 0
+        pose = sim.robot("emili1").pose()
+        assert math.hypot(pose.x_m - 8.0, pose.y_m - 2.0) <= 0.2
+        assert min(math.hypot(x - 5.0, y - 2.2) for x, y in sim.robot("emili1").path()
+                   ) >= 0.3 + 0.55

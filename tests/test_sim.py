@@ -401,3 +401,30 @@ def test_on_step_callbacks_can_be_removed(make_sim: Any) -> None:
     remove()
     sim.step(3)
     assert seen == pytest.approx([1 / 240, 2 / 240, 3 / 240])
+
+
+def test_a_gate_holds_the_thread_serves_calls_meanwhile_and_stop_ends_it(
+        make_sim: Any) -> None:
+    sim = make_sim(arena(emili_at(2, 5)))
+    hold_at = threading.Event()
+    asked: list[float] = []
+
+    def gate(time_s: float) -> bool:
+        asked.append(time_s)
+        return hold_at.is_set() and time_s >= 0.5
+
+    hold_at.set()
+    sim.set_gate(gate)
+    sim.start()
+    assert wait_until(lambda: sim.time_s >= 0.5, 10)
+    held = sim.steps
+    assert sim.call(lambda client: sim.steps) == held  # served while holding
+    assert wait_until(lambda: len(asked) > 3, 5)  # the gate is asked again
+    assert sim.steps == held and sim.time_s < 0.5 + 2 * sim.step_s
+    hold_at.clear()
+    sim.wake()
+    assert wait_until(lambda: sim.time_s > 1.0, 10)
+    hold_at.set()
+    sim.set_gate(lambda time_s: True)  # hold for good: stop() must still end the thread
+    sim.stop()
+    assert sim.state is SimState.IDLE

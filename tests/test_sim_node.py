@@ -8,6 +8,7 @@ participant), as another process would.
 from __future__ import annotations
 
 import itertools
+import json
 import logging
 import math
 import os
@@ -366,3 +367,48 @@ def test_beehave_sim_runs_until_sigint(tmp_path: Path) -> None:
     assert proc.returncode == 0, err
     assert "stopped cleanly" in out
     assert "Traceback" not in err
+
+
+def lockstep(participant: str, until_s: float | None) -> String:
+    return String(data=json.dumps({"participant": participant, "until_s": until_s}))
+
+
+def test_lockstep_holds_the_sim_where_a_participant_is_due_until_it_answers(rig: Rig) -> None:
+    clocks = rig.probe.record(Clock, topics.CLOCK)
+    pub = rig.publisher(String, topics.LOCKSTEP)
+    me = unique("controller")
+    hold_s = rig.sim.time_s + 0.5
+    pub.publish(lockstep(me, hold_s))
+    assert rig.probe.wait(lambda: rig.node.participants.get(me) == hold_s)
+    assert rig.probe.wait(lambda: rig.sim.time_s >= hold_s - 1e-6)
+    # Held there: the sim runs at 4x, so 0.3 s of wall time would be 1.2 s of sim time.
+    time.sleep(0.3)
+    assert rig.sim.time_s < hold_s + 2 * rig.sim.step_s
+    # ...and /clock says it has reached the held time, so the participant wakes.
+    assert rig.probe.wait(lambda: bool(clocks) and stamp_s(clocks[-1]) >= hold_s - 1e-6)
+    pub.publish(lockstep(me, None))  # let go
+    assert rig.probe.wait(lambda: rig.sim.time_s > hold_s + 0.5)
+    assert me not in rig.node.participants and not rig.node.dropped
+
+
+def test_lockstep_lets_a_silent_participant_go_after_its_timeout(
+        rig: Rig, caplog: pytest.LogCaptureFixture) -> None:
+    pub = rig.publisher(String, topics.LOCKSTEP)
+    ghost = unique("crashed")
+    hold_s = rig.sim.time_s + 0.2
+    with caplog.at_level(logging.WARNING, logger="robots.node"):
+        pub.publish(lockstep(ghost, hold_s))  # and never again, as a crashed process
+        assert rig.probe.wait(lambda: rig.sim.time_s > hold_s + 1.0, timeout_s=10)
+    assert rig.node.dropped[ghost] == 1
+    assert ghost in caplog.text and "did not answer" in caplog.text
+
+
+def test_lockstep_refuses_a_malformed_announcement(rig: Rig) -> None:
+    pub = rig.publisher(String, topics.LOCKSTEP)
+    pub.publish(String(data=json.dumps({"participant": "x", "until_s": "soon"})))
+    assert rig.probe.wait(lambda: rig.node.rejected[topics.LOCKSTEP] == 1)
+    assert not rig.node.participants
+
+
+def stamp_s(msg: Clock) -> float:
+    return float(msg.clock.sec + msg.clock.nanosec * 1e-9)

@@ -89,9 +89,27 @@ def _running_actions(node: dict[str, Any] | None) -> list[str]:
 
 
 def _wait(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase: str,
-          predicate: Any, timeout_sim_s: float) -> bool:
+          predicate: Any, timeout_sim_s: float, *, min_wall_s: float = 5.0) -> bool:
+    """Wait until ``predicate()``; give up once ``timeout_sim_s`` of sim time *and*
+    ``min_wall_s`` of wall time have passed — what runs in wall time (the low level, DDS
+    discovery) must not lose its chance when the simulation runs at full speed."""
     deadline = sim.time_s + timeout_sim_s
-    while sim.time_s < deadline:
+    wall_deadline = time.monotonic() + min_wall_s
+    while sim.time_s < deadline or time.monotonic() < wall_deadline:
+        if predicate():
+            return True
+        if live is not None:
+            live.update(_panel(sim, emili, kobuki, phase))
+        time.sleep(0.05)
+    return bool(predicate())
+
+
+def _wait_wall(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase: str,
+               predicate: Any, timeout_s: float) -> bool:
+    """As :func:`_wait`, bounded in wall time: for what happens outside the simulation's
+    time (another process starting up)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
         if predicate():
             return True
         if live is not None:
@@ -152,16 +170,34 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
             _wait(sim, live, emili, kobuki, "tour: to the pick-up",
                   lambda: e1.odometry().linear_mps > 0.3, 30.0)
             _wait(sim, live, emili, kobuki, "tour: to the pick-up",
-                  lambda: False, 2.0)  # drive a little further
+                  lambda: False, 2.0, min_wall_s=0.0)  # drive a little further
+            # The stop is timed in the physics, by a callback on every step: polling from
+            # here would add this thread's wall-time naps, ×10 in sim time at full speed.
+            stopped_at: list[float] = []
+
+            def watch_stop(time_s: float) -> None:
+                if not stopped_at and e1.cmd_vel() == (0.0, 0.0):
+                    stopped_at.append(time_s)
+
             t_switch = sim.time_s
-            emili.high.switch("commanded")
-            _wait(sim, live, emili, kobuki, "switched: stopping",
-                  lambda: abs(e1.cmd_vel()[0]) < 1e-6 and abs(e1.cmd_vel()[1]) < 1e-6, 5.0)
-            found.stop_after_switch_s = sim.time_s - t_switch
+            remove_watch = sim.on_step(watch_stop)
+            try:
+                emili.high.switch("commanded")
+                _wait(sim, live, emili, kobuki, "switched: stopping",
+                      lambda: bool(stopped_at), 5.0)
+            finally:
+                remove_watch()
+            if stopped_at:
+                found.stop_after_switch_s = stopped_at[0] - t_switch
             agent = subprocess.Popen(
                 [sys.executable, "-m", "behaviours.demos.order_agent", "emili1", "--station",
                  "emili_charging", "--id", "demo-1", "--timeout-s", "600"],
                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            # The agent starts in wall time (a Python process, DDS discovery), which at
+            # full speed would be minutes of sim time: wait for its order in wall time,
+            # then give the drive its budget in sim time.
+            _wait_wall(sim, live, emili, kobuki, "commanded: waiting for the order",
+                       lambda: navigating() or agent.poll() is not None, 60.0)
             _wait(sim, live, emili, kobuki, "commanded: to the charging station",
                   lambda: agent.poll() is not None, 120.0)
             if agent.poll() is None:

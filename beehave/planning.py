@@ -1,0 +1,329 @@
+"""Path planning on a 2-D floor: grid A* around obstacles inflated by the robot's radius.
+
+Robot-agnostic: the planner knows a floor (its size) and the shapes that block it — discs
+and (rotated) rectangles in metres — nothing about worlds, URDFs or ROS. A simulator, a map
+server or a test builds the :class:`OccupancyMap`; ``robots.world.occupancy_map(world)``
+is the adapter for the simulated worlds. Navigation follows the waypoints; agents that bid
+for a job compare :attr:`PlannedPath.length_m` (the path cost) of their candidate robots::
+
+    from beehave.planning import Disc, GridPlanner, OccupancyMap, Rect
+
+    floor = OccupancyMap(size_m=(10.0, 6.0),
+                         obstacles=(Disc((5.0, 3.0), 0.3), Rect((8.0, 1.0), (0.4, 2.0))))
+    planner = GridPlanner(floor, robot_radius_m=0.55)   # rasterised and inflated once
+    path = planner.plan((1.0, 3.0), (9.0, 3.0))
+    path.waypoints_m     # ((1.0, 3.0), (4.4, 2.1), …, (9.0, 3.0)): corners only
+    path.length_m        # the cost: metres along the waypoints
+
+How it works. The floor becomes a grid of ``resolution_m`` cells; a cell is blocked when
+its centre lies within ``robot_radius_m + clearance_m`` of an obstacle or of the floor's
+edge, so the robot may be treated as a point (its radius must be the circumscribed one:
+EMILI turns on the spot). A* on the 8-connected grid (octile distance, no corner cutting)
+finds the cell path, which is then pulled tight: every waypoint that the previous one can
+see past is dropped, leaving straight segments between corners. A start inside the
+inflation (a robot parked close to a wall) leaves by the nearest free cell; a goal inside it
+is reached at the nearest free cell within ``goal_tolerance_m``, otherwise planning fails
+with :class:`~beehave.errors.NoPath`, as it does when no path exists.
+
+Obstacles that are not on the map (a parked pallet seen by the laser) are added with
+:meth:`GridPlanner.with_obstacles`, which returns a new planner and leaves this one as it
+was — plans never share mutable state, so several threads may plan at once.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections import deque
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from beehave.errors import NoPath
+
+__all__ = ["Disc", "GridPlanner", "NoPath", "OccupancyMap", "PlannedPath", "Rect",
+           "path_length_m"]
+
+Point = tuple[float, float]
+
+_SQRT2 = math.sqrt(2.0)
+_NEIGHBOURS = ((1, 0, 1.0), (-1, 0, 1.0), (0, 1, 1.0), (0, -1, 1.0),
+               (1, 1, _SQRT2), (1, -1, _SQRT2), (-1, 1, _SQRT2), (-1, -1, _SQRT2))
+
+
+@dataclass(frozen=True)
+class Disc:
+    """A round obstacle (pillar, bin, laser hit): centre and radius in metres."""
+
+    center_m: Point
+    radius_m: float
+
+
+@dataclass(frozen=True)
+class Rect:
+    """A rectangular obstacle (wall, shelf, pallet, a hole in the floor): centre, size
+    along its own x and y, and its heading (counter-clockwise from the map's x axis)."""
+
+    center_m: Point
+    size_m: Point
+    yaw_rad: float = 0.0
+
+
+Shape = Disc | Rect
+
+
+@dataclass(frozen=True)
+class OccupancyMap:
+    """A floor for planning: ``size_m`` (x, y) from the origin, and what blocks it. Outside
+    the floor counts as blocked."""
+
+    size_m: Point
+    obstacles: tuple[Shape, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not (all(math.isfinite(v) and v > 0 for v in self.size_m)):
+            raise ValueError(f"OccupancyMap size_m must be positive and finite, got "
+                             f"{self.size_m}")
+
+
+def path_length_m(points: Sequence[Point]) -> float:
+    """The length of a polyline in metres (0 for fewer than two points)."""
+    return sum(math.hypot(b[0] - a[0], b[1] - a[1])
+               for a, b in zip(points, points[1:], strict=False))
+
+
+@dataclass(frozen=True)
+class PlannedPath:
+    """A plan: straight segments between ``waypoints_m`` (the start first, the goal — or the
+    free point nearest it — last)."""
+
+    waypoints_m: tuple[Point, ...]
+
+    @property
+    def length_m(self) -> float:
+        """The path's cost: its length along the waypoints, in metres."""
+        return path_length_m(self.waypoints_m)
+
+    @property
+    def goal_m(self) -> Point:
+        return self.waypoints_m[-1]
+
+
+class GridPlanner:
+    """Grid A* on ``occupancy`` for a robot of ``robot_radius_m`` (circumscribed), keeping
+    a further ``clearance_m`` from everything; cells of ``resolution_m``.
+
+    Building one rasterises and inflates the map (tens of milliseconds for a warehouse);
+    keep it and call :meth:`plan` as often as needed.
+    """
+
+    def __init__(self, occupancy: OccupancyMap, *, robot_radius_m: float,
+                 clearance_m: float = 0.1, resolution_m: float = 0.1) -> None:
+        for name, value in (("robot_radius_m", robot_radius_m), ("clearance_m", clearance_m)):
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value}")
+        if not (math.isfinite(resolution_m) and resolution_m > 0):
+            raise ValueError(f"resolution_m must be positive and finite, got {resolution_m}")
+        self.occupancy = occupancy
+        self.robot_radius_m = float(robot_radius_m)
+        self.clearance_m = float(clearance_m)
+        self.resolution_m = float(resolution_m)
+        self.inflation_m = self.robot_radius_m + self.clearance_m
+        self.width = max(1, math.ceil(occupancy.size_m[0] / resolution_m))
+        self.height = max(1, math.ceil(occupancy.size_m[1] / resolution_m))
+        xs = (np.arange(self.width) + 0.5) * resolution_m
+        ys = (np.arange(self.height) + 0.5) * resolution_m
+        self._cx, self._cy = np.meshgrid(xs, ys)  # [row = y, column = x]
+        r = self.inflation_m
+        sx, sy = occupancy.size_m
+        # The floor's edge is a wall too: the robot's body must stay on the floor.
+        self.blocked = ((self._cx < r) | (self._cx > sx - r)
+                        | (self._cy < r) | (self._cy > sy - r))
+        self._add(occupancy.obstacles)
+
+    def _add(self, shapes: Iterable[Shape]) -> None:
+        r = self.inflation_m
+        for shape in shapes:
+            self.blocked |= _within(shape, self._cx, self._cy, r)
+
+    def with_obstacles(self, shapes: Iterable[Shape]) -> GridPlanner:
+        """A copy that also avoids ``shapes`` (inflated like the map's); this planner is
+        unchanged."""
+        twin = object.__new__(GridPlanner)
+        twin.__dict__.update(self.__dict__)
+        twin.blocked = self.blocked.copy()
+        twin._add(shapes)
+        return twin
+
+    # ---- queries ----------------------------------------------------------------------
+
+    def cell(self, point: Point) -> tuple[int, int]:
+        """The (column, row) of the cell holding ``point`` (may be outside the grid)."""
+        return (math.floor(point[0] / self.resolution_m),
+                math.floor(point[1] / self.resolution_m))
+
+    def center(self, cell: tuple[int, int]) -> Point:
+        return ((cell[0] + 0.5) * self.resolution_m, (cell[1] + 0.5) * self.resolution_m)
+
+    def is_free(self, point: Point) -> bool:
+        """Whether the robot's centre may be at ``point`` (off the floor: no)."""
+        i, j = self.cell(point)
+        return 0 <= i < self.width and 0 <= j < self.height and not self.blocked[j, i]
+
+    def segment_free(self, a: Point, b: Point) -> bool:
+        """Whether the straight move from ``a`` to ``b`` stays in free cells (sampled at a
+        quarter cell)."""
+        n = max(1, math.ceil(math.hypot(b[0] - a[0], b[1] - a[1]) / (self.resolution_m / 4)))
+        t = np.linspace(0.0, 1.0, n + 1)
+        i = np.floor((a[0] + (b[0] - a[0]) * t) / self.resolution_m).astype(np.int64)
+        j = np.floor((a[1] + (b[1] - a[1]) * t) / self.resolution_m).astype(np.int64)
+        if i.min() < 0 or j.min() < 0 or i.max() >= self.width or j.max() >= self.height:
+            return False
+        return not bool(self.blocked[j, i].any())
+
+    # ---- planning ---------------------------------------------------------------------
+
+    def plan(self, start: Point, goal: Point, *, goal_tolerance_m: float = 0.0
+             ) -> PlannedPath:
+        """The shortest grid path from ``start`` to ``goal``, pulled tight into straight
+        segments. Raises :class:`~beehave.errors.NoPath` (saying why) when the goal is off
+        the floor, inside an obstacle's inflation with no free cell within
+        ``goal_tolerance_m``, or cut off."""
+        for name, p in (("start", start), ("goal", goal)):
+            if not (len(p) == 2 and all(math.isfinite(v) for v in p)):
+                raise NoPath(f"{name} must be (x_m, y_m) with finite numbers, got {p!r}")
+        sx, sy = self.occupancy.size_m
+        if not (0 <= goal[0] <= sx and 0 <= goal[1] <= sy):
+            raise NoPath(f"goal ({goal[0]:.2f}, {goal[1]:.2f}) is off the floor "
+                         f"(0–{sx:g} × 0–{sy:g} m)")
+        start_cell = self._nearest_free(self.cell(start), math.inf)
+        if start_cell is None:
+            raise NoPath(f"no free cell anywhere near the start ({start[0]:.2f}, "
+                         f"{start[1]:.2f}): the map is blocked for a robot of radius "
+                         f"{self.robot_radius_m} m")
+        goal_cell = self._nearest_free(self.cell(goal), goal_tolerance_m)
+        if goal_cell is None:
+            raise NoPath(f"goal ({goal[0]:.2f}, {goal[1]:.2f}) is within "
+                         f"{self.inflation_m:.2f} m (robot radius {self.robot_radius_m} m + "
+                         f"clearance {self.clearance_m} m) of an obstacle or the floor's edge"
+                         f", and no free point lies within goal_tolerance_m="
+                         f"{goal_tolerance_m} m")
+        cells = self._astar(start_cell, goal_cell)
+        if cells is None:
+            raise NoPath(f"no path from ({start[0]:.2f}, {start[1]:.2f}) to ({goal[0]:.2f}, "
+                         f"{goal[1]:.2f}) for a robot of radius {self.robot_radius_m} m with "
+                         f"{self.clearance_m} m clearance: obstacles cut the goal off")
+        end = goal if goal_cell == self.cell(goal) else self.center(goal_cell)
+        points: list[Point] = [(float(start[0]), float(start[1]))]
+        if start_cell != self.cell(start):
+            points.append(self.center(start_cell))  # leave the inflation first
+        points += [self.center(c) for c in cells[1:-1]]
+        points.append((float(end[0]), float(end[1])))
+        return PlannedPath(tuple(self._pull_tight(points)))
+
+    def _nearest_free(self, cell: tuple[int, int], within_m: float
+                      ) -> tuple[int, int] | None:
+        """``cell`` when free, else the nearest free cell (breadth-first) within
+        ``within_m`` of it."""
+        i, j = cell
+        if 0 <= i < self.width and 0 <= j < self.height and not self.blocked[j, i]:
+            return cell
+        if within_m <= 0:
+            return None
+        i = min(max(i, 0), self.width - 1)
+        j = min(max(j, 0), self.height - 1)
+        limit = within_m / self.resolution_m
+        seen = {(i, j)}
+        todo = deque([(i, j)])
+        best: tuple[int, int] | None = None
+        best_d = math.inf
+        while todo:
+            ci, cj = todo.popleft()
+            d = math.hypot(ci - cell[0], cj - cell[1])
+            if d > limit or d > best_d + 1.5:
+                continue
+            if not self.blocked[cj, ci] and d < best_d:
+                best, best_d = (ci, cj), d
+                continue
+            for di, dj, _ in _NEIGHBOURS[:4]:
+                n = (ci + di, cj + dj)
+                if 0 <= n[0] < self.width and 0 <= n[1] < self.height and n not in seen:
+                    seen.add(n)
+                    todo.append(n)
+        return best
+
+    def _astar(self, start: tuple[int, int], goal: tuple[int, int]
+               ) -> list[tuple[int, int]] | None:
+        width, height = self.width, self.height
+        # Plain Python lists: indexing them is several times faster than numpy scalars.
+        blocked = self.blocked.ravel().tolist()
+        s = start[1] * width + start[0]
+        g = goal[1] * width + goal[0]
+        gi, gj = goal
+
+        def h(index: int) -> float:  # octile distance: exact on an empty 8-connected grid
+            dx = abs(index % width - gi)
+            dy = abs(index // width - gj)
+            return (dx + dy) + (_SQRT2 - 2.0) * min(dx, dy)
+
+        cost = {s: 0.0}
+        parent = {s: -1}
+        heap = [(h(s), 0.0, s)]
+        closed = set()
+        while heap:
+            _, c, index = heapq.heappop(heap)
+            if index == g:
+                out = []
+                while index != -1:
+                    out.append((index % width, index // width))
+                    index = parent[index]
+                return out[::-1]
+            if index in closed:
+                continue
+            closed.add(index)
+            i, j = index % width, index // width
+            for di, dj, step in _NEIGHBOURS:
+                ni, nj = i + di, j + dj
+                if not (0 <= ni < width and 0 <= nj < height):
+                    continue
+                n = nj * width + ni
+                if blocked[n]:
+                    continue
+                if di and dj and (blocked[j * width + ni] or blocked[nj * width + i]):
+                    continue  # no cutting a blocked corner
+                nc = c + step
+                if nc < cost.get(n, math.inf):
+                    cost[n] = nc
+                    parent[n] = index
+                    heapq.heappush(heap, (nc + h(n), nc, n))
+        return None
+
+    def _pull_tight(self, points: list[Point]) -> list[Point]:
+        """Keep only the corners: from each kept point, jump to the farthest point it sees."""
+        if len(points) <= 2:
+            return points
+        out = [points[0]]
+        anchor = 0
+        last = len(points) - 1
+        while anchor < last:
+            nxt = anchor + 1
+            # Greedy forward: one visibility test per cell of the path, not per pair.
+            while nxt < last and self.segment_free(points[anchor], points[nxt + 1]):
+                nxt += 1
+            out.append(points[nxt])
+            anchor = nxt
+        return out
+
+
+def _within(shape: Shape, cx: np.ndarray, cy: np.ndarray, r: float) -> np.ndarray:
+    """Cells whose centre is within ``r`` of ``shape``."""
+    if isinstance(shape, Disc):
+        reach = shape.radius_m + r
+        return np.asarray((cx - shape.center_m[0]) ** 2 + (cy - shape.center_m[1]) ** 2
+                          <= reach * reach, dtype=bool)
+    c, s = math.cos(shape.yaw_rad), math.sin(shape.yaw_rad)
+    dx, dy = cx - shape.center_m[0], cy - shape.center_m[1]
+    u = np.abs(c * dx + s * dy) - shape.size_m[0] / 2
+    v = np.abs(-s * dx + c * dy) - shape.size_m[1] / 2
+    return np.asarray(np.maximum(u, 0.0) ** 2 + np.maximum(v, 0.0) ** 2 <= r * r, dtype=bool)

@@ -1,0 +1,130 @@
+"""The grid planner (beehave/planning.py): paths that keep the robot's radius from every
+obstacle, exact costs, clear errors, and the warehouse's README example around its pillar."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from beehave.errors import BeehaveError, NoPath
+from beehave.planning import Disc, GridPlanner, OccupancyMap, PlannedPath, Rect, path_length_m
+
+
+def distance_to(shape: Disc | Rect, x: float, y: float) -> float:
+    """Exact distance from (x, y) to the shape's outline (0 inside)."""
+    if isinstance(shape, Disc):
+        return max(0.0, math.hypot(x - shape.center_m[0], y - shape.center_m[1])
+                   - shape.radius_m)
+    c, s = math.cos(shape.yaw_rad), math.sin(shape.yaw_rad)
+    dx, dy = x - shape.center_m[0], y - shape.center_m[1]
+    u = max(abs(c * dx + s * dy) - shape.size_m[0] / 2, 0.0)
+    v = max(abs(-s * dx + c * dy) - shape.size_m[1] / 2, 0.0)
+    return math.hypot(u, v)
+
+
+def clearance_m(path: PlannedPath, shapes: tuple[Disc | Rect, ...]) -> float:
+    """The smallest distance between the path (sampled every 1 cm) and any shape."""
+    best = math.inf
+    for (ax, ay), (bx, by) in zip(path.waypoints_m, path.waypoints_m[1:], strict=False):
+        n = max(1, math.ceil(math.hypot(bx - ax, by - ay) / 0.01))
+        for k in range(n + 1):
+            x, y = ax + (bx - ax) * k / n, ay + (by - ay) * k / n
+            best = min(best, *(distance_to(sh, x, y) for sh in shapes))
+    return best
+
+
+EMPTY = OccupancyMap(size_m=(10.0, 6.0))
+PILLAR = Disc((5.0, 3.0), 0.3)
+
+
+def test_free_floor_is_one_straight_segment_with_exact_cost() -> None:
+    path = GridPlanner(EMPTY, robot_radius_m=0.5).plan((1.0, 1.0), (9.0, 5.0))
+    assert path.waypoints_m == ((1.0, 1.0), (9.0, 5.0))
+    assert path.length_m == pytest.approx(math.hypot(8.0, 4.0))
+
+
+@pytest.mark.parametrize(("radius_m", "clearance"), [(0.2, 0.0), (0.55, 0.1), (0.8, 0.05)])
+def test_path_around_a_pillar_keeps_radius_plus_clearance(radius_m: float,
+                                                          clearance: float) -> None:
+    floor = OccupancyMap(size_m=(10.0, 6.0), obstacles=(PILLAR,))
+    planner = GridPlanner(floor, robot_radius_m=radius_m, clearance_m=clearance,
+                          resolution_m=0.05)
+    path = planner.plan((1.0, 3.0), (9.0, 3.0))
+    assert len(path.waypoints_m) >= 3  # it had to bend
+    # Cell centres are tested, so the exact clearance may fall short by half a diagonal.
+    assert clearance_m(path, (PILLAR,)) >= radius_m + clearance - 0.05 * math.sqrt(2) / 2
+    # Barely longer than the straight line: pulled tight, not a staircase.
+    assert 8.0 < path.length_m < 8.0 + 2 * (radius_m + clearance + 0.3)
+    assert path.length_m == pytest.approx(path_length_m(path.waypoints_m))
+
+
+def test_gap_narrower_than_the_robot_is_no_path_and_says_why() -> None:
+    # A wall across the floor with a 0.8 m gap: a Kobuki passes, an EMILI does not.
+    wall = (Rect((5.0, 1.3), (0.2, 2.6)), Rect((5.0, 4.7), (0.2, 2.6)))
+    floor = OccupancyMap(size_m=(10.0, 6.0), obstacles=wall)
+    kobuki = GridPlanner(floor, robot_radius_m=0.18, clearance_m=0.05).plan((1, 3), (9, 3))
+    assert clearance_m(kobuki, wall) >= 0.18
+    with pytest.raises(NoPath, match=r"radius 0\.55 m") as info:
+        GridPlanner(floor, robot_radius_m=0.55).plan((1, 3), (9, 3))
+    assert isinstance(info.value, BeehaveError)
+
+
+def test_goal_inside_an_obstacle_fails_or_stops_at_the_nearest_free_point() -> None:
+    floor = OccupancyMap(size_m=(10.0, 6.0), obstacles=(PILLAR,))
+    planner = GridPlanner(floor, robot_radius_m=0.5, clearance_m=0.0)
+    with pytest.raises(NoPath, match=r"goal \(5\.00, 3\.00\) is within 0\.50 m"):
+        planner.plan((1.0, 3.0), (5.0, 3.0))
+    path = planner.plan((1.0, 3.0), (5.0, 3.0), goal_tolerance_m=1.0)
+    gx, gy = path.goal_m
+    assert 0.8 - 0.1 <= math.hypot(gx - 5.0, gy - 3.0) <= 0.8 + 0.15  # just outside
+
+
+@pytest.mark.parametrize("goal", [(11.0, 3.0), (5.0, -1.0), (math.nan, 1.0)])
+def test_goal_off_the_floor_or_not_a_number_is_refused(goal: tuple[float, float]) -> None:
+    with pytest.raises(NoPath, match="goal"):
+        GridPlanner(EMPTY, robot_radius_m=0.3).plan((1.0, 1.0), goal)
+
+
+def test_start_inside_the_inflation_leaves_by_the_nearest_free_cell() -> None:
+    # A robot parked 0.3 m from a wall though it plans with 0.5 m: it may still leave.
+    planner = GridPlanner(EMPTY, robot_radius_m=0.5, clearance_m=0.0)
+    path = planner.plan((0.3, 3.0), (9.0, 3.0))
+    assert path.waypoints_m[0] == (0.3, 3.0)
+    assert planner.is_free(path.waypoints_m[1])
+    assert path.waypoints_m[1][0] == pytest.approx(0.55, abs=0.06)
+
+
+def test_with_obstacles_replans_around_new_ones_and_leaves_the_original() -> None:
+    planner = GridPlanner(EMPTY, robot_radius_m=0.4)
+    straight = planner.plan((1.0, 3.0), (9.0, 3.0))
+    blocked = planner.with_obstacles([Disc((5.0, 3.0), 0.5)])
+    detour = blocked.plan((1.0, 3.0), (9.0, 3.0))
+    assert len(detour.waypoints_m) > 2 and detour.length_m > straight.length_m
+    assert planner.plan((1.0, 3.0), (9.0, 3.0)) == straight
+
+
+def test_bad_options_are_refused_with_their_name() -> None:
+    with pytest.raises(ValueError, match="robot_radius_m"):
+        GridPlanner(EMPTY, robot_radius_m=math.inf)
+    with pytest.raises(ValueError, match="resolution_m"):
+        GridPlanner(EMPTY, robot_radius_m=0.3, resolution_m=0.0)
+    with pytest.raises(ValueError, match="size_m"):
+        OccupancyMap(size_m=(0.0, 3.0))
+
+
+def test_warehouse_readme_order_goes_around_the_pillar() -> None:
+    pytest.importorskip("pydantic")
+    from robots.world import load_world, occupancy_map
+
+    world = load_world("warehouse")
+    floor = occupancy_map(world)
+    start = (world.robots[0].start.x_m, world.robots[0].start.y_m)
+    goal = world.station("emili_pickup").center_m
+    path = GridPlanner(floor, robot_radius_m=0.55).plan(start, goal)
+    # The straight line from EMILI's start to its pick-up touches the pillar at (8, 4.3).
+    pillar = Disc((8.0, 4.3), 0.25)
+    assert distance_to(pillar, 8.0, 2.0 + (8.0 - 3.0) * (9.6 - 2.0) / 14.0) < 0.55
+    assert clearance_m(path, floor.obstacles) >= 0.55 + 0.1 - 0.08
+    assert path.goal_m == goal
+    assert math.dist(start, goal) < path.length_m < 1.2 * math.dist(start, goal)
