@@ -37,7 +37,7 @@ def documented() -> dict[str, set[Entry]]:
             tables[current] = set()
         elif line.startswith("| `") and current:
             cells = [c.strip() for c in line.strip("|").split("|")]
-            direction = "sub" if cells[2] == "to robot" else "pub"
+            direction = "sub" if cells[2] in ("to robot", "to simulation") else "pub"
             msg_type = cells[1].strip("`")
             for topic in re.findall(r"`([^`]+)`", cells[0].split("(")[0]):
                 tables[current].add((topic, msg_type, direction))
