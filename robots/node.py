@@ -554,6 +554,11 @@ def sim_main(argv: list[str]) -> int:
         print(f"beehave sim: --real-time-factor must be a positive number, got "
               f"{args.real_time_factor}; use --fast for no pacing", file=sys.stderr)
         return 2
+    if args.duration_s is not None and not (math.isfinite(args.duration_s)
+                                            and args.duration_s > 0):
+        print(f"beehave sim: --duration-s must be a positive, finite number of seconds, got "
+              f"{args.duration_s}; leave it out to run until Ctrl-C", file=sys.stderr)
+        return 2
     logging.basicConfig(level=logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     from beehave.errors import BeehaveError

@@ -65,6 +65,13 @@ def test_run_duration_must_be_finite(value: str) -> None:
     assert repr(value) in done.stderr, done.stderr
 
 
+@pytest.mark.parametrize("value", ["inf", "nan", "-1"])
+def test_sim_duration_must_be_finite(value: str) -> None:
+    done = beehave("sim", "--duration-s", value, timeout_s=30)
+    assert done.returncode == 2
+    assert "--duration-s must be a positive, finite number" in done.stderr, done.stderr
+
+
 @pytest.mark.parametrize("value", ["inf", "nan", "0"])
 def test_demo_real_time_factor_must_be_finite_and_positive(value: str) -> None:
     done = beehave("demo", "--real-time-factor", value, timeout_s=30)
