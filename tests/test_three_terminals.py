@@ -2,8 +2,8 @@
 
 1. ``beehave sim`` (here ``--fast``: lockstep keeps the robot's control loop in step),
 2. ``beehave run robots/config/emili.yaml``,
-3. EMILI's ``behavior`` parameter set to ``commanded``, then
-   ``python -m behaviours.demos.order_agent emili1 --station emili_pickup``.
+3. ``python -m behaviours.demos.order_agent emili1 --switch commanded --station
+   emili_pickup`` (sets EMILI's ``behavior`` parameter, then orders).
 
 The straight line from EMILI's start to ``emili_pickup`` runs into a pillar; the order is
 reached only because Navigation plans around it. Checked in the physics: the sim's
@@ -48,16 +48,9 @@ def test_readme_three_terminals_order_to_emili_pickup_goes_around_the_pillar() -
         procs.append(_start("-m", "beehave.cli", "sim", "--fast"))
         procs.append(_start("-m", "beehave.cli", "run", "robots/config/emili.yaml"))
         assert probe.wait(lambda: bool(odom), 60), "no odometry from the sim"
-        result = None
-        for _ in range(20):  # until the robot's node is up and takes the parameter
-            try:
-                result = probe.set_param("/emili1/beehave_high_level", "behavior", "commanded")
-                break
-            except AssertionError:  # the service is not there yet
-                continue
-        assert result is not None and result.successful, result
-        agent = _start("-m", "behaviours.demos.order_agent", "emili1", "--station",
-                       "emili_pickup", "--timeout-s", "90")
+        # Terminal 3, as the README gives it: switch to commanded, then the order.
+        agent = _start("-m", "behaviours.demos.order_agent", "emili1", "--switch", "commanded",
+                       "--station", "emili_pickup", "--timeout-s", "90")
         procs.append(agent)
         out, _ = agent.communicate(timeout=100)
         assert agent.returncode == 0, out

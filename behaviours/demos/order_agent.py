@@ -4,8 +4,13 @@ rejected. A plain rclpy program; it imports nothing of beehave's framework.
 
     python -m behaviours.demos.order_agent emili1 --station emili_charging
     python -m behaviours.demos.order_agent emili1 --goal 12.0 3.5 --id o7
+    python -m behaviours.demos.order_agent emili1 --switch commanded --station emili_pickup
 
-Exit status 0 when the order was reached, 1 otherwise.
+``--switch NAME`` first sets the robot's ``behavior`` parameter (on
+``/<ns>/beehave_high_level``) to ``NAME`` — what ``ros2 param set`` would do, for machines
+without the ros2 command line — and waits until the robot accepted it.
+
+Exit status 0 when the order was reached, 1 otherwise (2 when the switch was refused).
 """
 
 from __future__ import annotations
@@ -16,7 +21,31 @@ import sys
 import time
 
 import rclpy
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.node import Node
 from std_msgs.msg import String
+
+
+def switch_behavior(node: Node, namespace: str, behavior: str, *, timeout_s: float) -> str:
+    """Set ``behavior`` on the robot's high-level node; returns "" or why it was refused."""
+    client = node.create_client(SetParameters, f"/{namespace}/beehave_high_level/set_parameters")
+    deadline = time.monotonic() + timeout_s
+    try:
+        while not client.wait_for_service(timeout_sec=0.5):
+            if time.monotonic() >= deadline:
+                return f"/{namespace}/beehave_high_level is not running"
+        value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=behavior)
+        request = SetParameters.Request(parameters=[Parameter(name="behavior", value=value)])
+        future = client.call_async(request)
+        rclpy.spin_until_future_complete(node, future,
+                                         timeout_sec=max(0.1, deadline - time.monotonic()))
+        if not future.done():
+            return "the robot did not answer"
+        result = future.result().results[0]
+        return "" if result.successful else (result.reason or "refused")
+    finally:
+        node.destroy_client(client)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -27,12 +56,25 @@ def main(argv: list[str] | None = None) -> int:
     where.add_argument("--goal", nargs=2, type=float, metavar=("X_M", "Y_M"))
     parser.add_argument("--id", default="order-1")
     parser.add_argument("--timeout-s", type=float, default=300.0)
+    parser.add_argument("--switch", metavar="BEHAVIOR",
+                        help="first switch the robot to this top-level behaviour "
+                             "(its behavior parameter), e.g. commanded")
     args = parser.parse_args(argv)
     order = {"id": args.id, **({"station": args.station} if args.station
                                else {"goal": args.goal})}
     rclpy.init()
     node = rclpy.create_node("order_agent")
     outcome: dict[str, str] = {}
+    if args.switch:
+        refused = switch_behavior(node, args.namespace, args.switch,
+                                  timeout_s=min(60.0, args.timeout_s))
+        if refused:
+            print(f"order_agent: cannot switch {args.namespace} to {args.switch!r}: {refused}",
+                  file=sys.stderr, flush=True)
+            node.destroy_node()
+            rclpy.shutdown()
+            return 2
+        print(json.dumps({"switched": args.switch}), flush=True)
 
     def on_progress(msg: String) -> None:
         report = json.loads(msg.data)
