@@ -94,7 +94,8 @@ def test_infinite_stop_timeout_in_the_file_is_refused_before_start(tmp_path: Pat
 # ---- errors inside `with robot:` ---------------------------------------------------------
 
 @pytest.mark.parametrize(("config", "expected"), [
-    ("explodes.yaml", "explodes.yaml: behaviors.boom: behavior 'boom': Explodes.__init__ raised RuntimeError"),
+    ("explodes.yaml",
+     "explodes.yaml: behaviors.boom: behavior 'boom': Explodes.__init__ raised RuntimeError"),
     ("unknown_world.yaml", "unknown_world.yaml: sim.world: unknown world 'atlantis'; "
                            "registered: 'warehouse'"),
 ])
@@ -167,7 +168,8 @@ def test_a_failed_start_leaves_nothing_running(monkeypatch: pytest.MonkeyPatch,
     monkeypatch.syspath_prepend(str(HERE))
     before = set(threading.enumerate())
     assert main(["run", str(CONFIGS / "explodes.yaml")]) == 2
-    assert "behaviors.boom: behavior 'boom': Explodes.__init__ raised RuntimeError" in capfd.readouterr().err
+    assert ("behaviors.boom: behavior 'boom': Explodes.__init__ raised RuntimeError"
+            in capfd.readouterr().err)
     assert wait_until(lambda: not [t for t in threading.enumerate()
                                    if t not in before and t.is_alive()], 5), \
         [t.name for t in threading.enumerate() if t not in before]

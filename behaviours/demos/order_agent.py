@@ -19,6 +19,7 @@ import argparse
 import json
 import sys
 import time
+from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
@@ -29,7 +30,8 @@ from std_msgs.msg import String
 
 def switch_behavior(node: Node, namespace: str, behavior: str, *, timeout_s: float) -> str:
     """Set ``behavior`` on the robot's high-level node; returns "" or why it was refused."""
-    client = node.create_client(SetParameters, f"/{namespace}/beehave_high_level/set_parameters")
+    client: Any = node.create_client(SetParameters,
+                                     f"/{namespace}/beehave_high_level/set_parameters")
     deadline = time.monotonic() + timeout_s
     try:
         while not client.wait_for_service(timeout_sec=0.5):
@@ -40,9 +42,10 @@ def switch_behavior(node: Node, namespace: str, behavior: str, *, timeout_s: flo
         future = client.call_async(request)
         rclpy.spin_until_future_complete(node, future,
                                          timeout_sec=max(0.1, deadline - time.monotonic()))
-        if not future.done():
+        response = future.result() if future.done() else None
+        if response is None:
             return "the robot did not answer"
-        result = future.result().results[0]
+        result = response.results[0]
         return "" if result.successful else (result.reason or "refused")
     finally:
         node.destroy_client(client)
