@@ -122,6 +122,13 @@ class Behavior(Runnable):
         if self._interrupt_requested:
             raise Interrupted(f"{self.path}: interrupted; not starting {child.name!r}")
         child._attach(self, manager)
+        with self._cond:
+            # Paths name things in events and snapshots: the second `Drive` started by this
+            # behaviour is `Drive#2` (its name stays `Drive`), so the two can be told apart.
+            self._names[child.name] += 1
+            count = self._names[child.name]
+        if count > 1:
+            child._suffix = f"#{count}"
         return manager
 
     def _adopt(self, child: Runnable) -> None:
@@ -129,12 +136,6 @@ class Behavior(Runnable):
             # Checked under the same lock the interrupt takes, so no child escapes it.
             if self._interrupt_requested or not self._accepting:
                 raise Interrupted(f"{self.path}: interrupted; not starting {child.name!r}")
-            # Paths name things in events and snapshots: a second `Drive` started by this
-            # behaviour is `Drive#2`, so the two can be told apart.
-            self._names[child.name] += 1
-            count = self._names[child.name]
-            if count > 1:
-                child.name = f"{child.name}#{count}"
             self._children.append(child)
 
     def _prune(self) -> None:

@@ -38,6 +38,11 @@ log = logging.getLogger(__name__)
 
 IDLE = "idle"
 
+_tls = threading.local()
+"""``holding``: the manager whose processor role this thread took in ``_enqueue`` and has
+not yet begun to execute (its events are being emitted: a subscriber that switches or
+shuts down from there is inside the manager, not outside)."""
+
 
 class ManagerState(enum.Enum):
     NEW = "new"
@@ -64,8 +69,8 @@ class HighLevelBehaviorManager:
 
     ``switch(name)`` interrupts the running one, waits until every sub-behaviour and
     action has ended (at most ``stop_timeout_s``; stragglers become STUCK and their
-    ``safe_state()`` is forced) and starts the next. Switches are executed one at a time
-    one at a time; concurrent requests resolve to the latest, the earlier ones raise
+    ``safe_state()`` is forced) and starts the next. Switches are executed one at a time;
+    concurrent requests resolve to the latest, the earlier ones raise
     :class:`SwitchSuperseded`.
 
     Options (keyword-only): ``default`` is the behaviour started by :meth:`start`;
@@ -85,9 +90,10 @@ class HighLevelBehaviorManager:
                  gil_switch_interval_s: float | None = 0.001,
                  history_len: int = 100) -> None:
         if (isinstance(stop_timeout_s, bool) or not isinstance(stop_timeout_s, (int, float))
-                or not math.isfinite(stop_timeout_s) or stop_timeout_s <= 0):
-            raise ConfigError(f"stop_timeout_s must be a positive, finite number of seconds, "
-                              f"got {stop_timeout_s!r}")
+                or not math.isfinite(stop_timeout_s) or stop_timeout_s <= 0
+                or stop_timeout_s > _MAX_TIMEOUT_S):
+            raise ConfigError(f"stop_timeout_s must be a positive, finite number of seconds "
+                              f"(at most {_MAX_TIMEOUT_S:g}), got {stop_timeout_s!r}")
         self.default = default
         self.stop_timeout_s = float(stop_timeout_s)
         self.node = node
@@ -110,7 +116,6 @@ class HighLevelBehaviorManager:
         self._executor: int | None = None  # the processor's thread
         self._stopped = threading.Event()
         self._shutdown_thread: threading.Thread | None = None
-        self._recorded: set[int] = set()
         self._stopping: Behavior | None = None  # the top-level behaviour a switch stops
         self._top: Behavior | None = None
         self._top_name: str | None = None
@@ -162,7 +167,7 @@ class HighLevelBehaviorManager:
 
     def shutdown(self) -> None:
         """Stop the top-level behaviour and join the manager's threads, within
-        ``stop_timeout_s`` (plus a short grace for forced safe states).
+        ``stop_timeout_s`` + 0.25 s (a short grace for safe states included).
 
         A STUCK action's thread cannot be killed: one still running then is reported (a
         warning naming it) and left to end by itself; its type stays locked. Called from a
@@ -226,8 +231,11 @@ class HighLevelBehaviorManager:
     def _own_thread(self) -> bool:
         """True when called from a thread of this manager (one that shutdown must end)."""
         caller = current()
-        return ((caller is not None and caller._manager is self)
+        return ((caller is not None and caller._manager is self) or self._holding_role()
                 or threading.get_ident() == self._executor or self._pool.owns_current())
+
+    def _holding_role(self) -> bool:
+        return getattr(_tls, "holding", None) is self
 
     def __enter__(self) -> Self:
         self.start()
@@ -248,9 +256,10 @@ class HighLevelBehaviorManager:
         Called from a behaviour of this manager, it only queues the request (waiting would
         wait for itself) and returns the new, not yet started, behaviour.
         """
+        nested = self._holding_role()
         request, become = self._enqueue(name, params)
         behavior = request.behavior
-        if threading.get_ident() == self._executor:
+        if nested or threading.get_ident() == self._executor:
             return behavior  # asked from an event callback during a switch: the loop runs it
         caller = current()
         if caller is not None and caller._manager is self:
@@ -295,13 +304,19 @@ class HighLevelBehaviorManager:
             become = not self._processing
             if become:
                 self._processing = True
-        self.events.emit(Event(EventKind.SWITCH_REQUESTED, name,
-                               detail={"params": _jsonable(params)}))
-        for old in replaced:
-            if old.fallback_from is None:
-                self._supersede(old, request)
-            else:
-                old.finish()  # a fallback is moot once something was asked for
+        if become:
+            _tls.holding = self
+        try:
+            self.events.emit(Event(EventKind.SWITCH_REQUESTED, name,
+                                   detail={"params": _jsonable(params)}))
+            for old in replaced:
+                if old.fallback_from is None:
+                    self._supersede(old, request)
+                else:
+                    old.finish()  # a fallback is moot once something was asked for
+        finally:
+            if become:
+                _tls.holding = None
         return request, become
 
     @property
@@ -407,7 +422,7 @@ class HighLevelBehaviorManager:
                         self._processing = False
                         self._cond.notify_all()
                         return
-                    handover = own is not None and own.done.is_set() and not stopping
+                    handover = own is not None and own.done.is_set()
                     if handover:
                         self._pending = requests + self._pending
                         requests = []
@@ -426,9 +441,20 @@ class HighLevelBehaviorManager:
                 self._pending = []
                 self._processing = False
                 self._cond.notify_all()
+                empty = self._state is ManagerState.RUNNING and (
+                    self._top is None or self._top.status.finished)
             for request in requests:
                 if not request.done.is_set():
                     request.finish(failure)
+            if empty:
+                # One behaviour always runs: whatever failed, the safe one.
+                with self._cond:
+                    self._pending.append(self._idle_request(None))
+                    become = not self._processing
+                    if become:
+                        self._processing = True
+                if become:
+                    self._spawn_processor()
             raise
         finally:
             if self._executor == threading.get_ident():
@@ -438,7 +464,7 @@ class HighLevelBehaviorManager:
         """Carry out one batch of requests (the processor's)."""
         if stopping:
             for request in requests:
-                request.finish(ManagerShutdown("the manager is shutting down"))
+                self._cancel(request)
             self._stop_top()
             return
         asked = [r for r in requests if r.fallback_from is None]
@@ -467,7 +493,7 @@ class HighLevelBehaviorManager:
             overtaken = any(r.fallback_from is None for r in self._pending)
             stopping = self._state is not ManagerState.RUNNING
         if stopping:
-            latest.finish(ManagerShutdown("the manager is shutting down"))
+            self._cancel(latest)
         elif overtaken:
             if latest.fallback_from is None:
                 self._supersede(latest, None)
@@ -475,6 +501,15 @@ class HighLevelBehaviorManager:
                 latest.finish()
         else:
             self._start_top(latest)
+
+    def _cancel(self, request: _Request) -> None:
+        """The manager shuts down before ``request`` could run: say so, to its caller and
+        to observers (a ``request_switch`` caller learns it from the event)."""
+        error = ManagerShutdown(f"switch to {request.name!r} cancelled: the manager is "
+                                "shutting down")
+        request.finish(error)
+        if request.fallback_from is None:
+            self.events.emit(Event(EventKind.SWITCH_REJECTED, request.name, error=error))
 
     def _idle_request(self, ended: Behavior | None) -> _Request:
         idle = Idle()
@@ -506,8 +541,9 @@ class HighLevelBehaviorManager:
         grace = max(deadline, time.monotonic()) + _GRACE_S
         for node in self._stuck_nodes():
             if node not in stuck_before:
-                node._wait_forced(grace)
+                node._wait_safe_state(grace)
         self._top = None
+        self._stopping = None
 
     def _start_top(self, request: _Request) -> None:
         behavior = request.behavior
@@ -527,9 +563,8 @@ class HighLevelBehaviorManager:
     # ------------------------------------------------------------------ callbacks from items
     def _node_ended(self, node: Runnable, was_stuck: bool) -> None:
         """Called in the item's own thread, as the last thing it does."""
-        if was_stuck:
-            with self._cond:
-                self._stuck.discard(node)
+        with self._cond:
+            self._stuck.discard(node)
         if node.parent is not None:
             return
         with self._cond:
@@ -551,11 +586,9 @@ class HighLevelBehaviorManager:
 
     def _record_history(self, node: Runnable) -> None:
         """With ``_cond`` held: note an ended (or STUCK) top-level behaviour, once."""
-        if id(node) in self._recorded:
+        if node._in_history:
             return
-        self._recorded.add(id(node))
-        if len(self._recorded) > 4 * (self._history.maxlen or 100):
-            self._recorded = {id(n) for n in (self._top, self._stopping) if n is not None}
+        node._in_history = True
         self._history.append({"name": node.name, "status": node.status.name,
                               "error": None if node.error is None else repr(node.error),
                               "elapsed_s": node.elapsed_s})
@@ -570,6 +603,9 @@ class HighLevelBehaviorManager:
 
 
 _MARGIN_S = 0.05
+"""What a stop allows beyond the deadline for a behaviour to record its end (twice: the
+behaviour, then its thread), before it is declared STUCK."""
+_MAX_TIMEOUT_S = 86400.0
 _GRACE_S = 0.1
 """How long a switch waits, after its deadline, for forced safe states (documented in
 docs/concepts.md): a STUCK action's ``safe_state()`` normally has run when ``switch()``

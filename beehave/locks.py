@@ -131,6 +131,6 @@ def _why(holder: Action) -> str:
     if holder.status is not Status.STUCK:
         return ""
     if holder.safe_state_pending:
-        return ("the holder is STUCK and its forced safe_state() has not returned: the type "
+        return ("the holder is STUCK and its safe_state() has not returned: the type "
                 "stays locked until it does")
     return "the holder is STUCK: its run() ignores its interrupt; the type is free when it returns"

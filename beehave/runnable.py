@@ -114,8 +114,11 @@ class Runnable(abc.ABC):
     _interrupted_at: float | None
     _thread_id: int | None
     _holds: int
-    _forced: threading.Event | None
+    _safe_done: threading.Event | None
+    _safe_thread_id: int | None
     _overdue_reported: bool
+    _in_history: bool
+    _suffix: str
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         # Runtime state lives here so that subclasses need not call super().__init__().
@@ -143,8 +146,13 @@ class Runnable(abc.ABC):
         # What keeps the type lock and the ROS entities: run(), plus a forced safe_state()
         # while one runs. Whichever of them ends last releases them.
         self._holds = 1
-        self._forced = None
+        # Set while a safe_state() runs (in its own thread or in run's): who waits for the
+        # hardware to be safe waits on it.
+        self._safe_done = None
+        self._safe_thread_id = None
         self._overdue_reported = False
+        self._in_history = False
+        self._suffix = ""  # "#2" for the second child of that name in its behaviour
         return self
 
     def __init__(self, name: str | None = None) -> None:
@@ -186,7 +194,8 @@ class Runnable(abc.ABC):
     @property
     def path(self) -> str:
         """``parent/…/name``: where this sits in the running tree."""
-        return self.name if self.parent is None else f"{self.parent.path}/{self.name}"
+        own = f"{self.name}{self._suffix}"
+        return own if self.parent is None else f"{self.parent.path}/{own}"
 
     @property
     def stop_deadline(self) -> float | None:
@@ -284,6 +293,7 @@ class Runnable(abc.ABC):
             if self._status is Status.PENDING:
                 self._manager = None
                 object.__setattr__(self, "parent", None)
+                self._suffix = ""
 
     def _start_thread(self) -> None:
         assert self._manager is not None
@@ -353,16 +363,17 @@ class Runnable(abc.ABC):
         stuck_now = False
         try:
             if status is not Status.SUCCEEDED:
-                self._enter_safe_state()
+                self._run_safe_state()
             self._destroy_io()
             self._release()
-            with self._cond:
-                # The owner may have given up on us while safe_state() hung.
-                stuck_now = self._status is Status.STUCK
             if self.parent is not None:
                 # Before _decided: whoever wait()s for us must find the failure recorded.
                 self.parent._record_child_end(self)
             self._decided.set()
+            with self._cond:
+                # The owner may have given up on us while safe_state() hung; after
+                # _decided it no longer can (_mark_stuck checks it under this lock).
+                stuck_now = self._status is Status.STUCK
             kind = EventKind.STUCK_RELEASED if stuck_now else EventKind.ENDED
             manager.events.emit(Event(kind, self.path, self._status.name, self.error,
                                       {"elapsed_s": self.elapsed_s}))
@@ -402,7 +413,7 @@ class Runnable(abc.ABC):
 
         The forced ``safe_state()`` runs in a thread of its own, so that the owner (a
         switch, a shutdown, a preempting behaviour) goes on within its bound; whoever must
-        see it applied waits for it with :meth:`_wait_forced`. The type lock stays held
+        see it applied waits for it with :meth:`_wait_safe_state`. The type lock stays held
         until both it and ``run`` have returned.
 
         Also for an item whose clean-up hangs (a ``safe_state()`` that blocks): its status
@@ -415,17 +426,17 @@ class Runnable(abc.ABC):
             if self._decided.is_set() or self._status is Status.PENDING:
                 return
             force_safe_state = self._status is Status.RUNNING and self._has_safe_state()
-            in_safe_state = self._status is not Status.RUNNING
+            ended_as = None if self._status is Status.RUNNING else self._status
             self._status = Status.STUCK
             if self.ended_at is None:
                 object.__setattr__(self, "ended_at", time.monotonic())
             if force_safe_state:
                 self._holds += 1
-                self._forced = threading.Event()
+                self._safe_done = threading.Event()
             # Under our lock, so that _finish cannot remove it before it is added.
             manager._stuck_add(self)
         manager.events.emit(Event(EventKind.STUCK, self.path, Status.STUCK.name,
-                                  detail=self._stuck_detail(in_safe_state)))
+                                  detail=self._stuck_detail(ended_as)))
         if force_safe_state:
             try:
                 manager._pool.submit(f"beehave:safe_state:{self.path}", self._forced_safe_state)
@@ -435,25 +446,35 @@ class Runnable(abc.ABC):
         self._decided.set()
 
     def _forced_safe_state(self) -> None:
-        forced = self._forced
-        assert forced is not None
         try:
-            self._enter_safe_state()
+            self._run_safe_state()
             # Whatever run() publishes from now on would undo the safe state.
             self._destroy_io()
         finally:
-            forced.set()
             with self._cond:
                 self._holds -= 1
                 last = self._holds == 0
             if last:
                 self._end_of_life(stuck=True)
 
-    def _wait_forced(self, deadline: float) -> bool:
-        """Wait until a forced safe state (if any) returned, at most until ``deadline``;
+    def _run_safe_state(self) -> None:
+        """Call the safe state here, so that others can see it is under way (and where)."""
+        with self._cond:
+            if self._safe_done is None:
+                self._safe_done = threading.Event()
+            done = self._safe_done
+        self._safe_thread_id = threading.get_ident()
+        try:
+            self._enter_safe_state()
+        finally:
+            self._safe_thread_id = None
+            done.set()
+
+    def _wait_safe_state(self, deadline: float) -> bool:
+        """Wait until a safe state under way (if any) returned, at most until ``deadline``;
         report it (once) when it is overdue. True when none is pending."""
-        forced = self._forced
-        if forced is None or forced.wait(max(0.0, deadline - time.monotonic())):
+        done = self._safe_done
+        if done is None or done.wait(max(0.0, deadline - time.monotonic())):
             return True
         with self._cond:
             report = not self._overdue_reported
@@ -462,35 +483,40 @@ class Runnable(abc.ABC):
             self._manager.events.emit(Event(
                 EventKind.SAFE_STATE_OVERDUE, self.path, self._status.name,
                 detail={"running_s": round(time.monotonic() - (self.ended_at or 0.0), 3),
-                        "at": self._where(), "action_type": getattr(self, "action_type", None)}))
+                        "at": self._where(self._safe_thread_id),
+                        "action_type": getattr(self, "action_type", None)}))
         return False
 
     @property
     def safe_state_pending(self) -> bool:
-        """True while a forced ``safe_state()`` (of a STUCK action) has not returned."""
-        forced = self._forced
-        return forced is not None and not forced.is_set()
+        """True while its ``safe_state()`` runs (forced or not) and has not returned."""
+        done = self._safe_done
+        return done is not None and not done.is_set()
 
     def _has_safe_state(self) -> bool:
         """Action: yes; a behaviour has no hardware of its own."""
         return False
 
-    def _stuck_detail(self, in_safe_state: bool) -> dict[str, Any]:
+    def _stuck_detail(self, ended_as: Status | None) -> dict[str, Any]:
         manager = self._manager
         timeout_s = manager.stop_timeout_s if manager is not None else None
         since = self._interrupted_at
-        detail: dict[str, Any] = {
-            "ignored": ("nothing: its safe_state() has not returned" if in_safe_state
-                        else "its interrupt"),
+        if ended_as is None:
+            ignored = "its interrupt"
+        elif self.safe_state_pending:
+            ignored = f"nothing: it ended {ended_as.name} but its safe_state() has not returned"
+        else:
+            ignored = f"nothing: it ended {ended_as.name} but its clean-up has not finished"
+        return {
+            "ignored": ignored,
             "for_s": None if since is None else round(time.monotonic() - since, 3),
             "stop_timeout_s": timeout_s,
-            "at": self._where(),
+            "at": self._where(self._thread_id),
         }
-        return detail
 
-    def _where(self) -> str | None:
-        """Where its thread is now (innermost Python frame), for STUCK reports."""
-        ident = self._thread_id
+    def _where(self, ident: int | None) -> str | None:
+        """Where thread ``ident`` is now (the user's line, and the call it is blocked in),
+        for STUCK reports."""
         frame = sys._current_frames().get(ident) if ident is not None else None
         if frame is None:
             return None
@@ -558,14 +584,13 @@ class Runnable(abc.ABC):
 
 
 def _timeout(seconds: float | None, what: str) -> float | None:
-    """A timeout for the waits of threading: None for "no timeout" (None or inf)."""
+    """A timeout for the waits of threading: None for "no timeout" (None, inf, or more
+    than threading can wait for)."""
     if seconds is None:
         return None
     if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or math.isnan(seconds):
         raise ConfigError(f"{what} takes a number of seconds (math.inf for no limit), "
                           f"got {seconds!r}")
-    if math.isinf(seconds):
-        if seconds < 0:
-            return 0.0
+    if seconds > threading.TIMEOUT_MAX:
         return None
     return max(0.0, float(seconds))

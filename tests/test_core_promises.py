@@ -498,3 +498,148 @@ def test_stuck_report_says_what_was_ignored_for_how_long_and_where(
 def test_a_behaviour_that_succeeds_is_not_logged_as_a_failure() -> None:
     event = Event(EventKind.FALLBACK, "tour", Status.SUCCEEDED.name, detail={"to": "idle"})
     assert describe(event) == "tour ended SUCCEEDED on its own; starting 'idle'"
+
+
+# ---- found in review -----------------------------------------------------------------------
+
+def test_switch_from_a_switch_requested_subscriber_does_not_deadlock(
+        hl: HighLevelBehaviorManager) -> None:
+    """A supervisor redirects every request for ``patrol`` to ``charge`` from an event
+    callback: the nested request wins, nothing hangs."""
+    hl.register("patrol", Forever)
+    hl.register("charge", Forever)
+
+    def redirect(event: Event) -> None:
+        if event.kind is EventKind.SWITCH_REQUESTED and event.subject == "patrol":
+            hl.switch("charge")
+
+    hl.subscribe(redirect)
+    outcome: list[Any] = []
+
+    def ask() -> None:
+        try:
+            hl.switch("patrol")
+            outcome.append("switched")
+        except SwitchSuperseded as exc:
+            outcome.append(exc)
+
+    thread = threading.Thread(target=ask, daemon=True)
+    thread.start()
+    thread.join(5.0)
+    assert not thread.is_alive(), "switch() from inside a SWITCH_REQUESTED callback hung"
+    assert isinstance(outcome[0], SwitchSuperseded)
+    assert settled(hl)
+    assert hl.current == "charge"
+
+
+def test_history_keeps_every_ended_behaviour() -> None:
+    """Ended behaviours are freed and their ids reused: history must not mistake a new one
+    for an old one."""
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.3, history_len=500)
+    hl.register("a", Forever)
+    hl.register("b", Forever)
+    with hl:
+        for i in range(200):
+            hl.switch("a" if i % 2 else "b")
+        hl.switch("idle")
+        names = [h["name"] for h in hl.history if h["name"] in ("a", "b")]
+    assert len(names) == 200
+
+
+def test_stuck_items_are_forgotten_once_their_threads_end() -> None:
+    """Safe states that end right at the stop deadline race the owner declaring them
+    STUCK: whatever the interleaving, nothing stays listed as stuck once it ended."""
+    rng = random.Random(1)
+
+    class Edge(Action):
+        action_type = "driving"
+
+        def __init__(self, eps_s: float) -> None:
+            self.eps_s = eps_s
+
+        def run(self) -> None:
+            while self.sleep(1.0):
+                pass
+
+        def safe_state(self) -> None:
+            deadline = self.stop_deadline
+            assert deadline is not None
+            while time.monotonic() < deadline - self.eps_s:
+                time.sleep(0.0002)
+
+    class Top(Behavior):
+        def __init__(self, eps_s: float) -> None:
+            self.eps_s = eps_s
+
+        def run(self) -> None:
+            self.start_action(Edge(self.eps_s))
+            while self.sleep(1.0):
+                pass
+
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.02)
+    hl.register("top", Top, eps_s=0.0)
+    with hl:
+        for _ in range(120):
+            hl.switch("top", eps_s=rng.uniform(-0.0002, 0.0012))
+            time.sleep(0.003)
+            hl.switch("idle")
+        assert wait_until(lambda: not hl.snapshot()["stuck"], 3.0), hl.snapshot()["stuck"]
+
+
+def test_huge_timeouts_are_refused_or_mean_forever(hl: HighLevelBehaviorManager) -> None:
+    with pytest.raises(ConfigError, match="at most"):
+        HighLevelBehaviorManager(stop_timeout_s=1e10)
+    woke: list[bool] = []
+
+    class Sleeper(Behavior):
+        def run(self) -> None:
+            woke.append(self.sleep(1e10))  # longer than threading can wait: until interrupted
+
+    hl.register("sleeper", Sleeper)
+    hl.switch("sleeper")
+    hl.switch("idle")
+    assert woke == [False]
+    assert hl.current == "idle"
+
+
+def test_a_hanging_safe_state_after_an_obeyed_interrupt_is_reported_where_it_hangs() -> None:
+    """run() obeyed its interrupt but safe_state() hangs (in run's thread): STUCK, the type
+    stays locked and says why, and SAFE_STATE_OVERDUE points at the safe_state line."""
+    gate = threading.Event()
+
+    class Drive(Action):
+        action_type = "driving"
+
+        def run(self) -> None:
+            while self.sleep(1.0):
+                pass
+
+        def safe_state(self) -> None:
+            gate.wait(30)  # the line SAFE_STATE_OVERDUE must name
+
+    class Top(Behavior):
+        def run(self) -> None:
+            self.start_action(Drive())
+            while self.sleep(1.0):
+                pass
+
+    events: list[Event] = []
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.2)
+    hl.register("top", Top)
+    hl.subscribe(events.append)
+    try:
+        with hl:
+            hl.switch("top")
+            assert wait_until(lambda: bool(hl.snapshot()["locks"]))
+            hl.switch("idle")
+            lock = hl.snapshot()["locks"]["driving"]
+            assert lock["status"] == "STUCK" and lock["safe_state_pending"] is True
+            overdue = [e for e in events if e.kind is EventKind.SAFE_STATE_OVERDUE]
+            assert len(overdue) == 1
+            assert "in safe_state" in overdue[0].detail["at"], overdue[0].detail
+            stuck = next(e for e in events if e.kind is EventKind.STUCK)
+            assert "safe_state() has not returned" in stuck.detail["ignored"]
+            gate.set()
+            assert wait_until(lambda: not hl.snapshot()["locks"])
+    finally:
+        gate.set()
