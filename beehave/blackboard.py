@@ -9,6 +9,13 @@ logics watch what they react to::
 Threads and the loop
     A blackboard works on its own, like a dict whose callbacks run synchronously in the
     thread that calls :meth:`Blackboard.set` (this is how the high level can keep a mirror).
+    Callbacks never run under the blackboard's lock, so a slow one (a "battery low →
+    switch" that waits for a behaviour to end) blocks no other thread's ``set``,
+    ``subscribe`` or ``close``. The changes of one key are delivered one at a time and in
+    the order of the writes: a write made while another thread is still notifying that
+    key's subscribers, or by one of its callbacks, is stored at once and delivered by the
+    thread already notifying, right after the running callback. Changes of different keys
+    written by different threads may be delivered concurrently.
     Once it is *bound* to an asyncio loop (the :class:`~beehave.lowlevel.LowLevelBehaviorManager`
     binds it; the first :meth:`~Blackboard.watch` inside a running loop binds it too), a set
     made in the loop's thread notifies at once, and a set from any other thread stores the
@@ -47,6 +54,7 @@ import math
 import re
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from numbers import Real
 from typing import Any, Self
@@ -181,7 +189,7 @@ class _Slot:
     """Everything the blackboard knows about one key; looked up once per ``set``."""
 
     __slots__ = ("key", "parts", "change", "notified", "subs", "max_age_s", "deadband",
-                 "timer")
+                 "timer", "outbox", "delivering")
 
     def __init__(self, key: str) -> None:
         self.key = key
@@ -192,6 +200,10 @@ class _Slot:
         self.max_age_s: float | None = None
         self.deadband: float | None = None
         self.timer: asyncio.TimerHandle | None = None
+        # Unbound delivery (under the blackboard's lock): changes waiting, in write order,
+        # with "only if still current" (stale marks), and whether a thread delivers them.
+        self.outbox: deque[tuple[Change, bool]] = deque()
+        self.delivering = False
 
 
 class Subscription:
@@ -408,13 +420,22 @@ class Blackboard:
             change = self._store(slot, value, writer)
             if change is None:
                 return
-            if loop is None:
-                self._notify(slot, change)
+            if loop is not None:
+                self._pending[key] = slot
+                if self._flush_scheduled:
+                    return
+                self._flush_scheduled = True
+            elif not slot.subs and not slot.delivering:
+                slot.notified = change  # nobody to tell: no hand-over needed
                 return
-            self._pending[key] = slot
-            if self._flush_scheduled:
-                return
-            self._flush_scheduled = True
+            else:
+                slot.outbox.append((change, False))
+                if slot.delivering:
+                    return  # the thread delivering this key takes it, in order
+                slot.delivering = True
+        if loop is None:
+            self._deliver(slot)
+            return
         try:
             loop.call_soon_threadsafe(self._flush)
         except RuntimeError:  # the loop closed without unbinding: fall back to synchronous
@@ -442,6 +463,26 @@ class Blackboard:
             sub.deliver(change)
         if slot.max_age_s is not None and slot.timer is None and not change.stale:
             self._arm(slot)
+
+    def _deliver(self, slot: _Slot) -> None:
+        """Unbound delivery, outside the lock: the calling thread delivers every change of
+        ``slot`` queued, including those written meanwhile by other threads or callbacks."""
+        try:
+            while True:
+                with self._lock:
+                    if not slot.outbox:
+                        slot.delivering = False
+                        return
+                    change, only_if_current = slot.outbox.popleft()
+                if only_if_current and slot.change is not change:
+                    continue
+                self._notify(slot, change)
+        except BaseException:
+            # An on_error hook that raised ends this delivery: the next writer of the key
+            # goes on with what is left rather than finding delivery claimed forever.
+            with self._lock:
+                slot.delivering = False
+            raise
 
     def _flush(self) -> None:
         with self._lock:
@@ -533,8 +574,17 @@ class Blackboard:
                     continue
                 stale = slot.change = change.as_stale()
                 marked.append((slot, stale))
-        for slot, stale in marked:
-            self._call_in_loop(self._notify_if_current, slot, stale)
+        if self._loop is None:
+            for slot, stale in marked:
+                with self._lock:
+                    slot.outbox.append((stale, True))
+                    if slot.delivering:
+                        continue
+                    slot.delivering = True
+                self._deliver(slot)
+        else:
+            for slot, stale in marked:
+                self._call_in_loop(self._notify_if_current, slot, stale)
         return [slot.key for slot, _ in marked]
 
     def _notify_if_current(self, slot: _Slot, change: Change) -> None:
