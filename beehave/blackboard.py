@@ -64,7 +64,7 @@ from beehave.errors import BlackboardError
 log = logging.getLogger(__name__)
 
 __all__ = ["Blackboard", "BlackboardClient", "BlackboardView", "Change", "Subscription", "Watcher",
-           "matches"]
+           "from_json", "matches", "to_json"]
 
 _SEGMENT = re.compile(r"[^/*\s]+")
 _KEY = re.compile(r"[^/*\s]+(?:/[^/*\s]+)*")
@@ -103,8 +103,8 @@ class Change:
         return Change(self.key, self.value, self.stamp, self.monotonic, self.writer, True)
 
     def as_dict(self) -> dict[str, Any]:
-        """A JSON-serialisable form (values JSON cannot hold are given as ``repr``)."""
-        return {"value": _jsonable(self.value), "stamp": self.stamp, "stale": self.stale,
+        """A strict-JSON form (the value encoded by :func:`to_json`)."""
+        return {"value": to_json(self.value), "stamp": self.stamp, "stale": self.stale,
                 "writer": self.writer, "age_s": round(self.age_s, 6)}
 
     def __repr__(self) -> str:
@@ -112,16 +112,44 @@ class Change:
         return f"Change({self.key!r}, {self.value!r}, writer={self.writer!r}{flag})"
 
 
-def _jsonable(value: Any) -> Any:
+_FLOAT_TAG = "$float"
+_NON_FINITE = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+
+
+def to_json(value: Any) -> Any:
+    """``value`` as strict JSON data (what :meth:`Change.as_dict` and the ROS 2 bridge send).
+
+    Tuples become lists, mapping keys strings, and values JSON cannot hold their ``repr``.
+    Non-finite floats, which strict JSON lacks, become tagged objects —
+    ``{"$float": "inf"}``, ``{"$float": "-inf"}``, ``{"$float": "nan"}`` — so that "nothing
+    in range" (``inf``) is still a number after :func:`from_json`, not the string
+    ``'inf'`` that fails ``front_m < 0.5``.
+    """
     if value is None or isinstance(value, (bool, int, str)):
         return value
     if isinstance(value, float):
-        return value if math.isfinite(value) else repr(value)
+        if math.isfinite(value):
+            return value
+        return {_FLOAT_TAG: "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")}
     if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
+        return [to_json(v) for v in value]
     if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): to_json(v) for k, v in value.items()}
     return repr(value)
+
+
+def from_json(value: Any) -> Any:
+    """The inverse of :func:`to_json` for its JSON data: tagged non-finite floats become
+    floats again (in lists and mappings too); everything else is returned as it is."""
+    if isinstance(value, dict):
+        if len(value) == 1 and _FLOAT_TAG in value:
+            tag = value[_FLOAT_TAG]
+            if isinstance(tag, str) and tag in _NON_FINITE:
+                return _NON_FINITE[tag]
+        return {k: from_json(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [from_json(v) for v in value]
+    return value
 
 
 def _same(old: Any, new: Any) -> bool:

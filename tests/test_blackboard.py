@@ -568,3 +568,25 @@ def test_battery_low_callback_that_switches_leaves_no_behaviour_stuck(hl: Any,
     assert hl.current == "charge"
     assert work.status.name == "INTERRUPTED", work.status
     assert not [e for e in events if e.kind.name == "STUCK"]
+
+
+# -- non-finite numbers in JSON (issue 9, item 19) ---------------------------------------------
+
+def test_non_finite_floats_round_trip_through_strict_json() -> None:
+    from beehave.blackboard import from_json, to_json
+
+    value = {"front_m": float("inf"), "back_m": float("-inf"), "ranges": [1.0, float("nan")],
+             "pair": (2.5, float("inf")), "label": "inf", "n": 3}
+    text = json.dumps(to_json(value), allow_nan=False)  # strict JSON, for any ROS 2 tool
+    back = from_json(json.loads(text))
+    assert back["front_m"] == float("inf") and back["back_m"] == float("-inf")
+    assert back["ranges"][0] == 1.0 and back["ranges"][1] != back["ranges"][1]  # NaN
+    assert back["pair"] == [2.5, float("inf")]
+    assert back["label"] == "inf" and back["n"] == 3  # strings stay strings
+
+
+def test_snapshot_encodes_non_finite_floats_as_tagged_numbers() -> None:
+    bb = Blackboard()
+    bb.set("laser/front_m", float("inf"))
+    snap = json.loads(json.dumps(bb.snapshot(), allow_nan=False))
+    assert snap["laser/front_m"]["value"] == {"$float": "inf"}

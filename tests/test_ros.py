@@ -116,7 +116,7 @@ def test_late_joiner_gets_the_blackboard(robot: Robot, probe: Probe) -> None:
     assert wait_until(lambda: robot.high.blackboard.get("mode") == "parked")
     late = probe.record(String, "/rosbot/beehave/blackboard", latched=True)
     assert probe.wait(lambda: bool(late))
-    assert json.loads(late[0].data)["schema"] == "beehave/blackboard/1"
+    assert json.loads(late[0].data)["schema"] == "beehave/blackboard/2"
     # The last message arrives at once (transient-local); a full snapshot follows within
     # snapshot_period_s (0.5 s here) even while the debug HAL keeps changing entries.
     snapshots = lambda: [json.loads(m.data) for m in list(late)  # noqa: E731
@@ -216,12 +216,12 @@ def test_plain_rclpy_client_process(robot: Robot) -> None:
 
 
 @pytest.mark.parametrize("payload", [
-    "not json", "[1]", '{"schema": "beehave/blackboard/1"}',
-    '{"schema": "beehave/blackboard/1", "kind": "changes", "seq": "x", "stamp": 1, '
+    "not json", "[1]", '{"schema": "beehave/blackboard/2"}',
+    '{"schema": "beehave/blackboard/2", "kind": "changes", "seq": "x", "stamp": 1, '
     '"entries": {"a": {"value": 1}}}',
-    '{"schema": "beehave/blackboard/1", "kind": "changes", "seq": 1, "stamp": 1, '
+    '{"schema": "beehave/blackboard/2", "kind": "changes", "seq": 1, "stamp": 1, '
     '"entries": {"bad key/": {"value": 1}}}',
-    '{"schema": "beehave/blackboard/1", "kind": "changes", "seq": 1, "stamp": 1, '
+    '{"schema": "beehave/blackboard/2", "kind": "changes", "seq": 1, "stamp": 1, '
     '"entries": {"a": 5}}',
 ])
 def test_malformed_blackboard_messages_are_refused_whole(robot: Robot, probe: Probe,
@@ -290,3 +290,22 @@ def test_commanded_behavior_takes_commands_from_a_ros_topic(robot: Robot, probe:
                and "'cruise'" in r["detail"] for r in reports())
     assert probe.wait(lambda: cmd[-1].linear.x == 0.0)  # Cruise's safe state
     assert [r.received for r in queue.rejected] == ['{"action": "fly"}']
+
+
+def test_non_finite_numbers_reach_the_mirror_as_numbers(robot: Robot, probe: Probe) -> None:
+    """A laser that sees nothing in range says inf: `front_m < 0.5` must work on the mirror."""
+    assert robot.low is not None and robot.high is not None
+    board = probe.record(String, "/rosbot/beehave/blackboard", latched=True)
+    robot.low.blackboard.set("laser/front_m", float("inf"))
+    robot.low.blackboard.set("laser/ranges", [0.4, float("-inf"), float("nan")])
+    mirror = robot.high.blackboard
+    assert wait_until(lambda: mirror.get("laser/ranges") is not None)
+    assert wait_until(lambda: mirror.get("laser/front_m") is not None)
+    front = mirror.get("laser/front_m")
+    assert isinstance(front, float) and not front < 0.5 and front == float("inf")
+    ranges = mirror.get("laser/ranges")
+    assert ranges[:2] == [0.4, float("-inf")] and ranges[2] != ranges[2]
+    # On the wire it is strict JSON that any ROS 2 tool can parse.
+    assert probe.wait(lambda: any("laser/front_m" in m.data for m in list(board)))
+    for msg in list(board):
+        json.loads(msg.data, parse_constant=lambda c: pytest.fail(f"non-JSON {c} sent"))

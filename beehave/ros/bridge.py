@@ -4,7 +4,7 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
 
 ``beehave/blackboard`` — from the low level; reliable, transient-local (depth 1)::
 
-    {"schema": "beehave/blackboard/1", "kind": "changes" | "snapshot", "seq": 17,
+    {"schema": "beehave/blackboard/2", "kind": "changes" | "snapshot", "seq": 17,
      "stamp": 1795240691.67,            # time.time() of publication
      "entries": {"battery/percentage": {"value": 54.0, "stamp": 1795240691.6,
                                          "stale": false, "writer": "hal:debug"}, ...},
@@ -21,6 +21,13 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
   last message at once (transient-local keeps one): the full state when the blackboard is
   quiet, else a batch of changes followed by a full snapshot within ``snapshot_period_s``.
   The high level's mirror sets ``HighLevelBridge.mirror_complete`` at its first snapshot.
+
+  Values are strict JSON (:func:`beehave.blackboard.to_json`): tuples travel as lists,
+  objects JSON cannot hold as their ``repr``, and the non-finite floats strict JSON lacks
+  as tagged objects — ``{"$float": "inf"}``, ``{"$float": "-inf"}``, ``{"$float": "nan"}``,
+  also inside lists and mappings — which the mirror turns back into floats (a laser's
+  "nothing in range" stays ``inf``, so ``front_m < 0.5`` works). Schema ``/1`` (non-finite
+  floats as strings) is still accepted.
 
 ``beehave/high_level/state`` — from the high level; reliable, transient-local (depth 1)::
 
@@ -58,7 +65,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from beehave.blackboard import Change, check_key
+from beehave.blackboard import Change, check_key, from_json
 from beehave.clock import SimClock
 from beehave.errors import BeehaveError, BlackboardError
 from beehave.events import Event, EventBus, EventKind
@@ -70,7 +77,7 @@ log = logging.getLogger(__name__)
 BLACKBOARD_TOPIC = "beehave/blackboard"
 STATE_TOPIC = "beehave/high_level/state"
 STOP_SERVICE = "beehave/stop"
-BLACKBOARD_SCHEMA = "beehave/blackboard/1"
+BLACKBOARD_SCHEMA = "beehave/blackboard/2"
 STATE_SCHEMA = "beehave/high_level/state/1"
 MIRROR_WRITER = "ros:low_level"
 
@@ -233,7 +240,7 @@ class HighLevelBridge:
             return
         board = self.manager.blackboard
         for key, entry in data.entries.items():
-            board.set(key, entry.value, writer=entry.writer or MIRROR_WRITER)
+            board.set(key, from_json(entry.value), writer=entry.writer or MIRROR_WRITER)
             if entry.stale:
                 board.mark_stale(pattern=key)
         if data.kind == "snapshot":
@@ -422,7 +429,8 @@ class EntryMessage(_Message):
 class BlackboardMessage(_Message):
     """``beehave/blackboard`` (see the module docstring)."""
 
-    schema_: Literal["beehave/blackboard/1"] = Field(alias="schema")
+    # /1 differs only in sending non-finite floats as strings; still read.
+    schema_: Literal["beehave/blackboard/2", "beehave/blackboard/1"] = Field(alias="schema")
     kind: Literal["changes", "snapshot"]
     seq: int
     stamp: float
