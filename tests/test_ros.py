@@ -309,3 +309,44 @@ def test_non_finite_numbers_reach_the_mirror_as_numbers(robot: Robot, probe: Pro
     assert probe.wait(lambda: any("laser/front_m" in m.data for m in list(board)))
     for msg in list(board):
         json.loads(msg.data, parse_constant=lambda c: pytest.fail(f"non-JSON {c} sent"))
+
+
+def test_repeated_service_calls_reuse_one_client_destroyed_with_the_owner(
+        robot: Robot, probe: Probe) -> None:
+    from std_srvs.srv import Trigger
+
+    assert robot.high is not None
+    node = robot.high.node
+    served: list[int] = []
+
+    def count(_req: Any, response: Any) -> Any:
+        served.append(1)
+        response.success = True
+        return response
+
+    probe.node.create_service(Trigger, "/rosbot/count", count)
+    before = len(list(node.clients))
+
+    class CallsOften(Action):
+        action_type = "service"
+
+        def run(self) -> int:
+            for _ in range(100):
+                assert self.ros.call(Trigger, "count", Trigger.Request(), timeout_s=10.0).success
+            return len(list(node.clients)) - before
+
+    class Caller(Behavior):
+        def run(self) -> None:
+            self.action = self.start_action(CallsOften())
+            self.action.wait()
+            while self.sleep(1.0):
+                pass
+
+    robot.high.register("caller", Caller)
+    caller = robot.high.switch("caller")
+    assert wait_until(lambda: hasattr(caller, "action"))
+    action = caller.action  # type: ignore[attr-defined]
+    assert wait_until(lambda: action.status.name == "SUCCEEDED", 30), action.error
+    assert len(served) == 100
+    assert action.result == 1
+    assert len(list(node.clients)) == before  # destroyed when the action ended

@@ -116,6 +116,9 @@ class RosIO:
         self._lock = threading.Lock()
         self._entities: list[tuple[str, Any]] = []
         self._closed = False
+        # The clients call() uses, one per (type, resolved name): a behaviour that polls a
+        # service in a loop must not leave a client (and its DDS readers) per call.
+        self._call_clients: dict[tuple[type, str], Any] = {}
 
     def _track(self, kind: str, entity: Any) -> Any:
         with self._lock:
@@ -150,8 +153,9 @@ class RosIO:
     def call(self, srv_type: type, name: str, request: Any, *, timeout_s: float = 5.0) -> Any:
         """Call a service and wait for the response, ``timeout_s`` in all (the clock's
         time). Raises :class:`WaitTimeout`, or :class:`~beehave.errors.Interrupted` as
-        soon as the owner is interrupted."""
-        client = self.client(srv_type, name)
+        soon as the owner is interrupted. Calls to one service (name and type) share one
+        client, created at the first call and destroyed with the owner."""
+        client = self._client_for_calls(srv_type, name)
         cond = self._cond if self._cond is not None else threading.Condition()
         clock = self._clock or WallClock()
         interrupted = self._interrupted or (lambda: False)
@@ -181,6 +185,28 @@ class RosIO:
             raise WaitTimeout(f"service {full!r} did not answer within {timeout_s} s")
         return future.result()
 
+    def _client_for_calls(self, srv_type: type, name: str) -> Any:
+        key = (srv_type, self.node.resolve_service_name(name))
+        with self._lock:
+            client = self._call_clients.get(key)
+        if client is None:
+            client = self.client(srv_type, name)  # refused once the owner has ended
+            with self._lock:
+                # Two threads of one owner may race here: keep the first, drop the other.
+                kept = self._call_clients.setdefault(key, client)
+            if kept is not client:
+                self._untrack("client", client)
+                client = kept
+        return client
+
+    def _untrack(self, kind: str, entity: Any) -> None:
+        with self._lock:
+            try:
+                self._entities.remove((kind, entity))
+            except ValueError:
+                return  # destroy_all() took it already
+        self._destroy(kind, entity)
+
     @property
     def entities(self) -> list[tuple[str, Any]]:
         with self._lock:
@@ -191,6 +217,7 @@ class RosIO:
         with self._lock:
             self._closed = True
             entities, self._entities = self._entities, []
+            self._call_clients.clear()
         for kind, entity in reversed(entities):
             self._destroy(kind, entity)
 
