@@ -350,3 +350,41 @@ def test_repeated_service_calls_reuse_one_client_destroyed_with_the_owner(
     assert len(served) == 100
     assert action.result == 1
     assert len(list(node.clients)) == before  # destroyed when the action ended
+
+
+def test_behavior_parameter_back_to_the_running_name_overrides_a_queued_switch(
+        robot: Robot, probe: Probe) -> None:
+    """patrol runs, `parked` is still queued, then the operator sets `patrol` again: the
+    latest request wins, although it names the behaviour that runs right now."""
+    from beehave import EventKind
+
+    assert robot.high is not None
+    hl = robot.high
+    gate, held = threading.Event(), threading.Event()
+    seen: list[Any] = []
+
+    def hold_the_switch(event: Any) -> None:
+        # Holds the switch thread after patrol started: later requests queue up behind it.
+        seen.append(event)
+        if (event.kind is EventKind.SWITCH_COMPLETED and event.subject == "patrol"
+                and not held.is_set()):
+            held.set()
+            gate.wait(10)
+
+    unsubscribe = hl.subscribe(hold_the_switch)
+    try:
+        assert probe.set_param(HIGH, "behavior", "patrol").successful
+        assert held.wait(10) and hl.current == "patrol"
+        assert probe.set_param(HIGH, "behavior", "parked").successful  # queued
+        assert probe.set_param(HIGH, "behavior", "patrol").successful  # the latest
+    finally:
+        gate.set()
+    try:
+        assert wait_until(lambda: any(
+            e.subject == "parked" and e.kind in (EventKind.SWITCH_COMPLETED,
+                                                 EventKind.SWITCH_SUPERSEDED)
+            for e in list(seen)), 5), "the queued switch to parked never settled"
+        assert wait_until(lambda: hl.current == "patrol", 5), hl.current
+    finally:
+        unsubscribe()
+    assert wait_until(lambda: probe.get_param(HIGH, "behavior") == "patrol")

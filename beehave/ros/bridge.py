@@ -113,7 +113,7 @@ class _ParamGuard:
 
 
 def _switch_param_callback(param_name: str, names: Callable[[], list[str]],
-                           current: Callable[[], str | None],
+                           target: Callable[[], str | None],
                            request: Callable[[str], None], guard: _ParamGuard,
                            kind: str) -> Callable[[list[Parameter[Any]]], SetParametersResult]:
     def on_set(params: list[Parameter[Any]]) -> SetParametersResult:
@@ -128,8 +128,8 @@ def _switch_param_callback(param_name: str, names: Callable[[], list[str]],
             if value not in names():
                 return SetParametersResult(successful=False, reason=(
                     f"unknown {kind} {value!r}; registered: {', '.join(names())}"))
-            if value == current():
-                continue  # already running: setting it again changes nothing
+            if value == target():
+                continue  # what runs (or will, once the queued switch is done): no-op
             try:
                 request(value)
             except BeehaveError as exc:
@@ -161,9 +161,14 @@ class HighLevelBridge:
         self.mirror_complete = False
         _string_param(node, "behavior", manager.current or manager.default,
                       "the top-level behaviour; set it to switch")
+        # The name of the latest switch request that has not completed yet (any source:
+        # this parameter, the stop service, Python). Setting the parameter to the running
+        # name is a no-op only when no other switch is queued: else it must win.
+        self._requested_lock = threading.Lock()
+        self._requested: str | None = None
         node.add_on_set_parameters_callback(_switch_param_callback(
-            "behavior", lambda: manager.names, lambda: manager.current,
-            self._request, self._guard, "behavior"))
+            "behavior", lambda: manager.names, self._target, self._request, self._guard,
+            "behavior"))
         self._state_pub = node.create_publisher(String, STATE_TOPIC, LATCHED)
         self._bb_sub = node.create_subscription(String, BLACKBOARD_TOPIC, self._on_blackboard,
                                                 LATCHED)
@@ -181,6 +186,12 @@ class HighLevelBridge:
         self._unsubscribe = manager.subscribe(self._on_event)
         self._dirty.set()
 
+    def _target(self) -> str | None:
+        """What will run once the queued switches are done."""
+        with self._requested_lock:
+            requested = self._requested
+        return requested if requested is not None else self.manager.current
+
     def _request(self, name: str) -> None:
         self.manager.request_switch(name)
 
@@ -196,6 +207,16 @@ class HighLevelBridge:
     def _on_event(self, event: Event) -> None:
         if event.kind in _STATE_EVENTS:
             self._dirty.set()
+        if event.kind is EventKind.SWITCH_REQUESTED:
+            with self._requested_lock:
+                self._requested = event.subject
+        elif event.kind is EventKind.SWITCH_COMPLETED or event.kind is EventKind.FALLBACK:
+            with self._requested_lock:
+                # A fallback means nothing was queued when the behaviour ended. (Should a
+                # request's event come late, the next set of the parameter merely asks
+                # for a switch again, rather than being skipped.)
+                if event.kind is EventKind.FALLBACK or event.subject == self._requested:
+                    self._requested = None
         if event.kind is EventKind.SWITCH_COMPLETED:
             with self._guard:
                 try:
