@@ -24,7 +24,7 @@ from geometry_msgs.msg import Twist  # noqa: E402
 from ros_probe import Probe, last_json  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from beehave import Action, Behavior  # noqa: E402
+from beehave import Action, Behavior, Logic  # noqa: E402
 from beehave.config import load_config, parse_config  # noqa: E402
 from beehave.errors import ConfigError, Interrupted  # noqa: E402
 from beehave.robot import Robot  # noqa: E402
@@ -388,3 +388,87 @@ def test_behavior_parameter_back_to_the_running_name_overrides_a_queued_switch(
     finally:
         unsubscribe()
     assert wait_until(lambda: probe.get_param(HIGH, "behavior") == "patrol")
+
+
+# -- the logic parameter (issue 9, items 11 and 14) --------------------------------------------
+
+class _Forever(Logic):
+    async def run(self) -> None:
+        import asyncio
+
+        await asyncio.sleep(3600)
+
+
+class _Brief(Logic):
+    """Ends on its own: the low level falls back to its default logic."""
+
+    async def run(self) -> None:
+        import asyncio
+
+        await asyncio.sleep(0.05)
+
+
+class _HoldsTheLoop(Logic):
+    """The mistake issue 9 describes: a blocking sleep inside a coroutine."""
+
+    async def run(self) -> None:
+        import asyncio
+        import time
+
+        await asyncio.sleep(0)
+        time.sleep(1.5)
+        await asyncio.sleep(3600)
+
+
+@pytest.fixture
+def low_node(probe: Probe) -> Iterator[tuple[Any, Any]]:
+    """A low level on a node of its own (namespace /llp), with a short switch bound."""
+    from beehave.lowlevel import LowLevelBehaviorManager
+    from beehave.ros.bridge import LowLevelBridge
+    from beehave.ros.context import RosContext
+
+    ros = RosContext()
+    node = ros.create_node("beehave_low_level", namespace="llp")
+    ll = LowLevelBehaviorManager(default="parked", stop_timeout_s=0.3)
+    for name, cls in (("parked", _Forever), ("driving", _Forever), ("brief", _Brief),
+                      ("hog", _HoldsTheLoop)):
+        ll.register(name, cls)
+    ros.start()
+    with ll:
+        bridge = LowLevelBridge(ll, node, switch_timeout_s=0.5)
+        try:
+            yield ll, bridge
+        finally:
+            bridge.destroy()
+    ros.shutdown()
+
+
+LLP = "/llp/beehave_low_level"
+
+
+def test_logic_parameter_shows_the_default_after_a_logic_ends_on_its_own(
+        low_node: tuple[Any, Any], probe: Probe) -> None:
+    ll, _ = low_node
+    result = probe.set_param(LLP, "logic", "brief")
+    assert result.successful, result.reason
+    assert wait_until(lambda: ll.current == "parked" and ll.history
+                      and ll.history[-1].name == "brief")
+    assert wait_until(lambda: probe.get_param(LLP, "logic") == "parked"), \
+        probe.get_param(LLP, "logic")
+
+
+def test_logic_parameter_fails_with_a_reason_when_the_loop_is_blocked(
+        low_node: tuple[Any, Any], probe: Probe) -> None:
+    ll, _ = low_node
+    assert probe.set_param(LLP, "logic", "hog").successful
+    result = probe.set_param(LLP, "logic", "driving")  # the hog holds the loop for 1.5 s
+    assert not result.successful
+    assert "'driving'" in result.reason and "blocking" in result.reason, result.reason
+    # Nothing was switched behind the caller's back once the loop is free again.
+    assert wait_until(lambda: ll.call(_noop()) is None, 5)
+    assert ll.current == "hog"
+    assert probe.get_param(LLP, "logic") == "hog"
+
+
+async def _noop() -> None:
+    return None

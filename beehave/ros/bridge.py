@@ -41,17 +41,22 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
   ``high_level/logic``, ``high_level/running`` (that list), ``high_level/locks`` (that dict),
   and switches its top-level logic to ``logic`` when it is set.
 
-Parameters: the high-level node's ``behavior`` (string) switches the top-level behaviour;
-the low-level node's ``logic`` switches the top-level logic. Unknown names are refused
-(``SetParametersResult.successful`` false; the reason lists the registered names).
+Parameters: the high-level node's ``behavior`` (string) switches the top-level behaviour
+(at once; the latest request wins, also when it names the running behaviour while another
+switch is queued); the low-level node's ``logic`` switches the top-level logic and answers
+with the switch's outcome, waiting at most ``switch_timeout_s`` (a blocked event loop gives
+a refusal that says so). Unknown names are refused (``SetParametersResult.successful``
+false; the reason lists the registered names). Both always show what runs.
 Service ``beehave/stop`` (std_srvs/Trigger) on the high-level node switches to ``idle``.
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -67,7 +72,7 @@ from std_srvs.srv import Trigger
 
 from beehave.blackboard import Change, check_key, from_json
 from beehave.clock import SimClock
-from beehave.errors import BeehaveError, BlackboardError
+from beehave.errors import BeehaveError, BlackboardError, ConfigError
 from beehave.events import Event, EventBus, EventKind
 from beehave.highlevel import IDLE, HighLevelBehaviorManager
 from beehave.lowlevel import LowLevelBehaviorManager
@@ -295,9 +300,19 @@ class LowLevelBridge:
 
     def __init__(self, manager: LowLevelBehaviorManager, node: Node, *,
                  blackboard_rate_hz: float = 2000.0, snapshot_period_s: float = 1.0,
-                 settle_s: float = 0.2) -> None:
+                 settle_s: float = 0.2, switch_timeout_s: float | None = None) -> None:
+        if switch_timeout_s is None:
+            # Stopping the old logic may take stop_timeout_s, unloading its HALs as long.
+            switch_timeout_s = 2.0 * manager.stop_timeout_s + 1.0
+        if not (isinstance(switch_timeout_s, (int, float)) and math.isfinite(switch_timeout_s)
+                and switch_timeout_s > 0):
+            raise ConfigError(f"LowLevelBridge: switch_timeout_s must be a finite number of "
+                              f"seconds > 0, got {switch_timeout_s!r}")
         self.manager = manager
         self.node = node
+        #: How long setting the ``logic`` parameter waits for the switch (it answers the
+        #: caller with the outcome, and must never hang on a blocked event loop).
+        self.switch_timeout_s = float(switch_timeout_s)
         self._guard = _ParamGuard()
         self._lock = threading.Lock()  # also orders publishing before destroy()
         self._closed = False
@@ -309,12 +324,15 @@ class LowLevelBridge:
         self._last_publish = 0.0
         self._flush_handle: asyncio.Handle | None = None
         self._settle_handle: asyncio.TimerHandle | None = None
-        self._requested_logic: str | None = None
+        self._requested_logic: str | None = None  # what the high level's state asked for
+        # The latest logic asked for whose switch has not completed (see HighLevelBridge).
+        self._target_lock = threading.Lock()
+        self._target: str | None = None
         _string_param(node, "logic", manager.current or manager.default or "",
                       "the top-level logic; set it to switch")
         node.add_on_set_parameters_callback(_switch_param_callback(
-            "logic", lambda: manager.registered, lambda: manager.current,
-            self._request, self._guard, "logic"))
+            "logic", lambda: manager.registered, self._target_logic,
+            self._switch_from_parameter, self._guard, "logic"))
         self._pub = node.create_publisher(String, BLACKBOARD_TOPIC, LATCHED)
         self._state_sub = node.create_subscription(String, STATE_TOPIC, self._on_state, LATCHED)
         self._snap = node.create_timer(snapshot_period_s, self._publish_snapshot)
@@ -405,23 +423,103 @@ class LowLevelBridge:
         elif not logic:
             self._requested_logic = None
 
-    def _request(self, name: str) -> None:
+    def _target_logic(self) -> str | None:
+        with self._target_lock:
+            target = self._target
+        return target if target is not None else self.manager.current
+
+    def _submit(self, name: str) -> tuple[concurrent.futures.Future[None], _Ticket]:
+        """Hand a switch to the low level's loop; its ticket tells whether it began."""
         loop = self.manager.loop
         if loop is None:
             raise BeehaveError(f"the low level is not running; cannot switch to {name!r}")
-        future = asyncio.run_coroutine_threadsafe(self.manager.switch_async(name), loop)
+        ticket = _Ticket()
+        manager = self.manager
+
+        async def switch() -> None:
+            with ticket.lock:
+                if ticket.abandoned:
+                    return  # its caller was told it failed: do not switch behind its back
+                ticket.began = True
+            await manager.switch_async(name)
+
+        with self._target_lock:
+            self._target = name
+        return asyncio.run_coroutine_threadsafe(switch(), loop), ticket
+
+    def _request(self, name: str) -> None:
+        """Switch without waiting (the high level's state asked for ``name``)."""
+        future, _ = self._submit(name)
         future.add_done_callback(_log_failure(f"switch to logic {name!r}"))
 
+    def _switch_from_parameter(self, name: str) -> None:
+        """Switch and wait for the outcome, at most ``switch_timeout_s``; raise a
+        :class:`BeehaveError` whose message becomes the parameter's refusal reason.
+
+        Runs in the executor thread, so it must never wait forever: a logic that blocks
+        the event loop (``time.sleep`` in a coroutine) would otherwise hang every ROS
+        callback of the process."""
+        future, ticket = self._submit(name)
+        try:
+            future.result(self.switch_timeout_s)
+        except concurrent.futures.TimeoutError:
+            with ticket.lock:
+                began = ticket.began
+                ticket.abandoned = not began
+            self._forget_target(name)
+            if not began:
+                raise BeehaveError(
+                    f"switch to logic {name!r} refused: the low level's event loop did not "
+                    f"take it within {self.switch_timeout_s:g} s; a logic or HAL is blocking "
+                    f"the loop (time.sleep or blocking I/O inside a coroutine?). Nothing was "
+                    f"switched; running: {self.manager.current!r}") from None
+            raise BeehaveError(
+                f"switch to logic {name!r} did not complete within "
+                f"{self.switch_timeout_s:g} s (the old logic or its HALs are slow to stop); "
+                f"it goes on, and this parameter will show the logic that runs") from None
+        except BeehaveError:
+            self._forget_target(name)
+            raise
+        except Exception as exc:  # a logic's constructor, say: report, never crash
+            self._forget_target(name)
+            raise BeehaveError(f"switch to logic {name!r} failed: {exc!r}") from exc
+
+    def _forget_target(self, name: str) -> None:
+        with self._target_lock:
+            if self._target == name:
+                self._target = None
+
     def _on_event(self, event: Event) -> None:
-        if event.kind is EventKind.SWITCH_COMPLETED or event.kind is EventKind.FALLBACK:
-            current = self.manager.current
-            if current is None:
+        if event.kind is EventKind.SWITCH_COMPLETED:
+            self._forget_target(event.subject)
+        elif event.kind is EventKind.FALLBACK:
+            with self._target_lock:
+                self._target = None
+        else:
+            return
+        # A fallback is reported before the default logic starts: show the running logic
+        # once the loop has finished this step (events come from the loop's thread).
+        loop = self.manager.loop
+        try:
+            if loop is None:
+                raise RuntimeError("not running")
+            loop.call_soon_threadsafe(self._show_running_logic)
+        except RuntimeError:  # the loop is gone: nothing more will change
+            self._show_running_logic()
+
+    def _show_running_logic(self) -> None:
+        """Make the ``logic`` parameter show what runs ("" when no logic runs)."""
+        current = self.manager.current or ""
+        with self._lock:
+            if self._closed:
+                return
+        try:
+            if self.node.get_parameter("logic").value == current:
                 return
             with self._guard:
-                try:
-                    self.node.set_parameters([Parameter("logic", value=current)])
-                except Exception:
-                    log.debug("could not update parameter 'logic'", exc_info=True)
+                self.node.set_parameters([Parameter("logic", value=current)])
+        except Exception:  # the node may be going away during shutdown
+            log.debug("could not update parameter 'logic'", exc_info=True)
 
     def destroy(self) -> None:
         with self._lock:
@@ -434,6 +532,15 @@ class LowLevelBridge:
         self.node.destroy_timer(self._snap)
         self.node.destroy_publisher(self._pub)
         self.node.destroy_subscription(self._state_sub)
+
+
+class _Ticket:
+    """Whether a switch handed to the loop began, or was abandoned by its waiter first."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.began = False
+        self.abandoned = False
 
 
 class _Message(BaseModel):
