@@ -472,3 +472,69 @@ def test_logic_parameter_fails_with_a_reason_when_the_loop_is_blocked(
 
 async def _noop() -> None:
     return None
+
+
+# -- engine state on the state topic (issue 9, "Also wanted") ----------------------------------
+
+class _Docking(Behavior):
+    """Stands in for a behaviour driven by a state machine: its snapshot has an engine."""
+
+    def run(self) -> None:
+        self.start_behavior(_Ticking())
+        while self.sleep(1.0):
+            pass
+
+    def _snapshot(self) -> dict[str, Any]:
+        snap = super()._snapshot()
+        snap["engine"] = {"kind": "state_machine", "state": "approach",
+                          "states": ["approach", "dock"], "since_s": float("inf")}
+        return snap
+
+
+class _Ticking(Behavior):
+    def run(self) -> None:
+        while self.sleep(1.0):
+            pass
+
+    def _snapshot(self) -> dict[str, Any]:
+        snap = super()._snapshot()
+        snap["engine"] = {"kind": "behaviour_tree",
+                          "nodes": [{"name": "root", "status": "RUNNING"}]}
+        return snap
+
+
+def test_state_topic_carries_the_engines_of_the_running_tree(robot: Robot,
+                                                             probe: Probe) -> None:
+    assert robot.high is not None and robot.low is not None
+    state = probe.record(String, "/rosbot/beehave/high_level/state", latched=True)
+    robot.high.register("docking", _Docking)
+    robot.high.switch("docking")
+
+    def engines() -> list[dict[str, Any]]:
+        last = last_json(state) or {}
+        return last.get("engines", []) if last.get("behavior") == "docking" else []
+
+    assert probe.wait(lambda: len(engines()) == 2), last_json(state)
+    assert (last_json(state) or {})["schema"] == "beehave/high_level/state/2"
+    by_path = {e["path"]: e for e in engines()}
+    assert by_path["docking"]["kind"] == "state_machine"
+    assert by_path["docking"]["state"] == "approach"
+    assert by_path["docking"]["since_s"] == {"$float": "inf"}  # strict JSON
+    assert by_path["docking/_Ticking"]["nodes"] == [{"name": "root", "status": "RUNNING"}]
+    # The low level accepts the new schema and shows it to logics.
+    assert wait_until(lambda: len(robot.low.blackboard.get("high_level/engines") or []) == 2)
+    robot.high.switch("parked")
+    assert probe.wait(lambda: (last_json(state) or {}).get("behavior") == "parked"
+                      and last_json(state)["engines"] == [])  # type: ignore[index]
+
+
+def test_earlier_schemas_are_still_read() -> None:
+    from beehave.ros.bridge import BlackboardMessage, StateMessage
+
+    old_state = StateMessage.model_validate_json(
+        '{"schema": "beehave/high_level/state/1", "stamp": 1, "behavior": "idle"}')
+    assert old_state.engines == []
+    old_board = BlackboardMessage.model_validate_json(
+        '{"schema": "beehave/blackboard/1", "kind": "changes", "seq": 1, "stamp": 1, '
+        '"entries": {"a": {"value": 1}}}')
+    assert old_board.entries["a"].value == 1

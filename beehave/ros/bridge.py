@@ -31,15 +31,25 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
 
 ``beehave/high_level/state`` — from the high level; reliable, transient-local (depth 1)::
 
-    {"schema": "beehave/high_level/state/1", "stamp": ..., "behavior": "tour",
+    {"schema": "beehave/high_level/state/2", "stamp": ..., "behavior": "tour",
      "logic": "navigation_leds" | null,   # the top-level behaviour's `logic` attribute
      "running": [{"path": "tour/Navigation", "kind": "action", "class": "Navigation",
                   "action_type": "driving", "status": "RUNNING"}, ...],
+     "engines": [{"path": "tour", "kind": "state_machine", "state": "to_shelf", ...},
+                 {"path": "tour/pick", "kind": "behaviour_tree", "nodes": [...]}],
      "locks": {"driving": "tour/Navigation"}, "stuck": []}
 
+  ``engines`` holds, for every running behaviour driven by a decision engine, its path and
+  the engine's own snapshot (the ``"engine"`` entry of the behaviour's snapshot: a state
+  machine's current state, a behaviour tree's node statuses …), strict JSON; empty when no
+  engine runs. It is published with the rest: on every lifecycle change (at most
+  ``state_rate_hz``) and every ``state_period_s``. Schema ``/1`` (without ``engines``) is
+  still accepted.
+
   The low level writes it into its blackboard: ``high_level/behavior``,
-  ``high_level/logic``, ``high_level/running`` (that list), ``high_level/locks`` (that dict),
-  and switches its top-level logic to ``logic`` when it is set.
+  ``high_level/logic``, ``high_level/running`` (that list), ``high_level/engines`` (that
+  list), ``high_level/locks`` (that dict), and switches its top-level logic to ``logic``
+  when it is set.
 
 Parameters: the high-level node's ``behavior`` (string) switches the top-level behaviour
 (at once; the latest request wins, also when it names the running behaviour while another
@@ -70,7 +80,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from beehave.blackboard import Change, check_key, from_json
+from beehave.blackboard import Change, check_key, from_json, to_json
 from beehave.clock import SimClock
 from beehave.errors import BeehaveError, BlackboardError, ConfigError
 from beehave.events import Event, EventBus, EventKind
@@ -83,7 +93,7 @@ BLACKBOARD_TOPIC = "beehave/blackboard"
 STATE_TOPIC = "beehave/high_level/state"
 STOP_SERVICE = "beehave/stop"
 BLACKBOARD_SCHEMA = "beehave/blackboard/2"
-STATE_SCHEMA = "beehave/high_level/state/1"
+STATE_SCHEMA = "beehave/high_level/state/2"
 MIRROR_WRITER = "ros:low_level"
 
 #: Reliable + transient-local, depth 1: a late joiner gets the last message.
@@ -233,6 +243,7 @@ class HighLevelBridge:
         """The message published on ``beehave/high_level/state``."""
         snap = self.manager.snapshot()
         running: list[dict[str, Any]] = []
+        engines: list[dict[str, Any]] = []
 
         def walk(node: dict[str, Any] | None) -> None:
             if node is None:
@@ -241,6 +252,12 @@ class HighLevelBridge:
                 running.append({"path": node["path"], "kind": node["kind"],
                                 "class": node["class"], "status": node["status"],
                                 "action_type": node.get("action_type")})
+                engine = node.get("engine")
+                if isinstance(engine, dict):
+                    # to_json: an engine's snapshot may hold tuples, inf, enum members …
+                    encoded = to_json(engine)
+                    encoded.pop("path", None)
+                    engines.append({"path": node["path"], **encoded})
             for child in node.get("children", []):
                 walk(child)
 
@@ -248,6 +265,7 @@ class HighLevelBridge:
         top = self.manager.top
         return {"schema": STATE_SCHEMA, "stamp": time.time(), "behavior": snap["current"],
                 "logic": None if top is None else type(top).logic, "running": running,
+                "engines": engines,
                 "locks": {k: v["holder"] for k, v in snap["locks"].items()},
                 "stuck": snap["stuck"]}
 
@@ -411,6 +429,8 @@ class LowLevelBridge:
         board.set("high_level/logic", state.logic, writer=writer)
         board.set("high_level/running", [item.model_dump(by_alias=True)
                                           for item in state.running], writer=writer)
+        board.set("high_level/engines", [from_json(item.model_dump())
+                                          for item in state.engines], writer=writer)
         board.set("high_level/locks", state.locks, writer=writer)
         logic = state.logic
         if logic and logic != self._requested_logic:
@@ -581,14 +601,25 @@ class RunningItem(_Message):
     class_: str = Field(alias="class")
 
 
+class EngineItem(_Message):
+    """One running behaviour's decision engine: its path, its kind, and whatever the engine
+    reports (kept as it came)."""
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    path: str
+    kind: str | None = None
+
+
 class StateMessage(_Message):
     """``beehave/high_level/state`` (see the module docstring)."""
 
-    schema_: Literal["beehave/high_level/state/1"] = Field(alias="schema")
+    schema_: Literal["beehave/high_level/state/2", "beehave/high_level/state/1"] = Field(
+        alias="schema")
     stamp: float
     behavior: str | None
     logic: str | None = None
     running: list[RunningItem] = []
+    engines: list[EngineItem] = []  # /2
     locks: dict[str, str] = {}
     stuck: list[str] = []
 
