@@ -453,16 +453,16 @@ class Blackboard:
                 if self._flush_scheduled:
                     return
                 self._flush_scheduled = True
-            elif not slot.subs and not slot.delivering:
-                slot.notified = change  # nobody to tell: no hand-over needed
+            elif slot.delivering:
+                slot.outbox.append((change, False))
+                return  # the thread delivering this key takes it, in order
+            elif not slot.subs:
+                slot.notified = change  # nobody to tell
                 return
             else:
-                slot.outbox.append((change, False))
-                if slot.delivering:
-                    return  # the thread delivering this key takes it, in order
                 slot.delivering = True
         if loop is None:
-            self._deliver(slot)
+            self._deliver(slot, change)
             return
         try:
             loop.call_soon_threadsafe(self._flush)
@@ -492,10 +492,13 @@ class Blackboard:
         if slot.max_age_s is not None and slot.timer is None and not change.stale:
             self._arm(slot)
 
-    def _deliver(self, slot: _Slot) -> None:
-        """Unbound delivery, outside the lock: the calling thread delivers every change of
-        ``slot`` queued, including those written meanwhile by other threads or callbacks."""
+    def _deliver(self, slot: _Slot, first: Change | None = None) -> None:
+        """Unbound delivery, outside the lock: the calling thread (which claimed
+        ``slot.delivering``) delivers ``first``, then every change of ``slot`` queued
+        meanwhile by other threads or by the callbacks themselves."""
         try:
+            if first is not None:
+                self._notify(slot, first)
             while True:
                 with self._lock:
                     if not slot.outbox:

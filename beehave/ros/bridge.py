@@ -2,7 +2,7 @@
 
 Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
 
-``beehave/blackboard`` — from the low level; reliable, transient-local (depth 1)::
+``beehave/blackboard`` — from the low level; reliable, transient-local (depth 100)::
 
     {"schema": "beehave/blackboard/2", "kind": "changes" | "snapshot", "seq": 17,
      "stamp": 1795240691.67,            # time.time() of publication
@@ -10,17 +10,17 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
                                          "stale": false, "writer": "hal:debug"}, ...},
      "removed": []}                     # reserved; keys are never removed today
 
-  ``changes`` carries the entries that changed since the previous message. Changes are
-  published at the end of the loop iteration that made them (so changes made together
-  travel together), unless the previous message left less than ``1/blackboard_rate_hz``
-  ago; then they wait for the rest of that interval together with every other change that
-  comes meanwhile (only the newest value per key). So a quiet blackboard reaches the high
-  level in about a hundred microseconds, and a busy one costs at most
-  ``blackboard_rate_hz`` messages a second. ``snapshot`` carries every entry and comes every
-  ``snapshot_period_s`` and ``settle_s`` after the last change. A late joiner receives the
-  last message at once (transient-local keeps one): the full state when the blackboard is
-  quiet, else a batch of changes followed by a full snapshot within ``snapshot_period_s``.
-  The high level's mirror sets ``HighLevelBridge.mirror_complete`` at its first snapshot.
+  ``changes`` carries the entries that changed since the previous message. A change is
+  published at once, in the call that made it, when the previous message left at least
+  ``1/blackboard_rate_hz`` ago; every change that comes within that interval (the rest of
+  the logic's step, a burst) waits for its end and travels together with the others (only
+  the newest value per key). So a quiet blackboard reaches the high level in about two
+  bare-rclpy message times, and a busy one costs at most ``blackboard_rate_hz`` messages a
+  second. ``snapshot`` carries every entry and comes every ``snapshot_period_s`` and
+  ``settle_s`` after the last change. A late joiner receives the last messages at once
+  (transient-local keeps 100) and applies them in order, then a full snapshot within
+  ``snapshot_period_s``. The high level's mirror sets ``HighLevelBridge.mirror_complete``
+  at its first snapshot and counts lost messages (by ``seq``) in ``missed_messages``.
 
   Values are strict JSON (:func:`beehave.blackboard.to_json`): tuples travel as lists,
   objects JSON cannot hold as their ``repr``, and the non-finite floats strict JSON lacks
@@ -73,6 +73,7 @@ from collections.abc import Callable
 from typing import Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic_core import to_json as to_json_bytes
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -100,6 +101,15 @@ MIRROR_WRITER = "ros:low_level"
 LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+#: ``beehave/blackboard``: reliable + transient-local, but deep. ``changes`` messages are
+#: deltas: with depth 1 a message the reader had not taken yet was replaced by the next
+#: one and its changes were lost (~30 % at 1 kHz), leaving the mirror wrong until the next
+#: snapshot. A late joiner gets the last BLACKBOARD_DEPTH messages and applies them in order.
+BLACKBOARD_DEPTH = 100
+BLACKBOARD_QOS = QoSProfile(depth=BLACKBOARD_DEPTH, history=HistoryPolicy.KEEP_LAST,
+                            reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def _string_param(node: Node, name: str, value: str, description: str) -> None:
@@ -174,6 +184,10 @@ class HighLevelBridge:
         self._closed = False
         self._dirty = threading.Event()
         self.mirror_complete = False
+        #: ``beehave/blackboard`` messages that never arrived, by their ``seq`` (should stay
+        #: 0; a gap leaves the mirror behind until the next snapshot).
+        self.missed_messages = 0
+        self._last_seq: int | None = None
         _string_param(node, "behavior", manager.current or manager.default,
                       "the top-level behaviour; set it to switch")
         # The name of the latest switch request that has not completed yet (any source:
@@ -186,7 +200,7 @@ class HighLevelBridge:
             "behavior"))
         self._state_pub = node.create_publisher(String, STATE_TOPIC, LATCHED)
         self._bb_sub = node.create_subscription(String, BLACKBOARD_TOPIC, self._on_blackboard,
-                                                LATCHED)
+                                                BLACKBOARD_QOS)
         self._stop_srv = node.create_service(Trigger, STOP_SERVICE, self._on_stop)
         self._fast = node.create_timer(1.0 / state_rate_hz, self._publish_if_dirty)
         self._slow = node.create_timer(state_period_s, self._dirty.set)
@@ -282,6 +296,12 @@ class HighLevelBridge:
         data = _parse(BlackboardMessage, msg, self.node, BLACKBOARD_TOPIC, self.manager.events)
         if data is None:
             return
+        last = self._last_seq
+        if last is not None and data.seq > last + 1:
+            self.missed_messages += data.seq - last - 1
+            log.warning("mirror: %d blackboard message(s) missed before seq %d",
+                        data.seq - last - 1, data.seq)
+        self._last_seq = data.seq  # a restarted low level starts again at 1
         board = self.manager.blackboard
         for key, entry in data.entries.items():
             board.set(key, from_json(entry.value), writer=entry.writer or MIRROR_WRITER)
@@ -351,7 +371,7 @@ class LowLevelBridge:
         node.add_on_set_parameters_callback(_switch_param_callback(
             "logic", lambda: manager.registered, self._target_logic,
             self._switch_from_parameter, self._guard, "logic"))
-        self._pub = node.create_publisher(String, BLACKBOARD_TOPIC, LATCHED)
+        self._pub = node.create_publisher(String, BLACKBOARD_TOPIC, BLACKBOARD_QOS)
         self._state_sub = node.create_subscription(String, STATE_TOPIC, self._on_state, LATCHED)
         self._snap = node.create_timer(snapshot_period_s, self._publish_snapshot)
         self._bb_sub = manager.blackboard.subscribe("**", self._on_change)
@@ -367,21 +387,26 @@ class LowLevelBridge:
                 return  # a flush is already due: this change goes with it
             wait_s = self._last_publish + self._min_interval_s - time.monotonic()
         loop = self.manager.loop
-        if loop is None:
+        if loop is None or wait_s <= 0:
+            # The rate cap allows a message now: send it at once rather than after the
+            # loop's next turn (that hop was a third of the latency across processes).
             self._publish_changes()
-        elif wait_s > 0:
-            self._flush_handle = loop.call_later(wait_s, self._publish_changes)
+            if loop is not None:
+                # Whatever else changes within the cap's interval (the rest of this step,
+                # say) waits for its end and travels together.
+                self._flush_handle = loop.call_later(self._min_interval_s,
+                                                     self._publish_changes)
         else:
-            # At the end of this loop iteration: changes made together travel together.
-            self._flush_handle = loop.call_soon(self._publish_changes)
+            self._flush_handle = loop.call_later(wait_s, self._publish_changes)
 
     def _message(self, kind: str, entries: dict[str, dict[str, Any]]) -> String:
         self._seq += 1
         self._last_kind = kind
         self._last_publish = time.monotonic()
-        return String(data=json.dumps({"schema": BLACKBOARD_SCHEMA, "kind": kind,
-                                       "seq": self._seq, "stamp": time.time(),
-                                       "entries": entries, "removed": []}))
+        # pydantic_core's serialiser: a quarter of json.dumps's time on this hot path.
+        return String(data=to_json_bytes({"schema": BLACKBOARD_SCHEMA, "kind": kind,
+                                          "seq": self._seq, "stamp": time.time(),
+                                          "entries": entries, "removed": []}).decode())
 
     def _publish_changes(self) -> None:
         with self._lock:
@@ -394,25 +419,38 @@ class LowLevelBridge:
                 return
             self._pub.publish(msg)
         loop = self.manager.loop
-        if loop is not None:
-            if self._settle_handle is not None:
-                self._settle_handle.cancel()
+        if loop is not None and self._settle_handle is None:
+            # One timer, re-armed when it fires too early (cheaper than one per message).
             self._settle_handle = loop.call_later(self._settle_s, self._settled)
 
     def _settled(self) -> None:
         self._settle_handle = None
-        if self._last_kind == "changes":
-            self._publish_snapshot()  # leave a full picture for late joiners
+        if self._last_kind != "changes":
+            return
+        remaining_s = self._last_publish + self._settle_s - time.monotonic()
+        loop = self.manager.loop
+        if remaining_s > 0 and loop is not None:
+            self._settle_handle = loop.call_later(remaining_s, self._settled)
+            return
+        self._publish_snapshot()  # leave a full picture for late joiners
 
     def _publish_snapshot(self) -> None:
+        # Called from the executor thread (the period timer) while the loop thread writes.
         board = self.manager.blackboard
         entries = {}
+        taken: dict[str, Change] = {}
         for key in board.keys():
             change = board.entry(key)
             if change is not None:
                 entries[key] = _entry(change)
+                taken[key] = change
         with self._lock:
-            self._pending.clear()  # the snapshot contains them
+            # The snapshot carries these pending changes; those made after it read the
+            # board must still go out as changes, or the mirror would miss them until the
+            # next snapshot.
+            for key, change in list(self._pending.items()):
+                if taken.get(key) is change:
+                    del self._pending[key]
             msg = self._message("snapshot", entries)
             if self._closed:
                 return
@@ -641,9 +679,8 @@ def _parse(model: type[M], msg: String, node: Node, topic: str, events: EventBus
 
 
 def _entry(change: Change) -> dict[str, Any]:
-    d = change.as_dict()
-    return {"value": d["value"], "stamp": d["stamp"], "stale": d["stale"],
-            "writer": d["writer"]}
+    return {"value": to_json(change.value), "stamp": change.stamp, "stale": change.stale,
+            "writer": change.writer}
 
 
 def _log_failure(what: str) -> Callable[[Any], None]:
