@@ -389,14 +389,11 @@ class LowLevelBridge:
         loop = self.manager.loop
         if loop is None or wait_s <= 0:
             # The rate cap allows a message now: send it at once rather than after the
-            # loop's next turn (that hop was a third of the latency across processes).
+            # loop's next turn (that hop cost a fifth of the latency across processes).
             self._publish_changes()
-            if loop is not None:
-                # Whatever else changes within the cap's interval (the rest of this step,
-                # say) waits for its end and travels together.
-                self._flush_handle = loop.call_later(self._min_interval_s,
-                                                     self._publish_changes)
         else:
+            # Whatever changes within the cap's interval (the rest of this step, a burst)
+            # waits for its end and travels together.
             self._flush_handle = loop.call_later(wait_s, self._publish_changes)
 
     def _message(self, kind: str, entries: dict[str, dict[str, Any]]) -> String:
