@@ -390,7 +390,11 @@ class LowLevelBridge:
         if loop is None or wait_s <= 0:
             # The rate cap allows a message now: send it at once rather than after the
             # loop's next turn (that hop cost a fifth of the latency across processes).
-            self._publish_changes()
+            try:
+                self._publish_changes()
+            except Exception:  # never let it close our blackboard subscription
+                log.exception("publishing blackboard changes on %s failed",
+                              self.node.resolve_topic_name(BLACKBOARD_TOPIC))
         else:
             # Whatever changes within the cap's interval (the rest of this step, a burst)
             # waits for its end and travels together.
