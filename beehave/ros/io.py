@@ -298,10 +298,11 @@ class RosIO:
         early: list[Any] = []
 
         def on_feedback(msg: Any) -> None:
-            if box:
-                box[0]._on_feedback(msg, feedback)
-            else:  # feedback can overtake the acceptance
-                early.append(msg)
+            with cond:
+                if not box:  # feedback can overtake the acceptance: keep it for later
+                    early.append(msg)
+                    return
+            box[0]._on_feedback(msg, feedback)  # user code: never under the owner's lock
 
         sent = client.send_goal_async(goal, feedback_callback=on_feedback)
 
@@ -325,8 +326,10 @@ class RosIO:
                              f"{goal!r:.200}", status="REJECTED")
         accepted = Goal(handle, full, cond=cond, interrupted=interrupted, clock=clock,
                         owner=self.owner)
-        box.append(accepted)
-        for msg in early:
+        with cond:
+            box.append(accepted)
+            overtaken = list(early)
+        for msg in overtaken:
             accepted._on_feedback(msg, feedback)
         try:
             self._track("goal", accepted)
