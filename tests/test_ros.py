@@ -585,3 +585,46 @@ def test_the_mirror_receives_every_change_message_in_order() -> None:
         hl.shutdown()
         low_ros.shutdown()
         high_ros.shutdown()
+
+
+def test_an_engine_state_change_is_published_without_a_lifecycle_event(probe: Probe) -> None:
+    """A state machine's transition starts or ends nothing: it must still reach the topic
+    (here the heartbeat is a minute away)."""
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge
+    from beehave.ros.context import RosContext
+
+    class Machine(Behavior):
+        state = "approach"
+
+        def run(self) -> None:
+            while self.sleep(1.0):
+                pass
+
+        def _snapshot(self) -> dict[str, Any]:
+            snap = super()._snapshot()
+            snap["engine"] = {"kind": "state_machine", "state": self.state}
+            return snap
+
+    ros = RosContext()
+    node = ros.create_node("beehave_high_level", namespace="engst")
+    hl = HighLevelBehaviorManager(node=node, stop_timeout_s=0.3)
+    bridge = HighLevelBridge(hl, node, state_period_s=60.0)
+    ros.start()
+    try:
+        hl.register("machine", Machine)
+        hl.start()
+        machine = hl.switch("machine")
+        state = probe.record(String, "/engst/beehave/high_level/state", latched=True)
+
+        def engine_state() -> str | None:
+            engines = (last_json(state) or {}).get("engines") or [{}]
+            return engines[0].get("state")
+
+        assert probe.wait(lambda: engine_state() == "approach")
+        machine.state = "dock"  # type: ignore[attr-defined]
+        assert probe.wait(lambda: engine_state() == "dock", timeout_s=5.0)
+    finally:
+        bridge.destroy()
+        hl.shutdown()
+        ros.shutdown()

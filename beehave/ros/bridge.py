@@ -42,9 +42,10 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
   ``engines`` holds, for every running behaviour driven by a decision engine, its path and
   the engine's own snapshot (the ``"engine"`` entry of the behaviour's snapshot: a state
   machine's current state, a behaviour tree's node statuses …), strict JSON; empty when no
-  engine runs. It is published with the rest: on every lifecycle change (at most
-  ``state_rate_hz``) and every ``state_period_s``. Schema ``/1`` (without ``engines``) is
-  still accepted.
+  engine runs. It is published with the rest — on every lifecycle change (at most
+  ``state_rate_hz``) and every ``state_period_s`` — and, while an engine runs, whenever its
+  snapshot changed (compared ``engine_rate_hz`` times a second). Schema ``/1`` (without
+  ``engines``) is still accepted.
 
   The low level writes it into its blackboard: ``high_level/behavior``,
   ``high_level/logic``, ``high_level/running`` (that list), ``high_level/engines`` (that
@@ -175,7 +176,8 @@ class HighLevelBridge:
     """
 
     def __init__(self, manager: HighLevelBehaviorManager, node: Node, *,
-                 state_rate_hz: float = 50.0, state_period_s: float = 1.0) -> None:
+                 state_rate_hz: float = 50.0, state_period_s: float = 1.0,
+                 engine_rate_hz: float = 10.0) -> None:
         self.manager = manager
         self.node = node
         manager.node = node
@@ -202,6 +204,11 @@ class HighLevelBridge:
         self._bb_sub = node.create_subscription(String, BLACKBOARD_TOPIC, self._on_blackboard,
                                                 BLACKBOARD_QOS)
         self._stop_srv = node.create_service(Trigger, STOP_SERVICE, self._on_stop)
+        # A state machine's transition or a tree's tick is no lifecycle event: while an
+        # engine runs, its state is compared every 1/engine_rate_hz and published on change.
+        self._engines: list[dict[str, Any]] = []
+        self._engine_period_s = 1.0 / engine_rate_hz
+        self._engines_checked = 0.0
         self._fast = node.create_timer(1.0 / state_rate_hz, self._publish_if_dirty)
         self._slow = node.create_timer(state_period_s, self._dirty.set)
         self._clock_sub = None
@@ -284,10 +291,20 @@ class HighLevelBridge:
                 "stuck": snap["stuck"]}
 
     def _publish_if_dirty(self) -> None:
-        if not self._dirty.is_set():
+        if self._dirty.is_set():
+            self._dirty.clear()
+            self._publish_state(self.state())
             return
-        self._dirty.clear()
-        msg = String(data=json.dumps(self.state()))
+        now = time.monotonic()
+        if self._engines and now - self._engines_checked >= self._engine_period_s:
+            self._engines_checked = now
+            state = self.state()
+            if state["engines"] != self._engines:
+                self._publish_state(state)
+
+    def _publish_state(self, state: dict[str, Any]) -> None:
+        self._engines = state["engines"]
+        msg = String(data=json.dumps(state))
         with self._io:
             if not self._closed:
                 self._state_pub.publish(msg)
