@@ -528,6 +528,12 @@ class LowLevelBridge:
         future, _ = self._submit(name)
         future.add_done_callback(_log_failure(f"switch to logic {name!r}"))
 
+        def forget_if_failed(done: concurrent.futures.Future[None]) -> None:
+            if done.cancelled() or done.exception() is not None:
+                self._forget_target(name)  # a later set of the parameter may try again
+
+        future.add_done_callback(forget_if_failed)
+
     def _switch_from_parameter(self, name: str) -> None:
         """Switch and wait for the outcome, at most ``switch_timeout_s``; raise a
         :class:`BeehaveError` whose message becomes the parameter's refusal reason.
