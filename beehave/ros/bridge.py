@@ -246,12 +246,15 @@ class HighLevelBridge:
         if event.kind is EventKind.SWITCH_REQUESTED:
             with self._requested_lock:
                 self._requested = event.subject
-        elif event.kind is EventKind.SWITCH_COMPLETED or event.kind is EventKind.FALLBACK:
+        elif event.kind in (EventKind.SWITCH_COMPLETED, EventKind.FALLBACK,
+                            EventKind.SWITCH_REJECTED):
             with self._requested_lock:
-                # A fallback means nothing was queued when the behaviour ended. (Should a
+                # A fallback means nothing was queued when the behaviour ended; a switch
+                # that failed while processed is reported as rejected "switch". (Should a
                 # request's event come late, the next set of the parameter merely asks
                 # for a switch again, rather than being skipped.)
-                if event.kind is EventKind.FALLBACK or event.subject == self._requested:
+                if (event.kind is not EventKind.SWITCH_COMPLETED
+                        or event.subject == self._requested):
                     self._requested = None
         if event.kind is EventKind.SWITCH_COMPLETED:
             with self._guard:
