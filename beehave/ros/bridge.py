@@ -544,6 +544,14 @@ class LowLevelBridge:
         Runs in the executor thread, so it must never wait forever: a logic that blocks
         the event loop (``time.sleep`` in a coroutine) would otherwise hang every ROS
         callback of the process."""
+        try:
+            in_loop = asyncio.get_running_loop() is self.manager.loop
+        except RuntimeError:  # no loop runs in this thread: the usual case
+            in_loop = False
+        if in_loop:
+            raise BeehaveError(f"the 'logic' parameter was set from inside the low level's "
+                               f"loop, where waiting for the switch would block it; use "
+                               f"`await ll.switch_async({name!r})`")
         future, ticket = self._submit(name)
         try:
             future.result(self.switch_timeout_s)
