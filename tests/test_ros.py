@@ -628,3 +628,17 @@ def test_an_engine_state_change_is_published_without_a_lifecycle_event(probe: Pr
         bridge.destroy()
         hl.shutdown()
         ros.shutdown()
+
+
+def test_logic_parameter_set_inside_the_loop_is_refused_not_blocking(
+        low_node: tuple[Any, Any]) -> None:
+    from rclpy.parameter import Parameter
+
+    ll, bridge = low_node
+
+    async def set_from_a_logic() -> Any:
+        return bridge.node.set_parameters([Parameter("logic", value="driving")])[0]
+
+    result = ll.call(set_from_a_logic())
+    assert not result.successful and "switch_async('driving')" in result.reason
+    assert ll.current == "parked"
