@@ -218,6 +218,12 @@ class Goal:
         self._wake()
 
 
+def _cancel_if_accepted(sent: Any) -> None:
+    handle = None if sent.cancelled() or sent.exception() is not None else sent.result()
+    if handle is not None and handle.accepted:
+        handle.cancel_goal_async()
+
+
 class RosIO:
     """ROS entities owned by one behaviour, action or HAL; :meth:`destroy_all` ends them.
 
@@ -315,7 +321,9 @@ class RosIO:
             clock.wait(cond, lambda: sent.done() or interrupted(),
                        max(0.0, deadline - clock.now()))
         if not sent.done():
-            sent.cancel()
+            # The server may still accept it: then cancel at once, so that no goal runs on
+            # without an owner.
+            sent.add_done_callback(_cancel_if_accepted)
             if interrupted():
                 raise Interrupted(f"{self.owner}: interrupted while sending a goal to {full!r}")
             raise WaitTimeout(f"action server {full!r} did not answer the goal within "
