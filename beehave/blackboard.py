@@ -9,6 +9,13 @@ logics watch what they react to::
 Threads and the loop
     A blackboard works on its own, like a dict whose callbacks run synchronously in the
     thread that calls :meth:`Blackboard.set` (this is how the high level can keep a mirror).
+    Callbacks never run under the blackboard's lock, so a slow one (a "battery low →
+    switch" that waits for a behaviour to end) blocks no other thread's ``set``,
+    ``subscribe`` or ``close``. The changes of one key are delivered one at a time and in
+    the order of the writes: a write made while another thread is still notifying that
+    key's subscribers, or by one of its callbacks, is stored at once and delivered by the
+    thread already notifying, right after the running callback. Changes of different keys
+    written by different threads may be delivered concurrently.
     Once it is *bound* to an asyncio loop (the :class:`~beehave.lowlevel.LowLevelBehaviorManager`
     binds it; the first :meth:`~Blackboard.watch` inside a running loop binds it too), a set
     made in the loop's thread notifies at once, and a set from any other thread stores the
@@ -47,6 +54,7 @@ import math
 import re
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from numbers import Real
 from typing import Any, Self
@@ -56,7 +64,7 @@ from beehave.errors import BlackboardError
 log = logging.getLogger(__name__)
 
 __all__ = ["Blackboard", "BlackboardClient", "BlackboardView", "Change", "Subscription", "Watcher",
-           "matches"]
+           "from_json", "matches", "to_json"]
 
 _SEGMENT = re.compile(r"[^/*\s]+")
 _KEY = re.compile(r"[^/*\s]+(?:/[^/*\s]+)*")
@@ -95,8 +103,8 @@ class Change:
         return Change(self.key, self.value, self.stamp, self.monotonic, self.writer, True)
 
     def as_dict(self) -> dict[str, Any]:
-        """A JSON-serialisable form (values JSON cannot hold are given as ``repr``)."""
-        return {"value": _jsonable(self.value), "stamp": self.stamp, "stale": self.stale,
+        """A strict-JSON form (the value encoded by :func:`to_json`)."""
+        return {"value": to_json(self.value), "stamp": self.stamp, "stale": self.stale,
                 "writer": self.writer, "age_s": round(self.age_s, 6)}
 
     def __repr__(self) -> str:
@@ -104,16 +112,44 @@ class Change:
         return f"Change({self.key!r}, {self.value!r}, writer={self.writer!r}{flag})"
 
 
-def _jsonable(value: Any) -> Any:
+_FLOAT_TAG = "$float"
+_NON_FINITE = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+
+
+def to_json(value: Any) -> Any:
+    """``value`` as strict JSON data (what :meth:`Change.as_dict` and the ROS 2 bridge send).
+
+    Tuples become lists, mapping keys strings, and values JSON cannot hold their ``repr``.
+    Non-finite floats, which strict JSON lacks, become tagged objects —
+    ``{"$float": "inf"}``, ``{"$float": "-inf"}``, ``{"$float": "nan"}`` — so that "nothing
+    in range" (``inf``) is still a number after :func:`from_json`, not the string
+    ``'inf'`` that fails ``front_m < 0.5``.
+    """
     if value is None or isinstance(value, (bool, int, str)):
         return value
     if isinstance(value, float):
-        return value if math.isfinite(value) else repr(value)
+        if math.isfinite(value):
+            return value
+        return {_FLOAT_TAG: "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")}
     if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
+        return [to_json(v) for v in value]
     if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): to_json(v) for k, v in value.items()}
     return repr(value)
+
+
+def from_json(value: Any) -> Any:
+    """The inverse of :func:`to_json` for its JSON data: tagged non-finite floats become
+    floats again (in lists and mappings too); everything else is returned as it is."""
+    if isinstance(value, dict):
+        if len(value) == 1 and _FLOAT_TAG in value:
+            tag = value[_FLOAT_TAG]
+            if isinstance(tag, str) and tag in _NON_FINITE:
+                return _NON_FINITE[tag]
+        return {k: from_json(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [from_json(v) for v in value]
+    return value
 
 
 def _same(old: Any, new: Any) -> bool:
@@ -181,7 +217,7 @@ class _Slot:
     """Everything the blackboard knows about one key; looked up once per ``set``."""
 
     __slots__ = ("key", "parts", "change", "notified", "subs", "max_age_s", "deadband",
-                 "timer")
+                 "timer", "outbox", "delivering")
 
     def __init__(self, key: str) -> None:
         self.key = key
@@ -192,6 +228,10 @@ class _Slot:
         self.max_age_s: float | None = None
         self.deadband: float | None = None
         self.timer: asyncio.TimerHandle | None = None
+        # Unbound delivery (under the blackboard's lock): changes waiting, in write order,
+        # with "only if still current" (stale marks), and whether a thread delivers them.
+        self.outbox: deque[tuple[Change, bool]] = deque()
+        self.delivering = False
 
 
 class Subscription:
@@ -408,13 +448,22 @@ class Blackboard:
             change = self._store(slot, value, writer)
             if change is None:
                 return
-            if loop is None:
-                self._notify(slot, change)
+            if loop is not None:
+                self._pending[key] = slot
+                if self._flush_scheduled:
+                    return
+                self._flush_scheduled = True
+            elif slot.delivering:
+                slot.outbox.append((change, False))
+                return  # the thread delivering this key takes it, in order
+            elif not slot.subs:
+                slot.notified = change  # nobody to tell
                 return
-            self._pending[key] = slot
-            if self._flush_scheduled:
-                return
-            self._flush_scheduled = True
+            else:
+                slot.delivering = True
+        if loop is None:
+            self._deliver(slot, change)
+            return
         try:
             loop.call_soon_threadsafe(self._flush)
         except RuntimeError:  # the loop closed without unbinding: fall back to synchronous
@@ -442,6 +491,29 @@ class Blackboard:
             sub.deliver(change)
         if slot.max_age_s is not None and slot.timer is None and not change.stale:
             self._arm(slot)
+
+    def _deliver(self, slot: _Slot, first: Change | None = None) -> None:
+        """Unbound delivery, outside the lock: the calling thread (which claimed
+        ``slot.delivering``) delivers ``first``, then every change of ``slot`` queued
+        meanwhile by other threads or by the callbacks themselves."""
+        try:
+            if first is not None:
+                self._notify(slot, first)
+            while True:
+                with self._lock:
+                    if not slot.outbox:
+                        slot.delivering = False
+                        return
+                    change, only_if_current = slot.outbox.popleft()
+                if only_if_current and slot.change is not change:
+                    continue
+                self._notify(slot, change)
+        except BaseException:
+            # An on_error hook that raised ends this delivery: the next writer of the key
+            # goes on with what is left rather than finding delivery claimed forever.
+            with self._lock:
+                slot.delivering = False
+            raise
 
     def _flush(self) -> None:
         with self._lock:
@@ -533,8 +605,17 @@ class Blackboard:
                     continue
                 stale = slot.change = change.as_stale()
                 marked.append((slot, stale))
-        for slot, stale in marked:
-            self._call_in_loop(self._notify_if_current, slot, stale)
+        if self._loop is None:
+            for slot, stale in marked:
+                with self._lock:
+                    slot.outbox.append((stale, True))
+                    if slot.delivering:
+                        continue
+                    slot.delivering = True
+                self._deliver(slot)
+        else:
+            for slot, stale in marked:
+                self._call_in_loop(self._notify_if_current, slot, stale)
         return [slot.key for slot, _ in marked]
 
     def _notify_if_current(self, slot: _Slot, change: Change) -> None:

@@ -142,6 +142,17 @@ class BlackboardError(BeehaveError):
     """A blackboard key or pattern that is not valid."""
 
 
+class GoalFailed(BeehaveError):
+    """A ROS 2 action goal that did not succeed: the server rejected it, aborted it, or
+    it was cancelled by another client. ``status`` is ``"REJECTED"``, ``"ABORTED"`` or
+    ``"CANCELED"``; ``result`` is the result message the server sent (None when rejected)."""
+
+    def __init__(self, message: str, *, status: str, result: object = None) -> None:
+        super().__init__(message)
+        self.status = status
+        self.result = result
+
+
 class HALError(BeehaveError):
     """A HAL plugin that cannot be loaded or used."""
 

@@ -85,3 +85,68 @@ class Probe:
 
 def last_json(box: list[String]) -> dict[str, Any] | None:
     return json.loads(box[-1].data) if box else None
+
+
+class FibonacciServer:
+    """A plain rclpy action server (test_msgs/Fibonacci) in a context of its own, spun by a
+    MultiThreadedExecutor so that cancel requests arrive while a goal executes.
+
+    ``order`` chooses the script: < 0 rejected; 99 aborted; otherwise one feedback per step
+    every ``step_s``, then SUCCEEDED. ``cancelled`` lists the orders of the goals that
+    ended cancelled on request.
+    """
+
+    def __init__(self, name: str, *, step_s: float = 0.01) -> None:
+        import rclpy
+        from rclpy.action import ActionServer, CancelResponse, GoalResponse
+        from rclpy.callback_groups import ReentrantCallbackGroup
+        from rclpy.context import Context
+        from rclpy.executors import MultiThreadedExecutor
+        from test_msgs.action import Fibonacci
+
+        self._fib = Fibonacci
+        self.step_s = step_s
+        self.cancelled: list[int] = []
+        self.executing = threading.Event()
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("fibonacci_server", context=self.context)
+        self.server = ActionServer(
+            self.node, Fibonacci, name, execute_callback=self._execute,
+            goal_callback=lambda goal: (GoalResponse.REJECT if goal.order < 0
+                                        else GoalResponse.ACCEPT),
+            cancel_callback=lambda _handle: CancelResponse.ACCEPT,
+            callback_group=ReentrantCallbackGroup())
+        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self.executor.spin, name="fibonacci-server",
+                                        daemon=True)
+        self._thread.start()
+
+    def _execute(self, handle: Any) -> Any:
+        fib = self._fib
+        order = handle.request.order
+        sequence = [0, 1]
+        self.executing.set()
+        for _ in range(max(order, 1)):
+            if handle.is_cancel_requested:
+                handle.canceled()
+                self.cancelled.append(order)
+                return fib.Result(sequence=sequence)
+            if order == 99:
+                handle.abort()
+                return fib.Result(sequence=[-1])
+            sequence.append(sequence[-1] + sequence[-2])
+            handle.publish_feedback(fib.Feedback(sequence=sequence))
+            time.sleep(self.step_s)
+        handle.succeed()
+        return fib.Result(sequence=sequence)
+
+    def close(self) -> None:
+        import rclpy
+
+        self.executor.shutdown()
+        self._thread.join(5)
+        self.server.destroy()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)

@@ -12,6 +12,7 @@ import pytest
 
 from beehave.blackboard import Blackboard, Change, Subscription, matches
 from beehave.errors import BlackboardError
+from beehave.testing import wait_until
 
 
 class FakeClock:
@@ -455,3 +456,137 @@ def test_a_logic_that_writes_what_it_watches_does_not_starve_the_loop() -> None:
         assert task.cancelled()
 
     asyncio.run(main())
+
+
+# -- callbacks run outside the blackboard's lock (issue 9, item 7) -----------------------------
+
+def test_a_slow_callback_blocks_no_other_thread_subscribing_closing_or_writing() -> None:
+    """Without a loop a callback runs in the writer's thread; while it works, every other
+    thread must still be able to subscribe, close and write (the high-level mirror's
+    "battery low → switch" callback waits for a behaviour that closes its subscription)."""
+    bb = Blackboard()
+    entered, release = threading.Event(), threading.Event()
+
+    def slow(change: Change) -> None:
+        entered.set()
+        release.wait(10)
+
+    bb.subscribe("battery/low", slow)
+    writer = threading.Thread(target=bb.set, args=("battery/low", True))
+    writer.start()
+    try:
+        assert entered.wait(5)
+        done = threading.Event()
+        others: list[Any] = []
+
+        def other_thread() -> None:
+            sub = bb.subscribe("pose/x", lambda c: others.append(c.value))
+            bb.set("pose/x", 1.0)
+            sub.close()
+            done.set()
+
+        threading.Thread(target=other_thread, daemon=True).start()
+        # A deadlock detector, not a speed check: the other thread must finish while the
+        # slow callback still holds on.
+        assert done.wait(5), "another thread blocked behind a running callback"
+        assert not release.is_set()
+    finally:
+        release.set()
+        writer.join(5)
+    assert bb.get("pose/x") == 1.0 and others == [1.0]
+
+
+def test_without_a_loop_notifications_keep_the_order_of_writes_per_key() -> None:
+    bb = Blackboard()
+    seen: dict[str, list[int]] = {"order/a": [], "order/b": []}
+    bb.subscribe("order/*", lambda c: seen[c.key].append(c.value))
+    n = 2000
+
+    def writer(key: str, base: int) -> None:
+        for i in range(n):
+            bb.set(key, base + i)
+
+    threads = [threading.Thread(target=writer, args=(key, base))
+               for key in ("order/a", "order/b") for base in (0, 10 * n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for key, values in seen.items():
+        assert len(values) == len(set(values)) >= 2 * n - 1  # equal writes wake nobody
+        for base in (0, 10 * n):
+            mine = [v for v in values if base <= v < base + n]
+            assert mine == sorted(mine), f"{key}: one writer's changes out of order"
+        assert values[-1] == bb.get(key), f"{key}: the last notification is not the value"
+
+
+def test_a_callback_that_writes_its_own_key_sees_that_change_after_it_returns() -> None:
+    bb = Blackboard()
+    log: list[str] = []
+
+    def count_to_3(change: Change) -> None:
+        log.append(f"{change.value} begins")
+        if change.value < 3:
+            bb.set("counter", change.value + 1)
+        log.append(f"{change.value} ends")
+
+    bb.subscribe("counter", count_to_3)
+    bb.set("counter", 1)
+    assert log == ["1 begins", "1 ends", "2 begins", "2 ends", "3 begins", "3 ends"]
+
+
+def test_battery_low_callback_that_switches_leaves_no_behaviour_stuck(hl: Any,
+                                                                      events: list[Any]) -> None:
+    """The high level's mirror is written by the ROS executor thread; a behaviour's
+    subscription whose callback switches (blocking) must not make that behaviour STUCK."""
+    from beehave import Behavior
+
+    class Charge(Behavior):
+        def run(self) -> None:
+            while self.sleep(1.0):
+                pass
+
+    class Work(Behavior):
+        def run(self) -> None:
+            with self.blackboard.subscribe("battery/low", self.on_low):
+                while self.sleep(1.0):
+                    pass
+
+        def on_low(self, change: Change) -> None:
+            if change.value:
+                hl.switch("charge")
+
+    hl.register("charge", Charge)
+    hl.register("work", Work)
+    work = hl.switch("work")
+    assert wait_until(lambda: len(hl.blackboard.subscriptions) == 1)
+    mirror = threading.Thread(target=hl.blackboard.set, args=("battery/low", True),
+                              name="mirror-writer")
+    mirror.start()
+    mirror.join(10)
+    assert not mirror.is_alive()
+    assert hl.current == "charge"
+    assert work.status.name == "INTERRUPTED", work.status
+    assert not [e for e in events if e.kind.name == "STUCK"]
+
+
+# -- non-finite numbers in JSON (issue 9, item 19) ---------------------------------------------
+
+def test_non_finite_floats_round_trip_through_strict_json() -> None:
+    from beehave.blackboard import from_json, to_json
+
+    value = {"front_m": float("inf"), "back_m": float("-inf"), "ranges": [1.0, float("nan")],
+             "pair": (2.5, float("inf")), "label": "inf", "n": 3}
+    text = json.dumps(to_json(value), allow_nan=False)  # strict JSON, for any ROS 2 tool
+    back = from_json(json.loads(text))
+    assert back["front_m"] == float("inf") and back["back_m"] == float("-inf")
+    assert back["ranges"][0] == 1.0 and back["ranges"][1] != back["ranges"][1]  # NaN
+    assert back["pair"] == [2.5, float("inf")]
+    assert back["label"] == "inf" and back["n"] == 3  # strings stay strings
+
+
+def test_snapshot_encodes_non_finite_floats_as_tagged_numbers() -> None:
+    bb = Blackboard()
+    bb.set("laser/front_m", float("inf"))
+    snap = json.loads(json.dumps(bb.snapshot(), allow_nan=False))
+    assert snap["laser/front_m"]["value"] == {"$float": "inf"}

@@ -24,7 +24,7 @@ from geometry_msgs.msg import Twist  # noqa: E402
 from ros_probe import Probe, last_json  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from beehave import Action, Behavior  # noqa: E402
+from beehave import Action, Behavior, Logic  # noqa: E402
 from beehave.config import load_config, parse_config  # noqa: E402
 from beehave.errors import ConfigError, Interrupted  # noqa: E402
 from beehave.robot import Robot  # noqa: E402
@@ -116,7 +116,7 @@ def test_late_joiner_gets_the_blackboard(robot: Robot, probe: Probe) -> None:
     assert wait_until(lambda: robot.high.blackboard.get("mode") == "parked")
     late = probe.record(String, "/rosbot/beehave/blackboard", latched=True)
     assert probe.wait(lambda: bool(late))
-    assert json.loads(late[0].data)["schema"] == "beehave/blackboard/1"
+    assert json.loads(late[0].data)["schema"] == "beehave/blackboard/2"
     # The last message arrives at once (transient-local); a full snapshot follows within
     # snapshot_period_s (0.5 s here) even while the debug HAL keeps changing entries.
     snapshots = lambda: [json.loads(m.data) for m in list(late)  # noqa: E731
@@ -216,12 +216,12 @@ def test_plain_rclpy_client_process(robot: Robot) -> None:
 
 
 @pytest.mark.parametrize("payload", [
-    "not json", "[1]", '{"schema": "beehave/blackboard/1"}',
-    '{"schema": "beehave/blackboard/1", "kind": "changes", "seq": "x", "stamp": 1, '
+    "not json", "[1]", '{"schema": "beehave/blackboard/2"}',
+    '{"schema": "beehave/blackboard/2", "kind": "changes", "seq": "x", "stamp": 1, '
     '"entries": {"a": {"value": 1}}}',
-    '{"schema": "beehave/blackboard/1", "kind": "changes", "seq": 1, "stamp": 1, '
+    '{"schema": "beehave/blackboard/2", "kind": "changes", "seq": 1, "stamp": 1, '
     '"entries": {"bad key/": {"value": 1}}}',
-    '{"schema": "beehave/blackboard/1", "kind": "changes", "seq": 1, "stamp": 1, '
+    '{"schema": "beehave/blackboard/2", "kind": "changes", "seq": 1, "stamp": 1, '
     '"entries": {"a": 5}}',
 ])
 def test_malformed_blackboard_messages_are_refused_whole(robot: Robot, probe: Probe,
@@ -290,3 +290,355 @@ def test_commanded_behavior_takes_commands_from_a_ros_topic(robot: Robot, probe:
                and "'cruise'" in r["detail"] for r in reports())
     assert probe.wait(lambda: cmd[-1].linear.x == 0.0)  # Cruise's safe state
     assert [r.received for r in queue.rejected] == ['{"action": "fly"}']
+
+
+def test_non_finite_numbers_reach_the_mirror_as_numbers(robot: Robot, probe: Probe) -> None:
+    """A laser that sees nothing in range says inf: `front_m < 0.5` must work on the mirror."""
+    assert robot.low is not None and robot.high is not None
+    board = probe.record(String, "/rosbot/beehave/blackboard", latched=True)
+    robot.low.blackboard.set("laser/front_m", float("inf"))
+    robot.low.blackboard.set("laser/ranges", [0.4, float("-inf"), float("nan")])
+    mirror = robot.high.blackboard
+    assert wait_until(lambda: mirror.get("laser/ranges") is not None)
+    assert wait_until(lambda: mirror.get("laser/front_m") is not None)
+    front = mirror.get("laser/front_m")
+    assert isinstance(front, float) and not front < 0.5 and front == float("inf")
+    ranges = mirror.get("laser/ranges")
+    assert ranges[:2] == [0.4, float("-inf")] and ranges[2] != ranges[2]
+    # On the wire it is strict JSON that any ROS 2 tool can parse.
+    assert probe.wait(lambda: any("laser/front_m" in m.data for m in list(board)))
+    for msg in list(board):
+        json.loads(msg.data, parse_constant=lambda c: pytest.fail(f"non-JSON {c} sent"))
+
+
+def test_repeated_service_calls_reuse_one_client_destroyed_with_the_owner(
+        robot: Robot, probe: Probe) -> None:
+    from std_srvs.srv import Trigger
+
+    assert robot.high is not None
+    node = robot.high.node
+    served: list[int] = []
+
+    def count(_req: Any, response: Any) -> Any:
+        served.append(1)
+        response.success = True
+        return response
+
+    probe.node.create_service(Trigger, "/rosbot/count", count)
+    before = len(list(node.clients))
+
+    class CallsOften(Action):
+        action_type = "service"
+
+        def run(self) -> int:
+            for _ in range(100):
+                assert self.ros.call(Trigger, "count", Trigger.Request(), timeout_s=10.0).success
+            return len(list(node.clients)) - before
+
+    class Caller(Behavior):
+        def run(self) -> None:
+            self.action = self.start_action(CallsOften())
+            self.action.wait()
+            while self.sleep(1.0):
+                pass
+
+    robot.high.register("caller", Caller)
+    caller = robot.high.switch("caller")
+    assert wait_until(lambda: hasattr(caller, "action"))
+    action = caller.action  # type: ignore[attr-defined]
+    assert wait_until(lambda: action.status.name == "SUCCEEDED", 30), action.error
+    assert len(served) == 100
+    assert action.result == 1
+    assert len(list(node.clients)) == before  # destroyed when the action ended
+
+
+def test_behavior_parameter_back_to_the_running_name_overrides_a_queued_switch(
+        robot: Robot, probe: Probe) -> None:
+    """patrol runs, `parked` is still queued, then the operator sets `patrol` again: the
+    latest request wins, although it names the behaviour that runs right now."""
+    from beehave import EventKind
+
+    assert robot.high is not None
+    hl = robot.high
+    gate, held = threading.Event(), threading.Event()
+    seen: list[Any] = []
+
+    def hold_the_switch(event: Any) -> None:
+        # Holds the switch thread after patrol started: later requests queue up behind it.
+        seen.append(event)
+        if (event.kind is EventKind.SWITCH_COMPLETED and event.subject == "patrol"
+                and not held.is_set()):
+            held.set()
+            gate.wait(10)
+
+    unsubscribe = hl.subscribe(hold_the_switch)
+    try:
+        assert probe.set_param(HIGH, "behavior", "patrol").successful
+        assert held.wait(10) and hl.current == "patrol"
+        assert probe.set_param(HIGH, "behavior", "parked").successful  # queued
+        assert probe.set_param(HIGH, "behavior", "patrol").successful  # the latest
+        released_at = len(seen)
+    finally:
+        gate.set()
+    try:
+        # Once a switch completed after the release, the last one must be to patrol
+        # (the bug: the second request was skipped and parked stayed).
+        assert wait_until(lambda: any(e.kind is EventKind.SWITCH_COMPLETED
+                                      for e in list(seen)[released_at:])
+                          and hl.current == "patrol", 5), hl.current
+    finally:
+        unsubscribe()
+    assert wait_until(lambda: probe.get_param(HIGH, "behavior") == "patrol")
+
+
+# -- the logic parameter (issue 9, items 11 and 14) --------------------------------------------
+
+class _Forever(Logic):
+    async def run(self) -> None:
+        import asyncio
+
+        await asyncio.sleep(3600)
+
+
+class _Brief(Logic):
+    """Ends on its own: the low level falls back to its default logic."""
+
+    async def run(self) -> None:
+        import asyncio
+
+        await asyncio.sleep(0.05)
+
+
+class _HoldsTheLoop(Logic):
+    """The mistake issue 9 describes: a blocking sleep inside a coroutine."""
+
+    async def run(self) -> None:
+        import asyncio
+        import time
+
+        await asyncio.sleep(0)
+        time.sleep(1.5)
+        await asyncio.sleep(3600)
+
+
+@pytest.fixture
+def low_node(probe: Probe) -> Iterator[tuple[Any, Any]]:
+    """A low level on a node of its own (namespace /llp), with a short switch bound."""
+    from beehave.lowlevel import LowLevelBehaviorManager
+    from beehave.ros.bridge import LowLevelBridge
+    from beehave.ros.context import RosContext
+
+    ros = RosContext()
+    node = ros.create_node("beehave_low_level", namespace="llp")
+    ll = LowLevelBehaviorManager(default="parked", stop_timeout_s=0.3)
+    for name, cls in (("parked", _Forever), ("driving", _Forever), ("brief", _Brief),
+                      ("hog", _HoldsTheLoop)):
+        ll.register(name, cls)
+    ros.start()
+    with ll:
+        bridge = LowLevelBridge(ll, node, switch_timeout_s=0.5)
+        try:
+            yield ll, bridge
+        finally:
+            bridge.destroy()
+    ros.shutdown()
+
+
+LLP = "/llp/beehave_low_level"
+
+
+def test_logic_parameter_shows_the_default_after_a_logic_ends_on_its_own(
+        low_node: tuple[Any, Any], probe: Probe) -> None:
+    ll, _ = low_node
+    result = probe.set_param(LLP, "logic", "brief")
+    assert result.successful, result.reason
+    assert wait_until(lambda: ll.current == "parked" and ll.history
+                      and ll.history[-1].name == "brief")
+    assert wait_until(lambda: probe.get_param(LLP, "logic") == "parked"), \
+        probe.get_param(LLP, "logic")
+
+
+def test_logic_parameter_fails_with_a_reason_when_the_loop_is_blocked(
+        low_node: tuple[Any, Any], probe: Probe) -> None:
+    ll, _ = low_node
+    assert probe.set_param(LLP, "logic", "hog").successful
+    result = probe.set_param(LLP, "logic", "driving")  # the hog holds the loop for 1.5 s
+    assert not result.successful
+    assert "'driving'" in result.reason and "blocking" in result.reason, result.reason
+    # Nothing was switched behind the caller's back once the loop is free again.
+    assert wait_until(lambda: ll.call(_noop()) is None, 5)
+    assert ll.current == "hog"
+    assert probe.get_param(LLP, "logic") == "hog"
+
+
+async def _noop() -> None:
+    return None
+
+
+# -- engine state on the state topic (issue 9, "Also wanted") ----------------------------------
+
+class _Docking(Behavior):
+    """Stands in for a behaviour driven by a state machine: its snapshot has an engine."""
+
+    def run(self) -> None:
+        self.start_behavior(_Ticking())
+        while self.sleep(1.0):
+            pass
+
+    def _snapshot(self) -> dict[str, Any]:
+        snap = super()._snapshot()
+        snap["engine"] = {"kind": "state_machine", "state": "approach",
+                          "states": ["approach", "dock"], "since_s": float("inf")}
+        return snap
+
+
+class _Ticking(Behavior):
+    def run(self) -> None:
+        while self.sleep(1.0):
+            pass
+
+    def _snapshot(self) -> dict[str, Any]:
+        snap = super()._snapshot()
+        snap["engine"] = {"kind": "behaviour_tree",
+                          "nodes": [{"name": "root", "status": "RUNNING"}]}
+        return snap
+
+
+def test_state_topic_carries_the_engines_of_the_running_tree(robot: Robot,
+                                                             probe: Probe) -> None:
+    assert robot.high is not None and robot.low is not None
+    state = probe.record(String, "/rosbot/beehave/high_level/state", latched=True)
+    robot.high.register("docking", _Docking)
+    robot.high.switch("docking")
+
+    def engines() -> list[dict[str, Any]]:
+        last = last_json(state) or {}
+        return last.get("engines", []) if last.get("behavior") == "docking" else []
+
+    assert probe.wait(lambda: len(engines()) == 2), last_json(state)
+    assert (last_json(state) or {})["schema"] == "beehave/high_level/state/2"
+    by_path = {e["path"]: e for e in engines()}
+    assert by_path["docking"]["kind"] == "state_machine"
+    assert by_path["docking"]["state"] == "approach"
+    assert by_path["docking"]["since_s"] == {"$float": "inf"}  # strict JSON
+    assert by_path["docking/_Ticking"]["nodes"] == [{"name": "root", "status": "RUNNING"}]
+    # The low level accepts the new schema and shows it to logics.
+    assert wait_until(lambda: len(robot.low.blackboard.get("high_level/engines") or []) == 2)
+    robot.high.switch("parked")
+    assert probe.wait(lambda: (last_json(state) or {}).get("behavior") == "parked"
+                      and last_json(state)["engines"] == [])  # type: ignore[index]
+
+
+def test_earlier_schemas_are_still_read() -> None:
+    from beehave.ros.bridge import BlackboardMessage, StateMessage
+
+    old_state = StateMessage.model_validate_json(
+        '{"schema": "beehave/high_level/state/1", "stamp": 1, "behavior": "idle"}')
+    assert old_state.engines == []
+    old_board = BlackboardMessage.model_validate_json(
+        '{"schema": "beehave/blackboard/1", "kind": "changes", "seq": 1, "stamp": 1, '
+        '"entries": {"a": {"value": 1}}}')
+    assert old_board.entries["a"].value == 1
+
+
+# -- the mirror loses nothing (issue 9, mirror latency work) -----------------------------------
+
+def test_the_mirror_receives_every_change_message_in_order() -> None:
+    """`changes` messages are deltas: none may be replaced in a queue before the mirror
+    took it (with depth 1, about a third were at 1 kHz and the mirror kept old values)."""
+    import asyncio
+
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.lowlevel import LowLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
+    from beehave.ros.context import RosContext
+
+    high_ros, low_ros = RosContext(), RosContext()
+    hl = HighLevelBehaviorManager()
+    high = HighLevelBridge(hl, high_ros.create_node("beehave_high_level", namespace="mirr"))
+    seen: list[int] = []
+    hl.blackboard.subscribe("count", lambda c: seen.append(c.value))
+    low_node = low_ros.create_node("beehave_low_level", namespace="mirr")
+    high_ros.start()
+    low_ros.start()
+    try:
+        with LowLevelBehaviorManager() as ll:
+            low = LowLevelBridge(ll, low_node)
+            try:
+                ll.blackboard.set("count", -1)
+                assert wait_until(lambda: hl.blackboard.get("count") == -1, 10)
+                seen.clear()
+
+                async def count() -> None:
+                    for i in range(500):  # one message each: 1 kHz against a 2 kHz cap
+                        ll.blackboard.set("count", i)
+                        await asyncio.sleep(0.001)
+
+                ll.call(count())
+                assert wait_until(lambda: hl.blackboard.get("count") == 499, 10)
+            finally:
+                low.destroy()
+        assert seen == list(range(500)), f"{500 - len(seen)} changes lost"
+        assert high.missed_messages == 0
+    finally:
+        high.destroy()
+        hl.shutdown()
+        low_ros.shutdown()
+        high_ros.shutdown()
+
+
+def test_an_engine_state_change_is_published_without_a_lifecycle_event(probe: Probe) -> None:
+    """A state machine's transition starts or ends nothing: it must still reach the topic
+    (here the heartbeat is a minute away)."""
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge
+    from beehave.ros.context import RosContext
+
+    class Machine(Behavior):
+        state = "approach"
+
+        def run(self) -> None:
+            while self.sleep(1.0):
+                pass
+
+        def _snapshot(self) -> dict[str, Any]:
+            snap = super()._snapshot()
+            snap["engine"] = {"kind": "state_machine", "state": self.state}
+            return snap
+
+    ros = RosContext()
+    node = ros.create_node("beehave_high_level", namespace="engst")
+    hl = HighLevelBehaviorManager(node=node, stop_timeout_s=0.3)
+    bridge = HighLevelBridge(hl, node, state_period_s=60.0)
+    ros.start()
+    try:
+        hl.register("machine", Machine)
+        hl.start()
+        machine = hl.switch("machine")
+        state = probe.record(String, "/engst/beehave/high_level/state", latched=True)
+
+        def engine_state() -> str | None:
+            engines = (last_json(state) or {}).get("engines") or [{}]
+            return engines[0].get("state")
+
+        assert probe.wait(lambda: engine_state() == "approach")
+        machine.state = "dock"  # type: ignore[attr-defined]
+        assert probe.wait(lambda: engine_state() == "dock", timeout_s=5.0)
+    finally:
+        bridge.destroy()
+        hl.shutdown()
+        ros.shutdown()
+
+
+def test_logic_parameter_set_inside_the_loop_is_refused_not_blocking(
+        low_node: tuple[Any, Any]) -> None:
+    from rclpy.parameter import Parameter
+
+    ll, bridge = low_node
+
+    async def set_from_a_logic() -> Any:
+        return bridge.node.set_parameters([Parameter("logic", value="driving")])[0]
+
+    result = ll.call(set_from_a_logic())
+    assert not result.successful and "switch_async('driving')" in result.reason
+    assert ll.current == "parked"

@@ -4,7 +4,10 @@ blackboard and high-level state between the managers, and ROS-backed HALs.
 Importing this package imports rclpy (the ``ros`` extra); ``import beehave`` does not.
 """
 
+from beehave.errors import GoalFailed
+from beehave.ros.actions import RosActionGoal, ServiceCall
 from beehave.ros.context import RosContext
-from beehave.ros.io import Latest, RosIO
+from beehave.ros.io import Goal, Latest, RosIO, WaitTimeout
 
-__all__ = ["Latest", "RosContext", "RosIO"]
+__all__ = ["Goal", "GoalFailed", "Latest", "RosActionGoal", "RosContext", "RosIO",
+           "ServiceCall", "WaitTimeout"]

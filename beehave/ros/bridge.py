@@ -2,55 +2,79 @@
 
 Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
 
-``beehave/blackboard`` — from the low level; reliable, transient-local (depth 1)::
+``beehave/blackboard`` — from the low level; reliable, transient-local (depth 100)::
 
-    {"schema": "beehave/blackboard/1", "kind": "changes" | "snapshot", "seq": 17,
+    {"schema": "beehave/blackboard/2", "kind": "changes" | "snapshot", "seq": 17,
      "stamp": 1795240691.67,            # time.time() of publication
      "entries": {"battery/percentage": {"value": 54.0, "stamp": 1795240691.6,
                                          "stale": false, "writer": "hal:debug"}, ...},
      "removed": []}                     # reserved; keys are never removed today
 
-  ``changes`` carries the entries that changed since the previous message. Changes are
-  published at the end of the loop iteration that made them (so changes made together
-  travel together), unless the previous message left less than ``1/blackboard_rate_hz``
-  ago; then they wait for the rest of that interval together with every other change that
-  comes meanwhile (only the newest value per key). So a quiet blackboard reaches the high
-  level in about a hundred microseconds, and a busy one costs at most
-  ``blackboard_rate_hz`` messages a second. ``snapshot`` carries every entry and comes every
-  ``snapshot_period_s`` and ``settle_s`` after the last change. A late joiner receives the
-  last message at once (transient-local keeps one): the full state when the blackboard is
-  quiet, else a batch of changes followed by a full snapshot within ``snapshot_period_s``.
-  The high level's mirror sets ``HighLevelBridge.mirror_complete`` at its first snapshot.
+  ``changes`` carries the entries that changed since the previous message. A change is
+  published at once, in the call that made it, when the previous message left at least
+  ``1/blackboard_rate_hz`` ago; every change that comes within that interval (the rest of
+  the logic's step, a burst) waits for its end and travels together with the others (only
+  the newest value per key). So a quiet blackboard reaches the high level in about two
+  bare-rclpy message times, and a busy one costs at most ``blackboard_rate_hz`` messages a
+  second. ``snapshot`` carries every entry and comes every ``snapshot_period_s`` and
+  ``settle_s`` after the last change. A late joiner receives the last messages at once
+  (transient-local keeps 100) and applies them in order, then a full snapshot within
+  ``snapshot_period_s``. The high level's mirror sets ``HighLevelBridge.mirror_complete``
+  at its first snapshot and counts lost messages (by ``seq``) in ``missed_messages``.
+
+  Values are strict JSON (:func:`beehave.blackboard.to_json`): tuples travel as lists,
+  objects JSON cannot hold as their ``repr``, and the non-finite floats strict JSON lacks
+  as tagged objects — ``{"$float": "inf"}``, ``{"$float": "-inf"}``, ``{"$float": "nan"}``,
+  also inside lists and mappings — which the mirror turns back into floats (a laser's
+  "nothing in range" stays ``inf``, so ``front_m < 0.5`` works). Schema ``/1`` (non-finite
+  floats as strings) is still accepted.
 
 ``beehave/high_level/state`` — from the high level; reliable, transient-local (depth 1)::
 
-    {"schema": "beehave/high_level/state/1", "stamp": ..., "behavior": "tour",
+    {"schema": "beehave/high_level/state/2", "stamp": ..., "behavior": "tour",
      "logic": "navigation_leds" | null,   # the top-level behaviour's `logic` attribute
      "running": [{"path": "tour/Navigation", "kind": "action", "class": "Navigation",
                   "action_type": "driving", "status": "RUNNING"}, ...],
+     "engines": [{"path": "tour", "kind": "state_machine", "state": "to_shelf", ...},
+                 {"path": "tour/pick", "kind": "behaviour_tree", "nodes": [...]}],
      "locks": {"driving": "tour/Navigation"}, "stuck": []}
 
-  The low level writes it into its blackboard: ``high_level/behavior``,
-  ``high_level/logic``, ``high_level/running`` (that list), ``high_level/locks`` (that dict),
-  and switches its top-level logic to ``logic`` when it is set.
+  ``engines`` holds, for every running behaviour driven by a decision engine, its path and
+  the engine's own snapshot (the ``"engine"`` entry of the behaviour's snapshot: a state
+  machine's current state, a behaviour tree's node statuses …), strict JSON; empty when no
+  engine runs. It is published with the rest — on every lifecycle change (at most
+  ``state_rate_hz``) and every ``state_period_s`` — and, while an engine runs, whenever its
+  snapshot changed (compared ``engine_rate_hz`` times a second). Schema ``/1`` (without
+  ``engines``) is still accepted.
 
-Parameters: the high-level node's ``behavior`` (string) switches the top-level behaviour;
-the low-level node's ``logic`` switches the top-level logic. Unknown names are refused
-(``SetParametersResult.successful`` false; the reason lists the registered names).
+  The low level writes it into its blackboard: ``high_level/behavior``,
+  ``high_level/logic``, ``high_level/running`` (that list), ``high_level/engines`` (that
+  list), ``high_level/locks`` (that dict), and switches its top-level logic to ``logic``
+  when it is set.
+
+Parameters: the high-level node's ``behavior`` (string) switches the top-level behaviour
+(at once; the latest request wins, also when it names the running behaviour while another
+switch is queued); the low-level node's ``logic`` switches the top-level logic and answers
+with the switch's outcome, waiting at most ``switch_timeout_s`` (a blocked event loop gives
+a refusal that says so). Unknown names are refused (``SetParametersResult.successful``
+false; the reason lists the registered names). Both always show what runs.
 Service ``beehave/stop`` (std_srvs/Trigger) on the high-level node switches to ``idle``.
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
 from typing import Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic_core import to_json as to_json_bytes
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -58,9 +82,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from beehave.blackboard import Change, check_key
+from beehave.blackboard import Change, check_key, from_json, to_json
 from beehave.clock import SimClock
-from beehave.errors import BeehaveError, BlackboardError
+from beehave.errors import BeehaveError, BlackboardError, ConfigError
 from beehave.events import Event, EventBus, EventKind
 from beehave.highlevel import IDLE, HighLevelBehaviorManager
 from beehave.lowlevel import LowLevelBehaviorManager
@@ -70,14 +94,23 @@ log = logging.getLogger(__name__)
 BLACKBOARD_TOPIC = "beehave/blackboard"
 STATE_TOPIC = "beehave/high_level/state"
 STOP_SERVICE = "beehave/stop"
-BLACKBOARD_SCHEMA = "beehave/blackboard/1"
-STATE_SCHEMA = "beehave/high_level/state/1"
+BLACKBOARD_SCHEMA = "beehave/blackboard/2"
+STATE_SCHEMA = "beehave/high_level/state/2"
 MIRROR_WRITER = "ros:low_level"
 
 #: Reliable + transient-local, depth 1: a late joiner gets the last message.
 LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+#: ``beehave/blackboard``: reliable + transient-local, but deep. ``changes`` messages are
+#: deltas: with depth 1 a message the reader had not taken yet was replaced by the next
+#: one and its changes were lost (~30 % at 1 kHz), leaving the mirror wrong until the next
+#: snapshot. A late joiner gets the last BLACKBOARD_DEPTH messages and applies them in order.
+BLACKBOARD_DEPTH = 100
+BLACKBOARD_QOS = QoSProfile(depth=BLACKBOARD_DEPTH, history=HistoryPolicy.KEEP_LAST,
+                            reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def _string_param(node: Node, name: str, value: str, description: str) -> None:
@@ -106,7 +139,7 @@ class _ParamGuard:
 
 
 def _switch_param_callback(param_name: str, names: Callable[[], list[str]],
-                           current: Callable[[], str | None],
+                           target: Callable[[], str | None],
                            request: Callable[[str], None], guard: _ParamGuard,
                            kind: str) -> Callable[[list[Parameter[Any]]], SetParametersResult]:
     def on_set(params: list[Parameter[Any]]) -> SetParametersResult:
@@ -121,8 +154,8 @@ def _switch_param_callback(param_name: str, names: Callable[[], list[str]],
             if value not in names():
                 return SetParametersResult(successful=False, reason=(
                     f"unknown {kind} {value!r}; registered: {', '.join(names())}"))
-            if value == current():
-                continue  # already running: setting it again changes nothing
+            if value == target():
+                continue  # what runs (or will, once the queued switch is done): no-op
             try:
                 request(value)
             except BeehaveError as exc:
@@ -143,7 +176,8 @@ class HighLevelBridge:
     """
 
     def __init__(self, manager: HighLevelBehaviorManager, node: Node, *,
-                 state_rate_hz: float = 50.0, state_period_s: float = 1.0) -> None:
+                 state_rate_hz: float = 50.0, state_period_s: float = 1.0,
+                 engine_rate_hz: float = 10.0) -> None:
         self.manager = manager
         self.node = node
         manager.node = node
@@ -152,15 +186,29 @@ class HighLevelBridge:
         self._closed = False
         self._dirty = threading.Event()
         self.mirror_complete = False
+        #: ``beehave/blackboard`` messages that never arrived, by their ``seq`` (should stay
+        #: 0; a gap leaves the mirror behind until the next snapshot).
+        self.missed_messages = 0
+        self._last_seq: int | None = None
         _string_param(node, "behavior", manager.current or manager.default,
                       "the top-level behaviour; set it to switch")
+        # The name of the latest switch request that has not completed yet (any source:
+        # this parameter, the stop service, Python). Setting the parameter to the running
+        # name is a no-op only when no other switch is queued: else it must win.
+        self._requested_lock = threading.Lock()
+        self._requested: str | None = None
         node.add_on_set_parameters_callback(_switch_param_callback(
-            "behavior", lambda: manager.names, lambda: manager.current,
-            self._request, self._guard, "behavior"))
+            "behavior", lambda: manager.names, self._target, self._request, self._guard,
+            "behavior"))
         self._state_pub = node.create_publisher(String, STATE_TOPIC, LATCHED)
         self._bb_sub = node.create_subscription(String, BLACKBOARD_TOPIC, self._on_blackboard,
-                                                LATCHED)
+                                                BLACKBOARD_QOS)
         self._stop_srv = node.create_service(Trigger, STOP_SERVICE, self._on_stop)
+        # A state machine's transition or a tree's tick is no lifecycle event: while an
+        # engine runs, its state is compared every 1/engine_rate_hz and published on change.
+        self._engines: list[dict[str, Any]] = []
+        self._engine_period_s = 1.0 / engine_rate_hz
+        self._engines_checked = 0.0
         self._fast = node.create_timer(1.0 / state_rate_hz, self._publish_if_dirty)
         self._slow = node.create_timer(state_period_s, self._dirty.set)
         self._clock_sub = None
@@ -173,6 +221,12 @@ class HighLevelBridge:
                 lambda m: sim_clock.set_time(m.clock.sec + m.clock.nanosec * 1e-9), 10)
         self._unsubscribe = manager.subscribe(self._on_event)
         self._dirty.set()
+
+    def _target(self) -> str | None:
+        """What will run once the queued switches are done."""
+        with self._requested_lock:
+            requested = self._requested
+        return requested if requested is not None else self.manager.current
 
     def _request(self, name: str) -> None:
         self.manager.request_switch(name)
@@ -189,6 +243,19 @@ class HighLevelBridge:
     def _on_event(self, event: Event) -> None:
         if event.kind in _STATE_EVENTS:
             self._dirty.set()
+        if event.kind is EventKind.SWITCH_REQUESTED:
+            with self._requested_lock:
+                self._requested = event.subject
+        elif event.kind in (EventKind.SWITCH_COMPLETED, EventKind.FALLBACK,
+                            EventKind.SWITCH_REJECTED):
+            with self._requested_lock:
+                # A fallback means nothing was queued when the behaviour ended; a switch
+                # that failed while processed is reported as rejected "switch". (Should a
+                # request's event come late, the next set of the parameter merely asks
+                # for a switch again, rather than being skipped.)
+                if (event.kind is not EventKind.SWITCH_COMPLETED
+                        or event.subject == self._requested):
+                    self._requested = None
         if event.kind is EventKind.SWITCH_COMPLETED:
             with self._guard:
                 try:
@@ -200,6 +267,7 @@ class HighLevelBridge:
         """The message published on ``beehave/high_level/state``."""
         snap = self.manager.snapshot()
         running: list[dict[str, Any]] = []
+        engines: list[dict[str, Any]] = []
 
         def walk(node: dict[str, Any] | None) -> None:
             if node is None:
@@ -208,6 +276,12 @@ class HighLevelBridge:
                 running.append({"path": node["path"], "kind": node["kind"],
                                 "class": node["class"], "status": node["status"],
                                 "action_type": node.get("action_type")})
+                engine = node.get("engine")
+                if isinstance(engine, dict):
+                    # to_json: an engine's snapshot may hold tuples, inf, enum members …
+                    encoded = to_json(engine)
+                    encoded.pop("path", None)
+                    engines.append({"path": node["path"], **encoded})
             for child in node.get("children", []):
                 walk(child)
 
@@ -215,14 +289,25 @@ class HighLevelBridge:
         top = self.manager.top
         return {"schema": STATE_SCHEMA, "stamp": time.time(), "behavior": snap["current"],
                 "logic": None if top is None else type(top).logic, "running": running,
+                "engines": engines,
                 "locks": {k: v["holder"] for k, v in snap["locks"].items()},
                 "stuck": snap["stuck"]}
 
     def _publish_if_dirty(self) -> None:
-        if not self._dirty.is_set():
+        if self._dirty.is_set():
+            self._dirty.clear()
+            self._publish_state(self.state())
             return
-        self._dirty.clear()
-        msg = String(data=json.dumps(self.state()))
+        now = time.monotonic()
+        if self._engines and now - self._engines_checked >= self._engine_period_s:
+            self._engines_checked = now
+            state = self.state()
+            if state["engines"] != self._engines:
+                self._publish_state(state)
+
+    def _publish_state(self, state: dict[str, Any]) -> None:
+        self._engines = state["engines"]
+        msg = String(data=json.dumps(state))
         with self._io:
             if not self._closed:
                 self._state_pub.publish(msg)
@@ -231,9 +316,15 @@ class HighLevelBridge:
         data = _parse(BlackboardMessage, msg, self.node, BLACKBOARD_TOPIC, self.manager.events)
         if data is None:
             return
+        last = self._last_seq
+        if last is not None and data.seq > last + 1:
+            self.missed_messages += data.seq - last - 1
+            log.warning("mirror: %d blackboard message(s) missed before seq %d",
+                        data.seq - last - 1, data.seq)
+        self._last_seq = data.seq  # a restarted low level starts again at 1
         board = self.manager.blackboard
         for key, entry in data.entries.items():
-            board.set(key, entry.value, writer=entry.writer or MIRROR_WRITER)
+            board.set(key, from_json(entry.value), writer=entry.writer or MIRROR_WRITER)
             if entry.stale:
                 board.mark_stale(pattern=key)
         if data.kind == "snapshot":
@@ -267,9 +358,19 @@ class LowLevelBridge:
 
     def __init__(self, manager: LowLevelBehaviorManager, node: Node, *,
                  blackboard_rate_hz: float = 2000.0, snapshot_period_s: float = 1.0,
-                 settle_s: float = 0.2) -> None:
+                 settle_s: float = 0.2, switch_timeout_s: float | None = None) -> None:
+        if switch_timeout_s is None:
+            # Stopping the old logic may take stop_timeout_s, unloading its HALs as long.
+            switch_timeout_s = 2.0 * manager.stop_timeout_s + 1.0
+        if not (isinstance(switch_timeout_s, (int, float)) and math.isfinite(switch_timeout_s)
+                and switch_timeout_s > 0):
+            raise ConfigError(f"LowLevelBridge: switch_timeout_s must be a finite number of "
+                              f"seconds > 0, got {switch_timeout_s!r}")
         self.manager = manager
         self.node = node
+        #: How long setting the ``logic`` parameter waits for the switch (it answers the
+        #: caller with the outcome, and must never hang on a blocked event loop).
+        self.switch_timeout_s = float(switch_timeout_s)
         self._guard = _ParamGuard()
         self._lock = threading.Lock()  # also orders publishing before destroy()
         self._closed = False
@@ -281,13 +382,16 @@ class LowLevelBridge:
         self._last_publish = 0.0
         self._flush_handle: asyncio.Handle | None = None
         self._settle_handle: asyncio.TimerHandle | None = None
-        self._requested_logic: str | None = None
+        self._requested_logic: str | None = None  # what the high level's state asked for
+        # The latest logic asked for whose switch has not completed (see HighLevelBridge).
+        self._target_lock = threading.Lock()
+        self._target: str | None = None
         _string_param(node, "logic", manager.current or manager.default or "",
                       "the top-level logic; set it to switch")
         node.add_on_set_parameters_callback(_switch_param_callback(
-            "logic", lambda: manager.registered, lambda: manager.current,
-            self._request, self._guard, "logic"))
-        self._pub = node.create_publisher(String, BLACKBOARD_TOPIC, LATCHED)
+            "logic", lambda: manager.registered, self._target_logic,
+            self._switch_from_parameter, self._guard, "logic"))
+        self._pub = node.create_publisher(String, BLACKBOARD_TOPIC, BLACKBOARD_QOS)
         self._state_sub = node.create_subscription(String, STATE_TOPIC, self._on_state, LATCHED)
         self._snap = node.create_timer(snapshot_period_s, self._publish_snapshot)
         self._bb_sub = manager.blackboard.subscribe("**", self._on_change)
@@ -303,21 +407,27 @@ class LowLevelBridge:
                 return  # a flush is already due: this change goes with it
             wait_s = self._last_publish + self._min_interval_s - time.monotonic()
         loop = self.manager.loop
-        if loop is None:
-            self._publish_changes()
-        elif wait_s > 0:
-            self._flush_handle = loop.call_later(wait_s, self._publish_changes)
+        if loop is None or wait_s <= 0:
+            # The rate cap allows a message now: send it at once rather than after the
+            # loop's next turn (that hop cost a fifth of the latency across processes).
+            try:
+                self._publish_changes()
+            except Exception:  # never let it close our blackboard subscription
+                log.exception("publishing blackboard changes on %s failed",
+                              self.node.resolve_topic_name(BLACKBOARD_TOPIC))
         else:
-            # At the end of this loop iteration: changes made together travel together.
-            self._flush_handle = loop.call_soon(self._publish_changes)
+            # Whatever changes within the cap's interval (the rest of this step, a burst)
+            # waits for its end and travels together.
+            self._flush_handle = loop.call_later(wait_s, self._publish_changes)
 
     def _message(self, kind: str, entries: dict[str, dict[str, Any]]) -> String:
         self._seq += 1
         self._last_kind = kind
         self._last_publish = time.monotonic()
-        return String(data=json.dumps({"schema": BLACKBOARD_SCHEMA, "kind": kind,
-                                       "seq": self._seq, "stamp": time.time(),
-                                       "entries": entries, "removed": []}))
+        # pydantic_core's serialiser: a quarter of json.dumps's time on this hot path.
+        return String(data=to_json_bytes({"schema": BLACKBOARD_SCHEMA, "kind": kind,
+                                          "seq": self._seq, "stamp": time.time(),
+                                          "entries": entries, "removed": []}).decode())
 
     def _publish_changes(self) -> None:
         with self._lock:
@@ -330,25 +440,38 @@ class LowLevelBridge:
                 return
             self._pub.publish(msg)
         loop = self.manager.loop
-        if loop is not None:
-            if self._settle_handle is not None:
-                self._settle_handle.cancel()
+        if loop is not None and self._settle_handle is None:
+            # One timer, re-armed when it fires too early (cheaper than one per message).
             self._settle_handle = loop.call_later(self._settle_s, self._settled)
 
     def _settled(self) -> None:
         self._settle_handle = None
-        if self._last_kind == "changes":
-            self._publish_snapshot()  # leave a full picture for late joiners
+        if self._last_kind != "changes":
+            return
+        remaining_s = self._last_publish + self._settle_s - time.monotonic()
+        loop = self.manager.loop
+        if remaining_s > 0 and loop is not None:
+            self._settle_handle = loop.call_later(remaining_s, self._settled)
+            return
+        self._publish_snapshot()  # leave a full picture for late joiners
 
     def _publish_snapshot(self) -> None:
+        # Called from the executor thread (the period timer) while the loop thread writes.
         board = self.manager.blackboard
         entries = {}
+        taken: dict[str, Change] = {}
         for key in board.keys():
             change = board.entry(key)
             if change is not None:
                 entries[key] = _entry(change)
+                taken[key] = change
         with self._lock:
-            self._pending.clear()  # the snapshot contains them
+            # The snapshot carries these pending changes; those made after it read the
+            # board must still go out as changes, or the mirror would miss them until the
+            # next snapshot.
+            for key, change in list(self._pending.items()):
+                if taken.get(key) is change:
+                    del self._pending[key]
             msg = self._message("snapshot", entries)
             if self._closed:
                 return
@@ -365,6 +488,8 @@ class LowLevelBridge:
         board.set("high_level/logic", state.logic, writer=writer)
         board.set("high_level/running", [item.model_dump(by_alias=True)
                                           for item in state.running], writer=writer)
+        board.set("high_level/engines", [from_json(item.model_dump())
+                                          for item in state.engines], writer=writer)
         board.set("high_level/locks", state.locks, writer=writer)
         logic = state.logic
         if logic and logic != self._requested_logic:
@@ -377,23 +502,117 @@ class LowLevelBridge:
         elif not logic:
             self._requested_logic = None
 
-    def _request(self, name: str) -> None:
+    def _target_logic(self) -> str | None:
+        with self._target_lock:
+            target = self._target
+        return target if target is not None else self.manager.current
+
+    def _submit(self, name: str) -> tuple[concurrent.futures.Future[None], _Ticket]:
+        """Hand a switch to the low level's loop; its ticket tells whether it began."""
         loop = self.manager.loop
         if loop is None:
             raise BeehaveError(f"the low level is not running; cannot switch to {name!r}")
-        future = asyncio.run_coroutine_threadsafe(self.manager.switch_async(name), loop)
+        ticket = _Ticket()
+        manager = self.manager
+
+        async def switch() -> None:
+            with ticket.lock:
+                if ticket.abandoned:
+                    return  # its caller was told it failed: do not switch behind its back
+                ticket.began = True
+            await manager.switch_async(name)
+
+        with self._target_lock:
+            self._target = name
+        return asyncio.run_coroutine_threadsafe(switch(), loop), ticket
+
+    def _request(self, name: str) -> None:
+        """Switch without waiting (the high level's state asked for ``name``)."""
+        future, _ = self._submit(name)
         future.add_done_callback(_log_failure(f"switch to logic {name!r}"))
 
+        def forget_if_failed(done: concurrent.futures.Future[None]) -> None:
+            if done.cancelled() or done.exception() is not None:
+                self._forget_target(name)  # a later set of the parameter may try again
+
+        future.add_done_callback(forget_if_failed)
+
+    def _switch_from_parameter(self, name: str) -> None:
+        """Switch and wait for the outcome, at most ``switch_timeout_s``; raise a
+        :class:`BeehaveError` whose message becomes the parameter's refusal reason.
+
+        Runs in the executor thread, so it must never wait forever: a logic that blocks
+        the event loop (``time.sleep`` in a coroutine) would otherwise hang every ROS
+        callback of the process."""
+        try:
+            in_loop = asyncio.get_running_loop() is self.manager.loop
+        except RuntimeError:  # no loop runs in this thread: the usual case
+            in_loop = False
+        if in_loop:
+            raise BeehaveError(f"the 'logic' parameter was set from inside the low level's "
+                               f"loop, where waiting for the switch would block it; use "
+                               f"`await ll.switch_async({name!r})`")
+        future, ticket = self._submit(name)
+        try:
+            future.result(self.switch_timeout_s)
+        except concurrent.futures.TimeoutError:
+            with ticket.lock:
+                began = ticket.began
+                ticket.abandoned = not began
+            self._forget_target(name)
+            if not began:
+                raise BeehaveError(
+                    f"switch to logic {name!r} refused: the low level's event loop did not "
+                    f"take it within {self.switch_timeout_s:g} s; a logic or HAL is blocking "
+                    f"the loop (time.sleep or blocking I/O inside a coroutine?). Nothing was "
+                    f"switched; running: {self.manager.current!r}") from None
+            raise BeehaveError(
+                f"switch to logic {name!r} did not complete within "
+                f"{self.switch_timeout_s:g} s (the old logic or its HALs are slow to stop); "
+                f"it goes on, and this parameter will show the logic that runs") from None
+        except BeehaveError:
+            self._forget_target(name)
+            raise
+        except Exception as exc:  # a logic's constructor, say: report, never crash
+            self._forget_target(name)
+            raise BeehaveError(f"switch to logic {name!r} failed: {exc!r}") from exc
+
+    def _forget_target(self, name: str) -> None:
+        with self._target_lock:
+            if self._target == name:
+                self._target = None
+
     def _on_event(self, event: Event) -> None:
-        if event.kind is EventKind.SWITCH_COMPLETED or event.kind is EventKind.FALLBACK:
-            current = self.manager.current
-            if current is None:
+        if event.kind is EventKind.SWITCH_COMPLETED:
+            self._forget_target(event.subject)
+        elif event.kind is EventKind.FALLBACK:
+            with self._target_lock:
+                self._target = None
+        else:
+            return
+        # A fallback is reported before the default logic starts: show the running logic
+        # once the loop has finished this step (events come from the loop's thread).
+        loop = self.manager.loop
+        try:
+            if loop is None:
+                raise RuntimeError("not running")
+            loop.call_soon_threadsafe(self._show_running_logic)
+        except RuntimeError:  # the loop is gone: nothing more will change
+            self._show_running_logic()
+
+    def _show_running_logic(self) -> None:
+        """Make the ``logic`` parameter show what runs ("" when no logic runs)."""
+        current = self.manager.current or ""
+        with self._lock:
+            if self._closed:
+                return
+        try:
+            if self.node.get_parameter("logic").value == current:
                 return
             with self._guard:
-                try:
-                    self.node.set_parameters([Parameter("logic", value=current)])
-                except Exception:
-                    log.debug("could not update parameter 'logic'", exc_info=True)
+                self.node.set_parameters([Parameter("logic", value=current)])
+        except Exception:  # the node may be going away during shutdown
+            log.debug("could not update parameter 'logic'", exc_info=True)
 
     def destroy(self) -> None:
         with self._lock:
@@ -406,6 +625,15 @@ class LowLevelBridge:
         self.node.destroy_timer(self._snap)
         self.node.destroy_publisher(self._pub)
         self.node.destroy_subscription(self._state_sub)
+
+
+class _Ticket:
+    """Whether a switch handed to the loop began, or was abandoned by its waiter first."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.began = False
+        self.abandoned = False
 
 
 class _Message(BaseModel):
@@ -422,7 +650,8 @@ class EntryMessage(_Message):
 class BlackboardMessage(_Message):
     """``beehave/blackboard`` (see the module docstring)."""
 
-    schema_: Literal["beehave/blackboard/1"] = Field(alias="schema")
+    # /1 differs only in sending non-finite floats as strings; still read.
+    schema_: Literal["beehave/blackboard/2", "beehave/blackboard/1"] = Field(alias="schema")
     kind: Literal["changes", "snapshot"]
     seq: int
     stamp: float
@@ -445,14 +674,25 @@ class RunningItem(_Message):
     class_: str = Field(alias="class")
 
 
+class EngineItem(_Message):
+    """One running behaviour's decision engine: its path, its kind, and whatever the engine
+    reports (kept as it came)."""
+
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+    path: str
+    kind: str | None = None
+
+
 class StateMessage(_Message):
     """``beehave/high_level/state`` (see the module docstring)."""
 
-    schema_: Literal["beehave/high_level/state/1"] = Field(alias="schema")
+    schema_: Literal["beehave/high_level/state/2", "beehave/high_level/state/1"] = Field(
+        alias="schema")
     stamp: float
     behavior: str | None
     logic: str | None = None
     running: list[RunningItem] = []
+    engines: list[EngineItem] = []  # /2
     locks: dict[str, str] = {}
     stuck: list[str] = []
 
@@ -474,9 +714,8 @@ def _parse(model: type[M], msg: String, node: Node, topic: str, events: EventBus
 
 
 def _entry(change: Change) -> dict[str, Any]:
-    d = change.as_dict()
-    return {"value": d["value"], "stamp": d["stamp"], "stale": d["stale"],
-            "writer": d["writer"]}
+    return {"value": to_json(change.value), "stamp": change.stamp, "stale": change.stale,
+            "writer": change.writer}
 
 
 def _log_failure(what: str) -> Callable[[Any], None]:

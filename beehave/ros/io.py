@@ -1,6 +1,7 @@
-"""Robot I/O for behaviours and actions: publishers, subscriptions, clients and timers that
-are destroyed when their owner ends, and :class:`Latest` — the newest message of a topic,
-with a thread-safe wait for a condition on it.
+"""Robot I/O for behaviours and actions: publishers, subscriptions, clients, action goals
+and timers that are destroyed (goals: cancelled) when their owner ends; :class:`Latest` —
+the newest message of a topic, with a thread-safe wait for a condition on it; and
+:class:`Goal` — a ROS 2 action goal that a thread can wait for, interruptibly.
 
 Inside ``run()`` use ``self.ros``::
 
@@ -12,6 +13,13 @@ Inside ``run()`` use ``self.ros``::
             odom = self.ros.latest(Odometry, "odom")
             cmd.publish(forward(0.3))
             odom.wait_for(lambda m: m.pose.pose.position.x > 2.0, timeout_s=20.0)
+
+A ROS 2 action (the ready-made :class:`~beehave.ros.actions.RosActionGoal` wraps this)::
+
+            goal = self.ros.send_goal(NavigateToPose, "navigate_to_pose", request,
+                                      feedback=lambda fb: log.info("%s m to go",
+                                                                   fb.distance_remaining))
+            result = goal.wait(timeout_s=120.0)  # cancels the goal if interrupted
 
 Topic names are relative to the robot's namespace (the manager's node).
 """
@@ -27,7 +35,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
 from beehave.clock import WallClock
-from beehave.errors import BeehaveError, Interrupted
+from beehave.errors import BeehaveError, GoalFailed, Interrupted
 
 M = TypeVar("M")
 
@@ -98,6 +106,124 @@ class Latest(Generic[M]):
             return self._msg
 
 
+# action_msgs/GoalStatus values (not imported: action_msgs loads only with rclpy.action).
+_STATUS_NAMES = {0: "UNKNOWN", 1: "ACCEPTED", 2: "EXECUTING", 3: "CANCELING", 4: "SUCCEEDED",
+                 5: "CANCELED", 6: "ABORTED"}
+_SUCCEEDED = 4
+
+
+class Goal:
+    """A goal accepted by a ROS 2 action server (made by :meth:`RosIO.send_goal`).
+
+    ``feedback`` is the newest feedback message (None before the first); ``status`` the
+    goal's status name (``"ACCEPTED"`` … ``"SUCCEEDED"``, ``"ABORTED"``, ``"CANCELED"``);
+    ``done`` whether the server sent the result. :meth:`wait` waits for the result and
+    :meth:`cancel` cancels; both are safe from any thread. When the owner ends, a goal still
+    running is cancelled.
+    """
+
+    def __init__(self, handle: Any, action: str, *, cond: threading.Condition,
+                 interrupted: Callable[[], bool], clock: WallClock, owner: str) -> None:
+        self.action = action
+        self._handle = handle
+        self._cond = cond
+        self._interrupted = interrupted
+        self._clock = clock
+        self._owner = owner
+        self.feedback: Any = None
+        self.feedback_error: BaseException | None = None
+        self._cancel_future: Any = None
+        self._result_future = handle.get_result_async()
+        self._result_future.add_done_callback(self._wake)
+
+    def _wake(self, _: Any = None) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+    @property
+    def done(self) -> bool:
+        return bool(self._result_future.done())
+
+    @property
+    def status(self) -> str:
+        if self.done:
+            return _STATUS_NAMES.get(self._result_future.result().status, "UNKNOWN")
+        if self._cancel_future is not None:
+            return "CANCELING"
+        return _STATUS_NAMES.get(self._handle.status, "UNKNOWN")
+
+    def wait(self, *, timeout_s: float | None = None, cancel_timeout_s: float = 0.5) -> Any:
+        """Wait for the result and return it (the action's ``Result`` message).
+
+        Raises :class:`~beehave.errors.GoalFailed` when the server aborts the goal or
+        reports it cancelled by another client; :class:`WaitTimeout` after ``timeout_s``
+        (the clock's time) and :class:`~beehave.errors.Interrupted` as soon as the owner is
+        interrupted — in both cases after cancelling the goal (see :meth:`cancel`). An
+        exception raised by the feedback callback is raised here, after cancelling too."""
+        deadline = None if timeout_s is None else self._clock.now() + timeout_s
+        with self._cond:
+            self._clock.wait(self._cond, lambda: (self.done or self._interrupted()
+                                                  or self.feedback_error is not None),
+                             None if deadline is None
+                             else max(0.0, deadline - self._clock.now()))
+        if self.feedback_error is not None:
+            self.cancel(timeout_s=cancel_timeout_s)
+            raise self.feedback_error
+        if not self.done:
+            interrupted = self._interrupted()
+            self.cancel(timeout_s=cancel_timeout_s)
+            if interrupted:
+                raise Interrupted(f"{self._owner}: interrupted while its goal on "
+                                  f"{self.action!r} ran; the goal was cancelled")
+            raise WaitTimeout(f"{self._owner}: the goal on {self.action!r} did not finish "
+                              f"within {timeout_s} s; it was cancelled")
+        response = self._result_future.result()
+        status = _STATUS_NAMES.get(response.status, "UNKNOWN")
+        if response.status != _SUCCEEDED:
+            raise GoalFailed(f"{self._owner}: the server of {self.action!r} ended the goal "
+                             f"{status} (result: {response.result!r:.200})",
+                             status=status, result=response.result)
+        return response.result
+
+    def cancel(self, *, timeout_s: float = 0.5) -> bool:
+        """Ask the server to cancel the goal and wait, at most ``timeout_s`` (wall time, as
+        every bound on stopping), until it has ended. Returns whether it has ended.
+        Idempotent; does nothing when the goal is done already."""
+        if self.done:
+            return True
+        with self._cond:
+            if self._cancel_future is None:
+                self._cancel_future = self._handle.cancel_goal_async()
+                self._cancel_future.add_done_callback(self._wake)
+            cancel = self._cancel_future
+
+        def settled() -> bool:
+            if self.done:
+                return True
+            # A server that refuses to cancel answers with no goals canceling.
+            return bool(cancel.done() and not cancel.result().goals_canceling)
+
+        with self._cond:
+            self._cond.wait_for(settled, timeout_s)
+        return self.done
+
+    def _on_feedback(self, msg: Any, user: Callable[[Any], None] | None) -> None:
+        # In the executor thread.
+        self.feedback = msg.feedback
+        if user is not None and self.feedback_error is None:
+            try:
+                user(msg.feedback)
+            except Exception as exc:  # surfaced by wait(): the owner fails, not the executor
+                self.feedback_error = exc
+        self._wake()
+
+
+def _cancel_if_accepted(sent: Any) -> None:
+    handle = None if sent.cancelled() or sent.exception() is not None else sent.result()
+    if handle is not None and handle.accepted:
+        handle.cancel_goal_async()
+
+
 class RosIO:
     """ROS entities owned by one behaviour, action or HAL; :meth:`destroy_all` ends them.
 
@@ -116,6 +242,10 @@ class RosIO:
         self._lock = threading.Lock()
         self._entities: list[tuple[str, Any]] = []
         self._closed = False
+        # The clients call() and send_goal() use, one per (kind, type, resolved name): a
+        # behaviour that polls a service in a loop must not leave a client (and its DDS
+        # readers) per call.
+        self._call_clients: dict[tuple[str, type, str], Any] = {}
 
     def _track(self, kind: str, entity: Any) -> Any:
         with self._lock:
@@ -140,6 +270,110 @@ class RosIO:
     def timer(self, period_s: float, callback: Callable[[], None]) -> Any:
         return self._track("timer", self.node.create_timer(period_s, callback))
 
+    def action_client(self, action_type: type, name: str) -> Any:
+        """An ``rclpy.action.ActionClient`` for the action server ``name``; prefer
+        :meth:`send_goal`, which waits interruptibly."""
+        from rclpy.action.client import ActionClient
+
+        return self._track("action_client", ActionClient(self.node, action_type, name))
+
+    def send_goal(self, action_type: type, name: str, goal: Any, *,
+                  feedback: Callable[[Any], None] | None = None,
+                  server_timeout_s: float = 5.0) -> Goal:
+        """Send ``goal`` to the action server ``name`` and return the accepted :class:`Goal`
+        (``.wait()`` for its result).
+
+        Waits for the server to be available and to accept, ``server_timeout_s`` in all
+        (the clock's time): :class:`WaitTimeout` when it is not there,
+        :class:`~beehave.errors.GoalFailed` (``status="REJECTED"``) when it refuses,
+        :class:`~beehave.errors.Interrupted` as soon as the owner is interrupted.
+        ``feedback(msg)`` runs in the executor thread for each feedback message (keep it
+        short); ``Goal.feedback`` always holds the newest. Goals to one server share one
+        client; a goal still running when the owner ends is cancelled.
+        """
+        client = self._cached_client("action_client", action_type, name)
+        cond = self._cond if self._cond is not None else threading.Condition()
+        clock = self._clock or WallClock()
+        interrupted = self._interrupted or (lambda: False)
+        deadline = clock.now() + server_timeout_s
+        full = self.node.resolve_topic_name(name)
+        self._wait_ready(client.server_is_ready, cond, clock, interrupted, deadline,
+                         f"action server {full!r} is not available after "
+                         f"{server_timeout_s} s")
+        box: list[Goal] = []
+        early: list[Any] = []
+
+        def on_feedback(msg: Any) -> None:
+            with cond:
+                if not box:  # feedback can overtake the acceptance: keep it for later
+                    early.append(msg)
+                    return
+            box[0]._on_feedback(msg, feedback)  # user code: never under the owner's lock
+
+        sent = client.send_goal_async(goal, feedback_callback=on_feedback)
+
+        def answered(_: Any) -> None:
+            with cond:
+                cond.notify_all()
+
+        sent.add_done_callback(answered)
+        with cond:
+            clock.wait(cond, lambda: sent.done() or interrupted(),
+                       max(0.0, deadline - clock.now()))
+        if not sent.done():
+            # The server may still accept it: then cancel at once, so that no goal runs on
+            # without an owner.
+            sent.add_done_callback(_cancel_if_accepted)
+            if interrupted():
+                raise Interrupted(f"{self.owner}: interrupted while sending a goal to {full!r}")
+            raise WaitTimeout(f"action server {full!r} did not answer the goal within "
+                              f"{server_timeout_s} s")
+        handle = sent.result()
+        if not handle.accepted:
+            raise GoalFailed(f"{self.owner}: action server {full!r} REJECTED the goal "
+                             f"{goal!r:.200}", status="REJECTED")
+        accepted = Goal(handle, full, cond=cond, interrupted=interrupted, clock=clock,
+                        owner=self.owner)
+        with cond:
+            box.append(accepted)
+            overtaken = list(early)
+        for msg in overtaken:
+            accepted._on_feedback(msg, feedback)
+        try:
+            self._track("goal", accepted)
+        except BeehaveError:
+            accepted.cancel(timeout_s=0.0)  # the owner ended meanwhile
+            raise
+        return accepted
+
+    def _cached_client(self, kind: str, msg_type: type, name: str) -> Any:
+        key = (msg_type, self.node.resolve_topic_name(name)
+               if kind == "action_client" else self.node.resolve_service_name(name))
+        cache = self._call_clients
+        with self._lock:
+            client = cache.get((kind, *key))
+        if client is None:
+            client = (self.action_client(msg_type, name) if kind == "action_client"
+                      else self.client(msg_type, name))  # refused once the owner has ended
+            with self._lock:
+                # Two threads of one owner may race here: keep the first, drop the other.
+                kept = cache.setdefault((kind, *key), client)
+            if kept is not client:
+                self._untrack(kind, client)
+                client = kept
+        return client
+
+    def _wait_ready(self, ready: Callable[[], bool], cond: threading.Condition,
+                    clock: WallClock, interrupted: Callable[[], bool], deadline: float,
+                    missing: str) -> None:
+        while not ready():  # no event for this: look in short slices
+            if interrupted():
+                raise Interrupted(f"{self.owner}: interrupted while waiting: {missing}")
+            if clock.now() >= deadline:
+                raise WaitTimeout(missing)
+            with cond:
+                clock.wait(cond, interrupted, min(0.02, deadline - clock.now()))
+
     def latest(self, msg_type: type, topic: str, *, qos: QoSProfile | int = 10) -> Latest[Any]:
         """Subscribe to ``topic`` and keep its newest message (see :class:`Latest`)."""
         latest: Latest[Any] = Latest(self.node.resolve_topic_name(topic), cond=self._cond,
@@ -150,20 +384,16 @@ class RosIO:
     def call(self, srv_type: type, name: str, request: Any, *, timeout_s: float = 5.0) -> Any:
         """Call a service and wait for the response, ``timeout_s`` in all (the clock's
         time). Raises :class:`WaitTimeout`, or :class:`~beehave.errors.Interrupted` as
-        soon as the owner is interrupted."""
-        client = self.client(srv_type, name)
+        soon as the owner is interrupted. Calls to one service (name and type) share one
+        client, created at the first call and destroyed with the owner."""
+        client = self._cached_client("client", srv_type, name)
         cond = self._cond if self._cond is not None else threading.Condition()
         clock = self._clock or WallClock()
         interrupted = self._interrupted or (lambda: False)
         deadline = clock.now() + timeout_s
         full = self.node.resolve_service_name(name)
-        while not client.service_is_ready():  # no event for this: look in short slices
-            if interrupted():
-                raise Interrupted(f"{self.owner}: interrupted while waiting for {full!r}")
-            if clock.now() >= deadline:
-                raise WaitTimeout(f"service {full!r} is not available after {timeout_s} s")
-            with cond:
-                clock.wait(cond, interrupted, min(0.02, deadline - clock.now()))
+        self._wait_ready(client.service_is_ready, cond, clock, interrupted, deadline,
+                         f"service {full!r} is not available after {timeout_s} s")
         future = client.call_async(request)
 
         def answered(_: Any) -> None:
@@ -181,6 +411,14 @@ class RosIO:
             raise WaitTimeout(f"service {full!r} did not answer within {timeout_s} s")
         return future.result()
 
+    def _untrack(self, kind: str, entity: Any) -> None:
+        with self._lock:
+            try:
+                self._entities.remove((kind, entity))
+            except ValueError:
+                return  # destroy_all() took it already
+        self._destroy(kind, entity)
+
     @property
     def entities(self) -> list[tuple[str, Any]]:
         with self._lock:
@@ -191,9 +429,16 @@ class RosIO:
         with self._lock:
             self._closed = True
             entities, self._entities = self._entities, []
+            self._call_clients.clear()
         for kind, entity in reversed(entities):
             self._destroy(kind, entity)
 
     def _destroy(self, kind: str, entity: Any) -> None:
-        destroy = getattr(self.node, f"destroy_{kind}")
-        destroy(entity)
+        if kind == "goal":
+            # The owner ended (after safe_state): a goal still running must not go on
+            # driving the robot. Ask once, do not wait: the client goes next.
+            entity.cancel(timeout_s=0.0)
+        elif kind == "action_client":
+            entity.destroy()
+        else:
+            getattr(self.node, f"destroy_{kind}")(entity)

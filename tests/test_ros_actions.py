@@ -1,0 +1,180 @@
+"""Ready-made ROS 2 Actions (beehave.ros.actions) against a real rclpy action server and
+real services: goals, feedback, results, rejection, abortion, timeouts and cancellation on
+interrupt (their safe state)."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+from ros_probe import FibonacciServer, Probe  # noqa: E402
+from test_msgs.action import Fibonacci  # noqa: E402
+from test_msgs.srv import BasicTypes  # noqa: E402
+
+from beehave import Behavior, HighLevelBehaviorManager  # noqa: E402
+from beehave.errors import ConfigError, GoalFailed  # noqa: E402
+from beehave.ros.actions import RosActionGoal, ServiceCall  # noqa: E402
+from beehave.ros.context import RosContext  # noqa: E402
+from beehave.ros.io import WaitTimeout  # noqa: E402
+from beehave.testing import wait_until  # noqa: E402
+
+NS = "rosacts"
+
+
+@pytest.fixture
+def server() -> Iterator[FibonacciServer]:
+    s = FibonacciServer(f"/{NS}/fibonacci")
+    yield s
+    s.close()
+
+
+@pytest.fixture
+def hl() -> Iterator[HighLevelBehaviorManager]:
+    ros = RosContext()
+    node = ros.create_node("beehave_high_level", namespace=NS)
+    ros.start()
+    manager = HighLevelBehaviorManager(node=node, stop_timeout_s=0.5)
+    manager.start()
+    try:
+        yield manager
+    finally:
+        manager.shutdown()
+        ros.shutdown()
+
+
+class Fib(RosActionGoal):
+    action_type = "math"
+
+
+class Runs(Behavior):
+    """Starts one action, records it, waits for it, then idles."""
+
+    def __init__(self, action: Any) -> None:
+        self.to_start = action
+        self.ready = threading.Event()
+
+    def run(self) -> None:
+        self.action = self.start_action(self.to_start)
+        self.ready.set()
+        self.action.wait()
+        while self.sleep(1.0):
+            pass
+
+
+def run_action(hl: HighLevelBehaviorManager, action: Any) -> Any:
+    hl.register("runs", Runs, action=action)
+    behavior = hl.switch("runs")
+    assert behavior.ready.wait(10)  # type: ignore[attr-defined]
+    assert action.wait(30), action.status
+    return action
+
+
+def test_goal_succeeds_with_feedback_and_the_result_message(
+        hl: HighLevelBehaviorManager, server: FibonacciServer) -> None:
+    seen: list[list[int]] = []
+    action = run_action(hl, Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=5),
+                                on_feedback=lambda fb: seen.append(list(fb.sequence))))
+    assert action.status.name == "SUCCEEDED", action.error
+    assert list(action.result.sequence) == [0, 1, 1, 2, 3, 5, 8]
+    assert seen[-1] == [0, 1, 1, 2, 3, 5, 8] and len(seen) == 5
+    assert list(action.feedback.sequence) == [0, 1, 1, 2, 3, 5, 8]
+    assert action.goal.status == "SUCCEEDED"
+
+
+@pytest.mark.parametrize("order, status", [(-1, "REJECTED"), (99, "ABORTED")])
+def test_rejected_or_aborted_goals_fail_with_goal_failed(
+        hl: HighLevelBehaviorManager, server: FibonacciServer, order: int, status: str) -> None:
+    action = run_action(hl, Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=order)))
+    assert action.status.name == "FAILED"
+    assert isinstance(action.error, GoalFailed) and action.error.status == status
+    assert status in str(action.error) and "/rosacts/fibonacci" in str(action.error)
+    if status == "ABORTED":
+        assert list(action.error.result.sequence) == [-1]
+
+
+def test_interrupt_cancels_the_goal_as_the_safe_state(hl: HighLevelBehaviorManager,
+                                                      server: FibonacciServer) -> None:
+    server.step_s = 0.05
+    action = Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=1000))  # ~50 s
+    hl.register("runs", Runs, action=action)
+    behavior = hl.switch("runs")
+    assert behavior.ready.wait(10)  # type: ignore[attr-defined]
+    assert server.executing.wait(10)
+    assert wait_until(lambda: action.feedback is not None)
+    hl.switch("idle")  # bounded by stop_timeout_s = 0.5 s
+    assert action.status.name == "INTERRUPTED", (action.status, action.error)
+    assert wait_until(lambda: server.cancelled == [1000])
+    assert action.goal is not None and action.goal.status == "CANCELED"
+
+
+def test_a_goal_that_takes_too_long_is_cancelled_and_times_out(
+        hl: HighLevelBehaviorManager, server: FibonacciServer) -> None:
+    server.step_s = 0.05
+    action = run_action(hl, Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=1000),
+                                timeout_s=0.2))
+    assert action.status.name == "FAILED" and isinstance(action.error, WaitTimeout)
+    assert "cancelled" in str(action.error)
+    assert wait_until(lambda: server.cancelled == [1000])
+
+
+def test_a_missing_server_times_out_naming_it(hl: HighLevelBehaviorManager) -> None:
+    action = run_action(hl, Fib(Fibonacci, "nobody_home", Fibonacci.Goal(order=1),
+                                server_timeout_s=0.2))
+    assert isinstance(action.error, WaitTimeout)
+    assert "/rosacts/nobody_home" in str(action.error)
+
+
+def test_a_raising_feedback_callback_fails_the_action_and_cancels_the_goal(
+        hl: HighLevelBehaviorManager, server: FibonacciServer) -> None:
+    server.step_s = 0.05
+
+    def broken(_fb: Any) -> None:
+        raise ValueError("feedback bug")
+
+    action = run_action(hl, Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=1000),
+                                on_feedback=broken))
+    assert action.status.name == "FAILED" and isinstance(action.error, ValueError)
+    assert wait_until(lambda: server.cancelled == [1000])
+
+
+def test_bad_durations_are_refused_naming_the_option() -> None:
+    with pytest.raises(ConfigError, match=r"Fib: timeout_s .* got inf"):
+        Fib(Fibonacci, "fibonacci", Fibonacci.Goal(), timeout_s=float("inf"))
+    with pytest.raises(ConfigError, match=r"ServiceCall: timeout_s .* got -1"):
+        ServiceCall(BasicTypes, "echo", BasicTypes.Request(), timeout_s=-1)
+
+
+# -- services ----------------------------------------------------------------------------------
+
+@pytest.fixture
+def probe() -> Iterator[Probe]:
+    p = Probe()
+    yield p
+    p.close()
+
+
+def test_service_call_returns_the_response(hl: HighLevelBehaviorManager, probe: Probe) -> None:
+    def echo(request: Any, response: Any) -> Any:
+        response.string_value = request.string_value.upper()
+        response.int64_value = request.int64_value + 1
+        return response
+
+    probe.node.create_service(BasicTypes, f"/{NS}/echo", echo)
+    action = run_action(hl, ServiceCall(BasicTypes, "echo",
+                                        BasicTypes.Request(string_value="hi", int64_value=41)))
+    assert action.status.name == "SUCCEEDED", action.error
+    assert (action.result.string_value, action.result.int64_value) == ("HI", 42)
+
+
+def test_service_call_is_interrupted_at_once(hl: HighLevelBehaviorManager) -> None:
+    action = ServiceCall(BasicTypes, "nobody_serves_this", BasicTypes.Request(), timeout_s=60)
+    hl.register("runs", Runs, action=action)
+    behavior = hl.switch("runs")
+    assert behavior.ready.wait(10)  # type: ignore[attr-defined]
+    hl.switch("idle")
+    assert action.status.name == "INTERRUPTED", (action.status, action.error)
