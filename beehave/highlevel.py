@@ -325,6 +325,15 @@ class HighLevelBehaviorManager:
         return self._top_name
 
     @property
+    def requested(self) -> str | None:
+        """The name of the switch request waiting to be executed (the latest one: earlier
+        ones were superseded), or None when none waits. With :attr:`current`, what the
+        manager will run once it settles: ``requested or current``."""
+        with self._cond:
+            asked = [r for r in self._pending if r.fallback_from is None]
+        return asked[-1].name if asked else None
+
+    @property
     def top(self) -> Behavior | None:
         """The running top-level behaviour object."""
         return self._top

@@ -301,7 +301,9 @@ def test_many_request_switches_use_one_thread_and_the_latest_wins(
         hl.request_switch("a" if i % 2 else "b")
         most = max(most, len(beehave_threads()))
     hl.request_switch("a")
+    assert hl.requested in ("a", None)  # None once the processor took it
     assert settled(hl, 10.0)
+    assert hl.requested is None
     # One processor thread (plus the behaviours' own) however many requests arrive.
     assert most - before <= 3, (before, most)
     assert hl.current == "a"
