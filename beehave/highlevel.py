@@ -113,6 +113,7 @@ class HighLevelBehaviorManager:
         self._state = ManagerState.NEW
         self._pending: list[_Request] = []
         self._processing = False  # one thread executes switches: the processor
+        self._in_flight: _Request | None = None  # the request it executes now
         self._executor: int | None = None  # the processor's thread
         self._stopped = threading.Event()
         self._shutdown_thread: threading.Thread | None = None
@@ -326,12 +327,15 @@ class HighLevelBehaviorManager:
 
     @property
     def requested(self) -> str | None:
-        """The name of the switch request waiting to be executed (the latest one: earlier
-        ones were superseded), or None when none waits. With :attr:`current`, what the
+        """The name of the switch request waiting or being executed (the latest one:
+        earlier ones were superseded), or None when none is. With :attr:`current`, what the
         manager will run once it settles: ``requested or current``."""
         with self._cond:
             asked = [r for r in self._pending if r.fallback_from is None]
-        return asked[-1].name if asked else None
+            if asked:
+                return asked[-1].name
+            flight = self._in_flight
+        return flight.name if flight is not None and flight.fallback_from is None else None
 
     @property
     def top(self) -> Behavior | None:
@@ -497,19 +501,25 @@ class HighLevelBehaviorManager:
             # always runs, so the safe one.
             log.warning("no top-level behaviour was running; starting %r", IDLE)
             latest = self._idle_request(None)
-        self._stop_top()
         with self._cond:
-            overtaken = any(r.fallback_from is None for r in self._pending)
-            stopping = self._state is not ManagerState.RUNNING
-        if stopping:
-            self._cancel(latest)
-        elif overtaken:
-            if latest.fallback_from is None:
-                self._supersede(latest, None)
+            self._in_flight = latest
+        try:
+            self._stop_top()
+            with self._cond:
+                overtaken = any(r.fallback_from is None for r in self._pending)
+                stopping = self._state is not ManagerState.RUNNING
+            if stopping:
+                self._cancel(latest)
+            elif overtaken:
+                if latest.fallback_from is None:
+                    self._supersede(latest, None)
+                else:
+                    latest.finish()
             else:
-                latest.finish()
-        else:
-            self._start_top(latest)
+                self._start_top(latest)
+        finally:
+            with self._cond:
+                self._in_flight = None
 
     def _cancel(self, request: _Request) -> None:
         """The manager shuts down before ``request`` could run: say so, to its caller and
