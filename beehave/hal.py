@@ -46,9 +46,13 @@ from beehave.status import Status
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HAL", "HALManager", "ENTRY_POINT_GROUP", "check_duration_s"]
+__all__ = ["HAL", "HALManager", "ENTRY_POINT_GROUP", "MAX_DURATION_S", "check_duration_s"]
 
 ENTRY_POINT_GROUP = "beehave.hals"
+
+MAX_DURATION_S = 86400.0
+"""The longest duration :func:`check_duration_s` accepts: a day (as the high level's
+``stop_timeout_s``)."""
 
 H = TypeVar("H", bound="HAL")
 
@@ -570,11 +574,17 @@ def check_duration_s(name: str, value: object, *, allow_zero: bool = False) -> f
 
     Infinity and NaN are refused on purpose: an infinite timeout overflows the thread and
     loop primitives, and NaN compares false with everything, so every wait would end at once.
+    So is anything beyond :data:`MAX_DURATION_S` (a day, the high level's cap too): a huge
+    finite wait overflows ``threading.Event.wait`` just the same, and no robot timeout means
+    a week.
     """
     bound = "≥ 0" if allow_zero else "> 0"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"{name} must be a number of seconds {bound}, got {value!r}")
+        raise ConfigError(f"{name} must be a number of seconds {bound} and at most "
+                          f"{MAX_DURATION_S:g}, got {value!r}")
     seconds = float(value)
-    if not math.isfinite(seconds) or seconds < 0 or (seconds == 0 and not allow_zero):
-        raise ConfigError(f"{name} must be a finite number of seconds {bound}, got {value!r}")
+    if not math.isfinite(seconds) or seconds < 0 or (seconds == 0 and not allow_zero) \
+            or seconds > MAX_DURATION_S:
+        raise ConfigError(f"{name} must be a finite number of seconds {bound} and at most "
+                          f"{MAX_DURATION_S:g} (a day), got {value!r}")
     return seconds

@@ -149,6 +149,7 @@ class LowLevelBehaviorManager:
         self._thread_error: BaseException | None = None
         self._watchdog: LoopWatchdog | None = None
         self._abandoned: LoopBlocked | None = None
+        self._abandoning: threading.Event | None = None  # set once the escalation is done
         self._stop_waiters: set[concurrent.futures.Future[None]] = set()
 
     # -- registry ------------------------------------------------------------------------
@@ -500,6 +501,15 @@ class LowLevelBehaviorManager:
             waiter.result()  # resolved when stopped, failed by the watchdog when blocked
         except LoopBlocked as blocked:
             raise self._abandon(blocked) from None
+        except ManagerShutdown:
+            # The watchdog stopped under us: the loop's teardown ended (it marks us
+            # stopped next) or another shutdown gave up on the loop (say so here too).
+            abandoning = self._abandoning
+            if abandoning is not None:
+                abandoning.wait()
+                if self._abandoned is not None:
+                    raise self._abandoned from None
+            self._stopped.wait(self.stop_timeout_s)
         finally:
             if unwatch is not None:
                 unwatch()
@@ -511,9 +521,21 @@ class LowLevelBehaviorManager:
         """Shutdown's escalation when the loop does not run: force the HALs' safe states
         from this thread, leave the manager in a defined state, say what happened."""
         with self._phase_lock:
-            if self._abandoned is not None:
-                return self._abandoned
-            self._phase = _Phase.STOPPED
+            abandoning = self._abandoning
+            if abandoning is None:  # the first to give up escalates; the others wait
+                self._abandoning = threading.Event()
+                self._phase = _Phase.STOPPED
+        if abandoning is not None:
+            abandoning.wait()  # bounded: the escalation joins its helper for stop_timeout_s
+            assert self._abandoned is not None
+            return self._abandoned
+        try:
+            return self._escalate(blocked)
+        finally:
+            assert self._abandoning is not None
+            self._abandoning.set()
+
+    def _escalate(self, blocked: LoopBlocked) -> LoopBlocked:
         watchdog = self._watchdog
         if watchdog is not None:
             watchdog.stop()
