@@ -264,9 +264,11 @@ class Logic(abc.ABC):
             if hand_over and runtime.hals.transfer(name, owner=self, to=token):
                 continue
             try:
-                await runtime.hals.release(name, owner=self)
+                # Not waiting for the unload: a HAL's slow stop is the HAL's (bounded and
+                # reported as its own), not this logic's, which obeyed.
+                await runtime.hals.release(name, owner=self, wait=False)
             except asyncio.CancelledError:
-                continue  # keep releasing: the unload itself waits for its HAL task
+                continue  # keep releasing
         self._hal_names.clear()
 
     def _finish(self, outcome: Status, error: BaseException | None, runtime: Runtime) -> None:

@@ -125,14 +125,27 @@ class LoopWatchdog:
         self._outbox: queue.SimpleQueue[Event | None] = queue.SimpleQueue()
         self._notifier = threading.Thread(target=self._notify, name="beehave-lowlevel-loop-events",
                                           daemon=True)
+        self._notifier_started = False
         self.warnings = 0
         """How many times the loop was found held longer than ``warn_s``."""
 
     # -- lifecycle -----------------------------------------------------------------------
 
     def start(self) -> None:
-        self._notifier.start()
         self._thread.start()
+
+    def _post(self, event: Event) -> None:
+        """Queue ``event`` for the notifier, started on the first one (most runs never need
+        it)."""
+        with self._lock:
+            if not self._notifier_started and not self._stop.is_set():
+                self._notifier.start()
+                self._notifier_started = True
+            queued = self._notifier_started
+        if queued:
+            self._outbox.put(event)
+        else:  # stopping, and no notifier ever ran: deliver it here rather than drop it
+            self.events.emit(event)
 
     def stop(self, *, notify_timeout_s: float = 1.0) -> None:
         """Stop and join the measuring thread (it never blocks for long: it only waits on
@@ -148,8 +161,10 @@ class LoopWatchdog:
             watched, self._watched = self._watched, set()
         for future in watched:
             _fail(future, ManagerShutdown(f"the {self.name} manager stopped"))
+        with self._lock:  # after this, _post starts no notifier any more
+            started = self._notifier_started
         self._outbox.put(None)
-        if self._notifier.is_alive() and self._notifier is not me:
+        if started and self._notifier is not me:
             self._notifier.join(notify_timeout_s)
 
     # -- what callers use ----------------------------------------------------------------
@@ -205,7 +220,7 @@ class LoopWatchdog:
         self._warned = (culprit, sent)
         log.warning("%s event loop blocked for %.3f s by %s at %s; %s", self.name, lag,
                     culprit.who, culprit.where, _RULE)
-        self._outbox.put(Event(EventKind.LOOP_BLOCKED, culprit.subject, detail={
+        self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject, detail={
             "culprit": culprit.who, "where": culprit.where, "blocked_s": round(lag, 3),
             "ended": False}))
         declared = False
@@ -248,7 +263,7 @@ class LoopWatchdog:
             log.warning("%s event loop answers again after %.3f s (held by %s at %s)",
                         self.name, held, culprit.who, culprit.where)
             # Through the notifier too: after the "blocked" event, never before it.
-            self._outbox.put(Event(EventKind.LOOP_BLOCKED, culprit.subject, detail={
+            self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject, detail={
                 "culprit": culprit.who, "where": culprit.where, "blocked_s": round(held, 3),
                 "ended": True}))
 

@@ -469,3 +469,77 @@ def test_an_on_load_that_ignores_cancellation_is_reported_stuck_at_shutdown() ->
     assert safe == 1 and not leftover
     assert [(e.kind, e.detail.get("phase")) for e in events if e.kind is EventKind.STUCK] \
         == [(EventKind.STUCK, "on_load")]
+
+
+def test_a_hal_cancelled_in_on_load_gets_its_whole_async_safe_state_and_is_not_stuck() -> None:
+    """on_load obeys its cancellation (with an orderly close) and safe_state is async: the
+    two together may take longer than stop_timeout_s, each within it. That is not STUCK,
+    and the safe state must not be cut short."""
+    marks: list[str] = []
+
+    class Cam(HAL):
+        name = "cam"
+
+        async def on_load(self) -> None:
+            try:
+                await asyncio.Event().wait()  # the device does not answer yet
+            except asyncio.CancelledError:
+                await asyncio.sleep(0.12)     # orderly close of the half-open device
+                raise
+
+        async def safe_state(self) -> None:
+            marks.append("safe_state begins")
+            await asyncio.sleep(0.12)
+            marks.append("safe_state ends")
+
+        def on_unload(self) -> None:
+            marks.append("on_unload")
+
+    manager, events = manager_with_events(stop_timeout_s=0.2)
+    manager.register(Cam)
+
+    async def main() -> set[asyncio.Task[Any]]:
+        loading = asyncio.create_task(manager.load("cam"))
+        await asyncio.sleep(0.02)
+        await manager.close()
+        await asyncio.wait({loading})
+        return {t for t in asyncio.all_tasks() if t.get_name().startswith("hal:")}
+
+    leftover = asyncio.run(asyncio.wait_for(main(), WAIT_S))
+    assert marks == ["safe_state begins", "safe_state ends", "on_unload"]
+    assert not [e for e in events if e.kind is EventKind.STUCK] and not leftover
+
+
+def test_shutdown_with_many_hals_that_ignore_cancellation_is_bounded_once_not_per_hal() -> None:
+    """Ten HALs whose run() swallows cancellation: they are unloaded together, so shutdown
+    takes about stop_timeout_s (twice: once to unload, once to cancel them again), not ten
+    times that; the logic that held them obeyed at once and is not STUCK."""
+    names = [f"deaf{i}" for i in range(10)]
+    hals: list[Deaf] = []
+
+    class UsesAll(Logic):
+        async def run(self) -> None:
+            for n in names:
+                hal = await self.hal(n)
+                assert isinstance(hal, Deaf)
+                hals.append(hal)
+            await asyncio.Event().wait()
+
+    ll = LowLevelBehaviorManager(default="u", stop_timeout_s=0.2)
+    ll.register("u", UsesAll)
+    for n in names:
+        ll.hals.register(Deaf, name=n)
+    stuck: list[str] = []
+    ll.subscribe(lambda e: e.kind is EventKind.STUCK and stuck.append(e.subject))
+    ll.__enter__()
+    assert wait_until(lambda: len(hals) == len(names))
+    thread = threading.Thread(target=ll.shutdown, daemon=True)
+    thread.start()
+    thread.join(2 * 0.2 + 1.0)  # ten sequential unloads would take 10 × 0.2 s at least
+    returned = not thread.is_alive()
+    for hal in hals:
+        hal.let_go = True
+    thread.join(WAIT_S)
+    assert returned, "shutdown time grows with the number of stuck HALs"
+    assert "u" not in stuck and sorted(stuck) == sorted(f"hal:{n}" for n in names)
+    assert all(hal.safe == 1 for hal in hals)

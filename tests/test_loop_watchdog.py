@@ -276,3 +276,42 @@ def test_two_shutdowns_of_a_blocked_loop_both_report_the_forced_safe_states(
     assert "'debug'" in str(errors[0]) and "none loaded" not in str(errors[0])
     hal = ll.hals.loaded["debug"]
     assert isinstance(hal, DebugHAL) and hal.safe_states == 1
+
+
+def test_a_hal_whose_unload_blocks_the_loop_still_gets_its_forced_safe_state(
+        gate: threading.Event) -> None:
+    """The unload itself is what blocks (a blocking driver close on cancellation): the HAL
+    is no longer "loaded", but its safe state is still owed and forced."""
+    calls: list[str] = []
+
+    class Motor(HAL):
+        name = "motor"
+
+        async def run(self) -> None:
+            try:
+                await asyncio.Event().wait()
+            finally:
+                gate.wait(WAIT_S * 4)  # the bug: a blocking close in the loop
+
+        def safe_state(self) -> None:
+            calls.append(threading.current_thread().name)
+
+    class UsesMotor(Logic):
+        async def run(self) -> None:
+            await self.hal("motor")
+            await asyncio.Event().wait()
+
+    ll = LowLevelBehaviorManager(default="m", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
+    ll.register("m", UsesMotor)
+    ll.hals.register(Motor)
+    stuck: list[str] = []
+    ll.subscribe(lambda e: e.kind is EventKind.STUCK and stuck.append(e.subject))
+    with pytest.raises(LoopBlocked) as info:
+        with ll:
+            assert wait_until(lambda: "motor" in ll.hals.loaded, WAIT_S)
+    assert "'motor'" in str(info.value) and "none loaded" not in str(info.value)
+    assert calls == ["beehave-lowlevel-safe-states"]
+    gate.set()
+    assert wait_until(lambda: ll._thread is not None and not ll._thread.is_alive(), WAIT_S)
+    assert len(calls) == 1                # the loop's own unload does not repeat it
+    assert "m" not in stuck               # the logic obeyed at once; the HAL blocked
