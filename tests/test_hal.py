@@ -543,3 +543,96 @@ def test_shutdown_with_many_hals_that_ignore_cancellation_is_bounded_once_not_pe
     assert returned, "shutdown time grows with the number of stuck HALs"
     assert "u" not in stuck and sorted(stuck) == sorted(f"hal:{n}" for n in names)
     assert all(hal.safe == 1 for hal in hals)
+
+
+def test_a_sub_logic_that_ends_late_does_not_leak_its_hal_reference_to_the_handover() -> None:
+    """It hands its reference over after the grace period of its switch has run out: that
+    reference gets a grace period of its own and is then released (the HAL unloads)."""
+    safe: list[int] = []
+
+    class Lamp(HAL):
+        name = "lamp"
+
+        def safe_state(self) -> None:
+            safe.append(1)
+
+    class Slow(Logic):
+        async def run(self) -> None:
+            await self.hal("lamp")
+            try:
+                await asyncio.Event().wait()
+            except asyncio.CancelledError:
+                await asyncio.sleep(0.4)  # a slow cleanup, longer than stop_timeout_s
+                raise
+
+    class Parent(Logic):
+        async def run(self) -> None:
+            self.start_logic(Slow())
+            await asyncio.Event().wait()
+
+    class Idle(Logic):
+        async def run(self) -> None:
+            await asyncio.Event().wait()
+
+    ll = LowLevelBehaviorManager(default="parent", stop_timeout_s=0.1, hal_handover_s=0.05)
+    ll.register("parent", Parent)
+    ll.register("idle", Idle)
+    ll.hals.register(Lamp)
+    with ll:
+        assert wait_until(lambda: ll.hals.refs("lamp") == 1)
+        ll.switch("idle")  # idle does not use the lamp
+        assert wait_until(lambda: "lamp" not in ll.hals.loaded), \
+            "the late sub-logic's lamp reference is never given back"
+        assert safe == [1]
+    assert safe == [1]
+
+
+def test_a_second_switch_keeps_the_grace_period_of_the_hals_it_hands_over() -> None:
+    """a → b → c: the first handover is still being released (another HAL's slow safe
+    state) when b hands over "y"; c asks for "y" well within hal_handover_s of its switch,
+    so "y" is never unloaded and loaded again."""
+    loads: list[str] = []
+
+    class X(HAL):
+        name = "x"
+
+        async def safe_state(self) -> None:
+            await asyncio.sleep(0.5)
+
+    class Y(HAL):
+        name = "y"
+
+        async def on_load(self) -> None:
+            loads.append("y")
+
+    class A(Logic):
+        async def run(self) -> None:
+            await self.hal("x")
+            await self.hal("y")
+            await asyncio.Event().wait()
+
+    class B(Logic):
+        async def run(self) -> None:
+            await self.hal("y")
+            await asyncio.Event().wait()
+
+    class C(Logic):
+        async def run(self) -> None:
+            # After the old code released b's handover of y (0.5 s: x's safe state), well
+            # within c's own grace period (1.5 s).
+            await asyncio.sleep(0.9)
+            await self.hal("y")
+            await asyncio.Event().wait()
+
+    ll = LowLevelBehaviorManager(default="a", hal_handover_s=1.5, stop_timeout_s=1.0)
+    for name, cls in (("a", A), ("b", B), ("c", C)):
+        ll.register(name, cls)
+    ll.hals.register(X)
+    ll.hals.register(Y)
+    with ll:
+        assert wait_until(lambda: ll.hals.refs("y") == 1)
+        ll.switch("b")
+        assert wait_until(lambda: "x" not in ll.hals.loaded)  # a's grace is over: x unloads
+        ll.switch("c")
+        assert wait_until(lambda: ll.hals.refs("y") == 1 and ll.hals.holds("y", ll.logic))
+        assert loads == ["y"], "y was unloaded and loaded again within its grace period"
