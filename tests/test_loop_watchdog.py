@@ -315,3 +315,42 @@ def test_a_hal_whose_unload_blocks_the_loop_still_gets_its_forced_safe_state(
     assert wait_until(lambda: ll._thread is not None and not ll._thread.is_alive(), WAIT_S)
     assert len(calls) == 1                # the loop's own unload does not repeat it
     assert "m" not in stuck               # the logic obeyed at once; the HAL blocked
+
+
+def test_a_loop_that_runs_again_during_the_escalation_unloads_after_the_forced_safe_state(
+        gate: threading.Event) -> None:
+    """The escalation forces safe_state from a helper thread; should the loop run again
+    meanwhile, its own unload must not call on_unload (closing the device) while that
+    safe_state still uses it."""
+    marks: list[str] = []
+    blocking = threading.Event()
+
+    class Device(HAL):
+        name = "device"
+
+        def safe_state(self) -> None:
+            marks.append("safe_state begins")
+            time.sleep(0.3)  # longer than the escalation waits for it (stop_timeout_s)
+            marks.append("safe_state ends")
+
+        def on_unload(self) -> None:
+            marks.append("on_unload")
+
+    class BlocksWithDevice(Logic):
+        async def run(self) -> None:
+            await self.hal("device")
+            blocking.set()
+            gate.wait(WAIT_S * 4)
+            await asyncio.Event().wait()
+
+    ll = LowLevelBehaviorManager(default="b", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
+    ll.register("b", BlocksWithDevice)
+    ll.hals.register(Device)
+    with pytest.raises(LoopBlocked):
+        with ll:
+            assert blocking.wait(WAIT_S)
+    assert marks == ["safe_state begins"]  # the escalation gave up waiting for it
+    gate.set()                              # the loop runs again and tears down
+    assert wait_until(lambda: ll._thread is not None and not ll._thread.is_alive(), WAIT_S)
+    assert wait_until(lambda: len(marks) == 3, WAIT_S)
+    assert marks == ["safe_state begins", "safe_state ends", "on_unload"]
