@@ -221,7 +221,9 @@ class LowLevelBehaviorManager:
 
     def subscribe(self, callback: EventCallback) -> Callable[[], None]:
         """Call ``callback(event)`` for every lifecycle event (logics, switches, HALs);
-        returns a function that unsubscribes. Callbacks run in the loop's thread."""
+        returns a function that unsubscribes. Callbacks run in the loop's thread, except
+        LOOP_BLOCKED: the watchdog's notifier thread delivers it (the loop cannot), and
+        calling back into the manager from there is bounded like from any other thread."""
         return self.events.subscribe(callback)
 
     def snapshot(self) -> dict[str, Any]:
@@ -588,7 +590,10 @@ class LowLevelBehaviorManager:
 
         Never waits for a loop that does not run: once the loop has been blocked for
         ``stop_timeout_s`` the call fails with :class:`~beehave.errors.LoopBlocked`
-        (naming the culprit) and the request is cancelled. ``timeout_s`` bounds the
+        (naming the culprit) and the request is cancelled -- withdrawn if the loop had not
+        begun it; if it had, it is cancelled when the loop runs again, and a switch that
+        was already stopping the old logic completes (read ``current`` to know).
+        ``timeout_s`` bounds the
         coroutine itself (``TimeoutError``; it is cancelled too).
         """
         if timeout_s is not None:
