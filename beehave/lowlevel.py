@@ -593,8 +593,7 @@ class LowLevelBehaviorManager:
         (naming the culprit) and the request is cancelled -- withdrawn if the loop had not
         begun it; if it had, it is cancelled when the loop runs again, and a switch that
         was already stopping the old logic completes (read ``current`` to know).
-        ``timeout_s`` bounds the
-        coroutine itself (``TimeoutError``; it is cancelled too).
+        ``timeout_s`` bounds the coroutine itself (``TimeoutError``; it is cancelled too).
         """
         if timeout_s is not None:
             try:
