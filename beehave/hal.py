@@ -46,9 +46,13 @@ from beehave.status import Status
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HAL", "HALManager", "ENTRY_POINT_GROUP", "check_duration_s"]
+__all__ = ["HAL", "HALManager", "ENTRY_POINT_GROUP", "MAX_DURATION_S", "check_duration_s"]
 
 ENTRY_POINT_GROUP = "beehave.hals"
+
+MAX_DURATION_S = 86400.0
+"""The longest duration :func:`check_duration_s` accepts: a day (as the high level's
+``stop_timeout_s``)."""
 
 H = TypeVar("H", bound="HAL")
 
@@ -119,6 +123,8 @@ class _Loaded:
     """``on_load`` was entered: from then on ``safe_state`` is owed, whatever happens."""
     abandoned: bool = False
     """Unloaded while ``on_load`` still ran and ignored its cancellation."""
+    winding: bool = False
+    """``on_load`` ended (cancelled or failed) and ``_start`` is winding the HAL down."""
 
 
 _ANON = object()
@@ -134,7 +140,14 @@ def claim_safe_state(hal: HAL) -> bool:
         if getattr(hal, "_beehave_safe_state_claimed", False):
             return False
         hal._beehave_safe_state_claimed = True  # type: ignore[attr-defined]
+        hal._beehave_safe_state_done = threading.Event()  # type: ignore[attr-defined]
         return True
+
+
+def _safe_state_done(hal: HAL) -> threading.Event | None:
+    """Set once the claimed ``safe_state`` has returned (None: nobody claimed it yet)."""
+    done: threading.Event | None = getattr(hal, "_beehave_safe_state_done", None)
+    return done
 
 
 _SAFE_STATE_LOCK = threading.Lock()
@@ -165,6 +178,10 @@ class HALManager:
         self._entry_points: dict[str, importlib.metadata.EntryPoint] | None = None
         self._loaded: dict[str, _Loaded] = {}
         self._unloading: set[asyncio.Task[None]] = set()
+        # Entries on their way out (no longer in _loaded, safe_state maybe not run yet): the
+        # escalation of a blocked loop forces their safe states too, and a new load of the
+        # same name waits until the old instance is gone.
+        self._leaving: dict[int, tuple[str, _Loaded]] = {}
         self._stuck: dict[asyncio.Task[None], str] = {}
         self._closed = False
         #: Handed to every HAL as ``hal.node`` (the low level's ROS node, or None).
@@ -240,6 +257,13 @@ class HALManager:
         if self._closed:
             raise ManagerShutdown(f"HAL manager is shut down; cannot load HAL {name!r}")
         entry = self._loaded.get(name)
+        while entry is None and (previous := self._unload_of(name)) is not None:
+            # The old instance first gets its safe_state and on_unload (bounded), so the
+            # hardware never sees the new on_load before the old stop.
+            await _wait_ignoring_cancel(previous)
+            if self._closed:
+                raise ManagerShutdown(f"HAL manager is shut down; cannot load HAL {name!r}")
+            entry = self._loaded.get(name)
         if entry is None:
             cls, params = self.resolve(name)
             hal = cls.__new__(cls)
@@ -284,7 +308,12 @@ class HALManager:
             if failed:
                 hal.error = exc
             if not entry.abandoned:  # else the unload that gave up on us did this already
-                await self._wind_down(name, entry)
+                entry.winding = True  # unload() now waits for us: _wind_down is bounded
+                self._leave(name, entry)
+                try:
+                    await self._wind_down(name, entry)
+                finally:
+                    self._left(entry)
                 self.events.emit(Event(EventKind.ENDED, f"hal:{name}", hal.status.name,
                                        exc if failed else None, {"phase": "on_load"}))
             if failed:
@@ -304,6 +333,20 @@ class HALManager:
     def _forget(self, name: str, entry: _Loaded) -> None:
         if self._loaded.get(name) is entry:
             del self._loaded[name]
+
+    def _unload_of(self, name: str) -> asyncio.Task[None] | None:
+        for leaving_name, entry in list(self._leaving.values()):
+            task = entry.unloading
+            if leaving_name == name and task is not None and not task.done():
+                return task
+        return None
+
+    def _leave(self, name: str, entry: _Loaded) -> None:
+        self._forget(name, entry)
+        self._leaving[id(entry)] = (name, entry)
+
+    def _left(self, entry: _Loaded) -> None:
+        self._leaving.pop(id(entry), None)
 
     async def _supervise(self, name: str, hal: HAL) -> None:
         delay = self.backoff_initial_s
@@ -328,9 +371,14 @@ class HALManager:
                                    {"restarts": hal.restarts, "after_s": delay}))
             delay = min(delay * 2, self.backoff_max_s)
 
-    async def release(self, name: str, *, owner: object | None = None) -> None:
+    async def release(self, name: str, *, owner: object | None = None,
+                      wait: bool = True) -> None:
         """Give back ``owner``'s reference; the last one unloads the HAL (cancels ``run``,
-        calls ``safe_state()``, marks its entries stale). Unknown references are ignored."""
+        calls ``safe_state()``, marks its entries stale). Unknown references are ignored.
+
+        ``wait=False`` starts the unload without waiting for it (a logic that ends does
+        not count the HAL's stop against its own ``stop_timeout_s``); :meth:`close` and a
+        new :meth:`load` of the same name still wait for it."""
         entry = self._loaded.get(name)
         if entry is None:
             return
@@ -342,7 +390,7 @@ class HALManager:
         else:
             return
         if not entry.owners and entry.ready is None:
-            await self._unload(name, entry)
+            await self._unload(name, entry, wait=wait)
 
     def transfer(self, name: str, *, owner: object, to: object) -> bool:
         """Hand ``owner``'s reference to HAL ``name`` over to ``to`` without unloading it
@@ -359,18 +407,24 @@ class HALManager:
                 return True
         return False
 
-    async def _unload(self, name: str, entry: _Loaded) -> None:
+    async def _unload(self, name: str, entry: _Loaded, *, wait: bool = True) -> None:
         # The unload is a task of its own, started once: a caller that is cancelled while
         # it waits (a logic stopped twice) must not cut it short, or safe_state would
         # never run and the HAL's task would be destroyed while pending.
-        self._forget(name, entry)
+        self._leave(name, entry)
         if entry.unloading is None:
             task = asyncio.get_running_loop().create_task(self._unload_now(name, entry),
                                                           name=f"hal:{name}:unload")
             entry.unloading = task
             self._unloading.add(task)
-            task.add_done_callback(self._unloading.discard)
-        await _wait_ignoring_cancel(entry.unloading)
+
+            def unloaded(done: asyncio.Task[None]) -> None:
+                self._unloading.discard(done)
+                self._left(entry)
+
+            task.add_done_callback(unloaded)
+        if wait:
+            await _wait_ignoring_cancel(entry.unloading)
 
     async def _unload_now(self, name: str, entry: _Loaded) -> None:
         hal = entry.hal
@@ -418,6 +472,15 @@ class HALManager:
                 hal.error = exc
                 self.events.emit(Event(EventKind.SAFE_STATE_FAILED, writer, hal.status.name,
                                        exc))
+            finally:
+                _set_done(hal)
+        elif entry.load_began:
+            # Claimed elsewhere: the escalation of a blocked loop forced it from another
+            # thread. on_unload may close what safe_state still uses: wait (bounded).
+            done = _safe_state_done(hal)
+            deadline = time.monotonic() + self.stop_timeout_s
+            while done is not None and not done.is_set() and time.monotonic() < deadline:
+                await asyncio.sleep(0.005)
         if entry.load_began:
             try:
                 hal.on_unload()
@@ -440,10 +503,18 @@ class HALManager:
             ready.cancel()
             if await _wait_bounded(ready, self.stop_timeout_s):
                 return  # _start wound it down
+            if entry.winding:
+                # on_load obeyed; _start is in safe_state/on_unload, which are bounded
+                # themselves. Cutting that short would leave the hardware half stopped.
+                await _wait_ignoring_cancel(ready)
+                return
             entry.abandoned = True
-            self._forget(name, entry)
-            self._mark_stuck(name, entry.hal, ready, "on_load")
-            await self._wind_down(name, entry)
+            self._leave(name, entry)
+            try:
+                self._mark_stuck(name, entry.hal, ready, "on_load")
+                await self._wind_down(name, entry)
+            finally:
+                self._left(entry)
             self.events.emit(Event(EventKind.ENDED, f"hal:{name}", Status.STUCK.name))
             return
         await self._unload(name, entry)
@@ -451,8 +522,13 @@ class HALManager:
     async def close(self) -> None:
         """Unload every HAL and refuse new loads; cancel the STUCK ones once more."""
         self._closed = True
-        for name in list(self._loaded):
-            await self.unload(name)
+        # All at once: each unload is bounded, so shutdown is too -- not N times over.
+        names = list(self._loaded)
+        outcomes = await asyncio.gather(*(self.unload(n) for n in names),
+                                        return_exceptions=True)
+        for name, outcome in zip(names, outcomes, strict=True):
+            if isinstance(outcome, Exception):
+                log.error("HAL %r: unload at shutdown failed: %r", name, outcome)
         if self._unloading:  # unloads that releases started; each is bounded
             await _wait_bounded_all(set(self._unloading), 3 * self.stop_timeout_s)
         stuck = {t for t in self._stuck if not t.done()}
@@ -473,7 +549,9 @@ class HALManager:
         ``stop_timeout_s``. Errors are logged and reported as events, never raised.
         """
         done: list[str] = []
-        for name, entry in list(self._loaded.items()):
+        # The ones being unloaded too: their unload may be what blocks the loop.
+        # (Copies first, atomically: the loop's thread may change them if it runs again.)
+        for name, entry in [*self._loaded.copy().items(), *self._leaving.copy().values()]:
             hal = entry.hal
             if not entry.load_began or not claim_safe_state(hal):
                 continue
@@ -488,6 +566,8 @@ class HALManager:
                 log.error("HAL %r: forced safe_state() raised %r", name, exc)
                 self.events.emit(Event(EventKind.SAFE_STATE_FAILED, f"hal:{name}",
                                        hal.status.name, exc, {"forced": True}))
+            finally:
+                _set_done(hal)
             done.append(name)
         return done
 
@@ -499,6 +579,12 @@ class HALManager:
                        "error": None if e.hal.error is None else repr(e.hal.error),
                        "loaded_s": round(now - e.loaded_at, 3)}
                 for name, e in list(self._loaded.items())}
+
+
+def _set_done(hal: HAL) -> None:
+    done = _safe_state_done(hal)
+    if done is not None:
+        done.set()
 
 
 async def _wait_ignoring_cancel(task: asyncio.Future[Any]) -> None:
@@ -570,11 +656,17 @@ def check_duration_s(name: str, value: object, *, allow_zero: bool = False) -> f
 
     Infinity and NaN are refused on purpose: an infinite timeout overflows the thread and
     loop primitives, and NaN compares false with everything, so every wait would end at once.
+    So is anything beyond :data:`MAX_DURATION_S` (a day, the high level's cap too): a huge
+    finite wait overflows ``threading.Event.wait`` just the same, and no robot timeout means
+    a week.
     """
     bound = "≥ 0" if allow_zero else "> 0"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"{name} must be a number of seconds {bound}, got {value!r}")
+        raise ConfigError(f"{name} must be a number of seconds {bound} and at most "
+                          f"{MAX_DURATION_S:g}, got {value!r}")
     seconds = float(value)
-    if not math.isfinite(seconds) or seconds < 0 or (seconds == 0 and not allow_zero):
-        raise ConfigError(f"{name} must be a finite number of seconds {bound}, got {value!r}")
+    if not math.isfinite(seconds) or seconds < 0 or (seconds == 0 and not allow_zero) \
+            or seconds > MAX_DURATION_S:
+        raise ConfigError(f"{name} must be a finite number of seconds {bound} and at most "
+                          f"{MAX_DURATION_S:g} (a day), got {value!r}")
     return seconds

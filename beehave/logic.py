@@ -33,6 +33,7 @@ import abc
 import asyncio
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Self, TypeVar, overload
 
@@ -64,6 +65,9 @@ class Runtime:
     """While set, a top-level logic that ends hands its HAL references (and those of its
     sub-logics) to this owner instead of releasing them, so the next top-level logic finds
     the HALs it shares with the old one still loaded; the manager releases them later."""
+    on_handover: Callable[[object], None] | None = None
+    """Called with ``handover`` after each reference handed to it: the manager (re)starts
+    the grace period then, also for a sub-logic that ends late."""
 
 
 class Logic(abc.ABC):
@@ -262,11 +266,15 @@ class Logic(abc.ABC):
         hand_over = token is not None and root._ending
         for name in self._hal_names:
             if hand_over and runtime.hals.transfer(name, owner=self, to=token):
+                if runtime.on_handover is not None:
+                    runtime.on_handover(token)
                 continue
             try:
-                await runtime.hals.release(name, owner=self)
+                # Not waiting for the unload: a HAL's slow stop is the HAL's (bounded and
+                # reported as its own), not this logic's, which obeyed.
+                await runtime.hals.release(name, owner=self, wait=False)
             except asyncio.CancelledError:
-                continue  # keep releasing: the unload itself waits for its HAL task
+                continue  # keep releasing
         self._hal_names.clear()
 
     def _finish(self, outcome: Status, error: BaseException | None, runtime: Runtime) -> None:

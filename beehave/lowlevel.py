@@ -80,10 +80,17 @@ class _Phase(enum.Enum):
 
 
 class _HandOver:
-    """The owner of HAL references between two top-level logics (see ``hal_handover_s``)."""
+    """An owner of HAL references between two top-level logics (see ``hal_handover_s``).
+
+    A fresh one per change of the top-level logic, released as a whole when its own timer
+    fires: a reference handed over by a later change never rides on an earlier, shorter
+    grace period."""
+
+    def __init__(self) -> None:
+        self.timer: asyncio.TimerHandle | None = None
 
     def __repr__(self) -> str:
-        return "<hal handover>"
+        return f"<hal handover {id(self):#x}>"
 
 
 class LowLevelBehaviorManager:
@@ -130,9 +137,10 @@ class LowLevelBehaviorManager:
         """The top-level logics that ended, oldest first (the last 32)."""
         self._runtime = Runtime(self.blackboard, self.hals, self.events, stop_timeout_s)
         # The owner of the HAL references that an ended top-level logic hands over to its
-        # successor (see Runtime.handover); released hal_handover_s after the last handover.
+        # successor (see Runtime.handover); each is released hal_handover_s after the last
+        # reference was handed to it. _handovers: those that may still hold references.
         self._handover = _HandOver()
-        self._handover_timer: asyncio.TimerHandle | None = None
+        self._handovers: set[_HandOver] = set()
         self._registry: dict[str, tuple[type[Logic], dict[str, Any]]] = {}
         self._top: Logic | None = None
         self._selected: tuple[str, dict[str, Any]] | None = None
@@ -149,6 +157,7 @@ class LowLevelBehaviorManager:
         self._thread_error: BaseException | None = None
         self._watchdog: LoopWatchdog | None = None
         self._abandoned: LoopBlocked | None = None
+        self._abandoning: threading.Event | None = None  # set once the escalation is done
         self._stop_waiters: set[concurrent.futures.Future[None]] = set()
 
     # -- registry ------------------------------------------------------------------------
@@ -212,7 +221,9 @@ class LowLevelBehaviorManager:
 
     def subscribe(self, callback: EventCallback) -> Callable[[], None]:
         """Call ``callback(event)`` for every lifecycle event (logics, switches, HALs);
-        returns a function that unsubscribes. Callbacks run in the loop's thread."""
+        returns a function that unsubscribes. Callbacks run in the loop's thread, except
+        LOOP_BLOCKED: the watchdog's notifier thread delivers it (the loop cannot), and
+        calling back into the manager from there is bounded like from any other thread."""
         return self.events.subscribe(callback)
 
     def snapshot(self) -> dict[str, Any]:
@@ -287,12 +298,14 @@ class LowLevelBehaviorManager:
                                   f"to {name!r}")
         logic = self._create(name, params)
         began = time.monotonic()
-        old_name = self.current
-        self._announce(EventKind.SWITCH_REQUESTED, name, {"from": old_name})
+        self._announce(EventKind.SWITCH_REQUESTED, name,
+                       {"from": self.current, "fallback": False})
         cancelled = False
         async with self._switch_lock:
+            old_name = self.current  # under the lock: a concurrent switch may have run
             old = self._top
             self._top = None
+            self._new_handover()
             if old is not None:
                 try:
                     await stop_logics([old], self._runtime)
@@ -306,7 +319,8 @@ class LowLevelBehaviorManager:
                                       f"{name!r}")
             self._start_top(logic)
         self._announce(EventKind.SWITCH_COMPLETED, name,
-                       {"from": old_name, "duration_s": round(time.monotonic() - began, 6)})
+                       {"from": old_name, "fallback": False,
+                        "duration_s": round(time.monotonic() - began, 6)})
         if cancelled:
             raise asyncio.CancelledError
         return logic
@@ -336,31 +350,43 @@ class LowLevelBehaviorManager:
 
     def _top_done(self, logic: Logic, _task: asyncio.Task[None]) -> None:
         self._top_ended(logic)
-        self._arm_handover()
 
     # -- HALs across a change of the top-level logic -------------------------------------
 
-    def _arm_handover(self) -> None:
-        """(Re)start the wait after which the handed-over HAL references are released: the
-        HALs the new top-level logic asked for by then stay loaded, the others unload."""
-        loop = self._loop
-        if loop is None or self._phase is not _Phase.RUNNING:
-            return
-        if self._handover_timer is not None:
-            self._handover_timer.cancel()
-        self._handover_timer = loop.call_later(self.hal_handover_s, self._handover_due)
+    def _new_handover(self) -> None:
+        """A fresh owner for the references the ending top-level logic hands over."""
+        self._handover = _HandOver()
+        if self._runtime.handover is not None:  # None once tearing down
+            self._runtime.handover = self._handover
 
-    def _handover_due(self) -> None:
-        self._handover_timer = None
-        task = asyncio.get_running_loop().create_task(self._release_handover(),
+    def _handed_over(self, owner: object) -> None:
+        """A logic handed a HAL reference to ``owner`` (Runtime.on_handover): (re)start
+        the wait after which ``owner`` lets go. Armed per hand-over, so a sub-logic that
+        ends late still gets the whole grace period and is released after it."""
+        loop = self._loop
+        if not isinstance(owner, _HandOver) or loop is None:
+            return
+        self._handovers.add(owner)
+        if owner.timer is not None:
+            owner.timer.cancel()
+        owner.timer = loop.call_later(self.hal_handover_s, self._handover_due, owner)
+
+    def _handover_due(self, owner: _HandOver) -> None:
+        owner.timer = None
+        if owner is self._handover:
+            self._new_handover()  # later hand-overs get a grace period of their own
+        task = asyncio.get_running_loop().create_task(self._release_handover(owner),
                                                       name="beehave-lowlevel-hal-handover")
         self._inflight.add(task)
         task.add_done_callback(self._inflight.discard)
 
-    async def _release_handover(self) -> None:
+    async def _release_handover(self, owner: _HandOver) -> None:
+        """Release what ``owner`` holds -- only that: another change may have handed over
+        references a moment ago, and they have their own owner and timer."""
+        self._handovers.discard(owner)
         for name in list(self.hals.loaded):
-            if self.hals.holds(name, self._handover):
-                await self.hals.release(name, owner=self._handover)
+            if self.hals.holds(name, owner):
+                await self.hals.release(name, owner=owner, wait=False)
 
     def _top_ended(self, logic: Logic) -> None:
         self.history.append(logic)
@@ -371,7 +397,7 @@ class LowLevelBehaviorManager:
         self._top = None
         nxt = self.default if self.default is not None and logic.name != self.default else None
         self.events.emit(Event(EventKind.FALLBACK, logic.path, logic.status.name, logic.error,
-                               {"next": nxt}))
+                               {"to": nxt, "next": nxt}))
         if nxt is None:
             return
         try:
@@ -394,6 +420,7 @@ class LowLevelBehaviorManager:
             self._stop = asyncio.Event()
             self._switch_lock = asyncio.Lock()
             self._runtime.handover = self._handover
+            self._runtime.on_handover = self._handed_over
             self.blackboard.bind(loop)
             self._phase = _Phase.RUNNING
             selected = self._selected
@@ -439,9 +466,6 @@ class LowLevelBehaviorManager:
     async def _teardown(self) -> None:
         me = asyncio.current_task()
         self._runtime.handover = None  # nobody comes next: logics release their HALs now
-        if self._handover_timer is not None:
-            self._handover_timer.cancel()
-            self._handover_timer = None
         top = self._top
         self._top = None
         if top is not None:
@@ -451,7 +475,11 @@ class LowLevelBehaviorManager:
             await asyncio.wait(inflight, timeout=self.stop_timeout_s)
         if self._runtime.stuck:  # one more chance for logics that ignored cancellation
             await stop_logics(list(self._runtime.stuck), self._runtime)
-        await self._release_handover()
+        for owner in [*self._handovers, self._handover]:
+            if owner.timer is not None:
+                owner.timer.cancel()
+                owner.timer = None
+            await self._release_handover(owner)
         await self.hals.close()
         for sub in self.blackboard.subscriptions:
             if isinstance(sub, Watcher) and sub.loop is asyncio.get_running_loop():
@@ -500,6 +528,15 @@ class LowLevelBehaviorManager:
             waiter.result()  # resolved when stopped, failed by the watchdog when blocked
         except LoopBlocked as blocked:
             raise self._abandon(blocked) from None
+        except ManagerShutdown:
+            # The watchdog stopped under us: the loop's teardown ended (it marks us
+            # stopped next) or another shutdown gave up on the loop (say so here too).
+            abandoning = self._abandoning
+            if abandoning is not None:
+                abandoning.wait()
+                if self._abandoned is not None:
+                    raise self._abandoned from None
+            self._stopped.wait(self.stop_timeout_s)
         finally:
             if unwatch is not None:
                 unwatch()
@@ -511,9 +548,21 @@ class LowLevelBehaviorManager:
         """Shutdown's escalation when the loop does not run: force the HALs' safe states
         from this thread, leave the manager in a defined state, say what happened."""
         with self._phase_lock:
-            if self._abandoned is not None:
-                return self._abandoned
-            self._phase = _Phase.STOPPED
+            abandoning = self._abandoning
+            if abandoning is None:  # the first to give up escalates; the others wait
+                self._abandoning = threading.Event()
+                self._phase = _Phase.STOPPED
+        if abandoning is not None:
+            abandoning.wait()  # bounded: the escalation joins its helper for stop_timeout_s
+            assert self._abandoned is not None
+            return self._abandoned
+        try:
+            return self._escalate(blocked)
+        finally:
+            assert self._abandoning is not None
+            self._abandoning.set()
+
+    def _escalate(self, blocked: LoopBlocked) -> LoopBlocked:
         watchdog = self._watchdog
         if watchdog is not None:
             watchdog.stop()
@@ -541,8 +590,10 @@ class LowLevelBehaviorManager:
 
         Never waits for a loop that does not run: once the loop has been blocked for
         ``stop_timeout_s`` the call fails with :class:`~beehave.errors.LoopBlocked`
-        (naming the culprit) and the request is cancelled. ``timeout_s`` bounds the
-        coroutine itself (``TimeoutError``; it is cancelled too).
+        (naming the culprit) and the request is cancelled -- withdrawn if the loop had not
+        begun it; if it had, it is cancelled when the loop runs again, and a switch that
+        was already stopping the old logic completes (read ``current`` to know).
+        ``timeout_s`` bounds the coroutine itself (``TimeoutError``; it is cancelled too).
         """
         if timeout_s is not None:
             try:

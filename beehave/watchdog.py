@@ -10,6 +10,14 @@ loop itself cannot notice (it is the one that is stuck), so a thread does::
     no answer after loop_lag_warn_s  →    warning + LOOP_BLOCKED event naming the culprit
     no answer after block_s          →    pending cross-thread calls fail with LoopBlocked
 
+``block_s`` is ``max(stop_timeout_s, loop_lag_warn_s)``: a loop is never declared blocked
+before it has been warned about.
+
+LOOP_BLOCKED events are delivered from a notifier thread of their own
+(``beehave-lowlevel-loop-events``), never from the thread that measures: a subscriber that
+calls back into the manager (``ll.snapshot()``, ``ll.switch()``, ``ll.shutdown()``) waits for
+the loop, and only the measuring thread can fail that wait with ``LoopBlocked``.
+
 The culprit is read from the loop while it is stuck: the task it is stepping
 (``asyncio.current_task(loop)``, whose name says ``logic:<path>`` or ``hal:<name>``) and the
 innermost frame of its thread outside the standard library (the line that blocks).
@@ -21,6 +29,7 @@ import asyncio
 import concurrent.futures
 import logging
 import os
+import queue
 import sys
 import sysconfig
 import threading
@@ -30,7 +39,7 @@ from dataclasses import dataclass
 from types import FrameType
 from typing import Any
 
-from beehave.errors import LoopBlocked
+from beehave.errors import LoopBlocked, ManagerShutdown
 from beehave.events import Event, EventBus, EventKind
 
 log = logging.getLogger(__name__)
@@ -112,6 +121,11 @@ class LoopWatchdog:
         self._warned: tuple[Culprit, float] | None = None  # culprit, when the ping went out
         self._thread = threading.Thread(target=self._main, name="beehave-lowlevel-watchdog",
                                         daemon=True)
+        # Subscribers run here, not in _thread: see the module docstring.
+        self._outbox: queue.SimpleQueue[Event | None] = queue.SimpleQueue()
+        self._notifier = threading.Thread(target=self._notify, name="beehave-lowlevel-loop-events",
+                                          daemon=True)
+        self._notifier_started = False
         self.warnings = 0
         """How many times the loop was found held longer than ``warn_s``."""
 
@@ -120,12 +134,38 @@ class LoopWatchdog:
     def start(self) -> None:
         self._thread.start()
 
-    def stop(self) -> None:
-        """Stop and join the thread (it never blocks for long: it only waits on events)."""
+    def _post(self, event: Event) -> None:
+        """Queue ``event`` for the notifier, started on the first one (most runs never need
+        it)."""
+        with self._lock:
+            if not self._notifier_started and not self._stop.is_set():
+                self._notifier.start()
+                self._notifier_started = True
+            queued = self._notifier_started
+        if queued:
+            self._outbox.put(event)
+        else:  # stopping, and no notifier ever ran: deliver it here rather than drop it
+            self.events.emit(event)
+
+    def stop(self, *, notify_timeout_s: float = 1.0) -> None:
+        """Stop and join the measuring thread (it never blocks for long: it only waits on
+        events); fail the calls still waiting with :class:`ManagerShutdown`, since nobody
+        would fail them any more; let the notifier deliver what is queued (joined at most
+        ``notify_timeout_s``: a subscriber may itself be slow)."""
         self._stop.set()
         self._answered.set()
-        if self._thread.is_alive() and self._thread is not threading.current_thread():
+        me = threading.current_thread()
+        if self._thread.is_alive() and self._thread is not me:
             self._thread.join()
+        with self._lock:
+            watched, self._watched = self._watched, set()
+        for future in watched:
+            _fail(future, ManagerShutdown(f"the {self.name} manager stopped"))
+        with self._lock:  # after this, _post starts no notifier any more
+            started = self._notifier_started
+        self._outbox.put(None)
+        if started and self._notifier is not me:
+            self._notifier.join(notify_timeout_s)
 
     # -- what callers use ----------------------------------------------------------------
 
@@ -137,7 +177,10 @@ class LoopWatchdog:
         """Fail ``future`` with :class:`LoopBlocked` if the loop is (or gets) blocked past
         ``block_s`` before it is done; returns the function that stops watching it."""
         with self._lock:
-            self._watched.add(future)
+            if self._stop.is_set():
+                _fail(future, ManagerShutdown(f"the {self.name} manager stopped"))
+            else:
+                self._watched.add(future)
 
         def unwatch() -> None:
             with self._lock:
@@ -166,6 +209,10 @@ class LoopWatchdog:
                 log.exception("%s event loop watchdog failed while the loop was held",
                               self.name)
 
+    def _notify(self) -> None:
+        while (event := self._outbox.get()) is not None:
+            self.events.emit(event)  # EventBus.emit logs a failing subscriber, never raises
+
     def _held(self, sent: float) -> None:
         culprit = find_culprit(self.loop, self.thread_id)
         lag = time.monotonic() - sent
@@ -173,7 +220,7 @@ class LoopWatchdog:
         self._warned = (culprit, sent)
         log.warning("%s event loop blocked for %.3f s by %s at %s; %s", self.name, lag,
                     culprit.who, culprit.where, _RULE)
-        self.events.emit(Event(EventKind.LOOP_BLOCKED, culprit.subject, detail={
+        self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject, detail={
             "culprit": culprit.who, "where": culprit.where, "blocked_s": round(lag, 3),
             "ended": False}))
         declared = False
@@ -215,7 +262,8 @@ class LoopWatchdog:
             held = time.monotonic() - sent
             log.warning("%s event loop answers again after %.3f s (held by %s at %s)",
                         self.name, held, culprit.who, culprit.where)
-            self.events.emit(Event(EventKind.LOOP_BLOCKED, culprit.subject, detail={
+            # Through the notifier too: after the "blocked" event, never before it.
+            self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject, detail={
                 "culprit": culprit.who, "where": culprit.where, "blocked_s": round(held, 3),
                 "ended": True}))
 

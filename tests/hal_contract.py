@@ -147,6 +147,21 @@ class HALContract:
                 assert not manager.blackboard.is_stale(key), key
         self.run_with_manager(body)
 
+    def test_a_load_right_after_a_release_waits_for_the_old_instance_to_stop(self) -> None:
+        """A logic that ends does not wait for its HAL's unload; the next one asking for it
+        must not see the new instance's on_load before the old one's safe_state (the
+        hardware would be set up and then stopped)."""
+        async def body(manager: HALManager, events: list[Event]) -> None:
+            first = await manager.load(self.hal_cls.name)
+            await self.settle()
+            await manager.release(self.hal_cls.name, wait=False)
+            second = await manager.load(self.hal_cls.name)
+            assert second is not first
+            assert first.status is Status.INTERRUPTED, \
+                f"HAL {self.hal_cls.name!r} loaded again before its old instance stopped"
+            await manager.release(self.hal_cls.name, wait=False)  # close() still waits
+        self.run_with_manager(body)
+
     def test_snapshot_is_json_serialisable(self) -> None:
         async def body(manager: HALManager, events: list[Event]) -> None:
             await manager.load(self.hal_cls.name)

@@ -469,3 +469,170 @@ def test_an_on_load_that_ignores_cancellation_is_reported_stuck_at_shutdown() ->
     assert safe == 1 and not leftover
     assert [(e.kind, e.detail.get("phase")) for e in events if e.kind is EventKind.STUCK] \
         == [(EventKind.STUCK, "on_load")]
+
+
+def test_a_hal_cancelled_in_on_load_gets_its_whole_async_safe_state_and_is_not_stuck() -> None:
+    """on_load obeys its cancellation (with an orderly close) and safe_state is async: the
+    two together may take longer than stop_timeout_s, each within it. That is not STUCK,
+    and the safe state must not be cut short."""
+    marks: list[str] = []
+
+    class Cam(HAL):
+        name = "cam"
+
+        async def on_load(self) -> None:
+            try:
+                await asyncio.Event().wait()  # the device does not answer yet
+            except asyncio.CancelledError:
+                await asyncio.sleep(0.12)     # orderly close of the half-open device
+                raise
+
+        async def safe_state(self) -> None:
+            marks.append("safe_state begins")
+            await asyncio.sleep(0.12)
+            marks.append("safe_state ends")
+
+        def on_unload(self) -> None:
+            marks.append("on_unload")
+
+    manager, events = manager_with_events(stop_timeout_s=0.2)
+    manager.register(Cam)
+
+    async def main() -> set[asyncio.Task[Any]]:
+        loading = asyncio.create_task(manager.load("cam"))
+        await asyncio.sleep(0.02)
+        await manager.close()
+        await asyncio.wait({loading})
+        return {t for t in asyncio.all_tasks() if t.get_name().startswith("hal:")}
+
+    leftover = asyncio.run(asyncio.wait_for(main(), WAIT_S))
+    assert marks == ["safe_state begins", "safe_state ends", "on_unload"]
+    assert not [e for e in events if e.kind is EventKind.STUCK] and not leftover
+
+
+def test_shutdown_with_many_hals_that_ignore_cancellation_is_bounded_once_not_per_hal() -> None:
+    """Ten HALs whose run() swallows cancellation: they are unloaded together, so shutdown
+    takes about stop_timeout_s (twice: once to unload, once to cancel them again), not ten
+    times that; the logic that held them obeyed at once and is not STUCK."""
+    names = [f"deaf{i}" for i in range(10)]
+    hals: list[Deaf] = []
+
+    class UsesAll(Logic):
+        async def run(self) -> None:
+            for n in names:
+                hal = await self.hal(n)
+                assert isinstance(hal, Deaf)
+                hals.append(hal)
+            await asyncio.Event().wait()
+
+    ll = LowLevelBehaviorManager(default="u", stop_timeout_s=0.2)
+    ll.register("u", UsesAll)
+    for n in names:
+        ll.hals.register(Deaf, name=n)
+    stuck: list[str] = []
+    ll.subscribe(lambda e: e.kind is EventKind.STUCK and stuck.append(e.subject))
+    ll.__enter__()
+    assert wait_until(lambda: len(hals) == len(names))
+    thread = threading.Thread(target=ll.shutdown, daemon=True)
+    thread.start()
+    thread.join(2 * 0.2 + 1.0)  # ten sequential unloads would take 10 × 0.2 s at least
+    returned = not thread.is_alive()
+    for hal in hals:
+        hal.let_go = True
+    thread.join(WAIT_S)
+    assert returned, "shutdown time grows with the number of stuck HALs"
+    assert "u" not in stuck and sorted(stuck) == sorted(f"hal:{n}" for n in names)
+    assert all(hal.safe == 1 for hal in hals)
+
+
+def test_a_sub_logic_that_ends_late_does_not_leak_its_hal_reference_to_the_handover() -> None:
+    """It hands its reference over after the grace period of its switch has run out: that
+    reference gets a grace period of its own and is then released (the HAL unloads)."""
+    safe: list[int] = []
+
+    class Lamp(HAL):
+        name = "lamp"
+
+        def safe_state(self) -> None:
+            safe.append(1)
+
+    class Slow(Logic):
+        async def run(self) -> None:
+            await self.hal("lamp")
+            try:
+                await asyncio.Event().wait()
+            except asyncio.CancelledError:
+                await asyncio.sleep(0.4)  # a slow cleanup, longer than stop_timeout_s
+                raise
+
+    class Parent(Logic):
+        async def run(self) -> None:
+            self.start_logic(Slow())
+            await asyncio.Event().wait()
+
+    class Idle(Logic):
+        async def run(self) -> None:
+            await asyncio.Event().wait()
+
+    ll = LowLevelBehaviorManager(default="parent", stop_timeout_s=0.1, hal_handover_s=0.05)
+    ll.register("parent", Parent)
+    ll.register("idle", Idle)
+    ll.hals.register(Lamp)
+    with ll:
+        assert wait_until(lambda: ll.hals.refs("lamp") == 1)
+        ll.switch("idle")  # idle does not use the lamp
+        assert wait_until(lambda: "lamp" not in ll.hals.loaded), \
+            "the late sub-logic's lamp reference is never given back"
+        assert safe == [1]
+    assert safe == [1]
+
+
+def test_a_second_switch_keeps_the_grace_period_of_the_hals_it_hands_over() -> None:
+    """a → b → c: the first handover is still being released (another HAL's slow safe
+    state) when b hands over "y"; c asks for "y" well within hal_handover_s of its switch,
+    so "y" is never unloaded and loaded again."""
+    loads: list[str] = []
+
+    class X(HAL):
+        name = "x"
+
+        async def safe_state(self) -> None:
+            await asyncio.sleep(0.5)
+
+    class Y(HAL):
+        name = "y"
+
+        async def on_load(self) -> None:
+            loads.append("y")
+
+    class A(Logic):
+        async def run(self) -> None:
+            await self.hal("x")
+            await self.hal("y")
+            await asyncio.Event().wait()
+
+    class B(Logic):
+        async def run(self) -> None:
+            await self.hal("y")
+            await asyncio.Event().wait()
+
+    class C(Logic):
+        async def run(self) -> None:
+            # After the old code released b's handover of y (0.5 s: x's safe state), well
+            # within c's own grace period (1.5 s).
+            await asyncio.sleep(0.9)
+            await self.hal("y")
+            await asyncio.Event().wait()
+
+    ll = LowLevelBehaviorManager(default="a", hal_handover_s=1.5, stop_timeout_s=1.0)
+    for name, cls in (("a", A), ("b", B), ("c", C)):
+        ll.register(name, cls)
+    ll.hals.register(X)
+    ll.hals.register(Y)
+    with ll:
+        assert wait_until(lambda: ll.hals.refs("y") == 1)
+        ll.switch("b")
+        assert wait_until(lambda: "x" not in ll.hals.loaded)  # a's grace is over: x unloads
+        ll.switch("c")
+        assert wait_until(lambda: ll.hals.refs("y") == 1 and ll.hals.holds("y", ll.logic))
+        assert loads == ["y"], "y was unloaded and loaded again within its grace period"

@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from beehave.errors import LoopBlocked, ManagerShutdown
+from beehave.errors import ConfigError, LoopBlocked, ManagerShutdown
 from beehave.events import Event, EventKind
 from beehave.hal import HAL
 from beehave.logic import Logic
@@ -181,3 +181,176 @@ def test_leaving_the_with_block_while_the_loop_is_blocked_forces_safe_states_and
     assert wait_until(lambda: ll.hals.loaded == {} and ll._thread is not None
                       and not ll._thread.is_alive(), WAIT_S)
     assert hal.safe_states == 1 and robot.led_color == "off"
+
+
+@pytest.mark.parametrize("reentry", ["snapshot", "switch", "call", "shutdown"])
+def test_a_loop_blocked_subscriber_that_calls_back_into_the_manager_keeps_calls_bounded(
+        gate: threading.Event, reentry: str) -> None:
+    """The LOOP_BLOCKED callback is where a user asks "what runs?" or gives up: calling back
+    into the manager from there must neither hang itself nor the watchdog, which is what
+    bounds every other thread's calls."""
+    blocking = threading.Event()
+    ll = LowLevelBehaviorManager(default="blocker", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
+    ll.register("blocker", Blocker, gate=gate, blocking=blocking)
+    ll.register("forever", Forever)
+    in_callback: list[str] = []
+    callback_done = threading.Event()
+
+    def on_event(event: Event) -> None:
+        if event.kind is not EventKind.LOOP_BLOCKED or event.detail["ended"] or in_callback:
+            return
+        in_callback.append(threading.current_thread().name)
+        try:
+            if reentry == "snapshot":
+                ll.snapshot()
+            elif reentry == "switch":
+                ll.switch("forever")
+            elif reentry == "call":
+                ll.call(asyncio.sleep(0))
+            else:
+                ll.shutdown()
+        except (LoopBlocked, ManagerShutdown):
+            pass
+        finally:
+            callback_done.set()
+
+    ll.subscribe(on_event)
+    outcome: list[BaseException | None] = []
+
+    def main() -> None:
+        try:
+            with ll:
+                assert blocking.wait(WAIT_S)
+                assert callback_done.wait(WAIT_S)
+                try:
+                    ll.switch("forever")
+                except (LoopBlocked, ManagerShutdown) as exc:
+                    outcome.append(exc)
+        except LoopBlocked as exc:
+            outcome.append(exc)
+
+    thread = threading.Thread(target=main, daemon=True)
+    thread.start()
+    # switch and shutdown are each bounded by about stop_timeout_s; a hang is the bug.
+    thread.join(3.0)
+    hung = thread.is_alive()
+    gate.set()
+    thread.join(WAIT_S)
+    assert not hung, f"a LOOP_BLOCKED callback calling {reentry}() hangs the manager"
+    assert in_callback and in_callback[0] != "beehave-lowlevel-watchdog"
+    assert outcome and all(isinstance(o, (LoopBlocked, ManagerShutdown)) for o in outcome)
+
+
+def test_durations_beyond_a_day_are_refused_with_the_name_and_the_cap() -> None:
+    for key in ("loop_lag_warn_s", "stop_timeout_s", "hal_handover_s"):
+        with pytest.raises(ConfigError) as info:
+            LowLevelBehaviorManager(**{key: 1e10})
+        assert key in str(info.value) and "86400" in str(info.value)
+    # the cap itself is allowed
+    LowLevelBehaviorManager(loop_lag_warn_s=86400.0).shutdown()
+
+
+def test_two_shutdowns_of_a_blocked_loop_both_report_the_forced_safe_states(
+        gate: threading.Event) -> None:
+    blocking = threading.Event()
+    robot = DebugRobot()
+    ll = LowLevelBehaviorManager(default="blocker", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
+    ll.register("blocker", Blocker, gate=gate, blocking=blocking, use_hal=True)
+    ll.hals.register(DebugHAL, robot=robot)
+    ll.__enter__()
+    assert blocking.wait(WAIT_S)
+    errors: list[BaseException] = []
+
+    def stop() -> None:
+        try:
+            ll.shutdown()
+        except LoopBlocked as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=stop) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(WAIT_S)
+    assert len(errors) == 2 and str(errors[0]) == str(errors[1])
+    assert "'debug'" in str(errors[0]) and "none loaded" not in str(errors[0])
+    hal = ll.hals.loaded["debug"]
+    assert isinstance(hal, DebugHAL) and hal.safe_states == 1
+
+
+def test_a_hal_whose_unload_blocks_the_loop_still_gets_its_forced_safe_state(
+        gate: threading.Event) -> None:
+    """The unload itself is what blocks (a blocking driver close on cancellation): the HAL
+    is no longer "loaded", but its safe state is still owed and forced."""
+    calls: list[str] = []
+
+    class Motor(HAL):
+        name = "motor"
+
+        async def run(self) -> None:
+            try:
+                await asyncio.Event().wait()
+            finally:
+                gate.wait(WAIT_S * 4)  # the bug: a blocking close in the loop
+
+        def safe_state(self) -> None:
+            calls.append(threading.current_thread().name)
+
+    class UsesMotor(Logic):
+        async def run(self) -> None:
+            await self.hal("motor")
+            await asyncio.Event().wait()
+
+    ll = LowLevelBehaviorManager(default="m", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
+    ll.register("m", UsesMotor)
+    ll.hals.register(Motor)
+    stuck: list[str] = []
+    ll.subscribe(lambda e: e.kind is EventKind.STUCK and stuck.append(e.subject))
+    with pytest.raises(LoopBlocked) as info:
+        with ll:
+            assert wait_until(lambda: "motor" in ll.hals.loaded, WAIT_S)
+    assert "'motor'" in str(info.value) and "none loaded" not in str(info.value)
+    assert calls == ["beehave-lowlevel-safe-states"]
+    gate.set()
+    assert wait_until(lambda: ll._thread is not None and not ll._thread.is_alive(), WAIT_S)
+    assert len(calls) == 1                # the loop's own unload does not repeat it
+    assert "m" not in stuck               # the logic obeyed at once; the HAL blocked
+
+
+def test_a_loop_that_runs_again_during_the_escalation_unloads_after_the_forced_safe_state(
+        gate: threading.Event) -> None:
+    """The escalation forces safe_state from a helper thread; should the loop run again
+    meanwhile, its own unload must not call on_unload (closing the device) while that
+    safe_state still uses it."""
+    marks: list[str] = []
+    blocking = threading.Event()
+
+    class Device(HAL):
+        name = "device"
+
+        def safe_state(self) -> None:
+            marks.append("safe_state begins")
+            time.sleep(0.3)  # longer than the escalation waits for it (stop_timeout_s)
+            marks.append("safe_state ends")
+
+        def on_unload(self) -> None:
+            marks.append("on_unload")
+
+    class BlocksWithDevice(Logic):
+        async def run(self) -> None:
+            await self.hal("device")
+            blocking.set()
+            gate.wait(WAIT_S * 4)
+            await asyncio.Event().wait()
+
+    ll = LowLevelBehaviorManager(default="b", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
+    ll.register("b", BlocksWithDevice)
+    ll.hals.register(Device)
+    with pytest.raises(LoopBlocked):
+        with ll:
+            assert blocking.wait(WAIT_S)
+    assert marks == ["safe_state begins"]  # the escalation gave up waiting for it
+    gate.set()                              # the loop runs again and tears down
+    assert wait_until(lambda: ll._thread is not None and not ll._thread.is_alive(), WAIT_S)
+    assert wait_until(lambda: len(marks) == 3, WAIT_S)
+    assert marks == ["safe_state begins", "safe_state ends", "on_unload"]

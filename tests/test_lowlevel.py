@@ -19,7 +19,7 @@ from beehave.errors import (
     ManagerShutdown,
     UnknownLogic,
 )
-from beehave.events import Event, EventKind
+from beehave.events import Event, EventKind, describe
 from beehave.logic import Logic
 from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.status import Status
@@ -456,3 +456,40 @@ def test_a_switch_whose_caller_stops_waiting_still_completes(
         assert ll.call(impatient(), timeout_s=WAIT_S) is True
         # the old logic is gone either way; the robot is not left without one
         assert ll.current == "forever"
+
+
+def test_every_switch_event_says_whether_it_is_a_fallback_and_fallback_names_the_next(
+        ll: LowLevelBehaviorManager) -> None:
+    """docs/lowlevel.md promises "fallback" on every change; FALLBACK names the next logic
+    under "to", as the high level does, so one log line (events.describe) reads both."""
+    events = events_of(ll)
+    with ll:
+        ll.switch("forever")
+        ll.switch("crashing")
+        assert wait_until(lambda: any(e.kind is EventKind.FALLBACK for e in events))
+        assert wait_until(lambda: ll.current == "idle")
+    switches = [e for e in events if e.kind in (EventKind.SWITCH_REQUESTED,
+                                                EventKind.SWITCH_COMPLETED)]
+    assert all(isinstance(e.detail.get("fallback"), bool) for e in switches)
+    assert [e.detail["fallback"] for e in switches if e.subject == "forever"] == [False, False]
+    fallback = next(e for e in events if e.kind is EventKind.FALLBACK)
+    assert fallback.detail["to"] == "idle"
+    assert "starting 'idle'" in describe(fallback)
+
+
+def test_concurrent_switches_report_where_each_one_really_came_from(
+        ll: LowLevelBehaviorManager) -> None:
+    """Each SWITCH_COMPLETED names the logic it replaced: read under the switch lock, so
+    the completed switches form one chain idle → … → the last one."""
+    events = events_of(ll)
+    with ll:
+        names = ["forever", "parent", "stubborn", "forever", "parent"] * 2
+        threads = [threading.Thread(target=ll.switch, args=(n,)) for n in names]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(WAIT_S)
+    completed = [e for e in events if e.kind is EventKind.SWITCH_COMPLETED]
+    assert completed[0].subject == "idle" and completed[0].detail["from"] is None
+    for before, after in zip(completed, completed[1:], strict=False):
+        assert after.detail["from"] == before.subject, (before, after)
