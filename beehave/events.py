@@ -116,8 +116,9 @@ class EventBus:
 def describe(event: Event) -> str:
     """One log line for ``event``."""
     if event.kind is EventKind.FALLBACK:
+        to = event.detail.get("to")
         text = (f"{event.subject} ended {event.status or ''} on its own; "
-                f"starting {event.detail.get('to', 'the fallback')!r}")
+                + (f"starting {to!r}" if to else "nothing to fall back to"))
     else:
         text = f"{event.kind.value} {event.subject}{f' {event.status}' if event.status else ''}"
     if event.kind in _WARN and event.detail:

@@ -29,6 +29,7 @@ from beehave.errors import (
     UnknownBehavior,
 )
 from beehave.events import Event, EventBus, EventCallback, EventKind
+from beehave.hal import MAX_DURATION_S
 from beehave.locks import TypeLocks
 from beehave.runnable import Runnable, current
 from beehave.status import Status
@@ -624,7 +625,7 @@ class HighLevelBehaviorManager:
 _MARGIN_S = 0.05
 """What a stop allows beyond the deadline for a behaviour to record its end (twice: the
 behaviour, then its thread), before it is declared STUCK."""
-_MAX_TIMEOUT_S = 86400.0
+_MAX_TIMEOUT_S = MAX_DURATION_S
 _GRACE_S = 0.1
 """How long a switch waits, after its deadline, for forced safe states (documented in
 docs/concepts.md): a STUCK action's ``safe_state()`` normally has run when ``switch()``

@@ -645,3 +645,8 @@ def test_a_hanging_safe_state_after_an_obeyed_interrupt_is_reported_where_it_han
             assert wait_until(lambda: not hl.snapshot()["locks"])
     finally:
         gate.set()
+
+
+def test_a_fallback_to_nothing_says_so() -> None:
+    event = Event(EventKind.FALLBACK, "leds", "FAILED", detail={"to": None})
+    assert describe(event) == "leds ended FAILED on its own; nothing to fall back to"
