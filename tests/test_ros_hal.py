@@ -112,3 +112,41 @@ def test_a_non_finite_max_age_is_rejected_naming_the_topic() -> None:
     with pytest.raises(ConfigError, match=r"TopicInput\('charge'\)\.max_age_s.*inf"):
         TopicInput("charge", Float64, to_percent, key="battery/percentage",
                    max_age_s=float("inf"))
+
+
+def test_service_calls_reuse_one_client_and_fail_clearly(
+        setup: tuple[LowLevelBehaviorManager, Probe, list[Event]]) -> None:
+    from std_srvs.srv import Trigger
+
+    ll, probe, _ = setup
+    served: list[int] = []
+
+    def reset(_req: Any, response: Any) -> Any:
+        served.append(1)
+        response.success = True
+        return response
+
+    probe.node.create_service(Trigger, "/halbot/reset", reset)
+    owner = object()
+
+    async def use() -> tuple[list[bool], int, str]:
+        hal = await ll.hals.load("battery_leds", owner=owner)
+        assert isinstance(hal, BatteryLeds)
+        try:
+            answers = [(await hal.call(Trigger, "/halbot/reset", Trigger.Request())).success
+                       for _ in range(20)]
+            clients = sum(1 for kind, _ in hal._entities if kind == "client")
+            try:
+                await hal.call(Trigger, "/halbot/nobody", Trigger.Request(), timeout_s=0.3)
+            except HALError as exc:
+                missing = str(exc)
+            else:
+                missing = ""
+            return answers, clients, missing
+        finally:
+            await ll.hals.release("battery_leds", owner=owner)
+
+    answers, clients, missing = ll.call(use(), timeout_s=20.0)
+    assert answers == [True] * 20 and len(served) == 20
+    assert clients == 1  # one per service, not one per call
+    assert "'/halbot/nobody' is not available within 0.3 s" in missing

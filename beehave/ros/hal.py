@@ -130,31 +130,54 @@ class RosHAL(HAL):
 
     async def call(self, srv_type: type, service: str, request: Any, *,
                    timeout_s: float = 5.0) -> Any:
-        """Call a ROS service from a logic without blocking the loop."""
+        """Call a ROS service from a logic without blocking the loop; at most ``timeout_s``
+        in all (waiting for the service included). One client per service and type is
+        kept for the HAL's lifetime, so a call after the first pays no discovery."""
         timeout_s = check_duration_s("timeout_s", timeout_s)
-        client = self.node.create_client(srv_type, service)
+        if getattr(self, "_closed", True):
+            raise HALError(f"HAL {self.name!r} is not loaded: cannot call {service!r}")
+        clients: dict[tuple[type, str], Any] = self.__dict__.setdefault("_clients", {})
+        client = clients.get((srv_type, service))
+        if client is None:
+            client = self.node.create_client(srv_type, service)
+            clients[(srv_type, service)] = client
+            self._entities.append(("client", client))
+        ready = False
         try:
-            deadline = self._loop.time() + timeout_s
-            while not client.service_is_ready():
-                if self._loop.time() > deadline:
-                    raise HALError(f"HAL {self.name!r}: service {service!r} not available "
-                                   f"after {timeout_s} s")
-                await asyncio.sleep(0.05)
-            future = client.call_async(request)
-            done: asyncio.Future[Any] = self._loop.create_future()
-
-            def finished(f: Any) -> None:
-                def resolve() -> None:
-                    if not done.done():
-                        done.set_result(f.result())
-
-                self._loop.call_soon_threadsafe(resolve)
-
-            future.add_done_callback(finished)
             async with asyncio.timeout(timeout_s):  # not wait_for: see Watcher.next
-                return await done
-        finally:
-            self.node.destroy_client(client)
+                while not client.service_is_ready():
+                    await asyncio.sleep(0.05)
+                ready = True
+                return await self._answer(client, request)
+        except TimeoutError:
+            why = "did not answer" if ready else "is not available"
+            raise HALError(f"HAL {self.name!r}: service {service!r} {why} within "
+                           f"{timeout_s} s") from None
+
+    async def _answer(self, client: Any, request: Any) -> Any:
+        """Send ``request`` and await the response in the loop (rclpy answers in its
+        executor thread)."""
+        future = client.call_async(request)
+        done: asyncio.Future[Any] = self._loop.create_future()
+
+        def finished(f: Any) -> None:  # in the ROS executor thread
+            def resolve() -> None:
+                if done.done():
+                    return
+                error = f.exception()
+                if error is not None:
+                    done.set_exception(error)
+                else:
+                    done.set_result(f.result())
+
+            self._loop.call_soon_threadsafe(resolve)
+
+        future.add_done_callback(finished)
+        try:
+            return await done
+        except asyncio.CancelledError:
+            future.cancel()
+            raise
 
     def on_unload(self) -> None:
         self._closed = True
@@ -162,3 +185,4 @@ class RosHAL(HAL):
             getattr(self.node, f"destroy_{kind}")(entity)
         self._entities = []
         self._publishers = {}
+        self._clients: dict[tuple[type, str], Any] = {}
