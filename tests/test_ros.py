@@ -643,3 +643,37 @@ def test_logic_parameter_set_inside_the_loop_is_refused_not_blocking(
     result = ll.call(set_from_a_logic())
     assert not result.successful and "switch_async('driving')" in result.reason
     assert ll.current == "parked"
+
+
+# -- review of issue 9 -------------------------------------------------------------------------
+
+def _board_message(seq: int, kind: str, entries: dict[str, Any]) -> String:
+    return String(data=json.dumps({"schema": "beehave/blackboard/2", "kind": kind, "seq": seq,
+                                   "stamp": 1.0, "entries": entries, "removed": []}))
+
+
+def test_mirror_stale_or_nan_entries_are_no_change_at_every_snapshot() -> None:
+    """A stale entry never reads as fresh on the mirror (it was set, then marked stale,
+    at each snapshot), and an unchanged NaN is not notified again."""
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge
+    from beehave.ros.context import RosContext
+
+    ros = RosContext()
+    hl = HighLevelBehaviorManager()
+    bridge = HighLevelBridge(hl, ros.create_node("beehave_high_level", namespace="mstale"))
+    try:
+        seen: list[tuple[str, Any, bool]] = []
+        hl.blackboard.subscribe("**", lambda c: seen.append((c.key, c.value, c.stale)))
+        battery = {"value": 54.0, "stale": True, "writer": "hal:battery"}
+        laser = {"value": {"$float": "nan"}, "writer": "hal:laser"}
+        for seq in (1, 2, 3):
+            bridge._on_blackboard(_board_message(seq, "snapshot", {
+                "battery/percentage": battery, "laser/front_m": laser}))
+        assert [(k, s) for k, _, s in seen] == [("battery/percentage", True),
+                                                ("laser/front_m", False)], seen
+        assert hl.blackboard.is_stale("battery/percentage")
+    finally:
+        bridge.destroy()
+        hl.shutdown()
+        ros.shutdown()

@@ -324,9 +324,10 @@ class HighLevelBridge:
         self._last_seq = data.seq  # a restarted low level starts again at 1
         board = self.manager.blackboard
         for key, entry in data.entries.items():
-            board.set(key, from_json(entry.value), writer=entry.writer or MIRROR_WRITER)
-            if entry.stale:
-                board.mark_stale(pattern=key)
+            # Value and stale flag in one store: an entry that stays stale (or NaN) is no
+            # change at every snapshot, and never reads as fresh in between.
+            board.set(key, from_json(entry.value), writer=entry.writer or MIRROR_WRITER,
+                      stale=entry.stale)
         if data.kind == "snapshot":
             self.mirror_complete = True
 
