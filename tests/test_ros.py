@@ -677,3 +677,72 @@ def test_mirror_stale_or_nan_entries_are_no_change_at_every_snapshot() -> None:
         bridge.destroy()
         hl.shutdown()
         ros.shutdown()
+
+
+class _Loops(Behavior):
+    def run(self) -> None:
+        while self.sleep(0.05):
+            pass
+
+
+class _Broken(Behavior):
+    def __init__(self) -> None:
+        raise RuntimeError("typo in the constructor")
+
+    def run(self) -> None:  # pragma: no cover - never constructed
+        pass
+
+
+def test_behavior_parameter_latest_request_wins_after_a_rejected_one() -> None:
+    """patrol runs, parked is queued, `broken` is refused by its constructor, then patrol
+    is set again: patrol must win (the rejection used to make the bridge forget that
+    parked was queued, so the last set was skipped as "already running")."""
+    from rclpy.parameter import Parameter
+
+    from beehave import EventKind
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge
+    from beehave.ros.context import RosContext
+
+    ros = RosContext()
+    node = ros.create_node("beehave_high_level", namespace="rejw")
+    ros.start()
+    hl = HighLevelBehaviorManager(node=node, stop_timeout_s=0.3)
+    hl.register("patrol", _Loops)
+    hl.register("parked", _Loops)
+    hl.register("broken", _Broken)
+    hl.start()
+    bridge = HighLevelBridge(hl, node)
+    gate, held = threading.Event(), threading.Event()
+    ended: list[str] = []
+
+    def hold(event: Any) -> None:
+        if event.kind is EventKind.SWITCH_REJECTED or (
+                event.kind is EventKind.SWITCH_COMPLETED and event.subject != "patrol"):
+            ended.append(event.kind.name)
+        if (event.kind is EventKind.SWITCH_COMPLETED and event.subject == "patrol"
+                and not held.is_set()):
+            held.set()
+            gate.wait(10)  # later requests queue up behind this one
+
+    unsubscribe = hl.subscribe(hold)
+
+    def set_behavior(name: str) -> Any:
+        return node.set_parameters([Parameter("behavior", value=name)])[0]
+
+    try:
+        assert set_behavior("patrol").successful
+        assert held.wait(10)
+        assert set_behavior("parked").successful
+        set_behavior("broken")  # refused: now or when processed
+        assert set_behavior("patrol").successful
+        assert hl.requested == "patrol"
+        gate.set()
+        assert wait_until(lambda: hl.requested is None, 5)
+        assert hl.current == "patrol", (hl.current, ended)
+    finally:
+        gate.set()
+        unsubscribe()
+        bridge.destroy()
+        hl.shutdown()
+        ros.shutdown()

@@ -192,12 +192,7 @@ class HighLevelBridge:
         self._last_seq: int | None = None
         _string_param(node, "behavior", manager.current or manager.default,
                       "the top-level behaviour; set it to switch")
-        # The name of the latest switch request that has not completed yet (any source:
-        # this parameter, the stop service, Python). Setting the parameter to the running
-        # name is a no-op only when no other switch is queued: else it must win.
-        self._requested_lock = threading.Lock()
-        self._requested: str | None = None
-        node.add_on_set_parameters_callback(_switch_param_callback(
+        self._param_handle = node.add_on_set_parameters_callback(_switch_param_callback(
             "behavior", lambda: manager.names, self._target, self._request, self._guard,
             "behavior"))
         self._state_pub = node.create_publisher(String, STATE_TOPIC, LATCHED)
@@ -223,10 +218,12 @@ class HighLevelBridge:
         self._dirty.set()
 
     def _target(self) -> str | None:
-        """What will run once the queued switches are done."""
-        with self._requested_lock:
-            requested = self._requested
-        return requested if requested is not None else self.manager.current
+        """What will run once the queued switches are done. Setting the parameter to the
+        running name is a no-op only when no other switch is queued: else it must win.
+
+        Asked of the manager, which holds its queue, rather than rebuilt from events: a
+        rejected or fallen-back switch says nothing about the requests still queued."""
+        return self.manager.requested or self.manager.current
 
     def _request(self, name: str) -> None:
         self.manager.request_switch(name)
@@ -243,19 +240,6 @@ class HighLevelBridge:
     def _on_event(self, event: Event) -> None:
         if event.kind in _STATE_EVENTS:
             self._dirty.set()
-        if event.kind is EventKind.SWITCH_REQUESTED:
-            with self._requested_lock:
-                self._requested = event.subject
-        elif event.kind in (EventKind.SWITCH_COMPLETED, EventKind.FALLBACK,
-                            EventKind.SWITCH_REJECTED):
-            with self._requested_lock:
-                # A fallback means nothing was queued when the behaviour ended; a switch
-                # that failed while processed is reported as rejected "switch". (Should a
-                # request's event come late, the next set of the parameter merely asks
-                # for a switch again, rather than being skipped.)
-                if (event.kind is not EventKind.SWITCH_COMPLETED
-                        or event.subject == self._requested):
-                    self._requested = None
         if event.kind is EventKind.SWITCH_COMPLETED:
             with self._guard:
                 try:
