@@ -746,3 +746,46 @@ def test_behavior_parameter_latest_request_wins_after_a_rejected_one() -> None:
         bridge.destroy()
         hl.shutdown()
         ros.shutdown()
+
+
+def test_destroyed_bridges_leave_no_parameter_behind_and_a_new_bridge_fits() -> None:
+    """destroy() removes "all of it": setting `behavior` / `logic` on the node afterwards
+    switches nothing, and another bridge can be put on the same node."""
+    from rclpy.exceptions import ParameterNotDeclaredException
+    from rclpy.parameter import Parameter
+
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.lowlevel import LowLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
+    from beehave.ros.context import RosContext
+
+    ros = RosContext()
+    high_node = ros.create_node("beehave_high_level", namespace="dparm")
+    low_node = ros.create_node("beehave_low_level", namespace="dparm")
+    ros.start()
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.3)
+    hl.register("patrol", _Loops)
+    hl.start()
+    ll = LowLevelBehaviorManager(default="parked", stop_timeout_s=0.3)
+    ll.register("parked", _Forever)
+    ll.register("driving", _Forever)
+    try:
+        with ll:
+            HighLevelBridge(hl, high_node).destroy()
+            LowLevelBridge(ll, low_node, switch_timeout_s=0.5).destroy()
+            assert hl.node is None
+            for node, name, value in ((high_node, "behavior", "patrol"),
+                                      (low_node, "logic", "driving")):
+                with pytest.raises(ParameterNotDeclaredException):
+                    node.set_parameters([Parameter(name, value=value)])
+            assert hl.current == "idle" and ll.current == "parked"
+            again = HighLevelBridge(hl, high_node)
+            try:
+                assert high_node.set_parameters(
+                    [Parameter("behavior", value="patrol")])[0].successful
+                assert wait_until(lambda: hl.current == "patrol", 5)
+            finally:
+                again.destroy()
+    finally:
+        hl.shutdown()
+        ros.shutdown()

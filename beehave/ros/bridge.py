@@ -120,6 +120,18 @@ def _string_param(node: Node, name: str, value: str, description: str) -> None:
         description=description, dynamic_typing=True))
 
 
+def _remove_param(node: Node, name: str,
+                  callback: Callable[[list[Parameter[Any]]], SetParametersResult]) -> None:
+    """Undo :func:`_string_param` and the switch callback: after a bridge's destroy(),
+    setting the parameter switches nothing, and a new bridge may declare it again."""
+    try:
+        node.remove_on_set_parameters_callback(callback)
+    except ValueError:  # removed already
+        pass
+    if node.has_parameter(name):
+        node.undeclare_parameter(name)
+
+
 class _ParamGuard:
     """Lets a node set its own switch parameter (to show the current name) without the
     change being taken as a new switch request."""
@@ -180,6 +192,7 @@ class HighLevelBridge:
                  engine_rate_hz: float = 10.0) -> None:
         self.manager = manager
         self.node = node
+        self._previous_node = manager.node  # given back by destroy()
         manager.node = node
         self._guard = _ParamGuard()
         self._io = threading.Lock()  # publishing vs. destroy(), which runs in another thread
@@ -192,9 +205,11 @@ class HighLevelBridge:
         self._last_seq: int | None = None
         _string_param(node, "behavior", manager.current or manager.default,
                       "the top-level behaviour; set it to switch")
-        self._param_handle = node.add_on_set_parameters_callback(_switch_param_callback(
+        # Kept to be removed by destroy() (rclpy identifies a callback by the function).
+        self._on_set_param = _switch_param_callback(
             "behavior", lambda: manager.names, self._target, self._request, self._guard,
-            "behavior"))
+            "behavior")
+        node.add_on_set_parameters_callback(self._on_set_param)
         self._state_pub = node.create_publisher(String, STATE_TOPIC, LATCHED)
         self._bb_sub = node.create_subscription(String, BLACKBOARD_TOPIC, self._on_blackboard,
                                                 BLACKBOARD_QOS)
@@ -326,6 +341,9 @@ class HighLevelBridge:
         if self._clock_sub is not None:
             self.node.destroy_subscription(self._clock_sub)
         self.node.destroy_service(self._stop_srv)
+        _remove_param(self.node, "behavior", self._on_set_param)
+        if self.manager.node is self.node:
+            self.manager.node = self._previous_node
 
 
 _STATE_EVENTS = {EventKind.STARTED, EventKind.ENDED, EventKind.STUCK,
@@ -373,9 +391,10 @@ class LowLevelBridge:
         self._target: str | None = None
         _string_param(node, "logic", manager.current or manager.default or "",
                       "the top-level logic; set it to switch")
-        node.add_on_set_parameters_callback(_switch_param_callback(
+        self._on_set_param = _switch_param_callback(
             "logic", lambda: manager.registered, self._target_logic,
-            self._switch_from_parameter, self._guard, "logic"))
+            self._switch_from_parameter, self._guard, "logic")
+        node.add_on_set_parameters_callback(self._on_set_param)
         self._pub = node.create_publisher(String, BLACKBOARD_TOPIC, BLACKBOARD_QOS)
         self._state_sub = node.create_subscription(String, STATE_TOPIC, self._on_state, LATCHED)
         self._snap = node.create_timer(snapshot_period_s, self._publish_snapshot)
@@ -610,6 +629,7 @@ class LowLevelBridge:
         self.node.destroy_timer(self._snap)
         self.node.destroy_publisher(self._pub)
         self.node.destroy_subscription(self._state_sub)
+        _remove_param(self.node, "logic", self._on_set_param)
 
 
 class _Ticket:
