@@ -298,7 +298,10 @@ class HighLevelBridge:
             self._publish_state(self.state())
             return
         now = time.monotonic()
-        if self._engines and now - self._engines_checked >= self._engine_period_s:
+        # While any behaviour runs, not only while the last state had engines: one that
+        # prepares before driving its engine was published with none.
+        if (self.manager.top is not None
+                and now - self._engines_checked >= self._engine_period_s):
             self._engines_checked = now
             state = self.state()
             if state["engines"] != self._engines:
@@ -464,12 +467,16 @@ class LowLevelBridge:
         board = self.manager.blackboard
         entries = {}
         taken: dict[str, Change] = {}
-        for key in board.keys():
-            change = board.entry(key)
-            if change is not None:
-                entries[key] = _entry(change)
-                taken[key] = change
         with self._lock:
+            # The board is read under the lock that orders publishing: a change published
+            # between this read and the snapshot would otherwise be followed by the older
+            # snapshot value, and the mirror would keep it until the next snapshot. A
+            # change made meanwhile waits in _on_change and goes out after the snapshot.
+            for key in board.keys():
+                change = board.entry(key)
+                if change is not None:
+                    entries[key] = _entry(change)
+                    taken[key] = change
             # The snapshot carries these pending changes; those made after it read the
             # board must still go out as changes, or the mirror would miss them until the
             # next snapshot.
