@@ -888,3 +888,68 @@ def test_an_engine_that_appears_after_the_start_is_published() -> None:
         bridge.destroy()
         hl.shutdown()
         ros.shutdown()
+
+
+class _StopsMotors(Logic):
+    """Asks a ROS service to stop the motors when it ends: its stop needs a ROS callback."""
+
+    stop_acked: bool | None = None
+
+    async def run(self) -> None:
+        import asyncio
+
+        from std_srvs.srv import Trigger
+
+        base = await self.hal("base")
+        try:
+            await asyncio.sleep(3600)
+        finally:
+            response = await base.call(Trigger, "stop_motors", Trigger.Request(), timeout_s=3.0)
+            type(self).stop_acked = response.success
+
+
+def test_logic_parameter_switch_whose_stop_needs_a_ros_callback(probe: Probe) -> None:
+    """A remote `ros2 param set logic` is served in the executor thread; waiting there for
+    the whole switch starved the old logic's service call in its `finally` (it timed out,
+    the logic went STUCK, the set was refused)."""
+    from std_srvs.srv import Trigger
+
+    from beehave.lowlevel import LowLevelBehaviorManager
+    from beehave.ros.bridge import LowLevelBridge
+    from beehave.ros.context import RosContext
+    from beehave.ros.hal import RosHAL
+
+    class Base(RosHAL):
+        name = "base"
+
+    def stop_motors(_request: Any, response: Any) -> Any:
+        response.success = True
+        return response
+
+    probe.node.create_service(Trigger, "/llsvc/stop_motors", stop_motors)
+    ros = RosContext()
+    node = ros.create_node("beehave_low_level", namespace="llsvc")
+    ll = LowLevelBehaviorManager(default="parked", stop_timeout_s=0.5)
+    ll.hals.node = node
+    ll.hals.register(Base)
+    ll.register("parked", _Forever)
+    ll.register("drive", _StopsMotors)
+    stuck: list[Any] = []
+    ll.subscribe(lambda e: stuck.append(e) if e.kind.name == "STUCK" else None)
+    ros.start()
+    try:
+        with ll:
+            bridge = LowLevelBridge(ll, node, switch_timeout_s=2.0)
+            try:
+                ll.switch("drive")
+                result = probe.set_param("/llsvc/beehave_low_level", "logic", "parked")
+                assert result.successful, result.reason
+                assert wait_until(lambda: ll.current == "parked", 5)
+                assert _StopsMotors.stop_acked is True
+                assert stuck == []
+                assert wait_until(lambda: probe.get_param("/llsvc/beehave_low_level",
+                                                          "logic") == "parked")
+            finally:
+                bridge.destroy()
+    finally:
+        ros.shutdown()

@@ -88,6 +88,7 @@ from beehave.errors import BeehaveError, BlackboardError, ConfigError
 from beehave.events import Event, EventBus, EventKind
 from beehave.highlevel import IDLE, HighLevelBehaviorManager
 from beehave.lowlevel import LowLevelBehaviorManager
+from beehave.ros.context import in_executor_thread
 
 log = logging.getLogger(__name__)
 
@@ -526,16 +527,28 @@ class LowLevelBridge:
         ticket = _Ticket()
         manager = self.manager
 
+        def on_event(event: Event) -> None:
+            # switch_async creates the logic, then announces the request, before it awaits
+            # anything: in this loop, the first request for `name` from now on is ours.
+            if event.kind is EventKind.SWITCH_REQUESTED and event.subject == name:
+                ticket.under_way.set()
+
         async def switch() -> None:
             with ticket.lock:
                 if ticket.abandoned:
                     return  # its caller was told it failed: do not switch behind its back
                 ticket.began = True
-            await manager.switch_async(name)
+            unsubscribe = manager.subscribe(on_event)
+            try:
+                await manager.switch_async(name)
+            finally:
+                unsubscribe()
 
         with self._target_lock:
             self._target = name
-        return asyncio.run_coroutine_threadsafe(switch(), loop), ticket
+        future = asyncio.run_coroutine_threadsafe(switch(), loop)
+        future.add_done_callback(lambda _: ticket.under_way.set())  # failed, or done
+        return future, ticket
 
     def _request(self, name: str) -> None:
         """Switch without waiting (the high level's state asked for ``name``)."""
@@ -565,6 +578,15 @@ class LowLevelBridge:
                                f"`await ll.switch_async({name!r})`")
         future, ticket = self._submit(name)
         try:
+            if in_executor_thread():
+                # A ROS callback (a remote `ros2 param set`): stopping the old logic may
+                # need this very thread (a HAL's service call in its `finally`), so do not
+                # wait for the end — only until the new logic exists and the old one is
+                # being stopped. The parameter shows the new logic once it runs.
+                if not ticket.under_way.wait(self.switch_timeout_s):
+                    raise concurrent.futures.TimeoutError
+                if not future.done():
+                    return
             future.result(self.switch_timeout_s)
         except concurrent.futures.TimeoutError:
             with ticket.lock:
@@ -646,6 +668,8 @@ class _Ticket:
         self.lock = threading.Lock()
         self.began = False
         self.abandoned = False
+        #: Set once the new logic exists and the switch proceeds (or it ended either way).
+        self.under_way = threading.Event()
 
 
 class _Message(BaseModel):
