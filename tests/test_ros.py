@@ -953,3 +953,27 @@ def test_logic_parameter_switch_whose_stop_needs_a_ros_callback(probe: Probe) ->
                 bridge.destroy()
     finally:
         ros.shutdown()
+
+
+@pytest.mark.parametrize("bridge, option, value", [
+    ("high", "state_rate_hz", 0), ("high", "engine_rate_hz", float("nan")),
+    ("high", "state_period_s", -1.0), ("low", "blackboard_rate_hz", 0.0),
+    ("low", "snapshot_period_s", float("inf")), ("low", "settle_s", float("nan"))])
+def test_bridges_refuse_rates_and_periods_that_are_not_positive_numbers(
+        bridge: str, option: str, value: float) -> None:
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.lowlevel import LowLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
+    from beehave.ros.context import RosContext
+
+    ros = RosContext()
+    node = ros.create_node("bad_rates")
+    try:
+        with pytest.raises(ConfigError, match=rf"{option} must be .* got {value!r}"):
+            if bridge == "high":
+                HighLevelBridge(HighLevelBehaviorManager(), node, **{option: value})
+            else:
+                LowLevelBridge(LowLevelBehaviorManager(), node, **{option: value})
+        assert not node.has_parameter("behavior") and not node.has_parameter("logic")
+    finally:
+        ros.shutdown()

@@ -114,6 +114,17 @@ BLACKBOARD_QOS = QoSProfile(depth=BLACKBOARD_DEPTH, history=HistoryPolicy.KEEP_L
                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+def _check_positive(owner: str, **options: float) -> None:
+    """Refuse rates and periods that are not finite numbers > 0 (0 Hz divided by zero,
+    NaN made a timer that never or always fires), naming the option."""
+    for label, value in options.items():
+        if not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                and math.isfinite(value) and value > 0):
+            unit = "Hz" if label.endswith("_hz") else "seconds"
+            raise ConfigError(f"{owner}: {label} must be a finite number of {unit} > 0, "
+                              f"got {value!r}")
+
+
 def _string_param(node: Node, name: str, value: str, description: str) -> None:
     # dynamic_typing: our own callback refuses non-strings, with a reason naming the choices
     # (rclpy's type check would only say "expected '4' got '2'").
@@ -191,6 +202,8 @@ class HighLevelBridge:
     def __init__(self, manager: HighLevelBehaviorManager, node: Node, *,
                  state_rate_hz: float = 50.0, state_period_s: float = 1.0,
                  engine_rate_hz: float = 10.0) -> None:
+        _check_positive("HighLevelBridge", state_rate_hz=state_rate_hz,
+                        state_period_s=state_period_s, engine_rate_hz=engine_rate_hz)
         self.manager = manager
         self.node = node
         self._previous_node = manager.node  # given back by destroy()
@@ -366,6 +379,8 @@ class LowLevelBridge:
     def __init__(self, manager: LowLevelBehaviorManager, node: Node, *,
                  blackboard_rate_hz: float = 2000.0, snapshot_period_s: float = 1.0,
                  settle_s: float = 0.2, switch_timeout_s: float | None = None) -> None:
+        _check_positive("LowLevelBridge", blackboard_rate_hz=blackboard_rate_hz,
+                        snapshot_period_s=snapshot_period_s, settle_s=settle_s)
         if switch_timeout_s is None:
             # Stopping the old logic may take stop_timeout_s, unloading its HALs as long.
             switch_timeout_s = 2.0 * manager.stop_timeout_s + 1.0
