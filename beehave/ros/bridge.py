@@ -45,8 +45,8 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
   engine runs. It is published with the rest — on every lifecycle change (at most
   ``state_rate_hz``) and every ``state_period_s`` — and, while an engine runs, whenever its
   snapshot changed (compared ``engine_rate_hz`` times a second while any behaviour runs,
-  so an engine that appears after its behaviour started is published too). Schema ``/1`` (without
-  ``engines``) is still accepted.
+  so an engine that appears after its behaviour started is published too). Schema ``/1``
+  (without ``engines``) is still accepted.
 
   The low level writes it into its blackboard: ``high_level/behavior``,
   ``high_level/logic``, ``high_level/running`` (that list), ``high_level/engines`` (that
@@ -58,8 +58,9 @@ Parameters: the high-level node's ``behavior`` (string) switches the top-level b
 switch is queued); the low-level node's ``logic`` switches the top-level logic and answers
 once the switch is under way or failed — served in the executor thread, it does not wait
 for the old logic's stop, which may need that thread — at most ``switch_timeout_s`` (a
-blocked event loop gives a refusal that says so). Unknown names are refused (``SetParametersResult.successful``
-false; the reason lists the registered names). Both always show what runs.
+blocked event loop gives a refusal that says so). Unknown names are refused
+(``SetParametersResult.successful`` false; the reason lists the registered names). Both
+always show what runs.
 Service ``beehave/stop`` (std_srvs/Trigger) on the high-level node switches to ``idle``.
 """
 
