@@ -465,9 +465,10 @@ class Blackboard:
             if change is not None:
                 self._notify(slot, change)
             return
+        first: Change | None
         with self._lock:
             loop = self._loop
-            change = self._store(slot, value, writer, stale)
+            change = first = self._store(slot, value, writer, stale)
             if change is None:
                 return
             if loop is not None:
@@ -483,8 +484,13 @@ class Blackboard:
                 return
             else:
                 slot.delivering = True
+                if slot.outbox:
+                    # Left by a delivery that an on_error hook's exception ended: those
+                    # older changes go first.
+                    slot.outbox.append((change, False))
+                    first = None
         if loop is None:
-            self._deliver(slot, change)
+            self._deliver(slot, first)
             return
         try:
             loop.call_soon_threadsafe(self._flush)

@@ -650,3 +650,41 @@ def test_setting_a_value_already_stale_notifies_once_and_never_fresh() -> None:
     bb.set("battery/percentage", 54.0, writer="hal:battery")  # the sensor is back
     assert seen == [(54.0, True), (54.0, False)]
     assert not bb.is_stale("battery/percentage")
+
+
+def test_changes_queued_when_an_on_error_hook_raised_keep_their_order() -> None:
+    """A raising on_error hook ends the delivery that called it; the changes other threads
+    queued meanwhile must still reach subscribers before any newer one."""
+    def hook(_sub: Subscription, exc: BaseException) -> None:
+        raise RuntimeError("the hook itself is broken") from exc
+
+    bb = Blackboard(on_error=hook)
+    seen: list[int] = []
+    entered, queued = threading.Event(), threading.Event()
+
+    def breaks_on_first(change: Change) -> None:
+        if change.value == 1:
+            entered.set()
+            assert queued.wait(5)
+            raise ValueError("subscriber bug")
+
+    bb.subscribe("k", lambda c: seen.append(c.value))
+    bb.subscribe("k", breaks_on_first)
+    failed: list[BaseException] = []
+
+    def first_writer() -> None:
+        try:
+            bb.set("k", 1)
+        except RuntimeError as exc:
+            failed.append(exc)
+
+    writer = threading.Thread(target=first_writer)
+    writer.start()
+    assert entered.wait(5)
+    bb.set("k", 2)  # delivery of k is under way in the writer: queued behind it
+    queued.set()
+    writer.join(5)
+    assert failed, "the hook's exception reaches the writer that ran it"
+    bb.set("k", 3)
+    assert seen == [1, 2, 3]
+    assert bb.get("k") == 3

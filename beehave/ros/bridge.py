@@ -665,14 +665,32 @@ class LowLevelBridge:
         except Exception:  # the node may be going away during shutdown
             log.debug("could not update parameter 'logic'", exc_info=True)
 
+    def _cancel_handles(self) -> None:
+        # Should one fire first, it finds the bridge closed and publishes nothing.
+        for handle in (self._flush_handle, self._settle_handle):
+            if handle is not None:
+                handle.cancel()
+
+    def _in_loop(self, fn: Callable[[], None]) -> None:
+        loop = self.manager.loop
+        try:
+            in_loop = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            in_loop = False
+        if loop is None or in_loop:
+            fn()
+            return
+        try:
+            loop.call_soon_threadsafe(fn)
+        except RuntimeError:  # the loop is closed: nothing can fire any more
+            fn()
+
     def destroy(self) -> None:
         with self._lock:
             self._closed = True
         self._unsubscribe()
         self._bb_sub.close()
-        for handle in (self._flush_handle, self._settle_handle):
-            if handle is not None:
-                handle.cancel()
+        self._in_loop(self._cancel_handles)  # asyncio handles belong to the loop's thread
         self.node.destroy_timer(self._snap)
         self.node.destroy_publisher(self._pub)
         self.node.destroy_subscription(self._state_sub)
