@@ -153,13 +153,25 @@ def from_json(value: Any) -> Any:
 
 
 def _same(old: Any, new: Any) -> bool:
-    """Whether writing ``new`` over ``old`` changes nothing (same type, equal value)."""
+    """Whether writing ``new`` over ``old`` changes nothing (same type, equal value).
+
+    NaN counts as the same value as NaN (also inside lists, tuples and dicts): a sensor
+    that keeps reporting "no reading" has not changed, although ``nan != nan``."""
     if type(old) is not type(new):
         return False
     try:
-        return bool(old == new)
+        if old == new:
+            return True
     except Exception:  # values whose comparison fails (numpy arrays …) count as changes
         return False
+    # Only unequal values get here, so the NaN checks cost nothing on the common path.
+    if isinstance(old, float):
+        return math.isnan(old) and math.isnan(new)
+    if isinstance(old, (list, tuple)):
+        return len(old) == len(new) and all(_same(a, b) for a, b in zip(old, new, strict=True))
+    if isinstance(old, dict):
+        return old.keys() == new.keys() and all(_same(v, new[k]) for k, v in old.items())
+    return False
 
 
 def check_key(key: object) -> str:
@@ -254,6 +266,11 @@ class Subscription:
     def deliver(self, change: Change) -> None:
         """Called by the blackboard for each matching change (in the notifying thread)."""
         assert self.callback is not None
+        if self.closed:
+            # Delivery runs outside the blackboard's lock, so close() does not wait for a
+            # delivery under way: a subscription closed meanwhile must not be called any
+            # more (a callback that had already started may still finish).
+            return
         try:
             self.callback(change)
         except Exception as exc:  # an observer must not break the writer: record + report
@@ -262,7 +279,8 @@ class Subscription:
             self.board._report(self, exc)
 
     def close(self) -> None:
-        """Stop receiving changes; idempotent."""
+        """Stop receiving changes; idempotent. No delivery starts after it returns; a
+        callback another thread is running at that moment may still finish."""
         if not self.closed:
             self.closed = True
             self.board._unsubscribe(self)
@@ -429,23 +447,28 @@ class Blackboard:
 
     # -- writing -------------------------------------------------------------------------
 
-    def set(self, key: str, value: Any, *, writer: str | None = None) -> None:
+    def set(self, key: str, value: Any, *, writer: str | None = None,
+            stale: bool = False) -> None:
         """Write ``value`` under ``key`` and notify the subscribers whose pattern matches.
 
         Safe from any thread; never blocks on readers. ``writer`` is remembered on the entry
-        (a :class:`BlackboardClient` fills it in for you).
+        (a :class:`BlackboardClient` fills it in for you). ``stale=True`` stores the value
+        already flagged stale — for a mirror copying another blackboard's stale entry: one
+        change, and none at all when the entry holds that value, stale, already (writing
+        it then marking it stale would tell subscribers it was fresh in between).
         """
         slot = self._slots.get(key)
         if slot is None:
             slot = self._slot(key)
         if threading.get_ident() == self._loop_tid:
-            change = self._store(slot, value, writer)
+            change = self._store(slot, value, writer, stale)
             if change is not None:
                 self._notify(slot, change)
             return
+        first: Change | None
         with self._lock:
             loop = self._loop
-            change = self._store(slot, value, writer)
+            change = first = self._store(slot, value, writer, stale)
             if change is None:
                 return
             if loop is not None:
@@ -461,8 +484,13 @@ class Blackboard:
                 return
             else:
                 slot.delivering = True
+                if slot.outbox:
+                    # Left by a delivery that an on_error hook's exception ended: those
+                    # older changes go first.
+                    slot.outbox.append((change, False))
+                    first = None
         if loop is None:
-            self._deliver(slot, change)
+            self._deliver(slot, first)
             return
         try:
             loop.call_soon_threadsafe(self._flush)
@@ -472,17 +500,20 @@ class Blackboard:
                 self._loop_tid = None
             self._flush()
 
-    def _store(self, slot: _Slot, value: Any, writer: str | None) -> Change | None:
+    def _store(self, slot: _Slot, value: Any, writer: str | None,
+               stale: bool = False) -> Change | None:
         old = slot.change
         deadband = slot.deadband
         now = self._clock()
-        if old is not None and not old.stale and (
+        if old is not None and old.stale == stale and (
                 _same(old.value, value) if deadband is None
                 else _within(old.value, value, deadband)):
+            if stale:
+                return None  # still the same stale value: nothing to refresh or tell
             # Not a relevant change: the sensor is alive (freshness), nobody is woken.
             slot.change = Change(slot.key, old.value, time.time(), now, writer)
             return None
-        change = slot.change = Change(slot.key, value, time.time(), now, writer)
+        change = slot.change = Change(slot.key, value, time.time(), now, writer, stale)
         return change
 
     def _notify(self, slot: _Slot, change: Change) -> None:

@@ -93,7 +93,9 @@ class FibonacciServer:
 
     ``order`` chooses the script: < 0 rejected; 99 aborted; otherwise one feedback per step
     every ``step_s``, then SUCCEEDED. ``cancelled`` lists the orders of the goals that
-    ended cancelled on request.
+    ended cancelled on request, ``succeeded`` those that ran to their end. A busy server:
+    ``accept_delay_s`` before it answers a goal; a slow one to stop: ``stop_delay_s``
+    between a cancel request and the goal's end.
     """
 
     def __init__(self, name: str, *, step_s: float = 0.01) -> None:
@@ -106,15 +108,18 @@ class FibonacciServer:
 
         self._fib = Fibonacci
         self.step_s = step_s
+        self.accept_delay_s = 0.0
+        self.stop_delay_s = 0.0
         self.cancelled: list[int] = []
+        self.succeeded: list[int] = []
         self.executing = threading.Event()
         self.context = Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node("fibonacci_server", context=self.context)
         self.server = ActionServer(
             self.node, Fibonacci, name, execute_callback=self._execute,
-            goal_callback=lambda goal: (GoalResponse.REJECT if goal.order < 0
-                                        else GoalResponse.ACCEPT),
+            goal_callback=lambda goal: (time.sleep(self.accept_delay_s) or (
+                GoalResponse.REJECT if goal.order < 0 else GoalResponse.ACCEPT)),
             cancel_callback=lambda _handle: CancelResponse.ACCEPT,
             callback_group=ReentrantCallbackGroup())
         self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
@@ -128,8 +133,11 @@ class FibonacciServer:
         order = handle.request.order
         sequence = [0, 1]
         self.executing.set()
+        cancel_seen: float | None = None
         for _ in range(max(order, 1)):
-            if handle.is_cancel_requested:
+            if handle.is_cancel_requested and cancel_seen is None:
+                cancel_seen = time.monotonic()
+            if cancel_seen is not None and time.monotonic() - cancel_seen >= self.stop_delay_s:
                 handle.canceled()
                 self.cancelled.append(order)
                 return fib.Result(sequence=sequence)
@@ -140,6 +148,7 @@ class FibonacciServer:
             handle.publish_feedback(fib.Feedback(sequence=sequence))
             time.sleep(self.step_s)
         handle.succeed()
+        self.succeeded.append(order)
         return fib.Result(sequence=sequence)
 
     def close(self) -> None:

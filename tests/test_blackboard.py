@@ -590,3 +590,101 @@ def test_snapshot_encodes_non_finite_floats_as_tagged_numbers() -> None:
     bb.set("laser/front_m", float("inf"))
     snap = json.loads(json.dumps(bb.snapshot(), allow_nan=False))
     assert snap["laser/front_m"]["value"] == {"$float": "inf"}
+
+
+# -- review of issue 9 -----------------------------------------------------------------------
+
+def test_a_subscription_closed_during_a_delivery_is_not_called_after_close_returns() -> None:
+    """Callbacks run outside the lock, so close() cannot wait for a delivery under way;
+    it must still keep the closed subscription from being called afterwards."""
+    bb = Blackboard()
+    entered, release = threading.Event(), threading.Event()
+    after_close: list[Any] = []
+    closed = threading.Event()
+
+    def slow_first(change: Change) -> None:
+        entered.set()
+        release.wait(5)
+
+    bb.subscribe("battery/low", slow_first)
+    sub = bb.subscribe("battery/low",
+                       lambda c: after_close.append(c.value) if closed.is_set() else None)
+    writer = threading.Thread(target=bb.set, args=("battery/low", True))
+    writer.start()
+    assert entered.wait(5)
+    sub.close()  # while slow_first runs: sub is next in line for this change
+    closed.set()
+    release.set()
+    writer.join(5)
+    assert not writer.is_alive()
+    assert after_close == []
+
+
+@pytest.mark.parametrize("make", [lambda: float("nan"), lambda: [1.0, float("nan")],
+                                  lambda: {"x": float("nan")}, lambda: (float("nan"),)],
+                         ids=["float", "list", "dict", "tuple"])
+def test_rewriting_nan_is_no_change(make: Any) -> None:
+    """nan != nan, yet a sensor that keeps reporting "no reading" has not changed (the
+    mirror got it again at every snapshot). Each write is a new NaN object."""
+    bb = Blackboard()
+    seen: list[Change] = []
+    bb.subscribe("laser/front_m", seen.append)
+    bb.set("laser/front_m", make())
+    bb.set("laser/front_m", make())
+    assert len(seen) == 1
+    bb.set("laser/front_m", 1.0)
+    assert len(seen) == 2
+
+
+def test_setting_a_value_already_stale_notifies_once_and_never_fresh() -> None:
+    """A mirror copies a stale entry: one stale change, none when repeated, and nothing
+    that reads as fresh in between."""
+    bb = Blackboard()
+    seen: list[tuple[Any, bool]] = []
+    bb.set("battery/percentage", 54.0, writer="hal:battery")
+    bb.subscribe("battery/percentage", lambda c: seen.append((c.value, c.stale)))
+    for _ in range(3):
+        bb.set("battery/percentage", 54.0, writer="hal:battery", stale=True)
+    assert seen == [(54.0, True)]
+    assert bb.is_stale("battery/percentage")
+    bb.set("battery/percentage", 54.0, writer="hal:battery")  # the sensor is back
+    assert seen == [(54.0, True), (54.0, False)]
+    assert not bb.is_stale("battery/percentage")
+
+
+def test_changes_queued_when_an_on_error_hook_raised_keep_their_order() -> None:
+    """A raising on_error hook ends the delivery that called it; the changes other threads
+    queued meanwhile must still reach subscribers before any newer one."""
+    def hook(_sub: Subscription, exc: BaseException) -> None:
+        raise RuntimeError("the hook itself is broken") from exc
+
+    bb = Blackboard(on_error=hook)
+    seen: list[int] = []
+    entered, queued = threading.Event(), threading.Event()
+
+    def breaks_on_first(change: Change) -> None:
+        if change.value == 1:
+            entered.set()
+            assert queued.wait(5)
+            raise ValueError("subscriber bug")
+
+    bb.subscribe("k", lambda c: seen.append(c.value))
+    bb.subscribe("k", breaks_on_first)
+    failed: list[BaseException] = []
+
+    def first_writer() -> None:
+        try:
+            bb.set("k", 1)
+        except RuntimeError as exc:
+            failed.append(exc)
+
+    writer = threading.Thread(target=first_writer)
+    writer.start()
+    assert entered.wait(5)
+    bb.set("k", 2)  # delivery of k is under way in the writer: queued behind it
+    queued.set()
+    writer.join(5)
+    assert failed, "the hook's exception reaches the writer that ran it"
+    bb.set("k", 3)
+    assert seen == [1, 2, 3]
+    assert bb.get("k") == 3

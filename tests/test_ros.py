@@ -643,3 +643,337 @@ def test_logic_parameter_set_inside_the_loop_is_refused_not_blocking(
     result = ll.call(set_from_a_logic())
     assert not result.successful and "switch_async('driving')" in result.reason
     assert ll.current == "parked"
+
+
+# -- review of issue 9 -------------------------------------------------------------------------
+
+def _board_message(seq: int, kind: str, entries: dict[str, Any]) -> String:
+    return String(data=json.dumps({"schema": "beehave/blackboard/2", "kind": kind, "seq": seq,
+                                   "stamp": 1.0, "entries": entries, "removed": []}))
+
+
+def test_mirror_stale_or_nan_entries_are_no_change_at_every_snapshot() -> None:
+    """A stale entry never reads as fresh on the mirror (it was set, then marked stale,
+    at each snapshot), and an unchanged NaN is not notified again."""
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge
+    from beehave.ros.context import RosContext
+
+    ros = RosContext()
+    hl = HighLevelBehaviorManager()
+    bridge = HighLevelBridge(hl, ros.create_node("beehave_high_level", namespace="mstale"))
+    try:
+        seen: list[tuple[str, Any, bool]] = []
+        hl.blackboard.subscribe("**", lambda c: seen.append((c.key, c.value, c.stale)))
+        battery = {"value": 54.0, "stale": True, "writer": "hal:battery"}
+        laser = {"value": {"$float": "nan"}, "writer": "hal:laser"}
+        for seq in (1, 2, 3):
+            bridge._on_blackboard(_board_message(seq, "snapshot", {
+                "battery/percentage": battery, "laser/front_m": laser}))
+        assert [(k, s) for k, _, s in seen] == [("battery/percentage", True),
+                                                ("laser/front_m", False)], seen
+        assert hl.blackboard.is_stale("battery/percentage")
+    finally:
+        bridge.destroy()
+        hl.shutdown()
+        ros.shutdown()
+
+
+class _Loops(Behavior):
+    def run(self) -> None:
+        while self.sleep(0.05):
+            pass
+
+
+class _Broken(Behavior):
+    def __init__(self) -> None:
+        raise RuntimeError("typo in the constructor")
+
+    def run(self) -> None:  # pragma: no cover - never constructed
+        pass
+
+
+def test_behavior_parameter_latest_request_wins_after_a_rejected_one() -> None:
+    """patrol runs, parked is queued, `broken` is refused by its constructor, then patrol
+    is set again: patrol must win (the rejection used to make the bridge forget that
+    parked was queued, so the last set was skipped as "already running")."""
+    from rclpy.parameter import Parameter
+
+    from beehave import EventKind
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge
+    from beehave.ros.context import RosContext
+
+    ros = RosContext()
+    node = ros.create_node("beehave_high_level", namespace="rejw")
+    ros.start()
+    hl = HighLevelBehaviorManager(node=node, stop_timeout_s=0.3)
+    hl.register("patrol", _Loops)
+    hl.register("parked", _Loops)
+    hl.register("broken", _Broken)
+    hl.start()
+    bridge = HighLevelBridge(hl, node)
+    gate, held = threading.Event(), threading.Event()
+    ended: list[str] = []
+
+    def hold(event: Any) -> None:
+        if event.kind is EventKind.SWITCH_REJECTED or (
+                event.kind is EventKind.SWITCH_COMPLETED and event.subject != "patrol"):
+            ended.append(event.kind.name)
+        if (event.kind is EventKind.SWITCH_COMPLETED and event.subject == "patrol"
+                and not held.is_set()):
+            held.set()
+            gate.wait(10)  # later requests queue up behind this one
+
+    unsubscribe = hl.subscribe(hold)
+
+    def set_behavior(name: str) -> Any:
+        return node.set_parameters([Parameter("behavior", value=name)])[0]
+
+    try:
+        assert set_behavior("patrol").successful
+        assert held.wait(10)
+        assert set_behavior("parked").successful
+        set_behavior("broken")  # refused: now or when processed
+        assert set_behavior("patrol").successful
+        assert hl.requested == "patrol"
+        gate.set()
+        assert wait_until(lambda: hl.requested is None, 5)
+        assert hl.current == "patrol", (hl.current, ended)
+    finally:
+        gate.set()
+        unsubscribe()
+        bridge.destroy()
+        hl.shutdown()
+        ros.shutdown()
+
+
+def test_destroyed_bridges_leave_no_parameter_behind_and_a_new_bridge_fits() -> None:
+    """destroy() removes "all of it": setting `behavior` / `logic` on the node afterwards
+    switches nothing, and another bridge can be put on the same node."""
+    from rclpy.exceptions import ParameterNotDeclaredException
+    from rclpy.parameter import Parameter
+
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.lowlevel import LowLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
+    from beehave.ros.context import RosContext
+
+    ros = RosContext()
+    high_node = ros.create_node("beehave_high_level", namespace="dparm")
+    low_node = ros.create_node("beehave_low_level", namespace="dparm")
+    ros.start()
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.3)
+    hl.register("patrol", _Loops)
+    hl.start()
+    ll = LowLevelBehaviorManager(default="parked", stop_timeout_s=0.3)
+    ll.register("parked", _Forever)
+    ll.register("driving", _Forever)
+    try:
+        with ll:
+            HighLevelBridge(hl, high_node).destroy()
+            LowLevelBridge(ll, low_node, switch_timeout_s=0.5).destroy()
+            assert hl.node is None
+            for node, name, value in ((high_node, "behavior", "patrol"),
+                                      (low_node, "logic", "driving")):
+                with pytest.raises(ParameterNotDeclaredException):
+                    node.set_parameters([Parameter(name, value=value)])
+            assert hl.current == "idle" and ll.current == "parked"
+            again = HighLevelBridge(hl, high_node)
+            try:
+                assert high_node.set_parameters(
+                    [Parameter("behavior", value="patrol")])[0].successful
+                assert wait_until(lambda: hl.current == "patrol", 5)
+            finally:
+                again.destroy()
+    finally:
+        hl.shutdown()
+        ros.shutdown()
+
+
+def test_a_snapshot_never_overwrites_a_newer_change_on_the_mirror() -> None:
+    """A change published while a snapshot was being read must not be followed by that
+    older snapshot (the mirror kept the old value until the next one). The pause in the
+    snapshot's read is injected: it only widens a real window."""
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.lowlevel import LowLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
+    from beehave.ros.context import RosContext
+
+    ros = RosContext()
+    high_node = ros.create_node("beehave_high_level", namespace="snapo")
+    low_node = ros.create_node("beehave_low_level", namespace="snapo")
+    ros.start()
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.3)
+    high = HighLevelBridge(hl, high_node)
+    try:
+        with LowLevelBehaviorManager() as ll:
+            board = ll.blackboard
+            board.set("k", 1)
+            low = LowLevelBridge(ll, low_node, snapshot_period_s=60.0, settle_s=60.0)
+            try:
+                assert wait_until(lambda: hl.blackboard.get("k") == 1, 10)
+                read, written = threading.Event(), threading.Event()
+                real_entry = board.entry
+
+                def slow_entry(key: str) -> Any:
+                    change = real_entry(key)
+                    if key == "k" and threading.current_thread().name == "snapshotter":
+                        read.set()  # the snapshot has read k == 1 …
+                        written.wait(0.5)  # … and the loop writes before it is published
+                    return change
+
+                board.entry = slow_entry  # type: ignore[method-assign]
+                seq = low._seq
+                snapshotter = threading.Thread(target=low._publish_snapshot,
+                                               name="snapshotter")
+                snapshotter.start()
+                assert read.wait(5)
+                board.set("k", 2)
+                # Unfixed, the change goes out at once; fixed, it waits for the snapshot.
+                wait_until(lambda: low._seq > seq + 1 or not snapshotter.is_alive(), 5)
+                written.set()
+                snapshotter.join(5)
+                board.entry = real_entry  # type: ignore[method-assign]
+                # Everything published has arrived (other keys may change meanwhile).
+                assert wait_until(lambda: not low._pending and high._last_seq == low._seq, 10)
+                assert hl.blackboard.get("k") == board.get("k") == 2
+            finally:
+                low.destroy()
+    finally:
+        high.destroy()
+        hl.shutdown()
+        ros.shutdown()
+
+
+def test_an_engine_that_appears_after_the_start_is_published() -> None:
+    """A behaviour that prepares (builds its machine, loads a map) before driving its
+    engine is published with no engines at its start; its engine must still follow."""
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge
+    from beehave.ros.context import RosContext
+
+    ready = threading.Event()
+
+    class Preparing(Behavior):
+        def run(self) -> None:
+            while self.sleep(1.0):
+                pass
+
+        def _snapshot(self) -> dict[str, Any]:
+            snap = super()._snapshot()
+            if ready.is_set():
+                snap["engine"] = {"kind": "state_machine", "state": "approach"}
+            return snap
+
+    ros = RosContext()
+    node = ros.create_node("beehave_high_level", namespace="engla")
+    hl = HighLevelBehaviorManager(node=node, stop_timeout_s=0.3)
+    bridge = HighLevelBridge(hl, node, state_period_s=60.0)
+    ros.start()
+    probe = Probe()
+    try:
+        hl.register("preparing", Preparing)
+        hl.start()
+        state = probe.record(String, "/engla/beehave/high_level/state", latched=True)
+        hl.switch("preparing")
+        assert probe.wait(lambda: (last_json(state) or {}).get("behavior") == "preparing")
+        assert (last_json(state) or {}).get("engines") == []
+        ready.set()
+        assert probe.wait(lambda: [e.get("state") for e in
+                                   (last_json(state) or {}).get("engines", [])] == ["approach"],
+                          timeout_s=5.0), last_json(state)
+    finally:
+        probe.close()
+        bridge.destroy()
+        hl.shutdown()
+        ros.shutdown()
+
+
+class _StopsMotors(Logic):
+    """Asks a ROS service to stop the motors when it ends: its stop needs a ROS callback."""
+
+    stop_acked: bool | None = None
+
+    async def run(self) -> None:
+        import asyncio
+
+        from std_srvs.srv import Trigger
+
+        base = await self.hal("base")
+        try:
+            await asyncio.sleep(3600)
+        finally:
+            response = await base.call(Trigger, "stop_motors", Trigger.Request(), timeout_s=3.0)
+            type(self).stop_acked = response.success
+
+
+def test_logic_parameter_switch_whose_stop_needs_a_ros_callback(probe: Probe) -> None:
+    """A remote `ros2 param set logic` is served in the executor thread; waiting there for
+    the whole switch starved the old logic's service call in its `finally` (it timed out,
+    the logic went STUCK, the set was refused)."""
+    from std_srvs.srv import Trigger
+
+    from beehave.lowlevel import LowLevelBehaviorManager
+    from beehave.ros.bridge import LowLevelBridge
+    from beehave.ros.context import RosContext
+    from beehave.ros.hal import RosHAL
+
+    class Base(RosHAL):
+        name = "base"
+
+    def stop_motors(_request: Any, response: Any) -> Any:
+        response.success = True
+        return response
+
+    probe.node.create_service(Trigger, "/llsvc/stop_motors", stop_motors)
+    ros = RosContext()
+    node = ros.create_node("beehave_low_level", namespace="llsvc")
+    ll = LowLevelBehaviorManager(default="parked", stop_timeout_s=0.5)
+    ll.hals.node = node
+    ll.hals.register(Base)
+    ll.register("parked", _Forever)
+    ll.register("drive", _StopsMotors)
+    stuck: list[Any] = []
+    ll.subscribe(lambda e: stuck.append(e) if e.kind.name == "STUCK" else None)
+    ros.start()
+    try:
+        with ll:
+            bridge = LowLevelBridge(ll, node, switch_timeout_s=2.0)
+            try:
+                ll.switch("drive")
+                result = probe.set_param("/llsvc/beehave_low_level", "logic", "parked")
+                assert result.successful, result.reason
+                assert wait_until(lambda: ll.current == "parked", 5)
+                assert _StopsMotors.stop_acked is True
+                assert stuck == []
+                assert wait_until(lambda: probe.get_param("/llsvc/beehave_low_level",
+                                                          "logic") == "parked")
+            finally:
+                bridge.destroy()
+    finally:
+        ros.shutdown()
+
+
+@pytest.mark.parametrize("bridge, option, value", [
+    ("high", "state_rate_hz", 0), ("high", "engine_rate_hz", float("nan")),
+    ("high", "state_period_s", -1.0), ("low", "blackboard_rate_hz", 0.0),
+    ("low", "snapshot_period_s", float("inf")), ("low", "settle_s", float("nan"))])
+def test_bridges_refuse_rates_and_periods_that_are_not_positive_numbers(
+        bridge: str, option: str, value: float) -> None:
+    from beehave.highlevel import HighLevelBehaviorManager
+    from beehave.lowlevel import LowLevelBehaviorManager
+    from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
+    from beehave.ros.context import RosContext
+
+    ros = RosContext()
+    node = ros.create_node("bad_rates")
+    try:
+        with pytest.raises(ConfigError, match=rf"{option} must be .* got {value!r}"):
+            if bridge == "high":
+                HighLevelBridge(HighLevelBehaviorManager(), node, **{option: value})
+            else:
+                LowLevelBridge(LowLevelBehaviorManager(), node, **{option: value})
+        assert not node.has_parameter("behavior") and not node.has_parameter("logic")
+    finally:
+        ros.shutdown()

@@ -178,3 +178,103 @@ def test_service_call_is_interrupted_at_once(hl: HighLevelBehaviorManager) -> No
     assert behavior.ready.wait(10)  # type: ignore[attr-defined]
     hl.switch("idle")
     assert action.status.name == "INTERRUPTED", (action.status, action.error)
+
+
+# -- review of issue 9 -------------------------------------------------------------------------
+
+def test_an_interrupt_waits_cancel_timeout_s_once_not_twice(server: FibonacciServer) -> None:
+    """wait() and then safe_state() each waited cancel_timeout_s for a server slow to stop:
+    twice 0.6 s overran stop_timeout_s = 1 s, and the action was reported STUCK."""
+    ros = RosContext()
+    node = ros.create_node("beehave_high_level", namespace=NS)
+    ros.start()
+    hl = HighLevelBehaviorManager(node=node, stop_timeout_s=1.0)
+    hl.start()
+    try:
+        server.step_s = 0.05
+        server.stop_delay_s = 3.0  # it ends a goal 3 s after being asked to cancel
+        action = Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=1000), cancel_timeout_s=0.6)
+        hl.register("runs", Runs, action=action)
+        assert hl.switch("runs").ready.wait(10)  # type: ignore[attr-defined]
+        assert wait_until(lambda: action.feedback is not None)
+        hl.switch("idle")
+        assert action.status.name == "INTERRUPTED", (action.status, action.error)
+        assert hl.snapshot()["stuck"] == []
+    finally:
+        hl.shutdown()
+        ros.shutdown()
+
+
+@pytest.mark.parametrize("how", ["server_timeout", "interrupt"])
+def test_a_goal_accepted_after_its_sender_gave_up_is_cancelled(
+        hl: HighLevelBehaviorManager, server: FibonacciServer, how: str) -> None:
+    """The owner ends right after giving up; its action client must live until the late
+    acceptance arrives, so that the goal is cancelled rather than run with no owner."""
+    server.step_s = 0.05
+    server.accept_delay_s = 1.0
+    action = Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=1000),  # ~50 s
+                 server_timeout_s=0.3 if how == "server_timeout" else 30.0)
+    hl.register("runs", Runs, action=action)
+    assert hl.switch("runs").ready.wait(10)  # type: ignore[attr-defined]
+    if how == "interrupt":
+        hl.switch("idle")
+        assert action.status.name == "INTERRUPTED", (action.status, action.error)
+    else:
+        assert action.wait(10)
+        assert isinstance(action.error, WaitTimeout), action.error
+    assert wait_until(lambda: server.cancelled == [1000], 10), (server.cancelled,
+                                                                 server.succeeded)
+
+
+class Sends(Behavior):
+    """Sends goals one after the other in one behaviour, as a patrol loop would."""
+
+    def __init__(self, count: int) -> None:
+        self.count = count
+        self.done = threading.Event()
+        self.goals_held: list[int] = []
+
+    def run(self) -> None:
+        for order in range(1, self.count + 1):
+            goal = self.ros.send_goal(Fibonacci, "fibonacci", Fibonacci.Goal(order=order))
+            goal.wait(timeout_s=10.0)
+        self.done.set()
+        while self.sleep(1.0):
+            pass
+
+
+def test_finished_goals_are_not_kept_by_their_owner(hl: HighLevelBehaviorManager,
+                                                    server: FibonacciServer) -> None:
+    hl.register("sends", Sends, count=5)
+    behavior = hl.switch("sends")
+    assert behavior.done.wait(20)  # type: ignore[attr-defined]
+    assert wait_until(lambda: not [k for k, _ in behavior.ros.entities if k == "goal"])
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -1.0])
+def test_non_finite_or_negative_timeouts_are_refused_at_once(
+        hl: HighLevelBehaviorManager, bad: float) -> None:
+    """call(timeout_s=nan) waited forever: nan compares false with every deadline."""
+    from std_srvs.srv import Trigger
+
+    from beehave.ros.io import RosIO
+
+    io = RosIO(hl.node, owner="test")
+    outcome: list[BaseException] = []
+
+    def attempt() -> None:
+        try:
+            io.call(Trigger, "nobody_serves_this", Trigger.Request(), timeout_s=bad)
+        except BaseException as exc:  # noqa: BLE001 - recorded for the assertion
+            outcome.append(exc)
+
+    worker = threading.Thread(target=attempt, daemon=True)
+    worker.start()
+    worker.join(5)
+    try:
+        assert outcome and isinstance(outcome[0], ConfigError), outcome
+        assert "timeout_s" in str(outcome[0]) and repr(bad) in str(outcome[0])
+        with pytest.raises(ConfigError, match="server_timeout_s"):
+            io.send_goal(Fibonacci, "fibonacci", Fibonacci.Goal(), server_timeout_s=bad)
+    finally:
+        io.destroy_all()

@@ -20,22 +20,13 @@ share one lock named after the class). Names are relative to the robot's namespa
 
 from __future__ import annotations
 
-import math
+import time
 from collections.abc import Callable
 from typing import Any
 
 from beehave.action import Action
-from beehave.errors import ConfigError
 from beehave.ros.io import Goal
-
-
-def _duration(owner: str, label: str, value: float | None, *, optional: bool) -> None:
-    if value is None and optional:
-        return
-    if not (isinstance(value, (int, float)) and not isinstance(value, bool)
-            and math.isfinite(value) and value >= 0):
-        raise ConfigError(f"{owner}: {label} must be a finite number of seconds >= 0"
-                          f"{' or None' if optional else ''}, got {value!r}")
+from beehave.ros.io import check_duration as _duration
 
 
 class RosActionGoal(Action):
@@ -65,8 +56,8 @@ class RosActionGoal(Action):
                  cancel_timeout_s: float = 0.5) -> None:
         owner = type(self).__name__
         _duration(owner, "timeout_s", timeout_s, optional=True)
-        _duration(owner, "server_timeout_s", server_timeout_s, optional=False)
-        _duration(owner, "cancel_timeout_s", cancel_timeout_s, optional=False)
+        _duration(owner, "server_timeout_s", server_timeout_s)
+        _duration(owner, "cancel_timeout_s", cancel_timeout_s)
         self.action = action
         self.action_name = name
         self.request = goal
@@ -88,10 +79,17 @@ class RosActionGoal(Action):
         return self.goal.wait(timeout_s=self.timeout_s, cancel_timeout_s=self.cancel_timeout_s)
 
     def safe_state(self) -> None:
-        """Cancel the goal if it still runs (``wait`` has usually done so already)."""
+        """Cancel the goal if it still runs (``wait`` has usually done so already),
+        waiting for the server at most ``cancel_timeout_s`` since the cancel was asked for
+        — once in all, not once in ``wait`` and again here (that made a slow-to-stop
+        server's goal outlast ``stop_timeout_s``: the action was reported STUCK)."""
         goal = self.goal
-        if goal is not None and not goal.done:
-            goal.cancel(timeout_s=self.cancel_timeout_s)
+        if goal is None or goal.done:
+            return
+        asked = goal.cancel_requested_at
+        left_s = (self.cancel_timeout_s if asked is None
+                  else self.cancel_timeout_s - (time.monotonic() - asked))
+        goal.cancel(timeout_s=max(0.0, left_s))
 
 
 class ServiceCall(Action):
@@ -105,7 +103,7 @@ class ServiceCall(Action):
 
     def __init__(self, service: type, name: str, request: Any, *,
                  timeout_s: float = 5.0) -> None:
-        _duration(type(self).__name__, "timeout_s", timeout_s, optional=False)
+        _duration(type(self).__name__, "timeout_s", timeout_s)
         self.service = service
         self.service_name = name
         self.request = request

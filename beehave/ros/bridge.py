@@ -44,8 +44,9 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
   machine's current state, a behaviour tree's node statuses …), strict JSON; empty when no
   engine runs. It is published with the rest — on every lifecycle change (at most
   ``state_rate_hz``) and every ``state_period_s`` — and, while an engine runs, whenever its
-  snapshot changed (compared ``engine_rate_hz`` times a second). Schema ``/1`` (without
-  ``engines``) is still accepted.
+  snapshot changed (compared ``engine_rate_hz`` times a second while any behaviour runs,
+  so an engine that appears after its behaviour started is published too). Schema ``/1``
+  (without ``engines``) is still accepted.
 
   The low level writes it into its blackboard: ``high_level/behavior``,
   ``high_level/logic``, ``high_level/running`` (that list), ``high_level/engines`` (that
@@ -55,9 +56,11 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
 Parameters: the high-level node's ``behavior`` (string) switches the top-level behaviour
 (at once; the latest request wins, also when it names the running behaviour while another
 switch is queued); the low-level node's ``logic`` switches the top-level logic and answers
-with the switch's outcome, waiting at most ``switch_timeout_s`` (a blocked event loop gives
-a refusal that says so). Unknown names are refused (``SetParametersResult.successful``
-false; the reason lists the registered names). Both always show what runs.
+once the switch is under way or failed — served in the executor thread, it does not wait
+for the old logic's stop, which may need that thread — at most ``switch_timeout_s`` (a
+blocked event loop gives a refusal that says so). Unknown names are refused
+(``SetParametersResult.successful`` false; the reason lists the registered names). Both
+always show what runs.
 Service ``beehave/stop`` (std_srvs/Trigger) on the high-level node switches to ``idle``.
 """
 
@@ -88,6 +91,7 @@ from beehave.errors import BeehaveError, BlackboardError, ConfigError
 from beehave.events import Event, EventBus, EventKind
 from beehave.highlevel import IDLE, HighLevelBehaviorManager
 from beehave.lowlevel import LowLevelBehaviorManager
+from beehave.ros.context import in_executor_thread
 
 log = logging.getLogger(__name__)
 
@@ -113,11 +117,34 @@ BLACKBOARD_QOS = QoSProfile(depth=BLACKBOARD_DEPTH, history=HistoryPolicy.KEEP_L
                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+def _check_positive(owner: str, **options: float) -> None:
+    """Refuse rates and periods that are not finite numbers > 0 (0 Hz divided by zero,
+    NaN made a timer that never or always fires), naming the option."""
+    for label, value in options.items():
+        if not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                and math.isfinite(value) and value > 0):
+            unit = "Hz" if label.endswith("_hz") else "seconds"
+            raise ConfigError(f"{owner}: {label} must be a finite number of {unit} > 0, "
+                              f"got {value!r}")
+
+
 def _string_param(node: Node, name: str, value: str, description: str) -> None:
     # dynamic_typing: our own callback refuses non-strings, with a reason naming the choices
     # (rclpy's type check would only say "expected '4' got '2'").
     node.declare_parameter(name, value, ParameterDescriptor(
         description=description, dynamic_typing=True))
+
+
+def _remove_param(node: Node, name: str,
+                  callback: Callable[[list[Parameter[Any]]], SetParametersResult]) -> None:
+    """Undo :func:`_string_param` and the switch callback: after a bridge's destroy(),
+    setting the parameter switches nothing, and a new bridge may declare it again."""
+    try:
+        node.remove_on_set_parameters_callback(callback)
+    except ValueError:  # removed already
+        pass
+    if node.has_parameter(name):
+        node.undeclare_parameter(name)
 
 
 class _ParamGuard:
@@ -178,8 +205,11 @@ class HighLevelBridge:
     def __init__(self, manager: HighLevelBehaviorManager, node: Node, *,
                  state_rate_hz: float = 50.0, state_period_s: float = 1.0,
                  engine_rate_hz: float = 10.0) -> None:
+        _check_positive("HighLevelBridge", state_rate_hz=state_rate_hz,
+                        state_period_s=state_period_s, engine_rate_hz=engine_rate_hz)
         self.manager = manager
         self.node = node
+        self._previous_node = manager.node  # given back by destroy()
         manager.node = node
         self._guard = _ParamGuard()
         self._io = threading.Lock()  # publishing vs. destroy(), which runs in another thread
@@ -192,14 +222,11 @@ class HighLevelBridge:
         self._last_seq: int | None = None
         _string_param(node, "behavior", manager.current or manager.default,
                       "the top-level behaviour; set it to switch")
-        # The name of the latest switch request that has not completed yet (any source:
-        # this parameter, the stop service, Python). Setting the parameter to the running
-        # name is a no-op only when no other switch is queued: else it must win.
-        self._requested_lock = threading.Lock()
-        self._requested: str | None = None
-        node.add_on_set_parameters_callback(_switch_param_callback(
+        # Kept to be removed by destroy() (rclpy identifies a callback by the function).
+        self._on_set_param = _switch_param_callback(
             "behavior", lambda: manager.names, self._target, self._request, self._guard,
-            "behavior"))
+            "behavior")
+        node.add_on_set_parameters_callback(self._on_set_param)
         self._state_pub = node.create_publisher(String, STATE_TOPIC, LATCHED)
         self._bb_sub = node.create_subscription(String, BLACKBOARD_TOPIC, self._on_blackboard,
                                                 BLACKBOARD_QOS)
@@ -223,10 +250,12 @@ class HighLevelBridge:
         self._dirty.set()
 
     def _target(self) -> str | None:
-        """What will run once the queued switches are done."""
-        with self._requested_lock:
-            requested = self._requested
-        return requested if requested is not None else self.manager.current
+        """What will run once the queued switches are done. Setting the parameter to the
+        running name is a no-op only when no other switch is queued: else it must win.
+
+        Asked of the manager, which holds its queue, rather than rebuilt from events: a
+        rejected or fallen-back switch says nothing about the requests still queued."""
+        return self.manager.requested or self.manager.current
 
     def _request(self, name: str) -> None:
         self.manager.request_switch(name)
@@ -243,19 +272,6 @@ class HighLevelBridge:
     def _on_event(self, event: Event) -> None:
         if event.kind in _STATE_EVENTS:
             self._dirty.set()
-        if event.kind is EventKind.SWITCH_REQUESTED:
-            with self._requested_lock:
-                self._requested = event.subject
-        elif event.kind in (EventKind.SWITCH_COMPLETED, EventKind.FALLBACK,
-                            EventKind.SWITCH_REJECTED):
-            with self._requested_lock:
-                # A fallback means nothing was queued when the behaviour ended; a switch
-                # that failed while processed is reported as rejected "switch". (Should a
-                # request's event come late, the next set of the parameter merely asks
-                # for a switch again, rather than being skipped.)
-                if (event.kind is not EventKind.SWITCH_COMPLETED
-                        or event.subject == self._requested):
-                    self._requested = None
         if event.kind is EventKind.SWITCH_COMPLETED:
             with self._guard:
                 try:
@@ -299,7 +315,10 @@ class HighLevelBridge:
             self._publish_state(self.state())
             return
         now = time.monotonic()
-        if self._engines and now - self._engines_checked >= self._engine_period_s:
+        # While any behaviour runs, not only while the last state had engines: one that
+        # prepares before driving its engine was published with none.
+        if (self.manager.top is not None
+                and now - self._engines_checked >= self._engine_period_s):
             self._engines_checked = now
             state = self.state()
             if state["engines"] != self._engines:
@@ -324,9 +343,10 @@ class HighLevelBridge:
         self._last_seq = data.seq  # a restarted low level starts again at 1
         board = self.manager.blackboard
         for key, entry in data.entries.items():
-            board.set(key, from_json(entry.value), writer=entry.writer or MIRROR_WRITER)
-            if entry.stale:
-                board.mark_stale(pattern=key)
+            # Value and stale flag in one store: an entry that stays stale (or NaN) is no
+            # change at every snapshot, and never reads as fresh in between.
+            board.set(key, from_json(entry.value), writer=entry.writer or MIRROR_WRITER,
+                      stale=entry.stale)
         if data.kind == "snapshot":
             self.mirror_complete = True
 
@@ -341,6 +361,9 @@ class HighLevelBridge:
         if self._clock_sub is not None:
             self.node.destroy_subscription(self._clock_sub)
         self.node.destroy_service(self._stop_srv)
+        _remove_param(self.node, "behavior", self._on_set_param)
+        if self.manager.node is self.node:
+            self.manager.node = self._previous_node
 
 
 _STATE_EVENTS = {EventKind.STARTED, EventKind.ENDED, EventKind.STUCK,
@@ -359,6 +382,8 @@ class LowLevelBridge:
     def __init__(self, manager: LowLevelBehaviorManager, node: Node, *,
                  blackboard_rate_hz: float = 2000.0, snapshot_period_s: float = 1.0,
                  settle_s: float = 0.2, switch_timeout_s: float | None = None) -> None:
+        _check_positive("LowLevelBridge", blackboard_rate_hz=blackboard_rate_hz,
+                        snapshot_period_s=snapshot_period_s, settle_s=settle_s)
         if switch_timeout_s is None:
             # Stopping the old logic may take stop_timeout_s, unloading its HALs as long.
             switch_timeout_s = 2.0 * manager.stop_timeout_s + 1.0
@@ -388,9 +413,10 @@ class LowLevelBridge:
         self._target: str | None = None
         _string_param(node, "logic", manager.current or manager.default or "",
                       "the top-level logic; set it to switch")
-        node.add_on_set_parameters_callback(_switch_param_callback(
+        self._on_set_param = _switch_param_callback(
             "logic", lambda: manager.registered, self._target_logic,
-            self._switch_from_parameter, self._guard, "logic"))
+            self._switch_from_parameter, self._guard, "logic")
+        node.add_on_set_parameters_callback(self._on_set_param)
         self._pub = node.create_publisher(String, BLACKBOARD_TOPIC, BLACKBOARD_QOS)
         self._state_sub = node.create_subscription(String, STATE_TOPIC, self._on_state, LATCHED)
         self._snap = node.create_timer(snapshot_period_s, self._publish_snapshot)
@@ -460,12 +486,16 @@ class LowLevelBridge:
         board = self.manager.blackboard
         entries = {}
         taken: dict[str, Change] = {}
-        for key in board.keys():
-            change = board.entry(key)
-            if change is not None:
-                entries[key] = _entry(change)
-                taken[key] = change
         with self._lock:
+            # The board is read under the lock that orders publishing: a change published
+            # between this read and the snapshot would otherwise be followed by the older
+            # snapshot value, and the mirror would keep it until the next snapshot. A
+            # change made meanwhile waits in _on_change and goes out after the snapshot.
+            for key in board.keys():
+                change = board.entry(key)
+                if change is not None:
+                    entries[key] = _entry(change)
+                    taken[key] = change
             # The snapshot carries these pending changes; those made after it read the
             # board must still go out as changes, or the mirror would miss them until the
             # next snapshot.
@@ -515,16 +545,28 @@ class LowLevelBridge:
         ticket = _Ticket()
         manager = self.manager
 
+        def on_event(event: Event) -> None:
+            # switch_async creates the logic, then announces the request, before it awaits
+            # anything: in this loop, the first request for `name` from now on is ours.
+            if event.kind is EventKind.SWITCH_REQUESTED and event.subject == name:
+                ticket.under_way.set()
+
         async def switch() -> None:
             with ticket.lock:
                 if ticket.abandoned:
                     return  # its caller was told it failed: do not switch behind its back
                 ticket.began = True
-            await manager.switch_async(name)
+            unsubscribe = manager.subscribe(on_event)
+            try:
+                await manager.switch_async(name)
+            finally:
+                unsubscribe()
 
         with self._target_lock:
             self._target = name
-        return asyncio.run_coroutine_threadsafe(switch(), loop), ticket
+        future = asyncio.run_coroutine_threadsafe(switch(), loop)
+        future.add_done_callback(lambda _: ticket.under_way.set())  # failed, or done
+        return future, ticket
 
     def _request(self, name: str) -> None:
         """Switch without waiting (the high level's state asked for ``name``)."""
@@ -554,6 +596,15 @@ class LowLevelBridge:
                                f"`await ll.switch_async({name!r})`")
         future, ticket = self._submit(name)
         try:
+            if in_executor_thread():
+                # A ROS callback (a remote `ros2 param set`): stopping the old logic may
+                # need this very thread (a HAL's service call in its `finally`), so do not
+                # wait for the end — only until the new logic exists and the old one is
+                # being stopped. The parameter shows the new logic once it runs.
+                if not ticket.under_way.wait(self.switch_timeout_s):
+                    raise concurrent.futures.TimeoutError
+                if not future.done():
+                    return
             future.result(self.switch_timeout_s)
         except concurrent.futures.TimeoutError:
             with ticket.lock:
@@ -614,17 +665,36 @@ class LowLevelBridge:
         except Exception:  # the node may be going away during shutdown
             log.debug("could not update parameter 'logic'", exc_info=True)
 
+    def _cancel_handles(self) -> None:
+        # Should one fire first, it finds the bridge closed and publishes nothing.
+        for handle in (self._flush_handle, self._settle_handle):
+            if handle is not None:
+                handle.cancel()
+
+    def _in_loop(self, fn: Callable[[], None]) -> None:
+        loop = self.manager.loop
+        try:
+            in_loop = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            in_loop = False
+        if loop is None or in_loop:
+            fn()
+            return
+        try:
+            loop.call_soon_threadsafe(fn)
+        except RuntimeError:  # the loop is closed: nothing can fire any more
+            fn()
+
     def destroy(self) -> None:
         with self._lock:
             self._closed = True
         self._unsubscribe()
         self._bb_sub.close()
-        for handle in (self._flush_handle, self._settle_handle):
-            if handle is not None:
-                handle.cancel()
+        self._in_loop(self._cancel_handles)  # asyncio handles belong to the loop's thread
         self.node.destroy_timer(self._snap)
         self.node.destroy_publisher(self._pub)
         self.node.destroy_subscription(self._state_sub)
+        _remove_param(self.node, "logic", self._on_set_param)
 
 
 class _Ticket:
@@ -634,6 +704,8 @@ class _Ticket:
         self.lock = threading.Lock()
         self.began = False
         self.abandoned = False
+        #: Set once the new logic exists and the switch proceeds (or it ended either way).
+        self.under_way = threading.Event()
 
 
 class _Message(BaseModel):

@@ -16,6 +16,15 @@ from rclpy.parameter import Parameter
 
 log = logging.getLogger(__name__)
 
+_executor_thread = threading.local()
+
+
+def in_executor_thread() -> bool:
+    """Whether the calling code runs in a :class:`RosContext`'s executor thread (a ROS
+    callback): waiting there for something that needs another ROS callback — a service
+    response, a message — blocks until the wait times out, as nothing else is served."""
+    return bool(getattr(_executor_thread, "active", False))
+
 
 class RosContext:
     """Owns an rclpy :class:`~rclpy.context.Context`, the nodes created through it, and one
@@ -72,6 +81,7 @@ class RosContext:
             self._thread.start()
 
     def _spin(self) -> None:
+        _executor_thread.active = True
         while not self._stop.is_set() and self.context.ok():
             try:
                 self.executor.spin_once(timeout_sec=self.spin_timeout_s)

@@ -26,6 +26,8 @@ Topic names are relative to the robot's namespace (the manager's node).
 
 from __future__ import annotations
 
+import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -35,9 +37,27 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
 from beehave.clock import WallClock
-from beehave.errors import BeehaveError, GoalFailed, Interrupted
+from beehave.errors import BeehaveError, ConfigError, GoalFailed, Interrupted
+
+log = logging.getLogger(__name__)
 
 M = TypeVar("M")
+
+#: How long an ended owner's action client stays after it, at most, to cancel a goal that
+#: the server accepted after the owner had given up on it (see :meth:`RosIO.destroy_all`).
+LINGER_S = 10.0
+
+
+def check_duration(owner: str, label: str, value: object, *, optional: bool = False) -> None:
+    """Refuse a timeout that is not a finite number of seconds >= 0 (None allowed when
+    ``optional``): NaN compares false with everything, so a wait bounded by it would last
+    forever (or end at once), and infinity overflows the waiting primitives."""
+    if value is None and optional:
+        return
+    if not (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value) and value >= 0):
+        raise ConfigError(f"{owner}: {label} must be a finite number of seconds >= 0"
+                          f"{' or None' if optional else ''}, got {value!r}")
 
 
 class WaitTimeout(BeehaveError, TimeoutError):
@@ -84,6 +104,7 @@ class Latest(Generic[M]):
         it. ``newer=True`` ignores the message held at the time of the call. Raises
         :class:`WaitTimeout` after ``timeout_s`` (the clock's time) and
         :class:`~beehave.errors.Interrupted` when the owner is interrupted."""
+        check_duration(f"waiting on {self.topic!r}", "timeout_s", timeout_s, optional=True)
         with self._cond:
             start_count = self._count
 
@@ -133,6 +154,9 @@ class Goal:
         self.feedback: Any = None
         self.feedback_error: BaseException | None = None
         self._cancel_future: Any = None
+        self._client: Any = None  # the ActionClient it came from (set by RosIO.send_goal)
+        #: ``time.monotonic()`` when the cancel was first asked for, or None.
+        self.cancel_requested_at: float | None = None
         self._result_future = handle.get_result_async()
         self._result_future.add_done_callback(self._wake)
 
@@ -160,6 +184,8 @@ class Goal:
         (the clock's time) and :class:`~beehave.errors.Interrupted` as soon as the owner is
         interrupted — in both cases after cancelling the goal (see :meth:`cancel`). An
         exception raised by the feedback callback is raised here, after cancelling too."""
+        check_duration(self._owner, "timeout_s", timeout_s, optional=True)
+        check_duration(self._owner, "cancel_timeout_s", cancel_timeout_s)
         deadline = None if timeout_s is None else self._clock.now() + timeout_s
         with self._cond:
             self._clock.wait(self._cond, lambda: (self.done or self._interrupted()
@@ -189,10 +215,12 @@ class Goal:
         """Ask the server to cancel the goal and wait, at most ``timeout_s`` (wall time, as
         every bound on stopping), until it has ended. Returns whether it has ended.
         Idempotent; does nothing when the goal is done already."""
+        check_duration(self._owner, "timeout_s", timeout_s)
         if self.done:
             return True
         with self._cond:
             if self._cancel_future is None:
+                self.cancel_requested_at = time.monotonic()
                 self._cancel_future = self._handle.cancel_goal_async()
                 self._cancel_future.add_done_callback(self._wake)
             cancel = self._cancel_future
@@ -218,12 +246,6 @@ class Goal:
         self._wake()
 
 
-def _cancel_if_accepted(sent: Any) -> None:
-    handle = None if sent.cancelled() or sent.exception() is not None else sent.result()
-    if handle is not None and handle.accepted:
-        handle.cancel_goal_async()
-
-
 class RosIO:
     """ROS entities owned by one behaviour, action or HAL; :meth:`destroy_all` ends them.
 
@@ -236,6 +258,7 @@ class RosIO:
                  clock: WallClock | None = None) -> None:
         self.node = node
         self.owner = owner
+        self._lingering: dict[int, Callable[[], None]] = {}
         self._cond = cond
         self._interrupted = interrupted
         self._clock = clock
@@ -246,6 +269,10 @@ class RosIO:
         # behaviour that polls a service in a loop must not leave a client (and its DDS
         # readers) per call.
         self._call_clients: dict[tuple[str, type, str], Any] = {}
+        # Per action client (by id): requests whose answer has not come yet and that must
+        # not be lost by destroying the client — goals sent but given up on (the server
+        # may accept them late: they are cancelled then) and cancels sent.
+        self._unsettled: dict[int, set[Any]] = {}
 
     def _track(self, kind: str, entity: Any) -> Any:
         with self._lock:
@@ -291,6 +318,7 @@ class RosIO:
         short); ``Goal.feedback`` always holds the newest. Goals to one server share one
         client; a goal still running when the owner ends is cancelled.
         """
+        check_duration(self.owner, "server_timeout_s", server_timeout_s)
         client = self._cached_client("action_client", action_type, name)
         cond = self._cond if self._cond is not None else threading.Condition()
         clock = self._clock or WallClock()
@@ -322,8 +350,17 @@ class RosIO:
                        max(0.0, deadline - clock.now()))
         if not sent.done():
             # The server may still accept it: then cancel at once, so that no goal runs on
-            # without an owner.
-            sent.add_done_callback(_cancel_if_accepted)
+            # without an owner (destroy_all keeps the client until then).
+            self._hold(client, sent)
+
+            def cancel_if_accepted(answered: Any) -> None:
+                handle = (None if answered.cancelled() or answered.exception() is not None
+                          else answered.result())
+                if handle is not None and handle.accepted:
+                    self._hold(client, handle.cancel_goal_async())
+                self._release(client, answered)
+
+            sent.add_done_callback(cancel_if_accepted)
             if interrupted():
                 raise Interrupted(f"{self.owner}: interrupted while sending a goal to {full!r}")
             raise WaitTimeout(f"action server {full!r} did not answer the goal within "
@@ -334,6 +371,7 @@ class RosIO:
                              f"{goal!r:.200}", status="REJECTED")
         accepted = Goal(handle, full, cond=cond, interrupted=interrupted, clock=clock,
                         owner=self.owner)
+        accepted._client = client
         with cond:
             box.append(accepted)
             overtaken = list(early)
@@ -344,7 +382,35 @@ class RosIO:
         except BeehaveError:
             accepted.cancel(timeout_s=0.0)  # the owner ended meanwhile
             raise
+        # A finished goal has nothing left to cancel: an owner that sends goals in a loop
+        # must not keep every one of them.
+        accepted._result_future.add_done_callback(lambda _: self._forget("goal", accepted))
         return accepted
+
+    def _hold(self, client: Any, future: Any) -> None:
+        """Keep ``client`` (past destroy_all) until ``future`` is answered."""
+        with self._lock:
+            self._unsettled.setdefault(id(client), set()).add(future)
+        future.add_done_callback(lambda done: self._release(client, done))
+
+    def _release(self, client: Any, future: Any) -> None:
+        with self._lock:
+            waiting = self._unsettled.get(id(client))
+            if waiting is None or any(f is not future and not f.done() for f in waiting) or (
+                    not future.done()):
+                return
+            # Nothing unanswered left for this client.
+            lingering = self._lingering.pop(id(client), None)
+            del self._unsettled[id(client)]
+        if lingering is not None:
+            lingering()
+
+    def _forget(self, kind: str, entity: Any) -> None:
+        with self._lock:
+            try:
+                self._entities.remove((kind, entity))
+            except ValueError:
+                pass
 
     def _cached_client(self, kind: str, msg_type: type, name: str) -> Any:
         key = (msg_type, self.node.resolve_topic_name(name)
@@ -386,6 +452,7 @@ class RosIO:
         time). Raises :class:`WaitTimeout`, or :class:`~beehave.errors.Interrupted` as
         soon as the owner is interrupted. Calls to one service (name and type) share one
         client, created at the first call and destroyed with the owner."""
+        check_duration(self.owner, "timeout_s", timeout_s)
         client = self._cached_client("client", srv_type, name)
         cond = self._cond if self._cond is not None else threading.Condition()
         clock = self._clock or WallClock()
@@ -425,7 +492,13 @@ class RosIO:
             return list(self._entities)
 
     def destroy_all(self) -> None:
-        """Destroy everything created here; later creations are refused."""
+        """Destroy everything created here; later creations are refused.
+
+        Never waits. Goals still running are asked to cancel; an action client with
+        requests still unanswered (those cancels, a goal given up on that the server may
+        yet accept — it is then cancelled at once) is destroyed once they are answered,
+        :data:`LINGER_S` at the latest: destroyed earlier, it would drop the answer and the
+        goal would run on with no owner."""
         with self._lock:
             self._closed = True
             entities, self._entities = self._entities, []
@@ -436,9 +509,54 @@ class RosIO:
     def _destroy(self, kind: str, entity: Any) -> None:
         if kind == "goal":
             # The owner ended (after safe_state): a goal still running must not go on
-            # driving the robot. Ask once, do not wait: the client goes next.
+            # driving the robot. Ask once, do not wait here; its client waits for the answer.
             entity.cancel(timeout_s=0.0)
+            client, cancel = entity._client, entity._cancel_future
+            if client is not None and cancel is not None:
+                self._hold(client, cancel)
         elif kind == "action_client":
-            entity.destroy()
+            self._destroy_action_client(entity)
         else:
             getattr(self.node, f"destroy_{kind}")(entity)
+
+    def _destroy_action_client(self, client: Any) -> None:
+        if not self._unanswered(client):
+            client.destroy()
+            return
+        once = threading.Lock()
+        timers: list[Any] = []
+
+        def destroy(*, late: bool = False) -> None:
+            if not once.acquire(blocking=False):
+                return  # the answers and the bound both came: once is enough
+            if late:
+                with self._lock:
+                    self._lingering.pop(id(client), None)
+                    self._unsettled.pop(id(client), None)
+                log.warning("%s: an action server left a request unanswered %g s after its "
+                            "owner ended; its client is destroyed", self.owner, LINGER_S)
+            try:
+                for timer in timers:
+                    self.node.destroy_timer(timer)
+                client.destroy()
+            except Exception:  # the node went away first: it took the client with it
+                log.debug("%s: destroying an action client failed", self.owner, exc_info=True)
+
+        # The timer exists before the answers can end the wait: destroy() removes it.
+        timers.append(self.node.create_timer(LINGER_S, lambda: destroy(late=True)))
+        with self._lock:
+            if self._unanswered(client, locked=True):
+                self._lingering[id(client)] = destroy
+                return
+        destroy()
+
+    def _unanswered(self, client: Any, *, locked: bool = False) -> bool:
+        """Whether ``client`` has requests without an answer (else forget its record)."""
+        if not locked:
+            with self._lock:
+                return self._unanswered(client, locked=True)
+        waiting = self._unsettled.get(id(client))
+        if waiting is not None and any(not f.done() for f in waiting):
+            return True
+        self._unsettled.pop(id(client), None)
+        return False
