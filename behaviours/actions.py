@@ -222,6 +222,11 @@ class Navigation(_Drive):
     ``blocked_timeout_s`` without progress. Returns the final ``(x_m, y_m)``.
     """
 
+    TURN_ON_SPOT_RAD = 0.8
+    """Heading error (rad) beyond which the robot stops and turns on the spot…"""
+    ALIGNED_RAD = 0.25
+    """…until the error is below this; then it drives (and steers) again."""
+
     def __init__(self, goal: Goal | tuple[float, float] | str, *, world: str | None = None,
                  occupancy: OccupancyMap | None = None,
                  speed_mps: float = 0.5, tolerance_m: float = 0.15,
@@ -272,6 +277,7 @@ class Navigation(_Drive):
         seen: list[Disc] = []  # obstacles the laser found that the map does not have
         blocked_since: float | None = None
         last_replan = -math.inf
+        turning = False
         while not self.interrupted:
             odom = self.odom.get() or odom
             p = odom.pose.pose.position
@@ -287,17 +293,26 @@ class Navigation(_Drive):
                 self.command(0.0, 0.0)
                 return (p.x, p.y)
             heading_err = _wrap(math.atan2(dy, dx) - yaw_of(odom))
+            # Far off the path's bearing: turn on the spot until nearly on it (hysteresis,
+            # so it does not set off driving a wide arc just under the threshold).
+            if abs(heading_err) > self.TURN_ON_SPOT_RAD:
+                turning = True
+            elif abs(heading_err) < self.ALIGNED_RAD:
+                turning = False
             angular = max(-1.2, min(1.2, 2.0 * heading_err))
             linear = min(self.speed_mps, 0.8 * remaining) * max(0.0, math.cos(heading_err)) ** 2
-            if abs(heading_err) > 0.8:
-                linear = 0.0  # turn on the spot first
+            if turning:
+                linear = 0.0
             nearest = math.inf
             last = scan.get()
             if last is not None:
                 nearest = sector_min(last, 0.0, self.field_half_angle_rad)
             if nearest < self.stop_distance_m and linear > 0:
+                # Stop driving but keep turning towards the waypoint: turning on the spot is
+                # safe (the planner's radius is the circumscribed one), and a detour's first
+                # leg usually points away from what blocks the way — standing still here
+                # would face the obstacle for ever and re-plan the same path.
                 linear = 0.0
-                angular = 0.0 if abs(heading_err) < 0.8 else angular
                 now = clock.now()
                 if blocked_since is None:
                     blocked_since = now
@@ -313,6 +328,7 @@ class Navigation(_Drive):
                     try:
                         waypoints = self._plan(planner.with_obstacles(seen), p.x, p.y)
                         self.replans += 1
+                        turning = True  # face the new path before driving on
                     except NoPath as exc:  # no way around (yet): wait, try again later
                         log.info("%s: blocked, no way around: %s", self.name, exc)
                 self.blocked = True

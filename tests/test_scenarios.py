@@ -249,3 +249,23 @@ def test_navigation_with_a_world_map_plans_around_a_pillar() -> None:
         assert math.hypot(pose.x_m - 8.0, pose.y_m - 2.0) <= 0.2
         assert min(math.hypot(x - 5.0, y - 2.2) for x, y in sim.robot("emili1").path()
                    ) >= 0.3 + 0.55
+
+
+def test_navigation_replans_around_a_wide_unmapped_box_and_turns_onto_the_detour() -> None:
+    # A 2.4 m box across the straight line: the detour's first leg is less than 0.8 rad off
+    # the heading that faces the box. Blocked, Navigation must keep turning onto it rather
+    # than stand still facing the box and re-plan the same path until it gives up.
+    from robots.world import occupancy_map
+
+    box = {"center_m": [5.0, 2.0], "size_m": [0.6, 2.4], "height_m": 1.0}
+    with stack(hall(robots=[EMILI], obstacles=[box]), "emili") as (sim, robots):
+        stale_map = occupancy_map(hall(robots=[EMILI]))
+        nav = run_action(robots["emili"], Navigation((8.0, 2.0), occupancy=stale_map,
+                                                     replan_after_s=1.0,
+                                                     blocked_timeout_s=12.0))
+        assert nav.status is Status.SUCCEEDED, nav.error
+        assert nav.replans >= 1
+        pose = sim.robot("emili1").pose()
+        assert math.hypot(pose.x_m - 8.0, pose.y_m - 2.0) <= 0.2
+        assert not any(4.7 <= x <= 5.3 and 0.8 <= y <= 3.2
+                       for x, y in sim.robot("emili1").path())
