@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import heapq
 import math
-from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -197,18 +196,16 @@ class GridPlanner:
         if not (0 <= goal[0] <= sx and 0 <= goal[1] <= sy):
             raise NoPath(f"goal ({goal[0]:.2f}, {goal[1]:.2f}) is off the floor "
                          f"(0–{sx:g} × 0–{sy:g} m)")
-        start_cell = self._nearest_free(self.cell(start), math.inf)
+        start_cell = self._nearest_free(start, math.inf)
         if start_cell is None:
             raise NoPath(f"no free cell anywhere near the start ({start[0]:.2f}, "
                          f"{start[1]:.2f}): the map is blocked for a robot of radius "
                          f"{self.robot_radius_m} m")
-        goal_cell = self._nearest_free(self.cell(goal), goal_tolerance_m)
+        goal_cell = self._nearest_free(goal, goal_tolerance_m)
         if goal_cell is None:
-            raise NoPath(f"goal ({goal[0]:.2f}, {goal[1]:.2f}) is within "
-                         f"{self.inflation_m:.2f} m (robot radius {self.robot_radius_m} m + "
-                         f"clearance {self.clearance_m} m) of an obstacle or the floor's edge"
+            raise NoPath(f"goal ({goal[0]:.2f}, {goal[1]:.2f}) is {self._why_blocked(goal)}"
                          f", and no free point lies within goal_tolerance_m="
-                         f"{goal_tolerance_m} m")
+                         f"{goal_tolerance_m:.3g} m")
         cells = self._astar(start_cell, goal_cell)
         if cells is None:
             raise NoPath(f"no path from ({start[0]:.2f}, {start[1]:.2f}) to ({goal[0]:.2f}, "
@@ -222,36 +219,42 @@ class GridPlanner:
         points.append((float(end[0]), float(end[1])))
         return PlannedPath(tuple(self._pull_tight(points)))
 
-    def _nearest_free(self, cell: tuple[int, int], within_m: float
-                      ) -> tuple[int, int] | None:
-        """``cell`` when free, else the nearest free cell (breadth-first) within
-        ``within_m`` of it."""
+    def _nearest_free(self, point: Point, within_m: float) -> tuple[int, int] | None:
+        """The cell holding ``point`` when it is free, else the free cell whose centre is
+        nearest ``point`` and no farther than ``within_m`` from it (None if there is none).
+
+        Distances are measured from the point itself to cell centres, so the promise of
+        ``goal_tolerance_m`` holds in metres, not merely in cell indices."""
+        cell = self.cell(point)
         i, j = cell
         if 0 <= i < self.width and 0 <= j < self.height and not self.blocked[j, i]:
             return cell
-        if within_m <= 0:
+        if not within_m > 0:
             return None
-        i = min(max(i, 0), self.width - 1)
-        j = min(max(j, 0), self.height - 1)
-        limit = within_m / self.resolution_m
-        seen = {(i, j)}
-        todo = deque([(i, j)])
-        best: tuple[int, int] | None = None
-        best_d = math.inf
-        while todo:
-            ci, cj = todo.popleft()
-            d = math.hypot(ci - cell[0], cj - cell[1])
-            if d > limit or d > best_d + 1.5:
-                continue
-            if not self.blocked[cj, ci] and d < best_d:
-                best, best_d = (ci, cj), d
-                continue
-            for di, dj, _ in _NEIGHBOURS[:4]:
-                n = (ci + di, cj + dj)
-                if 0 <= n[0] < self.width and 0 <= n[1] < self.height and n not in seen:
-                    seen.add(n)
-                    todo.append(n)
-        return best
+        # Only the window of cells that can lie within reach (the whole grid for inf).
+        reach = min(within_m, math.hypot(*self.occupancy.size_m)) / self.resolution_m + 1
+        i0, i1 = max(0, math.floor(i - reach)), min(self.width, math.ceil(i + reach) + 1)
+        j0, j1 = max(0, math.floor(j - reach)), min(self.height, math.ceil(j + reach) + 1)
+        if i0 >= i1 or j0 >= j1:
+            return None
+        d2 = ((self._cx[j0:j1, i0:i1] - point[0]) ** 2
+              + (self._cy[j0:j1, i0:i1] - point[1]) ** 2)
+        d2 = np.where(self.blocked[j0:j1, i0:i1], np.inf, d2)
+        best = np.unravel_index(int(np.argmin(d2)), d2.shape)
+        if not d2[best] <= within_m * within_m:
+            return None
+        return (i0 + int(best[1]), j0 + int(best[0]))
+
+    def _why_blocked(self, point: Point) -> str:
+        """What keeps the robot's centre off ``point``: the floor's edge or an obstacle."""
+        sx, sy = self.occupancy.size_m
+        r = self.inflation_m
+        if min(point[0], sx - point[0], point[1], sy - point[1]) < r:
+            return (f"within {r:.2f} m of the floor's edge (robot radius "
+                    f"{self.robot_radius_m} m + clearance {self.clearance_m} m: its centre "
+                    f"must stay within x {r:.2f}–{sx - r:.2f} m, y {r:.2f}–{sy - r:.2f} m)")
+        return (f"within {r:.2f} m (robot radius {self.robot_radius_m} m + clearance "
+                f"{self.clearance_m} m) of an obstacle")
 
     def _astar(self, start: tuple[int, int], goal: tuple[int, int]
                ) -> list[tuple[int, int]] | None:

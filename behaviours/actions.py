@@ -219,7 +219,13 @@ class Navigation(_Drive):
     field). When blocked for ``replan_after_s`` with a map, what the laser sees ahead is
     added to the map as obstacles and the path is planned again from where the robot
     stands (``replans`` counts it); it waits while no way around exists, and fails after
-    ``blocked_timeout_s`` without progress. Returns the final ``(x_m, y_m)``.
+    ``blocked_timeout_s`` without progress.
+
+    It succeeds once the robot stands within ``tolerance_m`` of the goal it was given,
+    and returns the final ``(x_m, y_m)``. A goal inside the inflation (a station that hugs
+    a shelf) is approached at the nearest free point, which must lie within
+    ``tolerance_m`` of it (less :attr:`end_precision_m`); otherwise the action fails with
+    :class:`~beehave.errors.NoPath` saying so.
     """
 
     TURN_ON_SPOT_RAD = 0.8
@@ -256,11 +262,23 @@ class Navigation(_Drive):
         else:
             self.planner = None
 
+    @property
+    def end_precision_m(self) -> float:
+        """How close the robot drives to the end of its plan when that end is not the goal
+        itself (a goal that hugs an obstacle): the plan ends at most ``tolerance_m -
+        end_precision_m`` from the goal, so stopping there is within ``tolerance_m``."""
+        return min(0.05, self.tolerance_m / 2)
+
     def _plan(self, planner: GridPlanner, x: float, y: float) -> list[tuple[float, float]]:
-        # The goal tolerance also lets a goal that hugs an obstacle end at the nearest
-        # reachable point rather than fail.
-        self.planned = planner.plan((x, y), (self.goal.x_m, self.goal.y_m),
-                                 goal_tolerance_m=self.tolerance_m)
+        # A goal that hugs an obstacle ends at the nearest reachable point rather than
+        # fail — but only one close enough for the robot to stop within tolerance_m of the
+        # goal it was given: success is always judged against that goal.
+        try:
+            self.planned = planner.plan((x, y), (self.goal.x_m, self.goal.y_m),
+                                        goal_tolerance_m=self.tolerance_m - self.end_precision_m)
+        except NoPath as exc:
+            raise NoPath(f"{self.name}: {exc} (tolerance_m={self.tolerance_m:g} less "
+                         f"end_precision_m={self.end_precision_m:g})") from exc
         log.info("%s: planned %.1f m via %d waypoint(s)", self.name, self.planned.length_m,
                  len(self.planned.waypoints_m) - 2)
         return list(self.planned.waypoints_m[1:])
@@ -289,7 +307,9 @@ class Navigation(_Drive):
             # Slow down for the goal, not for every corner on the way.
             remaining = math.hypot(dx, dy) + path_length_m(waypoints)
             dist = math.hypot(self.goal.x_m - p.x, self.goal.y_m - p.y)
-            if len(waypoints) == 1 and math.hypot(dx, dy) <= self.tolerance_m:
+            if len(waypoints) == 1 and (dist <= self.tolerance_m
+                                        or math.hypot(dx, dy) <= self.end_precision_m):
+                # Within tolerance_m of the goal, either way (see end_precision_m).
                 self.command(0.0, 0.0)
                 return (p.x, p.y)
             heading_err = _wrap(math.atan2(dy, dx) - yaw_of(odom))

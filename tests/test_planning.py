@@ -128,3 +128,37 @@ def test_warehouse_readme_order_goes_around_the_pillar() -> None:
     assert clearance_m(path, floor.obstacles) >= 0.55 + 0.1 - 0.08
     assert path.goal_m == goal
     assert math.dist(start, goal) < path.length_m < 1.2 * math.dist(start, goal)
+
+
+def test_goal_tolerance_is_kept_in_metres_from_the_goal_point() -> None:
+    # Goals around a pillar, just inside its inflation: every plan must end within
+    # goal_tolerance_m of the goal itself (it used to measure between cell indices, and
+    # ended up to 0.2 m away with a 0.15 m tolerance), or fail with NoPath.
+    planner = GridPlanner(OccupancyMap(size_m=(10.0, 6.0), obstacles=(PILLAR,)),
+                          robot_radius_m=0.55, clearance_m=0.1)
+    tolerance_m = 0.15
+    ended = 0
+    for k in range(0, 40, 3):
+        for degrees in range(0, 360, 10):
+            r = 0.75 + k * 0.005
+            goal = (5.0 + r * math.cos(math.radians(degrees)),
+                    3.0 + r * math.sin(math.radians(degrees)))
+            if planner.is_free(goal):
+                continue
+            try:
+                end = planner.plan((1.0, 1.0), goal, goal_tolerance_m=tolerance_m).goal_m
+            except NoPath:
+                continue
+            ended += 1
+            assert math.dist(end, goal) <= tolerance_m, (goal, end)
+            assert planner.is_free(end)
+    assert ended > 50  # most of them are within reach
+
+
+def test_goal_on_the_floors_edge_says_it_is_the_edge() -> None:
+    planner = GridPlanner(EMPTY, robot_radius_m=0.3)
+    with pytest.raises(NoPath, match=r"floor's edge .*x 0\.40–9\.60 m") as info:
+        planner.plan((1.0, 1.0), (10.0, 3.0))
+    assert "obstacle" not in str(info.value)
+    end = planner.plan((1.0, 1.0), (10.0, 3.0), goal_tolerance_m=0.5).goal_m
+    assert math.dist(end, (10.0, 3.0)) <= 0.5

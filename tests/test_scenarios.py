@@ -269,3 +269,31 @@ def test_navigation_replans_around_a_wide_unmapped_box_and_turns_onto_the_detour
         assert math.hypot(pose.x_m - 8.0, pose.y_m - 2.0) <= 0.2
         assert not any(4.7 <= x <= 5.3 and 0.8 <= y <= 3.2
                        for x, y in sim.robot("emili1").path())
+
+
+def test_navigation_to_a_goal_that_hugs_an_obstacle_ends_within_tolerance_of_it() -> None:
+    # Goals inside the pillar's inflation (0.3 m + 0.55 m robot + 0.1 m clearance). One is
+    # 0.155 m from the nearest free point: more than tolerance_m, so it must fail rather
+    # than "succeed" up to 0.35 m away. The other is reachable within tolerance_m, judged
+    # in the physics against the goal requested, not the end of the plan.
+    from robots.world import occupancy_map
+
+    pillar = {"center_m": [5.0, 4.0], "radius_m": 0.3, "height_m": 2.0}
+    world = hall(robots=[EMILI], obstacles=[pillar])
+    bearing = math.radians(40)
+    far = (5.0 + 0.795 * math.cos(bearing), 4.0 + 0.795 * math.sin(bearing))
+    near = (5.0 + 0.92 * math.cos(bearing), 4.0 + 0.92 * math.sin(bearing))
+    with stack(world, "emili") as (sim, robots):
+        emili = robots["emili"]
+        assert emili.high is not None
+        unreachable = Navigation(far, occupancy=occupancy_map(world), tolerance_m=0.15)
+        emili.high.register("far", Do, action=unreachable)
+        assert emili.high.switch("far").wait(60)
+        assert unreachable.status is Status.FAILED
+        assert "goal_tolerance_m" in str(unreachable.error), unreachable.error
+        nav = Navigation(near, occupancy=occupancy_map(world), tolerance_m=0.15)
+        emili.high.register("near", Do, action=nav)
+        assert emili.high.switch("near").wait(120)
+        assert nav.status is Status.SUCCEEDED, nav.error
+        pose = sim.robot("emili1").pose()
+        assert math.hypot(pose.x_m - near[0], pose.y_m - near[1]) <= 0.15
