@@ -12,8 +12,8 @@ for a job compare :attr:`PlannedPath.length_m` (the path cost) of their candidat
                          obstacles=(Disc((5.0, 3.0), 0.3), Rect((8.0, 1.0), (0.4, 2.0))))
     planner = GridPlanner(floor, robot_radius_m=0.55)   # rasterised and inflated once
     path = planner.plan((1.0, 3.0), (9.0, 3.0))
-    path.waypoints_m     # ((1.0, 3.0), (4.4, 2.1), …, (9.0, 3.0)): corners only
-    path.length_m        # the cost: metres along the waypoints
+    path.waypoints_m     # ((1.0, 3.0), (4.75, 3.95), (5.45, 3.95), (9.0, 3.0)): corners only
+    path.length_m        # the cost: metres along the waypoints (8.24)
 
 How it works. The floor becomes a grid of ``resolution_m`` cells; a cell is blocked when
 its centre lies within ``robot_radius_m + clearance_m`` of an obstacle or of the floor's
@@ -27,7 +27,10 @@ with :class:`~beehave.errors.NoPath`, as it does when no path exists.
 
 Obstacles that are not on the map (a parked pallet seen by the laser) are added with
 :meth:`GridPlanner.with_obstacles`, which returns a new planner and leaves this one as it
-was — plans never share mutable state, so several threads may plan at once.
+was — plans never share mutable state, so several threads may plan at once. Only the cells
+an added shape can reach are touched, so adding laser hits costs little; keep them in a
+:class:`SeenObstacles`, which holds one hit per cell and forgets old ones, so that re-planning
+again and again in front of the same obstacle does not grow its cost.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ import numpy as np
 from beehave.errors import NoPath
 
 __all__ = ["Disc", "GridPlanner", "NoPath", "OccupancyMap", "PlannedPath", "Rect",
-           "path_length_m"]
+           "SeenObstacles", "path_length_m"]
 
 Point = tuple[float, float]
 
@@ -109,6 +112,46 @@ class PlannedPath:
         return self.waypoints_m[-1]
 
 
+class SeenObstacles:
+    """Obstacles a robot's sensors found that the map lacks, remembered for a while.
+
+    A laser sees the same box again on every re-plan: hits are kept one per ``cell_m``
+    square (the newest wins), so the memory — and the cost of planning with it — stays
+    bounded by the area seen, not by the time spent looking. A hit not seen again for
+    ``forget_after_s`` is dropped (the pallet may have gone; if not, the laser finds it
+    again). Times are in the caller's clock (sim time under ``use_sim_time``)::
+
+        seen = SeenObstacles(cell_m=planner.resolution_m, forget_after_s=30.0)
+        seen.add(hits, now_s=clock.now())
+        detour = planner.with_obstacles(seen.shapes()).plan(here, goal)
+    """
+
+    def __init__(self, *, cell_m: float = 0.1, forget_after_s: float = 30.0) -> None:
+        if not (math.isfinite(cell_m) and cell_m > 0):
+            raise ValueError(f"cell_m must be positive and finite, got {cell_m}")
+        if not forget_after_s > 0:  # math.inf: never forget
+            raise ValueError(f"forget_after_s must be positive, got {forget_after_s}")
+        self.cell_m = float(cell_m)
+        self.forget_after_s = float(forget_after_s)
+        self._hits: dict[tuple[int, int], tuple[float, Shape]] = {}
+
+    def add(self, shapes: Iterable[Shape], *, now_s: float) -> None:
+        """Remember ``shapes`` as seen at ``now_s``, and forget those too old by now."""
+        for shape in shapes:
+            key = (math.floor(shape.center_m[0] / self.cell_m),
+                   math.floor(shape.center_m[1] / self.cell_m))
+            self._hits[key] = (now_s, shape)
+        self._hits = {key: (t, shape) for key, (t, shape) in self._hits.items()
+                      if now_s - t <= self.forget_after_s}
+
+    def shapes(self) -> list[Shape]:
+        """What is remembered now, one shape per cell."""
+        return [shape for _, shape in self._hits.values()]
+
+    def __len__(self) -> int:
+        return len(self._hits)
+
+
 class GridPlanner:
     """Grid A* on ``occupancy`` for a robot of ``robot_radius_m`` (circumscribed), keeping
     a further ``clearance_m`` from everything; cells of ``resolution_m``.
@@ -143,8 +186,22 @@ class GridPlanner:
 
     def _add(self, shapes: Iterable[Shape]) -> None:
         r = self.inflation_m
+        res = self.resolution_m
         for shape in shapes:
-            self.blocked |= _within(shape, self._cx, self._cy, r)
+            # Only the cells the inflated shape can reach: a laser hit touches a few hundred
+            # cells, not the whole floor (re-plans add many of them).
+            if isinstance(shape, Disc):
+                half_x = half_y = shape.radius_m + r
+            else:
+                half_x = half_y = math.hypot(*shape.size_m) / 2 + r
+            x, y = shape.center_m
+            i0, i1 = max(0, math.floor((x - half_x) / res)), min(self.width,
+                                                                 math.ceil((x + half_x) / res) + 1)
+            j0, j1 = max(0, math.floor((y - half_y) / res)), min(self.height,
+                                                                 math.ceil((y + half_y) / res) + 1)
+            if i0 < i1 and j0 < j1:
+                self.blocked[j0:j1, i0:i1] |= _within(shape, self._cx[j0:j1, i0:i1],
+                                                      self._cy[j0:j1, i0:i1], r)
 
     def with_obstacles(self, shapes: Iterable[Shape]) -> GridPlanner:
         """A copy that also avoids ``shapes`` (inflated like the map's); this planner is

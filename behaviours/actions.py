@@ -33,7 +33,14 @@ from std_msgs.msg import Float64, String
 from beehave import Action
 from beehave.clock import SimClock
 from beehave.errors import BeehaveError, NoPath
-from beehave.planning import Disc, GridPlanner, OccupancyMap, PlannedPath, path_length_m
+from beehave.planning import (
+    Disc,
+    GridPlanner,
+    OccupancyMap,
+    PlannedPath,
+    SeenObstacles,
+    path_length_m,
+)
 from beehave.ros.io import Latest, WaitTimeout
 from robots import topics
 
@@ -219,7 +226,9 @@ class Navigation(_Drive):
     field). When blocked for ``replan_after_s`` with a map, what the laser sees ahead is
     added to the map as obstacles and the path is planned again from where the robot
     stands (``replans`` counts it); it waits while no way around exists, and fails after
-    ``blocked_timeout_s`` without progress.
+    ``blocked_timeout_s`` without progress. ``seen`` (a
+    :class:`~beehave.planning.SeenObstacles`) holds those laser hits, one per map cell; a
+    hit not seen again for ``forget_obstacles_after_s`` is forgotten.
 
     It succeeds once the robot stands within ``tolerance_m`` of the goal it was given,
     and returns the final ``(x_m, y_m)``. A goal inside the inflation (a station that hugs
@@ -240,7 +249,7 @@ class Navigation(_Drive):
                  field_half_angle_rad: float = 0.5, blocked_timeout_s: float = 30.0,
                  replan_after_s: float = 3.0, robot_radius_m: float = 0.55,
                  clearance_m: float = 0.1, waypoint_tolerance_m: float = 0.3,
-                 timeout_s: float = 300.0) -> None:
+                 forget_obstacles_after_s: float = 60.0, timeout_s: float = 300.0) -> None:
         self.goal = resolve_goal(goal, world)
         if speed_mps <= 0 or tolerance_m <= 0:
             raise BeehaveError("speed_mps and tolerance_m must be positive")
@@ -261,6 +270,12 @@ class Navigation(_Drive):
             self.planner = world_planner(world, robot_radius_m, clearance_m)
         else:
             self.planner = None
+        if not forget_obstacles_after_s > 0:
+            raise BeehaveError(f"forget_obstacles_after_s must be positive (math.inf: never), "
+                               f"got {forget_obstacles_after_s}")
+        self.seen = SeenObstacles(
+            cell_m=self.planner.resolution_m if self.planner is not None else 0.1,
+            forget_after_s=forget_obstacles_after_s)
 
     @property
     def end_precision_m(self) -> float:
@@ -292,7 +307,6 @@ class Navigation(_Drive):
         planner = self.planner
         waypoints = ([(self.goal.x_m, self.goal.y_m)] if planner is None
                      else self._plan(planner, p.x, p.y))  # NoPath fails the action
-        seen: list[Disc] = []  # obstacles the laser found that the map does not have
         blocked_since: float | None = None
         last_replan = -math.inf
         turning = False
@@ -344,9 +358,11 @@ class Navigation(_Drive):
                 if (planner is not None and last is not None
                         and now - max(blocked_since, last_replan) >= self.replan_after_s):
                     last_replan = now
-                    seen += self._obstacles_ahead(last, p.x, p.y, yaw_of(odom))
+                    self.seen.add(self._obstacles_ahead(last, p.x, p.y, yaw_of(odom)),
+                                  now_s=now)
                     try:
-                        waypoints = self._plan(planner.with_obstacles(seen), p.x, p.y)
+                        waypoints = self._plan(planner.with_obstacles(self.seen.shapes()),
+                                               p.x, p.y)
                         self.replans += 1
                         turning = True  # face the new path before driving on
                     except NoPath as exc:  # no way around (yet): wait, try again later
