@@ -149,12 +149,27 @@ class _Drive(Action):
     def run(self) -> Any:
         self._open()
         try:
-            return self.drive()
+            result = self.drive()
+        except BaseException as exc:
+            self._stop(failed_with=exc)
+            raise
+        self._stop(failed_with=None)
+        return result
+
+    def _stop(self, *, failed_with: BaseException | None) -> None:
+        """Command zero velocity, then let the simulator go. A stop that fails after the
+        drive succeeded fails the action (the robot may still move: its safe state tries
+        again); after the drive failed, the drive's error stays the one reported, with the
+        stop's failure noted on it — the first cause is what the user must see."""
+        try:
+            self.command(0.0, 0.0)
+        except Exception as stop_error:
+            if failed_with is None:
+                raise
+            failed_with.add_note(f"{self.name}: commanding zero velocity afterwards failed "
+                                 f"too: {stop_error!r}")
         finally:
-            try:
-                self.command(0.0, 0.0)
-            finally:
-                self._let_go()
+            self._let_go()
 
     def drive(self) -> Any:
         """The control loop (runs in the action's thread); pace it with :meth:`tick`."""
@@ -189,7 +204,8 @@ class _Drive(Action):
         try:
             self._hold_at(None)
         except Exception:
-            # A STUCK action has lost its publishers; the sim's lockstep timeout lets go.
+            # The publisher is gone (the ROS context shut down under us): the sim node's
+            # lockstep timeout lets the simulation go in our place.
             log.debug("%s: could not let the simulation go", self.name, exc_info=True)
         self._lockstep = None
 
