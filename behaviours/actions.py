@@ -21,7 +21,10 @@ import functools
 import json
 import logging
 import math
+import threading
 import time
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -30,7 +33,7 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import LaserScan
 from std_msgs.msg import Float64, String
 
-from beehave import Action
+from beehave import Action, Status
 from beehave.clock import SimClock
 from beehave.errors import BeehaveError, NoPath
 from beehave.planning import (
@@ -120,6 +123,46 @@ def first_message(latest: Latest[Any], *, timeout_s: float = 10.0) -> Any:
                 raise
 
 
+class _LockstepLine:
+    """One node's ``/lockstep`` publisher, shared by all the driving actions of that node.
+
+    Made on first use and kept for the node's life (``destroy_node`` destroys it with the
+    node's other entities): a publisher made per action is new to DDS each time, and the
+    simulator does not hear its first announcements until discovery has matched it — the
+    robot then drives that long without being held.
+    """
+
+    MATCH_TIMEOUT_S = topics.LOCKSTEP_TIMEOUT_S
+    """Wall seconds a new line waits for the simulator's subscription (no lockstep
+    subscriber, e.g. ``beehave sim --no-lockstep``: each action waits this long only until
+    the line is this old)."""
+
+    _lines: weakref.WeakKeyDictionary[Any, _LockstepLine] = weakref.WeakKeyDictionary()
+    _lines_lock = threading.Lock()
+
+    def __init__(self, node: Any) -> None:
+        self.publisher = node.create_publisher(String, topics.LOCKSTEP, 10)
+        self.made_s = time.monotonic()
+
+    @classmethod
+    def of(cls, node: Any) -> _LockstepLine:
+        with cls._lines_lock:
+            line = cls._lines.get(node)
+            if line is None:
+                line = cls._lines[node] = cls(node)
+            return line
+
+    def wait_matched(self, interrupted: Callable[[], bool]) -> bool:
+        """Wait (wall time, at most until the line is :attr:`MATCH_TIMEOUT_S` old) until
+        the simulator subscribes; True once it has."""
+        # rclpy has no portable "matched" event: poll the graph, briefly.
+        while self.publisher.get_subscription_count() < 1:
+            if interrupted() or time.monotonic() - self.made_s > self.MATCH_TIMEOUT_S:
+                return False
+            time.sleep(0.005)
+        return True
+
+
 def twist(linear_mps: float = 0.0, angular_rps: float = 0.0) -> Twist:
     msg = Twist()
     msg.linear.x = float(linear_mps)
@@ -179,11 +222,16 @@ class _Drive(Action):
         self._cmd = self.ros.publisher(Twist, topics.CMD_VEL)
         if self.uses_odometry:
             self.odom = self.ros.latest(Odometry, topics.ODOM)
-        if isinstance(self.manager.clock, SimClock):
-            self._lockstep = self.ros.publisher(String, topics.LOCKSTEP)
-            node = self.manager.node
-            where = node.get_fully_qualified_name() if node is not None else ""
-            self._participant = f"{where}/{self.path}#{id(self):x}"
+        clock = self.manager.clock
+        node = self.manager.node
+        if isinstance(clock, SimClock) and node is not None:
+            line = _LockstepLine.of(node)
+            self._participant = f"{node.get_fully_qualified_name()}/{self.path}#{id(self):x}"
+            self._lockstep = line.publisher
+            # Held before the first command: the sim may not run past the first period
+            # until this action has spoken again.
+            line.wait_matched(lambda: self.interrupted)
+            self._hold_at(clock.now() + 1.0 / self.rate_hz)
 
     def tick(self) -> bool:
         """Sleep one control period (``1 / rate_hz`` on the manager's clock); False when
@@ -196,6 +244,10 @@ class _Drive(Action):
             return self.sleep(1.0 / self.rate_hz)
 
     def _hold_at(self, until_s: float | None) -> None:
+        if self.status is Status.STUCK:
+            # Its own publishers are destroyed, not the node's shared line: a loop that
+            # ignores its interrupt must not keep holding the simulation.
+            until_s = None
         if self._lockstep is not None:
             self._lockstep.publish(String(data=json.dumps(
                 {"participant": self._participant, "until_s": until_s})))
@@ -204,10 +256,10 @@ class _Drive(Action):
         try:
             self._hold_at(None)
         except Exception:
-            # The publisher is gone (the ROS context shut down under us): the sim node's
-            # lockstep timeout lets the simulation go in our place.
+            # The node's publisher is gone (the node or its ROS context was shut down under
+            # us): the sim node's lockstep timeout lets the simulation go in our place.
             log.debug("%s: could not let the simulation go", self.name, exc_info=True)
-        self._lockstep = None
+        self._lockstep = None  # the line stays with the node, for the next action
 
     def command(self, linear_mps: float, angular_rps: float) -> None:
         if self._cmd is not None:

@@ -53,6 +53,14 @@ def stack(world: Any, *configs: str, real_time_factor: float | None = None,
           ) -> Iterator[tuple[Simulation, dict[str, Robot]]]:
     """The sim (as fast as it goes, by default), its ROS node, and a beehave robot per
     config."""
+    with stack_with_node(world, *configs, real_time_factor=real_time_factor) as (sim, _, robots):
+        yield sim, robots
+
+
+@contextmanager
+def stack_with_node(world: Any, *configs: str, real_time_factor: float | None = None,
+                    ) -> Iterator[tuple[Simulation, SimNode, dict[str, Robot]]]:
+    """:func:`stack`, with the sim node too (lockstep participants)."""
     before = set(beehave_threads())
     sim = Simulation(world, real_time_factor=real_time_factor)
     ros = RosContext()
@@ -63,7 +71,7 @@ def stack(world: Any, *configs: str, real_time_factor: float | None = None,
         sim.start()
         for robot in robots.values():
             robot.start()
-        yield sim, robots
+        yield sim, node, robots
     finally:
         for robot in robots.values():
             robot.shutdown()
@@ -297,3 +305,33 @@ def test_navigation_to_a_goal_that_hugs_an_obstacle_ends_within_tolerance_of_it(
         assert nav.status is Status.SUCCEEDED, nav.error
         pose = sim.robot("emili1").pose()
         assert math.hypot(pose.x_m - near[0], pose.y_m - near[1]) <= 0.15
+
+
+def test_driving_actions_are_held_by_lockstep_from_their_first_command() -> None:
+    # Each drive announces its hold before its first command, on the node's one /lockstep
+    # publisher, which outlives the action: a publisher made per action was new to DDS
+    # each time, and the sim could drive unheld until discovery matched it.
+    with stack_with_node(hall(robots=[EMILI]), "emili") as (sim, node, robots):
+        emili = robots["emili"]
+        assert emili.high is not None and emili.high.node is not None
+        robot = sim.robot("emili1")
+        unheld: list[float] = []
+
+        def check(time_s: float) -> None:
+            if robot.cmd_vel() != (0.0, 0.0) and not node.participants:
+                unheld.append(time_s)
+
+        remove = sim.on_step(check)
+        for k, goal in enumerate([(3.0, 2.0), (2.0, 2.5), (3.0, 3.0)]):
+            nav = Navigation(goal)
+            emili.high.register(f"go{k}", Do, action=nav)
+            assert emili.high.switch(f"go{k}").wait(60)
+            assert nav.status is Status.SUCCEEDED, nav.error
+            # The line stays with the node between actions.
+            assert emili.high.node.count_publishers("/lockstep") == 1
+        remove()
+        pose = robot.pose()
+        assert math.hypot(pose.x_m - 3.0, pose.y_m - 3.0) <= 0.2
+        # A command may reach the sim before the announcement sent right after it did
+        # not; nothing more than a control period (0.05 s) may run unheld in all.
+        assert len(unheld) * sim.step_s <= 0.05, unheld
