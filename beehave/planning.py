@@ -12,8 +12,8 @@ for a job compare :attr:`PlannedPath.length_m` (the path cost) of their candidat
                          obstacles=(Disc((5.0, 3.0), 0.3), Rect((8.0, 1.0), (0.4, 2.0))))
     planner = GridPlanner(floor, robot_radius_m=0.55)   # rasterised and inflated once
     path = planner.plan((1.0, 3.0), (9.0, 3.0))
-    path.waypoints_m     # ((1.0, 3.0), (4.4, 2.1), …, (9.0, 3.0)): corners only
-    path.length_m        # the cost: metres along the waypoints
+    path.waypoints_m     # ((1.0, 3.0), (4.75, 3.95), (5.45, 3.95), (9.0, 3.0)): corners only
+    path.length_m        # the cost: metres along the waypoints (8.24)
 
 How it works. The floor becomes a grid of ``resolution_m`` cells; a cell is blocked when
 its centre lies within ``robot_radius_m + clearance_m`` of an obstacle or of the floor's
@@ -27,14 +27,16 @@ with :class:`~beehave.errors.NoPath`, as it does when no path exists.
 
 Obstacles that are not on the map (a parked pallet seen by the laser) are added with
 :meth:`GridPlanner.with_obstacles`, which returns a new planner and leaves this one as it
-was — plans never share mutable state, so several threads may plan at once.
+was — plans never share mutable state, so several threads may plan at once. Only the cells
+an added shape can reach are touched, so adding laser hits costs little; keep them in a
+:class:`SeenObstacles`, which holds one hit per cell and forgets old ones, so that re-planning
+again and again in front of the same obstacle does not grow its cost.
 """
 
 from __future__ import annotations
 
 import heapq
 import math
-from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -43,7 +45,7 @@ import numpy as np
 from beehave.errors import NoPath
 
 __all__ = ["Disc", "GridPlanner", "NoPath", "OccupancyMap", "PlannedPath", "Rect",
-           "path_length_m"]
+           "SeenObstacles", "path_length_m"]
 
 Point = tuple[float, float]
 
@@ -110,6 +112,46 @@ class PlannedPath:
         return self.waypoints_m[-1]
 
 
+class SeenObstacles:
+    """Obstacles a robot's sensors found that the map lacks, remembered for a while.
+
+    A laser sees the same box again on every re-plan: hits are kept one per ``cell_m``
+    square (the newest wins), so the memory — and the cost of planning with it — stays
+    bounded by the area seen, not by the time spent looking. A hit not seen again for
+    ``forget_after_s`` is dropped (the pallet may have gone; if not, the laser finds it
+    again). Times are in the caller's clock (sim time under ``use_sim_time``)::
+
+        seen = SeenObstacles(cell_m=planner.resolution_m, forget_after_s=30.0)
+        seen.add(hits, now_s=clock.now())
+        detour = planner.with_obstacles(seen.shapes()).plan(here, goal)
+    """
+
+    def __init__(self, *, cell_m: float = 0.1, forget_after_s: float = 30.0) -> None:
+        if not (math.isfinite(cell_m) and cell_m > 0):
+            raise ValueError(f"cell_m must be positive and finite, got {cell_m}")
+        if not forget_after_s > 0:  # math.inf: never forget
+            raise ValueError(f"forget_after_s must be positive, got {forget_after_s}")
+        self.cell_m = float(cell_m)
+        self.forget_after_s = float(forget_after_s)
+        self._hits: dict[tuple[int, int], tuple[float, Shape]] = {}
+
+    def add(self, shapes: Iterable[Shape], *, now_s: float) -> None:
+        """Remember ``shapes`` as seen at ``now_s``, and forget those too old by now."""
+        for shape in shapes:
+            key = (math.floor(shape.center_m[0] / self.cell_m),
+                   math.floor(shape.center_m[1] / self.cell_m))
+            self._hits[key] = (now_s, shape)
+        self._hits = {key: (t, shape) for key, (t, shape) in self._hits.items()
+                      if now_s - t <= self.forget_after_s}
+
+    def shapes(self) -> list[Shape]:
+        """What is remembered now, one shape per cell."""
+        return [shape for _, shape in self._hits.values()]
+
+    def __len__(self) -> int:
+        return len(self._hits)
+
+
 class GridPlanner:
     """Grid A* on ``occupancy`` for a robot of ``robot_radius_m`` (circumscribed), keeping
     a further ``clearance_m`` from everything; cells of ``resolution_m``.
@@ -144,8 +186,22 @@ class GridPlanner:
 
     def _add(self, shapes: Iterable[Shape]) -> None:
         r = self.inflation_m
+        res = self.resolution_m
         for shape in shapes:
-            self.blocked |= _within(shape, self._cx, self._cy, r)
+            # Only the cells the inflated shape can reach: a laser hit touches a few hundred
+            # cells, not the whole floor (re-plans add many of them).
+            if isinstance(shape, Disc):
+                half_x = half_y = shape.radius_m + r
+            else:
+                half_x = half_y = math.hypot(*shape.size_m) / 2 + r
+            x, y = shape.center_m
+            i0, i1 = max(0, math.floor((x - half_x) / res)), min(self.width,
+                                                                 math.ceil((x + half_x) / res) + 1)
+            j0, j1 = max(0, math.floor((y - half_y) / res)), min(self.height,
+                                                                 math.ceil((y + half_y) / res) + 1)
+            if i0 < i1 and j0 < j1:
+                self.blocked[j0:j1, i0:i1] |= _within(shape, self._cx[j0:j1, i0:i1],
+                                                      self._cy[j0:j1, i0:i1], r)
 
     def with_obstacles(self, shapes: Iterable[Shape]) -> GridPlanner:
         """A copy that also avoids ``shapes`` (inflated like the map's); this planner is
@@ -197,18 +253,16 @@ class GridPlanner:
         if not (0 <= goal[0] <= sx and 0 <= goal[1] <= sy):
             raise NoPath(f"goal ({goal[0]:.2f}, {goal[1]:.2f}) is off the floor "
                          f"(0–{sx:g} × 0–{sy:g} m)")
-        start_cell = self._nearest_free(self.cell(start), math.inf)
+        start_cell = self._nearest_free(start, math.inf)
         if start_cell is None:
             raise NoPath(f"no free cell anywhere near the start ({start[0]:.2f}, "
                          f"{start[1]:.2f}): the map is blocked for a robot of radius "
                          f"{self.robot_radius_m} m")
-        goal_cell = self._nearest_free(self.cell(goal), goal_tolerance_m)
+        goal_cell = self._nearest_free(goal, goal_tolerance_m)
         if goal_cell is None:
-            raise NoPath(f"goal ({goal[0]:.2f}, {goal[1]:.2f}) is within "
-                         f"{self.inflation_m:.2f} m (robot radius {self.robot_radius_m} m + "
-                         f"clearance {self.clearance_m} m) of an obstacle or the floor's edge"
+            raise NoPath(f"goal ({goal[0]:.2f}, {goal[1]:.2f}) is {self._why_blocked(goal)}"
                          f", and no free point lies within goal_tolerance_m="
-                         f"{goal_tolerance_m} m")
+                         f"{goal_tolerance_m:.3g} m")
         cells = self._astar(start_cell, goal_cell)
         if cells is None:
             raise NoPath(f"no path from ({start[0]:.2f}, {start[1]:.2f}) to ({goal[0]:.2f}, "
@@ -222,36 +276,42 @@ class GridPlanner:
         points.append((float(end[0]), float(end[1])))
         return PlannedPath(tuple(self._pull_tight(points)))
 
-    def _nearest_free(self, cell: tuple[int, int], within_m: float
-                      ) -> tuple[int, int] | None:
-        """``cell`` when free, else the nearest free cell (breadth-first) within
-        ``within_m`` of it."""
+    def _nearest_free(self, point: Point, within_m: float) -> tuple[int, int] | None:
+        """The cell holding ``point`` when it is free, else the free cell whose centre is
+        nearest ``point`` and no farther than ``within_m`` from it (None if there is none).
+
+        Distances are measured from the point itself to cell centres, so the promise of
+        ``goal_tolerance_m`` holds in metres, not merely in cell indices."""
+        cell = self.cell(point)
         i, j = cell
         if 0 <= i < self.width and 0 <= j < self.height and not self.blocked[j, i]:
             return cell
-        if within_m <= 0:
+        if not within_m > 0:
             return None
-        i = min(max(i, 0), self.width - 1)
-        j = min(max(j, 0), self.height - 1)
-        limit = within_m / self.resolution_m
-        seen = {(i, j)}
-        todo = deque([(i, j)])
-        best: tuple[int, int] | None = None
-        best_d = math.inf
-        while todo:
-            ci, cj = todo.popleft()
-            d = math.hypot(ci - cell[0], cj - cell[1])
-            if d > limit or d > best_d + 1.5:
-                continue
-            if not self.blocked[cj, ci] and d < best_d:
-                best, best_d = (ci, cj), d
-                continue
-            for di, dj, _ in _NEIGHBOURS[:4]:
-                n = (ci + di, cj + dj)
-                if 0 <= n[0] < self.width and 0 <= n[1] < self.height and n not in seen:
-                    seen.add(n)
-                    todo.append(n)
-        return best
+        # Only the window of cells that can lie within reach (the whole grid for inf).
+        reach = min(within_m, math.hypot(*self.occupancy.size_m)) / self.resolution_m + 1
+        i0, i1 = max(0, math.floor(i - reach)), min(self.width, math.ceil(i + reach) + 1)
+        j0, j1 = max(0, math.floor(j - reach)), min(self.height, math.ceil(j + reach) + 1)
+        if i0 >= i1 or j0 >= j1:
+            return None
+        d2 = ((self._cx[j0:j1, i0:i1] - point[0]) ** 2
+              + (self._cy[j0:j1, i0:i1] - point[1]) ** 2)
+        d2 = np.where(self.blocked[j0:j1, i0:i1], np.inf, d2)
+        best = np.unravel_index(int(np.argmin(d2)), d2.shape)
+        if not d2[best] <= within_m * within_m:
+            return None
+        return (i0 + int(best[1]), j0 + int(best[0]))
+
+    def _why_blocked(self, point: Point) -> str:
+        """What keeps the robot's centre off ``point``: the floor's edge or an obstacle."""
+        sx, sy = self.occupancy.size_m
+        r = self.inflation_m
+        if min(point[0], sx - point[0], point[1], sy - point[1]) < r:
+            return (f"within {r:.2f} m of the floor's edge (robot radius "
+                    f"{self.robot_radius_m} m + clearance {self.clearance_m} m: its centre "
+                    f"must stay within x {r:.2f}–{sx - r:.2f} m, y {r:.2f}–{sy - r:.2f} m)")
+        return (f"within {r:.2f} m (robot radius {self.robot_radius_m} m + clearance "
+                f"{self.clearance_m} m) of an obstacle")
 
     def _astar(self, start: tuple[int, int], goal: tuple[int, int]
                ) -> list[tuple[int, int]] | None:

@@ -21,7 +21,10 @@ import functools
 import json
 import logging
 import math
+import threading
 import time
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -30,10 +33,17 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import LaserScan
 from std_msgs.msg import Float64, String
 
-from beehave import Action
+from beehave import Action, Status
 from beehave.clock import SimClock
 from beehave.errors import BeehaveError, NoPath
-from beehave.planning import Disc, GridPlanner, OccupancyMap, PlannedPath, path_length_m
+from beehave.planning import (
+    Disc,
+    GridPlanner,
+    OccupancyMap,
+    PlannedPath,
+    SeenObstacles,
+    path_length_m,
+)
 from beehave.ros.io import Latest, WaitTimeout
 from robots import topics
 
@@ -113,6 +123,46 @@ def first_message(latest: Latest[Any], *, timeout_s: float = 10.0) -> Any:
                 raise
 
 
+class _LockstepLine:
+    """One node's ``/lockstep`` publisher, shared by all the driving actions of that node.
+
+    Made on first use and kept for the node's life (``destroy_node`` destroys it with the
+    node's other entities): a publisher made per action is new to DDS each time, and the
+    simulator does not hear its first announcements until discovery has matched it — the
+    robot then drives that long without being held.
+    """
+
+    MATCH_TIMEOUT_S = topics.LOCKSTEP_TIMEOUT_S
+    """Wall seconds a new line waits for the simulator's subscription (no lockstep
+    subscriber, e.g. ``beehave sim --no-lockstep``: each action waits this long only until
+    the line is this old)."""
+
+    _lines: weakref.WeakKeyDictionary[Any, _LockstepLine] = weakref.WeakKeyDictionary()
+    _lines_lock = threading.Lock()
+
+    def __init__(self, node: Any) -> None:
+        self.publisher = node.create_publisher(String, topics.LOCKSTEP, 10)
+        self.made_s = time.monotonic()
+
+    @classmethod
+    def of(cls, node: Any) -> _LockstepLine:
+        with cls._lines_lock:
+            line = cls._lines.get(node)
+            if line is None:
+                line = cls._lines[node] = cls(node)
+            return line
+
+    def wait_matched(self, interrupted: Callable[[], bool]) -> bool:
+        """Wait (wall time, at most until the line is :attr:`MATCH_TIMEOUT_S` old) until
+        the simulator subscribes; True once it has."""
+        # rclpy has no portable "matched" event: poll the graph, briefly.
+        while self.publisher.get_subscription_count() < 1:
+            if interrupted() or time.monotonic() - self.made_s > self.MATCH_TIMEOUT_S:
+                return False
+            time.sleep(0.005)
+        return True
+
+
 def twist(linear_mps: float = 0.0, angular_rps: float = 0.0) -> Twist:
     msg = Twist()
     msg.linear.x = float(linear_mps)
@@ -142,12 +192,27 @@ class _Drive(Action):
     def run(self) -> Any:
         self._open()
         try:
-            return self.drive()
+            result = self.drive()
+        except BaseException as exc:
+            self._stop(failed_with=exc)
+            raise
+        self._stop(failed_with=None)
+        return result
+
+    def _stop(self, *, failed_with: BaseException | None) -> None:
+        """Command zero velocity, then let the simulator go. A stop that fails after the
+        drive succeeded fails the action (the robot may still move: its safe state tries
+        again); after the drive failed, the drive's error stays the one reported, with the
+        stop's failure noted on it — the first cause is what the user must see."""
+        try:
+            self.command(0.0, 0.0)
+        except Exception as stop_error:
+            if failed_with is None:
+                raise
+            failed_with.add_note(f"{self.name}: commanding zero velocity afterwards failed "
+                                 f"too: {stop_error!r}")
         finally:
-            try:
-                self.command(0.0, 0.0)
-            finally:
-                self._let_go()
+            self._let_go()
 
     def drive(self) -> Any:
         """The control loop (runs in the action's thread); pace it with :meth:`tick`."""
@@ -157,11 +222,16 @@ class _Drive(Action):
         self._cmd = self.ros.publisher(Twist, topics.CMD_VEL)
         if self.uses_odometry:
             self.odom = self.ros.latest(Odometry, topics.ODOM)
-        if isinstance(self.manager.clock, SimClock):
-            self._lockstep = self.ros.publisher(String, topics.LOCKSTEP)
-            node = self.manager.node
-            where = node.get_fully_qualified_name() if node is not None else ""
-            self._participant = f"{where}/{self.path}#{id(self):x}"
+        clock = self.manager.clock
+        node = self.manager.node
+        if isinstance(clock, SimClock) and node is not None:
+            line = _LockstepLine.of(node)
+            self._participant = f"{node.get_fully_qualified_name()}/{self.path}#{id(self):x}"
+            self._lockstep = line.publisher
+            # Held before the first command: the sim may not run past the first period
+            # until this action has spoken again.
+            line.wait_matched(lambda: self.interrupted)
+            self._hold_at(clock.now() + 1.0 / self.rate_hz)
 
     def tick(self) -> bool:
         """Sleep one control period (``1 / rate_hz`` on the manager's clock); False when
@@ -174,6 +244,10 @@ class _Drive(Action):
             return self.sleep(1.0 / self.rate_hz)
 
     def _hold_at(self, until_s: float | None) -> None:
+        if self.status is Status.STUCK:
+            # Its own publishers are destroyed, not the node's shared line: a loop that
+            # ignores its interrupt must not keep holding the simulation.
+            until_s = None
         if self._lockstep is not None:
             self._lockstep.publish(String(data=json.dumps(
                 {"participant": self._participant, "until_s": until_s})))
@@ -182,9 +256,10 @@ class _Drive(Action):
         try:
             self._hold_at(None)
         except Exception:
-            # A STUCK action has lost its publishers; the sim's lockstep timeout lets go.
+            # The node's publisher is gone (the node or its ROS context was shut down under
+            # us): the sim node's lockstep timeout lets the simulation go in our place.
             log.debug("%s: could not let the simulation go", self.name, exc_info=True)
-        self._lockstep = None
+        self._lockstep = None  # the line stays with the node, for the next action
 
     def command(self, linear_mps: float, angular_rps: float) -> None:
         if self._cmd is not None:
@@ -219,8 +294,21 @@ class Navigation(_Drive):
     field). When blocked for ``replan_after_s`` with a map, what the laser sees ahead is
     added to the map as obstacles and the path is planned again from where the robot
     stands (``replans`` counts it); it waits while no way around exists, and fails after
-    ``blocked_timeout_s`` without progress. Returns the final ``(x_m, y_m)``.
+    ``blocked_timeout_s`` without progress. ``seen`` (a
+    :class:`~beehave.planning.SeenObstacles`) holds those laser hits, one per map cell; a
+    hit not seen again for ``forget_obstacles_after_s`` is forgotten.
+
+    It succeeds once the robot stands within ``tolerance_m`` of the goal it was given,
+    and returns the final ``(x_m, y_m)``. A goal inside the inflation (a station that hugs
+    a shelf) is approached at the nearest free point, which must lie within
+    ``tolerance_m`` of it (less :attr:`end_precision_m`); otherwise the action fails with
+    :class:`~beehave.errors.NoPath` saying so.
     """
+
+    TURN_ON_SPOT_RAD = 0.8
+    """Heading error (rad) beyond which the robot stops and turns on the spot…"""
+    ALIGNED_RAD = 0.25
+    """…until the error is below this; then it drives (and steers) again."""
 
     def __init__(self, goal: Goal | tuple[float, float] | str, *, world: str | None = None,
                  occupancy: OccupancyMap | None = None,
@@ -229,7 +317,7 @@ class Navigation(_Drive):
                  field_half_angle_rad: float = 0.5, blocked_timeout_s: float = 30.0,
                  replan_after_s: float = 3.0, robot_radius_m: float = 0.55,
                  clearance_m: float = 0.1, waypoint_tolerance_m: float = 0.3,
-                 timeout_s: float = 300.0) -> None:
+                 forget_obstacles_after_s: float = 60.0, timeout_s: float = 300.0) -> None:
         self.goal = resolve_goal(goal, world)
         if speed_mps <= 0 or tolerance_m <= 0:
             raise BeehaveError("speed_mps and tolerance_m must be positive")
@@ -250,12 +338,30 @@ class Navigation(_Drive):
             self.planner = world_planner(world, robot_radius_m, clearance_m)
         else:
             self.planner = None
+        if not forget_obstacles_after_s > 0:
+            raise BeehaveError(f"forget_obstacles_after_s must be positive (math.inf: never), "
+                               f"got {forget_obstacles_after_s}")
+        self.seen = SeenObstacles(
+            cell_m=self.planner.resolution_m if self.planner is not None else 0.1,
+            forget_after_s=forget_obstacles_after_s)
+
+    @property
+    def end_precision_m(self) -> float:
+        """How close the robot drives to the end of its plan when that end is not the goal
+        itself (a goal that hugs an obstacle): the plan ends at most ``tolerance_m -
+        end_precision_m`` from the goal, so stopping there is within ``tolerance_m``."""
+        return min(0.05, self.tolerance_m / 2)
 
     def _plan(self, planner: GridPlanner, x: float, y: float) -> list[tuple[float, float]]:
-        # The goal tolerance also lets a goal that hugs an obstacle end at the nearest
-        # reachable point rather than fail.
-        self.planned = planner.plan((x, y), (self.goal.x_m, self.goal.y_m),
-                                 goal_tolerance_m=self.tolerance_m)
+        # A goal that hugs an obstacle ends at the nearest reachable point rather than
+        # fail — but only one close enough for the robot to stop within tolerance_m of the
+        # goal it was given: success is always judged against that goal.
+        try:
+            self.planned = planner.plan((x, y), (self.goal.x_m, self.goal.y_m),
+                                        goal_tolerance_m=self.tolerance_m - self.end_precision_m)
+        except NoPath as exc:
+            raise NoPath(f"{self.name}: {exc} (tolerance_m={self.tolerance_m:g} less "
+                         f"end_precision_m={self.end_precision_m:g})") from exc
         log.info("%s: planned %.1f m via %d waypoint(s)", self.name, self.planned.length_m,
                  len(self.planned.waypoints_m) - 2)
         return list(self.planned.waypoints_m[1:])
@@ -269,9 +375,9 @@ class Navigation(_Drive):
         planner = self.planner
         waypoints = ([(self.goal.x_m, self.goal.y_m)] if planner is None
                      else self._plan(planner, p.x, p.y))  # NoPath fails the action
-        seen: list[Disc] = []  # obstacles the laser found that the map does not have
         blocked_since: float | None = None
         last_replan = -math.inf
+        turning = False
         while not self.interrupted:
             odom = self.odom.get() or odom
             p = odom.pose.pose.position
@@ -283,21 +389,32 @@ class Navigation(_Drive):
             # Slow down for the goal, not for every corner on the way.
             remaining = math.hypot(dx, dy) + path_length_m(waypoints)
             dist = math.hypot(self.goal.x_m - p.x, self.goal.y_m - p.y)
-            if len(waypoints) == 1 and math.hypot(dx, dy) <= self.tolerance_m:
+            if len(waypoints) == 1 and (dist <= self.tolerance_m
+                                        or math.hypot(dx, dy) <= self.end_precision_m):
+                # Within tolerance_m of the goal, either way (see end_precision_m).
                 self.command(0.0, 0.0)
                 return (p.x, p.y)
             heading_err = _wrap(math.atan2(dy, dx) - yaw_of(odom))
+            # Far off the path's bearing: turn on the spot until nearly on it (hysteresis,
+            # so it does not set off driving a wide arc just under the threshold).
+            if abs(heading_err) > self.TURN_ON_SPOT_RAD:
+                turning = True
+            elif abs(heading_err) < self.ALIGNED_RAD:
+                turning = False
             angular = max(-1.2, min(1.2, 2.0 * heading_err))
             linear = min(self.speed_mps, 0.8 * remaining) * max(0.0, math.cos(heading_err)) ** 2
-            if abs(heading_err) > 0.8:
-                linear = 0.0  # turn on the spot first
+            if turning:
+                linear = 0.0
             nearest = math.inf
             last = scan.get()
             if last is not None:
                 nearest = sector_min(last, 0.0, self.field_half_angle_rad)
             if nearest < self.stop_distance_m and linear > 0:
+                # Stop driving but keep turning towards the waypoint: turning on the spot is
+                # safe (the planner's radius is the circumscribed one), and a detour's first
+                # leg usually points away from what blocks the way — standing still here
+                # would face the obstacle for ever and re-plan the same path.
                 linear = 0.0
-                angular = 0.0 if abs(heading_err) < 0.8 else angular
                 now = clock.now()
                 if blocked_since is None:
                     blocked_since = now
@@ -309,10 +426,13 @@ class Navigation(_Drive):
                 if (planner is not None and last is not None
                         and now - max(blocked_since, last_replan) >= self.replan_after_s):
                     last_replan = now
-                    seen += self._obstacles_ahead(last, p.x, p.y, yaw_of(odom))
+                    self.seen.add(self._obstacles_ahead(last, p.x, p.y, yaw_of(odom)),
+                                  now_s=now)
                     try:
-                        waypoints = self._plan(planner.with_obstacles(seen), p.x, p.y)
+                        waypoints = self._plan(planner.with_obstacles(self.seen.shapes()),
+                                               p.x, p.y)
                         self.replans += 1
+                        turning = True  # face the new path before driving on
                     except NoPath as exc:  # no way around (yet): wait, try again later
                         log.info("%s: blocked, no way around: %s", self.name, exc)
                 self.blocked = True

@@ -22,7 +22,6 @@ class BumperWander(_Drive):
         self.speed_mps, self.duration_s = speed_mps, duration_s
         self.rng = random.Random(seed)
         self.bumps = 0
-        self.stop_latency_s: list[float] = []
 
     uses_odometry = False
 

@@ -371,7 +371,7 @@ class SimNode:
                 sim.on_step(self._on_battery_step, rate_hz=topics.BATTERY_RATE_HZ),
             ]
             if lockstep:
-                sim.set_gate(self._gate)
+                self._removers.append(sim.set_gate(self._gate))
         except BaseException:
             self.destroy()
             raise
@@ -492,9 +492,7 @@ class SimNode:
             self._destroyed = True
         for remove in self._removers:
             remove()
-        self._removers = []
-        if self.lockstep:
-            self.sim.set_gate(None)
+        self._removers = []  # our on_step callbacks and our gate (no one else's)
         if self.sim.state is not SimState.CLOSED:
             # Runs between two steps: after it, no callback of ours is in flight.
             self.sim.call(lambda client: None)

@@ -337,24 +337,37 @@ class Simulation:
 
         return remove
 
-    def set_gate(self, gate: Callable[[float], bool] | None) -> None:
+    def set_gate(self, gate: Callable[[float], bool] | None) -> Callable[[], None]:
         """Hold the sim thread while ``gate(time_s)`` is True (lockstep: the sim node holds
         it for controllers that have not answered yet). The thread asks the gate before
         every step, again after each :meth:`wake` and at least every 20 ms (wall) while it
         holds — so a gate may let go on a timeout — and runs queued requests (``call``,
-        LED colours) meanwhile. The gate must be quick. None removes it. Stepping by hand
-        (:meth:`step`) ignores the gate."""
-        self._gate = gate
+        LED colours) meanwhile. The gate must be quick. A new gate replaces the old one;
+        None removes it. Stepping by hand (:meth:`step`) ignores the gate.
+
+        Returns ``remove()``, which removes this gate only if it is still the one set — so
+        whoever set a gate can take it away without clearing someone else's."""
+        with self._state_lock:
+            self._gate = gate
         self._wake.set()
+
+        def remove() -> None:
+            with self._state_lock:
+                if self._gate is not gate:
+                    return
+                self._gate = None
+            self._wake.set()
+
+        return remove
+
+    @property
+    def gate(self) -> Callable[[float], bool] | None:
+        """The gate set now (:meth:`set_gate`), if any."""
+        return self._gate
 
     def wake(self) -> None:
         """Tell a holding sim thread to ask its gate again (the gate's answer changed)."""
         self._wake.set()
-
-    @property
-    def stopping(self) -> bool:
-        """True once :meth:`stop` was asked for (until the thread is started again)."""
-        return self._stop_event.is_set()
 
     # ---- stepping -------------------------------------------------------------------
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import pytest
 
@@ -31,3 +32,55 @@ def test_station_goals_come_from_the_world() -> None:
 def test_lift_height_is_checked_before_anything_moves() -> None:
     with pytest.raises(LiftError, match="0.5 m is outside 0–0.3 m"):
         Lift(0.5)
+
+
+class _DeadPublisher:
+    """A publisher whose every publish fails (fault injection: the middleware is gone)."""
+
+    def publish(self, msg: object) -> None:
+        raise RuntimeError("publisher destroyed")
+
+
+def _drive_with_a_dead_publisher(outcome: object) -> object:
+    from beehave import Behavior, HighLevelBehaviorManager
+    from behaviours.actions import _Drive
+
+    class Broken(_Drive):
+        def _open(self) -> None:
+            self._cmd = _DeadPublisher()
+
+        def drive(self) -> object:
+            if isinstance(outcome, BaseException):
+                raise outcome
+            return outcome
+
+    class Do(Behavior):
+        def __init__(self, action: Broken) -> None:
+            self.action = action
+
+        def run(self) -> None:
+            self.start_action(self.action).wait()
+
+    action = Broken()
+    with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
+        hl.register("do", Do, action=action)
+        assert hl.switch("do").wait(5)
+        assert action.wait(5)
+    return action
+
+
+def test_a_failing_stop_does_not_hide_the_drives_own_error() -> None:
+    from beehave import Status
+
+    action: Any = _drive_with_a_dead_publisher(ValueError("lost the odometry"))
+    assert action.status is Status.FAILED
+    assert isinstance(action.error, ValueError), action.error
+    assert "zero velocity afterwards failed" in "".join(getattr(action.error, "__notes__", []))
+
+
+def test_a_failing_stop_after_success_fails_the_drive() -> None:
+    from beehave import Status
+
+    action: Any = _drive_with_a_dead_publisher(3)
+    assert action.status is Status.FAILED
+    assert "publisher destroyed" in str(action.error)

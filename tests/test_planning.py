@@ -128,3 +128,78 @@ def test_warehouse_readme_order_goes_around_the_pillar() -> None:
     assert clearance_m(path, floor.obstacles) >= 0.55 + 0.1 - 0.08
     assert path.goal_m == goal
     assert math.dist(start, goal) < path.length_m < 1.2 * math.dist(start, goal)
+
+
+def test_goal_tolerance_is_kept_in_metres_from_the_goal_point() -> None:
+    # Goals around a pillar, just inside its inflation: every plan must end within
+    # goal_tolerance_m of the goal itself (it used to measure between cell indices, and
+    # ended up to 0.2 m away with a 0.15 m tolerance), or fail with NoPath.
+    planner = GridPlanner(OccupancyMap(size_m=(10.0, 6.0), obstacles=(PILLAR,)),
+                          robot_radius_m=0.55, clearance_m=0.1)
+    tolerance_m = 0.15
+    ended = 0
+    for k in range(0, 40, 3):
+        for degrees in range(0, 360, 10):
+            r = 0.75 + k * 0.005
+            goal = (5.0 + r * math.cos(math.radians(degrees)),
+                    3.0 + r * math.sin(math.radians(degrees)))
+            if planner.is_free(goal):
+                continue
+            try:
+                end = planner.plan((1.0, 1.0), goal, goal_tolerance_m=tolerance_m).goal_m
+            except NoPath:
+                continue
+            ended += 1
+            assert math.dist(end, goal) <= tolerance_m, (goal, end)
+            assert planner.is_free(end)
+    assert ended > 50  # most of them are within reach
+
+
+def test_goal_on_the_floors_edge_says_it_is_the_edge() -> None:
+    planner = GridPlanner(EMPTY, robot_radius_m=0.3)
+    with pytest.raises(NoPath, match=r"floor's edge .*x 0\.40–9\.60 m") as info:
+        planner.plan((1.0, 1.0), (10.0, 3.0))
+    assert "obstacle" not in str(info.value)
+    end = planner.plan((1.0, 1.0), (10.0, 3.0), goal_tolerance_m=0.5).goal_m
+    assert math.dist(end, (10.0, 3.0)) <= 0.5
+
+
+def test_docstring_example_path_is_the_real_one() -> None:
+    floor = OccupancyMap(size_m=(10.0, 6.0),
+                         obstacles=(Disc((5.0, 3.0), 0.3), Rect((8.0, 1.0), (0.4, 2.0))))
+    path = GridPlanner(floor, robot_radius_m=0.55).plan((1.0, 3.0), (9.0, 3.0))
+    assert [pytest.approx(w) for w in ((1.0, 3.0), (4.75, 3.95), (5.45, 3.95), (9.0, 3.0))
+            ] == list(path.waypoints_m)
+    import beehave.planning
+
+    assert "(4.75, 3.95), (5.45, 3.95)" in (beehave.planning.__doc__ or "")
+
+
+def test_seen_obstacles_keep_one_hit_per_cell_and_forget_old_ones() -> None:
+    # The same wall seen on every re-plan: the memory (and the re-plan's cost) must not
+    # grow with the number of looks.
+    from beehave.planning import SeenObstacles
+
+    wall = [Disc((6.0 + 0.02 * k, 3.0), 0.05) for k in range(50)]  # 1 m: 10 cells
+    seen = SeenObstacles(cell_m=0.1, forget_after_s=10.0)
+    for look in range(100):
+        seen.add(wall, now_s=0.1 * look)
+    assert len(seen) == len({(math.floor(d.center_m[0] / 0.1), 30) for d in wall}) == 10
+    seen.add([Disc((2.0, 2.0), 0.05)], now_s=15.0)  # the wall was last seen at 9.9 s
+    assert len(seen) == 10 + 1
+    seen.add([], now_s=20.0)
+    assert seen.shapes() == [Disc((2.0, 2.0), 0.05)]
+    with pytest.raises(ValueError, match="forget_after_s"):
+        SeenObstacles(forget_after_s=0.0)
+
+
+@pytest.mark.parametrize("shape", [Disc((9.9, 0.2), 0.3), Rect((0.3, 5.8), (1.0, 0.4), 0.7),
+                                   Disc((5.0, 3.0), 0.05), Rect((5.0, 3.0), (3.0, 0.2), 1.1)])
+def test_with_obstacles_rasterises_like_the_map(shape: Disc | Rect) -> None:
+    # Adding a shape touches only the cells it can reach; the result must equal building
+    # the map with that shape, edges and rotated rectangles included.
+    added = GridPlanner(EMPTY, robot_radius_m=0.55).with_obstacles([shape])
+    built = GridPlanner(OccupancyMap(size_m=(10.0, 6.0), obstacles=(shape,)),
+                        robot_radius_m=0.55)
+    assert (added.blocked == built.blocked).all()
+    assert added.blocked.sum() > GridPlanner(EMPTY, robot_radius_m=0.55).blocked.sum()

@@ -412,3 +412,19 @@ def test_lockstep_refuses_a_malformed_announcement(rig: Rig) -> None:
 
 def stamp_s(msg: Clock) -> float:
     return float(msg.clock.sec + msg.clock.nanosec * 1e-9)
+
+
+def test_destroy_leaves_a_gate_that_is_not_its_own(rig: Rig) -> None:
+    # Someone else (a second node, a test harness) gates the sim after this node did:
+    # destroying this node must take away only its own gate, not theirs.
+    holding = True
+    remove = rig.sim.set_gate(lambda time_s: holding)
+    rig.node.destroy()
+    held_at = rig.sim.time_s
+    time.sleep(0.3)  # at 4x, 1.2 s of sim time if it ran
+    assert rig.sim.time_s <= held_at + rig.sim.step_s
+    assert rig.sim.gate is not None
+    holding = False
+    remove()
+    assert rig.sim.gate is None
+    assert rig.probe.wait(lambda: rig.sim.time_s > held_at + 0.2)
