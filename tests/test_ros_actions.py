@@ -205,27 +205,6 @@ def test_an_interrupt_waits_cancel_timeout_s_once_not_twice(server: FibonacciSer
         ros.shutdown()
 
 
-@pytest.mark.parametrize("how", ["server_timeout", "interrupt"])
-def test_a_goal_accepted_after_its_sender_gave_up_is_cancelled(
-        hl: HighLevelBehaviorManager, server: FibonacciServer, how: str) -> None:
-    """The owner ends right after giving up; its action client must live until the late
-    acceptance arrives, so that the goal is cancelled rather than run with no owner."""
-    server.step_s = 0.05
-    server.accept_delay_s = 1.0
-    action = Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=1000),  # ~50 s
-                 server_timeout_s=0.3 if how == "server_timeout" else 30.0)
-    hl.register("runs", Runs, action=action)
-    assert hl.switch("runs").ready.wait(10)  # type: ignore[attr-defined]
-    if how == "interrupt":
-        hl.switch("idle")
-        assert action.status.name == "INTERRUPTED", (action.status, action.error)
-    else:
-        assert action.wait(10)
-        assert isinstance(action.error, WaitTimeout), action.error
-    assert wait_until(lambda: server.cancelled == [1000], 10), (server.cancelled,
-                                                                 server.succeeded)
-
-
 class Sends(Behavior):
     """Sends goals one after the other in one behaviour, as a patrol loop would."""
 

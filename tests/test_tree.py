@@ -64,7 +64,8 @@ def test_leaf_maps_statuses_tick_by_tick(hl: HighLevelBehaviorManager) -> None:
     engine = TreeEngine(leaf, rate_hz=500)
     run(hl, engine)
     assert wait_until(lambda: bool(act.built))
-    assert leaf.status == py_trees.common.Status.RUNNING
+    # The action is built inside the tick; the leaf's status is set when the tick returns.
+    assert wait_until(lambda: leaf.status == py_trees.common.Status.RUNNING)
     act.built[0].interrupt()  # someone else stops it: not a success
     hl_status = wait_until(lambda: engine.root.status == py_trees.common.Status.FAILURE
                            or act.built[0].status is Status.INTERRUPTED)

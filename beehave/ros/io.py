@@ -403,7 +403,10 @@ class RosIO:
             lingering = self._lingering.pop(id(client), None)
             del self._unsettled[id(client)]
         if lingering is not None:
-            lingering()
+            # Here we are inside the client's own callback (the executor completing its
+            # future): destroying the client now would free what the executor still uses.
+            threading.Thread(target=lingering, name=f"beehave:ros-linger:{self.owner}",
+                             daemon=True).start()
 
     def _forget(self, kind: str, entity: Any) -> None:
         with self._lock:
@@ -511,44 +514,21 @@ class RosIO:
             # The owner ended (after safe_state): a goal still running must not go on
             # driving the robot. Ask once, do not wait here; its client waits for the answer.
             entity.cancel(timeout_s=0.0)
-            client, cancel = entity._client, entity._cancel_future
-            if client is not None and cancel is not None:
-                self._hold(client, cancel)
         elif kind == "action_client":
             self._destroy_action_client(entity)
         else:
             getattr(self.node, f"destroy_{kind}")(entity)
 
     def _destroy_action_client(self, client: Any) -> None:
-        if not self._unanswered(client):
-            client.destroy()
-            return
-        once = threading.Lock()
-        timers: list[Any] = []
-
-        def destroy(*, late: bool = False) -> None:
-            if not once.acquire(blocking=False):
-                return  # the answers and the bound both came: once is enough
-            if late:
-                with self._lock:
-                    self._lingering.pop(id(client), None)
-                    self._unsettled.pop(id(client), None)
-                log.warning("%s: an action server left a request unanswered %g s after its "
-                            "owner ended; its client is destroyed", self.owner, LINGER_S)
-            try:
-                for timer in timers:
-                    self.node.destroy_timer(timer)
-                client.destroy()
-            except Exception:  # the node went away first: it took the client with it
-                log.debug("%s: destroying an action client failed", self.owner, exc_info=True)
-
-        # The timer exists before the answers can end the wait: destroy() removes it.
-        timers.append(self.node.create_timer(LINGER_S, lambda: destroy(late=True)))
+        # Destroyed at once. Keeping it alive until late answers arrive (so that a goal the
+        # server accepts after its sender gave up could still be cancelled) crashed rclpy's
+        # EventsExecutor here (SIGSEGV in about half the runs), whether it was destroyed
+        # from a node timer or from a thread of its own: that case is a documented
+        # limitation instead (docs/ros.md).
         with self._lock:
-            if self._unanswered(client, locked=True):
-                self._lingering[id(client)] = destroy
-                return
-        destroy()
+            self._lingering.pop(id(client), None)
+            self._unsettled.pop(id(client), None)
+        client.destroy()
 
     def _unanswered(self, client: Any, *, locked: bool = False) -> bool:
         """Whether ``client`` has requests without an answer (else forget its record)."""
