@@ -49,6 +49,10 @@ class EventKind(Enum):
     the culprit (``logic:<path>``, ``hal:<name>``), ``detail`` says where and for how long.
     Emitted from the watchdog thread (the loop cannot), and once more with
     ``detail["ended"]`` True from the loop when it answers again."""
+    MESSAGE_REJECTED = "message_rejected"
+    """An agent received a message it could not take (malformed JSON, a schema error, not
+    addressed to it, no one to deliver it to): ``subject`` is the agent, ``detail`` says
+    why and who sent it; the sender got a not-understood reply when one could be named."""
 
 
 @dataclass(frozen=True)
@@ -128,4 +132,4 @@ def describe(event: Event) -> str:
 
 
 _WARN = {EventKind.STUCK, EventKind.SAFE_STATE_FAILED, EventKind.HOOK_FAILED,
-         EventKind.RESTARTED, EventKind.SAFE_STATE_OVERDUE}
+         EventKind.RESTARTED, EventKind.SAFE_STATE_OVERDUE, EventKind.MESSAGE_REJECTED}
