@@ -23,7 +23,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from beehave import Action, HighLevelBehaviorManager  # noqa: E402
+from beehave import Action, Event, EventKind, HighLevelBehaviorManager  # noqa: E402
 from beehave.agents import Agent, AgentBehavior, AgentNameTaken, Message  # noqa: E402
 from beehave.agents.protocols import ContractNetResponder, RequestResponder  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
@@ -72,11 +72,6 @@ class Transport(ContractNetResponder):
     def perform(self, task: Message) -> Any:
         return Deliver(task.conversation_id, self.task_s)
 
-    def _handle(self, message: Message) -> None:
-        if message.performative.value in ("cancel", "reject-proposal", "accept-proposal"):
-            say(message.performative.value, cid=message.conversation_id)
-        super()._handle(message)
-
 
 class Echo(RequestResponder):
     service = "echo"
@@ -116,15 +111,31 @@ def main() -> int:
         except AgentNameTaken as exc:
             say("taken", error=str(exc))
             return 3
-        agent.events.subscribe(lambda e: say("rejected", **{k: str(v) for k, v
-                                                            in e.detail.items()}))
+        route = agent._route
+
+        def traced(message: Message) -> None:  # every arrival, before anyone handles it
+            say("got", performative=message.performative.value,
+                cid=message.conversation_id, sender=message.sender)
+            route(message)
+
+        agent._route = traced  # type: ignore[method-assign]
+        def on_event(event: Event) -> None:
+            if event.kind is EventKind.AGENT_NAME_LOST:
+                say("taken", error=str(event.error))
+                lost.set()
+                stop.set()
+            else:
+                say("rejected", **{k: str(v) for k, v in event.detail.items()})
+
+        lost = threading.Event()
+        agent.events.subscribe(on_event)
         with agent, HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
             agent.attach(hl)
             hl.register("serve", Serve, service=args.service, cost=args.cost, task_s=args.task_s,
                         propose_delay_s=args.propose_delay_s)
             hl.switch("serve")
             stop.wait()
-    return 0
+    return 3 if lost.is_set() else 0
 
 
 if __name__ == "__main__":

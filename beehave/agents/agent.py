@@ -20,7 +20,10 @@ dies in flight is lost — protocols bound every wait and watch the directory fo
 
 Threads. Messages arrive in the ROS executor thread and are sorted there, without user
 code: to an open :class:`Conversation` (by conversation id), to a :class:`Mailbox` that
-claims their protocol or performative, or to the agent's :attr:`Agent.inbox`. Waits are
+claims their protocol or performative, or — when they name no protocol, or are a
+not-understood — to the agent's :attr:`Agent.inbox`. A message of a protocol that no
+mailbox claims is answered with not-understood at once (its initiator must not wait for
+its timeout); a reply to a conversation that is closed is logged and dropped. Waits are
 blocking (``receive``: for threads, ending early with
 :class:`~beehave.errors.Interrupted` when the calling Behavior or Action is interrupted)
 or awaitable (``areceive``: for Logics). Agent timeouts are wall time (they bound network
@@ -335,7 +338,7 @@ class Agent:
 
     def __init__(self, name: str, *, node: Node | None = None, ros: RosContext | None = None,
                  services: dict[str, dict[str, Any]] | None = None, lease_s: float = 2.0,
-                 probe_s: float = 0.5, inbox_depth: int = 1000,
+                 probe_s: float = 1.0, inbox_depth: int = 1000,
                  send_timeout_s: float = 2.0) -> None:
         if not is_agent_name(name):
             raise ConfigError(f"agent name {name!r} is not valid: letters, digits and '_', "
@@ -396,6 +399,10 @@ class Agent:
         self._entities.append(("timer", node.create_timer(EXPIRY_CHECK_S,
                                                           self.directory._expire)))
         self._remove_listener = self.directory._on_departure(self._peer_departed)
+        #: Set when the agent lost its name to an older process after it started (then it
+        #: is closed, and sending raises this).
+        self.error: AgentNameTaken | None = None
+        self.directory._name_lost = self._lose_name
         try:
             self._probe(float(probe_s))
         except BaseException:
@@ -413,12 +420,7 @@ class Agent:
         while True:
             conflict = self.directory.conflict
             if conflict is not None:
-                raise AgentNameTaken(
-                    f"agent name {self.name!r} is taken: a process announcing it "
-                    f"{conflict.state.value} since "
-                    f"{time.strftime('%H:%M:%S', time.localtime(conflict.started_at))} "
-                    f"(incarnation {conflict.incarnation[:8]}) is alive in this DDS domain "
-                    f"(ROS_DOMAIN_ID); choose another name or stop that process")
+                raise self._taken(conflict)
             elapsed = time.monotonic() - start
             writers = self.node.count_publishers(DIRECTORY_TOPIC) - 1
             if (elapsed >= probe_s and self.directory._heard_count() >= writers) \
@@ -428,6 +430,28 @@ class Agent:
             self._news.clear()
         self._state = EntryState.ALIVE
         self._announce()
+
+    def _taken(self, holder: Announcement) -> AgentNameTaken:
+        return AgentNameTaken(
+            f"agent name {self.name!r} is taken: a process announcing it "
+            f"{holder.state.value} since "
+            f"{time.strftime('%H:%M:%S', time.localtime(holder.started_at))} "
+            f"(incarnation {holder.incarnation[:8]}) is alive in this DDS domain "
+            f"(ROS_DOMAIN_ID); choose another name or stop that process")
+
+    def _lose_name(self, holder: Announcement) -> None:
+        """An older holder of our name showed up after the probe (discovery was slow):
+        step down, so that one name never answers twice (executor thread)."""
+        self.error = self._taken(holder)
+        log.error("agent %r: %s; closing this one", self.name, self.error)
+        event = Event(EventKind.AGENT_NAME_LOST, f"agent:{self.name}", None, self.error,
+                      {"holder": holder.incarnation, "holder_started_at": holder.started_at})
+        for bus in list(self._buses):
+            bus.emit(event)
+        # Not here: close() destroys the subscription whose callback is running.
+        self._closer = threading.Thread(target=self.close, name=f"beehave:agent-close:"
+                                                                f"{self.name}", daemon=True)
+        self._closer.start()
 
     def _announce(self) -> None:
         with self._lock:
@@ -480,6 +504,8 @@ class Agent:
         ``timeout_s`` (default ``send_timeout_s``): :class:`~beehave.errors.AgentUnreachable`
         then; :class:`~beehave.errors.Interrupted` when the calling Behavior or Action is
         interrupted meanwhile. Returns the message as sent."""
+        if self.error is not None:
+            raise self.error
         if self._closed:
             raise AgentError(f"agent {self.name!r} is closed; it cannot send")
         message = message.model_copy(update={"sender": self.name, "sent_at": time.time()})
@@ -578,8 +604,20 @@ class Agent:
             log.info("agent %r: %s from %r for the closed conversation %r dropped (it came "
                      "after the conversation ended)", self.name, message.performative.value,
                      message.sender, message.conversation_id)
+        elif box is not None:
+            box._deliver(message)
+        elif message.protocol is not None \
+                and message.performative is not Performative.NOT_UNDERSTOOD:
+            # Part of a protocol nobody here runs: waiting in the inbox, it would leave
+            # its initiator waiting for its timeout.
+            with self._lock:
+                served = sorted({p for b in self._mailboxes for p in (b.protocols or ())})
+            self._emit_rejected(f"no responder for protocol {message.protocol!r} in agent "
+                                f"{self.name!r} (it serves: {', '.join(served) or 'none'})",
+                                message.sender, message.to_json(), reply=True,
+                                message=message)
         else:
-            (box if box is not None else self.inbox)._deliver(message)
+            self.inbox._deliver(message)
 
     def _emit_rejected(self, reason: str, sender: str | None, text: str, *,
                        reply: bool = False, message: Message | None = None) -> None:
@@ -659,7 +697,8 @@ class Agent:
             if self._closed:
                 return
             self._closed = True
-            was_alive = self._state is EntryState.ALIVE
+            # One that lost its name says no goodbye: the holder's entry must stay.
+            was_alive = self._state is EntryState.ALIVE and self.error is None
             self._state = EntryState.LEAVING
             boxes = [*self._conversations.values(), *self._mailboxes, self.inbox]
             managers = [m() for m in self._managers]

@@ -142,6 +142,7 @@ class Directory:
         self.conflict: Announcement | None = None  # who holds our name, if anyone
         self._own_announcement: Announcement | None = None
         self._departure_listeners: list[Callable[[str, str], None]] = []
+        self._name_lost: Callable[[Announcement], None] | None = None
 
     # ------------------------------------------------------------------ queries
     def search(self, service: str, **constraints: Any) -> list[AgentInfo]:
@@ -261,15 +262,13 @@ class Directory:
         self._report(before, after, "left" if after is None else "announced")
 
     def _name_contested(self, other: Announcement, own: Announcement) -> None:
-        if other.state is EntryState.LEAVING:
-            return
-        if other.state is EntryState.ALIVE or other.older_than(own):
-            if self.conflict is None:
-                self.conflict = other
-            if own.state is EntryState.ALIVE:
-                log.error("agent %r: another process (incarnation %s, started at %.3f) "
-                          "announces the same name", self._own, other.incarnation,
-                          other.started_at)
+        if other.state is EntryState.LEAVING or not other.older_than(own):
+            return  # a younger claimant refuses itself when it hears us
+        if other.state is EntryState.ALIVE or own.state is EntryState.JOINING:
+            first = self.conflict is None
+            self.conflict = other
+            if first and own.state is EntryState.ALIVE and self._name_lost is not None:
+                self._name_lost(other)
 
     def _expire(self) -> None:
         """Drop the entries whose lease ran out (executor thread, every EXPIRY_CHECK_S)."""
