@@ -27,7 +27,7 @@ pytest.importorskip("rclpy")
 
 from std_msgs.msg import String  # noqa: E402
 
-from beehave import Behavior, HighLevelBehaviorManager, Status  # noqa: E402
+from beehave import Action, Behavior, HighLevelBehaviorManager, Status  # noqa: E402
 from beehave.agents import (  # noqa: E402
     Agent,
     AgentBehavior,
@@ -43,7 +43,10 @@ from beehave.agents.agent import INBOX_PREFIX, inbox_qos  # noqa: E402
 from beehave.agents.protocols import (  # noqa: E402
     Award,
     ContractNetInitiator,
+    ContractNetResponder,
     RequestInitiator,
+    RequestResponder,
+    contract_net,
     request,
 )
 from beehave.errors import ConfigError, Interrupted  # noqa: E402
@@ -440,3 +443,107 @@ def test_interrupted_initiator_cancels_and_leaves_no_award(
         quick.wait_event("interrupted", cid=cid2)
         assert not slow.saw("perform")
         assert not slow.saw("got", performative="accept-proposal")
+
+
+# ---------------------------------------------------------------------- in one process
+class Hold(Action):
+    """Holds the "driving" lock until interrupted (or ``seconds``)."""
+
+    action_type = "driving"
+    ended: list[str] = []
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+
+    def run(self) -> str:
+        finished = self.sleep(self.seconds)
+        Hold.ended.append("done" if finished else "interrupted")
+        return "held"
+
+
+class Drive(RequestResponder):
+    def perform(self, task: Message) -> Any:
+        return Hold(float(task.content))
+
+
+class Bidder(ContractNetResponder):
+    service = "haul"
+
+    def __init__(self, cost: float, seconds: float) -> None:
+        self.price = cost
+        self.seconds = seconds
+
+    def propose(self, cfp: Message) -> Any:
+        return {"cost": self.price}
+
+    def perform(self, task: Message) -> Any:
+        return Hold(self.seconds)
+
+
+@pytest.fixture
+def robots(ros: RosContext) -> Iterator[Callable[..., Agent]]:
+    """Agents that each run one responder behaviour under their own manager."""
+    opened: list[tuple[Agent, HighLevelBehaviorManager]] = []
+
+    def make(name: str, behavior: type[Behavior], **params: Any) -> Agent:
+        agent = Agent(name, ros=ros, lease_s=LEASE_S)
+        hl = HighLevelBehaviorManager(stop_timeout_s=1.0)
+        hl.start()
+        opened.append((agent, hl))
+        agent.attach(hl)
+        hl.register("serve", behavior, **params)
+        hl.switch("serve")
+        return agent
+
+    try:
+        yield make
+    finally:
+        for agent, hl in opened:
+            hl.shutdown()
+            agent.close()
+
+
+def test_tasks_run_as_actions_under_the_type_locks_and_cancel_interrupts_them(
+        ros: RosContext, robots: Callable[..., Agent]) -> None:
+    Hold.ended.clear()
+    driver = robots("lock_driver", Drive)
+    with Agent("lock_boss", ros=ros) as boss:
+        _wait(lambda: boss.directory.alive("lock_driver"), "lock_driver")
+        first: list[BaseException] = []
+
+        def long_request() -> None:
+            try:
+                request(boss, "lock_driver", 60.0, timeout_s=3.0)
+            except BaseException as exc:  # noqa: BLE001 - inspected below
+                first.append(exc)
+
+        asking = threading.Thread(target=long_request)
+        asking.start()
+        _wait(lambda: any(lock for lock in driver_locks(driver)), "the driving lock held")
+        with pytest.raises(ProtocolFailed, match="driving") as busy:
+            request(boss, "lock_driver", 0.0, timeout_s=WAIT_S)
+        assert isinstance(busy.value.reply, Message)
+        assert busy.value.reply.performative is Performative.FAILURE
+        asking.join(WAIT_S)
+        assert len(first) == 1 and isinstance(first[0], NoReply)  # then it sent cancel
+        _wait(lambda: Hold.ended == ["interrupted"], "the cancelled action's end")
+
+
+def driver_locks(agent: Agent) -> list[Any]:
+    manager = next(m() for m in agent._managers)
+    assert manager is not None
+    return list(manager.snapshot()["locks"].values())
+
+
+def test_a_silent_awardee_is_cancelled_and_the_task_re_awarded(
+        ros: RosContext, robots: Callable[..., Agent]) -> None:
+    Hold.ended.clear()
+    robots("quiet_cheap", Bidder, cost=1.0, seconds=60.0)
+    robots("quiet_dear", Bidder, cost=2.0, seconds=0.0)
+    with Agent("quiet_boss", ros=ros) as boss:
+        _wait(lambda: len(boss.directory.search("haul")) == 2, "two haulers")
+        award = contract_net(boss, "haul", {}, reply_by_s=WAIT_S, done_timeout_s=0.5)
+        assert award.awardee == "quiet_dear"
+        assert award.attempts[0] == ("quiet_cheap", "failure: silent for 0.5 s")
+        assert award.result == {"result": "held"}
+        _wait(lambda: sorted(Hold.ended) == ["done", "interrupted"], "both actions ended")

@@ -27,7 +27,14 @@ from typing import Any
 from beehave.action import Action
 from beehave.agents.agent import Agent, AgentBehavior, Conversation, Mailbox
 from beehave.agents.message import Message, Performative, jsonable
-from beehave.errors import ActionTypeBusy, AgentError, Interrupted, NoReply, ProtocolFailed
+from beehave.errors import (
+    ActionTypeBusy,
+    AgentError,
+    ChildFailed,
+    Interrupted,
+    NoReply,
+    ProtocolFailed,
+)
 from beehave.runnable import Runnable
 from beehave.status import Status
 
@@ -404,11 +411,15 @@ class Responder(AgentBehavior):
         if not isinstance(outcome, Action):
             self._reply(message, Performative.INFORM, {"result": jsonable(outcome)})
             return
-        try:
-            self.start_action(outcome)
-        except ActionTypeBusy as exc:
-            self._reply(message, Performative.FAILURE, {"reason": str(exc)})
-            return
+        while True:
+            try:
+                self.start_action(outcome)
+                break
+            except ChildFailed:
+                continue  # an earlier task's action failed just now: _reap reports it
+            except ActionTypeBusy as exc:
+                self._reply(message, Performative.FAILURE, {"reason": str(exc)})
+                return
         self.tasks[cid] = _Task(message, outcome)
         self._reap()  # it may have ended already
 
