@@ -56,6 +56,7 @@ from beehave.ros.context import RosContext  # noqa: E402
 NODE = Path(__file__).with_name("agents_node.py")
 LEASE_S = 1.0
 WAIT_S = 30.0  # generous: the machine may be loaded
+PROBE_S = 0.3  # names in this file are unique: a short probe keeps the tests fast
 
 
 class Proc:
@@ -179,7 +180,7 @@ def test_agent_options_are_checked(ros: RosContext) -> None:
 
 # ---------------------------------------------------------------------- directory
 def test_register_search_by_constraints_subscribe_and_deregister(ros: RosContext) -> None:
-    with Agent("dir_seeker", ros=ros, lease_s=LEASE_S) as seeker:
+    with Agent("dir_seeker", ros=ros, probe_s=PROBE_S, lease_s=LEASE_S) as seeker:
         seen: list[DirectoryEvent] = []
         cond = threading.Condition()
 
@@ -189,7 +190,7 @@ def test_register_search_by_constraints_subscribe_and_deregister(ros: RosContext
                 cond.notify_all()
 
         unsubscribe = seeker.directory.subscribe("transport", note, zone="north")
-        with Agent("dir_offer", ros=ros, lease_s=LEASE_S,
+        with Agent("dir_offer", ros=ros, probe_s=PROBE_S, lease_s=LEASE_S,
                    services={"transport": {"zone": "north", "kg": 50}}) as offer:
             with cond:
                 assert cond.wait_for(lambda: len(seen) >= 1, WAIT_S), "no APPEARED"
@@ -222,7 +223,7 @@ def test_killed_agent_disappears_within_its_lease(ros: RosContext,
                                                    procs: list[Proc]) -> None:
     proc = _spawn(procs, "dir_victim")
     gone = threading.Event()
-    with Agent("dir_watcher", ros=ros, lease_s=LEASE_S) as watcher:
+    with Agent("dir_watcher", ros=ros, probe_s=PROBE_S, lease_s=LEASE_S) as watcher:
         def note(event: DirectoryEvent) -> None:
             if event.agent.name == "dir_victim" and event.change is Change.DISAPPEARED:
                 gone.set()
@@ -242,12 +243,13 @@ def test_a_name_alive_elsewhere_is_refused(ros: RosContext, procs: list[Proc]) -
     proc = _spawn(procs, "dup_name")
     proc.wait_event("ready")
     with pytest.raises(AgentNameTaken, match="'dup_name' is taken"):
-        Agent("dup_name", ros=ros, lease_s=LEASE_S)
+        # A generous probe: DDS discovery of a new process can take seconds under load.
+        Agent("dup_name", ros=ros, lease_s=LEASE_S, probe_s=3.0)
     second = _spawn(procs, "dup_name")
     second.wait_event("taken")
     assert second.popen.wait(WAIT_S) == 3
     assert proc.popen.poll() is None  # the holder goes on
-    with Agent("dup_asker", ros=ros) as asker:
+    with Agent("dup_asker", ros=ros, probe_s=PROBE_S) as asker:
         _wait(lambda: asker.directory.alive("dup_name"), "dup_name")
         assert request(asker, "dup_name", "still there", timeout_s=WAIT_S) == \
             {"result": "still there"}
@@ -258,7 +260,7 @@ def test_malformed_and_misaddressed_messages_get_not_understood(
         ros: RosContext, procs: list[Proc]) -> None:
     target = _spawn(procs, "nu_target")
     target.wait_event("ready")
-    with Agent("nu_probe", ros=ros, lease_s=LEASE_S) as probe:
+    with Agent("nu_probe", ros=ros, probe_s=PROBE_S, lease_s=LEASE_S) as probe:
         raw = probe.node.create_publisher(String, INBOX_PREFIX + "nu_target", inbox_qos(10))
         _wait(lambda: raw.get_subscription_count() > 0, "nu_target's inbox")
         valid = Message(performative=Performative.REQUEST, sender="nu_probe",
@@ -309,18 +311,19 @@ def test_interrupted_receive_ends_the_behavior(ros: RosContext) -> None:
         def run(self) -> None:
             self.agent.receive(timeout_s=math.inf)
 
-    with Agent("wait_agent", ros=ros) as agent, \
+    with Agent("wait_agent", ros=ros, probe_s=PROBE_S) as agent, \
             HighLevelBehaviorManager(stop_timeout_s=5.0) as hl:
         agent.attach(hl)
         hl.register("listen", Listen)
         listening = hl.switch("listen")
         hl.switch("idle")
-        assert listening.status is Status.INTERRUPTED
+        assert listening.status is Status.INTERRUPTED, listening.error
         assert isinstance(listening.error, Interrupted) or listening.error is None
 
 
 def test_awaitable_api_for_logics(ros: RosContext) -> None:
-    with Agent("async_a", ros=ros) as a, Agent("async_b", ros=ros) as b:
+    with Agent("async_a", ros=ros, probe_s=PROBE_S) as a, \
+            Agent("async_b", ros=ros, probe_s=PROBE_S) as b:
         async def talk() -> Message:
             with a.conversation(protocol="chat") as conv:
                 await a.asend(Message(performative=Performative.INFORM, sender="async_a",
@@ -357,7 +360,7 @@ def test_unattached_manager_names_the_fix() -> None:
 def test_request_round_trip_as_a_behavior(ros: RosContext, procs: list[Proc]) -> None:
     target = _spawn(procs, "rq_target")
     target.wait_event("ready")
-    with Agent("rq_asker", ros=ros) as asker, \
+    with Agent("rq_asker", ros=ros, probe_s=PROBE_S) as asker, \
             HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
         asker.attach(hl)
         _wait(lambda: asker.directory.alive("rq_target"), "rq_target")
@@ -387,7 +390,7 @@ def test_contract_net_awards_the_cheapest_and_re_awards_when_it_is_killed(
     dear = _spawn(procs, "cn_dear", cost=3.0, task_s=0.1)
     for proc in (cheap, middle, dear):
         proc.wait_event("ready")
-    with Agent("cn_machine", ros=ros, lease_s=LEASE_S) as machine, \
+    with Agent("cn_machine", ros=ros, probe_s=PROBE_S, lease_s=LEASE_S) as machine, \
             HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
         machine.attach(hl)
         _wait(lambda: len(machine.directory.search("transport")) == 3, "three transporters")
@@ -416,7 +419,7 @@ def test_interrupted_initiator_cancels_and_leaves_no_award(
     slow = _spawn(procs, "ci_slow", cost=0.5, propose_delay_s=60.0)
     for proc in (quick, slow):
         proc.wait_event("ready")
-    with Agent("ci_machine", ros=ros, lease_s=LEASE_S) as machine, \
+    with Agent("ci_machine", ros=ros, probe_s=PROBE_S, lease_s=LEASE_S) as machine, \
             HighLevelBehaviorManager(stop_timeout_s=2.0) as hl:
         machine.attach(hl)
         _wait(lambda: len(machine.directory.search("transport")) == 2, "two transporters")
@@ -486,7 +489,7 @@ def robots(ros: RosContext) -> Iterator[Callable[..., Agent]]:
     opened: list[tuple[Agent, HighLevelBehaviorManager]] = []
 
     def make(name: str, behavior: type[Behavior], **params: Any) -> Agent:
-        agent = Agent(name, ros=ros, lease_s=LEASE_S)
+        agent = Agent(name, ros=ros, lease_s=LEASE_S, probe_s=PROBE_S)
         hl = HighLevelBehaviorManager(stop_timeout_s=1.0)
         hl.start()
         opened.append((agent, hl))
@@ -507,7 +510,7 @@ def test_tasks_run_as_actions_under_the_type_locks_and_cancel_interrupts_them(
         ros: RosContext, robots: Callable[..., Agent]) -> None:
     Hold.ended.clear()
     driver = robots("lock_driver", Drive)
-    with Agent("lock_boss", ros=ros) as boss:
+    with Agent("lock_boss", ros=ros, probe_s=PROBE_S) as boss:
         _wait(lambda: boss.directory.alive("lock_driver"), "lock_driver")
         first: list[BaseException] = []
 
@@ -540,7 +543,7 @@ def test_a_silent_awardee_is_cancelled_and_the_task_re_awarded(
     Hold.ended.clear()
     robots("quiet_cheap", Bidder, cost=1.0, seconds=60.0)
     robots("quiet_dear", Bidder, cost=2.0, seconds=0.0)
-    with Agent("quiet_boss", ros=ros) as boss:
+    with Agent("quiet_boss", ros=ros, probe_s=PROBE_S) as boss:
         _wait(lambda: len(boss.directory.search("haul")) == 2, "two haulers")
         award = contract_net(boss, "haul", {}, reply_by_s=WAIT_S, done_timeout_s=0.5)
         assert award.awardee == "quiet_dear"

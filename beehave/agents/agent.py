@@ -36,6 +36,7 @@ import asyncio
 import itertools
 import json
 import logging
+import math
 import queue
 import threading
 import time
@@ -203,6 +204,11 @@ class Mailbox:
         """The next message; waits at most ``timeout_s`` (None: no limit) and raises
         :class:`~beehave.errors.NoReply` then. Called from a Behavior or Action, it raises
         :class:`~beehave.errors.Interrupted` as soon as that is interrupted."""
+        if timeout_s is not None and (math.isnan(timeout_s) or timeout_s < 0):
+            raise ConfigError(f"receive(timeout_s=…) takes seconds ≥ 0, math.inf or None, "
+                              f"got {timeout_s!r}")
+        if timeout_s is not None and timeout_s > threading.TIMEOUT_MAX:
+            timeout_s = None  # math.inf: threading's waits refuse it
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             left = None if deadline is None else max(0.0, deadline - time.monotonic())
@@ -229,7 +235,8 @@ class Mailbox:
                         return self._queue.popleft()
                 if self.closed:
                     raise AgentError(f"agent {self.agent.name!r}: {self.label} is closed")
-                left = None if deadline is None else deadline - loop.time()
+                left = (None if deadline is None or math.isinf(deadline)
+                        else deadline - loop.time())
                 if left is not None and left <= 0:
                     raise NoReply(f"agent {self.agent.name!r}: no message in its "
                                   f"{self.label} within {timeout_s} s")
@@ -286,11 +293,12 @@ class Conversation(Mailbox):
         return self.agent.send(message, timeout_s=timeout_s)
 
     def watch(self, name: str) -> None:
-        """Report ``name``'s departure from the directory here (see the class doc)."""
+        """Report ``name``'s departure from the directory here (see the class doc). A peer
+        that this agent has not seen in the directory yet (discovery is under way, or it
+        is no directory member) is not reported missing: the send's match wait and the
+        protocol's timeouts bound that case."""
         with self._lock:
             self._watched.add(name)
-        if not self.agent.directory.alive(name):
-            self._departed(name, "not in the directory")
 
     def unwatch(self, name: str) -> None:
         with self._lock:
