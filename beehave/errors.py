@@ -183,7 +183,10 @@ class AgentNameTaken(AgentError):
 class AgentUnreachable(AgentError):
     """A message could not be handed to a receiver: no inbox of that name is matched on
     DDS within the send timeout (the agent is not running, or discovery has not reached
-    it)."""
+    it). ``unreachable`` names the receivers that did not get the message (the others
+    did)."""
+
+    unreachable: tuple[str, ...] = ()
 
 
 class NoReply(AgentError, TimeoutError):

@@ -32,6 +32,7 @@ from beehave.agents import (  # noqa: E402
     Agent,
     AgentBehavior,
     AgentNameTaken,
+    AgentUnreachable,
     Change,
     DirectoryEvent,
     Message,
@@ -550,3 +551,17 @@ def test_a_silent_awardee_is_cancelled_and_the_task_re_awarded(
         assert award.attempts[0] == ("quiet_cheap", "failure: silent for 0.5 s")
         assert award.result == {"result": "held"}
         _wait(lambda: sorted(Hold.ended) == ["done", "interrupted"], "both actions ended")
+
+
+def test_an_unreachable_candidate_does_not_stop_the_others(
+        ros: RosContext, robots: Callable[..., Agent]) -> None:
+    robots("reach_real", Bidder, cost=1.0, seconds=0.0)
+    with Agent("reach_boss", ros=ros, probe_s=PROBE_S, send_timeout_s=0.3) as boss:
+        _wait(lambda: boss.directory.alive("reach_real"), "reach_real")
+        with pytest.raises(AgentUnreachable, match="reach_ghost") as missing:
+            boss.send(Message(performative=Performative.INFORM, sender="reach_boss",
+                              receivers=["reach_ghost"], conversation_id="reach/1"))
+        assert missing.value.unreachable == ("reach_ghost",)
+        award = contract_net(boss, "haul", {}, candidates=["reach_ghost", "reach_real"],
+                             reply_by_s=WAIT_S)
+        assert award.awardee == "reach_real"

@@ -509,9 +509,11 @@ class Agent:
         """Send ``message`` to each of its receivers (``sender`` becomes this agent).
 
         The first message to a receiver waits until DDS has matched its inbox, at most
-        ``timeout_s`` (default ``send_timeout_s``): :class:`~beehave.errors.AgentUnreachable`
-        then; :class:`~beehave.errors.Interrupted` when the calling Behavior or Action is
-        interrupted meanwhile. Returns the message as sent."""
+        ``timeout_s`` (default ``send_timeout_s``; the receivers are waited for together).
+        Those matched get the message; if any is not,
+        :class:`~beehave.errors.AgentUnreachable` names them (``.unreachable``) after the
+        others were served. :class:`~beehave.errors.Interrupted` when the calling Behavior
+        or Action is interrupted meanwhile. Returns the message as sent."""
         if self.error is not None:
             raise self.error
         if self._closed:
@@ -519,10 +521,12 @@ class Agent:
         message = message.model_copy(update={"sender": self.name, "sent_at": time.time()})
         text = String(data=message.to_json())
         limit = self.send_timeout_s if timeout_s is None else timeout_s
-        for receiver in message.receivers:
-            publisher = self._publisher(receiver)
-            self._wait_matched(publisher, receiver, limit)
-            publisher.publish(text)
+        pending = {receiver: self._publisher(receiver) for receiver in message.receivers}
+        ready = [r for r, p in pending.items() if p.get_subscription_count() > 0]
+        for receiver in ready:  # the common case: no waiting at all
+            pending.pop(receiver).publish(text)
+        if pending:
+            self._wait_matched(pending, limit, text)
         return message
 
     async def asend(self, message: Message, *, timeout_s: float | None = None) -> Message:
@@ -546,25 +550,30 @@ class Agent:
                 self._publishers[receiver] = publisher
             return publisher
 
-    def _wait_matched(self, publisher: Any, receiver: str, timeout_s: float) -> None:
-        if publisher.get_subscription_count() > 0:
-            return
+    def _wait_matched(self, pending: dict[str, Any], timeout_s: float, text: String) -> None:
+        """Publish ``text`` to each receiver of ``pending`` as soon as its inbox matches."""
         cond, interrupted, who = _waiter()
         cond = cond if cond is not None else threading.Condition()
         deadline = time.monotonic() + timeout_s
         # DDS matching raises no event rclpy hands to another thread: look in short slices.
-        while publisher.get_subscription_count() == 0:
+        while pending:
+            for receiver in [r for r, p in pending.items() if p.get_subscription_count()]:
+                pending.pop(receiver).publish(text)
+            if not pending:
+                return
             if interrupted():
                 raise Interrupted(f"{who}: interrupted while agent {self.name!r} waited "
-                                  f"for {receiver!r}'s inbox")
+                                  f"for the inbox of {sorted(pending)}")
             left = deadline - time.monotonic()
             if left <= 0:
-                known = ("it is in the directory" if self.directory.alive(receiver)
-                         else "it is not in the directory")
-                raise AgentUnreachable(
-                    f"agent {self.name!r}: no inbox of {receiver!r} matched on DDS within "
-                    f"{timeout_s} s ({known}; live agents: "
-                    f"{', '.join(a.name for a in self.directory.agents()) or 'none'})")
+                missing = sorted(pending)
+                known = [r for r in missing if self.directory.alive(r)]
+                error = AgentUnreachable(
+                    f"agent {self.name!r}: no inbox of {missing} matched on DDS within "
+                    f"{timeout_s} s (in the directory: {known or 'none of them'}; live "
+                    f"agents: {', '.join(a.name for a in self.directory.agents()) or 'none'})")
+                error.unreachable = tuple(missing)
+                raise error
             with cond:
                 cond.wait_for(interrupted, min(0.01, left))
 

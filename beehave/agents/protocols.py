@@ -30,6 +30,7 @@ from beehave.agents.message import Message, Performative, jsonable
 from beehave.errors import (
     ActionTypeBusy,
     AgentError,
+    AgentUnreachable,
     ChildFailed,
     Interrupted,
     NoReply,
@@ -170,7 +171,14 @@ def contract_net(agent: Agent, service: str, task: Any, *,
             started = time.monotonic()
             for name in names:
                 conv.watch(name)
-            conv.send(Performative.CFP, names, task, reply_by_s=reply_by_s)
+            try:
+                conv.send(Performative.CFP, names, task, reply_by_s=reply_by_s)
+            except AgentUnreachable as exc:  # the others got it: they are not kept waiting
+                log.warning("agent %r: cfp not delivered: %s", agent.name, exc)
+                unanswered.difference_update(exc.unreachable)
+                if not unanswered:
+                    raise ProtocolFailed(f"agent {agent.name!r}: no candidate for "
+                                         f"{service!r} is reachable: {exc}") from exc
             deadline = started + reply_by_s
             while unanswered and time.monotonic() < deadline:
                 try:
