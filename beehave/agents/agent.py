@@ -378,6 +378,7 @@ class Agent:
         self._managers: list[weakref.ref[HighLevelBehaviorManager]] = []
         self._ids = itertools.count()
         self._closed = False
+        self._close_done = threading.Event()
         self._own_ros: RosContext | None = None
         self.inbox = Mailbox(self, label="inbox")
         if node is None:
@@ -711,41 +712,47 @@ class Agent:
         """Leave: tell every directory (the entry vanishes at once), close every mailbox
         and conversation, destroy the topics (and the node and context it made)."""
         with self._lock:
-            if self._closed:
-                return
+            closing = self._closed
             self._closed = True
             # One that lost its name says no goodbye: the holder's entry must stay.
             was_alive = self._state is EntryState.ALIVE and self.error is None
             self._state = EntryState.LEAVING
             boxes = [*self._conversations.values(), *self._mailboxes, self.inbox]
             managers = [m() for m in self._managers]
-        if was_alive:
-            self._announce()
-            # The goodbye must reach the readers before the writer is destroyed.
-            self._dir_pub.wait_for_all_acked(Duration(seconds=0.3))
-        self._remove_listener()
-        for box in boxes:
-            box.close()
-        self._outbox.put(None)
-        if self._outbox_thread is not threading.current_thread():
-            self._outbox_thread.join()
-        for manager in managers:
-            if manager is not None and _ATTACHED.get(manager) is self:
-                del _ATTACHED[manager]
-        with self._lock:
-            entities = list(self._entities) + [("publisher", p)
-                                               for p in self._publishers.values()]
-            self._entities.clear()
-            self._publishers.clear()
-        for kind, entity in reversed(entities):
-            try:
-                getattr(self.node, f"destroy_{kind}")(entity)
-            except Exception:  # the node may be gone already (its owner shut it down)
-                log.debug("agent %r: destroying a %s failed", self.name, kind, exc_info=True)
-        if self._own_node and self._ros is not None and self._own_ros is None:
-            self._ros.destroy_node(self.node)
-        if self._own_ros is not None:
-            self._own_ros.shutdown()
+        if closing:
+            if threading.current_thread() is not getattr(self, "_closer", None):
+                self._close_done.wait()  # another thread is closing it: until it is closed
+            return
+        try:
+            if was_alive:
+                self._announce()
+                # The goodbye must reach the readers before the writer is destroyed.
+                self._dir_pub.wait_for_all_acked(Duration(seconds=0.3))
+            self._remove_listener()
+            for box in boxes:
+                box.close()
+            self._outbox.put(None)
+            if self._outbox_thread is not threading.current_thread():
+                self._outbox_thread.join()
+            for manager in managers:
+                if manager is not None and _ATTACHED.get(manager) is self:
+                    del _ATTACHED[manager]
+            with self._lock:
+                entities = list(self._entities) + [("publisher", p)
+                                                   for p in self._publishers.values()]
+                self._entities.clear()
+                self._publishers.clear()
+            for kind, entity in reversed(entities):
+                try:
+                    getattr(self.node, f"destroy_{kind}")(entity)
+                except Exception:  # the node may be gone already (its owner shut it down)
+                    log.debug("agent %r: destroying a %s failed", self.name, kind, exc_info=True)
+            if self._own_node and self._ros is not None and self._own_ros is None:
+                self._ros.destroy_node(self.node)
+            if self._own_ros is not None:
+                self._own_ros.shutdown()
+        finally:
+            self._close_done.set()
 
     @property
     def closed(self) -> bool:
