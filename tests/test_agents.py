@@ -27,7 +27,14 @@ pytest.importorskip("rclpy")
 
 from std_msgs.msg import String  # noqa: E402
 
-from beehave import Action, Behavior, HighLevelBehaviorManager, Status  # noqa: E402
+from beehave import (  # noqa: E402
+    Action,
+    Behavior,
+    HighLevelBehaviorManager,
+    Logic,
+    LowLevelBehaviorManager,
+    Status,
+)
 from beehave.agents import (  # noqa: E402
     Agent,
     AgentBehavior,
@@ -565,3 +572,27 @@ def test_an_unreachable_candidate_does_not_stop_the_others(
         award = contract_net(boss, "haul", {}, candidates=["reach_ghost", "reach_real"],
                              reply_by_s=WAIT_S)
         assert award.awardee == "reach_real"
+
+
+class EchoLogic(Logic):
+    """A Logic that answers every message of its agent's inbox (asyncio API)."""
+
+    def __init__(self, talker: Agent) -> None:
+        self.talker = talker
+
+    async def run(self) -> None:
+        while True:
+            message = await self.talker.areceive(timeout_s=None)
+            await self.talker.asend(message.reply(Performative.INFORM, message.content))
+
+
+def test_a_logic_talks_with_the_awaitable_api(ros: RosContext) -> None:
+    with Agent("logic_echo", ros=ros, probe_s=PROBE_S) as echo, \
+            Agent("logic_asker", ros=ros, probe_s=PROBE_S) as asker, \
+            LowLevelBehaviorManager(stop_timeout_s=0.5) as ll:
+        ll.register("echo", EchoLogic, talker=echo)
+        ll.switch("echo")
+        with asker.conversation() as conv:
+            conv.send(Performative.REQUEST, ["logic_echo"], {"n": 7})
+            answer = conv.receive(timeout_s=WAIT_S)
+        assert (answer.performative, answer.content) == (Performative.INFORM, {"n": 7})
