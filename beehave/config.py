@@ -20,6 +20,10 @@
       blackboard_rate_hz: 2000.0
       snapshot_period_s: 1.0
       state_period_s: 1.0
+    agent:                               # optional: the robot is an agent (docs/agents.md)
+      name: atv_1                        # unique in the DDS domain
+      services: {transport: {payload_kg: 50}}
+      lease_s: 2.0
     sim:                                 # optional: run the simulation in this process
       simulator: pybullet                # entry point (group beehave.simulations)
       world: warehouse                   # (the one that runs the low level)
@@ -87,6 +91,15 @@ class SimOptions(_Strict):
     real_time_factor: Factor | None = 1.0
 
 
+class AgentOptions(_Strict):
+    """The robot's agent (``beehave.agents``): its name, what it offers, its lease."""
+
+    # The pattern of beehave.agents.message.NAME_PATTERN (not imported: that needs rclpy).
+    name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
+    services: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    lease_s: Seconds = 2.0
+
+
 class RobotConfig(_Strict):
     namespace: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
     stop_timeout_s: Seconds = 2.0
@@ -97,6 +110,7 @@ class RobotConfig(_Strict):
     default_logic: str | None = None
     hals: list[str | HALSpec] = Field(default_factory=list)
     ros: RosOptions = Field(default_factory=lambda: RosOptions())
+    agent: AgentOptions | None = None
     sim: SimOptions | None = None
     source: str = Field("<dict>", exclude=True)
 
@@ -159,7 +173,7 @@ def _valid_keys(loc: list[Any]) -> list[str]:
     """The keys allowed beside the unknown one at ``loc`` (its last element)."""
     nested: dict[str, type[BaseModel]] = {"behaviors": ClassSpec, "logics": ClassSpec,
                                           "hals": HALSpec, "ros": RosOptions,
-                                          "sim": SimOptions}
+                                          "sim": SimOptions, "agent": AgentOptions}
     model = nested.get(str(loc[0]), RobotConfig) if len(loc) > 1 else RobotConfig
     return [field.alias or name for name, field in model.model_fields.items()
             if name != "source"]

@@ -168,3 +168,37 @@ class NotASubclass(BeehaveError, TypeError):
 class NoPath(BeehaveError):
     """A path planner found no way to the goal (it is off the map, inside an obstacle's
     inflation, or cut off); the message says which."""
+
+
+class AgentError(BeehaveError):
+    """Something the agent layer (``beehave.agents``) could not do: the message names the
+    agent, the peer and the conversation."""
+
+
+class AgentNameTaken(AgentError):
+    """An agent with this name is already alive in the DDS domain (seen in the directory);
+    agent names are unique per domain. Pick another name, or stop the other process."""
+
+
+class AgentUnreachable(AgentError):
+    """A message could not be handed to a receiver: no inbox of that name is matched on
+    DDS within the send timeout (the agent is not running, or discovery has not reached
+    it). ``unreachable`` names the receivers that did not get the message (the others
+    did)."""
+
+    unreachable: tuple[str, ...] = ()
+
+
+class NoReply(AgentError, TimeoutError):
+    """No message arrived in a conversation or mailbox before its timeout or reply-by
+    deadline."""
+
+
+class ProtocolFailed(AgentError):
+    """An interaction protocol ended without success: the peer refused, failed, did not
+    understand, or nobody was left to ask. ``reply`` is the message that ended it (None
+    when it ended by silence or for lack of candidates)."""
+
+    def __init__(self, message: str, *, reply: object = None) -> None:
+        super().__init__(message)
+        self.reply = reply

@@ -49,6 +49,13 @@ class EventKind(Enum):
     the culprit (``logic:<path>``, ``hal:<name>``), ``detail`` says where and for how long.
     Emitted from the watchdog thread (the loop cannot), and once more with
     ``detail["ended"]`` True from the loop when it answers again."""
+    MESSAGE_REJECTED = "message_rejected"
+    """An agent received a message it could not take (malformed JSON, a schema error, not
+    addressed to it, no one to deliver it to): ``subject`` is the agent, ``detail`` says
+    why and who sent it; the sender got a not-understood reply when one could be named."""
+    AGENT_NAME_LOST = "agent_name_lost"
+    """An agent learnt after it started that an older process holds its name (discovery had
+    not reached it while it checked): it closes itself; ``detail`` names the holder."""
 
 
 @dataclass(frozen=True)
@@ -129,4 +136,5 @@ def describe(event: Event) -> str:
 
 
 _WARN = {EventKind.STUCK, EventKind.SAFE_STATE_FAILED, EventKind.HOOK_FAILED,
-         EventKind.RESTARTED, EventKind.SAFE_STATE_OVERDUE}
+         EventKind.RESTARTED, EventKind.SAFE_STATE_OVERDUE, EventKind.MESSAGE_REJECTED,
+         EventKind.AGENT_NAME_LOST}

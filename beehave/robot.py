@@ -32,6 +32,7 @@ from beehave.lowlevel import LowLevelBehaviorManager
 if TYPE_CHECKING:
     from rclpy.node import Node
 
+    from beehave.agents import Agent
     from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
     from beehave.ros.context import RosContext
     from beehave.simulation import RunningSimulation
@@ -71,6 +72,8 @@ class Robot:
         #: The simulator's object, when the configuration asks for a simulation (``sim:``).
         self.sim: Any = None
         self._simulation: RunningSimulation | None = None
+        #: The robot's agent (``agent:`` in the configuration; needs the high level).
+        self.agent: Agent | None = None
 
     def _build(self) -> None:
         """Import and register everything the configuration names, so a bad name or bad
@@ -142,6 +145,12 @@ class Robot:
                 self._nodes.append(node)
                 self._bridges.append(HighLevelBridge(
                     self.high, node, state_period_s=cfg.ros.state_period_s))
+                if cfg.agent is not None:  # before the behaviours, which may use it
+                    from beehave.agents import Agent
+
+                    self.agent = Agent(cfg.agent.name, node=node, services=cfg.agent.services,
+                                       lease_s=cfg.agent.lease_s)
+                    self.agent.attach(self.high)
                 # The default behaviour is constructed now: name its entry when it fails.
                 default = cfg.default_behavior
                 with _located(f"{cfg.source}: behaviors.{default}" if default != "idle"
@@ -190,6 +199,9 @@ class Robot:
 
         if self.high is not None:
             step("high-level shutdown", self.high.shutdown)
+        if self.agent is not None:
+            step("closing the agent", self.agent.close)
+            self.agent = None
         for bridge in reversed(self._bridges):
             step(f"destroying {type(bridge).__name__}", bridge.destroy)
         self._bridges.clear()
