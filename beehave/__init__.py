@@ -11,6 +11,9 @@ from beehave.behavior import Behavior, Idle
 from beehave.blackboard import Blackboard, BlackboardClient, Change
 from beehave.errors import (
                             ActionTypeBusy,
+                            AgentError,
+                            AgentNameTaken,
+                            AgentUnreachable,
                             AlreadyStarted,
                             BeehaveError,
                             ChildFailed,
@@ -22,7 +25,9 @@ from beehave.errors import (
                             LoopBlocked,
                             ManagerShutdown,
                             NoPath,
+                            NoReply,
                             NotASubclass,
+                            ProtocolFailed,
                             ReservedAttribute,
                             SwitchSuperseded,
                             UnknownBehavior,
@@ -40,12 +45,13 @@ from beehave.status import Status
 __version__ = "0.1.0"
 
 __all__ = [
-    "HAL", "Action", "ActionTypeBusy", "AlreadyStarted", "BeehaveError", "Behavior",
+    "HAL", "Action", "ActionTypeBusy", "AgentError", "AgentNameTaken", "AgentUnreachable",
+    "AlreadyStarted", "BeehaveError", "Behavior",
     "Blackboard", "BlackboardClient", "Change", "ChildFailed", "ConfigError",
     "ConstructorFailed", "Event", "EventKind", "GoalFailed", "HALManager",
     "HighLevelBehaviorManager", "Idle", "Interrupted", "InvalidParameters", "Logic",
-    "LoopBlocked", "LowLevelBehaviorManager", "ManagerShutdown", "NoPath", "NotASubclass",
-    "ReservedAttribute",
+    "LoopBlocked", "LowLevelBehaviorManager", "ManagerShutdown", "NoPath", "NoReply",
+    "NotASubclass", "ProtocolFailed", "ReservedAttribute",
     "Status", "SwitchSuperseded", "UnknownBehavior", "UnknownHAL", "UnknownLogic",
     "UnknownNameError",
 ]
