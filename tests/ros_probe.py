@@ -43,16 +43,22 @@ class Probe:
         return predicate()
 
     def _call(self, srv_type: type, name: str, request: Any, timeout_s: float = 10.0) -> Any:
-        client = self.node.create_client(srv_type, name)
-        try:
+        # One client per service, kept: with Fast DDS a server that answers before it has
+        # matched a new client's response reader drops the answer ("failed to send
+        # response"), which a loaded machine makes likely for a client made per call.
+        clients: dict[tuple[type, str], Any] = self.__dict__.setdefault("_clients", {})
+        client = clients.get((srv_type, name))
+        if client is None:
+            client = self.node.create_client(srv_type, name)
             assert client.wait_for_service(timeout_sec=timeout_s), f"no service {name}"
-            future = client.call_async(request)
-            done = threading.Event()
-            future.add_done_callback(lambda _: done.set())
-            assert done.wait(timeout_s), f"{name} did not answer"
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+            time.sleep(0.3)  # let the server match our response reader too
+            clients[(srv_type, name)] = client
+        assert client.wait_for_service(timeout_sec=timeout_s), f"no service {name}"
+        future = client.call_async(request)
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        assert done.wait(timeout_s), f"{name} did not answer"
+        return future.result()
 
     def set_param(self, node: str, name: str, value: Any) -> Any:
         """SetParameters on ``node`` (fully qualified); returns the SetParametersResult."""

@@ -16,6 +16,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -380,13 +381,25 @@ def test_lockstep_holds_the_sim_where_a_participant_is_due_until_it_answers(rig:
     hold_s = rig.sim.time_s + 0.5
     pub.publish(lockstep(me, hold_s))
     assert rig.probe.wait(lambda: rig.node.participants.get(me) == hold_s)
-    assert rig.probe.wait(lambda: rig.sim.time_s >= hold_s - 1e-6)
     # A live participant keeps announcing (a silent one is let go after 1 s of wall time,
-    # which a loaded machine may take to get here).
-    pub.publish(lockstep(me, hold_s))
-    # Held there: the sim runs at 4x, so 0.3 s of wall time would be 1.2 s of sim time.
-    time.sleep(0.3)
-    assert rig.sim.time_s < hold_s + 2 * rig.sim.step_s
+    # which a loaded machine may take between two of this test's steps).
+    alive = threading.Event()
+
+    def keep_announcing() -> None:
+        while not alive.wait(0.1):
+            pub.publish(lockstep(me, hold_s))
+
+    keeper = threading.Thread(target=keep_announcing, daemon=True)
+    keeper.start()
+    try:
+        assert rig.probe.wait(lambda: rig.sim.time_s >= hold_s - 1e-6)
+        # Held there: the sim runs at 4x, so 0.3 s of wall time would be 1.2 s of sim time.
+        time.sleep(0.3)
+        assert not rig.node.dropped, rig.node.dropped
+        assert rig.sim.time_s < hold_s + 2 * rig.sim.step_s
+    finally:
+        alive.set()
+        keeper.join(2)
     # ...and /clock says it has reached the held time, so the participant wakes.
     assert rig.probe.wait(lambda: bool(clocks) and stamp_s(clocks[-1]) >= hold_s - 1e-6)
     pub.publish(lockstep(me, None))  # let go

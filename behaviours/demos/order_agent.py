@@ -37,6 +37,8 @@ def switch_behavior(node: Node, namespace: str, behavior: str, *, timeout_s: flo
         while not client.wait_for_service(timeout_sec=0.5):
             if time.monotonic() >= deadline:
                 return f"/{namespace}/beehave_high_level is not running"
+        # Fast DDS drops an answer sent before the server matched our response reader.
+        time.sleep(0.3)
         value = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=behavior)
         request = SetParameters.Request(parameters=[Parameter(name="behavior", value=value)])
         future = client.call_async(request)
