@@ -106,7 +106,17 @@ class EngineContract(abc.ABC):
         assert described["kind"] == self.description_kind
         assert set(described) == set(engine.describe())  # values move on as it runs
         json.dumps(snap)  # the ROS 2 state topic publishes it as JSON
-        self.check_description_while_running(described)
+
+        def shows_it() -> bool:
+            # The engine records what it started just after the action's thread began.
+            try:
+                self.check_description_while_running(hl.snapshot()["top"]["engine"])
+            except AssertionError:
+                return False
+            return True
+
+        if not wait_until(shows_it, 5):
+            self.check_description_while_running(hl.snapshot()["top"]["engine"])
         hl.switch("idle")
         assert behavior.status is Status.INTERRUPTED
 
