@@ -77,25 +77,25 @@ def hosts() -> Iterator[tuple[Host, Host]]:
             # Created straight inside the namespaces: the root namespace never sees it.
             _ip("link", "add", a.interface, "netns", a.namespace, "type", "veth",
                 "peer", "name", b.interface, "netns", b.namespace)
-            for host in (a, b):
-                for sysctl in ("net.ipv6.conf.all.disable_ipv6=1",
-                               "net.ipv6.conf.default.disable_ipv6=1"):
-                    _ip("netns", "exec", host.namespace, "sysctl", "-q", "-w", sysctl)
-                _ip("-n", host.namespace, "addr", "add", f"{host.address}/24", "dev",
-                    host.interface)
-                _ip("-n", host.namespace, "link", "set", "lo", "up")
-                _ip("-n", host.namespace, "link", "set", host.interface, "up")
-                # DDS discovery multicast (239.255.0.1) leaves through the veth: the
-                # namespace has no default route that would otherwise carry it.
-                _ip("-n", host.namespace, "route", "add", "224.0.0.0/4", "dev",
-                    host.interface)
         except (subprocess.CalledProcessError, OSError) as exc:
+            # The one skip: this machine or user cannot make namespaces. Failures of the
+            # configuration below are the test's own and fail it.
             detail = exc.stderr.strip() if isinstance(exc, subprocess.CalledProcessError) \
                 else str(exc)
             command = " ".join(exc.cmd) if isinstance(exc, subprocess.CalledProcessError) \
                 else "ip"
             pytest.skip(f"network namespaces cannot be created here (needs root and "
                         f"CAP_NET_ADMIN): `{command}` failed: {detail}")
+        for host in (a, b):
+            for sysctl in ("net.ipv6.conf.all.disable_ipv6=1",
+                           "net.ipv6.conf.default.disable_ipv6=1"):
+                _ip("netns", "exec", host.namespace, "sysctl", "-q", "-w", sysctl)
+            _ip("-n", host.namespace, "addr", "add", f"{host.address}/24", "dev",
+                host.interface)
+            _ip("-n", host.namespace, "link", "set", "lo", "up")
+            _ip("-n", host.namespace, "link", "set", host.interface, "up")
+            # No route for multicast is needed: Fast DDS sends its discovery to 239.255.0.1
+            # out of each interface it uses, here the veth.
         yield a, b
     finally:
         for namespace in created:  # deleting a namespace destroys its end of the veth,
