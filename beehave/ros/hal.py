@@ -32,6 +32,7 @@ from rclpy.qos import QoSProfile
 from beehave.errors import HALError
 from beehave.events import Event, EventKind
 from beehave.hal import HAL, check_duration_s
+from beehave.ros.io import flush
 
 log = logging.getLogger(__name__)
 
@@ -182,6 +183,8 @@ class RosHAL(HAL):
     def on_unload(self) -> None:
         self._closed = True
         for kind, entity in reversed(getattr(self, "_entities", [])):
+            if kind == "publisher":
+                flush(entity)  # what safe_state() just sent must reach the robot
             getattr(self.node, f"destroy_{kind}")(entity)
         self._entities = []
         self._publishers = {}

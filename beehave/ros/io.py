@@ -45,6 +45,23 @@ M = TypeVar("M")
 
 #: How long an ended owner's action client stays after it, at most, to cancel a goal that
 #: the server accepted after the owner had given up on it (see :meth:`RosIO.destroy_all`).
+FLUSH_S = 0.1
+"""How long a publisher about to be destroyed waits for its reliable subscribers to
+acknowledge what it sent: the zero velocity a ``safe_state()`` publishes right before its
+owner's publishers are destroyed must not be lost with them."""
+
+
+def flush(publisher: Any, timeout_s: float = FLUSH_S) -> bool:
+    """Wait (at most ``timeout_s``) until every reliable subscriber acknowledged what
+    ``publisher`` sent; True when they have (or there are none)."""
+    from rclpy.duration import Duration
+
+    try:
+        return bool(publisher.wait_for_all_acked(Duration(nanoseconds=int(timeout_s * 1e9))))
+    except Exception:  # destroyed already, or an rmw without acknowledgements
+        return False
+
+
 LINGER_S = 10.0
 
 
@@ -517,6 +534,8 @@ class RosIO:
         elif kind == "action_client":
             self._destroy_action_client(entity)
         else:
+            if kind == "publisher":
+                flush(entity)
             getattr(self.node, f"destroy_{kind}")(entity)
 
     def _destroy_action_client(self, client: Any) -> None:
