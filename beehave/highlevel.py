@@ -5,7 +5,6 @@ from __future__ import annotations
 import enum
 import inspect
 import logging
-import math
 import sys
 import threading
 import time
@@ -29,7 +28,7 @@ from beehave.errors import (
     UnknownBehavior,
 )
 from beehave.events import Event, EventBus, EventCallback, EventKind
-from beehave.hal import MAX_DURATION_S
+from beehave.hal import check_duration_s
 from beehave.locks import TypeLocks
 from beehave.runnable import Runnable, current
 from beehave.status import Status
@@ -90,13 +89,8 @@ class HighLevelBehaviorManager:
                  clock: WallClock | None = None,
                  gil_switch_interval_s: float | None = 0.001,
                  history_len: int = 100) -> None:
-        if (isinstance(stop_timeout_s, bool) or not isinstance(stop_timeout_s, (int, float))
-                or not math.isfinite(stop_timeout_s) or stop_timeout_s <= 0
-                or stop_timeout_s > _MAX_TIMEOUT_S):
-            raise ConfigError(f"stop_timeout_s must be a positive, finite number of seconds "
-                              f"(at most {_MAX_TIMEOUT_S:g}), got {stop_timeout_s!r}")
         self.default = default
-        self.stop_timeout_s = float(stop_timeout_s)
+        self.stop_timeout_s = check_duration_s("stop_timeout_s", stop_timeout_s)
         self.node = node
         #: What behaviours and actions read as ``self.blackboard``: the low level's
         #: blackboard when both run in one process, or a read-only mirror fed over ROS 2.
@@ -463,10 +457,7 @@ class HighLevelBehaviorManager:
             if empty:
                 # One behaviour always runs: whatever failed, the safe one.
                 with self._cond:
-                    self._pending.append(self._idle_request(None))
-                    become = not self._processing
-                    if become:
-                        self._processing = True
+                    become = self._queue_locked(self._idle_request(None))
                 if become:
                     self._spawn_processor()
             raise
@@ -597,12 +588,17 @@ class HighLevelBehaviorManager:
             if ended_on_its_own:
                 assert isinstance(node, Behavior)
                 # Nothing else is asked for: fall back to the safe behaviour.
-                self._pending.append(self._idle_request(node))
-                become = not self._processing
-                if become:
-                    self._processing = True
+                become = self._queue_locked(self._idle_request(node))
         if become:
             self._spawn_processor()
+
+    def _queue_locked(self, request: _Request) -> bool:
+        """With ``_cond`` held: queue ``request``; True when the caller took the processor
+        role and must run it (no switch was being executed)."""
+        self._pending.append(request)
+        become = not self._processing
+        self._processing = True
+        return become
 
     def _record_history(self, node: Runnable) -> None:
         """With ``_cond`` held: note an ended (or STUCK) top-level behaviour, once."""
@@ -625,7 +621,6 @@ class HighLevelBehaviorManager:
 _MARGIN_S = 0.05
 """What a stop allows beyond the deadline for a behaviour to record its end (twice: the
 behaviour, then its thread), before it is declared STUCK."""
-_MAX_TIMEOUT_S = MAX_DURATION_S
 _GRACE_S = 0.1
 """How long a switch waits, after its deadline, for forced safe states (documented in
 docs/concepts.md): a STUCK action's ``safe_state()`` normally has run when ``switch()``
