@@ -52,15 +52,6 @@ next echo)."""
 LIFT_MAX_M = 0.30
 """EMILI's lift travel, metres above lowered (``lift/command`` takes 0–0.3 m)."""
 
-_QUARTER_RAD = math.pi / 4
-_BOUNDARY_RAD = 1e-5
-# LaserScan angles are float32: a beam meant to lie on a sector boundary (±45°, ±135°) is
-# off by up to ~1e-6 rad after angle_min + i * angle_increment. Within this tolerance it
-# counts as on the boundary, so the boundaries stay where the docstring says.
-
-LIFT_MAX_M = 0.30
-"""EMILI's lift travel, metres above lowered (``lift/command`` takes 0–0.3 m)."""
-
 
 # ---- line sensor -------------------------------------------------------------------------
 

@@ -11,6 +11,7 @@ from rich.console import Console
 
 from beehave.events import Event, EventKind
 from beehave.lowlevel import LowLevelBehaviorManager
+from beehave.testing import wait_until
 from behaviours.logics import DisplayLogic, LedLogic
 from hal.debug import DebugHAL, DebugRobot
 
@@ -18,14 +19,9 @@ THRESHOLD = 20.0
 STEP_S = 0.12
 
 
-def _wait(predicate: Callable[[], bool], timeout_s: float = 2.0) -> bool:
+def _wait(predicate: Callable[[], bool]) -> bool:
     """Wait for a state reached through the loop (a safety net, never a pacing sleep)."""
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.002)
-    return True
+    return wait_until(predicate, timeout_s=2.0)
 
 
 def run_lowlevel_demo(console: Console) -> bool:

@@ -92,24 +92,12 @@ def _wait(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase
           predicate: Any, timeout_sim_s: float, *, min_wall_s: float = 5.0) -> bool:
     """Wait until ``predicate()``; give up once ``timeout_sim_s`` of sim time *and*
     ``min_wall_s`` of wall time have passed — what runs in wall time (the low level, DDS
-    discovery) must not lose its chance when the simulation runs at full speed."""
+    discovery) must not lose its chance when the simulation runs at full speed. With
+    ``timeout_sim_s=0`` it is bounded in wall time alone: for what happens outside the
+    simulation's time (another process starting up)."""
     deadline = sim.time_s + timeout_sim_s
     wall_deadline = time.monotonic() + min_wall_s
     while sim.time_s < deadline or time.monotonic() < wall_deadline:
-        if predicate():
-            return True
-        if live is not None:
-            live.update(_panel(sim, emili, kobuki, phase))
-        time.sleep(0.05)
-    return bool(predicate())
-
-
-def _wait_wall(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase: str,
-               predicate: Any, timeout_s: float) -> bool:
-    """As :func:`_wait`, bounded in wall time: for what happens outside the simulation's
-    time (another process starting up)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
         if predicate():
             return True
         if live is not None:
@@ -196,8 +184,9 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
             # The agent starts in wall time (a Python process, DDS discovery), which at
             # full speed would be minutes of sim time: wait for its order in wall time,
             # then give the drive its budget in sim time.
-            _wait_wall(sim, live, emili, kobuki, "commanded: waiting for the order",
-                       lambda: navigating() or agent.poll() is not None, 60.0)
+            _wait(sim, live, emili, kobuki, "commanded: waiting for the order",
+                  lambda: navigating() or agent.poll() is not None, timeout_sim_s=0.0,
+                  min_wall_s=60.0)
             _wait(sim, live, emili, kobuki, "commanded: to the charging station",
                   lambda: agent.poll() is not None, 120.0)
             if agent.poll() is None:
