@@ -82,8 +82,13 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"switched": args.switch}), flush=True)
 
     def on_progress(msg: String) -> None:
-        report = json.loads(msg.data)
-        if report.get("id") != args.id:
+        try:
+            report = json.loads(msg.data)
+        except ValueError as exc:  # reported, not fatal: the next report may be fine
+            print(f"order_agent: malformed progress report {msg.data!r:.80}: {exc}",
+                  file=sys.stderr, flush=True)
+            return
+        if not isinstance(report, dict) or report.get("id") != args.id:
             return
         print(json.dumps(report), flush=True)
         if report["status"] in ("reached", "failed", "rejected"):

@@ -18,6 +18,7 @@ stopped after the switch).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import subprocess
 import sys
@@ -218,11 +219,12 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
             sim.render_topdown(picture)
         except Exception as exc:  # the picture is a by-product; report it
             problems.append(f"could not render {picture}: {exc!r}")
-        emili.shutdown()
-        kobuki.shutdown()
-        node.destroy()
-        sim.close()
-        ros.shutdown()
+        # Every step runs whatever an earlier one raised (last pushed, first run):
+        # nothing is left running.
+        with contextlib.ExitStack() as stack:
+            for step in (ros.shutdown, sim.close, node.destroy, kobuki.shutdown,
+                         emili.shutdown):
+                stack.callback(step)
 
     def m(value: float | None, unit: str) -> str:
         return "-" if value is None else f"{value:.3f} {unit}"
