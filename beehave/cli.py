@@ -36,23 +36,30 @@ _PICTURE_SUFFIXES = (".png", ".svg", ".pdf", ".jpg", ".jpeg")
 
 # ---- argument types: refuse what would crash or hang later ------------------------------
 
-def _seconds(text: str) -> float:
-    """A duration on the command line: finite and not negative. ``inf`` would overflow the
-    wait and NaN never compares; "until Ctrl-C" is said by leaving the option out."""
+def seconds_arg(text: str) -> float:
+    """An argparse ``type`` for a duration: finite, not negative and at most
+    :data:`beehave.hal.MAX_DURATION_S` (checked by :func:`beehave.hal.check_duration_s`).
+    ``inf`` or a huge value would overflow the wait and NaN never compares; "until Ctrl-C"
+    is said by leaving the option out. Simulators' own parsers may use it too."""
+    from beehave.errors import ConfigError
+    from beehave.hal import MAX_DURATION_S, check_duration_s
+
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") \
             from None
-    if not math.isfinite(value) or value < 0:
+    try:
+        return check_duration_s("N", value, allow_zero=True)
+    except ConfigError:
         raise argparse.ArgumentTypeError(
-            f"expected a finite number of seconds >= 0, got {text!r}; leave the option out "
-            "to run until Ctrl-C or SIGTERM")
-    return value
+            f"expected a finite number of seconds >= 0 and at most {MAX_DURATION_S:g}, got "
+            f"{text!r}; leave the option out to run until Ctrl-C or SIGTERM") from None
 
 
-def _factor(text: str) -> float:
-    """A real-time factor: positive and finite; "no pacing" is ``--fast``."""
+def factor_arg(text: str) -> float:
+    """An argparse ``type`` for a real-time factor: positive and finite; "no pacing" is
+    ``--fast``."""
     try:
         value = float(text)
     except ValueError:
@@ -199,7 +206,7 @@ def _parser() -> argparse.ArgumentParser:
                     "a top-down picture is written to FOLDER/demo.png; exit 1 when a check "
                     "fails.")
     speed = demo.add_mutually_exclusive_group()
-    speed.add_argument("--real-time-factor", type=_factor, default=1.0, metavar="X",
+    speed.add_argument("--real-time-factor", type=factor_arg, default=1.0, metavar="X",
                        help="simulated seconds per wall-clock second (default: 1.0)")
     speed.add_argument("--fast", action="store_true",
                        help="simulate as fast as the machine goes (no pacing)")
@@ -219,7 +226,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("config", metavar="CONFIG.yaml", help="the robot configuration (YAML)")
     run.add_argument("--only", choices=["high", "low"], default=None,
                      help="run one manager only (the other runs in another process)")
-    run.add_argument("--duration-s", type=_seconds, default=None, metavar="N",
+    run.add_argument("--duration-s", type=seconds_arg, default=None, metavar="N",
                      help="stop after N wall-clock seconds (default: until Ctrl-C/SIGTERM)")
     run.set_defaults(func=_run)
     # graph and sim parse their own arguments (see main); these entries are for -h.

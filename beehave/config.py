@@ -41,6 +41,7 @@ from typing import Annotated, Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from beehave import simulation
 from beehave.errors import ConfigError, NotASubclass
 
 Seconds = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -86,7 +87,8 @@ class RosOptions(_Strict):
 class SimOptions(_Strict):
     """Start the simulation (and its ROS 2 node) inside ``beehave run``."""
 
-    simulator: str = Field("pybullet", description="an entry point of group beehave.simulations")
+    simulator: str = Field(simulation.DEFAULT,
+                           description="an entry point of group beehave.simulations")
     world: str = "warehouse"
     real_time_factor: Factor | None = 1.0
 

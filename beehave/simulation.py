@@ -45,11 +45,6 @@ class Simulator(Protocol):
     def main(self, argv: list[str]) -> int: ...
 
 
-def available() -> list[str]:
-    """The names of the installed simulators."""
-    return sorted(ep.name for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP))
-
-
 def load_simulator(name: str = DEFAULT) -> Simulator:
     """The simulator installed as ``name``; an unknown name lists the installed ones."""
     eps = {ep.name: ep for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)}

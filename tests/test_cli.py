@@ -57,7 +57,7 @@ def test_unknown_command_lists_the_commands() -> None:
 
 # ---- non-finite numbers on the command line and in the configuration --------------------
 
-@pytest.mark.parametrize("value", ["inf", "nan", "-1", "soon"])
+@pytest.mark.parametrize("value", ["inf", "nan", "-1", "soon", "1e10"])
 def test_run_duration_must_be_finite(value: str) -> None:
     done = beehave("run", str(CONFIGS / "waits.yaml"), "--duration-s", value)
     assert done.returncode == 2

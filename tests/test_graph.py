@@ -97,8 +97,8 @@ def test_a_yaml_file_without_its_registry_says_to_pass_registry(
         "'nothing'" in capsys.readouterr().err
 
 
-def test_verbose_graph_logs_load_warnings(tmp_path: Path,
-                                          capsys: pytest.CaptureFixture[str]) -> None:
+def test_verbose_graph_logs_load_warnings(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                          caplog: pytest.LogCaptureFixture) -> None:
     spec = tmp_path / "unreachable_graph_v.yaml"
     spec.write_text("engine: state_machine\ninitial: a\nstates:\n  - {name: a}\n"
                     "  - {name: lonely_v}\n")
@@ -106,3 +106,5 @@ def test_verbose_graph_logs_load_warnings(tmp_path: Path,
     assert graph_main(["-v", str(spec), "-o", str(out)]) == 0
     assert capsys.readouterr().out.strip() == str(out)
     assert "lonely_v" in out.read_text()
+    assert any(r.levelname == "WARNING" and "lonely_v" in r.getMessage()
+               for r in caplog.records), caplog.text
