@@ -27,6 +27,7 @@ from beehave.highlevel import HighLevelBehaviorManager  # noqa: E402
 from beehave.lowlevel import LowLevelBehaviorManager  # noqa: E402
 from beehave.ros.bridge import BLACKBOARD_QOS, HighLevelBridge, LowLevelBridge  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
+from beehave.testing import wait_until  # noqa: E402
 from benchmarks._util import median, percentile, report  # noqa: E402
 
 N_PACED = 2000
@@ -52,11 +53,8 @@ class Mirror:
         """Until the low level's first snapshot arrived: both sides discovered each other.
         (A fixed sleep was not enough on a busy machine: the first ~1,500 changes of a
         run were then lost before the match and the figures came from the rest.)"""
-        deadline = time.monotonic() + timeout_s
-        while not self.bridge.mirror_complete:
-            if time.monotonic() > deadline:
-                raise TimeoutError("the mirror never received the low level's snapshot")
-            time.sleep(0.01)
+        if not wait_until(lambda: self.bridge.mirror_complete, timeout_s):
+            raise TimeoutError("the mirror never received the low level's snapshot")
         time.sleep(0.2)  # let the late-joiner replay pass
 
     def _on_t(self, change: Any) -> None:
@@ -226,6 +224,7 @@ def main() -> list[dict[str, Any]]:
     rate = N_BURST / burst["writer_elapsed_s"]
     rows.append(report("mirror_sustained_changes_per_s", rate, "changes/s", ">= 5000",
                        rate >= 5000 and burst["arrived"] and burst["latest_values_kept"],
+                       arrived=burst["arrived"],
                        latest_values_kept=burst["latest_values_kept"]))
     return rows
 

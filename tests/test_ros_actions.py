@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import pytest
@@ -33,18 +34,24 @@ def server() -> Iterator[FibonacciServer]:
     s.close()
 
 
-@pytest.fixture
-def hl() -> Iterator[HighLevelBehaviorManager]:
+@contextmanager
+def high_level(stop_timeout_s: float) -> Iterator[HighLevelBehaviorManager]:
     ros = RosContext()
     node = ros.create_node("beehave_high_level", namespace=NS)
     ros.start()
-    manager = HighLevelBehaviorManager(node=node, stop_timeout_s=0.5)
+    manager = HighLevelBehaviorManager(node=node, stop_timeout_s=stop_timeout_s)
     manager.start()
     try:
         yield manager
     finally:
         manager.shutdown()
         ros.shutdown()
+
+
+@pytest.fixture
+def hl() -> Iterator[HighLevelBehaviorManager]:
+    with high_level(stop_timeout_s=0.5) as manager:
+        yield manager
 
 
 class Fib(RosActionGoal):
@@ -185,12 +192,7 @@ def test_service_call_is_interrupted_at_once(hl: HighLevelBehaviorManager) -> No
 def test_an_interrupt_waits_cancel_timeout_s_once_not_twice(server: FibonacciServer) -> None:
     """wait() and then safe_state() each waited cancel_timeout_s for a server slow to stop:
     twice 0.6 s overran stop_timeout_s = 1 s, and the action was reported STUCK."""
-    ros = RosContext()
-    node = ros.create_node("beehave_high_level", namespace=NS)
-    ros.start()
-    hl = HighLevelBehaviorManager(node=node, stop_timeout_s=1.0)
-    hl.start()
-    try:
+    with high_level(stop_timeout_s=1.0) as hl:
         server.step_s = 0.05
         server.stop_delay_s = 3.0  # it ends a goal 3 s after being asked to cancel
         action = Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=1000), cancel_timeout_s=0.6)
@@ -200,9 +202,6 @@ def test_an_interrupt_waits_cancel_timeout_s_once_not_twice(server: FibonacciSer
         hl.switch("idle")
         assert action.status.name == "INTERRUPTED", (action.status, action.error)
         assert hl.snapshot()["stuck"] == []
-    finally:
-        hl.shutdown()
-        ros.shutdown()
 
 
 class Sends(Behavior):
@@ -228,6 +227,8 @@ def test_finished_goals_are_not_kept_by_their_owner(hl: HighLevelBehaviorManager
     behavior = hl.switch("sends")
     assert behavior.done.wait(20)  # type: ignore[attr-defined]
     assert wait_until(lambda: not [k for k, _ in behavior.ros.entities if k == "goal"])
+    # ... while the one action client they shared stays until the owner ends.
+    assert [k for k, _ in behavior.ros.entities].count("action_client") == 1
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -1.0])

@@ -128,6 +128,15 @@ def _check_positive(owner: str, **options: float) -> None:
                               f"got {value!r}")
 
 
+def _running_in(loop: asyncio.AbstractEventLoop | None) -> bool:
+    """Whether the calling code runs inside ``loop`` (in its thread, as a coroutine or
+    callback)."""
+    try:
+        return asyncio.get_running_loop() is loop
+    except RuntimeError:  # no loop runs in this thread: the usual case
+        return False
+
+
 def _string_param(node: Node, name: str, value: str, description: str) -> None:
     # dynamic_typing: our own callback refuses non-strings, with a reason naming the choices
     # (rclpy's type check would only say "expected '4' got '2'").
@@ -387,10 +396,7 @@ class LowLevelBridge:
         if switch_timeout_s is None:
             # Stopping the old logic may take stop_timeout_s, unloading its HALs as long.
             switch_timeout_s = 2.0 * manager.stop_timeout_s + 1.0
-        if not (isinstance(switch_timeout_s, (int, float)) and math.isfinite(switch_timeout_s)
-                and switch_timeout_s > 0):
-            raise ConfigError(f"LowLevelBridge: switch_timeout_s must be a finite number of "
-                              f"seconds > 0, got {switch_timeout_s!r}")
+        _check_positive("LowLevelBridge", switch_timeout_s=switch_timeout_s)
         self.manager = manager
         self.node = node
         #: How long setting the ``logic`` parameter waits for the switch (it answers the
@@ -586,11 +592,7 @@ class LowLevelBridge:
         Runs in the executor thread, so it must never wait forever: a logic that blocks
         the event loop (``time.sleep`` in a coroutine) would otherwise hang every ROS
         callback of the process."""
-        try:
-            in_loop = asyncio.get_running_loop() is self.manager.loop
-        except RuntimeError:  # no loop runs in this thread: the usual case
-            in_loop = False
-        if in_loop:
+        if _running_in(self.manager.loop):
             raise BeehaveError(f"the 'logic' parameter was set from inside the low level's "
                                f"loop, where waiting for the switch would block it; use "
                                f"`await ll.switch_async({name!r})`")
@@ -673,11 +675,7 @@ class LowLevelBridge:
 
     def _in_loop(self, fn: Callable[[], None]) -> None:
         loop = self.manager.loop
-        try:
-            in_loop = asyncio.get_running_loop() is loop
-        except RuntimeError:
-            in_loop = False
-        if loop is None or in_loop:
+        if loop is None or _running_in(loop):
             fn()
             return
         try:

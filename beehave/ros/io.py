@@ -43,8 +43,6 @@ log = logging.getLogger(__name__)
 
 M = TypeVar("M")
 
-#: How long an ended owner's action client stays after it, at most, to cancel a goal that
-#: the server accepted after the owner had given up on it (see :meth:`RosIO.destroy_all`).
 FLUSH_S = 0.1
 """How long a publisher about to be destroyed waits for its reliable subscribers to
 acknowledge what it sent: the zero velocity a ``safe_state()`` publishes right before its
@@ -60,9 +58,6 @@ def flush(publisher: Any, timeout_s: float = FLUSH_S) -> bool:
         return bool(publisher.wait_for_all_acked(Duration(nanoseconds=int(timeout_s * 1e9))))
     except Exception:  # destroyed already, or an rmw without acknowledgements
         return False
-
-
-LINGER_S = 10.0
 
 
 def check_duration(owner: str, label: str, value: object, *, optional: bool = False) -> None:
@@ -171,7 +166,6 @@ class Goal:
         self.feedback: Any = None
         self.feedback_error: BaseException | None = None
         self._cancel_future: Any = None
-        self._client: Any = None  # the ActionClient it came from (set by RosIO.send_goal)
         #: ``time.monotonic()`` when the cancel was first asked for, or None.
         self.cancel_requested_at: float | None = None
         self._result_future = handle.get_result_async()
@@ -263,6 +257,21 @@ class Goal:
         self._wake()
 
 
+def _wait_answered(future: Any, cond: threading.Condition, clock: WallClock,
+                   interrupted: Callable[[], bool], deadline: float) -> None:
+    """Wait until the rclpy ``future`` is done, the owner is interrupted or ``deadline``
+    (the clock's time) passes; the caller looks at which."""
+
+    def answered(_: Any) -> None:
+        with cond:
+            cond.notify_all()
+
+    future.add_done_callback(answered)
+    with cond:
+        clock.wait(cond, lambda: future.done() or interrupted(),
+                   max(0.0, deadline - clock.now()))
+
+
 class RosIO:
     """ROS entities owned by one behaviour, action or HAL; :meth:`destroy_all` ends them.
 
@@ -275,7 +284,6 @@ class RosIO:
                  clock: WallClock | None = None) -> None:
         self.node = node
         self.owner = owner
-        self._lingering: dict[int, Callable[[], None]] = {}
         self._cond = cond
         self._interrupted = interrupted
         self._clock = clock
@@ -286,10 +294,6 @@ class RosIO:
         # behaviour that polls a service in a loop must not leave a client (and its DDS
         # readers) per call.
         self._call_clients: dict[tuple[str, type, str], Any] = {}
-        # Per action client (by id): requests whose answer has not come yet and that must
-        # not be lost by destroying the client — goals sent but given up on (the server
-        # may accept them late: they are cancelled then) and cancels sent.
-        self._unsettled: dict[int, set[Any]] = {}
 
     def _track(self, kind: str, entity: Any) -> Any:
         with self._lock:
@@ -356,26 +360,15 @@ class RosIO:
             box[0]._on_feedback(msg, feedback)  # user code: never under the owner's lock
 
         sent = client.send_goal_async(goal, feedback_callback=on_feedback)
-
-        def answered(_: Any) -> None:
-            with cond:
-                cond.notify_all()
-
-        sent.add_done_callback(answered)
-        with cond:
-            clock.wait(cond, lambda: sent.done() or interrupted(),
-                       max(0.0, deadline - clock.now()))
+        _wait_answered(sent, cond, clock, interrupted, deadline)
         if not sent.done():
             # The server may still accept it: then cancel at once, so that no goal runs on
-            # without an owner (destroy_all keeps the client until then).
-            self._hold(client, sent)
-
+            # without an owner (only while the owner lives: see _destroy_action_client).
             def cancel_if_accepted(answered: Any) -> None:
                 handle = (None if answered.cancelled() or answered.exception() is not None
                           else answered.result())
                 if handle is not None and handle.accepted:
-                    self._hold(client, handle.cancel_goal_async())
-                self._release(client, answered)
+                    handle.cancel_goal_async()
 
             sent.add_done_callback(cancel_if_accepted)
             if interrupted():
@@ -388,7 +381,6 @@ class RosIO:
                              f"{goal!r:.200}", status="REJECTED")
         accepted = Goal(handle, full, cond=cond, interrupted=interrupted, clock=clock,
                         owner=self.owner)
-        accepted._client = client
         with cond:
             box.append(accepted)
             overtaken = list(early)
@@ -403,27 +395,6 @@ class RosIO:
         # must not keep every one of them.
         accepted._result_future.add_done_callback(lambda _: self._forget("goal", accepted))
         return accepted
-
-    def _hold(self, client: Any, future: Any) -> None:
-        """Keep ``client`` (past destroy_all) until ``future`` is answered."""
-        with self._lock:
-            self._unsettled.setdefault(id(client), set()).add(future)
-        future.add_done_callback(lambda done: self._release(client, done))
-
-    def _release(self, client: Any, future: Any) -> None:
-        with self._lock:
-            waiting = self._unsettled.get(id(client))
-            if waiting is None or any(f is not future and not f.done() for f in waiting) or (
-                    not future.done()):
-                return
-            # Nothing unanswered left for this client.
-            lingering = self._lingering.pop(id(client), None)
-            del self._unsettled[id(client)]
-        if lingering is not None:
-            # Here we are inside the client's own callback (the executor completing its
-            # future): destroying the client now would free what the executor still uses.
-            threading.Thread(target=lingering, name=f"beehave:ros-linger:{self.owner}",
-                             daemon=True).start()
 
     def _forget(self, kind: str, entity: Any) -> None:
         with self._lock:
@@ -482,15 +453,7 @@ class RosIO:
         self._wait_ready(client.service_is_ready, cond, clock, interrupted, deadline,
                          f"service {full!r} is not available after {timeout_s} s")
         future = client.call_async(request)
-
-        def answered(_: Any) -> None:
-            with cond:
-                cond.notify_all()
-
-        future.add_done_callback(answered)
-        with cond:
-            clock.wait(cond, lambda: future.done() or interrupted(),
-                       max(0.0, deadline - clock.now()))
+        _wait_answered(future, cond, clock, interrupted, deadline)
         if not future.done():
             future.cancel()
             if interrupted():
@@ -514,11 +477,10 @@ class RosIO:
     def destroy_all(self) -> None:
         """Destroy everything created here; later creations are refused.
 
-        Never waits. Goals still running are asked to cancel; an action client with
-        requests still unanswered (those cancels, a goal given up on that the server may
-        yet accept — it is then cancelled at once) is destroyed once they are answered,
-        :data:`LINGER_S` at the latest: destroyed earlier, it would drop the answer and the
-        goal would run on with no owner."""
+        Goals still running are asked to cancel (not waited for); publishers first wait,
+        :data:`FLUSH_S` at most, for their reliable subscribers' acknowledgements. Action
+        clients are destroyed at once: a goal the server accepts only later is not
+        cancelled (a known limitation, docs/ros.md)."""
         with self._lock:
             self._closed = True
             entities, self._entities = self._entities, []
@@ -529,7 +491,7 @@ class RosIO:
     def _destroy(self, kind: str, entity: Any) -> None:
         if kind == "goal":
             # The owner ended (after safe_state): a goal still running must not go on
-            # driving the robot. Ask once, do not wait here; its client waits for the answer.
+            # driving the robot. Ask once, do not wait here.
             entity.cancel(timeout_s=0.0)
         elif kind == "action_client":
             self._destroy_action_client(entity)
@@ -544,18 +506,4 @@ class RosIO:
         # EventsExecutor here (SIGSEGV in about half the runs), whether it was destroyed
         # from a node timer or from a thread of its own: that case is a documented
         # limitation instead (docs/ros.md).
-        with self._lock:
-            self._lingering.pop(id(client), None)
-            self._unsettled.pop(id(client), None)
         client.destroy()
-
-    def _unanswered(self, client: Any, *, locked: bool = False) -> bool:
-        """Whether ``client`` has requests without an answer (else forget its record)."""
-        if not locked:
-            with self._lock:
-                return self._unanswered(client, locked=True)
-        waiting = self._unsettled.get(id(client))
-        if waiting is not None and any(not f.done() for f in waiting):
-            return True
-        self._unsettled.pop(id(client), None)
-        return False
