@@ -609,6 +609,8 @@ async def _wait_bounded(task: asyncio.Future[Any], timeout_s: float) -> bool:
 
 async def _wait_bounded_all(tasks: set[asyncio.Task[Any]] | set[asyncio.Future[Any]],
                             timeout_s: float) -> None:
+    """Wait at most ``timeout_s`` for all of ``tasks``. A cancellation of the waiter does
+    not cut the (short) wait: it is raised again afterwards."""
     deadline = time.monotonic() + timeout_s
     pending = {t for t in tasks if not t.done()}
     cancelled = False

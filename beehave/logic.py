@@ -40,7 +40,7 @@ from typing import Any, Self, TypeVar, overload
 from beehave.blackboard import Blackboard, BlackboardClient
 from beehave.errors import AlreadyStarted, BeehaveError, ChildFailed, HALError
 from beehave.events import Event, EventBus, EventKind
-from beehave.hal import HAL, HALManager
+from beehave.hal import HAL, HALManager, _wait_bounded_all
 from beehave.status import Status
 
 log = logging.getLogger(__name__)
@@ -315,17 +315,11 @@ async def stop_logics(logics: list[Logic], runtime: Runtime) -> None:
     for task in tasks:
         task.cancel()
     cancelled = False
-    deadline = time.monotonic() + runtime.stop_timeout_s
-    pending: set[asyncio.Task[None]] = set(tasks)
-    while pending:
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            break
-        try:
-            _, pending = await asyncio.wait(pending, timeout=remaining)
-        except asyncio.CancelledError:
-            cancelled = True
-    for task in pending:
+    try:
+        await _wait_bounded_all(set(tasks), runtime.stop_timeout_s)
+    except asyncio.CancelledError:
+        cancelled = True  # raised again once the stuck ones are reported
+    for task in [t for t in tasks if not t.done()]:
         logic = tasks[task]
         logic._status = Status.STUCK
         runtime.stuck.add(logic)

@@ -118,7 +118,7 @@ class LoopWatchdog:
         self._lock = threading.Lock()
         self._watched: set[concurrent.futures.Future[Any]] = set()
         self._blocked: LoopBlocked | None = None
-        self._warned: tuple[Culprit, float] | None = None  # culprit, when the ping went out
+        self._warned: Culprit | None = None  # who held the loop when it was last warned about
         self._thread = threading.Thread(target=self._main, name="beehave-lowlevel-watchdog",
                                         daemon=True)
         # Subscribers run here, not in _thread: see the module docstring.
@@ -217,7 +217,7 @@ class LoopWatchdog:
         culprit = find_culprit(self.loop, self.thread_id)
         lag = time.monotonic() - sent
         self.warnings += 1
-        self._warned = (culprit, sent)
+        self._warned = culprit
         log.warning("%s event loop blocked for %.3f s by %s at %s; %s", self.name, lag,
                     culprit.who, culprit.where, _RULE)
         self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject, detail={
@@ -253,12 +253,11 @@ class LoopWatchdog:
 
     def _answer(self, sent: float) -> None:
         # In the loop's thread: it runs again.
-        warned = self._warned
+        culprit = self._warned
         self._warned = None
         self._blocked = None
         self._answered.set()
-        if warned is not None:
-            culprit, _ = warned
+        if culprit is not None:
             held = time.monotonic() - sent
             log.warning("%s event loop answers again after %.3f s (held by %s at %s)",
                         self.name, held, culprit.who, culprit.where)

@@ -64,6 +64,17 @@ def gate() -> Iterator[threading.Event]:
         f"threads left: {set(beehave_threads()) - before}"
 
 
+def blocked_manager(gate: threading.Event, blocking: threading.Event,
+                    robot: DebugRobot | None = None) -> LowLevelBehaviorManager:
+    """A manager whose default logic blocks the loop until ``gate`` opens (taking the
+    debug HAL of ``robot`` first, if one is given); declared blocked after 0.2 s."""
+    ll = LowLevelBehaviorManager(default="blocker", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
+    ll.register("blocker", Blocker, gate=gate, blocking=blocking, use_hal=robot is not None)
+    if robot is not None:
+        ll.hals.register(DebugHAL, robot=robot)
+    return ll
+
+
 def events_of(ll: LowLevelBehaviorManager) -> list[Event]:
     got: list[Event] = []
     ll.subscribe(got.append)
@@ -130,8 +141,7 @@ def test_a_blocking_blackboard_callback_is_found_by_its_line() -> None:
 def test_switch_from_another_thread_fails_with_loop_blocked_instead_of_hanging(
         gate: threading.Event) -> None:
     blocking = threading.Event()
-    ll = LowLevelBehaviorManager(default="blocker", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
-    ll.register("blocker", Blocker, gate=gate, blocking=blocking)
+    ll = blocked_manager(gate, blocking)
     ll.register("forever", Forever)
     with ll:
         assert blocking.wait(WAIT_S)
@@ -158,9 +168,7 @@ def test_leaving_the_with_block_while_the_loop_is_blocked_forces_safe_states_and
         gate: threading.Event) -> None:
     blocking = threading.Event()
     robot = DebugRobot()
-    ll = LowLevelBehaviorManager(default="blocker", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
-    ll.register("blocker", Blocker, gate=gate, blocking=blocking, use_hal=True)
-    ll.hals.register(DebugHAL, robot=robot)
+    ll = blocked_manager(gate, blocking, robot)
     with pytest.raises(LoopBlocked) as info:
         with ll:
             assert blocking.wait(WAIT_S)
@@ -190,8 +198,7 @@ def test_a_loop_blocked_subscriber_that_calls_back_into_the_manager_keeps_calls_
     into the manager from there must neither hang itself nor the watchdog, which is what
     bounds every other thread's calls."""
     blocking = threading.Event()
-    ll = LowLevelBehaviorManager(default="blocker", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
-    ll.register("blocker", Blocker, gate=gate, blocking=blocking)
+    ll = blocked_manager(gate, blocking)
     ll.register("forever", Forever)
     in_callback: list[str] = []
     callback_done = threading.Event()
@@ -254,9 +261,7 @@ def test_two_shutdowns_of_a_blocked_loop_both_report_the_forced_safe_states(
         gate: threading.Event) -> None:
     blocking = threading.Event()
     robot = DebugRobot()
-    ll = LowLevelBehaviorManager(default="blocker", stop_timeout_s=0.2, loop_lag_warn_s=0.05)
-    ll.register("blocker", Blocker, gate=gate, blocking=blocking, use_hal=True)
-    ll.hals.register(DebugHAL, robot=robot)
+    ll = blocked_manager(gate, blocking, robot)
     ll.__enter__()
     assert blocking.wait(WAIT_S)
     errors: list[BaseException] = []

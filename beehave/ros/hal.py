@@ -74,6 +74,7 @@ class RosHAL(HAL):
                            "level's node: run the robot with `beehave run ROBOT.yaml`")
         self._entities: list[tuple[str, Any]] = []
         self._publishers: dict[str, Any] = {}
+        self._clients: dict[tuple[type, str], Any] = {}  # service clients, kept until unload
         self._closed = False
         self._loop = asyncio.get_running_loop()
         for spec in self.inputs:
@@ -137,11 +138,10 @@ class RosHAL(HAL):
         timeout_s = check_duration_s("timeout_s", timeout_s)
         if getattr(self, "_closed", True):
             raise HALError(f"HAL {self.name!r} is not loaded: cannot call {service!r}")
-        clients: dict[tuple[type, str], Any] = self.__dict__.setdefault("_clients", {})
-        client = clients.get((srv_type, service))
+        client = self._clients.get((srv_type, service))
         if client is None:
             client = self.node.create_client(srv_type, service)
-            clients[(srv_type, service)] = client
+            self._clients[(srv_type, service)] = client
             self._entities.append(("client", client))
         ready = False
         try:
@@ -188,4 +188,4 @@ class RosHAL(HAL):
             getattr(self.node, f"destroy_{kind}")(entity)
         self._entities = []
         self._publishers = {}
-        self._clients: dict[tuple[type, str], Any] = {}
+        self._clients = {}
