@@ -12,22 +12,18 @@ JSON lines ``{"event": "ready"}`` (its name taken), ``{"event": "found", "agents
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agents_events import say  # noqa: E402
 
 from beehave.agents import Agent  # noqa: E402
 from beehave.agents.protocols import contract_net  # noqa: E402
 from beehave.errors import BeehaveError  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
-
-
-def say(event: str, **detail: Any) -> None:
-    print(json.dumps({"event": event, **detail}), flush=True)
 
 
 def main() -> int:

@@ -1,4 +1,4 @@
-"""An agent process for tests/test_agents.py and benchmarks/bench_agents.py.
+"""An agent process for tests/test_agents.py and tests/test_agents_hosts.py.
 
     python tests/agents_node.py NAME [--service transport] [--cost 3.0] [--lease-s 1.0]
                                      [--task-s 0.0] [--propose-delay-s 0.0]
@@ -13,7 +13,6 @@ once the agent is alive, ``taken`` (and exit status 3) when its name is.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import signal
 import sys
@@ -23,17 +22,12 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agents_events import say  # noqa: E402
+
 from beehave import Action, Event, EventKind, HighLevelBehaviorManager  # noqa: E402
 from beehave.agents import Agent, AgentBehavior, AgentNameTaken, Message  # noqa: E402
 from beehave.agents.protocols import ContractNetResponder, RequestResponder  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
-
-_print_lock = threading.Lock()
-
-
-def say(event: str, **detail: Any) -> None:
-    with _print_lock:
-        print(json.dumps({"event": event, **detail}), flush=True)
 
 
 class Deliver(Action):

@@ -25,6 +25,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 
+from agents_events import read_events  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from beehave import (  # noqa: E402
@@ -60,6 +61,7 @@ from beehave.agents.protocols import (  # noqa: E402
 from beehave.errors import ConfigError, Interrupted  # noqa: E402
 from beehave.events import EventKind  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
+from beehave.testing import wait_until  # noqa: E402
 
 NODE = Path(__file__).with_name("agents_node.py")
 LEASE_S = 1.0
@@ -84,17 +86,7 @@ class Proc:
 
     def _read(self) -> None:
         assert self.popen.stdout is not None
-        for line in self.popen.stdout:
-            try:
-                event = json.loads(line)
-            except ValueError:
-                continue
-            with self._cond:
-                self.events.append(event)
-                self._cond.notify_all()
-        with self._cond:
-            self.events.append({"event": "exited"})
-            self._cond.notify_all()
+        read_events(self.popen.stdout, self.events, self._cond)
 
     def wait_event(self, kind: str, *, timeout_s: float = WAIT_S,
                    **match: Any) -> dict[str, Any]:
@@ -118,6 +110,7 @@ class Proc:
         if self.popen.poll() is None:
             self.popen.send_signal(signal.SIGKILL)
         self.popen.wait(10)
+        self._reader.join(5)
 
     def stop(self) -> None:
         if self.popen.poll() is None:
@@ -127,6 +120,7 @@ class Proc:
             except subprocess.TimeoutExpired:
                 self.popen.kill()
                 self.popen.wait(10)
+        self._reader.join(5)
 
 
 @pytest.fixture
@@ -147,10 +141,7 @@ def ros() -> Iterator[RosContext]:
 
 def _wait(predicate: Callable[[], bool], what: str, timeout_s: float = WAIT_S) -> None:
     """For state without a notifier (the directory as another agent sees it)."""
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.02)
+    assert wait_until(predicate, timeout_s), f"timed out waiting for {what}"
 
 
 def _spawn(procs: list[Proc], name: str, **options: Any) -> Proc:
@@ -182,6 +173,11 @@ def test_agent_options_are_checked(ros: RosContext) -> None:
         Agent("bad name", ros=ros)
     with pytest.raises(ConfigError, match="lease_s"):
         Agent("fine", ros=ros, lease_s=0)
+    # NaN would make every wait end at once, infinity overflow the waits.
+    with pytest.raises(ConfigError, match="agent 'fine': probe_s"):
+        Agent("fine", ros=ros, probe_s=math.nan)
+    with pytest.raises(ConfigError, match="agent 'fine': send_timeout_s"):
+        Agent("fine", ros=ros, send_timeout_s=math.inf)
     with pytest.raises(ConfigError, match="JSON"):
         Agent("fine", ros=ros, services={"x": {"f": object()}})
 

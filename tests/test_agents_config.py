@@ -3,13 +3,13 @@ that has one is an agent its behaviours reach."""
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import pytest
 
 from beehave.config import parse_config
 from beehave.errors import ConfigError
+from beehave.testing import wait_until
 
 
 def _config(agent: Any) -> dict[str, Any]:
@@ -54,18 +54,16 @@ def test_a_robot_with_an_agent_section_is_found_and_reaches_its_behaviours() -> 
     assert issubclass(WhoAmI, AgentBehavior)
     with RosContext() as ros, Agent("cfg_seeker", ros=ros) as seeker:
         with Robot(config) as robot:
-            deadline = time.monotonic() + 30.0
-            while not seeker.directory.search("transport", zone="north"):
-                assert time.monotonic() < deadline, "the robot's agent never appeared"
-                time.sleep(0.02)
+            assert wait_until(lambda: bool(seeker.directory.search("transport",
+                                                                   zone="north")), 30.0), \
+                "the robot's agent never appeared"
             assert robot.high is not None
             who = robot.high.switch("who")
             assert who.wait(30.0)
             assert who.result == "cfg_atv"
-        deadline = time.monotonic() + 30.0
-        while seeker.directory.alive("cfg_atv"):  # it said goodbye when the robot stopped
-            assert time.monotonic() < deadline, "the robot's agent stayed in the directory"
-            time.sleep(0.02)
+        # It said goodbye when the robot stopped.
+        assert wait_until(lambda: not seeker.directory.alive("cfg_atv"), 30.0), \
+            "the robot's agent stayed in the directory"
 
 
 try:

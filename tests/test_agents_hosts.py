@@ -37,6 +37,8 @@ import pytest
 
 pytest.importorskip("rclpy")
 
+from agents_events import read_events  # noqa: E402
+
 TESTS = Path(__file__).resolve().parent
 SUBNET = "10.231.0"  # private (RFC 1918), only ever inside the two namespaces
 DEADLINE_S = 45.0  # for the whole exchange; the test's own bound is well under 60 s
@@ -123,17 +125,7 @@ class HostProc:
 
     def _read(self) -> None:
         assert self.popen.stdout is not None
-        for line in self.popen.stdout:
-            try:
-                event = json.loads(line)
-            except ValueError:
-                continue
-            with self._cond:
-                self.events.append(event)
-                self._cond.notify_all()
-        with self._cond:
-            self.events.append({"event": "exited"})
-            self._cond.notify_all()
+        read_events(self.popen.stdout, self.events, self._cond)
 
     def _read_stderr(self) -> None:
         assert self.popen.stderr is not None

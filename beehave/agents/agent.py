@@ -71,6 +71,7 @@ from beehave.errors import (
     NoReply,
 )
 from beehave.events import Event, EventBus, EventKind
+from beehave.hal import check_duration_s
 
 if TYPE_CHECKING:
     from rclpy.node import Node
@@ -352,15 +353,11 @@ class Agent:
             raise ConfigError(f"agent name {name!r} is not valid: letters, digits and '_', "
                               f"starting with a letter, at most 63 characters (it names the "
                               f"ROS topic {INBOX_PREFIX}<name>)")
-        for option, value in (("lease_s", lease_s), ("probe_s", probe_s),
-                              ("send_timeout_s", send_timeout_s)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not 0 < value < 1e6:
-                raise ConfigError(f"agent {name!r}: {option} must be a positive number of "
-                                  f"seconds, got {value!r}")
         self.name = name
-        self.lease_s = float(lease_s)
-        self.send_timeout_s = float(send_timeout_s)
+        self.lease_s = check_duration_s(f"agent {name!r}: lease_s", lease_s)
+        probe_s = check_duration_s(f"agent {name!r}: probe_s", probe_s)
+        self.send_timeout_s = check_duration_s(f"agent {name!r}: send_timeout_s",
+                                               send_timeout_s)
         self.events = EventBus(log)
         self.directory = Directory(name)
         self._services: dict[str, dict[str, Any]] = {}
@@ -413,7 +410,7 @@ class Agent:
         self.error: AgentNameTaken | None = None
         self.directory._name_lost = self._lose_name
         try:
-            self._probe(float(probe_s))
+            self._probe(probe_s)
         except BaseException:
             self.close()
             raise
