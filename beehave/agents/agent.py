@@ -48,6 +48,7 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self
 
 from rclpy.duration import Duration
+from rclpy.exceptions import InvalidHandle
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
@@ -467,7 +468,12 @@ class Agent:
                                         started_at=self._started_at, state=self._state,
                                         lease_s=self.lease_s,
                                         services={k: dict(v) for k, v in self._services.items()})
-        self._dir_pub.publish(String(data=announcement.model_dump_json(by_alias=True)))
+        try:
+            self._dir_pub.publish(String(data=announcement.model_dump_json(by_alias=True)))
+        except InvalidHandle:
+            if not self._closed:
+                raise
+            return  # the announce timer fired while close() destroyed the publisher
         self.directory._set_own(announcement)
 
     def _on_directory(self, msg: String) -> None:
