@@ -6,6 +6,10 @@ export DEBIAN_FRONTEND=noninteractive
 
 need_apt=()
 command -v dot >/dev/null 2>&1 || need_apt+=(graphviz)
+command -v mosquitto >/dev/null 2>&1 || [ -x /usr/sbin/mosquitto ] || need_apt+=(mosquitto)
+# The web view is tested in a real browser; playwright drives Debian's chromium
+# (never `playwright install`, which downloads its own).
+command -v chromium >/dev/null 2>&1 || need_apt+=(chromium)
 if [ ${#need_apt[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ]; then
     apt-get update -qq && apt-get install -y -qq "${need_apt[@]}" >/dev/null
@@ -18,4 +22,4 @@ fi
 "$venv/bin/python" -m pip install -q --upgrade pip
 # torch first and pinned: anything unpinned would pull the CUDA build.
 "$venv/bin/python" -m pip install -q "torch==2.13.0"
-"$venv/bin/python" -m pip install -q -e ".[fast,ros,sim,engines,nn,dev]"
+"$venv/bin/python" -m pip install -q -e ".[fast,ros,sim,engines,nn,mavlink,vda5050,http,record,dev]"
