@@ -235,6 +235,9 @@ def _parser() -> argparse.ArgumentParser:
                         "(beehave graph -h)")
     sub.add_parser("sim", add_help=False,
                    help="run a simulated world and put its robots on ROS 2 (beehave sim -h)")
+    sub.add_parser("fleet", add_help=False,
+                   help="the factory fleet: ATVs, machines and charging stations as agents, "
+                        "each in its own process, checked in the physics (beehave fleet -h)")
     return parser
 
 
@@ -267,8 +270,16 @@ def _sim(argv: list[str]) -> int:
     return simulator.main(argv)
 
 
+def _fleet(argv: list[str]) -> int:
+    # The scenario lives with the ready-made behaviours, not in the framework.
+    from behaviours.demos.fleet import main as fleet_main
+
+    return fleet_main(argv)
+
+
 #: Commands that parse their own arguments (with their own ``-h``).
-_OWN_PARSERS: dict[str, Callable[[list[str]], int]] = {"graph": _graph, "sim": _sim}
+_OWN_PARSERS: dict[str, Callable[[list[str]], int]] = {"graph": _graph, "sim": _sim,
+                                                        "fleet": _fleet}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -163,6 +163,60 @@ class _LockstepLine:
         return True
 
 
+class SpeedLimit:
+    """The robot's maximum speed: the ``max_speed_mps`` parameter of its high-level node
+    (m/s, > 0; ``inf`` — the default — means no limit besides each action's own speed).
+
+    Every driving action clamps its linear velocity to it at every command, so changing the
+    parameter while a robot drives slows it at once: what seed paper 000's dynamic request
+    controller does for speed zones, and what ``ros2 param set /atv1/beehave_high_level
+    max_speed_mps 0.2`` does from a terminal. Declared on a node the first time a driving
+    action runs there (or :meth:`of` is called); a value that is not a number > 0 is
+    refused with the reason.
+    """
+
+    PARAM = "max_speed_mps"
+    _limits: weakref.WeakKeyDictionary[Any, SpeedLimit] = weakref.WeakKeyDictionary()
+    _limits_lock = threading.Lock()
+
+    def __init__(self, node: Any) -> None:
+        from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+
+        self.node = node
+        if not node.has_parameter(self.PARAM):
+            node.declare_parameter(self.PARAM, math.inf, ParameterDescriptor(
+                description="maximum linear speed of every driving action (m/s, > 0; inf: "
+                            "no limit) — speed zones set it"))
+
+        def check(params: list[Any]) -> Any:
+            for param in params:
+                if param.name != self.PARAM:
+                    continue
+                value = param.value
+                if isinstance(value, bool) or not isinstance(value, float) or not value > 0:
+                    return SetParametersResult(
+                        successful=False,
+                        reason=f"{self.PARAM} must be a float > 0 (m/s; inf: no limit), "
+                               f"got {value!r}")
+            return SetParametersResult(successful=True)
+
+        self._check = check  # rclpy identifies the callback by the function: keep it
+        node.add_on_set_parameters_callback(check)
+
+    @classmethod
+    def of(cls, node: Any) -> SpeedLimit:
+        with cls._limits_lock:
+            limit = cls._limits.get(node)
+            if limit is None:
+                limit = cls._limits[node] = cls(node)
+            return limit
+
+    @property
+    def mps(self) -> float:
+        value = self.node.get_parameter(self.PARAM).value
+        return float(value) if isinstance(value, float) and value > 0 else math.inf
+
+
 def twist(linear_mps: float = 0.0, angular_rps: float = 0.0) -> Twist:
     msg = Twist()
     msg.linear.x = float(linear_mps)
@@ -188,6 +242,7 @@ class _Drive(Action):
     uses_odometry = True
     _cmd: Any = None
     _lockstep: Any = None
+    _limit: SpeedLimit | None = None
 
     def run(self) -> Any:
         self._open()
@@ -219,6 +274,8 @@ class _Drive(Action):
         raise NotImplementedError
 
     def _open(self) -> None:
+        node = self.manager.node
+        self._limit = SpeedLimit.of(node) if node is not None else None
         self._cmd = self.ros.publisher(Twist, topics.CMD_VEL)
         if self.uses_odometry:
             self.odom = self.ros.latest(Odometry, topics.ODOM)
@@ -262,8 +319,10 @@ class _Drive(Action):
         self._lockstep = None  # the line stays with the node, for the next action
 
     def command(self, linear_mps: float, angular_rps: float) -> None:
+        """Command the base, the linear speed clamped to the robot's :class:`SpeedLimit`."""
         if self._cmd is not None:
-            self._cmd.publish(twist(linear_mps, angular_rps))
+            limit = self._limit.mps if self._limit is not None else math.inf
+            self._cmd.publish(twist(max(-limit, min(limit, linear_mps)), angular_rps))
 
     def safe_state(self) -> None:
         if self._cmd is not None:

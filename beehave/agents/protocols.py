@@ -137,7 +137,8 @@ def contract_net(agent: Agent, service: str, task: Any, *,
                  cost: Callable[[Message], float] = proposal_cost,
                  constraints: dict[str, Any] | None = None,
                  candidates: list[str] | None = None, reply_by_s: float = 1.0,
-                 done_timeout_s: float = 60.0, protocol: str = CONTRACT_NET) -> Award:
+                 done_timeout_s: float = 60.0, protocol: str = CONTRACT_NET,
+                 observer: Callable[[str, dict[str, Any]], None] | None = None) -> Award:
     """Award ``task`` to the cheapest agent offering ``service`` and wait until it is done.
 
     1. cfp to ``candidates`` (default: the directory's ``search(service, **constraints)``,
@@ -153,7 +154,14 @@ def contract_net(agent: Agent, service: str, task: Any, *,
 
     Interrupted (a Behavior switched away): cancel to the awardee, reject-proposal to
     proposals not yet answered, cancel to the candidates that have not answered yet; then
-    :class:`~beehave.errors.Interrupted`."""
+    :class:`~beehave.errors.Interrupted`.
+
+    ``observer(step, detail)``, when given, is told every step as it happens, in this
+    thread (a mission controller's status reports): ``"cfp"`` (``candidates``),
+    ``"awarded"`` (``awardee``, ``cost``, ``attempt`` from 1), ``"failed"`` (``awardee``,
+    ``reason``: the next proposer is tried) and ``"done"`` (``awardee``, ``result``); each
+    detail holds the ``conversation_id``. An observer that raises is logged, never
+    disturbs the negotiation."""
     names = candidates if candidates is not None else [
         info.name for info in agent.directory.search(service, **(constraints or {}))
         if info.name != agent.name]
@@ -163,6 +171,14 @@ def contract_net(agent: Agent, service: str, task: Any, *,
                              f"{f' with {constraints}' if constraints else ''} "
                              f"(agents alive: {known})")
     with agent.conversation(protocol=protocol) as conv:
+        def tell(step: str, **detail: Any) -> None:
+            if observer is not None:
+                try:
+                    observer(step, {"conversation_id": conv.conversation_id, **detail})
+                except Exception:
+                    log.exception("agent %r: contract-net observer failed on %r",
+                                  agent.name, step)
+
         unanswered = set(names)  # asked, no answer yet
         undecided: set[str] = set()  # proposed, neither accepted nor rejected yet
         proposals: list[tuple[float, str, Message]] = []
@@ -172,6 +188,7 @@ def contract_net(agent: Agent, service: str, task: Any, *,
             for name in names:
                 conv.watch(name)
             try:
+                tell("cfp", candidates=list(names))
                 conv.send(Performative.CFP, names, task, reply_by_s=reply_by_s)
             except AgentUnreachable as exc:  # the others got it: they are not kept waiting
                 log.warning("agent %r: cfp not delivered: %s", agent.name, exc)
@@ -212,6 +229,7 @@ def contract_net(agent: Agent, service: str, task: Any, *,
                 conv.watch(name)
                 conv.send(Performative.ACCEPT_PROPOSAL, [name], proposal.content,
                           in_reply_to=proposal.message_id)
+                tell("awarded", awardee=name, cost=price, attempt=rank + 1)
                 if rank == 0:
                     latency = time.monotonic() - started
                     losers = sorted(undecided)
@@ -223,11 +241,13 @@ def contract_net(agent: Agent, service: str, task: Any, *,
                 if outcome.performative is Performative.INFORM:
                     attempts.append((name, "inform"))
                     current = None
+                    tell("done", awardee=name, result=outcome.content)
                     return Award(conv.conversation_id, name, proposal.content, price,
                                  outcome.content, attempts, latency)
                 why = outcome.content.get("reason") if isinstance(outcome.content, dict) \
                     else outcome.content
                 attempts.append((name, f"{outcome.performative.value}: {why}"))
+                tell("failed", awardee=name, reason=f"{outcome.performative.value}: {why}")
                 if not (isinstance(outcome.content, dict) and outcome.content.get("departed")):
                     # A silent awardee might still do it: withdraw, so that it never runs
                     # twice. (One that left the directory cannot be told.)
@@ -310,6 +330,11 @@ class Responder(AgentBehavior):
     proposal_valid_s: float = 60.0
     """How long a proposal that was not accepted can still be accepted (contract net: an
     initiator re-awards a task to the next cheapest when its awardee fails)."""
+    queue_tasks: bool = False
+    """When True, a task whose action finds its type busy (an earlier task still drives)
+    waits in :attr:`waiting`, first come first served, and starts as soon as the type is
+    free — a robot that accepts work while it works. When False (the default), it is
+    answered with ``failure`` naming the holder."""
 
     def perform(self, task: Message) -> Any:
         """Do what ``task`` asks (a request, or the accept-proposal of an award; the
@@ -341,6 +366,8 @@ class Responder(AgentBehavior):
 
     def run(self) -> None:
         self.tasks: dict[str, _Task] = {}
+        #: Accepted tasks waiting for their action type (:attr:`queue_tasks`), oldest first.
+        self.waiting: list[_Task] = []
         self.proposals: dict[str, tuple[Message, float]] = {}
         with self.agent.mailbox(protocols=[self.protocol]) as box:
             self._box = box
@@ -392,6 +419,7 @@ class Responder(AgentBehavior):
             pass  # kept for proposal_valid_s: a re-award may still come
         elif kind is Performative.CANCEL:
             self.proposals.pop(cid, None)
+            self.waiting = [t for t in self.waiting if t.request.conversation_id != cid]
             task = self.tasks.pop(cid, None)
             if task is not None and task.action is not None:
                 task.action.interrupt()
@@ -419,19 +447,37 @@ class Responder(AgentBehavior):
         if not isinstance(outcome, Action):
             self._reply(message, Performative.INFORM, {"result": jsonable(outcome)})
             return
+        if self.queue_tasks and self.waiting:
+            self.waiting.append(_Task(message, outcome))  # behind the earlier ones
+            return
+        if self._launch(_Task(message, outcome), queue=self.queue_tasks):
+            self._reap()  # it may have ended already
+
+    def _launch(self, task: _Task, *, queue: bool) -> bool:
+        """Start ``task``'s action; True when it runs. A busy type queues it (``queue``,
+        at the front: it was next) or fails it."""
+        assert task.action is not None
         while True:
             try:
-                self.start_action(outcome)
+                self.start_action(task.action)
                 break
             except ChildFailed:
                 continue  # an earlier task's action failed just now: _reap reports it
             except ActionTypeBusy as exc:
-                self._reply(message, Performative.FAILURE, {"reason": str(exc)})
-                return
-        self.tasks[cid] = _Task(message, outcome)
-        self._reap()  # it may have ended already
+                if queue:
+                    self.waiting.insert(0, task)
+                else:
+                    self._reply(task.request, Performative.FAILURE, {"reason": str(exc)})
+                return False
+        self.tasks[task.request.conversation_id] = task
+        return True
 
     def _reap(self) -> None:
+        self._reap_ended()
+        while self.waiting and self._launch(self.waiting.pop(0), queue=True):
+            self._reap_ended()
+
+    def _reap_ended(self) -> None:
         for cid, task in list(self.tasks.items()):
             action = task.action
             if action is None or not action.wait(0):
@@ -452,6 +498,9 @@ class Responder(AgentBehavior):
                 del self.proposals[cid]
 
     def _abandon(self) -> None:
+        for task in self.waiting:
+            self._reply(task.request, Performative.FAILURE, {"reason": f"{self.path} stopped"})
+        self.waiting.clear()
         for task in self.tasks.values():
             if task.action is not None:
                 task.action.interrupt()

@@ -1,0 +1,368 @@
+"""``beehave fleet``: the factory fleet of seed paper 000, every agent in its own process.
+
+The simulation (``beehave sim factory --robots N``), every ATV's two managers (``beehave
+run`` of a generated ``atvK.yaml``), every machine agent and every charging-station agent
+run as separate processes over DDS; this process only watches (``/factory/state``,
+``/fleet/orders``, the agent directory) and shows a live table. After ``--minutes`` of sim
+time it stops them all (the sim last: it writes the facts it measured and the picture) and
+checks, in the physics:
+
+- no machine ran empty;
+- no two robots charged at one station at once;
+- no battery reached zero;
+- no robot drove faster than a zone's limit by more than 5 %;
+- every contract was awarded at most once: no order delivered twice, no award while an
+  award stood (the mission controller's state machines), and the physical deliveries per
+  machine match the orders the machine saw done (give or take the ones under way);
+- and work was done: at least one delivery, so that an idle fleet fails.
+
+Exit 0 when every check passed, 1 otherwise, 2 for bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import yaml
+from rich.console import Console, Group
+from rich.live import Live
+from rich.table import Table
+from rich.text import Text
+
+from behaviours.fleet.mission import ORDERS_TOPIC
+from behaviours.fleet.site import site
+
+STOP_TIMEOUT_S = 15.0
+
+
+def atv_config(namespace: str, world: str) -> dict[str, Any]:
+    """The robot YAML of one ATV (written to ``OUT/fleet/<namespace>.yaml``)."""
+    return {
+        "namespace": namespace,
+        "stop_timeout_s": 2.0,
+        "use_sim_time": True,
+        "behaviors": {
+            "work": {"class": "behaviours.fleet.atv:Work", "params": {"world": world}},
+            "charge": {"class": "behaviours.fleet.atv:Charge", "params": {"world": world}},
+        },
+        "default_behavior": "work",
+        "logics": {"zones": {"class": "behaviours.fleet.zones:SpeedZones",
+                             "params": {"world": world}}},
+        "default_logic": "zones",
+        "hals": ["odometry", "battery", "factory", "speed_limit"],
+        "agent": {"name": namespace, "lease_s": 2.0},
+    }
+
+
+@dataclass
+class Watch:
+    """What the watcher heard (written by the ROS thread, read by the table)."""
+
+    state: dict[str, Any] = field(default_factory=dict)
+    orders: dict[str, dict[str, Any]] = field(default_factory=dict)
+    violations: list[str] = field(default_factory=list)
+    agents: dict[str, dict[str, Any]] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_state(self, data: str) -> None:
+        with contextlib.suppress(ValueError):
+            state = json.loads(data)
+            with self.lock:
+                self.state = state
+
+    def on_order(self, data: str) -> None:
+        try:
+            report = json.loads(data)
+            order = report["order"]
+        except (ValueError, KeyError, TypeError):
+            return
+        with self.lock:
+            if report.get("violation"):
+                self.violations.append(f"order {order}: {report['violation']}")
+            previous = self.orders.get(order)
+            if previous is not None and previous["state"] == "delivered" \
+                    and report["state"] == "delivered":
+                self.violations.append(f"order {order} delivered twice")
+            self.orders[order] = report
+
+    def on_directory(self, data: str) -> None:
+        with contextlib.suppress(ValueError, KeyError, TypeError):
+            entry = json.loads(data)
+            with self.lock:
+                self.agents[entry["agent"]] = entry
+
+
+def _table(watch: Watch, started: float) -> Group:
+    with watch.lock:
+        state = dict(watch.state)
+        orders = list(watch.orders.values())
+        agents = dict(watch.agents)
+    sim_s = float(state.get("time_s", 0.0))
+    wall = time.monotonic() - started
+    robots = Table(title=f"sim {sim_s:6.1f} s   wall {wall:5.0f} s   "
+                         f"×{sim_s / wall if wall > 0 else 0:.2f}", title_justify="left")
+    for col in ("ATV", "behaviour", "battery", "load", "zone", "speed", "charging"):
+        robots.add_column(col)
+    for ns, r in sorted(state.get("robots", {}).items()):
+        entry = agents.get(ns, {})
+        offers = ", ".join(entry.get("services", {})) if entry.get("state") == "alive" else "—"
+        robots.add_row(ns, offers or "(charging)", f"{100 * r['battery_fraction']:.0f} %",
+                       f"{r['load']:g}" if r["load"] else "", r["zone"] or "",
+                       f"{r['speed_mps']:.2f}", r["charging_at"] or "")
+    machines = Table(title="machines", title_justify="left")
+    for col in ("machine", "level", "open order", "state", "ATV", "awards"):
+        machines.add_column(col)
+    latest: dict[str, dict[str, Any]] = {}
+    for o in orders:
+        latest[o["machine"]] = o
+    for name, m in sorted(state.get("machines", {}).items()):
+        o = latest.get(name, {})
+        level = m["level"] / m["capacity"]
+        machines.add_row(name, Text(f"{100 * level:3.0f} %",
+                                    style="red" if level < 0.2 else "green"),
+                         o.get("order", ""), o.get("state", ""), o.get("atv") or "",
+                         " → ".join(o.get("awards", [])))
+    stations = Table(title="charging stations", title_justify="left")
+    for col in ("agent", "station", "reserved by", "charging now"):
+        stations.add_column(col)
+    occupants = {k: v["occupants"] for k, v in state.get("stations", {}).items()}
+    for name, entry in sorted(agents.items()):
+        props = entry.get("services", {}).get("charging")
+        if props is None or entry.get("state") != "alive":
+            continue
+        stations.add_row(name, props.get("station", ""), props.get("holder") or "",
+                         ", ".join(occupants.get(props.get("station", ""), [])))
+    return Group(robots, machines, stations)
+
+
+class Processes:
+    """Child processes by name, each with its log file; killed by PID in the end."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.log_dir = log_dir
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self._logs: list[TextIO] = []
+
+    def start(self, name: str, argv: list[str]) -> None:
+        log = open(self.log_dir / f"{name}.log", "w")  # noqa: SIM115 - closed in stop_all
+        self._logs.append(log)
+        self.procs[name] = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
+                                            stdin=subprocess.DEVNULL)
+
+    def dead(self) -> dict[str, int]:
+        return {n: p.returncode for n, p in self.procs.items() if p.poll() is not None}
+
+    def stop(self, names: list[str], timeout_s: float = STOP_TIMEOUT_S) -> dict[str, int]:
+        """SIGINT (a clean stop), then SIGKILL what is still there after ``timeout_s``."""
+        for name in names:
+            with contextlib.suppress(ProcessLookupError):
+                self.procs[name].send_signal(signal.SIGINT)
+        deadline = time.monotonic() + timeout_s
+        codes = {}
+        for name in names:
+            proc = self.procs[name]
+            try:
+                codes[name] = proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                codes[name] = proc.wait()
+        return codes
+
+    def kill_all(self) -> None:
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        for log in self._logs:
+            log.close()
+
+
+def _watch(ros: Any, watch: Watch) -> None:
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    from beehave.agents.agent import DIRECTORY_READER_QOS, DIRECTORY_TOPIC
+
+    node = ros.create_node("fleet_watch")
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    node.create_subscription(String, "/factory/state", lambda m: watch.on_state(m.data),
+                             latched)
+    node.create_subscription(String, ORDERS_TOPIC, lambda m: watch.on_order(m.data),
+                             QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    node.create_subscription(String, DIRECTORY_TOPIC, lambda m: watch.on_directory(m.data),
+                             DIRECTORY_READER_QOS)
+
+
+def checks(report: dict[str, Any], watch: Watch) -> list[tuple[str, bool, str]]:
+    """(check, passed, what was measured) — the physics from the sim's report, the
+    contracts from the mission controllers' reports."""
+    out: list[tuple[str, bool, str]] = []
+    machines = report.get("machines", {})
+    empty = [f"{n} {m['empty_s']:.0f} s" for n, m in machines.items() if m["empty_s"] > 0]
+    lowest = min((m["min_level"] / m.get("capacity", 100.0) if "capacity" in m
+                  else m["min_level"] for m in machines.values()), default=0.0)
+    out.append(("no machine ran empty", not empty and bool(machines),
+                "; ".join(empty) or f"lowest level {lowest:.2f}"))
+    stations = report.get("stations", {})
+    most = max((s["max_charging"] for s in stations.values()), default=0)
+    out.append(("at most one robot charging per station", most <= 1 and bool(stations),
+                f"most at once: {most}"))
+    robots = report.get("robots", {})
+    low = min((r["min_battery_fraction"] for r in robots.values()), default=0.0)
+    out.append(("no battery reached zero", low > 0 and bool(robots),
+                f"lowest battery {100 * low:.1f} %"))
+    zones = report.get("zones", {})
+    worst = max((z["max_ratio"] for z in zones.values()), default=0.0)
+    out.append(("zone limits kept (≤ +5 %)", worst <= 1.05,
+                f"worst speed / limit {worst:.3f}"))
+    with watch.lock:
+        orders = list(watch.orders.values())
+        violations = list(watch.violations)
+    done: dict[str, int] = {}
+    open_: dict[str, int] = {}
+    for o in orders:
+        bucket = done if o["state"] == "delivered" else open_ if o["state"] in (
+            "announced", "awarded") else None
+        if bucket is not None:
+            bucket[o["machine"]] = bucket.get(o["machine"], 0) + 1
+    physical: dict[str, int] = {}
+    for d in report.get("deliveries", []):
+        physical[d["machine"]] = physical.get(d["machine"], 0) + 1
+    mismatch = [f"{m}: {physical.get(m, 0)} unloaded, {done.get(m, 0)} orders done"
+                for m in set(physical) | set(done)
+                if not done.get(m, 0) <= physical.get(m, 0) <= done.get(m, 0) + open_.get(m, 0)]
+    out.append(("every contract awarded at most once", not violations and not mismatch,
+                "; ".join(violations + mismatch)
+                or f"{sum(done.values())} orders delivered, "
+                   f"{sum(len(o['awards']) for o in orders)} awards"))
+    total = len(report.get("deliveries", []))
+    out.append(("deliveries made", total > 0, f"{total} in the physics"))
+    return out
+
+
+def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
+              minutes: float = 5.0, fast: bool = False, out_dir: Path = Path("out")) -> int:
+    places = site(world)
+    fleet_dir = out_dir / "fleet"
+    fleet_dir.mkdir(parents=True, exist_ok=True)
+    report_path, picture = out_dir / "fleet_report.json", out_dir / "fleet.png"
+    report_path.unlink(missing_ok=True)
+    py = sys.executable
+    procs = Processes(fleet_dir)
+    watch = Watch()
+    sim_s = minutes * 60.0
+    from beehave.ros.context import RosContext
+
+    try:
+        procs.start("sim", [py, "-m", "beehave.cli", "sim", world, "--robots", str(robots),
+                            *(["--fast"] if fast else []), "--report", str(report_path),
+                            "--picture", str(picture)])
+        for name in sorted(places.stations):
+            procs.start(name, [py, "-m", "behaviours.fleet.station", name, "--world", world])
+        for k in range(1, robots + 1):
+            ns = f"atv{k}"
+            cfg = fleet_dir / f"{ns}.yaml"
+            cfg.write_text(yaml.safe_dump(atv_config(ns, world), sort_keys=False))
+            procs.start(ns, [py, "-m", "beehave.cli", "run", str(cfg)])
+        for name in sorted(places.machines):
+            procs.start(name, [py, "-m", "behaviours.fleet.machine", name, "--world", world])
+        with RosContext() as ros:
+            _watch(ros, watch)
+            started = time.monotonic()
+            # Wall-time bound: a fleet far slower than real time is a failure too.
+            wall_limit_s = 120.0 + sim_s * (1.0 if fast else 1.5)
+            failed: dict[str, int] = {}
+            with Live(_table(watch, started), console=console, refresh_per_second=2,
+                      transient=not console.is_terminal) as live:
+                while True:
+                    time.sleep(0.5)
+                    live.update(_table(watch, started))
+                    with watch.lock:
+                        now_s = float(watch.state.get("time_s", 0.0))
+                    failed = procs.dead()
+                    if failed or now_s >= sim_s or time.monotonic() - started > wall_limit_s:
+                        break
+            wall_s = time.monotonic() - started
+            console.print(_table(watch, started))
+        agents = [n for n in procs.procs if n != "sim"]
+        procs.stop(agents)
+        procs.stop(["sim"])
+    finally:
+        procs.kill_all()
+    if not report_path.exists():
+        console.print(f"[red]FAILED:[/] the simulation wrote no report ({report_path}); see "
+                      f"{fleet_dir / 'sim.log'}")
+        return 1
+    report = json.loads(report_path.read_text())
+    results = checks(report, watch)
+    if failed:
+        results.append(("every process ran to the end", False,
+                         ", ".join(f"{n} exit {c} (log: {fleet_dir / (n + '.log')})"
+                                   for n, c in sorted(failed.items()))))
+    if now_s < sim_s:
+        results.append((f"{minutes:g} sim minutes run", False,
+                        f"only {now_s:.0f} s in {wall_s:.0f} s wall"))
+    summary = Table(title=f"fleet summary — {robots} ATVs, {now_s:.0f} s sim in {wall_s:.0f} s "
+                          f"wall (×{now_s / wall_s:.2f})")
+    for col in ("check", "result", "measured"):
+        summary.add_column(col)
+    for name, ok, measured in results:
+        summary.add_row(name, Text("ok", style="green") if ok else Text("FAILED", style="red"),
+                        measured)
+    console.print(summary)
+    console.print(f"picture: {picture}   facts: {report_path}   logs: {fleet_dir}/")
+    print(json.dumps({"fleet": {"robots": robots, "sim_s": round(now_s, 1),
+                                "wall_s": round(wall_s, 1),
+                                "real_time_factor": round(now_s / wall_s, 3),
+                                "passed": all(ok for _, ok, _ in results)}}), flush=True)
+    return 0 if all(ok for _, ok, _ in results) else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="beehave fleet", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("world", nargs="?", default="factory",
+                        help="a world name or YAML path with machines, depots and charging "
+                             "stations (default: factory)")
+    parser.add_argument("--robots", type=int, default=4, metavar="N",
+                        help="how many ATVs (default 4)")
+    parser.add_argument("--minutes", type=float, default=5.0, metavar="M",
+                        help="sim minutes to run (default 5)")
+    parser.add_argument("--fast", action="store_true",
+                        help="as fast as the machine goes (lockstep), not at real time")
+    parser.add_argument("--out", default="out", metavar="FOLDER",
+                        help="where fleet.png, fleet_report.json and the logs go")
+    args = parser.parse_args(argv)
+    if not 1 <= args.robots <= 10:
+        parser.error(f"--robots must be 1..10 (the parking row), got {args.robots}")
+    if not 0 < args.minutes <= 24 * 60:
+        parser.error(f"--minutes must be in (0, 1440], got {args.minutes}")
+    try:
+        places = site(args.world)
+    except Exception as exc:
+        parser.error(f"world {args.world!r}: {exc}")
+    if not places.machines or not places.depots or not places.stations:
+        parser.error(f"world {args.world!r} needs machines, a depot and charging stations "
+                     f"(it has {len(places.machines)}, {len(places.depots)}, "
+                     f"{len(places.stations)})")
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    console = Console()
+    console.rule(f"[bold]beehave fleet — {args.robots} ATVs in {args.world}")
+    return run_fleet(console, world=args.world, robots=args.robots, minutes=args.minutes,
+                     fast=args.fast, out_dir=Path(args.out))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

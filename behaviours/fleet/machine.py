@@ -1,0 +1,115 @@
+"""A machine agent: watches its material level and orders replenishment by contract net.
+
+    python -m behaviours.fleet.machine NAME [--world factory] [--below 0.5]
+
+Its level comes from the simulation (``/factory/state``). When it falls below ``--below``
+of the capacity and no order of its own is open, it announces a transport order to the
+agents offering ``transport`` (cfp content ``{"order", "machine", "depot"}``) and awards it
+to the cheapest bid; the ATV's inform ends the order. An ATV that fails, dies (leaves the
+directory) or falls silent loses the award to the next bid. Every order is tracked by the
+mission controller (:mod:`behaviours.fleet.mission`), which reports it on ``/fleet/orders``.
+Nobody to bid (all charging, none alive): the order fails and is announced again 3 s later.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from typing import Any
+
+from std_msgs.msg import String
+
+from beehave.agents import AgentBehavior
+from beehave.agents.protocols import contract_net
+from beehave.errors import BeehaveError, Interrupted, ProtocolFailed
+from behaviours.fleet.mission import MissionController
+from behaviours.fleet.process import say, serve
+from behaviours.fleet.site import site
+
+log = logging.getLogger(__name__)
+
+FACTORY_STATE = "/factory/state"
+
+
+class Replenish(AgentBehavior):
+    """The machine's behaviour (see the module docstring)."""
+
+    def __init__(self, machine: str, *, world: str = "factory", below: float = 0.5,
+                 depot: str | None = None, reply_by_s: float = 1.0,
+                 done_timeout_s: float = 240.0, retry_s: float = 3.0) -> None:
+        places = site(world)
+        if machine not in places.machines:
+            raise BeehaveError(f"no machine {machine!r} in world {world!r}; it has "
+                               f"{sorted(places.machines)}")
+        self.machine, self.world, self.below = machine, world, below
+        self.depot = depot or min(places.depots)
+        self.reply_by_s, self.done_timeout_s, self.retry_s = (reply_by_s, done_timeout_s,
+                                                              retry_s)
+        self.orders = 0
+
+    def _level(self, latest: Any) -> tuple[float, float] | None:
+        msg = latest.get()
+        if msg is None:
+            return None
+        try:
+            entry = json.loads(msg.data)["machines"][self.machine]
+            return float(entry["level"]), float(entry["capacity"])
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("%s: unreadable %s: %s", self.machine, FACTORY_STATE, exc)
+            return None
+
+    def run(self) -> None:
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+        qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        latest = self.ros.latest(String, FACTORY_STATE, qos=qos)
+        controller = MissionController(self.manager.node)
+        while self.sleep(0.5):
+            level = self._level(latest)
+            if level is None or level[0] >= self.below * level[1]:
+                continue
+            self.orders += 1
+            order = f"{self.machine}-{self.orders}"
+            mission = controller.new(order, self.machine, self.depot)
+            say("order", order=order, level=round(level[0], 1))
+            try:
+                award = contract_net(
+                    self.agent, "transport",
+                    {"order": order, "machine": self.machine, "depot": self.depot},
+                    reply_by_s=self.reply_by_s, done_timeout_s=self.done_timeout_s,
+                    observer=mission.step)
+                say("delivered", order=order, atv=award.awardee, attempts=award.attempts)
+            except ProtocolFailed as exc:
+                mission.fail(str(exc))
+                say("order_failed", order=order, reason=str(exc))
+                if not self.sleep(self.retry_s):
+                    return
+            except Interrupted:
+                mission.fail("the machine agent stopped")
+                raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m behaviours.fleet.machine",
+                                     description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("name", help="the machine (in the world) and its agent's name")
+    parser.add_argument("--world", default="factory")
+    parser.add_argument("--below", type=float, default=0.5,
+                        help="order when the level falls below this fraction of capacity")
+    parser.add_argument("--lease-s", type=float, default=2.0, help="its directory lease")
+    args = parser.parse_args(argv)
+    machines = site(args.world).machines
+    if args.name not in machines:
+        parser.error(f"no machine {args.name!r} in world {args.world!r}; it has "
+                     f"{sorted(machines)}")
+    if not 0 < args.below < 1:
+        parser.error(f"--below must be a fraction in (0, 1), got {args.below}")
+    return serve(args.name, Replenish, {"machine": args.name, "world": args.world,
+                                        "below": args.below}, lease_s=args.lease_s)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
