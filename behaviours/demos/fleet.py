@@ -192,7 +192,8 @@ def _watch(ros: Any, watch: Watch) -> None:
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import String
 
-    from beehave.agents.agent import DIRECTORY_READER_QOS, DIRECTORY_TOPIC
+    from beehave.agents.agent import DIRECTORY_READER_QOS
+    from beehave.agents.directory import DIRECTORY_TOPIC
 
     node = ros.create_node("fleet_watch")
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
