@@ -31,6 +31,14 @@ class UnknownStation(UnknownNameError):
     kind = "station"
 
 
+class UnknownMachine(UnknownNameError):
+    kind = "machine"
+
+
+class UnknownZone(UnknownNameError):
+    kind = "speed zone"
+
+
 class UnknownRobot(UnknownNameError):
     kind = "robot namespace"
 

@@ -70,9 +70,11 @@ from beehave.clock import SimClock
 from beehave.ros.context import RosContext
 from robots import topics
 from robots.emili import Emili
+from robots.factory import Factory
 from robots.kobuki import LED_COLORS, Kobuki
 from robots.robot import SimRobot
 from robots.sim import SimState, Simulation
+from robots.world import load_world
 
 log = logging.getLogger(__name__)
 
@@ -319,6 +321,11 @@ class SimNode:
 
     ``clock_rate_hz``: how often ``/clock`` is published, per second of sim time.
 
+    ``factory``: a :class:`~robots.factory.Factory` on ``sim`` whose state goes out on
+    ``/factory/state`` (std_msgs/String, JSON of :meth:`Factory.state`, schema
+    ``beehave/factory/state/1``; reliable, transient-local, depth 1) at 5 Hz of sim time
+    and at once after every load and delivery. The caller keeps owning the factory.
+
     ``lockstep`` (default on): controllers that announce on ``/lockstep`` the sim time their
     next control step is due (``{"participant": id, "until_s": t}``; beehave's driving
     actions do under ``use_sim_time``) hold the simulation there until they announce again
@@ -330,7 +337,8 @@ class SimNode:
 
     def __init__(self, sim: Simulation, ros: RosContext, *,
                  clock_rate_hz: float = topics.CLOCK_RATE_HZ, lockstep: bool = True,
-                 lockstep_timeout_s: float = topics.LOCKSTEP_TIMEOUT_S) -> None:
+                 lockstep_timeout_s: float = topics.LOCKSTEP_TIMEOUT_S,
+                 factory: Factory | None = None) -> None:
         if not (clock_rate_hz > 0 and math.isfinite(clock_rate_hz)):
             raise ValueError(f"clock_rate_hz must be positive and finite, got {clock_rate_hz}")
         if not (lockstep_timeout_s > 0 and math.isfinite(lockstep_timeout_s)):
@@ -355,9 +363,14 @@ class SimNode:
         self._next_echo_s = sim.time_s
         self._nodes: list[Node] = []
         self._removers: list[Callable[[], None]] = []
+        self.factory = factory
+        self._factory_lock = threading.Lock()
         try:
             clock_node = self._node("/")
             self._clock_pub = clock_node.create_publisher(Clock, topics.CLOCK, SENSOR_QOS)
+            if factory is not None:
+                self._factory_pub = clock_node.create_publisher(String, topics.FACTORY_STATE,
+                                                                STATE_QOS)
             if lockstep:
                 clock_node.create_subscription(String, topics.LOCKSTEP, self._on_lockstep,
                                                LOCKSTEP_QOS)
@@ -370,6 +383,12 @@ class SimNode:
                 sim.on_step(self._on_fast_step, rate_hz=topics.ODOM_RATE_HZ),
                 sim.on_step(self._on_battery_step, rate_hz=topics.BATTERY_RATE_HZ),
             ]
+            if factory is not None:
+                self._removers += [
+                    sim.on_step(self._publish_factory, rate_hz=topics.FACTORY_STATE_RATE_HZ),
+                    factory.on_event(lambda event: self._publish_factory(self.sim.time_s)),
+                ]
+                self._publish_factory(sim.time_s)  # latched: a late subscriber gets it
             if lockstep:
                 self._removers.append(sim.set_gate(self._gate))
         except BaseException:
@@ -444,6 +463,14 @@ class SimNode:
     def _on_battery_step(self, time_s: float) -> None:
         for ports in self.ports.values():
             ports.publish_battery()
+
+    def _publish_factory(self, time_s: float) -> None:
+        factory = self.factory
+        if factory is None:
+            return
+        # A delivery and the periodic tick may come from one step: one message at a time.
+        with self._factory_lock:
+            self._factory_pub.publish(String(data=json.dumps(factory.state())))
 
     # ---- executor thread ------------------------------------------------------------
 
@@ -532,16 +559,29 @@ def _parser() -> argparse.ArgumentParser:
                              f"{topics.LOCKSTEP_TIMEOUT_S:g} s per controller)")
     parser.add_argument("--duration-s", type=float, default=None, metavar="N",
                         help="stop after N wall-clock seconds (default: until Ctrl-C)")
+    parser.add_argument("--robots", type=int, default=None, metavar="N",
+                        help="start only the world's first N robots (default: all)")
+    parser.add_argument("--report", type=Path, default=None, metavar="FILE.json",
+                        help="on a clean stop, write the facts measured in the physics "
+                             "(machines, charging stations, batteries, speed zones, "
+                             "deliveries) as JSON")
+    parser.add_argument("--picture", type=Path, default=None, metavar="FILE.png",
+                        help="on a clean stop, write a top-down picture with every robot's "
+                             "trajectory")
     return parser
 
 
 def sim_main(argv: list[str]) -> int:
     """``beehave sim [WORLD] [--real-time-factor X | --fast] [--no-lockstep]
-    [--duration-s N]``.
+    [--duration-s N] [--robots N] [--report FILE.json] [--picture FILE.png]``.
 
     Prints one line when the robots are on ROS 2 and one when everything has stopped;
     SIGINT and SIGTERM stop it cleanly (sim thread stopped, nodes destroyed, executor
-    joined). Returns 0, 1 when the simulation failed, 2 for bad arguments or a bad world.
+    joined). A world with machines, depots or speed zones (``factory``) runs its
+    :class:`~robots.factory.Factory` and publishes ``/factory/state``; ``--report`` and
+    ``--picture`` are written after the simulation has stopped (also when it failed: the
+    facts up to then are still true). Returns 0, 1 when the simulation failed or a file
+    could not be written, 2 for bad arguments or a bad world.
     """
     parser = _parser()
     try:
@@ -557,6 +597,15 @@ def sim_main(argv: list[str]) -> int:
         print(f"beehave sim: --duration-s must be a positive, finite number of seconds, got "
               f"{args.duration_s}; leave it out to run until Ctrl-C", file=sys.stderr)
         return 2
+    if args.robots is not None and args.robots < 0:
+        print(f"beehave sim: --robots must be 0 or more, got {args.robots}", file=sys.stderr)
+        return 2
+    for option, path, suffix in (("--report", args.report, ".json"),
+                                 ("--picture", args.picture, ".png")):
+        if path is not None and path.suffix.lower() != suffix:
+            print(f"beehave sim: {option} must name a {suffix} file, got {str(path)!r}",
+                  file=sys.stderr)
+            return 2
     logging.basicConfig(level=logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     from beehave.errors import BeehaveError
@@ -565,10 +614,16 @@ def sim_main(argv: list[str]) -> int:
     if str(world).endswith((".yaml", ".yml")):
         world = Path(world)
     try:
-        sim = Simulation(world, real_time_factor=None if args.fast else args.real_time_factor)
+        loaded = load_world(world)
+        if args.robots is not None:
+            loaded = loaded.with_robots(args.robots)
+        sim = Simulation(loaded, real_time_factor=None if args.fast else args.real_time_factor)
     except BeehaveError as exc:
         print(f"beehave sim: {exc}", file=sys.stderr)
         return 2
+    factory: Factory | None = None
+    if loaded.machines or loaded.depots or loaded.zones or args.report is not None:
+        factory = Factory(sim)
 
     stop = threading.Event()
 
@@ -585,13 +640,15 @@ def sim_main(argv: list[str]) -> int:
     node: SimNode | None = None
     try:
         ros = RosContext()
-        node = SimNode(sim, ros, lockstep=args.lockstep)
+        node = SimNode(sim, ros, lockstep=args.lockstep, factory=factory)
         ros.start()
         sim.start()
         speed = "as fast as possible" if args.fast else f"{args.real_time_factor:g}x real time"
         robots = ", ".join(f"{ns} ({r.kind})" for ns, r in sim.robots.items()) or "no robots"
+        extra = "" if factory is None else f"; {topics.FACTORY_STATE} at " \
+            f"{topics.FACTORY_STATE_RATE_HZ:g} Hz"
         print(f"beehave sim: world {sim.world.name!r} running {speed}: {robots}; "
-              f"/clock at {topics.CLOCK_RATE_HZ:g} Hz; Ctrl-C to stop", flush=True)
+              f"/clock at {topics.CLOCK_RATE_HZ:g} Hz{extra}; Ctrl-C to stop", flush=True)
         deadline = None if args.duration_s is None else time.monotonic() + args.duration_s
         # Wake now and then to notice a failed simulation (an on_step callback raised).
         while not stop.wait(0.5 if deadline is None
@@ -612,12 +669,40 @@ def sim_main(argv: list[str]) -> int:
                 node.destroy()
             if ros is not None:
                 ros.shutdown()
+            if not _write_outputs(sim, factory, report=args.report, picture=args.picture):
+                code = 1
             sim.close()
             for signum, handler in previous.items():
                 signal.signal(signum, handler)
     print("beehave sim: stopped cleanly" if code == 0 else "beehave sim: stopped after an "
           "error", flush=True)
     return code
+
+
+def _write_outputs(sim: Simulation, factory: Factory | None, *, report: Path | None,
+                   picture: Path | None) -> bool:
+    """Write ``--report`` and ``--picture`` of a stopped simulation; False (and a line on
+    stderr naming the file) when one could not be written."""
+    ok = True
+    if report is not None and factory is not None:
+        try:
+            report.parent.mkdir(parents=True, exist_ok=True)
+            report.write_text(json.dumps(factory.report(), indent=2) + "\n", encoding="utf-8")
+            print(f"beehave sim: facts written to {report}", flush=True)
+        except OSError as exc:
+            print(f"beehave sim: cannot write the report {report}: {exc}", file=sys.stderr)
+            ok = False
+    if picture is not None:
+        try:
+            if factory is not None:
+                factory.render_topdown(picture)
+            else:
+                sim.render_topdown(picture)
+            print(f"beehave sim: picture written to {picture}", flush=True)
+        except (OSError, ValueError) as exc:
+            print(f"beehave sim: cannot write the picture {picture}: {exc}", file=sys.stderr)
+            ok = False
+    return ok
 
 
 class _RunningPybullet:
@@ -642,11 +727,11 @@ class PybulletSimulator:
     @staticmethod
     def start(world: str, *, real_time_factor: float | None,
               ros: RosContext) -> _RunningPybullet:
-        from robots.world import load_world
-
-        sim = Simulation(load_world(world), real_time_factor=real_time_factor)
+        loaded = load_world(world)
+        sim = Simulation(loaded, real_time_factor=real_time_factor)
+        factory = Factory(sim) if loaded.machines or loaded.depots or loaded.zones else None
         try:
-            node = SimNode(sim, ros)
+            node = SimNode(sim, ros, factory=factory)
         except BaseException:
             sim.close()
             raise

@@ -1,22 +1,25 @@
 """Top-down pictures of a world drawn with PIL from its known geometry.
 
-Faster and crisper than a rendered camera image: floor (holes black), walls, shelves,
-obstacles, lane tape, stations (green charging, blue pick-up, orange drop-off, with their
-names), each robot's driven path and the robot itself — EMILI as its body outlined in its
-LED strip colour, Kobuki as a disc with its two LEDs — with an arrow for its heading.
+Faster and crisper than a rendered camera image: floor (holes black), speed zones
+(translucent, with their limit written in), walls, shelves, obstacles, lane tape, stations
+(green charging, blue pick-up, orange drop-off, with their names), depots, machines with a
+level bar and their delivery areas, each robot's driven path in its own colour and the
+robot itself — EMILI as its body outlined in its LED strip colour, Kobuki as a disc with
+its two LEDs, an orange box on it when it carries a load — with an arrow for its heading
+and its name in its path's colour.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
-from PIL import Image, ImageDraw
+from PIL import Image, ImageDraw, ImageFont
 
-from robots.world import Box, Cylinder, World
+from robots.world import Box, Cylinder, Machine, World
 
 if TYPE_CHECKING:
     from beehave.planning import GridPlanner
@@ -26,7 +29,13 @@ RGB8 = tuple[int, int, int]
 STATION_COLORS: dict[str, RGB8] = {"charging": (60, 170, 80), "pickup": (60, 110, 210),
                                    "dropoff": (230, 140, 40)}
 PATH_COLORS: tuple[RGB8, ...] = ((200, 30, 120), (20, 140, 160), (120, 60, 200),
-                                 (190, 90, 20), (40, 120, 40))
+                                 (190, 90, 20), (40, 120, 40), (220, 40, 40),
+                                 (30, 80, 200), (150, 150, 0), (0, 160, 110),
+                                 (110, 70, 40))
+"""One colour per robot (ten before they repeat), in the order the world lists them."""
+ZONE_COLOR: RGB8 = (235, 70, 60)
+DEPOT_COLOR: RGB8 = (140, 100, 50)
+DELIVERY_COLOR: RGB8 = (215, 190, 75)
 
 
 @dataclass(frozen=True)
@@ -40,6 +49,7 @@ class RobotSketch:
     yaw_rad: float
     leds: tuple[tuple[float, float, float], ...]
     path: Sequence[tuple[float, float]]
+    loaded: bool = False
 
 
 def _rgb8(color: Sequence[float]) -> RGB8:
@@ -50,18 +60,24 @@ def _rgb8(color: Sequence[float]) -> RGB8:
 def render_topdown(world: World, robots: Sequence[RobotSketch], path: str | Path, *,
                    scale_px_per_m: float = 40.0, margin_m: float = 0.5,
                    planned: Sequence[Sequence[tuple[float, float]]] = (),
-                   planner: GridPlanner | None = None) -> Path:
+                   planner: GridPlanner | None = None,
+                   levels: Mapping[str, float] | None = None, title: str | None = None
+                   ) -> Path:
     """Draw ``world`` and ``robots`` from above into the PNG file ``path``; returns it.
 
     One metre is ``scale_px_per_m`` pixels; ``margin_m`` of background surrounds the floor.
     ``planned``: planned paths (waypoint lists) drawn as white lines with their corners;
-    ``planner``: shade the cells its inflation blocks (where the robot's centre may not go).
+    ``planner``: shade the cells its inflation blocks (where the robot's centre may not go);
+    ``levels``: each machine's level by name for its bar (default: the initial levels);
+    ``title``: a line of text in the top margin.
     """
     width_m, depth_m = world.floor.size_m
     size = (round((width_m + 2 * margin_m) * scale_px_per_m),
             round((depth_m + 2 * margin_m) * scale_px_per_m))
     image = Image.new("RGB", size, (30, 30, 34))
     draw = ImageDraw.Draw(image)
+    # Every label in one font that scales with the picture (readable at 40 px/m).
+    draw.font = ImageFont.load_default(size=max(10, round(0.3 * scale_px_per_m)))
 
     def px(x_m: float, y_m: float) -> tuple[float, float]:
         # Image rows grow downwards; the world's y grows upwards.
@@ -96,6 +112,34 @@ def render_topdown(world: World, robots: Sequence[RobotSketch], path: str | Path
                     draw.rectangle([px(i * res, (j + 1) * res), px((i + 1) * res, j * res)],
                                    fill=halo)
 
+    if world.zones:
+        # Translucent: the floor grid and the paths stay visible through them.
+        overlay = Image.new("RGBA", size, (0, 0, 0, 0))
+        shade = ImageDraw.Draw(overlay)
+        for zone in world.zones:
+            # The stricter the limit, the stronger the tint.
+            alpha = 90 if zone.max_speed_mps <= 0.15 else 55
+            shade.polygon([px(*p) for p in zone.points_m], fill=(*ZONE_COLOR, alpha),
+                          outline=(*ZONE_COLOR, 200), width=2)
+        image.paste(overlay, (0, 0), overlay)
+        for zone in world.zones:
+            x = min(px(*p)[0] for p in zone.points_m)
+            y = min(px(*p)[1] for p in zone.points_m)
+            draw.text((x + 3, y + 2), f"{zone.name}: max {zone.max_speed_mps:g} m/s",
+                      fill=(150, 20, 20))
+
+    for depot in world.depots:
+        pale = tuple((c + 2 * f) // 3 for c, f in zip(DEPOT_COLOR, floor_rgb, strict=True))
+        area = depot.area
+        draw.polygon(rect(*area.center_m, *area.size_m, math.radians(area.yaw_deg)),
+                     fill=pale, outline=DEPOT_COLOR, width=2)
+        x, y = px(area.center_m[0] - area.size_m[0] / 2, area.center_m[1] + area.size_m[1] / 2)
+        draw.text((x + 3, y + 2), depot.name, fill=(20, 20, 20))
+    for machine in world.machines:
+        area = machine.delivery
+        draw.polygon(rect(*area.center_m, *area.size_m, math.radians(area.yaw_deg)),
+                     fill=None, outline=DELIVERY_COLOR, width=2)
+
     for station in world.stations:
         color = STATION_COLORS[station.kind]
         pale = ((color[0] + 2 * floor_rgb[0]) // 3, (color[1] + 2 * floor_rgb[1]) // 3,
@@ -129,6 +173,10 @@ def render_topdown(world: World, robots: Sequence[RobotSketch], path: str | Path
             draw.polygon(rect(*obstacle.center_m, *obstacle.size_m,
                               math.radians(obstacle.yaw_deg)), fill=fill, outline=(40, 40, 40))
 
+    for machine in world.machines:
+        level = (levels or {}).get(machine.name, machine.initial_level)
+        _draw_machine(draw, machine, level, px, rect, scale_px_per_m)
+
     for plan in planned:
         if len(plan) >= 2:
             draw.line([px(*p) for p in plan], fill=(255, 255, 255), width=3, joint="curve")
@@ -143,10 +191,36 @@ def render_topdown(world: World, robots: Sequence[RobotSketch], path: str | Path
     for i, robot in enumerate(robots):
         _draw_robot(draw, robot, PATH_COLORS[i % len(PATH_COLORS)], px, rect, scale_px_per_m)
 
+    if title:
+        draw.text((6, 4), title, fill=(235, 235, 235))
+
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     image.save(out, format="PNG", optimize=True)
     return out
+
+
+def _draw_machine(draw: ImageDraw.ImageDraw, machine: Machine, level: float, px: Any,
+                  rect: Any, scale: float) -> None:
+    """The machine's body, its name, and a level bar along its lower edge: green above
+    half, orange above a fifth, red below, black when empty."""
+    draw.polygon(rect(*machine.center_m, *machine.size_m, math.radians(machine.yaw_deg)),
+                 fill=_rgb8(machine.color), outline=(30, 30, 40))
+    fraction = max(0.0, min(1.0, level / machine.capacity))
+    x0, y0 = px(machine.center_m[0] - machine.size_m[0] / 2 + 0.1,
+                machine.center_m[1] - machine.size_m[1] / 2 + 0.35)
+    x1, y1 = px(machine.center_m[0] + machine.size_m[0] / 2 - 0.1,
+                machine.center_m[1] - machine.size_m[1] / 2 + 0.1)
+    draw.rectangle([x0, y0, x1, y1], fill=(25, 25, 25))
+    color = ((60, 190, 80) if fraction > 0.5 else (240, 150, 30) if fraction > 0.2
+             else (220, 40, 40))
+    if fraction > 0:
+        draw.rectangle([x0, y0, x0 + (x1 - x0) * fraction, y1], fill=color)
+    # Above the body: a label wider than a small machine must not spill over its bar.
+    tx, ty = px(machine.center_m[0] - machine.size_m[0] / 2,
+                machine.center_m[1] + machine.size_m[1] / 2 + 0.4)
+    draw.text((tx, ty), f"{machine.name}: {level:.0f}/{machine.capacity:g}",
+              fill=(20, 30, 90))
 
 
 def _draw_robot(draw: ImageDraw.ImageDraw, robot: RobotSketch, label: RGB8, px: object,
@@ -170,6 +244,9 @@ def _draw_robot(draw: ImageDraw.ImageDraw, robot: RobotSketch, label: RGB8, px: 
             lr = max(2.0, 0.035 * scale)
             draw.ellipse([lx - lr, ly - lr, lx + lr, ly + lr], fill=_rgb8(led_rgb))
         nose = 0.175
+    if robot.loaded:
+        draw.polygon(rect(robot.x_m, robot.y_m, 0.18, 0.18, robot.yaw_rad),
+                     fill=(240, 140, 25), outline=(60, 30, 0))
     tip = to_px(robot.x_m + nose * c, robot.y_m + nose * s)
     back = to_px(robot.x_m + (nose - 0.2) * c, robot.y_m + (nose - 0.2) * s)
     draw.line([back, tip], fill=(20, 20, 20), width=max(2, round(0.03 * scale)))

@@ -46,7 +46,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from concurrent.futures import Future
 from contextlib import contextmanager
 from pathlib import Path
@@ -542,6 +542,19 @@ class Simulation:
                              (shelf.size_m[0] / 2, shelf.size_m[1] / 2, shelf.height_m / 2),
                              math.radians(shelf.yaw_deg),
                              [*(shelf.color or (0.45, 0.33, 0.22)), 1.0])
+        # A factory's parts: machines block like shelves; their delivery areas and the
+        # depots are flat paint (the physics of loading lives in robots.factory).
+        for machine in w.machines:
+            self._static_box((*machine.center_m, machine.height_m / 2),
+                             (machine.size_m[0] / 2, machine.size_m[1] / 2,
+                              machine.height_m / 2),
+                             math.radians(machine.yaw_deg), [*machine.color, 1.0])
+        flat = [(m.delivery, [0.85, 0.75, 0.30, 1.0]) for m in w.machines]
+        flat += [(d.area, [0.55, 0.40, 0.20, 1.0]) for d in w.depots]
+        for area, rgba in flat:
+            self._static_box((*area.center_m, 0.0003),
+                             (area.size_m[0] / 2, area.size_m[1] / 2, 0.0003),
+                             math.radians(area.yaw_deg), rgba, collide=False)
         for obstacle in w.obstacles:
             rgba = [*(obstacle.color or (0.5, 0.5, 0.55)), 1.0]
             if isinstance(obstacle, Box):
@@ -560,12 +573,15 @@ class Simulation:
 
     def render_topdown(self, path: str | Path, *, scale_px_per_m: float = 40.0,
                        planned: Sequence[Sequence[tuple[float, float]]] = (),
-                       planner: GridPlanner | None = None) -> Path:
+                       planner: GridPlanner | None = None,
+                       levels: Mapping[str, float] | None = None,
+                       loads: Collection[str] = (), title: str | None = None) -> Path:
         """Write a top-down PNG of the world, the robots (EMILI in its LED colour, Kobuki
         with its LEDs) and their driven paths; drawn with PIL from known geometry and the
         robots' snapshots (no pybullet call), so safe while running. ``planned`` adds
-        planned paths (waypoints), ``planner`` shades its inflated obstacles. Returns the
-        path."""
+        planned paths (waypoints), ``planner`` shades its inflated obstacles; ``levels``
+        (machine name → level), ``loads`` (namespaces of loaded robots) and ``title`` are
+        what :meth:`robots.factory.Factory.render_topdown` passes. Returns the path."""
         sketches = []
         for robot in self._robots.values():
             pose = robot.pose()
@@ -578,9 +594,10 @@ class Simulation:
             else:
                 leds = ()
             sketches.append(RobotSketch(robot.namespace, robot.kind, pose.x_m, pose.y_m,
-                                        pose.yaw_rad, leds, robot.path()))
+                                        pose.yaw_rad, leds, robot.path(),
+                                        loaded=robot.namespace in loads))
         return _render_topdown(self.world, sketches, path, scale_px_per_m=scale_px_per_m,
-                               planned=planned, planner=planner)
+                               planned=planned, planner=planner, levels=levels, title=title)
 
     def camera_image(self, *, center_m: tuple[float, float] | None = None,
                      height_m: float = 15.0, width_px: int = 320, height_px: int = 192,

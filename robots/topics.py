@@ -54,6 +54,16 @@ Kobuki (bit masks in std_msgs/Int32: bit 0 = left, bit 1 = centre, bit 2 = right
                                                             cleaning_start, cleaning_end
 ========================  =========================  =====  ==============================
 
+A factory world (machines, depots, speed zones; :mod:`robots.factory`) adds one global
+topic:
+
+========================  =========================  =====  ==============================
+``/factory/state``        std_msgs/String (JSON)     out    5 Hz of sim time and on every
+                                                            load and delivery; latched;
+                                                            schema ``beehave/factory/
+                                                            state/1`` (docs/simulation.md)
+========================  =========================  =====  ==============================
+
 A command the robot cannot take (a lift height out of range, an unknown LED colour or
 sound) is refused with an error in the sim node's log and counted in ``SimNode.rejected``;
 the robot keeps its previous state.
@@ -92,6 +102,9 @@ LOCKSTEP_TIMEOUT_S = 1.0
 """Wall seconds a lockstep participant may keep the sim waiting before it is let go."""
 STATE_ECHO_PERIOD_S = 1.0
 MAP_FRAME = "map"
+
+FACTORY_STATE = "/factory/state"
+FACTORY_STATE_RATE_HZ = 5.0
 
 LEFT, CENTER, RIGHT = 1, 2, 4
 """Bits of the Kobuki masks."""

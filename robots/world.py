@@ -2,7 +2,10 @@
 
 A world is a rectangular floor (optionally with holes: pits, a loading-dock edge) with
 walls, shelves and obstacles on it, lane tape polylines for line following, named stations
-(pick-up, drop-off, charging) and the robots that start in it. All coordinates are metres in
+(pick-up, drop-off, charging) and the robots that start in it. A factory world adds
+machines that consume material (each with a delivery area in front of it), depots where
+material is loaded, and speed zones (polygons with a speed limit); the physics of those
+lives in :mod:`robots.factory`. All coordinates are metres in
 the world frame (x right/east, y up/north, origin at the floor's lower-left corner); angles
 in YAML are degrees (``yaw_deg``) because people write them. A minimal world::
 
@@ -32,7 +35,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from robots.errors import UnknownStation, UnknownWorld, WorldError
+from robots.errors import UnknownMachine, UnknownStation, UnknownWorld, WorldError
 
 if TYPE_CHECKING:
     from beehave.planning import OccupancyMap
@@ -133,10 +136,113 @@ class Station(_Model):
 
     def contains(self, x_m: float, y_m: float) -> bool:
         """Whether the point (x_m, y_m) lies inside the station's (rotated) rectangle."""
-        c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
-        dx, dy = x_m - self.center_m[0], y_m - self.center_m[1]
-        u, v = c * dx + s * dy, -s * dx + c * dy
-        return abs(u) <= self.size_m[0] / 2 and abs(v) <= self.size_m[1] / 2
+        return _in_rect(self.center_m, self.size_m, self.yaw_deg, x_m, y_m)
+
+
+class Area(_Model):
+    """A rectangle on the floor (flat: it blocks nothing): a delivery spot, a depot."""
+
+    center_m: Vec2
+    size_m: Vec2 = (0.8, 0.8)
+    yaw_deg: float = 0.0
+
+    @model_validator(mode="after")
+    def _positive(self) -> Area:
+        if min(self.size_m) <= 0:
+            raise ValueError(f"size_m must be positive, got {self.size_m}")
+        return self
+
+    def contains(self, x_m: float, y_m: float) -> bool:
+        """Whether the point (x_m, y_m) lies inside the (rotated) rectangle."""
+        return _in_rect(self.center_m, self.size_m, self.yaw_deg, x_m, y_m)
+
+    def corners(self) -> list[Vec2]:
+        """The four corners, counter-clockwise."""
+        return _rect_corners(self.center_m, self.size_m, self.yaw_deg)
+
+
+class Machine(_Model):
+    """A production machine: a box that blocks the floor and consumes material.
+
+    ``level`` runs from 0 to ``capacity`` (units of material, whatever the scenario counts:
+    parts, kilograms); it starts at ``initial_level`` and falls by ``consumption_per_s``
+    each second of sim time, never below 0. A robot that carries a load and stands still
+    for ``unload_s`` in the ``delivery`` area (flat, in front of the machine) unloads it:
+    the level rises by the load's amount, capped at ``capacity``.
+    """
+
+    name: str
+    center_m: Vec2
+    size_m: Vec2 = (1.6, 1.2)
+    yaw_deg: float = 0.0
+    height_m: float = Field(1.2, gt=0)
+    capacity: float = Field(gt=0)
+    initial_level: float = Field(ge=0)
+    consumption_per_s: float = Field(ge=0)
+    unload_s: float = Field(2.0, ge=0)
+    delivery: Area
+    color: RGB = (0.30, 0.42, 0.60)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Machine:
+        if min(self.size_m) <= 0:
+            raise ValueError(f"size_m must be positive, got {self.size_m}")
+        if self.initial_level > self.capacity:
+            raise ValueError(f"initial_level {self.initial_level} exceeds capacity "
+                             f"{self.capacity}")
+        if _rects_overlap(self.center_m, self.size_m, self.yaw_deg, self.delivery.center_m,
+                          self.delivery.size_m, self.delivery.yaw_deg):
+            raise ValueError(f"delivery area at {self.delivery.center_m} overlaps the "
+                             f"machine's body (centre {self.center_m}, size {self.size_m}): "
+                             "put it in front of the machine, where a robot can stand")
+        return self
+
+    def contains(self, x_m: float, y_m: float) -> bool:
+        """Whether the point lies on the machine's footprint."""
+        return _in_rect(self.center_m, self.size_m, self.yaw_deg, x_m, y_m)
+
+
+class Depot(_Model):
+    """Where material is loaded: a robot with no load that stands still for ``load_s``
+    inside ``area`` picks up one load of ``load_amount`` units (a Kobuki carries one)."""
+
+    name: str
+    area: Area
+    load_amount: float = Field(40.0, gt=0)
+    load_s: float = Field(2.0, ge=0)
+
+
+class Zone(_Model):
+    """A speed zone: a polygon (``points_m``, at least 3 corners, not closed: the last
+    corner connects to the first) where no robot may drive faster than ``max_speed_mps``.
+    Flat: it blocks nothing; :mod:`robots.factory` measures the speeds in it."""
+
+    name: str
+    points_m: list[Vec2] = Field(min_length=3)
+    max_speed_mps: float = Field(gt=0)
+
+    @model_validator(mode="after")
+    def _has_area(self) -> Zone:
+        if abs(_polygon_area(self.points_m)) < 1e-6:
+            raise ValueError(f"points_m {self.points_m} enclose no area (the corners lie "
+                             "on one line)")
+        return self
+
+    def contains(self, x_m: float, y_m: float) -> bool:
+        """Whether the point lies inside the polygon (even-odd rule; an edge counts as
+        inside for the lower/left edges only, so two zones sharing an edge never both
+        hold a point on it)."""
+        inside = False
+        pts = self.points_m
+        j = len(pts) - 1
+        for i in range(len(pts)):
+            (xi, yi), (xj, yj) = pts[i], pts[j]
+            if (yi > y_m) != (yj > y_m):
+                x_cross = xi + (y_m - yi) * (xj - xi) / (yj - yi)
+                if x_m < x_cross:
+                    inside = not inside
+            j = i
+        return inside
 
 
 class Battery(_Model):
@@ -169,6 +275,9 @@ class World(_Model):
     obstacles: list[Box | Cylinder] = []
     lanes: list[Lane] = []
     stations: list[Station] = []
+    machines: list[Machine] = []
+    depots: list[Depot] = []
+    zones: list[Zone] = []
     robots: list[RobotSpec] = []
 
     @model_validator(mode="after")
@@ -177,6 +286,12 @@ class World(_Model):
         duplicates = sorted({n for n in names if names.count(n) > 1})
         if duplicates:
             raise ValueError(f"duplicate station names {duplicates}")
+        for key in ("machines", "depots", "zones"):
+            own = [item.name for item in getattr(self, key)]
+            duplicates = sorted({n for n in own if own.count(n) > 1})
+            if duplicates:
+                raise ValueError(f"{key}: duplicate names {duplicates}")
+        self._factory_on_floor()
         namespaces = [r.namespace for r in self.robots]
         duplicates = sorted({n for n in namespaces if namespaces.count(n) > 1})
         if duplicates:
@@ -189,6 +304,65 @@ class World(_Model):
                         f"robots.{i}.{key}: unknown station {ref!r}; stations: "
                         f"{', '.join(repr(n) for n in sorted(names)) or 'none'}")
         return self
+
+    def _factory_on_floor(self) -> None:
+        """Machines, delivery areas, depots and zones must lie on the floor: one off it is a
+        typo in a coordinate, and a delivery area no robot can reach makes a scenario that
+        cannot be served."""
+        width, depth = self.floor.size_m
+
+        def off(points: list[Vec2]) -> bool:
+            return any(not (-1e-9 <= x <= width + 1e-9 and -1e-9 <= y <= depth + 1e-9)
+                       for x, y in points)
+
+        where = f"the floor (0..{width:g} x 0..{depth:g} m)"
+        for i, machine in enumerate(self.machines):
+            if off(_rect_corners(machine.center_m, machine.size_m, machine.yaw_deg)):
+                raise ValueError(f"machines.{i} ({machine.name!r}): the machine reaches off "
+                                 f"{where}")
+            if off(machine.delivery.corners()):
+                raise ValueError(f"machines.{i}.delivery ({machine.name!r}): the delivery "
+                                 f"area reaches off {where}")
+            for j, other in enumerate(self.machines):
+                if j != i and _rects_overlap(other.center_m, other.size_m, other.yaw_deg,
+                                             machine.delivery.center_m,
+                                             machine.delivery.size_m,
+                                             machine.delivery.yaw_deg):
+                    raise ValueError(f"machines.{i}.delivery ({machine.name!r}): the delivery "
+                                     f"area overlaps machine {other.name!r}")
+        for i, depot in enumerate(self.depots):
+            if off(depot.area.corners()):
+                raise ValueError(f"depots.{i}.area ({depot.name!r}): reaches off {where}")
+        for i, zone in enumerate(self.zones):
+            if off(list(zone.points_m)):
+                raise ValueError(f"zones.{i}.points_m ({zone.name!r}): a corner lies off "
+                                 f"{where}")
+
+    def machine(self, name: str) -> Machine:
+        """The machine called ``name``; :class:`UnknownMachine` lists the others."""
+        for machine in self.machines:
+            if machine.name == name:
+                return machine
+        raise UnknownMachine(name, [m.name for m in self.machines])
+
+    def zone_at(self, x_m: float, y_m: float) -> Zone | None:
+        """The speed zone the point (x_m, y_m) lies in, or None outside every zone. Where
+        zones overlap, the one with the lowest ``max_speed_mps`` (the one that binds)."""
+        found: Zone | None = None
+        for zone in self.zones:
+            if zone.contains(x_m, y_m) and (found is None
+                                            or zone.max_speed_mps < found.max_speed_mps):
+                found = zone
+        return found
+
+    def with_robots(self, count: int) -> World:
+        """This world with only its first ``count`` robots (``beehave sim factory --robots
+        N``). Raises :class:`WorldError` when it has fewer."""
+        if not 0 <= count <= len(self.robots):
+            raise WorldError(self.name, [
+                f"robots: asked for {count} robot(s); this world starts 0 to "
+                f"{len(self.robots)} ({', '.join(r.namespace for r in self.robots) or 'none'})"])
+        return self.model_copy(update={"robots": self.robots[:count]})
 
     def station(self, name: str) -> Station:
         """The station called ``name``; :class:`UnknownStation` lists the others."""
@@ -228,8 +402,9 @@ class World(_Model):
 
 def occupancy_map(world: World) -> OccupancyMap:
     """The world as a planner sees it (:mod:`beehave.planning`): the floor's size, with
-    walls, shelves, obstacles and holes as blocking shapes. Lanes and stations are flat
-    tape: they do not block. Robots are not on the map (they move; the laser sees them)."""
+    walls, shelves, obstacles, machines and holes as blocking shapes. Lanes, stations,
+    delivery areas, depots and speed zones are flat: they do not block. Robots are not on
+    the map (they move; the laser sees them)."""
     from beehave.planning import Disc, OccupancyMap, Rect
 
     shapes: list[Disc | Rect] = []
@@ -244,6 +419,8 @@ def occupancy_map(world: World) -> OccupancyMap:
         else:
             shapes.append(Rect(box.center_m, box.size_m, math.radians(box.yaw_deg)))
     shapes += [Rect(hole.center_m, hole.size_m) for hole in world.holes]
+    # Machines block; their delivery areas, the depots and the zones are flat floor.
+    shapes += [Rect(m.center_m, m.size_m, math.radians(m.yaw_deg)) for m in world.machines]
     return OccupancyMap(size_m=world.floor.size_m, obstacles=tuple(shapes))
 
 
@@ -299,3 +476,39 @@ def _describe(error: Any) -> str:
     if message.startswith("Value error, "):
         message = message[len("Value error, "):]
     return f"{loc or '(top level)'}: {message}, got {shown}"
+
+
+# ---- geometry helpers --------------------------------------------------------------------
+
+def _in_rect(center: Vec2, size: Vec2, yaw_deg: float, x_m: float, y_m: float) -> bool:
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    dx, dy = x_m - center[0], y_m - center[1]
+    u, v = c * dx + s * dy, -s * dx + c * dy
+    return abs(u) <= size[0] / 2 and abs(v) <= size[1] / 2
+
+
+def _rect_corners(center: Vec2, size: Vec2, yaw_deg: float) -> list[Vec2]:
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    half_w, half_h = size[0] / 2, size[1] / 2
+    return [(center[0] + c * u - s * v, center[1] + s * u + c * v)
+            for u, v in ((half_w, half_h), (-half_w, half_h), (-half_w, -half_h),
+                         (half_w, -half_h))]
+
+
+def _rects_overlap(ca: Vec2, sa: Vec2, ya: float, cb: Vec2, sb: Vec2, yb: float) -> bool:
+    """Whether two rotated rectangles share area (separating axis test; touching edges do
+    not count)."""
+    a, b = _rect_corners(ca, sa, ya), _rect_corners(cb, sb, yb)
+    for yaw in (ya, ya + 90.0, yb, yb + 90.0):
+        ax, ay = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+        pa = [x * ax + y * ay for x, y in a]
+        pb = [x * ax + y * ay for x, y in b]
+        if max(pa) <= min(pb) + 1e-9 or max(pb) <= min(pa) + 1e-9:
+            return False
+    return True
+
+
+def _polygon_area(points: list[Vec2]) -> float:
+    """Signed area (shoelace): positive when the corners run counter-clockwise."""
+    return sum(x0 * y1 - x1 * y0 for (x0, y0), (x1, y1)
+               in zip(points, [*points[1:], points[0]], strict=True)) / 2
