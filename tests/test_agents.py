@@ -592,3 +592,60 @@ def test_a_logic_talks_with_the_awaitable_api(ros: RosContext) -> None:
             conv.send(Performative.REQUEST, ["logic_echo"], {"n": 7})
             answer = conv.receive(timeout_s=WAIT_S)
         assert (answer.performative, answer.content) == (Performative.INFORM, {"n": 7})
+
+
+class QueuedBidder(Bidder):
+    """A hauler that accepts work while it works: awarded tasks wait for the lock."""
+
+    queue_tasks = True
+
+
+def test_queued_tasks_wait_for_their_type_and_run_in_order(
+        ros: RosContext, robots: Callable[..., Agent]) -> None:
+    Hold.ended.clear()
+    robots("queue_hauler", QueuedBidder, cost=1.0, seconds=0.3)
+    with Agent("queue_boss", ros=ros, probe_s=PROBE_S) as boss:
+        _wait(lambda: boss.directory.alive("queue_hauler"), "queue_hauler")
+        steps: list[tuple[str, dict[str, Any]]] = []
+        awards: list[Any] = []
+
+        def order(i: int) -> None:
+            awards.append(contract_net(
+                boss, "haul", {"n": i}, reply_by_s=WAIT_S, done_timeout_s=WAIT_S,
+                observer=lambda step, detail: steps.append((step, detail))))
+
+        threads = [threading.Thread(target=order, args=(i,)) for i in range(3)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(3 * WAIT_S)
+        # Without the queue, the 2nd and 3rd awards fail ("driving" is busy) and, with
+        # nobody else to ask, raise ProtocolFailed.
+        assert len(awards) == 3 and all(a.awardee == "queue_hauler" for a in awards)
+        assert Hold.ended == ["done", "done", "done"]
+        assert all(a.attempts == [("queue_hauler", "inform")] for a in awards)
+    kinds = [s for s, _ in steps]
+    assert kinds.count("cfp") == kinds.count("awarded") == kinds.count("done") == 3
+    assert all("conversation_id" in d for _, d in steps)
+    assert all(d["awardee"] == "queue_hauler" and d["attempt"] == 1
+               for s, d in steps if s == "awarded")
+
+
+def test_an_observer_sees_the_re_award_and_cannot_break_the_protocol(
+        ros: RosContext, robots: Callable[..., Agent]) -> None:
+    Hold.ended.clear()
+    robots("obs_cheap", Bidder, cost=1.0, seconds=60.0)
+    robots("obs_dear", Bidder, cost=2.0, seconds=0.0)
+    with Agent("obs_boss", ros=ros, probe_s=PROBE_S) as boss:
+        _wait(lambda: len(boss.directory.search("haul")) == 2, "two haulers")
+        steps: list[str] = []
+
+        def observer(step: str, detail: dict[str, Any]) -> None:
+            steps.append(f"{step}:{detail.get('awardee', '')}")
+            raise RuntimeError("a broken observer")  # logged, never disturbs the protocol
+
+        award = contract_net(boss, "haul", {}, reply_by_s=WAIT_S, done_timeout_s=0.5,
+                             observer=observer)
+        assert award.awardee == "obs_dear"
+    assert steps == ["cfp:", "awarded:obs_cheap", "failed:obs_cheap", "awarded:obs_dear",
+                     "done:obs_dear"]

@@ -71,7 +71,7 @@ class Site:
         self.capacity = {m.name: m.capacity for m in w.machines}
         self.stations = {s.name: _place(s.name, s.center_m, s.size_m, margin_m=0.15)
                          for s in w.stations_of_kind("charging")}
-        self.zones = [SpeedZone(z.name, tuple(tuple(p) for p in z.points_m),
+        self.zones = [SpeedZone(z.name, tuple((p[0], p[1]) for p in z.points_m),
                                 z.max_speed_mps) for z in w.zones]
 
     @functools.cached_property
@@ -81,7 +81,12 @@ class Site:
         return world_planner(self.world_name, ATV_RADIUS_M, ATV_CLEARANCE_M)
 
     def path_length_m(self, start: tuple[float, float], goal: tuple[float, float]) -> float:
-        """Along the planned path around the map's obstacles; inf when there is none."""
+        """Along the planned path around the map's obstacles; inf when there is none.
+        Cached (a plan costs tens of milliseconds): the legs between places repeat."""
+        return self._length(start, goal)
+
+    @functools.lru_cache(maxsize=4096)  # noqa: B019 - one Site per world, kept for the process
+    def _length(self, start: tuple[float, float], goal: tuple[float, float]) -> float:
         try:
             return self.planner.plan(start, goal, goal_tolerance_m=0.3).length_m
         except NoPath:
