@@ -248,11 +248,13 @@ def contract_net(agent: Agent, service: str, task: Any, *,
                     else outcome.content
                 attempts.append((name, f"{outcome.performative.value}: {why}"))
                 tell("failed", awardee=name, reason=f"{outcome.performative.value}: {why}")
-                if not (isinstance(outcome.content, dict) and outcome.content.get("departed")):
-                    # A silent awardee might still do it: withdraw, so that it never runs
-                    # twice. (One that left the directory cannot be told.)
-                    _cancel_quietly(conv, [name], Performative.CANCEL,
-                                    {"reason": f"re-awarded after {outcome.performative.value}"})
+                # Withdraw before the next award, so that the task never runs twice: a
+                # silent awardee might still do it, and so might one that "left" the
+                # directory only because its announcements were late (a loaded host) —
+                # an expired lease is no proof of death. A dead one never reads it.
+                _cancel_quietly(conv, [name], Performative.CANCEL,
+                                {"reason": f"re-awarded after {outcome.performative.value}: "
+                                           f"{why}"})
                 current = None
             raise ProtocolFailed(f"agent {agent.name!r}: every proposer of {service!r} failed "
                                  f"the task: {attempts}")
@@ -337,8 +339,8 @@ class Responder(AgentBehavior):
     answered with ``failure`` naming the holder."""
 
     def perform(self, task: Message) -> Any:
-        """Do what ``task`` asks (a request, or the accept-proposal of an award; the
-        original cfp is ``self.proposals[task.conversation_id]`` for contract net).
+        """Do what ``task`` asks (a request, or the accept-proposal of an award, whose
+        content is the proposal you made: put in the proposal what you need here).
 
         Return an :class:`~beehave.Action` to run it under the type locks — its result is
         reported with ``inform`` when it succeeds, ``failure`` otherwise — or the result

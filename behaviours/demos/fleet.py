@@ -44,6 +44,10 @@ from behaviours.fleet.mission import ORDERS_TOPIC
 from behaviours.fleet.site import site
 
 STOP_TIMEOUT_S = 15.0
+#: The agents' directory lease. Above the 2 s default: at full simulation speed a 2-core
+#: machine runs a dozen busy processes, and an announcement late by more than the lease
+#: reads as a death (and costs a re-award).
+LEASE_S = 3.0
 
 
 def atv_config(namespace: str, world: str) -> dict[str, Any]:
@@ -57,11 +61,11 @@ def atv_config(namespace: str, world: str) -> dict[str, Any]:
             "charge": {"class": "behaviours.fleet.atv:Charge", "params": {"world": world}},
         },
         "default_behavior": "work",
-        "logics": {"zones": {"class": "behaviours.fleet.zones:SpeedZones",
+        "logics": {"atv": {"class": "behaviours.fleet.zones:AtvLogic",
                              "params": {"world": world}}},
-        "default_logic": "zones",
+        "default_logic": "atv",
         "hals": ["odometry", "battery", "factory", "speed_limit"],
-        "agent": {"name": namespace, "lease_s": 2.0},
+        "agent": {"name": namespace, "lease_s": LEASE_S},
     }
 
 
@@ -271,14 +275,16 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
                             *(["--fast"] if fast else []), "--report", str(report_path),
                             "--picture", str(picture)])
         for name in sorted(places.stations):
-            procs.start(name, [py, "-m", "behaviours.fleet.station", name, "--world", world])
+            procs.start(name, [py, "-m", "behaviours.fleet.station", name, "--world", world,
+                               "--lease-s", str(LEASE_S)])
         for k in range(1, robots + 1):
             ns = f"atv{k}"
             cfg = fleet_dir / f"{ns}.yaml"
             cfg.write_text(yaml.safe_dump(atv_config(ns, world), sort_keys=False))
             procs.start(ns, [py, "-m", "beehave.cli", "run", str(cfg)])
         for name in sorted(places.machines):
-            procs.start(name, [py, "-m", "behaviours.fleet.machine", name, "--world", world])
+            procs.start(name, [py, "-m", "behaviours.fleet.machine", name, "--world", world,
+                               "--lease-s", str(LEASE_S)])
         with RosContext() as ros:
             _watch(ros, watch)
             started = time.monotonic()

@@ -28,7 +28,7 @@ from beehave.agents import AgentBehavior, Message
 from beehave.agents.protocols import ContractNetResponder, request
 from beehave.errors import AgentError, BeehaveError, Interrupted, NoReply, ProtocolFailed
 from beehave.status import Status
-from behaviours.actions import Goal, Navigation
+from behaviours.actions import Goal, Navigation, SpeedLimit
 from behaviours.fleet.site import ATV_CLEARANCE_M, ATV_RADIUS_M, site
 
 log = logging.getLogger(__name__)
@@ -133,8 +133,9 @@ class Transport(ContractNetResponder):
                    if t.action is not None and not t.action.status.finished]
         return running + [t.request for t in self.waiting]
 
-    def estimate(self, cfp: Message) -> dict[str, Any] | None:
-        """The bid for ``cfp`` (its content: ``{"order", "machine", "depot"}``)."""
+    def estimate(self, cfp: Message) -> dict[str, Any] | str:
+        """The bid for ``cfp`` (its content: ``{"order", "machine", "depot"}``), or why it
+        makes none."""
         places = site(self.world)
         content = cfp.content if isinstance(cfp.content, dict) else {}
         machine, depot = content.get("machine"), content.get("depot")
@@ -144,10 +145,10 @@ class Transport(ContractNetResponder):
                                 f"{sorted(places.depots)}")
         pose = self._pose()
         if pose is None:
-            return None  # odometry not there yet: no honest bid
+            return "no odometry yet"  # no honest bid without it
         queue = self._queued()
         if len(queue) >= self.max_queue:
-            return None
+            return f"{len(queue)} orders queued already"
         # Where it stands now, then every accepted order in turn, then this one.
         at, length = pose, 0.0
         loaded = (self.blackboard.get(LOAD_KEY) or 0) >= 1
@@ -162,23 +163,27 @@ class Transport(ContractNetResponder):
             places.depots[depot].xy, places.machines[machine].xy)
         length += own
         if not math.isfinite(length):
-            return None
+            return f"no path to {machine} via {depot}"
         battery = self.blackboard.get(BATTERY_KEY)
         if not isinstance(battery, float):
-            return None
+            return "no battery reading"
         capacity_wh = float(self.blackboard.get("battery/capacity_wh") or 5.0)
         need_pct = 100.0 * length * self.wh_per_m / capacity_wh
         if battery - need_pct < self.reserve_pct:
-            return None
+            return f"battery {battery:.0f} % would fall below {self.reserve_pct:g} %"
         eta_s = length / CRUISE_MPS + 4.0 * (len(queue) + 1)  # + loading and unloading
         cost = eta_s + 0.5 * max(0.0, 60.0 - battery)  # prefer the fuller battery
-        return {"cost": round(cost, 2), "eta_s": round(eta_s, 1), "path_m": round(length, 1),
+        # The accept-proposal carries this back: the job travels with the bid.
+        return {"order": content.get("order"), "machine": machine, "depot": depot,
+                "cost": round(cost, 2), "eta_s": round(eta_s, 1), "path_m": round(length, 1),
                 "queue": len(queue), "battery_pct": round(battery, 1)}
 
     def propose(self, cfp: Message) -> Any:
-        if self.refusing is not None:
+        offer = self.refusing if self.refusing is not None else self.estimate(cfp)
+        if isinstance(offer, str):
+            log.info("%s: no bid for %s: %s", self.path, cfp.conversation_id, offer)
             return None
-        return self.estimate(cfp)
+        return offer
 
     def perform(self, task: Message) -> Any:
         job = task.content
@@ -198,6 +203,8 @@ class Work(AgentBehavior):
         self.critical_pct = critical_pct
 
     def run(self) -> str:
+        if self.manager.node is not None:
+            SpeedLimit.of(self.manager.node)  # the zones logic may set it from the start
         transport = self.start_behavior(Transport(self.world))
         while self.sleep(0.25):
             if transport.status.finished:
@@ -247,6 +254,8 @@ class Charge(AgentBehavior):
                        protocol="charging", timeout_s=3.0)
 
     def run(self) -> str:
+        if self.manager.node is not None:
+            SpeedLimit.of(self.manager.node)
         try:
             while True:
                 station = self._reserve()

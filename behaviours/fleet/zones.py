@@ -40,6 +40,7 @@ class SpeedZones(Logic):
     async def run(self) -> None:
         limiter = cast(SpeedLimitHAL, await self.hal(self.hal_name))
         applied: float | None = None
+        failing = ""  # the last failure, logged once (retried at every odometry change)
         board = self.blackboard
         async for _change in board.watch("odom/*"):
             x, y, yaw = (board.get(k) for k in ("odom/x_m", "odom/y_m", "odom/yaw_rad"))
@@ -52,8 +53,31 @@ class SpeedZones(Logic):
             try:
                 await limiter.set_max_speed(limit)
             except HALError as exc:  # tried again at the next odometry change
-                log.warning("%s: %s", self.path, exc)
+                if str(exc) != failing:
+                    failing = str(exc)
+                    log.warning("%s: %s (retrying as the robot moves)", self.path, exc)
                 continue
+            failing = ""
             applied = limit
             board.set("fleet/zone", zone)
             board.set("fleet/max_speed_mps", limit if math.isfinite(limit) else None)
+
+
+class AtvLogic(Logic):
+    """The ATV's top-level logic: keeps the HALs its behaviours read loaded —
+    ``feeds`` (odometry, battery and the factory's load and zone by default; a HAL is
+    loaded while a logic holds it) — and runs :class:`SpeedZones` as a child."""
+
+    def __init__(self, world: str = "factory", *,
+                 feeds: tuple[str, ...] = ("odometry", "battery", "factory"),
+                 lookahead_m: float = 0.6) -> None:
+        self.zones = SpeedZones(world, lookahead_m=lookahead_m)
+        self.feeds = tuple(feeds)
+
+    async def run(self) -> None:
+        for name in self.feeds:
+            await self.hal(name)
+        child = self.start_logic(self.zones)
+        await child.wait()
+        if child.error is not None:  # never silently without speed zones
+            raise child.error
