@@ -649,3 +649,28 @@ def test_an_observer_sees_the_re_award_and_cannot_break_the_protocol(
         assert award.awardee == "obs_dear"
     assert steps == ["cfp:", "awarded:obs_cheap", "failed:obs_cheap", "awarded:obs_dear",
                      "done:obs_dear"]
+
+
+def test_a_stalled_observer_does_not_expire_the_leases_of_live_agents(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A process that did not run for longer than a lease (a loaded host) must not read
+    every peer as dead: their announcements may wait in its queue behind the check."""
+    from beehave.agents import directory as d
+
+    clock = [1000.0]
+    monkeypatch.setattr(d.time, "monotonic", lambda: clock[0])
+    view = d.Directory("observer")
+    departed: list[str] = []
+    view._on_departure(lambda name, reason: departed.append(f"{name}: {reason}"))
+    entry = {"schema": d.DIRECTORY_SCHEMA, "agent": "peer", "incarnation": "i1",
+             "started_at": 1.0, "state": "alive", "lease_s": 2.0, "services": {}}
+    view._receive(json.dumps(entry))
+    view._expire()
+    clock[0] += 5.0  # the observer stalled 5 s: more than the lease
+    view._expire()
+    assert view.get("peer") is not None and departed == []
+    view._receive(json.dumps(entry))  # the queued announcement arrives
+    for _ in range(25):  # then the peer really falls silent: 2.5 s of regular checks
+        clock[0] += d.EXPIRY_CHECK_S
+        view._expire()
+    assert view.get("peer") is None and departed == ["peer: lease expired"]

@@ -41,6 +41,11 @@ DIRECTORY_SCHEMA = "beehave.directory/1"
 EXPIRY_CHECK_S = 0.1
 """How often entries are checked against their lease."""
 
+STALL_S = 0.5
+"""A check that comes this much later than :data:`EXPIRY_CHECK_S` means this process did
+not run (a loaded host): the gap is not counted against anyone's lease, since the
+announcements that arrived meanwhile may still wait in the queue behind the check."""
+
 
 class EntryState(Enum):
     JOINING = "joining"
@@ -137,6 +142,7 @@ class Directory:
         self._own = own_name
         self._lock = threading.Lock()
         self._entries: dict[str, _Entry] = {}
+        self._checked_at: float | None = None  # the last _expire, time.monotonic()
         self._subscriptions: list[_Subscription] = []
         self._heard: set[str] = set()  # incarnations heard (probing counts them)
         self.conflict: Announcement | None = None  # who holds our name, if anyone
@@ -274,6 +280,15 @@ class Directory:
         """Drop the entries whose lease ran out (executor thread, every EXPIRY_CHECK_S)."""
         now = time.monotonic()
         with self._lock:
+            stalled = 0.0 if self._checked_at is None else now - self._checked_at - EXPIRY_CHECK_S
+            self._checked_at = now
+            if stalled > STALL_S:
+                # We were not running: an entry whose owner is silent only from our view
+                # must not expire for it. (A dead owner expires one stall later.)
+                log.info("directory: this process stalled %.2f s; not counted against the "
+                         "leases", stalled)
+                for entry in self._entries.values():
+                    entry.renewed_at += stalled
             gone = [e for name, e in self._entries.items()
                     if now - e.renewed_at > e.announcement.lease_s]
             for entry in gone:
