@@ -440,7 +440,6 @@ class Responder(AgentBehavior):
         return True
 
     def _start(self, message: Message) -> None:
-        cid = message.conversation_id
         try:
             outcome = self.perform(message)
         except Exception as exc:
