@@ -295,19 +295,24 @@ class Charge(AgentBehavior):
         nav = self.start_action(Navigation(Goal(*place.xy, name=place.name), world=self.world,
                                            **_nav_options_charging(place.tolerance_m)))
         renewed = time.monotonic()
-        while True:
-            if not self.sleep(0.25):
-                raise Interrupted(f"{self.path} was interrupted")
-            if time.monotonic() - renewed > self.lease_s / 3:
-                self._renew(station)
-                renewed = time.monotonic()
-            if nav.status.finished:
-                if nav.status is not Status.SUCCEEDED:
-                    raise BeehaveError(f"{self.path}: could not reach {place.name}: "
-                                       f"{nav.error!r}")
-                battery = self.blackboard.get(BATTERY_KEY)
-                if isinstance(battery, float) and battery >= self.charged_pct:
-                    return
+        try:
+            while True:
+                if not self.sleep(0.25):
+                    raise Interrupted(f"{self.path} was interrupted")
+                if time.monotonic() - renewed > self.lease_s / 3:
+                    self._renew(station)
+                    renewed = time.monotonic()
+                if nav.status.finished:
+                    if nav.status is not Status.SUCCEEDED:
+                        raise BeehaveError(f"{self.path}: could not reach {place.name}: "
+                                           f"{nav.error!r}")
+                    battery = self.blackboard.get(BATTERY_KEY)
+                    if isinstance(battery, float) and battery >= self.charged_pct:
+                        return
+        finally:
+            if not nav.status.finished:  # heading for a station it lost: stop first
+                nav.interrupt()
+                nav.wait(5.0)
 
     def _renew(self, station: str) -> None:
         if self.agent.directory.get(station) is None:
