@@ -112,11 +112,12 @@ class Transport(ContractNetResponder):
     service = "transport"
     queue_tasks = True
 
-    def __init__(self, world: str, *, max_queue: int = 2, wh_per_m: float = 0.01,
-                 reserve_pct: float = 12.0) -> None:
+    def __init__(self, world: str, *, max_queue: int = 2, power_w: float = 10.0,
+                 capacity_wh: float | None = None, reserve_pct: float = 20.0) -> None:
         self.world = world
         self.max_queue = max_queue
-        self.wh_per_m = wh_per_m
+        self.power_w = power_w  # a Kobuki: 5 W idle + 12 W per m/s at CRUISE_MPS
+        self.capacity_wh = capacity_wh
         self.reserve_pct = reserve_pct
         self.refusing: str | None = None  # set by Work when the battery asks for a charge
 
@@ -167,11 +168,12 @@ class Transport(ContractNetResponder):
         battery = self.blackboard.get(BATTERY_KEY)
         if not isinstance(battery, float):
             return "no battery reading"
-        capacity_wh = float(self.blackboard.get("battery/capacity_wh") or 5.0)
-        need_pct = 100.0 * length * self.wh_per_m / capacity_wh
-        if battery - need_pct < self.reserve_pct:
-            return f"battery {battery:.0f} % would fall below {self.reserve_pct:g} %"
         eta_s = length / CRUISE_MPS + 4.0 * (len(queue) + 1)  # + loading and unloading
+        capacity_wh = self.capacity_wh or places.battery_wh.get(self.agent.name, 32.6)
+        need_pct = 100.0 * eta_s * self.power_w / 3600.0 / capacity_wh
+        if battery - need_pct < self.reserve_pct:
+            return (f"battery {battery:.0f} % would fall to {battery - need_pct:.0f} %, "
+                    f"below the reserve of {self.reserve_pct:g} %")
         cost = eta_s + 0.5 * max(0.0, 60.0 - battery)  # prefer the fuller battery
         # The accept-proposal carries this back: the job travels with the bid.
         return {"order": content.get("order"), "machine": machine, "depot": depot,
@@ -196,7 +198,7 @@ class Transport(ContractNetResponder):
 class Work(AgentBehavior):
     """The ATV's working behaviour: transport, until the battery asks for a charge."""
 
-    def __init__(self, world: str = "factory", *, charge_below_pct: float = 30.0,
+    def __init__(self, world: str = "factory", *, charge_below_pct: float = 35.0,
                  critical_pct: float = 15.0) -> None:
         self.world = world
         self.charge_below_pct = charge_below_pct

@@ -71,6 +71,9 @@ class Site:
         self.capacity = {m.name: m.capacity for m in w.machines}
         self.stations = {s.name: _place(s.name, s.center_m, s.size_m, margin_m=0.15)
                          for s in w.stations_of_kind("charging")}
+        #: Battery capacity (Wh) of each robot the world places, by namespace.
+        self.battery_wh = {r.namespace: r.battery.capacity_wh for r in w.robots
+                           if r.battery.capacity_wh}
         self.zones = [SpeedZone(z.name, tuple((p[0], p[1]) for p in z.points_m),
                                 z.max_speed_mps) for z in w.zones]
 

@@ -6,7 +6,8 @@ whenever the binding limit changes, sets the ``max_speed_mps`` parameter of the 
 high-level node through the ``speed_limit`` HAL (a ROS 2 parameter call) — every driving
 action clamps its speed to it at once, whatever behaviour runs. It looks ``lookahead_m``
 ahead along the heading, so the robot has slowed down *before* it crosses into a slower
-zone; leaving every zone lifts the limit (``inf``).
+zone, and keeps ``margin`` (0.9) of the zone's limit, since a base overshoots its speed
+command by a few per cent; leaving every zone lifts the limit (``inf``).
 
 It writes ``fleet/zone`` (the binding zone's name or None) and ``fleet/max_speed_mps``
 (the limit in force; ``inf`` outside) to the blackboard once the robot accepted it.
@@ -30,11 +31,14 @@ class SpeedZones(Logic):
     """See the module docstring."""
 
     def __init__(self, world: str = "factory", *, lookahead_m: float = 0.6,
-                 hal: str = "speed_limit") -> None:
+                 margin: float = 0.9, hal: str = "speed_limit") -> None:
         if not (isinstance(lookahead_m, (int, float)) and 0 <= lookahead_m <= 10):
             raise ValueError(f"lookahead_m must be in [0, 10] m, got {lookahead_m!r}")
+        if not (isinstance(margin, (int, float)) and 0 < margin <= 1):
+            raise ValueError(f"margin must be in (0, 1], got {margin!r}")
         self.site = site(world)
         self.lookahead_m = float(lookahead_m)
+        self.margin = float(margin)
         self.hal_name = hal
 
     async def run(self) -> None:
@@ -51,7 +55,8 @@ class SpeedZones(Logic):
             if limit == applied:
                 continue
             try:
-                await limiter.set_max_speed(limit)
+                # Below the limit by `margin`: a base overshoots its command a little.
+                await limiter.set_max_speed(limit * self.margin)
             except HALError as exc:  # tried again at the next odometry change
                 if str(exc) != failing:
                     failing = str(exc)

@@ -1,0 +1,164 @@
+"""The factory fleet's faults, as real processes over DDS (seed paper 000; issue 10):
+
+- an ATV killed mid-delivery: the machine re-awards the order and it is still served —
+  checked in the physics (the sim's delivery facts name the other ATV);
+- a charging station's agent killed while an ATV heads for it: its reservation dies with
+  its lease and the ATV charges at another station — in the physics.
+
+Every process runs on this test run's ROS_DOMAIN_ID and is killed by PID in a finally.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+pytest.importorskip("pybullet")
+pytest.importorskip("rclpy")
+
+from beehave.ros.context import RosContext  # noqa: E402
+from behaviours.demos.fleet import Watch, _watch, atv_config  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+FACTORY = ROOT / "robots" / "worlds" / "factory.yaml"
+
+
+class Fleet:
+    """Processes of one scenario, and what a ROS 2 observer hears of them."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self.watch = Watch()
+        self.ros = RosContext()
+        _watch(self.ros, self.watch)
+
+    def world(self, **robot_battery: float) -> str:
+        """A copy of the factory with fewer robots and the given initial batteries."""
+        data = yaml.safe_load(FACTORY.read_text())
+        for robot in data["robots"]:
+            if robot["namespace"] in robot_battery:
+                robot["battery"]["initial_fraction"] = robot_battery[robot["namespace"]]
+        path = self.tmp / "factory_test.yaml"
+        path.write_text(yaml.safe_dump(data))
+        return str(path)
+
+    def start(self, name: str, *argv: str) -> None:
+        log = open(self.tmp / f"{name}.log", "wb")  # noqa: SIM115 - the child owns it
+        self.procs[name] = subprocess.Popen([sys.executable, *argv], cwd=ROOT,
+                                            env=dict(os.environ), stdout=log,
+                                            stderr=subprocess.STDOUT)
+
+    def atv(self, ns: str, world: str, **overrides: Any) -> None:
+        cfg = atv_config(ns, world)
+        cfg["agent"]["lease_s"] = 2.0
+        for behavior, params in overrides.items():
+            cfg["behaviors"][behavior]["params"].update(params)
+        path = self.tmp / f"{ns}.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        self.start(ns, "-m", "beehave.cli", "run", str(path))
+
+    def kill(self, name: str) -> None:
+        self.procs[name].send_signal(signal.SIGKILL)
+        self.procs[name].wait(10)
+
+    def wait(self, predicate: Callable[[], Any], what: str, timeout_s: float) -> Any:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self.watch.lock:
+                found = predicate()
+            if found:
+                return found
+            dead = {n: p.returncode for n, p in self.procs.items() if p.poll() is not None}
+            dead = {n: c for n, c in dead.items() if c != -signal.SIGKILL}
+            assert not dead, f"{dead} ended while waiting for {what}: {self.logs(*dead)}"
+            time.sleep(0.1)
+        raise AssertionError(f"no {what} within {timeout_s} s; logs:\n{self.logs()}")
+
+    def logs(self, *names: str) -> str:
+        return "\n".join(f"--- {n}\n" + (self.tmp / f"{n}.log").read_text(errors="replace")[-1500:]
+                         for n in (names or self.procs))
+
+    def close(self) -> None:
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGKILL)
+                proc.wait(10)
+        self.ros.shutdown()
+
+
+@pytest.fixture
+def fleet(tmp_path: Path) -> Iterator[Fleet]:
+    f = Fleet(tmp_path)
+    try:
+        yield f
+    finally:
+        f.close()
+
+
+def _robot(watch: Watch, ns: str) -> dict[str, Any]:
+    return dict(watch.state.get("robots", {}).get(ns, {}))
+
+
+def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_served(
+        fleet: Fleet) -> None:
+    world = fleet.world()
+    fleet.start("sim", "-m", "beehave.cli", "sim", world, "--robots", "2", "--fast")
+    fleet.atv("atv1", world)
+    fleet.atv("atv2", world)
+    # lathe1 starts at 60 %: below 0.9 it orders at once.
+    fleet.start("lathe1", "-m", "behaviours.fleet.machine", "lathe1", "--world", world,
+                "--below", "0.9")
+    first = fleet.wait(lambda: next((o for o in fleet.watch.orders.values()
+                                     if o["state"] == "awarded"), None),
+                       "an award", 90)
+    doomed = first["atv"]
+    other = "atv2" if doomed == "atv1" else "atv1"
+    # Mid-delivery: it has picked up its load (in the physics) and is on its way.
+    fleet.wait(lambda: _robot(fleet.watch, doomed).get("load"), f"{doomed} loaded", 120)
+    fleet.kill(doomed)
+    order = first["order"]
+    served = fleet.wait(lambda: fleet.watch.orders[order]["state"] == "delivered"
+                        and fleet.watch.orders[order], f"{order} served by {other}", 150)
+    assert served["awards"] == [doomed, other], served
+    assert served["atv"] == other
+    assert not fleet.watch.violations
+    # The physics: the other ATV unloaded at lathe1; the dead one never did.
+    deliveries = fleet.wait(lambda: fleet.watch.state["facts"]["deliveries"],
+                            "a delivery fact", 10)
+    assert [(d["machine"], d["robot"]) for d in deliveries][:1] == [("lathe1", other)], \
+        deliveries
+
+
+def test_a_killed_station_agent_frees_nothing_twice_and_the_atv_charges_elsewhere(
+        fleet: Fleet) -> None:
+    world = fleet.world(atv1=0.30)  # below the 35 % at which an ATV goes to charge
+    fleet.start("sim", "-m", "beehave.cli", "sim", world, "--robots", "1", "--fast")
+    for station in ("charger1", "charger2"):
+        fleet.start(station, "-m", "behaviours.fleet.station", station, "--world", world)
+    fleet.atv("atv1", world, charge={"lease_s": 4.0})
+    holder = fleet.wait(
+        lambda: next((name for name, e in fleet.watch.agents.items()
+                      if e.get("services", {}).get("charging", {}).get("holder") == "atv1"),
+                     None), "a reservation by atv1", 90)
+    assert holder == "charger1"  # the nearest to the parking row
+    fleet.kill(holder)
+    fleet.wait(lambda: fleet.watch.agents.get("charger2", {}).get("services", {})
+               .get("charging", {}).get("holder") == "atv1", "atv1 reserving charger2", 30)
+    # The physics: it charges standing in charger2, never in the dead station's place.
+    fleet.wait(lambda: _robot(fleet.watch, "atv1").get("charging_at") == "charger2",
+               "atv1 charging in charger2", 180)
+    stations = fleet.watch.state["facts"]["stations"]
+    assert stations["charger1"]["max_charging"] == 0, stations
+    assert stations["charger2"]["max_charging"] == 1, stations
+
+
