@@ -41,6 +41,7 @@ class Fleet:
         self.watch = Watch()
         self.ros = RosContext()
         _watch(self.ros, self.watch)
+        self.ros.start()
 
     def world(self, **robot_battery: float) -> str:
         """A copy of the factory with fewer robots and the given initial batteries."""
