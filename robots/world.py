@@ -35,7 +35,8 @@ from typing import TYPE_CHECKING, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from robots.errors import UnknownMachine, UnknownStation, UnknownWorld, WorldError
+from robots.errors import (UnknownMachine, UnknownStation, UnknownWorld, UnknownZone,
+                           WorldError)
 
 if TYPE_CHECKING:
     from beehave.planning import OccupancyMap
@@ -344,6 +345,13 @@ class World(_Model):
             if machine.name == name:
                 return machine
         raise UnknownMachine(name, [m.name for m in self.machines])
+
+    def zone(self, name: str) -> Zone:
+        """The speed zone called ``name``; :class:`UnknownZone` lists the others."""
+        for zone in self.zones:
+            if zone.name == name:
+                return zone
+        raise UnknownZone(name, [z.name for z in self.zones])
 
     def zone_at(self, x_m: float, y_m: float) -> Zone | None:
         """The speed zone the point (x_m, y_m) lies in, or None outside every zone. Where
