@@ -35,8 +35,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from robots.errors import (UnknownMachine, UnknownStation, UnknownWorld, UnknownZone,
-                           WorldError)
+from robots.errors import UnknownMachine, UnknownStation, UnknownWorld, UnknownZone, WorldError
 
 if TYPE_CHECKING:
     from beehave.planning import OccupancyMap
@@ -253,6 +252,23 @@ class Battery(_Model):
     initial_fraction: float = Field(1.0, ge=0, le=1)
 
 
+class Laser(_Model):
+    """The robot's laser scanner, where it differs from its kind's (360 beams)."""
+
+    beams: int | None = Field(None, ge=8, le=4096)
+    """Beams per 360° scan. Casting them is the simulation's largest cost per robot
+    (about 5 µs a beam): a large fleet may use fewer."""
+
+
+class Physics(_Model):
+    """How pybullet solves the world; the defaults are pybullet's own."""
+
+    solver_iterations: int | None = Field(None, ge=1, le=1000)
+    """Constraint solver iterations per step (pybullet's ``numSolverIterations``, 50 by
+    default). Fewer make each step cheaper: a fleet of light robots on a flat floor needs
+    far fewer than a lift pressing a load."""
+
+
 class RobotSpec(_Model):
     """A robot in the world: its ROS namespace, its kind and where it starts."""
 
@@ -260,6 +276,7 @@ class RobotSpec(_Model):
     kind: Literal["emili", "kobuki"]
     start: Pose
     battery: Battery = Battery()
+    laser: Laser = Laser()
     charging_station: str | None = None
     pickup_station: str | None = None
     dropoff_station: str | None = None
@@ -270,6 +287,7 @@ class World(_Model):
 
     name: str
     floor: Floor
+    physics: Physics = Physics()
     holes: list[Hole] = []
     walls: list[Wall] = []
     shelves: list[Box] = []
