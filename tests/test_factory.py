@@ -506,3 +506,21 @@ def test_beehave_sim_refuses_more_robots_than_the_world_has(
     assert "asked for 11 robot(s)" in capsys.readouterr().err
     assert sim_main(["factory", "--report", "facts.txt"]) == 2
     assert "--report must name a .json file" in capsys.readouterr().err
+
+
+def test_a_world_may_thin_a_robot_laser_and_its_physics_solver(sim_of: Any) -> None:
+    sim, _ = sim_of(shop(physics={"solver_iterations": 10},
+                         robots=[{"namespace": "k1", "kind": "kobuki", "laser": {"beams": 120},
+                                  "start": {"x_m": 1.5, "y_m": 3.0}},
+                                 {"namespace": "k2", "kind": "kobuki",
+                                  "start": {"x_m": 1.5, "y_m": 1.0}}]))
+    sim.run_for(0.2)
+    thin, full = sim.robot("k1").scan(), sim.robot("k2").scan()
+    assert thin is not None and full is not None
+    assert len(thin.ranges_m) == 120 and thin.angle_increment_rad == pytest.approx(math.pi / 60)
+    assert len(full.ranges_m) == 360  # the kind's default
+    params = sim.call(lambda c: c.getPhysicsEngineParameters())
+    assert params["numSolverIterations"] == 10
+    assert "laser.beams" in problems_of(shop(robots=[
+        {"namespace": "k1", "kind": "kobuki", "laser": {"beams": 4},
+         "start": {"x_m": 1, "y_m": 1}}])).replace("robots.0.", "")
