@@ -352,6 +352,12 @@ class World(_Model):
         for i, depot in enumerate(self.depots):
             if off(depot.area.corners()):
                 raise ValueError(f"depots.{i}.area ({depot.name!r}): reaches off {where}")
+            a = depot.area
+            for other in self.machines:
+                if _rects_overlap(other.center_m, other.size_m, other.yaw_deg, a.center_m,
+                                  a.size_m, a.yaw_deg):
+                    raise ValueError(f"depots.{i}.area ({depot.name!r}): overlaps machine "
+                                     f"{other.name!r}")
         for i, zone in enumerate(self.zones):
             if off(list(zone.points_m)):
                 raise ValueError(f"zones.{i}.points_m ({zone.name!r}): a corner lies off "

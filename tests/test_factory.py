@@ -126,6 +126,11 @@ def machine(**changes: Any) -> dict[str, Any]:
      r"zones\.0\.points_m \('z'\): a corner lies off the floor"),
     (shop(depots=[{"name": "d", "area": {"center_m": [0.2, 3.0]}}]),
      r"depots\.0\.area \('d'\): reaches off the floor"),
+    (shop(depots=[{"name": "d", "area": {"center_m": [6.8, 3.0]}}]),
+     r"depots\.0\.area \('d'\): overlaps machine 'm1'"),
+    (shop(machines=[machine(), machine(name="m2", center_m=[5.8, 3.6],
+                                   delivery={"center_m": [5.8, 4.8]})]),
+     r"machines\.0\.delivery \('m1'\): the delivery area overlaps machine 'm2'"),
 ])
 def test_bad_factory_parts_are_named_with_their_key_path(data: dict[str, Any],
                                                          expected: str) -> None:
