@@ -10,6 +10,15 @@ Targets (issue: for the later full stack, printed here for the sim alone): 1 rob
 real time, 10 robots ≥ 2×. Reference measured on this kind of machine: a husky (mesh
 model) steps at about 7,300 robot-steps/s.
 
+The factory world (``robots/worlds/factory.yaml``) with 4 and 10 Kobuki ATVs and its
+:class:`~robots.factory.Factory` physics (levels, loads, zones measured every 5th step),
+no controllers: each ATV drives a circle commanded from an ``on_step`` callback, every
+laser casting (120 beams at 10 Hz, as when Navigation subscribes to ``scan``). Target: ≥ 3×
+real time at 10 ATVs — what ``beehave fleet --fast`` needs to stay ≥ 1× with the
+controllers' processes on the same cores. ``cpu_real_time_factor`` divides by the
+process's CPU time instead of the wall time: on a shared machine it shows what the
+simulation would do alone.
+
 The path planner (``beehave.planning``) on the warehouse map, for EMILI (0.55 m radius +
 0.1 m clearance, 0.1 m cells): building the inflated grid once, and the median time of one
 ``plan`` over a set of station-to-station orders — what Navigation pays per (re-)plan and an
@@ -112,6 +121,48 @@ def wrapped(world: World, duration_s: float) -> tuple[float, float]:
         sim.close()
 
 
+def factory(n: int, duration_s: float) -> tuple[float, float]:
+    """(real-time factor by wall time, by process CPU time) of the factory with ``n`` ATVs
+    in the simulation's own thread."""
+    from robots.factory import Factory
+    from robots.world import load_world
+
+    sim = Simulation(load_world("factory").with_robots(n), rate_hz=RATE_HZ,
+                     real_time_factor=None)
+    physics = Factory(sim)
+    robots = list(sim.robots.values())
+
+    def command(time_s: float) -> None:
+        for robot in robots:
+            robot.set_cmd_vel(0.3, 0.3)
+
+    sim.on_step(command, rate_hz=10.0)
+    try:
+        t0, cpu0 = time.perf_counter(), time.process_time()
+        sim.start()
+        time.sleep(duration_s)
+        sim.stop()
+        wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - cpu0
+        assert all(r.scan() is not None for r in robots)
+        assert physics.facts().time_s > 0
+        return sim.time_s / wall_s, sim.time_s / cpu_s
+    finally:
+        physics.close()
+        sim.close()
+
+
+def factory_rows() -> list[dict[str, Any]]:
+    rows = []
+    for n, target in ((4, None), (10, 3.0)):
+        factor, cpu_factor = factory(n, 4.0)
+        rows.append(report(f"sim_factory_{n}_kobukis_real_time_factor", factor, "x",
+                           f">= {target:g} x" if target else None,
+                           (factor >= target) if target else None,
+                           cpu_real_time_factor=round(cpu_factor, 2), rate_hz=RATE_HZ,
+                           laser_beams=120, scan_rate_hz=10.0, solver_iterations=10))
+    return rows
+
+
 def planner_rows() -> list[dict[str, Any]]:
     from beehave.planning import GridPlanner
     from benchmarks._util import median, percentile
@@ -172,6 +223,7 @@ def replan_row(planner: Any, pairs: list[Any]) -> dict[str, Any]:
 
 def main() -> list[dict[str, Any]]:
     rows = planner_rows()
+    rows += factory_rows()
     targets = {1: 10.0, 10: 2.0}
     for n in (1, 10, 25):
         world = fleet_world(n)

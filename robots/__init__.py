@@ -16,6 +16,7 @@ _EXPORTS = {
     "Emili": "robots.emili", "Kobuki": "robots.kobuki",
     "World": "robots.world", "load_world": "robots.world", "world_from_dict": "robots.world",
     "available_worlds": "robots.world",
+    "Factory": "robots.factory", "FactoryFacts": "robots.factory",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -216,11 +216,13 @@ def _draw_machine(draw: ImageDraw.ImageDraw, machine: Machine, level: float, px:
              else (220, 40, 40))
     if fraction > 0:
         draw.rectangle([x0, y0, x0 + (x1 - x0) * fraction, y1], fill=color)
-    # Above the body: a label wider than a small machine must not spill over its bar.
-    tx, ty = px(machine.center_m[0] - machine.size_m[0] / 2,
-                machine.center_m[1] + machine.size_m[1] / 2 + 0.4)
+    # Outside the body (a label is wider than a small machine), on the side away from
+    # its delivery area so the label never covers where the robots stop.
+    below = machine.delivery.center_m[1] > machine.center_m[1]
+    tx, ty = px(machine.center_m[0], machine.center_m[1]
+                + (-1 if below else 1) * (machine.size_m[1] / 2 + 0.05))
     draw.text((tx, ty), f"{machine.name}: {level:.0f}/{machine.capacity:g}",
-              fill=(20, 30, 90))
+              fill=(20, 30, 90), anchor="mt" if below else "mb")
 
 
 def _draw_robot(draw: ImageDraw.ImageDraw, robot: RobotSketch, label: RGB8, px: object,
@@ -251,4 +253,6 @@ def _draw_robot(draw: ImageDraw.ImageDraw, robot: RobotSketch, label: RGB8, px: 
     back = to_px(robot.x_m + (nose - 0.2) * c, robot.y_m + (nose - 0.2) * s)
     draw.line([back, tip], fill=(20, 20, 20), width=max(2, round(0.03 * scale)))
     x, y = to_px(robot.x_m, robot.y_m)
-    draw.text((x + 0.5 * scale, y - 0.5 * scale), robot.namespace, fill=label)
+    # Centred above the robot: robots parked side by side keep their names apart.
+    above_m = 0.55 if robot.kind == "emili" else 0.3
+    draw.text((x, y - above_m * scale), robot.namespace, fill=label, anchor="mb")

@@ -225,7 +225,9 @@ class SimRobot:
         self._path: list[tuple[float, float]] = [(start.x_m, start.y_m)]
         self._next_path_s = 0.0
         self._extra_power_w = 0.0
-        angles = np.linspace(-math.pi, math.pi, self.scan_beams, endpoint=False)
+        #: Beams per scan: the world's ``laser.beams`` for this robot, else the kind's.
+        self.beams = spec.laser.beams or self.scan_beams
+        angles = np.linspace(-math.pi, math.pi, self.beams, endpoint=False)
         self._scan_angles = angles
         self._scan_dirs = np.stack([np.cos(angles), np.sin(angles)], axis=1)
         self._scan_start_m = self._outline_distance_m(angles) + 0.01
@@ -401,7 +403,7 @@ class SimRobot:
                                          np.hstack([ends, z]).tolist())
         fractions = np.array([h[2] if h[0] >= 0 else np.inf for h in hits])
         ranges = self._scan_start_m + fractions * (self.scan_range_max_m - self._scan_start_m)
-        increment = 2 * math.pi / self.scan_beams
+        increment = 2 * math.pi / self.beams
         return LaserScan(
             time_s=time_s, angle_min_rad=float(self._scan_angles[0]),
             angle_max_rad=float(self._scan_angles[-1]), angle_increment_rad=increment,

@@ -180,6 +180,8 @@ class Simulation:
         c = self._client
         c.setGravity(0, 0, -9.81)
         c.setTimeStep(self.step_s)
+        if self.world.physics.solver_iterations is not None:
+            c.setPhysicsEngineParameter(numSolverIterations=self.world.physics.solver_iterations)
         self._physics_step = functools.partial(pybullet.stepSimulation,
                                                physicsClientId=self._client._client)
         self._ground_ids: frozenset[int] = frozenset()

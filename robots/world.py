@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from robots.errors import UnknownMachine, UnknownStation, UnknownWorld, WorldError
+from robots.errors import UnknownMachine, UnknownStation, UnknownWorld, UnknownZone, WorldError
 
 if TYPE_CHECKING:
     from beehave.planning import OccupancyMap
@@ -252,6 +252,23 @@ class Battery(_Model):
     initial_fraction: float = Field(1.0, ge=0, le=1)
 
 
+class Laser(_Model):
+    """The robot's laser scanner, where it differs from its kind's (360 beams)."""
+
+    beams: int | None = Field(None, ge=8, le=4096)
+    """Beams per 360° scan. Casting them is the simulation's largest cost per robot
+    (about 5 µs a beam): a large fleet may use fewer."""
+
+
+class Physics(_Model):
+    """How pybullet solves the world; the defaults are pybullet's own."""
+
+    solver_iterations: int | None = Field(None, ge=1, le=1000)
+    """Constraint solver iterations per step (pybullet's ``numSolverIterations``, 50 by
+    default). Fewer make each step cheaper: a fleet of light robots on a flat floor needs
+    far fewer than a lift pressing a load."""
+
+
 class RobotSpec(_Model):
     """A robot in the world: its ROS namespace, its kind and where it starts."""
 
@@ -259,6 +276,7 @@ class RobotSpec(_Model):
     kind: Literal["emili", "kobuki"]
     start: Pose
     battery: Battery = Battery()
+    laser: Laser = Laser()
     charging_station: str | None = None
     pickup_station: str | None = None
     dropoff_station: str | None = None
@@ -269,6 +287,7 @@ class World(_Model):
 
     name: str
     floor: Floor
+    physics: Physics = Physics()
     holes: list[Hole] = []
     walls: list[Wall] = []
     shelves: list[Box] = []
@@ -333,6 +352,12 @@ class World(_Model):
         for i, depot in enumerate(self.depots):
             if off(depot.area.corners()):
                 raise ValueError(f"depots.{i}.area ({depot.name!r}): reaches off {where}")
+            a = depot.area
+            for other in self.machines:
+                if _rects_overlap(other.center_m, other.size_m, other.yaw_deg, a.center_m,
+                                  a.size_m, a.yaw_deg):
+                    raise ValueError(f"depots.{i}.area ({depot.name!r}): overlaps machine "
+                                     f"{other.name!r}")
         for i, zone in enumerate(self.zones):
             if off(list(zone.points_m)):
                 raise ValueError(f"zones.{i}.points_m ({zone.name!r}): a corner lies off "
@@ -344,6 +369,13 @@ class World(_Model):
             if machine.name == name:
                 return machine
         raise UnknownMachine(name, [m.name for m in self.machines])
+
+    def zone(self, name: str) -> Zone:
+        """The speed zone called ``name``; :class:`UnknownZone` lists the others."""
+        for zone in self.zones:
+            if zone.name == name:
+                return zone
+        raise UnknownZone(name, [z.name for z in self.zones])
 
     def zone_at(self, x_m: float, y_m: float) -> Zone | None:
         """The speed zone the point (x_m, y_m) lies in, or None outside every zone. Where

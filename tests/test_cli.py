@@ -97,7 +97,7 @@ def test_infinite_stop_timeout_in_the_file_is_refused_before_start(tmp_path: Pat
     ("explodes.yaml",
      "explodes.yaml: behaviors.boom: behavior 'boom': Explodes.__init__ raised RuntimeError"),
     ("unknown_world.yaml", "unknown_world.yaml: sim.world: unknown world 'atlantis'; "
-                           "registered: 'warehouse'"),
+                           "registered: 'factory', 'warehouse'"),
 ])
 def test_errors_at_start_are_one_message_and_exit_2(config: str, expected: str) -> None:
     if config == "unknown_world.yaml":
