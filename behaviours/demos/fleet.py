@@ -50,23 +50,20 @@ STOP_TIMEOUT_S = 15.0
 LEASE_S = 3.0
 
 
+ATV_TEMPLATE = Path(__file__).resolve().parents[2] / "robots" / "config" / "atv.yaml"
+
+
 def atv_config(namespace: str, world: str) -> dict[str, Any]:
-    """The robot YAML of one ATV (written to ``OUT/fleet/<namespace>.yaml``)."""
-    return {
-        "namespace": namespace,
-        "stop_timeout_s": 2.0,
-        "use_sim_time": True,
-        "behaviors": {
-            "work": {"class": "behaviours.fleet.atv:Work", "params": {"world": world}},
-            "charge": {"class": "behaviours.fleet.atv:Charge", "params": {"world": world}},
-        },
-        "default_behavior": "work",
-        "logics": {"atv": {"class": "behaviours.fleet.zones:AtvLogic",
-                             "params": {"world": world}}},
-        "default_logic": "atv",
-        "hals": ["odometry", "battery", "factory", "speed_limit"],
-        "agent": {"name": namespace, "lease_s": LEASE_S},
-    }
+    """The robot YAML of one ATV: ``robots/config/atv.yaml`` with its namespace, agent name
+    and world (written to ``OUT/fleet/<namespace>.yaml``)."""
+    cfg: dict[str, Any] = yaml.safe_load(ATV_TEMPLATE.read_text())
+    cfg["namespace"] = namespace
+    cfg["agent"] = {**cfg.get("agent", {}), "name": namespace, "lease_s": LEASE_S}
+    for section in ("behaviors", "logics"):
+        for spec in cfg.get(section, {}).values():
+            if "world" in spec.get("params", {}):
+                spec["params"]["world"] = world
+    return cfg
 
 
 @dataclass
