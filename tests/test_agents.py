@@ -346,6 +346,15 @@ def test_awaitable_api_for_logics(ros: RosContext) -> None:
         with pytest.raises(NoReply):
             asyncio.run(nothing())
 
+        async def bad(timeout: Any) -> None:
+            await a.areceive(timeout_s=timeout)
+
+        for wrong in (float("nan"), -1.0, "2", True):
+            with pytest.raises(ConfigError, match="areceive"):
+                asyncio.run(bad(wrong))
+            with pytest.raises(ConfigError, match="receive"):
+                a.receive(timeout_s=wrong)
+
 
 def test_unattached_manager_names_the_fix() -> None:
     class Ask(AgentBehavior):

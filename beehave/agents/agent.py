@@ -206,9 +206,7 @@ class Mailbox:
         """The next message; waits at most ``timeout_s`` (None: no limit) and raises
         :class:`~beehave.errors.NoReply` then. Called from a Behavior or Action, it raises
         :class:`~beehave.errors.Interrupted` as soon as that is interrupted."""
-        if timeout_s is not None and (math.isnan(timeout_s) or timeout_s < 0):
-            raise ConfigError(f"receive(timeout_s=…) takes seconds ≥ 0, math.inf or None, "
-                              f"got {timeout_s!r}")
+        _check_wait("receive", timeout_s)
         if timeout_s is not None and timeout_s > threading.TIMEOUT_MAX:
             timeout_s = None  # math.inf: threading's waits refuse it
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
@@ -224,6 +222,7 @@ class Mailbox:
     async def areceive(self, *, timeout_s: float | None = 10.0) -> Message:
         """:meth:`receive` for asyncio code (a Logic): awaits without blocking the loop;
         cancelling the task cancels the wait."""
+        _check_wait("areceive", timeout_s)
         loop = asyncio.get_running_loop()
         event = asyncio.Event()
         entry = (loop, event)
@@ -320,6 +319,15 @@ class Conversation(Mailbox):
 
 _ATTACHED: weakref.WeakKeyDictionary[HighLevelBehaviorManager, Agent] = \
     weakref.WeakKeyDictionary()
+
+
+def _check_wait(what: str, timeout_s: object) -> None:
+    if timeout_s is None:
+        return
+    if (isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float))
+            or math.isnan(timeout_s) or timeout_s < 0):
+        raise ConfigError(f"{what}(timeout_s=…) takes seconds ≥ 0, math.inf or None, "
+                          f"got {timeout_s!r}")
 
 
 def agent_of(manager: HighLevelBehaviorManager) -> Agent:
