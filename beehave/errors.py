@@ -202,3 +202,13 @@ class ProtocolFailed(AgentError):
     def __init__(self, message: str, *, reply: object = None) -> None:
         super().__init__(message)
         self.reply = reply
+
+
+class Vda5050Error(BeehaveError):
+    """A VDA 5050 interface problem (``beehave.interfaces.vda5050``): an order the AGV
+    cannot take, a message that breaks the schema, a broker that cannot be reached."""
+
+
+class Vda5050ValidationError(Vda5050Error, ValueError):
+    """A VDA 5050 message that breaks the 2.1.0 JSON schema; the message names each
+    offending field by its path (``nodes[1].nodePosition.x``)."""

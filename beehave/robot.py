@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from rclpy.node import Node
 
     from beehave.agents import Agent
+    from beehave.interfaces.vda5050 import Vda5050Interface
     from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
     from beehave.ros.context import RosContext
     from beehave.simulation import RunningSimulation
@@ -63,6 +64,8 @@ class Robot:
         self.only = only
         self.high: HighLevelBehaviorManager | None = None
         self.low: LowLevelBehaviorManager | None = None
+        #: The VDA 5050 interface (``vda5050:`` in the configuration; needs the high level).
+        self.vda5050: Vda5050Interface | None = None
         self._build()
         self._ros: RosContext | None = None
         self._shared_ros = ros
@@ -90,6 +93,12 @@ class Robot:
                                    where=f"{src}: behaviors.{name}.class")
                 with _located(f"{src}: behaviors.{name}.params"):
                     hl.register(name, cls, **spec.params)
+            if cfg.vda5050 is not None:  # registers the order behaviour: before start
+                from beehave.interfaces.vda5050.agv import make_interface
+
+                with _located(f"{src}: vda5050"):
+                    self.vda5050 = make_interface(cfg.vda5050, high=hl,
+                                                  import_class=import_class, source=src)
             self.high = hl
         if self.only in (None, "low"):
             ll = LowLevelBehaviorManager(default=cfg.default_logic,
@@ -157,6 +166,8 @@ class Robot:
                               else f"{cfg.source}: default_behavior",
                               only=(InvalidParameters, ConstructorFailed)):
                     self.high.start()
+                if self.vda5050 is not None:  # connects in the background, retrying
+                    self.vda5050.start(node=node, low=self.low, name=cfg.namespace)
         except BaseException as exc:
             try:
                 self.shutdown()
@@ -199,6 +210,8 @@ class Robot:
 
         if self.high is not None:
             step("high-level shutdown", self.high.shutdown)
+        if self.vda5050 is not None:  # after the safe states: its last state shows them
+            step("closing the VDA 5050 interface", self.vda5050.close)
         if self.agent is not None:
             step("closing the agent", self.agent.close)
             self.agent = None
