@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from rclpy.node import Node
 
     from beehave.agents import Agent
+    from beehave.interfaces import ControlPlane
     from beehave.interfaces.vda5050 import Vda5050Interface
     from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
     from beehave.ros.context import RosContext
@@ -77,6 +78,9 @@ class Robot:
         self._simulation: RunningSimulation | None = None
         #: The robot's agent (``agent:`` in the configuration; needs the high level).
         self.agent: Agent | None = None
+        #: The control-plane core every network interface of this robot uses (ROS 2,
+        #: HTTP, VDA 5050); set by :meth:`start` when the high level runs here.
+        self.plane: ControlPlane | None = None
 
     def _build(self) -> None:
         """Import and register everything the configuration names, so a bad name or bad
@@ -152,8 +156,13 @@ class Robot:
                 node = ros.create_node(HIGH_NODE, namespace=cfg.namespace,
                                        use_sim_time=cfg.use_sim_time)
                 self._nodes.append(node)
+                from beehave.interfaces import ControlPlane
+
+                self.plane = ControlPlane(self.high, low=self.low,
+                                          name=cfg.namespace.replace("/", "_"))
                 self._bridges.append(HighLevelBridge(
-                    self.high, node, state_period_s=cfg.ros.state_period_s))
+                    self.high, node, state_period_s=cfg.ros.state_period_s,
+                    plane=self.plane))
                 if cfg.agent is not None:  # before the behaviours, which may use it
                     from beehave.agents import Agent
 
@@ -167,7 +176,7 @@ class Robot:
                               only=(InvalidParameters, ConstructorFailed)):
                     self.high.start()
                 if self.vda5050 is not None:  # connects in the background, retrying
-                    self.vda5050.start(node=node, low=self.low, name=cfg.namespace)
+                    self.vda5050.start(control=self.plane, node=node)
         except BaseException as exc:
             try:
                 self.shutdown()
@@ -218,6 +227,9 @@ class Robot:
         for bridge in reversed(self._bridges):
             step(f"destroying {type(bridge).__name__}", bridge.destroy)
         self._bridges.clear()
+        if self.plane is not None:
+            step("closing the control plane", self.plane.close)
+            self.plane = None
         if self.low is not None:
             step("low-level shutdown", self.low.shutdown)
         if self._simulation is not None:
