@@ -115,6 +115,15 @@ class Telemetry:
     omega_rps: float = 0.0
     battery_percent: float | None = None
     charging: bool = False
+    driving: bool = False
+
+
+DRIVING_MPS = 0.01
+"""Speeds (m/s, and rad/s for turning) above which the AGV counts as ``driving``."""
+
+
+def _driving(t: Telemetry) -> bool:
+    return abs(t.vx_mps) > DRIVING_MPS or abs(t.omega_rps) > DRIVING_MPS
 
 
 class Vda5050Interface:
@@ -260,6 +269,9 @@ class Vda5050Interface:
                                      1.0 - 2.0 * (q.y * q.y + q.z * q.z))
             t.vx_mps = float(msg.twist.twist.linear.x)
             t.omega_rps = float(msg.twist.twist.angular.z)
+            if t.driving != (driving := _driving(t)):
+                t.driving = driving  # starting or stopping is a change the state reports
+                self._wake.set()
 
         def on_battery(msg: BatteryState) -> None:
             t.battery_percent = max(0.0, min(100.0, float(msg.percentage) * 100.0))
@@ -461,7 +473,7 @@ class Vda5050Interface:
         """The ``state`` message now."""
         t = self.telemetry
         message = {**self._header("state"), **self.orders.state_fields(),
-                   "driving": abs(t.vx_mps) > 0.01 or abs(t.omega_rps) > 0.01,
+                   "driving": _driving(t),
                    "operatingMode": "AUTOMATIC",
                    "batteryState": {"batteryCharge": t.battery_percent or 0.0,
                                     "charging": t.charging},

@@ -299,7 +299,7 @@ class AgvOrders:
                         f"order {order_id!r}: orderUpdateId {update_id} is older than the "
                         f"current {current.update_id}; the update is ignored",
                         references=refs, hint="send updates with increasing orderUpdateId")
-                nodes, edges, actions = self._parse(order)
+                nodes, edges, actions = self._parse(order, update=True)
                 stitch = self._stitch_node()
                 first = nodes[0]
                 if (first.node_id, first.sequence_id) != stitch:
@@ -319,9 +319,6 @@ class AgvOrders:
                             [e for e in current.edges if not e.released]:
                         for a in gone.actions:
                             self._actions.pop(a, None)
-                    # The stitching node's actions were given with the base already.
-                    for a in first.actions:
-                        actions.pop(a, None)
                     current.nodes = kept + nodes[1:]
                     current.edges = kept_edges + edges
                     current.update_id = update_id
@@ -353,10 +350,11 @@ class AgvOrders:
             return released[-1].node_id, released[-1].sequence_id
         return self.last_node_id, self.last_node_sequence_id
 
-    def _parse(self, order: Mapping[str, Any]
+    def _parse(self, order: Mapping[str, Any], *, update: bool = False
                ) -> tuple[list[Node], list[Edge], dict[str, ActionState]]:
         """The order's nodes, edges and actions, checked for structure (validationError
-        naming the field) and placed on the map."""
+        naming the field) and placed on the map. In an ``update`` the first node is the
+        stitching node, already known with its actions: they are not taken again."""
         raw_nodes = list(order["nodes"])
         raw_edges = list(order["edges"])
 
@@ -414,7 +412,7 @@ class AgvOrders:
             pos = n.get("nodePosition")
             nodes.append(Node(n["nodeId"], n["sequenceId"], n["released"], (x, y),
                               None if pos is None else pos.get("theta"),
-                              take_actions(where, n["actions"]),
+                              [] if update and i == 0 else take_actions(where, n["actions"]),
                               n.get("nodeDescription", ""), pos))
         edges: list[Edge] = []
         for i, e in enumerate(raw_edges):
