@@ -212,11 +212,14 @@ def test_update_is_stitched_at_the_last_base_node_and_replaces_the_horizon() -> 
                                              actions=[action("pick", "gone")])]))
     # The stitching node comes again with its actions (as masters send it): known, kept.
     assert orders.accept(order("o", 1, [node("n1", 2, x=1, y=0, actions=[p1]),
-                                        node("n2", 4, x=2, y=0), node("n3", 6, x=3, y=0)]))
+                                        node("n2", 4, x=2, y=0), node("n3", 6, x=3, y=0,
+                                        actions=[action("pick", "gone")])]))
     fields = orders.state_fields()
     assert [n["nodeId"] for n in fields["nodeStates"]] == ["n0", "n1", "n2", "n3"]
     assert [e["sequenceId"] for e in fields["edgeStates"]] == [1, 3, 5]
-    assert [a["actionId"] for a in fields["actionStates"]] == ["p1"]
+    # The horizon's action came again on a released node: one entry, WAITING.
+    assert [(a["actionId"], a["actionStatus"]) for a in fields["actionStates"]] == [
+        ("p1", "WAITING"), ("gone", "WAITING")]
     drive_all(orders)
     assert (orders.last_node_id, orders.last_node_sequence_id) == ("n3", 6)
     assert not orders.active()

@@ -75,7 +75,7 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             assert refused["orderUpdateId"] == 1
             master.order("o1", 2, [n1, n2], [edge(n1, n2)])  # stitched at n1
             done = master.wait_state(lambda s: s["lastNodeId"] == "emili_dropoff" and
-                                     _status(s).get("drop1") == "FINISHED", timeout_s=90)
+                                     _status(s).get("drop1") == "FINISHED", timeout_s=60)
             assert _status(done) == {"pick1": "FINISHED", "drop1": "FINISHED"}
             assert done["errors"] == [] and done["loads"] == []
             # The physics: ground-truth pose in the drop-off station, the lift went up to

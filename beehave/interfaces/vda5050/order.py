@@ -370,6 +370,9 @@ class AgvOrders:
         raw_nodes.sort(key=lambda n: n["sequenceId"])
         raw_edges.sort(key=lambda e: e["sequenceId"])
         actions: dict[str, ActionState] = {}
+        # An update replaces the horizon, so the horizon's actions may come again.
+        horizon_ids = {a for part in [*self._order.nodes, *self._order.edges]
+                       if not part.released for a in part.actions} if update else set()
 
         def take_actions(where: str, raw: list[dict[str, Any]]) -> list[str]:
             ids = []
@@ -379,8 +382,9 @@ class AgvOrders:
                     raise bad(f"{here}.actionType", f"action type {a['actionType']!r} is not "
                               f"supported; supported: {', '.join(NODE_ACTIONS)}",
                               actionId=str(a["actionId"]))
-                if a["actionId"] in actions or a["actionId"] in self._actions and \
-                        not self._actions[a["actionId"]].status.ended:
+                known = self._actions.get(a["actionId"])
+                if a["actionId"] in actions or known is not None and \
+                        not known.status.ended and a["actionId"] not in horizon_ids:
                     raise bad(f"{here}.actionId", f"actionId {a['actionId']!r} is used "
                               "twice", actionId=str(a["actionId"]))
                 params = {p["key"]: p["value"] for p in a.get("actionParameters", [])}
