@@ -9,14 +9,18 @@ Not a fleet manager: one AGV, no traffic control.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import socket
 import subprocess
+import sys
 import tempfile
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from pathlib import Path
 from typing import Any, Self
 
@@ -94,11 +98,15 @@ class Master:
     """A minimal VDA 5050 master control for one AGV (tests and the demo)."""
 
     def __init__(self, port: int, *, manufacturer: str = "beehave", serial_number: str,
-                 interface_name: str = "uagv", host: str = "127.0.0.1") -> None:
+                 interface_name: str = "uagv", host: str = "127.0.0.1",
+                 clock: Callable[[], float] | None = None) -> None:
         self.topics = Topics.of(interface_name, manufacturer, serial_number)
         self.manufacturer, self.serial_number = manufacturer, serial_number
         self.received: dict[str, list[dict[str, Any]]] = {t: [] for t in validation.TOPICS}
         self.invalid: list[str] = []
+        #: ``(clock(), state)`` for every state received, when a ``clock`` was given.
+        self.stamped: list[tuple[float, dict[str, Any]]] = []
+        self._clock = clock
         self._cond = threading.Condition()
         self._header = 0
         self.client = mqtt.Client(CallbackAPIVersion.VERSION2,
@@ -121,6 +129,8 @@ class Master:
             if found:
                 self.invalid.append(f"{kind}: {found}")
             self.received[kind].append(data)
+            if kind == "state" and self._clock is not None:
+                self.stamped.append((self._clock(), data))
             self._cond.notify_all()
 
     def close(self) -> None:
@@ -205,3 +215,194 @@ def action(action_type: str, action_id: str, **params: Any) -> dict[str, Any]:
     if params:
         out["actionParameters"] = [{"key": k, "value": v} for k, v in params.items()]
     return out
+
+
+# ---- the scenario: ``python -m behaviours.demos.vda5050_master`` ----------------------
+
+@dataclass
+class Timeline:
+    """What the master saw, stamped with the simulation's time."""
+
+    rows: list[tuple[float, str]] = dataclass_field(default_factory=list)
+    _last: dict[str, str] = dataclass_field(default_factory=dict)
+
+    def follow(self, sim_s: float, state: dict[str, Any]) -> None:
+        seen = {"lastNodeId": state["lastNodeId"], "driving": str(state["driving"]),
+                **{f"action {a['actionId']}": a["actionStatus"]
+                   for a in state["actionStates"]},
+                **{f"error {e['errorType']}": e.get("errorDescription", "")
+                   for e in state["errors"]}}
+        for key, value in seen.items():
+            if self._last.get(key) != value:
+                self._last[key] = value
+                self.rows.append((sim_s, f"{key}: {value}"))
+
+
+def run_scenario(*, out: Path, real_time_factor: float | None = None,
+                 console: Any = None) -> list[str]:
+    """EMILI takes a VDA 5050 order over a local broker: pick at ``emili_pickup``, drop at
+    ``emili_dropoff``; a second order to the charging station is cancelled mid-edge.
+    Returns the problems (empty: the physics matched)."""
+    import math as _math
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from beehave.config import load_config, parse_config
+    from beehave.robot import Robot
+    from beehave.ros.context import RosContext
+    from robots.node import SimNode
+    from robots.sim import Simulation
+    from robots.world import load_world
+
+    console = console or Console()
+    world = load_world("warehouse")
+    pickup, dropoff = world.station("emili_pickup"), world.station("emili_dropoff")
+    problems: list[str] = []
+    checks: list[tuple[str, str, str, bool]] = []
+    timeline = Timeline()
+    root = Path(__file__).resolve().parents[2]
+    with Broker() as broker:
+        data = load_config(root / "robots/config/emili_vda5050.yaml").model_dump(
+            by_alias=True, exclude={"source"})
+        data["vda5050"]["broker"]["port"] = broker.port
+        config = parse_config(data, source="emili_vda5050.yaml")
+        sim = Simulation(world, real_time_factor=real_time_factor)
+        ros = RosContext()
+        sim_node = SimNode(sim, ros)
+        robot = Robot(config)
+        master = Master(broker.port, serial_number="emili1", clock=lambda: sim.time_s)
+        emili = sim.emili("emili1")
+        lift_max = [0.0]
+        remove = sim.on_step(lambda _t: lift_max.__setitem__(
+            0, max(lift_max[0], emili.lift_height())))
+
+        def wait(predicate: Callable[[dict[str, Any]], bool], timeout_s: float
+                 ) -> dict[str, Any] | None:
+            try:
+                return master.wait_state(predicate, timeout_s=timeout_s)
+            except AssertionError as exc:
+                problems.append(str(exc)[:300])
+                return None
+
+        try:
+            ros.start()
+            sim.start()
+            robot.start()
+            master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                            timeout_s=30)
+            wait(lambda s: "agvPosition" in s, 30)
+            start = node("start", 0, x=3.0, y=2.0)
+            take = node("emili_pickup", 2, actions=[action("pick", "pick-1", loadId="box-1")])
+            put = node("emili_dropoff", 4, actions=[action("drop", "drop-1")])
+            console.print("master → order o1: start → emili_pickup (pick) → emili_dropoff "
+                          "(drop)")
+            master.order("o1", 0, [start, take, put])
+            picked = wait(lambda s: s["lastNodeId"] == "emili_pickup" and any(
+                a["actionId"] == "pick-1" and a["actionStatus"] == "FINISHED"
+                for a in s["actionStates"]), 120)
+            pick_pose = emili.pose()
+            pick_lift = emili.lift_height()
+            done = wait(lambda s: s["lastNodeId"] == "emili_dropoff" and any(
+                a["actionId"] == "drop-1" and a["actionStatus"] == "FINISHED"
+                for a in s["actionStates"]), 120)
+            drop_pose = emili.pose()
+            drop_lift = emili.lift_height()
+            if picked and done:
+                e_pick = _math.hypot(pick_pose.x_m - pickup.center_m[0],
+                                     pick_pose.y_m - pickup.center_m[1])
+                e_drop = _math.hypot(drop_pose.x_m - dropoff.center_m[0],
+                                     drop_pose.y_m - dropoff.center_m[1])
+                checks += [
+                    ("pick-up reached", f"{e_pick:.3f} m from centre", "≤ 0.20 m",
+                     e_pick <= 0.20),
+                    ("lift at the pick", f"{pick_lift:.3f} m", "≥ 0.19 m", pick_lift >= 0.19),
+                    ("drop-off reached", f"{e_drop:.3f} m from centre", "≤ 0.20 m",
+                     e_drop <= 0.20),
+                    ("lift after the drop", f"{drop_lift:.3f} m", "≤ 0.01 m",
+                     drop_lift <= 0.01)]
+            # Order 2, to the charging station, cancelled mid-edge.
+            here = node("emili_dropoff", 0)
+            charge = node("emili_charging", 2, actions=[action("startCharging", "charge-1")])
+            console.print("master → order o2: emili_dropoff → emili_charging; cancelOrder "
+                          "mid-edge")
+            master.order("o2", 0, [here, charge])
+            wait(lambda s: s["orderId"] == "o2" and s["driving"], 60)
+            t_drive = sim.time_s
+            while sim.time_s < t_drive + 3.0:
+                time.sleep(0.01)
+            stopped: list[float] = []
+            t_cancel = sim.time_s
+            watch = sim.on_step(lambda t: stopped.append(t) if not stopped and abs(
+                emili.odometry().linear_mps) < 0.01 else None)
+            master.instant(action("cancelOrder", "cancel-1"))
+            cancelled = wait(lambda s: any(a["actionId"] == "cancel-1" and
+                                           a["actionStatus"] == "FINISHED"
+                                           for a in s["actionStates"]), 30)
+            deadline = time.monotonic() + 10
+            while not stopped and time.monotonic() < deadline:
+                time.sleep(0.01)
+            watch()
+            stop_s = stopped[0] - t_cancel if stopped else _math.inf
+            checks.append(("velocity 0 after cancelOrder", f"{stop_s:.3f} s sim",
+                           "≤ 0.5 s sim", stop_s <= 0.5))
+            if cancelled is not None:
+                failed = {a["actionId"]: a["actionStatus"] for a in cancelled["actionStates"]}
+                checks.append(("order o2's action after the cancel",
+                               failed.get("charge-1", "?"), "FAILED",
+                               failed.get("charge-1") == "FAILED"))
+            checks.append(("every message validated", f"{len(master.invalid)} invalid",
+                           "0", not master.invalid))
+        finally:
+            remove()
+            out.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                sim.render_topdown(out)
+            except Exception as exc:  # the picture is a by-product; report it
+                problems.append(f"could not render {out}: {exc!r}")
+            master.close()
+            # Every step runs whatever an earlier one raised; the robot first (its safe
+            # states), the sim node before the simulation, ROS last.
+            with contextlib.ExitStack() as stack:
+                for step in (ros.shutdown, sim.close, sim_node.destroy, robot.shutdown):
+                    stack.callback(step)
+    for stamp, state in master.stamped:
+        timeline.follow(stamp, state)
+    timeline_table = Table(title="order timeline (sim time the master received it)")
+    timeline_table.add_column("t [s]", justify="right")
+    timeline_table.add_column("state change")
+    for t, what in timeline.rows:
+        timeline_table.add_row(f"{t:7.2f}", what)
+    console.print(timeline_table)
+    table = Table(title="physics checks")
+    for col in ("check", "measured", "target", "ok"):
+        table.add_column(col)
+    for name, measured, target, ok in checks:
+        table.add_row(name, measured, target, "[green]yes[/]" if ok else "[red]NO[/]")
+        if not ok:
+            problems.append(f"{name}: {measured} (target {target})")
+    console.print(table)
+    console.print(f"picture: {out}")
+    return problems
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(
+        prog="python -m behaviours.demos.vda5050_master",
+        description="EMILI as a VDA 5050 AGV: a local mosquitto, the simulated warehouse and "
+                    "a master that sends an order (pick, drop) and cancels a second one; "
+                    "exit 0 only if the physics matched.")
+    parser.add_argument("--out", default="docs/img/vda5050.png", metavar="FILE.png")
+    parser.add_argument("--real-time-factor", type=float, default=None, metavar="X",
+                        help="default: as fast as possible")
+    args = parser.parse_args(argv)
+    problems = run_scenario(out=Path(args.out), real_time_factor=args.real_time_factor)
+    for problem in problems:
+        print(f"FAILED: {problem}", file=sys.stderr)
+    return 1 if problems else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -264,7 +264,10 @@ class Vda5050Interface:
 
         def on_odom(msg: Odometry) -> None:
             p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            first = t.x_m is None
             t.x_m, t.y_m = float(p.x), float(p.y)
+            if first:
+                self._wake.set()  # the position is known now: the master wants it
             t.theta_rad = math.atan2(2.0 * (q.w * q.z + q.x * q.y),
                                      1.0 - 2.0 * (q.y * q.y + q.z * q.z))
             t.vx_mps = float(msg.twist.twist.linear.x)
