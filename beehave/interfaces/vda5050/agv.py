@@ -156,7 +156,8 @@ class Vda5050Interface:
         high.register(options.behavior, executor, orders=self.orders, world=options.world,
                       speed_mps=options.speed_mps, lift_pick_m=options.lift_pick_m,
                       lift_drop_m=options.lift_drop_m)
-        self._header_ids = {t: itertools.count() for t in validation.TOPICS}
+        self._header_ids: dict[str, itertools.count[int]] = {
+            t: itertools.count() for t in validation.TOPICS}
         self._inbox: queue.SimpleQueue[tuple[str, bytes] | None] = queue.SimpleQueue()
         self._closing = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -323,7 +324,7 @@ class Vda5050Interface:
 
     def _on_message(self, _client: mqtt.Client, _userdata: Any,
                     message: mqtt.MQTTMessage) -> None:
-        self._inbox.put((message.topic, message.payload))
+        self._inbox.put((message.topic, bytes(message.payload)))
 
     # ---- incoming -----------------------------------------------------------------------
 

@@ -371,8 +371,9 @@ class AgvOrders:
         raw_edges.sort(key=lambda e: e["sequenceId"])
         actions: dict[str, ActionState] = {}
         # An update replaces the horizon, so the horizon's actions may come again.
-        horizon_ids = {a for part in [*self._order.nodes, *self._order.edges]
-                       if not part.released for a in part.actions} if update else set()
+        parts: list[Node | Edge] = [*self._order.nodes, *self._order.edges]
+        horizon_ids = {a for part in parts if not part.released
+                       for a in part.actions} if update else set()
 
         def take_actions(where: str, raw: list[dict[str, Any]]) -> list[str]:
             ids = []
