@@ -488,3 +488,48 @@ def test_username_from_a_missing_environment_variable_is_refused(broker: Broker)
         interface.start(control=ControlPlane(hl, name="t"))
     interface.close()
     hl.shutdown()
+
+
+def test_no_broker_is_reported_and_retried_until_one_appears(
+        caplog: pytest.LogCaptureFixture) -> None:
+    late = Broker()
+    made_hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    interface = Vda5050Interface(options(late.port), high=made_hl, executor=FakeDrive)
+    made_hl.start()
+    plane = ControlPlane(made_hl, name="t")
+    try:
+        with caplog.at_level("WARNING", logger="beehave.interfaces.vda5050.agv"):
+            interface.start(control=plane)
+            assert not interface.connected.wait(1.5)
+        assert f"no MQTT broker reachable at 127.0.0.1:{late.port}" in caplog.text
+        with late:
+            assert interface.connected.wait(10), "did not connect once the broker was up"
+    finally:
+        made_hl.shutdown()
+        interface.close()
+        plane.close()
+
+
+def test_beehave_broker_serves_until_sigterm() -> None:
+    import subprocess
+    import sys
+
+    import paho.mqtt.client as mqtt
+    from mqtt_broker import free_port
+    from paho.mqtt.enums import CallbackAPIVersion
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "beehave.cli", "broker", "--port",
+                             str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        assert f"MQTT broker on 127.0.0.1:{port}" in line, line
+        client = mqtt.Client(CallbackAPIVersion.VERSION2)
+        assert client.connect("127.0.0.1", port) == mqtt.MQTT_ERR_SUCCESS
+        client.disconnect()
+    finally:
+        proc.terminate()
+        out, _ = proc.communicate(timeout=10)
+    assert proc.returncode == 0 and "broker stopped" in out, out
