@@ -15,6 +15,7 @@ from beehave.errors import (
                             AgentNameTaken,
                             AgentUnreachable,
                             AlreadyStarted,
+                            BadRequest,
                             BeehaveError,
                             ChildFailed,
                             ConfigError,
@@ -32,6 +33,7 @@ from beehave.errors import (
                             SwitchSuperseded,
                             UnknownBehavior,
                             UnknownHAL,
+                            UnknownKey,
                             UnknownLogic,
                             UnknownNameError,
 )
@@ -46,12 +48,12 @@ __version__ = "0.1.0"
 
 __all__ = [
     "HAL", "Action", "ActionTypeBusy", "AgentError", "AgentNameTaken", "AgentUnreachable",
-    "AlreadyStarted", "BeehaveError", "Behavior",
+    "AlreadyStarted", "BadRequest", "BeehaveError", "Behavior",
     "Blackboard", "BlackboardClient", "Change", "ChildFailed", "ConfigError",
     "ConstructorFailed", "Event", "EventKind", "GoalFailed", "HALManager",
     "HighLevelBehaviorManager", "Idle", "Interrupted", "InvalidParameters", "Logic",
     "LoopBlocked", "LowLevelBehaviorManager", "ManagerShutdown", "NoPath", "NoReply",
     "NotASubclass", "ProtocolFailed", "ReservedAttribute",
-    "Status", "SwitchSuperseded", "UnknownBehavior", "UnknownHAL", "UnknownLogic",
+    "Status", "SwitchSuperseded", "UnknownBehavior", "UnknownHAL", "UnknownKey", "UnknownLogic",
     "UnknownNameError",
 ]

@@ -1,4 +1,4 @@
-"""The ``beehave`` command line: ``demo``, ``run``, ``sim``, ``graph``.
+"""The ``beehave`` command line: ``demo``, ``run``, ``broker``, ``sim``, ``graph``.
 
 Exit status: 0 when everything went as asked, 1 when something failed while running
 (a simulation, a robot, its shutdown), 2 for bad arguments or a bad configuration; the
@@ -190,6 +190,49 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---- beehave broker ---------------------------------------------------------------------
+
+def _broker(args: argparse.Namespace) -> int:
+    """A local mosquitto on 127.0.0.1 with a generated configuration, for VDA 5050
+    (docs/vda5050.md), until Ctrl-C or SIGTERM."""
+    import subprocess
+
+    from behaviours.demos.vda5050_master import MOSQUITTO, Broker
+
+    if not Path(MOSQUITTO).is_file():
+        print(f"beehave broker: mosquitto not found ({MOSQUITTO}); install it "
+              "(`make setup`, Debian package mosquitto)", file=sys.stderr)
+        return 2
+    broker = Broker(args.port)
+    try:
+        broker.start()
+    except RuntimeError as exc:
+        print(f"beehave broker: {exc}", file=sys.stderr)
+        broker.__exit__()
+        return 1
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    print(f"beehave: MQTT broker on 127.0.0.1:{broker.port} (configuration "
+          f"{broker.config}); Ctrl-C to stop", flush=True)
+    try:
+        assert broker.proc is not None
+        while not stop.is_set():
+            try:
+                broker.proc.wait(timeout=0.2)
+            except subprocess.TimeoutExpired:
+                continue
+            print(f"beehave broker: mosquitto exited ({broker.proc.returncode})",
+                  file=sys.stderr)
+            return 1
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        broker.__exit__()
+    print("beehave: broker stopped", flush=True)
+    return 0
+
+
 # ---- the parser -------------------------------------------------------------------------
 
 def _parser() -> argparse.ArgumentParser:
@@ -229,6 +272,13 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--duration-s", type=seconds_arg, default=None, metavar="N",
                      help="stop after N wall-clock seconds (default: until Ctrl-C/SIGTERM)")
     run.set_defaults(func=_run)
+    broker = sub.add_parser(
+        "broker", help="a local MQTT broker (mosquitto) for VDA 5050 (docs/vda5050.md)",
+        description="Start mosquitto on 127.0.0.1 with a generated configuration until "
+                    "Ctrl-C or SIGTERM; robots with a vda5050: section connect to it.")
+    broker.add_argument("--port", type=int, default=1883, metavar="N",
+                        help="the port to listen on (default: 1883)")
+    broker.set_defaults(func=_broker)
     # graph and sim parse their own arguments (see main); these entries are for -h.
     sub.add_parser("graph", add_help=False,
                    help="render a behaviour's state machine, tree or network to a picture "

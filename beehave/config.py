@@ -28,6 +28,12 @@
       simulator: pybullet                # entry point (group beehave.simulations)
       world: warehouse                   # (the one that runs the low level)
       real_time_factor: 1.0              # null: as fast as possible
+    vda5050:                             # optional: a VDA 5050 AGV over MQTT (docs/vda5050.md)
+      broker: {host: 127.0.0.1, port: 1883}
+      interface_name: uagv
+      manufacturer: beehave
+      serial_number: emili1
+      world: warehouse                   # node positions and station names are its map
 
 Errors name the file, the key path and what was expected.
 """
@@ -102,6 +108,48 @@ class AgentOptions(_Strict):
     lease_s: Seconds = 2.0
 
 
+# ---- vda5050: a VDA 5050 AGV over MQTT (beehave.interfaces.vda5050) ---------------------
+
+_TOPIC_LEVEL = r"^[A-Za-z0-9_.-]+$"
+"""One MQTT topic level of a VDA 5050 topic: no ``/``, ``+``, ``#`` or spaces."""
+
+
+class BrokerOptions(_Strict):
+    """Where the MQTT broker is. ``username_env``/``password_env`` name environment
+    variables (a password never sits in the YAML); ``tls`` switches TLS on, ``ca_file``
+    picks the CA bundle (default: the system's)."""
+
+    host: str = "127.0.0.1"
+    port: int = Field(1883, ge=1, le=65535)
+    username_env: str | None = None
+    password_env: str | None = None
+    tls: bool = False
+    ca_file: str | None = None
+    keepalive_s: int = Field(10, ge=1, le=3600)
+    reconnect_max_s: Seconds = 10.0
+
+
+class Vda5050Options(_Strict):
+    """The robot as a VDA 5050 2.1 AGV (``docs/vda5050.md``)."""
+
+    broker: BrokerOptions = Field(default_factory=lambda: BrokerOptions())
+    interface_name: str = Field("uagv", pattern=_TOPIC_LEVEL)
+    manufacturer: str = Field("beehave", pattern=_TOPIC_LEVEL)
+    serial_number: str = Field(pattern=_TOPIC_LEVEL)
+    world: str = "warehouse"
+    behavior: str = Field("vda5050", description="the name the order behaviour is "
+                                                 "registered under")
+    executor: str = Field("behaviours.vda5050:OrderExecution",
+                          description="the Behavior class that executes orders")
+    factsheet: dict[str, Any] = Field(default_factory=dict,
+                                      description="factsheet sections to override")
+    state_period_s: Seconds = 30.0
+    visualization_rate_hz: Hertz = 2.0
+    speed_mps: Annotated[float, Field(gt=0, le=2.0)] = 0.6
+    lift_pick_m: Annotated[float, Field(ge=0, le=0.3)] = 0.2
+    lift_drop_m: Annotated[float, Field(ge=0, le=0.3)] = 0.0
+
+
 class RobotConfig(_Strict):
     namespace: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
     stop_timeout_s: Seconds = 2.0
@@ -114,6 +162,7 @@ class RobotConfig(_Strict):
     ros: RosOptions = Field(default_factory=lambda: RosOptions())
     agent: AgentOptions | None = None
     sim: SimOptions | None = None
+    vda5050: Vda5050Options | None = None
     source: str = Field("<dict>", exclude=True)
 
 
@@ -175,8 +224,11 @@ def _valid_keys(loc: list[Any]) -> list[str]:
     """The keys allowed beside the unknown one at ``loc`` (its last element)."""
     nested: dict[str, type[BaseModel]] = {"behaviors": ClassSpec, "logics": ClassSpec,
                                           "hals": HALSpec, "ros": RosOptions,
-                                          "sim": SimOptions, "agent": AgentOptions}
+                                          "sim": SimOptions, "agent": AgentOptions,
+                                          "vda5050": Vda5050Options}
     model = nested.get(str(loc[0]), RobotConfig) if len(loc) > 1 else RobotConfig
+    if len(loc) > 2 and loc[0] == "vda5050" and loc[1] == "broker":
+        model = BrokerOptions
     return [field.alias or name for name, field in model.model_fields.items()
             if name != "source"]
 

@@ -153,6 +153,30 @@ class GoalFailed(BeehaveError):
         self.result = result
 
 
+class UnknownKey(BlackboardError, KeyError):
+    """A blackboard key that holds no value. ``.key`` is the key, ``.close`` the existing
+    keys that look like it (possibly empty) and ``.total`` how many keys hold a value."""
+
+    def __init__(self, key: str, close: Iterable[str] = (), *, total: int = 0,
+                 robot: str = "") -> None:
+        self.key = key
+        self.close = list(close)
+        self.total = total
+        where = f"{robot}: " if robot else ""
+        hint = (f"; did you mean {', '.join(repr(c) for c in self.close)}?" if self.close
+                else f"; {total} keys hold a value (list them with a pattern, e.g. '**')")
+        super().__init__(f"{where}blackboard key {key!r} holds no value{hint}")
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0])
+
+
+class BadRequest(BeehaveError, ValueError):
+    """A request to a network interface (:mod:`beehave.interfaces`) whose shape is wrong:
+    a name that is not a string, a count that is negative, a body that is not an object.
+    The message names the field and what it takes."""
+
+
 class HALError(BeehaveError):
     """A HAL plugin that cannot be loaded or used."""
 
@@ -202,3 +226,13 @@ class ProtocolFailed(AgentError):
     def __init__(self, message: str, *, reply: object = None) -> None:
         super().__init__(message)
         self.reply = reply
+
+
+class Vda5050Error(BeehaveError):
+    """A VDA 5050 interface problem (``beehave.interfaces.vda5050``): an order the AGV
+    cannot take, a message that breaks the schema, a broker that cannot be reached."""
+
+
+class Vda5050ValidationError(Vda5050Error, ValueError):
+    """A VDA 5050 message that breaks the 2.1.0 JSON schema; the message names each
+    offending field by its path (``nodes[1].nodePosition.x``)."""

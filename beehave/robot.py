@@ -33,6 +33,8 @@ if TYPE_CHECKING:
     from rclpy.node import Node
 
     from beehave.agents import Agent
+    from beehave.interfaces import ControlPlane
+    from beehave.interfaces.vda5050 import Vda5050Interface
     from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
     from beehave.ros.context import RosContext
     from beehave.simulation import RunningSimulation
@@ -63,6 +65,8 @@ class Robot:
         self.only = only
         self.high: HighLevelBehaviorManager | None = None
         self.low: LowLevelBehaviorManager | None = None
+        #: The VDA 5050 interface (``vda5050:`` in the configuration; needs the high level).
+        self.vda5050: Vda5050Interface | None = None
         self._build()
         self._ros: RosContext | None = None
         self._shared_ros = ros
@@ -74,6 +78,9 @@ class Robot:
         self._simulation: RunningSimulation | None = None
         #: The robot's agent (``agent:`` in the configuration; needs the high level).
         self.agent: Agent | None = None
+        #: The control-plane core every network interface of this robot uses (ROS 2,
+        #: HTTP, VDA 5050); set by :meth:`start` when the high level runs here.
+        self.plane: ControlPlane | None = None
 
     def _build(self) -> None:
         """Import and register everything the configuration names, so a bad name or bad
@@ -90,6 +97,12 @@ class Robot:
                                    where=f"{src}: behaviors.{name}.class")
                 with _located(f"{src}: behaviors.{name}.params"):
                     hl.register(name, cls, **spec.params)
+            if cfg.vda5050 is not None:  # registers the order behaviour: before start
+                from beehave.interfaces.vda5050.agv import make_interface
+
+                with _located(f"{src}: vda5050"):
+                    self.vda5050 = make_interface(cfg.vda5050, high=hl,
+                                                  import_class=import_class, source=src)
             self.high = hl
         if self.only in (None, "low"):
             ll = LowLevelBehaviorManager(default=cfg.default_logic,
@@ -143,8 +156,13 @@ class Robot:
                 node = ros.create_node(HIGH_NODE, namespace=cfg.namespace,
                                        use_sim_time=cfg.use_sim_time)
                 self._nodes.append(node)
+                from beehave.interfaces import ControlPlane
+
+                self.plane = ControlPlane(self.high, low=self.low,
+                                          name=cfg.namespace.replace("/", "_"))
                 self._bridges.append(HighLevelBridge(
-                    self.high, node, state_period_s=cfg.ros.state_period_s))
+                    self.high, node, state_period_s=cfg.ros.state_period_s,
+                    plane=self.plane))
                 if cfg.agent is not None:  # before the behaviours, which may use it
                     from beehave.agents import Agent
 
@@ -157,6 +175,8 @@ class Robot:
                               else f"{cfg.source}: default_behavior",
                               only=(InvalidParameters, ConstructorFailed)):
                     self.high.start()
+                if self.vda5050 is not None:  # connects in the background, retrying
+                    self.vda5050.start(control=self.plane, node=node)
         except BaseException as exc:
             try:
                 self.shutdown()
@@ -199,12 +219,17 @@ class Robot:
 
         if self.high is not None:
             step("high-level shutdown", self.high.shutdown)
+        if self.vda5050 is not None:  # after the safe states: its last state shows them
+            step("closing the VDA 5050 interface", self.vda5050.close)
         if self.agent is not None:
             step("closing the agent", self.agent.close)
             self.agent = None
         for bridge in reversed(self._bridges):
             step(f"destroying {type(bridge).__name__}", bridge.destroy)
         self._bridges.clear()
+        if self.plane is not None:
+            step("closing the control plane", self.plane.close)
+            self.plane = None
         if self.low is not None:
             step("low-level shutdown", self.low.shutdown)
         if self._simulation is not None:

@@ -62,6 +62,11 @@ blocked event loop gives a refusal that says so). Unknown names are refused
 (``SetParametersResult.successful`` false; the reason lists the registered names). Both
 always show what runs.
 Service ``beehave/stop`` (std_srvs/Trigger) on the high-level node switches to ``idle``.
+
+The high-level side is an adapter of the control-plane core
+(:class:`beehave.interfaces.ControlPlane`): the state message is its ``status()``, the
+``behavior`` parameter and the stop service call its ``switch()`` and ``stop()``, so ROS 2,
+HTTP and VDA 5050 accept and refuse the same requests.
 """
 
 from __future__ import annotations
@@ -89,7 +94,9 @@ from beehave.blackboard import Change, check_key, from_json, to_json
 from beehave.clock import SimClock
 from beehave.errors import BeehaveError, BlackboardError, ConfigError
 from beehave.events import Event, EventBus, EventKind
-from beehave.highlevel import IDLE, HighLevelBehaviorManager
+from beehave.highlevel import HighLevelBehaviorManager
+from beehave.interfaces.core import STATE_SCHEMA as STATE_SCHEMA  # the state topic's schema
+from beehave.interfaces.core import ControlPlane
 from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.ros.context import in_executor_thread
 
@@ -99,7 +106,6 @@ BLACKBOARD_TOPIC = "beehave/blackboard"
 STATE_TOPIC = "beehave/high_level/state"
 STOP_SERVICE = "beehave/stop"
 BLACKBOARD_SCHEMA = "beehave/blackboard/2"
-STATE_SCHEMA = "beehave/high_level/state/2"
 MIRROR_WRITER = "ros:low_level"
 
 #: Reliable + transient-local, depth 1: a late joiner gets the last message.
@@ -209,15 +215,25 @@ class HighLevelBridge:
     ``manager.blackboard`` (what behaviours read); serves the ``behavior`` parameter and the
     ``beehave/stop`` service; feeds a :class:`~beehave.clock.SimClock` from ``/clock`` when
     the manager has one. :meth:`destroy` removes all of it (the node stays).
+
+    ``plane``: the robot's :class:`~beehave.interfaces.ControlPlane`, shared with its other
+    interfaces; without one the bridge makes its own and closes it in :meth:`destroy`.
     """
 
     def __init__(self, manager: HighLevelBehaviorManager, node: Node, *,
                  state_rate_hz: float = 50.0, state_period_s: float = 1.0,
-                 engine_rate_hz: float = 10.0) -> None:
+                 engine_rate_hz: float = 10.0, plane: ControlPlane | None = None) -> None:
         _check_positive("HighLevelBridge", state_rate_hz=state_rate_hz,
                         state_period_s=state_period_s, engine_rate_hz=engine_rate_hz)
+        if plane is not None and plane.high is not manager:
+            raise ConfigError(f"HighLevelBridge: the control plane {plane.name!r} belongs to "
+                              f"another HighLevelBehaviorManager")
         self.manager = manager
         self.node = node
+        self._own_plane = plane is None
+        #: The control-plane core every request goes through (validation, state).
+        self.plane = plane if plane is not None else ControlPlane(
+            manager, name=node.get_namespace().strip("/") or node.get_name())
         self._previous_node = manager.node  # given back by destroy()
         manager.node = node
         self._guard = _ParamGuard()
@@ -267,11 +283,11 @@ class HighLevelBridge:
         return self.manager.requested or self.manager.current
 
     def _request(self, name: str) -> None:
-        self.manager.request_switch(name)
+        self.plane.switch(name)
 
     def _on_stop(self, _req: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
-            self.manager.request_switch(IDLE)
+            self.plane.stop()
         except BeehaveError as exc:
             response.success, response.message = False, str(exc)
         else:
@@ -289,34 +305,9 @@ class HighLevelBridge:
                     log.debug("could not update parameter 'behavior'", exc_info=True)
 
     def state(self) -> dict[str, Any]:
-        """The message published on ``beehave/high_level/state``."""
-        snap = self.manager.snapshot()
-        running: list[dict[str, Any]] = []
-        engines: list[dict[str, Any]] = []
-
-        def walk(node: dict[str, Any] | None) -> None:
-            if node is None:
-                return
-            if node["status"] == "RUNNING":
-                running.append({"path": node["path"], "kind": node["kind"],
-                                "class": node["class"], "status": node["status"],
-                                "action_type": node.get("action_type")})
-                engine = node.get("engine")
-                if isinstance(engine, dict):
-                    # to_json: an engine's snapshot may hold tuples, inf, enum members …
-                    encoded = to_json(engine)
-                    encoded.pop("path", None)
-                    engines.append({"path": node["path"], **encoded})
-            for child in node.get("children", []):
-                walk(child)
-
-        walk(snap["top"])
-        top = self.manager.top
-        return {"schema": STATE_SCHEMA, "stamp": time.time(), "behavior": snap["current"],
-                "logic": None if top is None else type(top).logic, "running": running,
-                "engines": engines,
-                "locks": {k: v["holder"] for k, v in snap["locks"].items()},
-                "stuck": snap["stuck"]}
+        """The message published on ``beehave/high_level/state``
+        (:meth:`ControlPlane.status <beehave.interfaces.ControlPlane.status>`)."""
+        return self.plane.status()
 
     def _publish_if_dirty(self) -> None:
         if self._dirty.is_set():
@@ -371,6 +362,8 @@ class HighLevelBridge:
             self.node.destroy_subscription(self._clock_sub)
         self.node.destroy_service(self._stop_srv)
         _remove_param(self.node, "behavior", self._on_set_param)
+        if self._own_plane:
+            self.plane.close()
         if self.manager.node is self.node:
             self.manager.node = self._previous_node
 

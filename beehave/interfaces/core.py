@@ -1,0 +1,372 @@
+"""The control-plane core: what every network interface offers, validated in one place.
+
+ROS 2 (:mod:`beehave.ros.bridge`), VDA 5050 over MQTT and HTTP/WebSocket
+(:mod:`beehave.interfaces.http`) are thin adapters over one :class:`ControlPlane`: they
+parse their own wire format, call these methods and map the typed errors to their own
+error form (an HTTP 4xx, a VDA 5050 ``errors`` entry, a refused ROS parameter). None of
+them checks a behaviour name or a parameter itself, so the three always agree on what is
+valid and on what the error says.
+
+Errors (all :class:`~beehave.errors.BeehaveError`):
+
+- :class:`~beehave.errors.UnknownBehavior` — a name that is not registered (lists them);
+- :class:`~beehave.errors.InvalidParameters` — parameters the constructor cannot take, or
+  values that are not JSON;
+- :class:`~beehave.errors.ConstructorFailed` — the behaviour's own ``__init__`` raised;
+- :class:`~beehave.errors.ManagerShutdown` — the manager is not running any more;
+- :class:`~beehave.errors.UnknownKey` — a blackboard key that holds no value (names close
+  matches);
+- :class:`~beehave.errors.BadRequest` — a request of the wrong shape (a name that is not a
+  string, parameters that are not a mapping, a negative ``limit``);
+- :class:`~beehave.errors.BlackboardError` — a key or pattern that is not valid.
+"""
+
+from __future__ import annotations
+
+import difflib
+import inspect
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
+
+from beehave.blackboard import Blackboard, check_key, to_json
+from beehave.errors import BadRequest, InvalidParameters, UnknownBehavior, UnknownKey
+from beehave.events import Event
+from beehave.highlevel import IDLE, HighLevelBehaviorManager
+
+if TYPE_CHECKING:
+    from beehave.lowlevel import LowLevelBehaviorManager
+
+log = logging.getLogger(__name__)
+
+#: The schema of :meth:`ControlPlane.status` (published on ``beehave/high_level/state``).
+STATE_SCHEMA = "beehave/high_level/state/2"
+#: The schema of :meth:`ControlPlane.snapshot`.
+SNAPSHOT_SCHEMA = "beehave/snapshot/1"
+
+EventDict = dict[str, Any]
+EventListener = Callable[[EventDict], None]
+
+
+class ControlPlane:
+    """One robot's operations for network interfaces: switch, stop, status, snapshot,
+    blackboard, events.
+
+    ``high`` is the robot's high level; ``low`` its low level when it runs in this process
+    (its logics and its events are then included); ``blackboard`` is what
+    :meth:`blackboard` reads (default ``high.blackboard``: under ROS 2 the mirror of the
+    low level's); ``name`` names the robot in what the adapters send; ``events_kept`` is
+    the length of the event ring buffer that :meth:`events` reads.
+
+    Every method is safe from any thread. The plane subscribes to the managers' events
+    when it is created and unsubscribes in :meth:`close` (whoever creates it closes it).
+    """
+
+    def __init__(self, high: HighLevelBehaviorManager, *,
+                 low: LowLevelBehaviorManager | None = None,
+                 blackboard: Blackboard | None = None, name: str = "robot",
+                 events_kept: int = 500) -> None:
+        if not isinstance(events_kept, int) or isinstance(events_kept, bool) \
+                or events_kept < 1:
+            raise BadRequest(f"ControlPlane {name!r}: events_kept must be an int >= 1, "
+                             f"got {events_kept!r}")
+        self.high = high
+        self.low = low
+        self.name = name
+        #: What :meth:`blackboard` reads (adapters may subscribe to it for live updates).
+        self.board = blackboard if blackboard is not None else high.blackboard
+        self._lock = threading.Lock()
+        self._ring: deque[EventDict] = deque(maxlen=events_kept)
+        self._seq = 0
+        self._listeners: tuple[EventListener, ...] = ()
+        self._closed = False
+        self._unsubscribe = [high.subscribe(self._on_high_event)]
+        if low is not None:
+            self._unsubscribe.append(low.subscribe(self._on_low_event))
+
+    # -- what can run -----------------------------------------------------------------------
+
+    def behaviors(self) -> list[dict[str, Any]]:
+        """The registered top-level behaviours, ``idle`` included, sorted by name:
+        ``{"name", "class", "doc", "current", "parameters": [{"name", "type", "default",
+        "required"}]}``. A parameter given at registration shows that value as its default
+        and is not required."""
+        current = self.high.current
+        return [_describe(name, cls, registered, current == name)
+                for name, (cls, registered) in _registry(self.high)]
+
+    def logics(self) -> list[dict[str, Any]]:
+        """The registered top-level logics in the same shape ([] without a low level)."""
+        low = self.low
+        if low is None:
+            return []
+        current = low.current
+        return [_describe(name, cls, registered, current == name)
+                for name, (cls, registered) in _registry(low)]
+
+    # -- commands ---------------------------------------------------------------------------
+
+    def switch(self, name: str, params: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """Ask the high level to switch to ``name`` with ``params`` and return at once:
+        ``{"requested": name, "params": {...}}``.
+
+        Everything is checked before anything stops: the name (registered, else
+        :class:`~beehave.errors.UnknownBehavior` listing the names), the parameters (a
+        mapping of names to JSON values, accepted by the constructor, else
+        :class:`~beehave.errors.InvalidParameters`), the constructor itself
+        (:class:`~beehave.errors.ConstructorFailed`). The switch then runs in a manager
+        thread; its outcome arrives as events (``switch_completed``, or
+        ``switch_superseded`` when a later request overtook it)."""
+        if not isinstance(name, str):
+            raise BadRequest(f"{self.name}: the behaviour to switch to must be a string, got "
+                             f"{type(name).__name__} {name!r}; registered: "
+                             f"{', '.join(self.high.names)}")
+        names = self.high.names
+        if name not in names:
+            raise UnknownBehavior(name, names)
+        checked = _check_params(name, params)
+        self.high.request_switch(name, **checked)
+        return {"requested": name, "params": to_json(checked)}
+
+    def stop(self) -> dict[str, Any]:
+        """Switch to ``idle``: every action is interrupted and ends in its safe state."""
+        return self.switch(IDLE)
+
+    # -- what runs --------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        """What runs now, in strict JSON (the ``beehave/high_level/state/2`` message)::
+
+            {"schema", "stamp", "behavior", "logic",          # the top-level names
+             "running": [{"path", "kind", "class", "status", "action_type"}],
+             "engines": [{"path", "kind", ...the engine's own snapshot}],
+             "locks": {action_type: holder path}, "stuck": [paths]}
+
+        ``logic`` is the logic the top-level behaviour asks the low level for (its class
+        attribute ``logic``); ``engines`` has one entry per running behaviour driven by a
+        decision engine (a state machine's state, a tree's node statuses)."""
+        return _status(self.high.snapshot(), self.high.top)
+
+    def snapshot(self) -> dict[str, Any]:
+        """Everything a viewer draws, in strict JSON: :meth:`status` plus ``"robot"``
+        (this plane's name), ``"tree"`` (the running top-level behaviour with its
+        sub-behaviours and actions, each with status, durations and its engine),
+        ``"lock_details"`` (who holds each type lock since when), ``"history"`` (the last
+        ended top-level behaviours) and ``"low"`` (the low level's logic tree, HALs and
+        loop health; None without a low level — its blackboard is :meth:`blackboard`)."""
+        high = self.high.snapshot()
+        out = _status(high, self.high.top)
+        out.update({"schema": SNAPSHOT_SCHEMA, "robot": self.name,
+                    "tree": to_json(high["top"]), "lock_details": to_json(high["locks"]),
+                    "history": to_json(high["history"]), "manager": high["state"]})
+        low = self.low
+        if low is None:
+            out["low"] = None
+        else:
+            snap = dict(low.snapshot())
+            snap.pop("blackboard", None)  # served by blackboard(), which viewers poll apart
+            out["low"] = to_json(snap)
+        return out
+
+    def blackboard(self, *, key: str | None = None, pattern: str = "**"
+                   ) -> dict[str, dict[str, Any]]:
+        """Blackboard entries: ``{key: {"value", "stamp", "age_s", "stale", "writer"}}``.
+
+        ``key`` reads one entry (one that holds no value raises
+        :class:`~beehave.errors.UnknownKey` naming close matches); otherwise every key that
+        matches ``pattern`` (``*`` one segment, ``**`` any). Values are strict JSON
+        (:func:`~beehave.blackboard.to_json`: ``inf`` as ``{"$float": "inf"}``)."""
+        board = self.board
+        if key is not None:
+            if not isinstance(key, str):
+                raise BadRequest(f"{self.name}: a blackboard key must be a string, got "
+                                 f"{type(key).__name__}")
+            check_key(key)
+            entry = board.entry(key)
+            if entry is None:
+                keys = board.keys()
+                close = difflib.get_close_matches(key, keys, n=5, cutoff=0.5)
+                raise UnknownKey(key, close, total=len(keys), robot=self.name)
+            return {key: entry.as_dict()}
+        if not isinstance(pattern, str):
+            raise BadRequest(f"{self.name}: a blackboard pattern must be a string, got "
+                             f"{type(pattern).__name__}")
+        return board.snapshot(pattern)
+
+    # -- events -----------------------------------------------------------------------------
+
+    def events(self, *, after_seq: int = 0, limit: int = 200) -> list[dict[str, Any]]:
+        """The kept events with ``seq > after_seq``, oldest first, at most ``limit`` (the
+        newest ones when more are kept). Each is :meth:`Event.as_dict` in strict JSON plus
+        ``"seq"`` (monotonic from 1, never reused: pass the last one seen as ``after_seq``
+        to read on) and ``"source"`` (``"high"`` or ``"low"``)."""
+        for label, value in (("after_seq", after_seq), ("limit", limit)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                raise BadRequest(f"{self.name}: events {label} must be an int >= 0, got "
+                                 f"{value!r}")
+        with self._lock:
+            kept = [e for e in self._ring if e["seq"] > after_seq]
+        return kept[len(kept) - limit:] if limit < len(kept) else kept
+
+    def subscribe(self, callback: EventListener) -> Callable[[], None]:
+        """Call ``callback(event_dict)`` for every event from now on (the dicts that
+        :meth:`events` returns); returns a function that unsubscribes.
+
+        The callback runs in the thread that produced the event — a behaviour's, an
+        action's, the low level's loop: hand the dict to your own queue or loop and never
+        block there. A callback that raises is logged and stays subscribed."""
+        with self._lock:
+            self._listeners = (*self._listeners, callback)
+
+        def unsubscribe() -> None:
+            with self._lock:
+                self._listeners = tuple(c for c in self._listeners if c is not callback)
+
+        return unsubscribe
+
+    def close(self) -> None:
+        """Unsubscribe from the managers and drop every listener. Idempotent; the managers
+        keep running (whoever started them stops them)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._listeners = ()
+            unsubscribe, self._unsubscribe = self._unsubscribe, []
+        for fn in unsubscribe:
+            fn()
+
+    # -- internals --------------------------------------------------------------------------
+
+    def _on_high_event(self, event: Event) -> None:
+        self._record(event, "high")
+
+    def _on_low_event(self, event: Event) -> None:
+        self._record(event, "low")
+
+    def _record(self, event: Event, source: str) -> None:
+        data = event.as_dict()
+        data["detail"] = to_json(data["detail"])  # params, exceptions, paths … as JSON
+        data["source"] = source
+        with self._lock:
+            if self._closed:
+                return
+            self._seq += 1
+            data["seq"] = self._seq
+            self._ring.append(data)
+            listeners = self._listeners
+        for callback in listeners:
+            try:
+                callback(data)
+            except Exception:  # an observer must not break what it observes
+                log.exception("control plane %r: event listener %r raised", self.name,
+                              callback)
+
+
+# ---- helpers ---------------------------------------------------------------------------------
+
+def _registry(manager: Any) -> list[tuple[str, tuple[type, dict[str, Any]]]]:
+    """The manager's registry, sorted by name. Read from the framework's own managers
+    (same package); copied so a concurrent ``register`` cannot change it under us."""
+    return sorted(dict(manager._registry).items())
+
+
+def _type_name(annotation: Any) -> str | None:
+    if annotation is inspect.Parameter.empty:
+        return None
+    if isinstance(annotation, str):  # `from __future__ import annotations`
+        return annotation
+    return getattr(annotation, "__name__", None) or repr(annotation)
+
+
+def _describe(name: str, cls: type, registered: dict[str, Any], current: bool
+              ) -> dict[str, Any]:
+    params: list[dict[str, Any]] = []
+    try:
+        signature = inspect.signature(cls)
+    except (TypeError, ValueError):
+        signature = None
+    if signature is not None:
+        for p in signature.parameters.values():
+            if p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
+                continue
+            if p.name in registered:
+                default, required = to_json(registered[p.name]), False
+            elif p.default is p.empty:
+                default, required = None, True
+            else:
+                default, required = to_json(p.default), False
+            params.append({"name": p.name, "type": _type_name(p.annotation),
+                           "default": default, "required": required})
+    doc = inspect.getdoc(cls) or ""
+    return {"name": name, "class": f"{cls.__module__}.{cls.__qualname__}",
+            "doc": doc.split("\n\n")[0].strip(), "current": current, "parameters": params}
+
+
+def _is_json(value: Any) -> bool:
+    if value is None or isinstance(value, (bool, int, str)):
+        return True
+    if isinstance(value, float):
+        return math.isfinite(value)
+    if isinstance(value, list):
+        return all(_is_json(v) for v in value)
+    if isinstance(value, dict):
+        return all(isinstance(k, str) and _is_json(v) for k, v in value.items())
+    return False
+
+
+def _check_params(name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
+    """``params`` as a plain dict, refused unless it maps names to JSON values (what every
+    wire format can carry); the constructor's own check comes in ``request_switch``."""
+    if params is None:
+        return {}
+    if not isinstance(params, Mapping):
+        raise InvalidParameters(f"behavior {name!r}: parameters must be a mapping of "
+                                f"parameter names to values, got {type(params).__name__}")
+    out: dict[str, Any] = {}
+    for key, value in params.items():
+        if not isinstance(key, str) or not key.isidentifier():
+            raise InvalidParameters(f"behavior {name!r}: parameter name {key!r} is not a "
+                                    f"valid identifier")
+        if not _is_json(value):
+            raise InvalidParameters(f"behavior {name!r}: parameter {key!r} must be a JSON "
+                                    f"value (string, number, bool, null, list, object), "
+                                    f"got {type(value).__name__} {value!r}")
+        out[key] = value
+    return out
+
+
+def _status(snap: dict[str, Any], top: Any) -> dict[str, Any]:
+    """The ``beehave/high_level/state/2`` dict from a high-level snapshot."""
+    running: list[dict[str, Any]] = []
+    engines: list[dict[str, Any]] = []
+
+    def walk(node: dict[str, Any] | None) -> None:
+        if node is None:
+            return
+        if node["status"] == "RUNNING":
+            running.append({"path": node["path"], "kind": node["kind"],
+                            "class": node["class"], "status": node["status"],
+                            "action_type": node.get("action_type")})
+            engine = node.get("engine")
+            if isinstance(engine, dict):
+                # to_json: an engine's snapshot may hold tuples, inf, enum members …
+                encoded = to_json(engine)
+                encoded.pop("path", None)
+                engines.append({"path": node["path"], **encoded})
+        for child in node.get("children", []):
+            walk(child)
+
+    walk(snap["top"])
+    return {"schema": STATE_SCHEMA, "stamp": time.time(), "behavior": snap["current"],
+            "logic": None if top is None else getattr(type(top), "logic", None),
+            "running": running, "engines": engines,
+            "locks": {k: v["holder"] for k, v in snap["locks"].items()},
+            "stuck": snap["stuck"]}
+
+
+__all__ = ["SNAPSHOT_SCHEMA", "STATE_SCHEMA", "ControlPlane"]

@@ -1,0 +1,87 @@
+"""Every VDA 5050 message in and out is checked against the official 2.1.0 JSON schemas.
+
+The schemas ship in ``schemas/`` beside this module (MIT, VDA; see ``schemas/NOTICE.md``).
+:func:`problems` returns what is wrong with a message as :class:`Problem` entries, each
+naming the offending field by its path (``nodes[1].nodePosition.x``) — the adapter turns
+them into ``validationError`` entries of the AGV's state, so a fleet manager sees which
+field to fix. :func:`check` raises :class:`~beehave.errors.Vda5050ValidationError` instead:
+the adapter calls it on what it sends, where a problem is beehave's bug.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import dataclass
+from importlib import resources
+from typing import Any, Literal
+
+from jsonschema import Draft202012Validator  # type: ignore[import-untyped]
+from jsonschema.exceptions import ValidationError  # type: ignore[import-untyped]
+
+from beehave.errors import Vda5050ValidationError
+
+Topic = Literal["order", "instantActions", "state", "visualization", "connection",
+                "factsheet"]
+TOPICS: tuple[Topic, ...] = ("order", "instantActions", "state", "visualization",
+                             "connection", "factsheet")
+"""The six VDA 5050 topics, each with its own schema file."""
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One way a message breaks its schema: ``field`` is the JSON path of the offending
+    value (``""`` for the message itself), ``message`` what is wrong with it."""
+
+    field: str
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.field or '(message)'}: {self.message}"
+
+
+@functools.cache
+def validator(topic: Topic) -> Draft202012Validator:
+    """The compiled validator of one topic's schema (loaded once per process)."""
+    if topic not in TOPICS:
+        raise Vda5050ValidationError(f"no VDA 5050 schema for topic {topic!r}; topics: "
+                                     f"{', '.join(TOPICS)}")
+    text = resources.files(__package__).joinpath("schemas", f"{topic}.schema").read_text(
+        encoding="utf-8")
+    schema = json.loads(text)
+    Draft202012Validator.check_schema(schema)
+    return Draft202012Validator(schema)
+
+
+def field_path(error: ValidationError) -> str:
+    """``nodes[1].nodePosition.x`` for an error at that place; a missing required key is
+    named as the field it should have been (``nodes[0].released``)."""
+    path = ""
+    for part in error.absolute_path:
+        path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
+    if error.validator == "required" and isinstance(error.instance, dict):
+        # jsonschema reports a missing key at its parent; the user wants the key itself.
+        missing = [k for k in error.validator_value if k not in error.instance]
+        if missing:
+            path = f"{path}.{missing[0]}" if path else str(missing[0])
+    return path
+
+
+def problems(topic: Topic, message: Any) -> list[Problem]:
+    """What is wrong with ``message`` for ``topic`` (empty when it is valid), in document
+    order, at most one entry per field."""
+    found: dict[str, Problem] = {}
+    for error in sorted(validator(topic).iter_errors(message),
+                        key=lambda e: [str(p) for p in e.absolute_path]):
+        where = field_path(error)
+        found.setdefault(where, Problem(where, error.message))
+    return list(found.values())
+
+
+def check(topic: Topic, message: Any) -> None:
+    """Raise :class:`~beehave.errors.Vda5050ValidationError` listing every problem when
+    ``message`` breaks the ``topic`` schema."""
+    found = problems(topic, message)
+    if found:
+        raise Vda5050ValidationError(f"{topic} message breaks the VDA 5050 2.1.0 schema: "
+                                     + "; ".join(str(p) for p in found))

@@ -1,0 +1,408 @@
+"""A minimal VDA 5050 master control, and a local mosquitto broker, for the demo and tests.
+
+:class:`Broker` starts ``/usr/sbin/mosquitto`` on a free port of 127.0.0.1 with a
+configuration file of its own, and stops it by its PID (``kill`` / ``restart`` are for the
+reconnect tests). :class:`Master` is the fleet-manager side: it sends orders and instant
+actions and records every message the AGV publishes, each checked against the schema.
+Not a fleet manager: one AGV, no traffic control.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from dataclasses import field as dataclass_field
+from pathlib import Path
+from typing import Any, Self
+
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
+
+from beehave.interfaces.vda5050 import validation
+from beehave.interfaces.vda5050.agv import QOS, Topics, timestamp
+
+MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+class Broker:
+    """mosquitto on ``127.0.0.1:port``; a context manager."""
+
+    def __init__(self, port: int | None = None) -> None:
+        self.port = port or free_port()
+        self._dir = tempfile.TemporaryDirectory(prefix="beehave-mqtt-")
+        self.config = Path(self._dir.name) / "mosquitto.conf"
+        self.config.write_text(f"listener {self.port} 127.0.0.1\nallow_anonymous true\n"
+                               "persistence false\n")
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        self.proc = subprocess.Popen([MOSQUITTO, "-c", str(self.config)],
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                err = self.proc.stderr.read().decode() if self.proc.stderr else ""
+                raise RuntimeError(f"mosquitto exited at once: {err}")
+            try:
+                with socket.create_connection(("127.0.0.1", self.port), timeout=0.2):
+                    return
+            except OSError:
+                time.sleep(0.02)
+        raise RuntimeError(f"mosquitto did not listen on port {self.port}")
+
+    def kill(self) -> None:
+        """Stop the broker hard (SIGKILL): clients see their connection break."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=5)
+        self.proc = None
+
+    def restart(self) -> None:
+        self.kill()
+        self.start()
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if self.proc is not None and self.proc.stderr is not None:
+            self.proc.stderr.close()
+        self._dir.cleanup()
+
+
+class Master:
+    """A minimal VDA 5050 master control for one AGV (tests and the demo)."""
+
+    def __init__(self, port: int, *, manufacturer: str = "beehave", serial_number: str,
+                 interface_name: str = "uagv", host: str = "127.0.0.1",
+                 clock: Callable[[], float] | None = None) -> None:
+        self.topics = Topics.of(interface_name, manufacturer, serial_number)
+        self.manufacturer, self.serial_number = manufacturer, serial_number
+        self.received: dict[str, list[dict[str, Any]]] = {t: [] for t in validation.TOPICS}
+        self.invalid: list[str] = []
+        #: ``(clock(), state)`` for every state received, when a ``clock`` was given.
+        self.stamped: list[tuple[float, dict[str, Any]]] = []
+        self._clock = clock
+        self._cond = threading.Condition()
+        self._header = 0
+        self.client = mqtt.Client(CallbackAPIVersion.VERSION2,
+                                  client_id=f"master-{serial_number}-{id(self):x}")
+        self.client.on_message = self._on_message
+        self.client.on_connect = self._on_connect
+        self.client.connect_async(host, port, keepalive=5)
+        self.client.reconnect_delay_set(min_delay=1, max_delay=1)
+        self.client.loop_start()
+
+    def _on_connect(self, client: mqtt.Client, *_: Any) -> None:
+        for topic in ("state", "visualization", "connection", "factsheet"):
+            client.subscribe(self.topics[topic], qos=1)
+
+    def _on_message(self, _c: mqtt.Client, _u: Any, message: mqtt.MQTTMessage) -> None:
+        kind = message.topic.rsplit("/", 1)[-1]
+        data = json.loads(message.payload)
+        found = validation.problems(kind, data)  # type: ignore[arg-type]
+        with self._cond:
+            if found:
+                self.invalid.append(f"{kind}: {found}")
+            self.received[kind].append(data)
+            if kind == "state" and self._clock is not None:
+                self.stamped.append((self._clock(), data))
+            self._cond.notify_all()
+
+    def close(self) -> None:
+        self.client.disconnect()
+        self.client.loop_stop()
+
+    # ---- sending ------------------------------------------------------------------------
+
+    def header(self) -> dict[str, Any]:
+        self._header += 1
+        return {"headerId": self._header, "timestamp": timestamp(), "version": "2.1.0",
+                "manufacturer": self.manufacturer, "serialNumber": self.serial_number}
+
+    def send(self, topic: str, message: dict[str, Any] | str | bytes) -> None:
+        payload = message if isinstance(message, str | bytes) else json.dumps(message)
+        self.client.publish(self.topics[topic], payload, qos=QOS[topic]).wait_for_publish(5)
+
+    def order(self, order_id: str, update_id: int, nodes: list[dict[str, Any]],
+              edges: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+        """Send an order; edges default to straight ones between consecutive nodes."""
+        if edges is None:
+            edges = [edge(a, b) for a, b in zip(nodes, nodes[1:], strict=False)]
+        message = {**self.header(), "orderId": order_id, "orderUpdateId": update_id,
+                   "nodes": nodes, "edges": edges}
+        self.send("order", message)
+        return message
+
+    def instant(self, *actions: dict[str, Any]) -> dict[str, Any]:
+        message = {**self.header(), "actions": list(actions)}
+        self.send("instantActions", message)
+        return message
+
+    # ---- waiting ------------------------------------------------------------------------
+
+    def wait_for(self, topic: str, predicate: Callable[[dict[str, Any]], bool], *,
+                 timeout_s: float) -> dict[str, Any]:
+        """The first message on ``topic`` (received so far or later) that matches."""
+        seen = 0
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                messages = self.received[topic]
+                for message in messages[seen:]:
+                    if predicate(message):
+                        return message
+                seen = len(messages)
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    last = messages[-1] if messages else None
+                    raise AssertionError(f"no matching {topic} message within {timeout_s} s; "
+                                         f"last: {json.dumps(last)[:1500]}")
+                self._cond.wait(left)
+
+    def wait_state(self, predicate: Callable[[dict[str, Any]], bool], *,
+                   timeout_s: float) -> dict[str, Any]:
+        return self.wait_for("state", predicate, timeout_s=timeout_s)
+
+    def last_state(self) -> dict[str, Any]:
+        with self._cond:
+            return self.received["state"][-1]
+
+
+def node(node_id: str, seq: int, *, x: float | None = None, y: float | None = None,
+         map_id: str = "warehouse", released: bool = True,
+         actions: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    out: dict[str, Any] = {"nodeId": node_id, "sequenceId": seq, "released": released,
+                           "actions": actions or []}
+    if x is not None and y is not None:
+        out["nodePosition"] = {"x": x, "y": y, "mapId": map_id}
+    return out
+
+
+def edge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    return {"edgeId": f"{a['nodeId']}-{b['nodeId']}", "sequenceId": a["sequenceId"] + 1,
+            "released": b["released"], "startNodeId": a["nodeId"],
+            "endNodeId": b["nodeId"], "actions": []}
+
+
+def action(action_type: str, action_id: str, **params: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {"actionType": action_type, "actionId": action_id,
+                           "blockingType": "HARD"}
+    if params:
+        out["actionParameters"] = [{"key": k, "value": v} for k, v in params.items()]
+    return out
+
+
+# ---- the scenario: ``python -m behaviours.demos.vda5050_master`` ----------------------
+
+@dataclass
+class Timeline:
+    """What the master saw, stamped with the simulation's time."""
+
+    rows: list[tuple[float, str]] = dataclass_field(default_factory=list)
+    _last: dict[str, str] = dataclass_field(default_factory=dict)
+
+    def follow(self, sim_s: float, state: dict[str, Any]) -> None:
+        seen = {"lastNodeId": state["lastNodeId"], "driving": str(state["driving"]),
+                **{f"action {a['actionId']}": a["actionStatus"]
+                   for a in state["actionStates"]},
+                **{f"error {e['errorType']}": e.get("errorDescription", "")
+                   for e in state["errors"]}}
+        for key, value in seen.items():
+            if self._last.get(key) != value:
+                self._last[key] = value
+                self.rows.append((sim_s, f"{key}: {value}"))
+
+
+def run_scenario(*, out: Path, real_time_factor: float | None = None,
+                 console: Any = None) -> list[str]:
+    """EMILI takes a VDA 5050 order over a local broker: pick at ``emili_pickup``, drop at
+    ``emili_dropoff``; a second order to the charging station is cancelled mid-edge.
+    Returns the problems (empty: the physics matched)."""
+    import math as _math
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from beehave.config import load_config, parse_config
+    from beehave.robot import Robot
+    from beehave.ros.context import RosContext
+    from robots.node import SimNode
+    from robots.sim import Simulation
+    from robots.world import load_world
+
+    console = console or Console()
+    world = load_world("warehouse")
+    pickup, dropoff = world.station("emili_pickup"), world.station("emili_dropoff")
+    problems: list[str] = []
+    checks: list[tuple[str, str, str, bool]] = []
+    timeline = Timeline()
+    root = Path(__file__).resolve().parents[2]
+    with Broker() as broker:
+        data = load_config(root / "robots/config/emili_vda5050.yaml").model_dump(
+            by_alias=True, exclude={"source"})
+        data["vda5050"]["broker"]["port"] = broker.port
+        config = parse_config(data, source="emili_vda5050.yaml")
+        sim = Simulation(world, real_time_factor=real_time_factor)
+        ros = RosContext()
+        sim_node = SimNode(sim, ros)
+        robot = Robot(config)
+        master = Master(broker.port, serial_number="emili1", clock=lambda: sim.time_s)
+        emili = sim.emili("emili1")
+        lift_max = [0.0]
+        remove = sim.on_step(lambda _t: lift_max.__setitem__(
+            0, max(lift_max[0], emili.lift_height())))
+
+        def wait(predicate: Callable[[dict[str, Any]], bool], timeout_s: float
+                 ) -> dict[str, Any] | None:
+            try:
+                return master.wait_state(predicate, timeout_s=timeout_s)
+            except AssertionError as exc:
+                problems.append(str(exc)[:300])
+                return None
+
+        try:
+            ros.start()
+            sim.start()
+            robot.start()
+            master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                            timeout_s=30)
+            wait(lambda s: "agvPosition" in s, 30)
+            start = node("start", 0, x=3.0, y=2.0)
+            take = node("emili_pickup", 2, actions=[action("pick", "pick-1", loadId="box-1")])
+            put = node("emili_dropoff", 4, actions=[action("drop", "drop-1")])
+            console.print("master → order o1: start → emili_pickup (pick) → emili_dropoff "
+                          "(drop)")
+            master.order("o1", 0, [start, take, put])
+            picked = wait(lambda s: s["lastNodeId"] == "emili_pickup" and any(
+                a["actionId"] == "pick-1" and a["actionStatus"] == "FINISHED"
+                for a in s["actionStates"]), 120)
+            pick_pose = emili.pose()
+            pick_lift = emili.lift_height()
+            done = wait(lambda s: s["lastNodeId"] == "emili_dropoff" and any(
+                a["actionId"] == "drop-1" and a["actionStatus"] == "FINISHED"
+                for a in s["actionStates"]), 120)
+            drop_pose = emili.pose()
+            drop_lift = emili.lift_height()
+            if picked and done:
+                e_pick = _math.hypot(pick_pose.x_m - pickup.center_m[0],
+                                     pick_pose.y_m - pickup.center_m[1])
+                e_drop = _math.hypot(drop_pose.x_m - dropoff.center_m[0],
+                                     drop_pose.y_m - dropoff.center_m[1])
+                checks += [
+                    ("pick-up reached", f"{e_pick:.3f} m from centre", "≤ 0.20 m",
+                     e_pick <= 0.20),
+                    ("lift at the pick", f"{pick_lift:.3f} m", "≥ 0.19 m", pick_lift >= 0.19),
+                    ("drop-off reached", f"{e_drop:.3f} m from centre", "≤ 0.20 m",
+                     e_drop <= 0.20),
+                    ("lift after the drop", f"{drop_lift:.3f} m", "≤ 0.01 m",
+                     drop_lift <= 0.01)]
+            # Order 2, to the charging station, cancelled mid-edge.
+            here = node("emili_dropoff", 0)
+            charge = node("emili_charging", 2, actions=[action("startCharging", "charge-1")])
+            console.print("master → order o2: emili_dropoff → emili_charging; cancelOrder "
+                          "mid-edge")
+            master.order("o2", 0, [here, charge])
+            wait(lambda s: s["orderId"] == "o2" and s["driving"], 60)
+            t_drive = sim.time_s
+            while sim.time_s < t_drive + 3.0:
+                time.sleep(0.01)
+            stopped: list[float] = []
+            t_cancel = sim.time_s
+            watch = sim.on_step(lambda t: stopped.append(t) if not stopped and abs(
+                emili.odometry().linear_mps) < 0.01 else None)
+            master.instant(action("cancelOrder", "cancel-1"))
+            cancelled = wait(lambda s: any(a["actionId"] == "cancel-1" and
+                                           a["actionStatus"] == "FINISHED"
+                                           for a in s["actionStates"]), 30)
+            deadline = time.monotonic() + 10
+            while not stopped and time.monotonic() < deadline:
+                time.sleep(0.01)
+            watch()
+            stop_s = stopped[0] - t_cancel if stopped else _math.inf
+            checks.append(("velocity 0 after cancelOrder", f"{stop_s:.3f} s sim",
+                           "≤ 0.5 s sim", stop_s <= 0.5))
+            if cancelled is not None:
+                failed = {a["actionId"]: a["actionStatus"] for a in cancelled["actionStates"]}
+                checks.append(("order o2's action after the cancel",
+                               failed.get("charge-1", "?"), "FAILED",
+                               failed.get("charge-1") == "FAILED"))
+            checks.append(("every message validated", f"{len(master.invalid)} invalid",
+                           "0", not master.invalid))
+        finally:
+            remove()
+            out.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                sim.render_topdown(out)
+            except Exception as exc:  # the picture is a by-product; report it
+                problems.append(f"could not render {out}: {exc!r}")
+            master.close()
+            # Every step runs whatever an earlier one raised; the robot first (its safe
+            # states), the sim node before the simulation, ROS last.
+            with contextlib.ExitStack() as stack:
+                for step in (ros.shutdown, sim.close, sim_node.destroy, robot.shutdown):
+                    stack.callback(step)
+    for stamp, state in master.stamped:
+        timeline.follow(stamp, state)
+    timeline_table = Table(title="order timeline (sim time the master received it)")
+    timeline_table.add_column("t [s]", justify="right")
+    timeline_table.add_column("state change")
+    for t, what in timeline.rows:
+        timeline_table.add_row(f"{t:7.2f}", what)
+    console.print(timeline_table)
+    table = Table(title="physics checks")
+    for col in ("check", "measured", "target", "ok"):
+        table.add_column(col)
+    for name, measured, target, ok in checks:
+        table.add_row(name, measured, target, "[green]yes[/]" if ok else "[red]NO[/]")
+        if not ok:
+            problems.append(f"{name}: {measured} (target {target})")
+    console.print(table)
+    console.print(f"picture: {out}")
+    return problems
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(
+        prog="python -m behaviours.demos.vda5050_master",
+        description="EMILI as a VDA 5050 AGV: a local mosquitto, the simulated warehouse and "
+                    "a master that sends an order (pick, drop) and cancels a second one; "
+                    "exit 0 only if the physics matched.")
+    parser.add_argument("--out", default="docs/img/vda5050.png", metavar="FILE.png")
+    parser.add_argument("--real-time-factor", type=float, default=None, metavar="X",
+                        help="default: as fast as possible")
+    args = parser.parse_args(argv)
+    problems = run_scenario(out=Path(args.out), real_time_factor=args.real_time_factor)
+    for problem in problems:
+        print(f"FAILED: {problem}", file=sys.stderr)
+    return 1 if problems else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

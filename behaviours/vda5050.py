@@ -1,0 +1,181 @@
+"""VDA 5050 orders executed as a beehave behaviour (``docs/vda5050.md``).
+
+The interface (:mod:`beehave.interfaces.vda5050`) keeps the order state; this module does
+the driving and lifting:
+
+- :class:`OrderExecution` is the top-level behaviour the interface switches to when an
+  order arrives. It asks the order state what is due next, drives to each released node
+  along the base (:class:`~behaviours.actions.Navigation`, planned on the world's map)
+  and runs the node's actions: ``pick`` lifts EMILI's lift (:class:`~behaviours.actions.Lift`)
+  to ``lift_pick_m``, ``drop`` lowers it to ``lift_drop_m``, ``startCharging`` checks that
+  the AGV stands on a charging station (the simulation charges it there).
+  A ``cancelOrder`` or ``startPause`` switches it away (to ``idle``): its actions are
+  interrupted and reach their safe states (zero velocity; the lift holds its height).
+- :class:`WorldNodes` maps the order's nodes to the world: a node's ``nodePosition``
+  (``mapId`` = the world's name) or, without one, the station its ``nodeId`` names; and
+  checks that the released base can be driven (``noRouteError`` otherwise).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+from beehave import Behavior, Status
+from beehave.errors import NoPath
+from beehave.interfaces.vda5050.order import (
+    ActionState,
+    ActionStatus,
+    AgvOrders,
+    Drive,
+    OrderRejected,
+    Point,
+    RunAction,
+    error_entry,
+)
+from behaviours.actions import Goal, Lift, Navigation, world_planner
+
+log = logging.getLogger(__name__)
+
+ROBOT_RADIUS_M = 0.55
+CLEARANCE_M = 0.1
+"""Navigation's defaults: the route check plans with the same inflation as the drive."""
+
+
+class WorldNodes:
+    """Order nodes on a world's map (a world name or YAML path)."""
+
+    def __init__(self, world: str) -> None:
+        from robots.world import load_world
+
+        self.world_name = world
+        self.world = load_world(world)
+
+    def locate(self, node_id: str, position: dict[str, Any] | None) -> Point:
+        """``(x_m, y_m)`` of a node; :class:`OrderRejected` says why it cannot be placed."""
+        stations = sorted(s.name for s in self.world.stations)
+        if position is None:
+            if node_id in stations:
+                x, y = self.world.station(node_id).center_m
+                return (float(x), float(y))
+            raise OrderRejected("validationError", f"node {node_id!r} has no nodePosition "
+                                f"and is not a station of world {self.world.name!r} "
+                                f"(stations: {', '.join(stations)})")
+        if position["mapId"] != self.world.name:
+            raise OrderRejected("validationError", f"mapId {position['mapId']!r} is not this "
+                                f"AGV's map; valid: {self.world.name!r}")
+        x, y = float(position["x"]), float(position["y"])
+        width, depth = self.world.floor.size_m
+        if not (0.0 <= x <= width and 0.0 <= y <= depth):
+            raise OrderRejected("validationError", f"({x:g}, {y:g}) lies outside the "
+                                f"{width:g} x {depth:g} m floor of {self.world.name!r}")
+        return (x, y)
+
+    def check_route(self, points: Sequence[tuple[str, Point]]) -> None:
+        """Plan each leg of the released base; ``noRouteError`` naming the node that no
+        path reaches."""
+        planner = world_planner(self.world_name, ROBOT_RADIUS_M, CLEARANCE_M)
+        for (from_id, a), (to_id, b) in zip(points, points[1:], strict=False):
+            try:
+                planner.plan(a, b, goal_tolerance_m=0.1)
+            except NoPath as exc:
+                raise OrderRejected("noRouteError", f"no path from {from_id!r} to node "
+                                    f"{to_id!r} on map {self.world.name!r}: {exc}",
+                                    references={"nodeId": to_id}) from None
+
+    def charging_station_at(self, point: Point) -> str | None:
+        for station in self.world.stations_of_kind("charging"):
+            if station.contains(*point):
+                return station.name
+        return None
+
+
+class OrderExecution(Behavior):
+    """Execute the VDA 5050 order held by ``orders`` (see the module docstring).
+
+    It runs until switched away; with nothing due (no order, or the horizon not yet
+    released) it waits. Node and edge actions run one after another, each to its end,
+    before the AGV drives on (every action is treated as ``HARD`` blocking).
+    """
+
+    logic = None
+    node_map = WorldNodes
+    """How the interface places order nodes (``Vda5050Interface`` builds one per robot)."""
+
+    def __init__(self, *, orders: AgvOrders, world: str = "warehouse", speed_mps: float = 0.6,
+                 lift_pick_m: float = 0.2, lift_drop_m: float = 0.0,
+                 tolerance_m: float = 0.15) -> None:
+        self.orders = orders
+        self.world = world
+        self.nodes = WorldNodes(world)
+        self.speed_mps, self.tolerance_m = speed_mps, tolerance_m
+        self.lift_pick_m, self.lift_drop_m = lift_pick_m, lift_drop_m
+
+    def run(self) -> None:
+        self.orders.set_executing(True)
+        try:
+            while not self.interrupted:
+                task = self.orders.next_task()
+                if task is None:
+                    self.orders.wait_change(timeout_s=0.05)
+                elif isinstance(task, Drive):
+                    self.drive(task)
+                elif isinstance(task, RunAction):
+                    self.execute(task.action)
+        finally:
+            self.orders.set_executing(False)
+
+    def drive(self, task: Drive) -> None:
+        node, edge = task.node, task.edge
+        speed = self.speed_mps
+        if edge is not None and edge.max_speed_mps:
+            speed = min(speed, edge.max_speed_mps)
+        nav = self.start_action(Navigation(Goal(*node.position, name=node.node_id),
+                                           world=self.world, speed_mps=speed,
+                                           tolerance_m=self.tolerance_m))
+        nav.wait()
+        if nav.status is Status.SUCCEEDED:
+            self.orders.node_reached(node)
+        elif not self.interrupted:
+            # The AGV cannot go on: say so, fail the order's remaining actions.
+            self.orders.add_error(error_entry(
+                "noRouteError", f"could not reach node {node.node_id!r}: {nav.error}",
+                references={"nodeId": node.node_id, "orderId": self.orders.order_id},
+                level="FATAL"))
+            self.orders.cancel(f"node {node.node_id!r} not reached")
+
+    def execute(self, action: ActionState) -> None:
+        self.orders.set_action(action.action_id, ActionStatus.RUNNING)
+        kind = action.action_type
+        if kind in ("pick", "drop"):
+            height = self.lift_pick_m if kind == "pick" else self.lift_drop_m
+            lift = self.start_action(Lift(height))
+            lift.wait()
+            if lift.status is Status.SUCCEEDED:
+                load_id = str(action.parameters.get("loadId", ""))
+                self.orders.set_loads([{"loadId": load_id}] if kind == "pick" and load_id
+                                      else [{}] if kind == "pick" else [])
+                self.orders.set_action(action.action_id, ActionStatus.FINISHED,
+                                       f"lift at {float(lift.result):.3f} m")
+            elif not self.interrupted:
+                self.fail(action, f"lift: {lift.error}")
+        elif kind == "startCharging":
+            here = self.orders.position()
+            station = None if here is None else self.nodes.charging_station_at(here)
+            if station is None:
+                self.fail(action, f"not on a charging station (at {here})")
+            else:
+                self.orders.set_action(action.action_id, ActionStatus.FINISHED,
+                                       f"charging at {station}")
+        elif kind == "stopCharging":
+            self.orders.set_action(action.action_id, ActionStatus.FINISHED,
+                                   "charging stops when the AGV leaves the station")
+        else:  # the order state only lets supported types through
+            self.fail(action, f"unsupported action type {kind!r}")
+
+    def fail(self, action: ActionState, why: str) -> None:
+        self.orders.set_action(action.action_id, ActionStatus.FAILED, why)
+        self.orders.add_error(error_entry(
+            "actionError", f"action {action.action_id!r} ({action.action_type}) failed: {why}",
+            references={"actionId": action.action_id}))

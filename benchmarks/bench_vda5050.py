@@ -1,0 +1,196 @@
+"""VDA 5050 over MQTT (``python -m benchmarks vda5050``), on a local mosquitto of its own.
+
+- ``mqtt_roundtrip``: the floor — a bare paho ping echoed by another client through the
+  same broker, measured in the same run;
+- ``order_to_drive``: from the master publishing an order to the order behaviour taking
+  its first drive (the point where ``Navigation`` commands the wheels): MQTT, JSON,
+  schema validation, the order rules, the switch through the control plane. Target p99
+  ≤ 50 ms. The behaviour here is a stand-in that "arrives" at once, so the figure is the
+  interface's own cost; the physics figures are in the demo
+  (``python -m behaviours.demos.vda5050_master``: cancelOrder → velocity 0 in sim time);
+- ``order_to_state``: from the order to the first ``state`` carrying it at the master;
+- ``state_rate_10_agvs``: ten AGVs on one broker, each asked for a state every 50 ms
+  (``state_period_s``), the states the master receives per AGV and second (target ≥ 19).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
+
+from beehave import Behavior, HighLevelBehaviorManager
+from beehave.config import parse_config
+from beehave.interfaces import ControlPlane
+from beehave.interfaces.vda5050 import Vda5050Interface
+from beehave.interfaces.vda5050.order import AgvOrders, Drive, Point, RunAction
+from behaviours.demos.vda5050_master import Broker, Master, node
+from benchmarks._util import median, percentile, report
+
+N_ORDERS = int(os.environ.get("BENCH_VDA5050_N", 200))
+N_ROUNDTRIP = int(os.environ.get("BENCH_VDA5050_RT", 500))
+
+
+class _FlatMap:
+    def __init__(self, world: str) -> None:
+        self.world = world
+
+    def locate(self, node_id: str, position: dict[str, Any] | None) -> Point:
+        assert position is not None
+        return (float(position["x"]), float(position["y"]))
+
+    def check_route(self, points: Sequence[tuple[str, Point]]) -> None:
+        return None
+
+    def charging_station_at(self, point: Point) -> str | None:
+        return None
+
+
+class _Instant(Behavior):
+    """Takes each drive at once and notes when it took the first one of an order."""
+
+    node_map = _FlatMap
+    drive_started: dict[str, float] = {}  # noqa: RUF012 - orderId -> perf_counter
+
+    def __init__(self, *, orders: AgvOrders, **_options: Any) -> None:
+        self.orders = orders
+
+    def run(self) -> None:
+        self.orders.set_executing(True)
+        try:
+            while not self.interrupted:
+                task = self.orders.next_task()
+                if task is None:
+                    self.orders.wait_change(timeout_s=0.01)
+                elif isinstance(task, Drive):
+                    _Instant.drive_started.setdefault(self.orders.order_id,
+                                                      time.perf_counter())
+                    self.orders.node_reached(task.node)
+                elif isinstance(task, RunAction):
+                    self.orders.set_action(task.action.action_id,
+                                           task.action.status.FINISHED)
+        finally:
+            self.orders.set_executing(False)
+
+
+def _agv(port: int, serial: str, **more: Any) -> tuple[HighLevelBehaviorManager,
+                                                      Vda5050Interface, ControlPlane]:
+    config = parse_config({"namespace": serial, "vda5050": {
+        "broker": {"port": port}, "serial_number": serial, "world": "flat", **more}})
+    assert config.vda5050 is not None
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    interface = Vda5050Interface(config.vda5050, high=hl, executor=_Instant)
+    hl.start()
+    plane = ControlPlane(hl, name=serial)
+    interface.start(control=plane)
+    return hl, interface, plane
+
+
+def _close(hl: HighLevelBehaviorManager, interface: Vda5050Interface,
+           plane: ControlPlane) -> None:
+    hl.shutdown()
+    interface.close()
+    plane.close()
+
+
+def _roundtrip(port: int) -> list[float]:
+    got = threading.Event()
+    echo = mqtt.Client(CallbackAPIVersion.VERSION2)
+    ping = mqtt.Client(CallbackAPIVersion.VERSION2)
+    ready = threading.Barrier(3)
+    echo.on_connect = lambda c, *_: (c.subscribe("floor/ping"), ready.wait())
+    echo.on_message = lambda c, _u, m: c.publish("floor/pong", m.payload)
+    ping.on_connect = lambda c, *_: (c.subscribe("floor/pong"), ready.wait())
+    ping.on_message = lambda *_: got.set()
+    for client in (echo, ping):
+        client.connect("127.0.0.1", port)
+        client.loop_start()
+    ready.wait(timeout=10)
+    time.sleep(0.2)  # the subscriptions are acknowledged
+    samples = []
+    for _ in range(N_ROUNDTRIP):
+        got.clear()
+        t0 = time.perf_counter()
+        ping.publish("floor/ping", b"x" * 200)
+        if got.wait(2.0):
+            samples.append(time.perf_counter() - t0)
+    for client in (echo, ping):
+        client.disconnect()
+        client.loop_stop()
+    return samples
+
+
+def main() -> list[dict[str, Any]]:
+    rows = []
+    with Broker() as broker:
+        floor = _roundtrip(broker.port)
+        floor_p50 = median(floor) * 1e3
+        rows.append(report("mqtt_roundtrip_p50", floor_p50, "ms", None, None,
+                           p99_ms=round(percentile(floor, 99) * 1e3, 3), n=len(floor)))
+
+        agv = _agv(broker.port, "bench1")
+        master = Master(broker.port, serial_number="bench1")
+        master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                        timeout_s=10)
+        to_drive, to_state = [], []
+        try:
+            for i in range(N_ORDERS):
+                order_id = f"o{i}"
+                sent = time.perf_counter()
+                master.order(order_id, 0, [node("a", 0, x=1.0, y=1.0, map_id="flat"),
+                                           node("b", 2, x=2.0, y=1.0, map_id="flat")])
+                master.wait_state(lambda s, o=order_id: s["orderId"] == o, timeout_s=5)
+                to_state.append(time.perf_counter() - sent)
+                master.wait_state(lambda s, o=order_id: s["orderId"] == o
+                                  and s["lastNodeId"] == "b", timeout_s=5)
+                to_drive.append(_Instant.drive_started[order_id] - sent)
+        finally:
+            master.close()
+            _close(*agv)
+        p99 = percentile(to_drive, 99) * 1e3
+        rows.append(report("order_to_drive_p99", p99, "ms", "<= 50 ms", p99 <= 50.0,
+                           p50_ms=round(median(to_drive) * 1e3, 3), n=len(to_drive),
+                           ratio_to_floor_p50=round(median(to_drive) * 1e3 / floor_p50, 1)))
+        rows.append(report("order_to_state_p50", median(to_state) * 1e3, "ms", None, None,
+                           p99_ms=round(percentile(to_state, 99) * 1e3, 3)))
+
+        agvs = [_agv(broker.port, f"fleet{i}", state_period_s=0.05) for i in range(10)]
+        counts: dict[str, int] = {}
+        lock = threading.Lock()
+
+        def count(_c: Any, _u: Any, message: mqtt.MQTTMessage) -> None:
+            with lock:
+                counts[message.topic] = counts.get(message.topic, 0) + 1
+
+        listener = mqtt.Client(CallbackAPIVersion.VERSION2)
+        listener.on_message = count
+        listener.connect("127.0.0.1", broker.port)
+        listener.subscribe("uagv/v2/beehave/+/state")
+        listener.loop_start()
+        try:
+            time.sleep(1.0)  # all connected, steady
+            with lock:
+                counts.clear()
+            window_s = 3.0
+            time.sleep(window_s)
+            with lock:
+                per_agv = [counts.get(f"uagv/v2/beehave/fleet{i}/state", 0) / window_s
+                           for i in range(10)]
+        finally:
+            listener.disconnect()
+            listener.loop_stop()
+            for made in agvs:
+                _close(*made)
+        worst = min(per_agv)
+        rows.append(report("state_rate_10_agvs_min", worst, "Hz", ">= 19 Hz per AGV",
+                           worst >= 19.0, mean_hz=round(sum(per_agv) / 10, 2)))
+    return rows
+
+
+if __name__ == "__main__":
+    main()

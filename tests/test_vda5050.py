@@ -1,0 +1,535 @@
+"""VDA 5050 2.1 over MQTT: schemas, the order rules, and the interface on a real broker.
+
+The protocol tests run the real interface, a real :class:`HighLevelBehaviorManager`, the
+real control plane and a real mosquitto (its own config file, a free port, killed by PID);
+only the robot is replaced by :class:`FakeDrive`, a behaviour that "drives" each edge in
+``EDGE_S`` seconds, so the rules can be checked in a fraction of a second each. The same
+interface drives EMILI in the physics in ``test_vda5050_sim.py``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import pytest
+from mqtt_broker import Broker, Master, action, broker, edge, node
+
+from beehave import Behavior, HighLevelBehaviorManager
+from beehave.config import parse_config
+from beehave.errors import ConfigError, Vda5050ValidationError
+from beehave.interfaces import ControlPlane
+from beehave.interfaces.vda5050 import (
+    ActionStatus,
+    AgvOrders,
+    OrderRejected,
+    Vda5050Interface,
+    check,
+    problems,
+)
+from beehave.interfaces.vda5050.order import Drive, Point, RunAction
+from beehave.interfaces.vda5050.validation import TOPICS, validator
+
+__all__ = ["broker"]  # the fixture, imported for pytest
+
+SERIAL = "agv7"
+EDGE_S = 0.3
+
+
+# ---- a map and a robot stand-in ---------------------------------------------------------
+
+class LineMap:
+    """A 20 x 12 m map called ``warehouse``; stations ``a`` and ``dock`` (charging);
+    anything with x in 9–11 and y > 6 is a wall no route passes."""
+
+    STATIONS = {"a": (2.0, 2.0), "dock": (1.0, 1.0)}
+
+    def __init__(self, world: str) -> None:
+        self.world = world
+
+    def locate(self, node_id: str, position: dict[str, Any] | None) -> Point:
+        if position is None:
+            if node_id in self.STATIONS:
+                return self.STATIONS[node_id]
+            raise OrderRejected("validationError", f"no station {node_id!r}")
+        if position["mapId"] != "warehouse":
+            raise OrderRejected("validationError", f"mapId {position['mapId']!r}; valid: "
+                                "'warehouse'")
+        return (float(position["x"]), float(position["y"]))
+
+    def check_route(self, points: Sequence[tuple[str, Point]]) -> None:
+        for node_id, (x, y) in points:
+            if 9 <= x <= 11 and y > 6:
+                raise OrderRejected("noRouteError", f"no path to {node_id!r}",
+                                    references={"nodeId": node_id})
+
+    def charging_station_at(self, point: Point) -> str | None:
+        return "dock" if abs(point[0] - 1.0) < 0.5 and abs(point[1] - 1.0) < 0.5 else None
+
+
+class FakeDrive(Behavior):
+    """Executes orders like ``OrderExecution``, without a robot: an edge takes ``EDGE_S``
+    (interruptible), an action ``EDGE_S / 3``; ``where`` is the fake position."""
+
+    node_map = LineMap
+    where: Point = (0.0, 0.0)
+    done: list[str] = []  # noqa: RUF012 - shared log of the test's executions
+
+    def __init__(self, *, orders: AgvOrders, **_options: Any) -> None:
+        self.orders = orders
+
+    def run(self) -> None:
+        self.orders.set_executing(True)
+        try:
+            while not self.interrupted:
+                task = self.orders.next_task()
+                if task is None:
+                    self.orders.wait_change(timeout_s=0.02)
+                elif isinstance(task, Drive):
+                    if self.sleep(EDGE_S):
+                        FakeDrive.where = task.node.position
+                        FakeDrive.done.append(task.node.node_id)
+                        self.orders.node_reached(task.node)
+                elif isinstance(task, RunAction):
+                    self.orders.set_action(task.action.action_id, ActionStatus.RUNNING)
+                    if self.sleep(EDGE_S / 3):
+                        FakeDrive.done.append(task.action.action_id)
+                        self.orders.set_action(task.action.action_id, ActionStatus.FINISHED)
+        finally:
+            self.orders.set_executing(False)
+
+
+def options(port: int, **more: Any) -> Any:
+    config = parse_config({"namespace": "t", "vda5050": {
+        "broker": {"host": "127.0.0.1", "port": port, "reconnect_max_s": 1.0},
+        "serial_number": SERIAL, "executor": "test_vda5050:FakeDrive",
+        "visualization_rate_hz": 5.0, **more}})
+    assert config.vda5050 is not None
+    return config.vda5050
+
+
+class Agv:
+    """The interface on a manager and a control plane, with a master on the broker."""
+
+    def __init__(self, broker: Broker, **more: Any) -> None:
+        FakeDrive.where, FakeDrive.done = (0.0, 0.0), []
+        self.hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+        self.interface = Vda5050Interface(options(broker.port, **more), high=self.hl,
+                                          executor=FakeDrive)
+        self.interface._position = lambda: FakeDrive.where  # type: ignore[method-assign]
+        self.interface.orders._position = lambda: FakeDrive.where
+        self.hl.start()
+        self.plane = ControlPlane(self.hl, name="t")
+        self.master = Master(broker.port, serial_number=SERIAL)
+        self.interface.start(control=self.plane)
+
+    def close(self) -> None:
+        self.hl.shutdown()
+        self.interface.close()
+        self.plane.close()
+        self.master.close()
+
+
+@pytest.fixture
+def agv(broker: Broker) -> Iterator[Agv]:
+    made = Agv(broker)
+    try:
+        made.master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                             timeout_s=10)
+        yield made
+    finally:
+        made.close()
+    assert not made.master.invalid, made.master.invalid
+
+
+def three_nodes(pick: str = "p1", drop: str = "d1") -> list[dict[str, Any]]:
+    return [node("n0", 0, x=0.0, y=0.0),
+            node("n1", 2, x=3.0, y=0.0, actions=[action("pick", pick, loadId="L1")]),
+            node("n2", 4, x=6.0, y=0.0, actions=[action("drop", drop)])]
+
+
+def errors_of(state: dict[str, Any], error_type: str) -> list[dict[str, Any]]:
+    return [e for e in state["errors"] if e["errorType"] == error_type]
+
+
+def refs(error: dict[str, Any]) -> dict[str, str]:
+    return {r["referenceKey"]: r["referenceValue"] for r in error["errorReferences"]}
+
+
+# ---- the schemas ------------------------------------------------------------------------
+
+def test_every_schema_ships_with_its_licence_and_compiles() -> None:
+    from importlib import resources
+
+    folder = resources.files("beehave.interfaces.vda5050").joinpath("schemas")
+    assert "Verband der Automobilindustrie" in folder.joinpath("LICENSE.txt").read_text()
+    assert "MIT" in folder.joinpath("NOTICE.md").read_text()
+    for topic in TOPICS:
+        assert validator(topic).schema["$schema"].endswith("2020-12/schema")
+
+
+def test_a_schema_violation_names_the_field() -> None:
+    order = {"headerId": 1, "timestamp": "2024-01-01T00:00:00Z", "version": "2.1.0",
+             "manufacturer": "m", "serialNumber": "s", "orderId": "o", "orderUpdateId": 0,
+             "nodes": [{"nodeId": "n0", "sequenceId": 0, "actions": []},
+                       {"nodeId": "n1", "sequenceId": "two", "released": True,
+                        "actions": []}],
+             "edges": []}
+    fields = [p.field for p in problems("order", order)]
+    assert fields == ["nodes[0].released", "nodes[1].sequenceId"]
+    with pytest.raises(Vda5050ValidationError, match=r"nodes\[1\]\.sequenceId"):
+        check("order", order)
+
+
+# ---- the order rules (no broker) --------------------------------------------------------
+
+def book() -> AgvOrders:
+    return AgvOrders(locate=LineMap("warehouse").locate,
+                     check_route=LineMap("warehouse").check_route)
+
+
+def order(order_id: str, update_id: int, nodes: list[dict[str, Any]],
+          edges: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    return {"orderId": order_id, "orderUpdateId": update_id, "nodes": nodes,
+            "edges": edges if edges is not None else
+            [edge(a, b) for a, b in zip(nodes, nodes[1:], strict=False)]}
+
+
+def drive_all(orders: AgvOrders) -> None:
+    while (task := orders.next_task()) is not None:
+        if isinstance(task, Drive):
+            orders.node_reached(task.node)
+        else:
+            orders.set_action(task.action.action_id, ActionStatus.FINISHED)
+
+
+def test_update_is_stitched_at_the_last_base_node_and_replaces_the_horizon() -> None:
+    orders = book()
+    p1 = action("pick", "p1")
+    assert orders.accept(order("o", 0, [node("n0", 0, x=0, y=0),
+                                        node("n1", 2, x=1, y=0, actions=[p1]),
+                                        node("h", 4, x=9, y=1, released=False,
+                                             actions=[action("pick", "gone")])]))
+    # The stitching node comes again with its actions (as masters send it): known, kept.
+    assert orders.accept(order("o", 1, [node("n1", 2, x=1, y=0, actions=[p1]),
+                                        node("n2", 4, x=2, y=0), node("n3", 6, x=3, y=0,
+                                        actions=[action("pick", "gone")])]))
+    fields = orders.state_fields()
+    assert [n["nodeId"] for n in fields["nodeStates"]] == ["n0", "n1", "n2", "n3"]
+    assert [e["sequenceId"] for e in fields["edgeStates"]] == [1, 3, 5]
+    # The horizon's action came again on a released node: one entry, WAITING.
+    assert [(a["actionId"], a["actionStatus"]) for a in fields["actionStates"]] == [
+        ("p1", "WAITING"), ("gone", "WAITING")]
+    drive_all(orders)
+    assert (orders.last_node_id, orders.last_node_sequence_id) == ("n3", 6)
+    assert not orders.active()
+
+
+@pytest.mark.parametrize(("update_id", "first", "what"), [
+    (0, ("n1", 2), None),                              # a resend: ignored, no error
+    (1, ("n1", 4), "current base ends at 'n1'"),       # out of sequence (sequenceId)
+    (2, ("n0", 0), "current base ends at 'n1'"),       # out of sequence (node)
+])
+def test_updates_that_do_not_continue_the_base_are_refused(
+        update_id: int, first: tuple[str, int], what: str | None) -> None:
+    orders = book()
+    orders.accept(order("o", 1 if update_id == 0 else 0,
+                        [node("n0", 0, x=0, y=0), node("n1", 2, x=1, y=0)]))
+    before = orders.state_fields()
+    update = order("o", 1 if update_id == 0 else update_id,
+                   [node(first[0], first[1], x=1, y=0), node("n9", first[1] + 2, x=2, y=0)])
+    if what is None:
+        assert orders.accept(update) is False
+    else:
+        with pytest.raises(OrderRejected, match=what) as info:
+            orders.accept(update)
+        assert info.value.entry["errorType"] == "orderUpdateError"
+    assert orders.state_fields() == before
+
+
+def test_a_stale_update_is_refused_and_the_order_goes_on() -> None:
+    orders = book()
+    orders.accept(order("o", 3, [node("n0", 0, x=0, y=0), node("n1", 2, x=1, y=0)]))
+    with pytest.raises(OrderRejected, match="older than the current 3") as info:
+        orders.accept(order("o", 2, [node("n1", 2, x=1, y=0), node("n2", 4, x=2, y=0)]))
+    assert info.value.entry["errorType"] == "orderUpdateError"
+    assert orders.order_update_id == 3 and orders.active()
+
+
+def test_a_new_order_waits_until_the_current_one_is_done() -> None:
+    orders = book()
+    orders.accept(order("o1", 0, [node("n0", 0, x=0, y=0), node("n1", 2, x=1, y=0)]))
+    with pytest.raises(OrderRejected, match="still executing order 'o1'"):
+        orders.accept(order("o2", 0, [node("n1", 2, x=1, y=0)]))
+    drive_all(orders)
+    assert orders.accept(order("o2", 0, [node("n1", 0, x=1, y=0)]))
+    assert orders.order_id == "o2"
+
+
+@pytest.mark.parametrize(("nodes", "edges", "error_type", "field"), [
+    ([node("n0", 0, x=0, y=0, released=False)], [], "validationError", "nodes[0].released"),
+    ([node("n0", 0, x=0, y=0), node("n1", 2, x=1, y=0, released=False),
+      node("n2", 4, x=2, y=0)], None, "validationError", "nodes[2].released"),
+    ([node("n0", 0, x=0, y=0, actions=[action("dance", "x")])], [], "validationError",
+     "nodes[0].actions[0].actionType"),
+    ([node("n0", 0, x=0, y=0, map_id="moon")], [], "validationError",
+     "nodes[0].nodePosition"),
+    ([node("nowhere", 0)], [], "validationError", "nodes[0].nodePosition"),
+    ([node("n0", 0, x=0, y=0), node("n1", 2, x=1, y=0)], [], "validationError", "edges"),
+    ([node("n0", 0, x=0, y=0), node("n1", 2, x=10, y=8)], None, "noRouteError", None),
+])
+def test_bad_orders_are_refused_naming_the_field(
+        nodes: list[dict[str, Any]], edges: list[dict[str, Any]] | None, error_type: str,
+        field: str | None) -> None:
+    orders = book()
+    with pytest.raises(OrderRejected) as info:
+        orders.accept(order("o", 0, nodes, edges))
+    entry = info.value.entry
+    assert entry["errorType"] == error_type
+    if field is not None:
+        assert refs(entry)["field"] == field, entry
+    else:
+        assert refs(entry)["nodeId"] == "n1"
+    assert orders.order_id == "" and not orders.active()
+
+
+# ---- the interface on a real broker -----------------------------------------------------
+
+def test_connection_online_then_factsheet_and_state_validate(agv: Agv) -> None:
+    sheet = agv.master.wait_for("factsheet", lambda m: True, timeout_s=5)
+    actions = {a["actionType"]: a["actionScopes"]
+               for a in sheet["protocolFeatures"]["agvActions"]}
+    assert actions["pick"] == ["NODE", "EDGE"] and actions["cancelOrder"] == ["INSTANT"]
+    state = agv.master.wait_state(lambda s: True, timeout_s=5)
+    assert state["orderId"] == "" and state["errors"] == []
+    agv.master.wait_for("visualization", lambda m: True, timeout_s=5)
+
+
+def test_order_is_executed_node_by_node_with_its_actions(agv: Agv) -> None:
+    agv.master.order("o1", 0, three_nodes())
+    done = agv.master.wait_state(
+        lambda s: s["lastNodeId"] == "n2" and all(
+            a["actionStatus"] == "FINISHED" for a in s["actionStates"]), timeout_s=10)
+    assert done["nodeStates"] == [] and done["edgeStates"] == []
+    assert FakeDrive.done == ["n0", "n1", "p1", "n2", "d1"]
+    # Every step was reported as it happened: n1 reached while p1 still waited.
+    agv.master.wait_state(lambda s: s["lastNodeId"] == "n1" and any(
+        a["actionId"] == "d1" and a["actionStatus"] == "WAITING" for a in s["actionStates"]),
+        timeout_s=1)
+
+
+def test_stale_update_is_refused_in_the_state_while_the_order_runs_on(agv: Agv) -> None:
+    nodes = three_nodes()
+    agv.master.order("o1", 2, nodes)
+    agv.master.order("o1", 1, [nodes[2], node("n3", 6, x=7.0, y=0.0)])
+    state = agv.master.wait_state(lambda s: bool(errors_of(s, "orderUpdateError")),
+                                  timeout_s=5)
+    error = errors_of(state, "orderUpdateError")[0]
+    assert refs(error)["orderUpdateId"] == "1" and "older than the current 2" in \
+        error["errorDescription"]
+    done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and all(
+        a["actionStatus"] == "FINISHED" for a in s["actionStates"]), timeout_s=10)
+    assert done["orderUpdateId"] == 2
+    assert FakeDrive.done == ["n0", "n1", "p1", "n2", "d1"]
+
+
+def test_update_stitched_while_driving(agv: Agv) -> None:
+    base = [node("n0", 0, x=0.0, y=0.0), node("n1", 2, x=1.0, y=0.0),
+            node("h2", 4, x=2.0, y=0.0, released=False)]
+    agv.master.order("o1", 0, base)
+    agv.master.wait_state(lambda s: s["newBaseRequest"] is True or s["lastNodeId"] == "n1",
+                          timeout_s=5)
+    agv.master.order("o1", 1, [node("n1", 2, x=1.0, y=0.0), node("n2", 4, x=2.0, y=0.0)])
+    done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=5)
+    assert done["orderUpdateId"] == 1 and done["errors"] == []
+    assert FakeDrive.done == ["n0", "n1", "n2"]
+
+
+@pytest.mark.parametrize(("payload", "field"), [
+    (b"{not json", None),
+    ({"headerId": 1}, "timestamp"),
+])
+def test_invalid_messages_become_validation_errors(agv: Agv, payload: Any,
+                                                   field: str | None) -> None:
+    agv.master.send("order", payload)
+    state = agv.master.wait_state(lambda s: bool(errors_of(s, "validationError")),
+                                  timeout_s=5)
+    error = errors_of(state, "validationError")[0]
+    assert refs(error)["topic"].endswith("/order")
+    if field is None:
+        assert "not valid JSON" in error["errorDescription"]
+    else:
+        assert refs(error)["field"] == field, error
+    assert agv.hl.current == "idle"  # nothing started, nothing crashed
+
+
+def test_an_order_for_another_serial_number_is_refused(agv: Agv) -> None:
+    message = {**agv.master.header(), "serialNumber": "someone_else", "orderId": "o",
+               "orderUpdateId": 0, "nodes": [node("n0", 0, x=0.0, y=0.0)], "edges": []}
+    agv.master.send("order", message)
+    state = agv.master.wait_state(lambda s: bool(errors_of(s, "validationError")),
+                                  timeout_s=5)
+    assert refs(errors_of(state, "validationError")[0])["field"] == "serialNumber"
+    assert state["orderId"] == ""
+
+
+def test_unknown_instant_action_is_refused_in_the_state(agv: Agv) -> None:
+    agv.master.instant(action("teleport", "i1"))
+    state = agv.master.wait_state(lambda s: bool(errors_of(s, "validationError")),
+                                  timeout_s=5)
+    assert refs(errors_of(state, "validationError")[0])["field"] == "actions[0].actionType"
+    assert {"actionId": "i1", "actionType": "teleport", "actionStatus": "FAILED"}.items() <= \
+        next(a for a in state["actionStates"] if a["actionId"] == "i1").items()
+
+
+def test_cancel_order_mid_edge_stops_and_fails_the_rest(agv: Agv) -> None:
+    agv.master.order("o1", 0, three_nodes())
+    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=5)
+    agv.master.instant(action("cancelOrder", "c1"))
+    state = agv.master.wait_state(lambda s: any(
+        a["actionId"] == "c1" and a["actionStatus"] == "FINISHED"
+        for a in s["actionStates"]), timeout_s=5)
+    status = {a["actionId"]: a["actionStatus"] for a in state["actionStates"]}
+    assert status == {"p1": "FAILED", "d1": "FAILED", "c1": "FINISHED"}
+    assert state["nodeStates"] == [] and state["edgeStates"] == []
+    assert state["lastNodeId"] == "n0" and state["orderId"] == "o1"
+    assert agv.hl.current == "idle" or agv.hl.requested == "idle"
+    assert "n1" not in FakeDrive.done
+    # Nothing left to cancel: the standard's error.
+    agv.master.instant(action("cancelOrder", "c2"))
+    agv.master.wait_state(lambda s: bool(errors_of(s, "noOrderToCancel")), timeout_s=5)
+    # And a new order is taken after the cancel.
+    agv.master.order("o2", 0, [node("n0", 0, x=0.0, y=0.0)])
+    agv.master.wait_state(lambda s: s["orderId"] == "o2" and s["lastNodeId"] == "n0",
+                          timeout_s=5)
+
+
+def test_pause_and_resume(agv: Agv) -> None:
+    agv.master.order("o1", 0, three_nodes())
+    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=5)
+    agv.master.instant(action("startPause", "s1"))
+    paused = agv.master.wait_state(lambda s: s["paused"] is True, timeout_s=5)
+    reached = paused["lastNodeId"]
+    agv.master.wait_state(lambda s: any(a["actionId"] == "s1" and a["actionStatus"] ==
+                                        "FINISHED" for a in s["actionStates"]), timeout_s=5)
+    agv.master.instant(action("stateRequest", "r1"))
+    still = agv.master.wait_state(lambda s: any(a["actionId"] == "r1"
+                                                for a in s["actionStates"]), timeout_s=5)
+    assert still["lastNodeId"] == reached and still["paused"] is True
+    agv.master.instant(action("stopPause", "s2"))
+    done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and not s["paused"],
+                                 timeout_s=10)
+    assert {a["actionId"]: a["actionStatus"] for a in done["actionStates"]}["d1"] in (
+        "RUNNING", "FINISHED", "WAITING")
+    assert FakeDrive.done.count("n2") == 1
+
+
+def test_broker_killed_and_restarted(broker: Broker) -> None:
+    made = Agv(broker)
+    try:
+        master = made.master
+        master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                        timeout_s=10)
+        master.order("o1", 0, three_nodes())
+        master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=5)
+        # A second master on the broker sees the AGV's last will when the AGV's link
+        # breaks; kill the broker, restart it, and the AGV reconnects on its own.
+        broker.restart()
+        master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE"
+                        and m["headerId"] >= 2, timeout_s=15)
+        assert made.interface.connects >= 2
+        # The master resends the order it is not sure arrived: not executed twice.
+        master.order("o1", 0, three_nodes())
+        master.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=10)
+        assert FakeDrive.done.count("n1") == 1 and FakeDrive.done.count("p1") == 1
+    finally:
+        made.close()
+    assert not made.master.invalid
+
+
+def test_the_last_will_says_connection_broken(broker: Broker) -> None:
+    watcher = Master(broker.port, serial_number=SERIAL)
+    made = Agv(broker)
+    try:
+        watcher.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                         timeout_s=10)
+        # Cut the AGV's link without a DISCONNECT (as a crash or a cable would): the
+        # broker publishes the will.
+        assert made.interface._client is not None
+        made.interface._client._sock_close()  # type: ignore[attr-defined]
+        watcher.wait_for("connection", lambda m: m["connectionState"] == "CONNECTIONBROKEN",
+                         timeout_s=15)
+        last = watcher.wait_for("connection", lambda m: m["connectionState"] == "ONLINE"
+                                and m["headerId"] >= 2, timeout_s=15)
+        assert last["serialNumber"] == SERIAL
+    finally:
+        made.close()
+        watcher.wait_for("connection", lambda m: m["connectionState"] == "OFFLINE",
+                         timeout_s=5)
+        watcher.close()
+    assert not watcher.invalid
+
+
+def test_config_errors_name_the_key() -> None:
+    with pytest.raises(ConfigError, match=r"vda5050\.serial_number: String should match"):
+        parse_config({"namespace": "t", "vda5050": {"serial_number": "a/b"}})
+    with pytest.raises(ConfigError, match=r"vda5050\.broker\.hots: unknown key; valid keys: "
+                                          r"host, port"):
+        parse_config({"namespace": "t", "vda5050": {"serial_number": "a",
+                                                     "broker": {"hots": "x"}}})
+
+
+def test_username_from_a_missing_environment_variable_is_refused(broker: Broker) -> None:
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    interface = Vda5050Interface(options(broker.port, broker={
+        "port": broker.port, "username_env": "BEEHAVE_TEST_NO_SUCH_VAR"}),
+        high=hl, executor=FakeDrive)
+    with pytest.raises(ConfigError, match="BEEHAVE_TEST_NO_SUCH_VAR"):
+        interface.start(control=ControlPlane(hl, name="t"))
+    interface.close()
+    hl.shutdown()
+
+
+def test_no_broker_is_reported_and_retried_until_one_appears(
+        caplog: pytest.LogCaptureFixture) -> None:
+    late = Broker()
+    made_hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    interface = Vda5050Interface(options(late.port), high=made_hl, executor=FakeDrive)
+    made_hl.start()
+    plane = ControlPlane(made_hl, name="t")
+    try:
+        with caplog.at_level("WARNING", logger="beehave.interfaces.vda5050.agv"):
+            interface.start(control=plane)
+            assert not interface.connected.wait(1.5)
+        assert f"no MQTT broker reachable at 127.0.0.1:{late.port}" in caplog.text
+        with late:
+            assert interface.connected.wait(10), "did not connect once the broker was up"
+    finally:
+        made_hl.shutdown()
+        interface.close()
+        plane.close()
+
+
+def test_beehave_broker_serves_until_sigterm() -> None:
+    import subprocess
+    import sys
+
+    import paho.mqtt.client as mqtt
+    from mqtt_broker import free_port
+    from paho.mqtt.enums import CallbackAPIVersion
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "beehave.cli", "broker", "--port",
+                             str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        assert f"MQTT broker on 127.0.0.1:{port}" in line, line
+        client = mqtt.Client(CallbackAPIVersion.VERSION2)
+        assert client.connect("127.0.0.1", port) == mqtt.MQTT_ERR_SUCCESS
+        client.disconnect()
+    finally:
+        proc.terminate()
+        out, _ = proc.communicate(timeout=10)
+    assert proc.returncode == 0 and "broker stopped" in out, out

@@ -1,0 +1,118 @@
+"""VDA 5050 in the physics: ``beehave sim --fast`` and ``beehave run`` (EMILI with a
+``vda5050:`` section) as real processes over DDS, a real mosquitto, and a test master.
+
+One order over three nodes with a pick and a drop, released in two parts (a stale update
+refused in between), is driven in pybullet; the sim's ground-truth odometry and lift
+state are checked. A second order is cancelled mid-edge: EMILI stands still, the rest of
+the order FAILED. Every message EMILI sent validates against the 2.1.0 schemas.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+pytest.importorskip("pybullet")
+pytest.importorskip("rclpy")
+
+from mqtt_broker import Broker, Master, action, edge, node  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from ros_probe import Probe  # noqa: E402
+from std_msgs.msg import Float64  # noqa: E402
+
+from robots.world import load_world  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+TOLERANCE_M = 0.15  # Navigation's, which OrderExecution uses
+
+
+def _start(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, *args], cwd=ROOT, env=dict(os.environ),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _status(state: dict[str, Any]) -> dict[str, str]:
+    return {a["actionId"]: a["actionStatus"] for a in state["actionStates"]}
+
+
+def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
+    world = load_world("warehouse")
+    dropoff = world.station("emili_dropoff")
+    config = yaml.safe_load((ROOT / "robots/config/emili_vda5050.yaml").read_text())
+    procs: list[subprocess.Popen[str]] = []
+    probe = Probe()
+    with Broker() as broker:
+        config["vda5050"]["broker"]["port"] = broker.port
+        path = tmp_path / "emili_vda5050.yaml"
+        path.write_text(yaml.safe_dump(config))
+        master = Master(broker.port, serial_number="emili1")
+        try:
+            odom = probe.record(Odometry, "/emili1/odom")
+            lift = probe.record(Float64, "/emili1/lift/state")
+            procs.append(_start("-m", "beehave.cli", "sim", "--fast"))
+            procs.append(_start("-m", "beehave.cli", "run", str(path)))
+            master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                            timeout_s=60)
+            master.wait_state(lambda s: "agvPosition" in s, timeout_s=60)
+            # The base: EMILI's start, then 3 m on, where it picks; the drop-off station
+            # is the horizon, released by an update.
+            n0 = node("n0", 0, x=3.0, y=2.0)
+            n1 = node("n1", 2, x=6.0, y=2.0, actions=[action("pick", "pick1", loadId="L1")])
+            n2 = node("emili_dropoff", 4, actions=[action("drop", "drop1")])
+            master.order("o1", 1, [n0, n1, {**n2, "released": False}],
+                         [edge(n0, n1), {**edge(n1, n2), "released": False}])
+            master.wait_state(lambda s: s["driving"], timeout_s=30)
+            master.order("o1", 0, [n1, n2])  # stale: refused, the order goes on
+            refused = master.wait_state(lambda s: any(
+                e["errorType"] == "orderUpdateError" for e in s["errors"]), timeout_s=10)
+            assert refused["orderUpdateId"] == 1
+            master.order("o1", 2, [n1, n2], [edge(n1, n2)])  # stitched at n1
+            done = master.wait_state(lambda s: s["lastNodeId"] == "emili_dropoff" and
+                                     _status(s).get("drop1") == "FINISHED", timeout_s=60)
+            assert _status(done) == {"pick1": "FINISHED", "drop1": "FINISHED"}
+            assert done["errors"] == [] and done["loads"] == []
+            # The physics: ground-truth pose in the drop-off station, the lift went up to
+            # the pick height and is down again.
+            p = odom[-1].pose.pose.position
+            assert math.hypot(p.x - dropoff.center_m[0], p.y - dropoff.center_m[1]) <= \
+                TOLERANCE_M + 0.05, (p.x, p.y)
+            heights = [m.data for m in lift]
+            assert max(heights) >= 0.195 and heights[-1] <= 0.005, heights[-5:]
+
+            # A second order, cancelled mid-edge: EMILI stops and the rest FAILS.
+            back = node("back", 6, x=4.0, y=2.0, actions=[action("pick", "pick2")])
+            here = node("emili_dropoff", 4)
+            master.order("o2", 0, [here, back], [edge(here, back)])
+            master.wait_state(lambda s: s["orderId"] == "o2" and s["driving"], timeout_s=30)
+            master.instant(action("cancelOrder", "cancel1"))
+            cancelled = master.wait_state(
+                lambda s: _status(s).get("cancel1") == "FINISHED", timeout_s=10)
+            assert _status(cancelled)["pick2"] == "FAILED"
+            assert cancelled["nodeStates"] == [] and cancelled["edgeStates"] == []
+            count = len(odom)
+            assert probe.wait(lambda: len(odom) > count + 30, 10)
+            still = odom[-1]
+            assert abs(still.twist.twist.linear.x) < 0.01, still.twist.twist
+            assert still.pose.pose.position.x > 4.0 + 0.5  # stopped short of "back"
+            assert not master.invalid, master.invalid
+        finally:
+            master.close()
+            for proc in procs:
+                if proc.poll() is None:
+                    proc.terminate()
+            outputs = []
+            for proc in procs:
+                try:
+                    outputs.append(proc.communicate(timeout=15)[0])
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    outputs.append(proc.communicate()[0])
+            probe.close()
+        assert "stopped cleanly" in outputs[1], outputs[1][-3000:]
