@@ -533,3 +533,48 @@ def test_a_world_may_thin_a_robot_laser_and_its_physics_solver(sim_of: Any) -> N
     assert "laser.beams" in problems_of(shop(robots=[
         {"namespace": "k1", "kind": "kobuki", "laser": {"beams": 4},
          "start": {"x_m": 1, "y_m": 1}}])).replace("robots.0.", "")
+
+
+def test_snapshots_read_while_the_sim_thread_runs_are_consistent() -> None:
+    """Another thread reads facts and states while the sim thread updates them: every
+    snapshot keeps its invariants and time never goes back."""
+    import threading
+
+    sim = Simulation(world_from_dict(shop(depots=[
+        {"name": "depot", "area": {"center_m": [1.5, 3.0], "size_m": [1.0, 1.0]},
+         "load_amount": 30, "load_s": 0.1}])), real_time_factor=None)
+    factory = Factory(sim)
+    bad: list[str] = []
+    stop = threading.Event()
+
+    def read() -> None:
+        last = -1.0
+        while not stop.is_set():
+            facts = factory.facts()
+            m = facts.machine("m1")
+            if facts.time_s < last:
+                bad.append(f"time went back: {facts.time_s} < {last}")
+            if not 0.0 <= m.min_level <= m.level <= m.capacity:
+                bad.append(f"level out of order: {m}")
+            if len(facts.pickups) != facts.robot("k1").pickups:
+                bad.append(f"pick-ups disagree: {facts}")
+            state = factory.state()
+            json.dumps(state)
+            last = facts.time_s
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    try:
+        sim.start()
+        assert factory.facts().time_s >= 0.0
+        deadline = time.monotonic() + 20.0
+        while factory.facts().time_s < 5.0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        sim.stop()
+    finally:
+        stop.set()
+        reader.join()
+        sim.close()
+    assert factory.facts().time_s >= 5.0
+    assert factory.facts().robot("k1").pickups == 1
+    assert bad == []
