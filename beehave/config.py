@@ -28,6 +28,10 @@
       simulator: pybullet                # entry point (group beehave.simulations)
       world: warehouse                   # (the one that runs the low level)
       real_time_factor: 1.0              # null: as fast as possible
+    recording:                           # optional: what `--record` adds (docs/recording.md)
+      topics: [odom, scan, cmd_vel, battery_state, {name: lift/state, type: std_msgs/msg/Float64}]
+      queue_size: 100000                 # per channel; beyond it, drops are counted
+      max_file_mb: null                  # roll over into run_001.mcap … at this size
 
 Errors name the file, the key path and what was expected.
 """
@@ -102,6 +106,25 @@ class AgentOptions(_Strict):
     lease_s: Seconds = 2.0
 
 
+class RecordedTopic(_Strict):
+    """A robot topic to record with its ROS 2 type (``recording.topics``)."""
+
+    name: str
+    type: str = Field(pattern=r"^[A-Za-z0-9_]+/msg/[A-Za-z0-9_]+$",
+                      description="e.g. std_msgs/msg/Float64")
+
+
+class RecordingOptions(_Strict):
+    """What ``beehave run --record`` writes besides the blackboard, the events and the HAL
+    commands (docs/recording.md): the robot topics (a standard name -- odom, scan,
+    cmd_vel, battery_state -- or ``{name, type}``), the queue bound and the roll-over size."""
+
+    topics: list[str | RecordedTopic] = Field(
+        default_factory=lambda: ["odom", "scan", "cmd_vel", "battery_state"])
+    queue_size: int = Field(100_000, ge=1)
+    max_file_mb: float | None = Field(None, gt=0, allow_inf_nan=False)
+
+
 class RobotConfig(_Strict):
     namespace: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
     stop_timeout_s: Seconds = 2.0
@@ -114,6 +137,7 @@ class RobotConfig(_Strict):
     ros: RosOptions = Field(default_factory=lambda: RosOptions())
     agent: AgentOptions | None = None
     sim: SimOptions | None = None
+    recording: RecordingOptions = Field(default_factory=lambda: RecordingOptions())
     source: str = Field("<dict>", exclude=True)
 
 
@@ -175,7 +199,8 @@ def _valid_keys(loc: list[Any]) -> list[str]:
     """The keys allowed beside the unknown one at ``loc`` (its last element)."""
     nested: dict[str, type[BaseModel]] = {"behaviors": ClassSpec, "logics": ClassSpec,
                                           "hals": HALSpec, "ros": RosOptions,
-                                          "sim": SimOptions, "agent": AgentOptions}
+                                          "sim": SimOptions, "agent": AgentOptions,
+                                          "recording": RecordingOptions}
     model = nested.get(str(loc[0]), RobotConfig) if len(loc) > 1 else RobotConfig
     return [field.alias or name for name, field in model.model_fields.items()
             if name != "source"]

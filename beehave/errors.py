@@ -202,3 +202,9 @@ class ProtocolFailed(AgentError):
     def __init__(self, message: str, *, reply: object = None) -> None:
         super().__init__(message)
         self.reply = reply
+
+
+class RecordingError(BeehaveError):
+    """A recording cannot be written, read or replayed: the file is not MCAP, lacks the
+    channels a replay needs (they are named, with the ones it has), or a recorder option
+    is out of range. Exported from :mod:`beehave.recording`."""
