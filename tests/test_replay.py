@@ -43,13 +43,17 @@ def _record_live(path: Path) -> DebugRobot:
         recorder.attach_robot(robot)
         with low:
             assert wait_until(lambda: "debug" in low.hals.loaded, 2)
-            for pct in (35.0, 25.0, 15.0, 10.0, 30.0, 12.0):
+            # Each step waits for the logic's answer: a watcher coalesces changes it has
+            # not taken yet, and this test is about replaying what happened, not a race.
+            for pct, colour in ((35.0, "green"), (25.0, "green"), (15.0, "red"),
+                                (10.0, "red"), (30.0, "green"), (12.0, "red")):
                 hardware.set_battery(pct)
-                time.sleep(0.02)
+                assert wait_until(lambda c=colour: hardware.led_color == c, 2)  # type: ignore[misc]
+                time.sleep(0.01)
             low.switch("display")
-            for pct in (50.0, 18.0, 60.0):
+            for pct, text in ((50.0, "50%"), (18.0, "battery-low"), (60.0, "60%")):
                 hardware.set_battery(pct)
-                time.sleep(0.02)
+                assert wait_until(lambda t=text: hardware.display == t, 2)  # type: ignore[misc]
     return hardware
 
 

@@ -311,7 +311,7 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
             state.outputs.append(Output(f"{hal}.{method}", [to_json(list(args)),
                                                             to_json(kwargs)], state.now_s))
 
-    for name in _hal_names(low):
+    for name in _hal_names(config):
         cls, params = low.hals.resolve(name)
         low.hals.register(replay_hal_class(cls, name, capture), name=name, **params)
 
@@ -353,8 +353,18 @@ class _ReplayState:
         self.outputs: list[Output] = []
 
 
-def _hal_names(low: LowLevelBehaviorManager) -> list[str]:
-    return low.hals.available()
+def _hal_names(config: RobotConfig) -> list[str]:
+    """The HALs the configuration gives: those a replay stands in for."""
+    from beehave.config import import_class
+
+    names = []
+    for i, spec in enumerate(config.hals):
+        if isinstance(spec, str):
+            names.append(spec)
+        else:
+            names.append(spec.name or import_class(
+                spec.class_, base=HAL, where=f"{config.source}: hals.{i}.class").name)
+    return names
 
 
 async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _ReplayState, *,
@@ -371,6 +381,10 @@ async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _Repl
         catching_up = item.t_s < lo
         if not catching_up:
             if not state.comparing:
+                # The state at from_s is in: let the logics settle on it (what they answer
+                # to it was answered before the window) before their outputs count.
+                for _ in range(10 * _YIELDS):
+                    await asyncio.sleep(0)
                 state.comparing = True
             if speed is not None:
                 if origin_wall is None:

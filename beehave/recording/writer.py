@@ -202,14 +202,19 @@ class WriterThread:
                 cid = self._register(channel)
             add, encode, popleft = writer.add_message, channel.encode, queue.popleft
             written = 0
+            limit = self.max_file_bytes
             while queue:
                 stamp_ns, data = encode(popleft())
                 add(cid, stamp_ns, data, stamp_ns)
                 written += 1
+                if limit is not None and written % 64 == 0 and self._full(limit):
+                    break  # roll over now; the rest of the queue goes to the next file
             self.stats.written += written
-            if self.max_file_bytes is not None and self._stream is not None \
-                    and self._stream.tell() >= self.max_file_bytes:
+            if limit is not None and self._full(limit):
                 self._roll()
+
+    def _full(self, limit: int) -> bool:
+        return self._stream is not None and self._stream.tell() >= limit
 
     def _register(self, channel: Channel) -> int:
         writer = self._writer
