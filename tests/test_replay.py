@@ -54,6 +54,7 @@ def _record_live(path: Path) -> DebugRobot:
             for pct, text in ((50.0, "50%"), (18.0, "battery-low"), (60.0, "60%")):
                 hardware.set_battery(pct)
                 assert wait_until(lambda t=text: hardware.display == t, 2)  # type: ignore[misc]
+                time.sleep(0.01)
     return hardware
 
 

@@ -195,6 +195,15 @@ class _Input:
     value: Any = None
     writer: str | None = None
     stale: bool = False
+    wall_ns: int = 0
+
+
+BATCH_NS = 500_000
+"""Writes of one writer within this much (wall time) of a batch's first are fed as one
+batch, without
+letting the logics run in between: live, a HAL's or the bridge's writes from the ROS
+thread (odometry's five keys, the high level's state) reach the loop together, so a logic
+never saw the first without the others."""
 
 
 def _inputs(recording: Recording, prefix: str) -> list[_Input]:
@@ -208,7 +217,7 @@ def _inputs(recording: Recording, prefix: str) -> list[_Input]:
         if m.topic == bb and not _is_logic(m.data["writer"]):
             inputs.append(_Input(timeline(m.log_time_ns), "set", m.data["key"],
                                  from_json(m.data["value"]), m.data["writer"],
-                                 bool(m.data["stale"])))
+                                 bool(m.data["stale"]), m.log_time_ns))
         elif m.topic == low:
             kind, subject, detail = m.data["kind"], m.data["subject"], m.data["detail"]
             if kind == "switch_requested":
@@ -375,7 +384,8 @@ async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _Repl
     fed = 0
     origin_wall: float | None = None
     origin_t = 0.0
-    for item in inputs:
+    batch_ns = 0  # wall time of the first write of the batch being fed
+    for n, item in enumerate(inputs):
         if item.t_s > hi:
             break
         catching_up = item.t_s < lo
@@ -409,7 +419,15 @@ async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _Repl
                 warnings.append(f"t={item.t_s:.3f} s: HAL {item.key!r} was loaded in the "
                                 f"recording but not in the replay within {hal_wait_s} s")
         fed += 1
-        if not catching_up:
+        following = inputs[n + 1] if n + 1 < len(inputs) else None
+        if not batch_ns:
+            batch_ns = item.wall_ns
+        batched = (following is not None and item.kind == following.kind == "set"
+                   and following.writer == item.writer
+                   and following.wall_ns - batch_ns < BATCH_NS)
+        if not batched:
+            batch_ns = 0
+        if not catching_up and not batched:
             for _ in range(_YIELDS):
                 await asyncio.sleep(0)
     for _ in range(10 * _YIELDS):  # let the logics answer the last inputs
