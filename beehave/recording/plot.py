@@ -21,6 +21,7 @@ from beehave.recording import schema
 from beehave.recording.reader import Recording
 
 DEFAULT_SERIES = ("odom/linear_mps", "battery/percentage", "laser/front_m", "lift/height_m")
+"""Drawn under each robot's chart when recorded (on its blackboard or as a ROS topic)."""
 
 COLOURS = {"SUCCEEDED": "#2e9e44", "FAILED": "#d62728", "INTERRUPTED": "#ff9f1c",
            "STUCK": "#8c1c8c", "RUNNING": "#7f7f7f"}
@@ -71,8 +72,67 @@ def bars(recording: Recording, prefix: str) -> tuple[list[Bar], list[tuple[float
     return out, switches
 
 
+def _front_m(scan: Any) -> float:
+    n = len(scan.ranges)
+    hits = [r for i, r in enumerate(scan.ranges)
+            if abs(scan.angle_min + i * scan.angle_increment) <= math.pi / 4
+            and scan.range_min <= r <= scan.range_max]
+    return min(hits) if n and hits else math.nan
+
+
+ROS_SERIES: dict[str, tuple[str, Any]] = {
+    "odom/linear_mps": ("odom", lambda m: m.twist.twist.linear.x),
+    "odom/angular_rps": ("odom", lambda m: m.twist.twist.angular.z),
+    "battery/percentage": ("battery_state", lambda m: m.percentage * 100.0),
+    "laser/front_m": ("scan", _front_m),
+    "cmd_vel/linear_mps": ("cmd_vel", lambda m: m.linear.x),
+}
+"""Series a plot can take from a recorded ROS 2 topic when no HAL put them on the
+blackboard (the same keys and units as the mobile-base HALs)."""
+
+
+def _ros_series(recording: Recording, prefix: str, key: str
+                ) -> tuple[list[float], list[float]] | None:
+    source = ROS_SERIES.get(key)
+    if source is None:
+        return None
+    messages = recording.of(schema.topic(prefix, source[0]))
+    if not messages:
+        return None
+    at = _timeline(recording, prefix)
+    step = max(1, len(messages) // 1000)  # a picture needs no more points than pixels
+    picked = messages[::step]
+    decode = _decoder(recording, picked[0].schema_name)
+    return ([at(m.log_time_ns) for m in picked],
+            [float(source[1](decode(m.data))) for m in picked])
+
+
+def _decoder(recording: Recording, schema_name: str) -> Any:
+    """rclpy's deserializer (C, fast) when ROS 2 is installed, else mcap_ros2's."""
+    try:
+        from rclpy.serialization import deserialize_message
+
+        from beehave.recording.recorder import message_type
+
+        msg_type = message_type(schema_name, where="plot")
+        return lambda data: deserialize_message(data, msg_type)
+    except (ImportError, RecordingError):
+        from beehave.recording.reader import ros_decoder
+
+        return ros_decoder(recording, schema_name)
+
+
+def available(recording: Recording, prefix: str) -> set[str]:
+    """The series :func:`series` can draw for robot ``prefix``."""
+    keys = {m.data["key"] for m in recording.of(schema.topic(prefix, schema.BLACKBOARD))}
+    keys |= {k for k, (topic, _) in ROS_SERIES.items()
+             if schema.topic(prefix, topic) in recording.channels}
+    return keys
+
+
 def series(recording: Recording, prefix: str, key: str) -> tuple[list[float], list[float]]:
-    """The numeric values of blackboard ``key`` over time (stale and non-numbers left out)."""
+    """The numeric values of blackboard ``key`` over time (stale and non-numbers left
+    out); from the recorded ROS topic (:data:`ROS_SERIES`) when the blackboard lacks it."""
     at = _timeline(recording, prefix)
     ts: list[float] = []
     vs: list[float] = []
@@ -84,6 +144,10 @@ def series(recording: Recording, prefix: str, key: str) -> tuple[list[float], li
             continue
         ts.append(at(m.log_time_ns))
         vs.append(float(value) if math.isfinite(value) else math.nan)
+    if not ts:
+        from_ros = _ros_series(recording, prefix, key)
+        if from_ros is not None:
+            return from_ros
     return ts, vs
 
 
@@ -106,7 +170,7 @@ def plot(recording: Recording, out: str | Path, *, robots: Sequence[str] | None 
     panels: list[tuple[str, str, Any]] = []  # (robot, "gantt" | key, data)
     for prefix in shown:
         panels.append((prefix, "gantt", bars(recording, prefix)))
-        present = {m.data["key"] for m in recording.of(schema.topic(prefix, schema.BLACKBOARD))}
+        present = available(recording, prefix)
         wanted = list(keys) if keys else [k for k in DEFAULT_SERIES if k in present]
         missing = [k for k in wanted if k not in present]
         if keys and missing and len(missing) == len(wanted):

@@ -198,14 +198,25 @@ def read_recording(path: str | Path) -> Recording:
 def decode_ros(recording: Recording, message: Recorded) -> Any:
     """A CDR message of ``recording`` decoded with ``mcap_ros2`` (an object with the
     message's fields, as ROS tools and Foxglove see it)."""
+    return ros_decoder(recording, message.schema_name)(message.data)
+
+
+def ros_decoder(recording: Recording, schema_name: str) -> Callable[[bytes], Any]:
+    """The ``mcap_ros2`` decoder of the ros2msg schema ``schema_name`` (build it once per
+    schema: building costs far more than decoding)."""
     from mcap.records import Schema as McapSchema
     from mcap_ros2.decoder import DecoderFactory
 
-    data = recording.schemas.get(message.schema_name)
+    cache: dict[str, Callable[[bytes], Any]] = recording.__dict__.setdefault("_decoders", {})
+    decoder = cache.get(schema_name)
+    if decoder is not None:
+        return decoder
+    data = recording.schemas.get(schema_name)
     if data is None:
-        raise RecordingError(f"no ros2msg schema {message.schema_name!r} in the recording")
-    decoder = DecoderFactory().decoder_for(
-        "cdr", McapSchema(id=1, name=message.schema_name, encoding="ros2msg", data=data))
-    if decoder is None:
-        raise RecordingError(f"mcap_ros2 cannot decode {message.schema_name!r}")
-    return decoder(message.data)
+        raise RecordingError(f"no ros2msg schema {schema_name!r} in the recording")
+    made = DecoderFactory().decoder_for(
+        "cdr", McapSchema(id=1, name=schema_name, encoding="ros2msg", data=data))
+    if made is None:
+        raise RecordingError(f"mcap_ros2 cannot decode {schema_name!r}")
+    cache[schema_name] = made
+    return made
