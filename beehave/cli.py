@@ -161,6 +161,7 @@ def _run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     stopping = threading.Event()
     recorder: Recorder | None = None
+    recording_failed = 0
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         if stopping.is_set():
@@ -205,9 +206,9 @@ def _run(args: argparse.Namespace) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if recorder is not None:  # after the robot: its safe states are recorded too
-            code = _close_recording(recorder, verbose=args.verbose)
-            if code:
-                return code
+            recording_failed = _close_recording(recorder, verbose=args.verbose)
+    if recording_failed:
+        return 1
     print("beehave: stopped cleanly", flush=True)
     return 0
 

@@ -120,7 +120,8 @@ class RecordingOptions(_Strict):
     cmd_vel, battery_state -- or ``{name, type}``), the queue bound and the roll-over size."""
 
     topics: list[str | RecordedTopic] = Field(
-        default_factory=lambda: ["odom", "scan", "cmd_vel", "battery_state"])
+        default_factory=lambda: list[str | RecordedTopic](
+            ["odom", "scan", "cmd_vel", "battery_state"]))
     queue_size: int = Field(100_000, ge=1)
     max_file_mb: float | None = Field(None, gt=0, allow_inf_nan=False)
 

@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from beehave.robot import Robot
 
 
-def _fail(command: str, exc: BaseException) -> int:
+def _fail(command: str, exc: BaseException | str) -> int:
     print(f"beehave {command}: {exc}", file=sys.stderr, flush=True)
     return 2
 

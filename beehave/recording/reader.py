@@ -173,9 +173,10 @@ def read_recording(path: str | Path) -> Recording:
                     record.topic, record.message_encoding, sch.name if sch else ""))
                 by_id[record.id] = info
             elif isinstance(record, Message):
-                info = by_id.get(record.channel_id)
-                if info is None:
+                found = by_id.get(record.channel_id)
+                if found is None:
                     continue
+                info = found
                 data: Any = record.data
                 if info.encoding == "json":
                     try:

@@ -337,7 +337,7 @@ class Recorder:
         for i, entry in enumerate(wanted):
             where = f"{robot.config.source}: recording.topics.{i}"
             name = entry if isinstance(entry, str) else getattr(entry, "name", None)
-            type_name = STANDARD_TOPICS.get(name) if isinstance(entry, str) else \
+            type_name = STANDARD_TOPICS.get(entry) if isinstance(entry, str) else \
                 getattr(entry, "type", None)
             if not isinstance(name, str) or type_name is None:
                 raise RecordingError(

@@ -177,7 +177,7 @@ class WriterThread:
                     self._report_stats()
                     self._drain()
                     assert self._writer is not None
-                    self._writer.flush()  # closes the chunk: readable up to here after a crash
+                    self._writer.flush()  # type: ignore[no-untyped-call]  # closes the chunk: readable up to here after a crash
                     next_flush = now + self.flush_period_s
                 if stopping and not any(c.queue for c in self.channels):
                     break
@@ -254,7 +254,7 @@ class WriterThread:
             self._count_drops()
             writer.add_metadata("beehave.recorder", {
                 "written": str(self.stats.written), "dropped": str(self.stats.dropped)})
-            writer.finish()
+            writer.finish()  # type: ignore[no-untyped-call]
         except Exception as exc:  # a broken disk: what was flushed stays readable
             if self.stats.error is None:
                 self.stats.error = exc
