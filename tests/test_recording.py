@@ -320,3 +320,45 @@ def test_bad_options_are_refused_with_the_reason(tmp_path: Path) -> None:
     (tmp_path / "not.mcap").write_text("hello")
     with pytest.raises(RecordingError, match="not an MCAP file"):
         read_recording(tmp_path / "not.mcap")
+
+
+def test_beehave_run_records_into_mcap(tmp_path: Path) -> None:
+    """`beehave run ROBOT.yaml --record FILE` for real (ROS 2, both managers, bridge)."""
+    pytest.importorskip("rclpy")
+    import os
+
+    path = tmp_path / "run.mcap"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        p for p in (str(ROOT / "tests"), os.environ.get("PYTHONPATH")) if p)}
+    done = subprocess.run([sys.executable, "-m", "beehave.cli", "run",
+                           str(ROOT / "tests" / "data" / "rosbot.yaml"), "--duration-s", "1.5",
+                           "--record", str(path)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=90)
+    assert done.returncode == 0, done.stderr
+    assert f"into {path}" in done.stdout and "stopped cleanly" in done.stdout
+    rec = read_recording(path)
+    assert rec.prefixes == ["rosbot"]
+    high = [m.data for m in rec.of("/rosbot/beehave/events/high")]
+    assert ("switch_completed", "parked") in {(e["kind"], e["subject"]) for e in high}
+    writers = {m.data["writer"] for m in rec.of("/rosbot/beehave/blackboard")}
+    assert "hal:debug" in writers
+    keys = {m.data["key"] for m in rec.of("/rosbot/beehave/blackboard")}
+    assert "high_level/behavior" in keys  # the high level's state, over the bridge
+    # The configured robot topics are channels of the file even when nothing was sent.
+    for topic in ("odom", "scan", "cmd_vel", "battery_state"):
+        assert rec.channels[f"/rosbot/{topic}"].encoding == "cdr"
+
+
+def test_recording_options_in_the_configuration_are_checked() -> None:
+    from beehave.config import parse_config
+    from beehave.errors import ConfigError
+
+    config = parse_config({"namespace": "r", "recording": {
+        "topics": ["odom", {"name": "lift/state", "type": "std_msgs/msg/Float64"}],
+        "max_file_mb": 50}})
+    assert config.recording.max_file_mb == 50
+    with pytest.raises(ConfigError, match=r"recording\.bogus: unknown key; valid keys: "
+                                          r"topics, queue_size, max_file_mb"):
+        parse_config({"namespace": "r", "recording": {"bogus": 1}})
+    with pytest.raises(ConfigError, match=r"recording\.queue_size"):
+        parse_config({"namespace": "r", "recording": {"queue_size": 0}})

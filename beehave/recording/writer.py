@@ -192,14 +192,14 @@ class WriterThread:
 
     def _drain(self) -> None:
         for channel in [*self.channels, self._stats_channel]:
+            cid = self._ids.get(channel.topic)
+            if cid is None:  # every attached channel is in the file, also one still silent
+                cid = self._register(channel)
             queue = channel.queue
             if not queue:
                 continue
             writer = self._writer
             assert writer is not None
-            cid = self._ids.get(channel.topic)
-            if cid is None:
-                cid = self._register(channel)
             add, encode, popleft = writer.add_message, channel.encode, queue.popleft
             written = 0
             limit = self.max_file_bytes
