@@ -362,3 +362,25 @@ def test_recording_options_in_the_configuration_are_checked() -> None:
         parse_config({"namespace": "r", "recording": {"bogus": 1}})
     with pytest.raises(ConfigError, match=r"recording\.queue_size"):
         parse_config({"namespace": "r", "recording": {"queue_size": 0}})
+
+
+def test_an_unknown_robot_topic_is_named_with_the_choices(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from beehave.config import parse_config
+
+    config = parse_config({"namespace": "r", "recording": {"topics": ["odometry"]}},
+                          source="r.yaml")
+    robot: Any = SimpleNamespace(config=config,
+                                 low=SimpleNamespace(hals=SimpleNamespace(node=object())))
+    with Recorder(tmp_path / "r.mcap") as recorder:
+        with pytest.raises(RecordingError, match=r"r\.yaml: recording\.topics\.0: unknown "
+                                                 r"topic 'odometry'; give one of battery_state, "
+                                                 r"cmd_vel, odom, scan or \{name: TOPIC"):
+            recorder.attach_ros_topics(robot)
+        with pytest.raises(RecordingError, match="unknown ROS 2 message type 'nope/msg/X'"):
+            recorder.attach_ros_topics(robot, topics=[SimpleNamespace(name="x",
+                                                                      type="nope/msg/X")])
+        robot.low.hals.node = None
+        with pytest.raises(RecordingError, match="after robot.start"):
+            recorder.attach_ros_topics(robot)
