@@ -195,7 +195,13 @@ class Recorder:
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
-        self.close()
+        if exc is None:
+            self.close()
+            return
+        try:  # leaving on an error already: a failed disk must not hide it
+            self.close()
+        except RecordingError as failed:
+            exc.add_note(f"and the recording failed: {failed}")
 
     @property
     def stats(self) -> RecorderStats:
