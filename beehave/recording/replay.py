@@ -199,11 +199,10 @@ class _Input:
 
 
 BATCH_NS = 500_000
-"""Writes of one writer within this much (wall time) of a batch's first are fed as one
-batch, without
-letting the logics run in between: live, a HAL's or the bridge's writes from the ROS
-thread (odometry's five keys, the high level's state) reach the loop together, so a logic
-never saw the first without the others."""
+"""Writes within this much (wall time) of a batch's first are fed as one batch, without
+letting the logics run in between: live, what the HALs and the bridge write from the ROS
+thread (odometry's five keys, the high level's state) reaches the loop together, so a
+logic never saw the first without the others."""
 
 
 def _inputs(recording: Recording, prefix: str) -> list[_Input]:
@@ -423,7 +422,6 @@ async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _Repl
         if not batch_ns:
             batch_ns = item.wall_ns
         batched = (following is not None and item.kind == following.kind == "set"
-                   and following.writer == item.writer
                    and following.wall_ns - batch_ns < BATCH_NS)
         if not batched:
             batch_ns = 0
