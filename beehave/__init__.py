@@ -29,6 +29,7 @@ from beehave.errors import (
                             NoReply,
                             NotASubclass,
                             ProtocolFailed,
+                            RecordingError,
                             ReservedAttribute,
                             SwitchSuperseded,
                             UnknownBehavior,
@@ -53,7 +54,7 @@ __all__ = [
     "ConstructorFailed", "Event", "EventKind", "GoalFailed", "HALManager",
     "HighLevelBehaviorManager", "Idle", "Interrupted", "InvalidParameters", "Logic",
     "LoopBlocked", "LowLevelBehaviorManager", "ManagerShutdown", "NoPath", "NoReply",
-    "NotASubclass", "ProtocolFailed", "ReservedAttribute",
+    "NotASubclass", "ProtocolFailed", "RecordingError", "ReservedAttribute",
     "Status", "SwitchSuperseded", "UnknownBehavior", "UnknownHAL", "UnknownKey", "UnknownLogic",
     "UnknownNameError",
 ]

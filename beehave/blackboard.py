@@ -412,6 +412,7 @@ class Blackboard:
         self._loop_tid: int | None = None
         self._pending: dict[str, _Slot] = {}
         self._flush_scheduled = False
+        self._taps: tuple[ChangeCallback, ...] = ()
 
     # -- binding -------------------------------------------------------------------------
 
@@ -514,7 +515,38 @@ class Blackboard:
             slot.change = Change(slot.key, old.value, time.time(), now, writer)
             return None
         change = slot.change = Change(slot.key, value, time.time(), now, writer, stale)
+        if self._taps:
+            self._tapped(change)
         return change
+
+    # -- taps (recorders) ------------------------------------------------------------------
+
+    def tap(self, callback: ChangeCallback) -> Callable[[], None]:
+        """Call ``callback(change)`` for every change *stored* -- each write that changed
+        the entry and each entry that went stale -- in the thread that made it, before any
+        subscriber hears of it and without coalescing. Returns a function that removes it.
+
+        For recorders (:mod:`beehave.recording`), not for logic: it runs inside ``set`` (a
+        HAL's or logic's write waits for it), so it must only hand the change on (append
+        to a queue). One that raises is logged and removed; it never breaks the write.
+        """
+        with self._lock:
+            self._taps = (*self._taps, callback)
+
+        def remove() -> None:
+            with self._lock:
+                self._taps = tuple(t for t in self._taps if t is not callback)
+
+        return remove
+
+    def _tapped(self, change: Change) -> None:
+        for tap in self._taps:
+            try:
+                tap(change)
+            except Exception:
+                log.exception("blackboard tap %r raised on %r; it was removed", tap, change.key)
+                with self._lock:
+                    self._taps = tuple(t for t in self._taps if t is not tap)
 
     def _notify(self, slot: _Slot, change: Change) -> None:
         slot.notified = change
@@ -615,6 +647,8 @@ class Blackboard:
             self._arm(slot)
             return
         stale = slot.change = change.as_stale()
+        if self._taps:
+            self._tapped(stale)
         self._notify(slot, stale)
 
     def mark_stale(self, *, writer: str | None = None, pattern: str | None = None) -> list[str]:
@@ -636,6 +670,8 @@ class Blackboard:
                     continue
                 stale = slot.change = change.as_stale()
                 marked.append((slot, stale))
+                if self._taps:
+                    self._tapped(stale)
         if self._loop is None:
             for slot, stale in marked:
                 with self._lock:

@@ -1,4 +1,5 @@
-"""The ``beehave`` command line: ``demo``, ``run``, ``broker``, ``sim``, ``graph``.
+"""The ``beehave`` command line: ``demo``, ``run``, ``broker``, ``sim``, ``graph``, ``fleet``,
+and for recordings ``replay``, ``inspect``, ``plot``.
 
 Exit status: 0 when everything went as asked, 1 when something failed while running
 (a simulation, a robot, its shutdown), 2 for bad arguments or a bad configuration; the
@@ -17,6 +18,11 @@ import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from beehave.recording.recorder import Recorder
+    from beehave.robot import Robot
 
 log = logging.getLogger("beehave.cli")
 
@@ -87,7 +93,13 @@ def _demo(args: argparse.Namespace) -> int:
 
         console.rule("[bold]beehave — EMILI and Kobuki in the simulated warehouse")
         speed = None if args.fast else args.real_time_factor
-        sim_problems = run_sim_demo(console, real_time_factor=speed, out_dir=out)
+        record = None if args.record is None else Path(args.record or out / "demo.mcap")
+        if record is not None and record.suffix != ".mcap":
+            print(f"beehave demo: --record {args.record!r}: a recording is an MCAP file, "
+                  "name it *.mcap", file=sys.stderr)
+            return 2
+        sim_problems = run_sim_demo(console, real_time_factor=speed, out_dir=out,
+                                    record=record)
         for problem in sim_problems:
             console.print(f"[red]FAILED:[/] {problem}")
         if sim_problems:
@@ -148,6 +160,8 @@ def _run(args: argparse.Namespace) -> int:
 
     stop = threading.Event()
     stopping = threading.Event()
+    recorder: Recorder | None = None
+    recording_failed = 0
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         if stopping.is_set():
@@ -166,11 +180,16 @@ def _run(args: argparse.Namespace) -> int:
         try:
             config = load_config(args.config)
             robot = Robot(config, only=args.only)
+            recorder = _recording(args.record, robot)
         except BeehaveError as exc:  # nothing has started yet
             _report("run", exc, verbose=args.verbose)
             return 2
         with robot:
             phase = "run"
+            if recorder is not None:
+                from beehave.recording.cli import robots_started
+
+                robots_started(recorder, [robot])
             parts = "high and low level" if args.only is None else f"{args.only} level only"
             print(f"beehave: robot {config.namespace!r} running ({parts}); Ctrl-C to stop",
                   flush=True)
@@ -186,6 +205,10 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        if recorder is not None:  # after the robot: its safe states are recorded too
+            recording_failed = _close_recording(recorder, verbose=args.verbose)
+    if recording_failed:
+        return 1
     print("beehave: stopped cleanly", flush=True)
     return 0
 
@@ -233,6 +256,27 @@ def _broker(args: argparse.Namespace) -> int:
     return 0
 
 
+def _recording(path: str | None, robot: Robot) -> Recorder | None:
+    """``--record``: a started recorder with ``robot`` attached, or None."""
+    if path is None:
+        return None
+    from beehave.recording.cli import start_recording
+
+    return start_recording(path, [robot])
+
+
+def _close_recording(recorder: Recorder, *, verbose: bool) -> int:
+    from beehave.errors import BeehaveError
+    from beehave.recording.cli import finish_recording
+
+    try:
+        print(f"beehave: {finish_recording(recorder)}", flush=True)
+    except BeehaveError as exc:
+        _report("run", exc, verbose=verbose)
+        return 1
+    return 0
+
+
 # ---- the parser -------------------------------------------------------------------------
 
 def _parser() -> argparse.ArgumentParser:
@@ -259,6 +303,9 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--console", action="store_true",
                       help="the console demo of the two managers instead: no simulation, "
                            "no ROS 2")
+    demo.add_argument("--record", nargs="?", const="", default=None, metavar="FILE.mcap",
+                      help="record both robots into an MCAP file (default FOLDER/demo.mcap); "
+                           "replay it with `beehave replay`")
     demo.set_defaults(func=_demo)
     run = sub.add_parser(
         "run", help="run a robot from its configuration file (ROS 2)",
@@ -271,6 +318,9 @@ def _parser() -> argparse.ArgumentParser:
                      help="run one manager only (the other runs in another process)")
     run.add_argument("--duration-s", type=seconds_arg, default=None, metavar="N",
                      help="stop after N wall-clock seconds (default: until Ctrl-C/SIGTERM)")
+    run.add_argument("--record", default=None, metavar="FILE.mcap",
+                     help="record the blackboard, events, HAL commands and robot topics "
+                          "into an MCAP file (docs/recording.md)")
     run.set_defaults(func=_run)
     broker = sub.add_parser(
         "broker", help="a local MQTT broker (mosquitto) for VDA 5050 (docs/vda5050.md)",
@@ -288,6 +338,8 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("fleet", add_help=False,
                    help="the factory fleet: ATVs, machines and charging stations as agents, "
                         "each in its own process, checked in the physics (beehave fleet -h)")
+    for name, (_, text) in _RECORDING_COMMANDS.items():
+        sub.add_parser(name, add_help=False, help=text)
     return parser
 
 
@@ -327,9 +379,39 @@ def _fleet(argv: list[str]) -> int:
     return fleet_main(argv)
 
 
+# ---- recordings: beehave replay | inspect | plot (beehave/recording/cli.py) -----------------
+
+def _replay(argv: list[str]) -> int:
+    from beehave.recording.cli import replay_main
+
+    return replay_main(argv)
+
+
+def _inspect(argv: list[str]) -> int:
+    from beehave.recording.cli import inspect_main
+
+    return inspect_main(argv)
+
+
+def _plot(argv: list[str]) -> int:
+    from beehave.recording.cli import plot_main
+
+    return plot_main(argv)
+
+
+_RECORDING_COMMANDS: dict[str, tuple[Callable[[list[str]], int], str]] = {
+    "replay": (_replay, "run a robot's logics again on a recording and check they decide "
+                        "the same (beehave replay -h)"),
+    "inspect": (_inspect, "a recording's channels, counts, duration and event timeline"),
+    "plot": (_plot, "a recording as a Gantt chart of behaviours and actions with blackboard "
+                    "series (beehave plot -h)"),
+}
+
+
 #: Commands that parse their own arguments (with their own ``-h``).
-_OWN_PARSERS: dict[str, Callable[[list[str]], int]] = {"graph": _graph, "sim": _sim,
-                                                        "fleet": _fleet}
+_OWN_PARSERS: dict[str, Callable[[list[str]], int]] = {
+    "graph": _graph, "sim": _sim, "fleet": _fleet,
+    **{k: v[0] for k, v in _RECORDING_COMMANDS.items()}}
 
 
 def main(argv: list[str] | None = None) -> int:

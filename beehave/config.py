@@ -34,6 +34,10 @@
       manufacturer: beehave
       serial_number: emili1
       world: warehouse                   # node positions and station names are its map
+    recording:                           # optional: what `--record` adds (docs/recording.md)
+      topics: [odom, scan, cmd_vel, battery_state, {name: lift/state, type: std_msgs/msg/Float64}]
+      queue_size: 100000                 # per channel; beyond it, drops are counted
+      max_file_mb: null                  # roll over into run_001.mcap … at this size
 
 Errors name the file, the key path and what was expected.
 """
@@ -148,6 +152,24 @@ class Vda5050Options(_Strict):
     speed_mps: Annotated[float, Field(gt=0, le=2.0)] = 0.6
     lift_pick_m: Annotated[float, Field(ge=0, le=0.3)] = 0.2
     lift_drop_m: Annotated[float, Field(ge=0, le=0.3)] = 0.0
+class RecordedTopic(_Strict):
+    """A robot topic to record with its ROS 2 type (``recording.topics``)."""
+
+    name: str
+    type: str = Field(pattern=r"^[A-Za-z0-9_]+/msg/[A-Za-z0-9_]+$",
+                      description="e.g. std_msgs/msg/Float64")
+
+
+class RecordingOptions(_Strict):
+    """What ``beehave run --record`` writes besides the blackboard, the events and the HAL
+    commands (docs/recording.md): the robot topics (a standard name -- odom, scan,
+    cmd_vel, battery_state -- or ``{name, type}``), the queue bound and the roll-over size."""
+
+    topics: list[str | RecordedTopic] = Field(
+        default_factory=lambda: list[str | RecordedTopic](
+            ["odom", "scan", "cmd_vel", "battery_state"]))
+    queue_size: int = Field(100_000, ge=1)
+    max_file_mb: float | None = Field(None, gt=0, allow_inf_nan=False)
 
 
 class RobotConfig(_Strict):
@@ -163,6 +185,7 @@ class RobotConfig(_Strict):
     agent: AgentOptions | None = None
     sim: SimOptions | None = None
     vda5050: Vda5050Options | None = None
+    recording: RecordingOptions = Field(default_factory=lambda: RecordingOptions())
     source: str = Field("<dict>", exclude=True)
 
 
@@ -225,7 +248,8 @@ def _valid_keys(loc: list[Any]) -> list[str]:
     nested: dict[str, type[BaseModel]] = {"behaviors": ClassSpec, "logics": ClassSpec,
                                           "hals": HALSpec, "ros": RosOptions,
                                           "sim": SimOptions, "agent": AgentOptions,
-                                          "vda5050": Vda5050Options}
+                                          "vda5050": Vda5050Options,
+                                          "recording": RecordingOptions}
     model = nested.get(str(loc[0]), RobotConfig) if len(loc) > 1 else RobotConfig
     if len(loc) > 2 and loc[0] == "vda5050" and loc[1] == "broker":
         model = BrokerOptions

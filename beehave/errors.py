@@ -236,3 +236,7 @@ class Vda5050Error(BeehaveError):
 class Vda5050ValidationError(Vda5050Error, ValueError):
     """A VDA 5050 message that breaks the 2.1.0 JSON schema; the message names each
     offending field by its path (``nodes[1].nodePosition.x``)."""
+class RecordingError(BeehaveError):
+    """A recording cannot be written, read or replayed: the file is not MCAP, lacks the
+    channels a replay needs (they are named, with the ones it has), or a recorder option
+    is out of range. Exported from :mod:`beehave.recording`."""

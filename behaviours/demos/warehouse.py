@@ -107,9 +107,32 @@ def _wait(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase
     return bool(predicate())
 
 
+def _start_recording(record: Path | None, robots: list[Robot]) -> Any:
+    if record is None:
+        return None
+    from beehave.recording.cli import start_recording
+
+    return start_recording(record, robots)
+
+
+def _finish_recording(recorder: Any, console: Console, problems: list[str]) -> None:
+    from beehave.errors import BeehaveError
+    from beehave.recording.cli import finish_recording
+
+    try:
+        console.print(finish_recording(recorder))
+    except BeehaveError as exc:
+        problems.append(f"the recording failed: {exc}")
+
+
 def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
-                 out_dir: Path = Path("out"), live_display: bool = True) -> list[str]:
-    """Run the scenario; return the problems (empty when every goal was reached)."""
+                 out_dir: Path = Path("out"), live_display: bool = True,
+                 record: Path | None = None) -> list[str]:
+    """Run the scenario; return the problems (empty when every goal was reached).
+
+    ``record``: an MCAP file to record both robots into (``beehave demo --record``), one
+    channel prefix per robot; ``beehave replay FILE --robot robots/config/emili.yaml``
+    replays EMILI's logics on it."""
     world = load_world("warehouse")
     dropoff = world.station("emili_dropoff")
     charging = world.station("emili_charging")
@@ -122,11 +145,16 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
     kobuki = Robot(load_config(CONFIG_DIR / "kobuki.yaml"))
     e1, k1 = sim.emili("emili1"), sim.kobuki("kobuki1")
     live = Live(console=console, refresh_per_second=8) if live_display else None
+    recorder = _start_recording(record, [emili, kobuki])
     try:
         ros.start()
         sim.start()
         emili.start()
         kobuki.start()
+        if recorder is not None:
+            from beehave.recording.cli import robots_started
+
+            robots_started(recorder, [emili, kobuki])
         assert emili.high is not None and kobuki.high is not None
         if live is not None:
             live.start()
@@ -222,6 +250,8 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
         # Every step runs whatever an earlier one raised (last pushed, first run):
         # nothing is left running.
         with contextlib.ExitStack() as stack:
+            if recorder is not None:  # last: the robots' safe states are recorded too
+                stack.callback(_finish_recording, recorder, console, problems)
             for step in (ros.shutdown, sim.close, node.destroy, kobuki.shutdown,
                          emili.shutdown):
                 stack.callback(step)

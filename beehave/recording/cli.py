@@ -1,0 +1,246 @@
+"""``beehave replay``, ``beehave inspect``, ``beehave plot``, and ``--record`` for ``run``.
+
+Exit status as for every ``beehave`` command: 0 ok, 1 a failure while running (for
+``replay``: the replay diverged from the recording), 2 bad arguments, configuration or
+recording (missing, not MCAP, lacking the channels a replay needs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from beehave.errors import BeehaveError, RecordingError
+
+if TYPE_CHECKING:
+    from beehave.recording.recorder import Recorder
+    from beehave.recording.replay import ReplayResult
+    from beehave.robot import Robot
+
+
+def _fail(command: str, exc: BaseException | str) -> int:
+    print(f"beehave {command}: {exc}", file=sys.stderr, flush=True)
+    return 2
+
+
+def speed_arg(text: str) -> float | None:
+    """``1``, ``N`` (times real time) or ``max`` (as fast as the logics keep up: None)."""
+    if text.strip().lower() == "max":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 1, a factor N or 'max', got {text!r}") \
+            from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite factor > 0 or 'max', got "
+                                         f"{text!r}")
+    return value
+
+
+def _time_arg(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds since the start of the "
+                                         f"recording, got {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
+    return value
+
+
+# ---- beehave run --record / beehave demo --record ----------------------------------------
+
+def start_recording(path: str | Path, robots: list[Robot]) -> Recorder:
+    """A started :class:`Recorder` into ``path`` with ``robots`` attached (each under its
+    namespace), sized by the first robot's ``recording:`` options. Call it before the
+    robots start, and :func:`robots_started` once they run."""
+    from beehave.recording.recorder import Recorder
+
+    options = robots[0].config.recording if robots else None
+    recorder = Recorder(path, queue_size=options.queue_size if options else 100_000,
+                        max_file_mb=options.max_file_mb if options else None)
+    recorder.start()
+    try:
+        for robot in robots:
+            recorder.attach_robot(robot)
+    except BaseException:
+        recorder.close()
+        raise
+    return recorder
+
+
+def robots_started(recorder: Recorder, robots: list[Robot]) -> None:
+    """Record the ROS 2 topics of the ``robots`` (their low levels' nodes exist now)."""
+    for robot in robots:
+        if robot.low is not None and robot.low.hals.node is not None:
+            recorder.attach_ros_topics(robot)
+
+
+def finish_recording(recorder: Recorder) -> str:
+    """Close ``recorder``; one line saying what was written (and lost)."""
+    stats = recorder.close()
+    files = ", ".join(str(f) for f in stats.files)
+    lost = f"; {stats.dropped} DROPPED (disk too slow)" if stats.dropped else ""
+    return f"recorded {stats.written} messages into {files}{lost}"
+
+
+# ---- beehave replay ---------------------------------------------------------------------
+
+def replay_main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="beehave replay",
+        description="Run a robot's low level on a recording: its HALs replaced by a replay "
+                    "source writing the recorded values into the blackboard at the recorded "
+                    "times (sim time when recorded on it), HAL commands captured, not sent. "
+                    "Compares the logics' outputs and switches with the recording and "
+                    "reports the first divergence (exit 1). docs/recording.md")
+    parser.add_argument("recording", metavar="FILE.mcap")
+    parser.add_argument("--robot", required=True, metavar="ROBOT.yaml",
+                        help="the robot's configuration (its logics and HALs)")
+    parser.add_argument("--prefix", default=None, metavar="NAME",
+                        help="the robot in the recording (default: the configuration's "
+                             "namespace)")
+    parser.add_argument("--speed", type=speed_arg, default=1.0, metavar="1|N|max",
+                        help="1: real time (default), N: N times faster, max: as fast as "
+                             "the logics keep up")
+    parser.add_argument("--from", dest="from_s", type=_time_arg, default=None, metavar="T",
+                        help="start at T seconds into the recording")
+    parser.add_argument("--to", dest="to_s", type=_time_arg, default=None, metavar="T",
+                        help="stop at T seconds into the recording")
+    args = parser.parse_args(argv)
+    if args.from_s is not None and args.to_s is not None and args.to_s <= args.from_s:
+        return _fail("replay", f"--to ({args.to_s}) must be after --from ({args.from_s})")
+    from beehave.config import load_config
+    from beehave.recording.replay import replay
+
+    try:
+        config = load_config(args.robot)
+        result = replay(args.recording, config, prefix=args.prefix, speed=args.speed,
+                        from_s=args.from_s, to_s=args.to_s)
+    except BeehaveError as exc:
+        return _fail("replay", exc)
+    print(describe_replay(result), flush=True)
+    return 0 if result.divergence is None else 1
+
+
+def describe_replay(result: ReplayResult) -> str:
+    clock = "sim time" if result.sim_time else "wall time"
+    lines = [f"replayed {result.span_s:.2f} s ({clock}) in {result.wall_s:.2f} s "
+             f"(x{result.speedup:.1f}): {result.fed} inputs, {len(result.outputs)} outputs "
+             f"(recorded: {len(result.expected)})"]
+    lines += [f"warning: {w}" for w in result.warnings]
+    if result.divergence is None:
+        lines.append("deterministic: the same logic outputs and switches as recorded")
+    else:
+        lines.append(f"DIVERGED: {result.divergence}")
+    return "\n".join(lines)
+
+
+# ---- beehave inspect --------------------------------------------------------------------
+
+_TIMELINE_KINDS = {"started", "ended", "stuck", "switch_requested", "switch_completed",
+                   "switch_rejected", "fallback", "lock_rejected", "lock_preempted",
+                   "safe_state_failed", "restarted", "loop_blocked"}
+
+
+def inspect_main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="beehave inspect",
+        description="What a recording holds: its channels with their message counts, its "
+                    "duration, losses, and the event timeline (behaviours, actions, logic "
+                    "switches, locks, STUCK).")
+    parser.add_argument("recording", metavar="FILE.mcap")
+    parser.add_argument("--limit", type=int, default=200, metavar="N",
+                        help="show at most N timeline lines (default 200; 0: none)")
+    parser.add_argument("--robot", action="append", default=None, metavar="NAME",
+                        help="only this robot's events (repeatable)")
+    args = parser.parse_args(argv)
+    from rich.console import Console
+    from rich.table import Table
+
+    from beehave.recording import schema
+    from beehave.recording.reader import read_recording
+
+    try:
+        rec = read_recording(args.recording)
+        unknown = [r for r in args.robot or [] if r not in rec.prefixes]
+        if unknown:
+            raise RecordingError(f"no robot {unknown} in {args.recording}; robots recorded: "
+                                 f"{', '.join(map(repr, rec.prefixes)) or 'none'}")
+    except BeehaveError as exc:
+        return _fail("inspect", exc)
+    console = Console(width=max(100, Console().width))
+    files = ", ".join(str(f) for f in rec.files)
+    console.print(f"[bold]{files}[/]: {len(rec.messages)} messages, {rec.duration_s:.2f} s, "
+                  f"robots: {', '.join(rec.prefixes) or '-'}")
+    if rec.truncated:
+        console.print("[yellow]truncated[/]: the recording process died; read up to its "
+                      "last complete chunk")
+    if rec.dropped():
+        console.print(f"[red]{rec.dropped()} message(s) dropped[/] while recording (disk "
+                      "slower than the robot)")
+    table = Table(title="channels")
+    for col in ("topic", "encoding", "schema", "messages", "per s"):
+        table.add_column(col, justify="right" if col in ("messages", "per s") else "left")
+    for topic, info in sorted(rec.channels.items()):
+        rate = info.count / rec.duration_s if rec.duration_s > 0 else 0.0
+        table.add_row(topic, info.encoding, info.schema_name, str(info.count), f"{rate:.1f}")
+    console.print(table)
+    if args.limit <= 0:
+        return 0
+    robots = args.robot or rec.prefixes
+    topics = {schema.topic(p, c): p for p in robots
+              for c in (schema.EVENTS_HIGH, schema.EVENTS_LOW)}
+    shown = 0
+    console.rule("event timeline (s since start)")
+    events = [m for m in rec.messages if m.topic in topics]
+    for m in events:
+        data = m.data
+        if data["kind"] not in _TIMELINE_KINDS or data["subject"].startswith("blackboard:"):
+            continue
+        if shown >= args.limit:
+            console.print(f"… {len(events) - shown} more (--limit)")
+            break
+        level = "high" if m.topic.endswith("high") else "low "
+        t = (m.log_time_ns - rec.start_ns) / 1e9
+        status = f" {data['status']}" if data["status"] else ""
+        error = f"  [red]{data['error']}[/]" if data["error"] else ""
+        console.print(f"{t:9.3f}  {topics[m.topic]:<10} {level} {data['kind']:<17} "
+                      f"{data['subject']}{status}{error}", highlight=False)
+        shown += 1
+    return 0
+
+
+# ---- beehave plot -----------------------------------------------------------------------
+
+def plot_main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="beehave plot",
+        description="A recording as a picture: a Gantt chart of the behaviours, actions and "
+                    "logics of each robot (coloured by outcome, switches marked) with "
+                    "blackboard series underneath.")
+    parser.add_argument("recording", metavar="FILE.mcap")
+    parser.add_argument("-o", "--out", required=True, metavar="OUT.png",
+                        help="the picture to write (.png, .svg or .pdf)")
+    parser.add_argument("--robot", action="append", default=None, metavar="NAME",
+                        help="only this robot (repeatable; default: every robot)")
+    parser.add_argument("--series", action="append", default=None, metavar="KEY",
+                        help="a blackboard key to plot under the chart (repeatable; default: "
+                             "speed, battery, front distance, lift height where recorded)")
+    args = parser.parse_args(argv)
+    if Path(args.out).suffix.lower() not in (".png", ".svg", ".pdf"):
+        return _fail("plot", f"-o {args.out!r}: the picture must end in .png, .svg or .pdf")
+    from beehave.recording.plot import plot
+    from beehave.recording.reader import read_recording
+
+    try:
+        out = plot(read_recording(args.recording), args.out, robots=args.robot,
+                   keys=args.series)
+    except BeehaveError as exc:
+        return _fail("plot", exc)
+    print(f"wrote {out}", flush=True)
+    return 0

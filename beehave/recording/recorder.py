@@ -1,0 +1,376 @@
+"""The Recorder: taps the blackboard, the event buses, the HALs and ROS 2 topics into MCAP.
+
+::
+
+    with Recorder("run.mcap") as recorder:
+        robot = Robot(load_config("emili.yaml"))
+        recorder.attach_robot(robot)          # before start: the first events count too
+        with robot:
+            recorder.attach_ros_topics(robot)  # after start: the robot's node exists
+            ...
+
+Several robots go into one file, each under its own prefix (default: its namespace), so
+``/emili1/beehave/blackboard`` and ``/kobuki1/beehave/blackboard`` are separate channels.
+
+Recording never blocks what it records: every tap only appends to a bounded queue that a
+writer thread drains (:mod:`beehave.recording.writer`); a full queue drops and counts.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, Self
+
+from pydantic_core import to_json as _dumps
+
+import beehave
+from beehave.blackboard import Blackboard, Change, to_json
+from beehave.clock import WallClock
+from beehave.errors import RecordingError
+from beehave.events import Event, EventBus, EventKind
+from beehave.hal import HAL, check_duration_s
+from beehave.recording import schema
+from beehave.recording.writer import Channel, OpenFile, RecorderStats, WriterThread
+
+if TYPE_CHECKING:
+    from beehave.lowlevel import LowLevelBehaviorManager
+    from beehave.robot import Robot
+
+log = logging.getLogger(__name__)
+
+__all__ = ["DEFAULT_TOPICS", "STANDARD_TOPICS", "Recorder", "command_methods", "message_type"]
+
+DEFAULT_TOPICS: tuple[str, ...] = ("odom", "scan", "cmd_vel", "battery_state")
+"""The robot topics recorded when the configuration's ``recording.topics`` is not given."""
+
+STANDARD_TOPICS = {"odom": "nav_msgs/msg/Odometry", "scan": "sensor_msgs/msg/LaserScan",
+                   "cmd_vel": "geometry_msgs/msg/Twist",
+                   "battery_state": "sensor_msgs/msg/BatteryState"}
+"""The robot interface every beehave robot shares (DESIGN.md): topic → ROS 2 type. Other
+topics are given with their type in ``recording.topics``."""
+
+
+def message_type(type_name: str, *, where: str) -> type:
+    """``std_msgs/msg/Float64`` → its Python class; an error names ``where``."""
+    import importlib
+
+    parts = type_name.split("/")
+    if len(parts) != 3 or parts[1] != "msg" or not all(parts):
+        raise RecordingError(f"{where}: a ROS 2 message type looks like "
+                             f"'std_msgs/msg/Float64', got {type_name!r}")
+    try:
+        return getattr(importlib.import_module(f"{parts[0]}.msg"), parts[2])  # type: ignore[no-any-return]
+    except (ImportError, AttributeError) as exc:
+        raise RecordingError(f"{where}: unknown ROS 2 message type {type_name!r}: "
+                             f"{exc}") from None
+
+
+LIFECYCLE = frozenset({"on_load", "run", "safe_state", "on_unload"})
+
+
+def command_methods(cls: type[HAL]) -> list[str]:
+    """The public methods a HAL class adds to drive hardware (``set_color``, ``show`` …):
+    those defined by classes outside the framework (``beehave.*``), lifecycle hooks
+    excepted. The recorder records their calls; a replay captures them instead."""
+    names: set[str] = set()
+    for klass in cls.__mro__:
+        if klass is object or klass.__module__.split(".")[0] == "beehave":
+            continue
+        for name, attr in vars(klass).items():
+            if not name.startswith("_") and name not in LIFECYCLE and inspect.isfunction(attr):
+                names.add(name)
+    return sorted(names)
+
+
+def _encode_change(item: Change | tuple[float, Change]) -> tuple[int, bytes]:
+    if isinstance(item, tuple):  # went stale at item[0]; its stamp is still the write's
+        at, change = item
+    else:
+        change = item
+        at = change.stamp
+    stamp = change.stamp
+    return int(at * 1e9), _dumps({"key": change.key, "value": to_json(change.value),
+                                     "stamp": stamp, "writer": change.writer,
+                                     "stale": change.stale})
+
+
+def _encode_event(event: Event) -> tuple[int, bytes]:
+    body = event.as_dict()
+    body["detail"] = to_json(body["detail"])
+    return int(event.stamp * 1e9), _dumps(body)
+
+
+def _encode_command(item: tuple[float, str, str, tuple[Any, ...], dict[str, Any]]
+                    ) -> tuple[int, bytes]:
+    stamp, hal, method, args, kwargs = item
+    return int(stamp * 1e9), _dumps({"hal": hal, "method": method, "args": to_json(args),
+                                     "kwargs": to_json(kwargs), "stamp": stamp})
+
+
+def _identity(item: tuple[int, bytes]) -> tuple[int, bytes]:
+    return item
+
+
+class Recorder:
+    """Records into the MCAP file ``path`` (see the module docstring); a context manager.
+
+    ``queue_size``: messages each channel may hold waiting for the disk before new ones are
+    dropped (and counted in :attr:`stats`). ``max_file_mb``: roll over into
+    ``<stem>_001.mcap`` … once a file reaches that size (None: one file). ``flush_period_s``:
+    how often the chunk in progress is written out -- at most this much is lost when the
+    process dies. ``close_timeout_s``: how long :meth:`close` waits for the disk.
+    ``open_file(path)``: how a file is opened for writing (default ``open(path, "wb")``;
+    for unusual storage, and for tests that make the disk slow).
+    """
+
+    def __init__(self, path: str | Path, *, queue_size: int = 100_000,
+                 max_file_mb: float | None = None, flush_period_s: float = 1.0,
+                 close_timeout_s: float = 5.0, open_file: OpenFile | None = None) -> None:
+        if isinstance(queue_size, bool) or not isinstance(queue_size, int) or queue_size < 1:
+            raise RecordingError(f"queue_size must be an int >= 1, got {queue_size!r}")
+        if max_file_mb is not None and (isinstance(max_file_mb, bool) or not isinstance(
+                max_file_mb, (int, float)) or not 0 < max_file_mb < 1e6):
+            raise RecordingError(f"max_file_mb must be a number of megabytes > 0 (or None for "
+                                 f"one file), got {max_file_mb!r}")
+        self.path = Path(path)
+        if self.path.suffix != ".mcap":
+            raise RecordingError(f"a recording is an MCAP file: name it *.mcap, got "
+                                 f"{str(path)!r}")
+        self.queue_size = queue_size
+        self.close_timeout_s = check_duration_s("close_timeout_s", close_timeout_s)
+        self._clocks: list[tuple[Channel, WallClock]] = []
+        self._writer = WriterThread(
+            self.path, flush_period_s=check_duration_s("flush_period_s", flush_period_s),
+            max_file_bytes=None if max_file_mb is None else int(max_file_mb * 1e6),
+            open_file=open_file, metadata={"beehave": beehave.__version__},
+            on_drain=self._sample_clocks)
+        self._detach: list[Callable[[], None]] = []
+        self._topics: dict[str, Channel] = {}
+        self._started = False
+        self._closed = False
+
+    # -- lifecycle -----------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Open the file and start the writer thread (``with`` does it)."""
+        if self._started:
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._writer.start()
+        self._started = True
+
+    def close(self) -> RecorderStats:
+        """Stop recording: detach every tap, write what is queued, finish the file(s).
+        Returns the :attr:`stats`; a loss is logged as a warning. Raises
+        :class:`RecordingError` when the disk failed (what was flushed stays readable)."""
+        if self._closed:
+            return self.stats
+        self._closed = True
+        for detach in reversed(self._detach):
+            try:
+                detach()
+            except Exception as exc:  # a node already destroyed by the robot's shutdown
+                log.debug("recorder: detaching: %r", exc)
+        self._detach.clear()
+        stats = self._writer.close(timeout_s=self.close_timeout_s) if self._started \
+            else self.stats
+        if stats.dropped:
+            log.warning("recorder: %d message(s) dropped because the disk was slower than "
+                        "the robot (by channel: %s); %s", stats.dropped,
+                        stats.dropped_by_channel, self.path)
+        if stats.error is not None:
+            raise RecordingError(f"recording {str(self.path)!r} failed: {stats.error!r}; "
+                                 f"{stats.written} message(s) were written") from stats.error
+        return stats
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if exc is None:
+            self.close()
+            return
+        try:  # leaving on an error already: a failed disk must not hide it
+            self.close()
+        except RecordingError as failed:
+            exc.add_note(f"and the recording failed: {failed}")
+
+    @property
+    def stats(self) -> RecorderStats:
+        """Messages written and dropped so far, and the files."""
+        self._writer._count_drops()
+        return self._writer.stats
+
+    def _channel(self, prefix: str, name: str, encode: Callable[[Any], tuple[int, bytes]],
+                 **kwargs: Any) -> Channel:
+        if self._closed:
+            raise RecordingError(f"recorder of {str(self.path)!r} is closed")
+        topic = schema.topic(prefix, name)
+        if topic in self._topics:
+            raise RecordingError(f"channel {topic!r} is recorded already; give each robot "
+                                 "its own prefix")
+        channel = Channel(topic, encode=encode, capacity=self.queue_size,
+                          schema_name=kwargs.pop("schema_name",
+                                                 schema.CHANNEL_SCHEMA.get(name, "")),
+                          **kwargs)
+        self._topics[topic] = channel
+        return self._writer.add(channel)
+
+    # -- what to record ------------------------------------------------------------------
+
+    def attach_blackboard(self, board: Blackboard, *, prefix: str = "") -> None:
+        """Record every stored change of ``board`` (key, value, stamp, writer, stale)."""
+        channel = self._channel(prefix, schema.BLACKBOARD, _encode_change)
+        put = channel.put
+
+        def tap(change: Change) -> None:
+            # A stale change keeps the stamp of its write: note when it went stale.
+            put((time.time(), change) if change.stale else change)
+
+        self._detach.append(board.tap(tap))
+
+    def attach_events(self, events: EventBus, *, prefix: str = "",
+                      level: str = "high") -> None:
+        """Record every event of ``events`` (a manager's ``.events``) on the ``high`` or
+        ``low`` events channel."""
+        if level not in ("high", "low"):
+            raise RecordingError(f"level must be 'high' or 'low', got {level!r}")
+        channel = self._channel(prefix, schema.EVENTS_HIGH if level == "high"
+                                else schema.EVENTS_LOW, _encode_event)
+        self._detach.append(events.subscribe(channel.put))
+
+    def attach_hal_outputs(self, low: LowLevelBehaviorManager, *, prefix: str = "") -> None:
+        """Record the commands given to the low level's HALs (:func:`command_methods`:
+        ``set_color``, ``show`` …), each HAL as soon as it is loaded."""
+        channel = self._channel(prefix, schema.OUTPUTS, _encode_command)
+        wrapped: list[tuple[HAL, str, Callable[..., Any]]] = []
+
+        def wrap(name: str, hal: HAL) -> None:
+            for method in command_methods(type(hal)):
+                original = getattr(hal, method)
+                wrapper = _recording_call(original, name, method, channel.put)
+                setattr(hal, method, wrapper)  # shadows the class's method on this instance
+                wrapped.append((hal, method, wrapper))
+
+        def on_event(event: Event) -> None:
+            if event.kind is EventKind.STARTED and event.subject.startswith("hal:"):
+                name = event.subject[len("hal:"):]
+                hal = low.hals.loaded.get(name)
+                if hal is not None:
+                    wrap(name, hal)
+
+        unsubscribe = low.events.subscribe(on_event)
+        for name, hal in low.hals.loaded.items():
+            wrap(name, hal)
+
+        def detach() -> None:
+            unsubscribe()
+            for hal, method, wrapper in wrapped:
+                if hal.__dict__.get(method) is wrapper:
+                    delattr(hal, method)
+
+        self._detach.append(detach)
+
+    def attach_clock(self, clock: WallClock, *, prefix: str = "") -> None:
+        """Record ``clock.now()`` beside wall time (about 50 times a second), so a replay
+        can follow the simulation's time (a run at ``--fast`` replays at robot speed)."""
+        channel = self._channel(prefix, schema.CLOCK, _identity)
+        self._clocks.append((channel, clock))
+
+    def _sample_clocks(self) -> None:  # in the writer thread
+        for channel, clock in self._clocks:
+            stamp = time.time()
+            channel.put((int(stamp * 1e9), _dumps({"sim_time_s": clock.now(),
+                                                   "stamp": stamp})))
+
+    def attach_topic(self, node: Any, topic: str, msg_type: type, *, prefix: str = "",
+                     qos: Any = 10) -> None:
+        """Record the ROS 2 topic ``topic`` (relative to ``node``'s namespace) as
+        ``ros2msg``/CDR: the serialized bytes are stored as they came, unparsed."""
+        msgdef = schema.ros_msgdef(msg_type)
+        channel = self._channel(prefix, topic.strip("/"), _identity,
+                                schema_name=schema.ros_type_name(msg_type),
+                                schema_encoding="ros2msg", schema_data=msgdef.encode(),
+                                encoding="cdr")
+        put = channel.put
+
+        def on_message(data: bytes) -> None:  # in the ROS executor thread
+            put((time.time_ns(), data))
+
+        subscription = node.create_subscription(msg_type, topic, on_message, qos, raw=True)
+        self._detach.append(functools.partial(node.destroy_subscription, subscription))
+
+    def attach_robot(self, robot: Robot, *, prefix: str | None = None) -> None:
+        """Record a :class:`~beehave.robot.Robot`'s blackboard, events of both levels, HAL
+        commands and (on sim time) its clock, under ``prefix`` (default: its namespace).
+        Call it before ``robot.start()`` so the first switches and HAL loads are in; then
+        :meth:`attach_ros_topics` once it runs."""
+        prefix = robot.config.namespace if prefix is None else prefix
+        if robot.low is not None:
+            self.attach_blackboard(robot.low.blackboard, prefix=prefix)
+            self.attach_events(robot.low.events, prefix=prefix, level="low")
+            self.attach_hal_outputs(robot.low, prefix=prefix)
+        if robot.high is not None:
+            self.attach_events(robot.high.events, prefix=prefix, level="high")
+            if robot.low is None:
+                self.attach_blackboard(robot.high.blackboard, prefix=prefix)
+            if type(robot.high.clock) is not WallClock:
+                self.attach_clock(robot.high.clock, prefix=prefix)
+
+    def attach_ros_topics(self, robot: Robot, *, prefix: str | None = None,
+                          topics: list[Any] | None = None) -> None:
+        """Record the robot topics of its configuration's ``recording.topics`` (default
+        :data:`DEFAULT_TOPICS`), on the low level's node. Call it after ``robot.start()``.
+        A topic is a name of :data:`STANDARD_TOPICS` or ``{name: …, type: pkg/msg/Type}``;
+        anything else raises :class:`RecordingError` naming the entry and the choices."""
+        prefix = robot.config.namespace if prefix is None else prefix
+        options = getattr(robot.config, "recording", None)
+        wanted = list(topics if topics is not None else
+                      (options.topics if options is not None else DEFAULT_TOPICS))
+        node = robot.low.hals.node if robot.low is not None else None
+        if node is None:
+            raise RecordingError(f"robot {robot.config.namespace!r} has no low-level ROS 2 "
+                                 "node: call attach_ros_topics after robot.start(), on the "
+                                 "process that runs the low level")
+        for i, entry in enumerate(wanted):
+            where = f"{robot.config.source}: recording.topics.{i}"
+            name = entry if isinstance(entry, str) else getattr(entry, "name", None)
+            type_name = STANDARD_TOPICS.get(entry) if isinstance(entry, str) else \
+                getattr(entry, "type", None)
+            if not isinstance(name, str) or type_name is None:
+                raise RecordingError(
+                    f"{where}: unknown topic {entry!r}; give one of "
+                    f"{', '.join(sorted(STANDARD_TOPICS))} or {{name: TOPIC, type: "
+                    "pkg/msg/Type}")
+            self.attach_topic(node, name, message_type(type_name, where=where),
+                              prefix=prefix)
+
+
+def _recording_call(original: Callable[..., Any], hal: str, method: str,
+                    put: Callable[[Any], None]) -> Callable[..., Any]:
+    """``original`` that also records each successful call (a refused command -- out of
+    range -- raised in the logic and drove nothing)."""
+    if inspect.iscoroutinefunction(original):
+        @functools.wraps(original)
+        async def async_call(*args: Any, **kwargs: Any) -> Any:
+            result = await original(*args, **kwargs)
+            put((time.time(), hal, method, args, kwargs))
+            return result
+
+        return async_call
+
+    @functools.wraps(original)
+    def call(*args: Any, **kwargs: Any) -> Any:
+        result = original(*args, **kwargs)
+        put((time.time(), hal, method, args, kwargs))
+        return result
+
+    return call

@@ -1,0 +1,175 @@
+"""What a recording holds: channel names, their JSON schemas, ROS 2 message definitions.
+
+Every beehave channel is JSON with a JSON Schema (MCAP ``json`` encoding), so Foxglove
+shows and plots it as it is. Channels of one robot share a prefix (its namespace)::
+
+    /<robot>/beehave/blackboard     every stored blackboard change
+    /<robot>/beehave/events/high    high-level lifecycle events (behaviours, actions …)
+    /<robot>/beehave/events/low     low-level events (logic switches, HAL loads …)
+    /<robot>/beehave/outputs        HAL commands the logics gave (set_color, show …)
+    /<robot>/beehave/clock          sim time beside wall time (robots on sim time)
+    /<robot>/<topic>                ROS 2 topics, ros2msg/CDR (odom, scan, cmd_vel …)
+    /beehave/recorder               the recorder's own counts (written, dropped)
+
+A recording without a prefix (a bare blackboard in a test) uses ``/beehave/...``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from beehave.errors import RecordingError
+
+BLACKBOARD = "beehave/blackboard"
+EVENTS_HIGH = "beehave/events/high"
+EVENTS_LOW = "beehave/events/low"
+OUTPUTS = "beehave/outputs"
+CLOCK = "beehave/clock"
+RECORDER = "/beehave/recorder"
+
+PROFILE = "ros2"
+"""The MCAP profile: ROS 2 tools and Foxglove read the ``ros2msg`` channels as ROS data."""
+
+_ANY: dict[str, Any] = {}
+_TIME = {"type": "number", "description": "time.time() when it happened (s)"}
+
+SCHEMAS: dict[str, dict[str, Any]] = {
+    "beehave.BlackboardChange": {
+        "title": "beehave.BlackboardChange",
+        "description": "One stored blackboard change (beehave.blackboard.Change).",
+        "type": "object",
+        "properties": {
+            "key": {"type": "string"},
+            "value": {"description": "strict JSON; non-finite floats as {\"$float\": \"inf\"}"},
+            "stamp": _TIME,
+            "writer": {"type": ["string", "null"],
+                       "description": "hal:<name>, logic:<path>, ros:<bridge> or null"},
+            "stale": {"type": "boolean"},
+        },
+        "required": ["key", "value", "stamp", "writer", "stale"],
+    },
+    "beehave.Event": {
+        "title": "beehave.Event",
+        "description": "One lifecycle event (beehave.events.Event).",
+        "type": "object",
+        "properties": {
+            "kind": {"type": "string"},
+            "subject": {"type": "string"},
+            "status": {"type": ["string", "null"]},
+            "error": {"type": ["string", "null"]},
+            "detail": {"type": "object"},
+            "stamp": _TIME,
+        },
+        "required": ["kind", "subject", "status", "error", "detail", "stamp"],
+    },
+    "beehave.HalCommand": {
+        "title": "beehave.HalCommand",
+        "description": "A HAL method a logic (or a safe state) called to drive hardware.",
+        "type": "object",
+        "properties": {
+            "hal": {"type": "string"},
+            "method": {"type": "string"},
+            "args": {"type": "array"},
+            "kwargs": {"type": "object"},
+            "stamp": _TIME,
+        },
+        "required": ["hal", "method", "args", "kwargs", "stamp"],
+    },
+    "beehave.ClockSample": {
+        "title": "beehave.ClockSample",
+        "description": "The robot's sim time at a wall time: replay paces by it.",
+        "type": "object",
+        "properties": {"sim_time_s": {"type": "number"}, "stamp": _TIME},
+        "required": ["sim_time_s", "stamp"],
+    },
+    "beehave.RecorderStats": {
+        "title": "beehave.RecorderStats",
+        "description": "How many messages the recorder wrote and dropped so far.",
+        "type": "object",
+        "properties": {"written": {"type": "integer"}, "dropped": {"type": "integer"},
+                       "dropped_by_channel": {"type": "object"}, "stamp": _TIME},
+        "required": ["written", "dropped", "stamp"],
+    },
+}
+
+CHANNEL_SCHEMA = {BLACKBOARD: "beehave.BlackboardChange", EVENTS_HIGH: "beehave.Event",
+                  EVENTS_LOW: "beehave.Event", OUTPUTS: "beehave.HalCommand",
+                  CLOCK: "beehave.ClockSample"}
+
+
+def schema_bytes(name: str) -> bytes:
+    return json.dumps(SCHEMAS[name], sort_keys=True).encode()
+
+
+def topic(prefix: str, channel: str) -> str:
+    """The MCAP topic of ``channel`` for the robot ``prefix`` (``""``: no robot)."""
+    prefix = prefix.strip("/")
+    return f"/{prefix}/{channel}" if prefix else f"/{channel}"
+
+
+# ---- ROS 2 message definitions (the ros2msg schema of a ROS channel) ---------------------
+
+def ros_type_name(msg_type: type) -> str:
+    """``nav_msgs/msg/Odometry`` for the Python class of that message."""
+    module = msg_type.__module__.split(".")  # nav_msgs.msg._odometry
+    return f"{module[0]}/msg/{msg_type.__name__}"
+
+
+def _msg_file(package: str, name: str) -> Path:
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        share = Path(get_package_share_directory(package))
+    except Exception:  # no ament index (a bare wheel install): next to the interpreter
+        import sys
+
+        share = Path(sys.prefix) / "share" / package
+    return share / "msg" / f"{name}.msg"
+
+
+def _nested(field_type: str) -> str | None:
+    """``geometry_msgs/Pose`` out of ``sequence<geometry_msgs/Pose, 5>`` or ``x/Y[3]``."""
+    inner = field_type
+    if inner.startswith("sequence<"):
+        inner = inner[len("sequence<"):].rstrip(">").split(",")[0].strip()
+    inner = inner.split("[")[0]
+    return inner if "/" in inner else None
+
+
+def ros_msgdef(msg_type: type) -> str:
+    """The ``ros2msg`` definition of ``msg_type``: its ``.msg`` text followed by those of
+    the types it uses, each after a ``===`` line and ``MSG: pkg/Type`` (what rosbag2
+    writes, so Foxglove and ``mcap-ros2-support`` decode the CDR data)."""
+    seen: list[str] = []
+    texts: dict[str, str] = {}
+
+    def visit(cls: type) -> None:
+        package = cls.__module__.split(".")[0]
+        full = f"{package}/{cls.__name__}"
+        if full in texts:
+            return
+        path = _msg_file(package, cls.__name__)
+        try:
+            texts[full] = path.read_text()
+        except OSError as exc:
+            raise RecordingError(f"no message definition for {full} at {path}: {exc}; "
+                                 "its package's share/ folder must be installed") from exc
+        seen.append(full)
+        for field_type in cls.get_fields_and_field_types().values():  # type: ignore[attr-defined]
+            nested = _nested(field_type)
+            if nested is None:
+                continue
+            pkg, name = nested.split("/")
+            import importlib
+
+            module = importlib.import_module(f"{pkg}.msg")
+            visit(getattr(module, name))
+
+    visit(msg_type)
+    first, *rest = seen
+    parts = [texts[first].rstrip("\n")]
+    for full in rest:
+        parts.append("=" * 80 + f"\nMSG: {full}\n" + texts[full].rstrip("\n"))
+    return "\n".join(parts) + "\n"
