@@ -255,7 +255,8 @@ def checks(report: dict[str, Any], watch: Watch) -> list[tuple[str, bool, str]]:
 
 
 def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
-              minutes: float = 5.0, fast: bool = False, out_dir: Path = Path("out")) -> int:
+              minutes: float = 5.0, fast: bool = False, out_dir: Path = Path("out"),
+              record: bool = False) -> int:
     places = site(world)
     fleet_dir = out_dir / "fleet"
     fleet_dir.mkdir(parents=True, exist_ok=True)
@@ -278,7 +279,8 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
             ns = f"atv{k}"
             cfg = fleet_dir / f"{ns}.yaml"
             cfg.write_text(yaml.safe_dump(atv_config(ns, world), sort_keys=False))
-            procs.start(ns, [py, "-m", "beehave.cli", "run", str(cfg)])
+            recording = ["--record", str(fleet_dir / f"{ns}.mcap")] if record else []
+            procs.start(ns, [py, "-m", "beehave.cli", "run", str(cfg), *recording])
         for name in sorted(places.machines):
             procs.start(name, [py, "-m", "behaviours.fleet.machine", name, "--world", world,
                                "--lease-s", str(LEASE_S)])
@@ -326,7 +328,8 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
         summary.add_row(name, Text("ok", style="green") if ok else Text("FAILED", style="red"),
                         measured)
     console.print(summary)
-    console.print(f"picture: {picture}   facts: {report_path}   logs: {fleet_dir}/")
+    console.print(f"picture: {picture}   facts: {report_path}   logs"
+                  f"{' and recordings' if record else ''}: {fleet_dir}/")
     print(json.dumps({"fleet": {"robots": robots, "sim_s": round(now_s, 1),
                                 "wall_s": round(wall_s, 1),
                                 "real_time_factor": round(now_s / wall_s, 3),
@@ -348,6 +351,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="as fast as the machine goes (lockstep), not at real time")
     parser.add_argument("--out", default="out", metavar="FOLDER",
                         help="where fleet.png, fleet_report.json and the logs go")
+    parser.add_argument("--record", action="store_true",
+                        help="record every ATV into FOLDER/fleet/atvK.mcap (one file per "
+                             "robot; docs/recording.md: beehave inspect/plot/replay)")
     args = parser.parse_args(argv)
     if not 1 <= args.robots <= 10:
         parser.error(f"--robots must be 1..10 (the parking row), got {args.robots}")
@@ -365,7 +371,7 @@ def main(argv: list[str] | None = None) -> int:
     console = Console()
     console.rule(f"[bold]beehave fleet — {args.robots} ATVs in {args.world}")
     return run_fleet(console, world=args.world, robots=args.robots, minutes=args.minutes,
-                     fast=args.fast, out_dir=Path(args.out))
+                     fast=args.fast, out_dir=Path(args.out), record=args.record)
 
 
 if __name__ == "__main__":
