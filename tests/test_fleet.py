@@ -163,3 +163,34 @@ def test_a_killed_station_agent_frees_nothing_twice_and_the_atv_charges_elsewher
     assert stations["charger2"]["max_charging"] == 1, stations
 
 
+
+
+def test_max_speed_mps_is_a_validated_parameter_that_clamps_every_drive() -> None:
+    import math
+
+    from rclpy.parameter import Parameter
+
+    from behaviours.actions import SpeedLimit
+
+    with RosContext() as ros:
+        node = ros.create_node("speed_limit_test")
+        limit = SpeedLimit.of(node)
+        assert SpeedLimit.of(node) is limit and math.isinf(limit.mps)  # declared once
+        assert node.set_parameters([Parameter("max_speed_mps", value=0.2)])[0].successful
+        assert limit.mps == 0.2
+        for wrong in (-0.1, 0.0, float("nan")):
+            result = node.set_parameters([Parameter("max_speed_mps", value=wrong)])[0]
+            assert not result.successful and "max_speed_mps must be a float > 0" in \
+                result.reason, result
+        assert limit.mps == 0.2  # a refused value changes nothing
+
+
+def test_zone_limits_look_ahead_and_lift_outside() -> None:
+    from behaviours.fleet.site import site
+
+    places = site("factory")
+    # The walkway (0.15 m/s) spans x 11.5–12.5: 0.4 m west of it, heading east, it binds
+    # already; heading west (away from it), nothing does.
+    assert places.limit_at(11.1, 8.0, 0.0, lookahead_m=0.6) == ("walkway", 0.15)
+    assert places.limit_at(11.1, 8.0, 3.1416, lookahead_m=0.6) == (None, float("inf"))
+    assert places.limit_at(12.0, 8.0, 3.1416, lookahead_m=0.0) == ("walkway", 0.15)
