@@ -8,15 +8,17 @@ message on stderr starts with ``beehave <command>:``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import os
 import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
 log = logging.getLogger("beehave.cli")
 
@@ -76,6 +78,10 @@ def _demo(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     console = Console()
+    if args.console and args.http is not None:
+        print("beehave demo: --http serves the simulated demo's robots; the console demo "
+              "(--console) has none", file=sys.stderr)
+        return 2
     if not args.console:
         out = Path(args.out)
         if out.suffix.lower() in _PICTURE_SUFFIXES:
@@ -87,7 +93,8 @@ def _demo(args: argparse.Namespace) -> int:
 
         console.rule("[bold]beehave — EMILI and Kobuki in the simulated warehouse")
         speed = None if args.fast else args.real_time_factor
-        sim_problems = run_sim_demo(console, real_time_factor=speed, out_dir=out)
+        sim_problems = run_sim_demo(console, real_time_factor=speed, out_dir=out,
+                                    **({} if args.http is None else {"http": args.http}))
         for problem in sim_problems:
             console.print(f"[red]FAILED:[/] {problem}")
         if sim_problems:
@@ -174,9 +181,10 @@ def _run(args: argparse.Namespace) -> int:
             parts = "high and low level" if args.only is None else f"{args.only} level only"
             print(f"beehave: robot {config.namespace!r} running ({parts}); Ctrl-C to stop",
                   flush=True)
-            stop.wait(args.duration_s)
-            phase = "shutdown"
-            stopping.set()
+            with _http_for_run(args, robot):
+                stop.wait(args.duration_s)
+                phase = "shutdown"
+                stopping.set()
     except Exception as exc:  # the robot has been shut down (Robot.start/__exit__ do it)
         if phase == "shutdown":
             exc.add_note("(raised while shutting the robot down; everything else was "
@@ -188,6 +196,87 @@ def _run(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
     print("beehave: stopped cleanly", flush=True)
     return 0
+
+
+# ---- --http: the HTTP/WebSocket interface and web view (docs/http.md) -------------------
+
+def http_address_arg(text: str) -> tuple[str, int]:
+    """An argparse ``type`` for ``[HOST:]PORT`` (127.0.0.1 unless a host is given)."""
+    from beehave.errors import ConfigError
+    from beehave.interfaces.http.server import parse_address
+
+    try:
+        return parse_address(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _add_http_options(parser: argparse.ArgumentParser, *, world: bool) -> None:
+    parser.add_argument(
+        "--http", type=http_address_arg, default=None, metavar="[HOST:]PORT",
+        help="serve the HTTP/WebSocket API and the live web view (docs/http.md) on "
+             "HOST:PORT (default host 127.0.0.1; port 0 picks a free one). Another host "
+             "needs a token: BEEHAVE_HTTP_TOKEN, else one is generated and printed")
+    if world:
+        parser.add_argument(
+            "--world", default=None, metavar="WORLD.yaml",
+            help="the world YAML the web view draws (default: the simulation's, when "
+                 "`sim:` runs it in this process)")
+
+
+def _world_provider(robot: object, world_file: str | None) -> dict[str, Any] | None:
+    """The web view's map: a world YAML as plain data, or the in-process simulation's
+    world (any object with a pydantic ``model_dump``). The framework reads no simulator
+    module for it."""
+    if world_file is not None:
+        import yaml
+
+        from beehave.errors import ConfigError
+
+        try:
+            data = yaml.safe_load(Path(world_file).read_text())
+        except (OSError, yaml.YAMLError) as exc:
+            raise ConfigError(f"--world {world_file}: cannot read it: {exc}") from exc
+        if not isinstance(data, dict) or "floor" not in data:
+            raise ConfigError(f"--world {world_file}: not a world (a mapping with 'floor', "
+                              f"'walls', 'stations' …; see robots/worlds/)")
+        return data
+    world = getattr(getattr(robot, "sim", None), "world", None)
+    dump = getattr(world, "model_dump", None)
+    data = dump(mode="json") if callable(dump) else None
+    return data if isinstance(data, dict) else None
+
+
+@contextlib.contextmanager
+def _http_for_run(args: argparse.Namespace, robot: object) -> Iterator[None]:
+    """Serve ``robot`` over HTTP while the block runs, when ``--http`` was given."""
+    if args.http is None:
+        yield
+        return
+    from beehave.errors import ConfigError
+    from beehave.interfaces.http import HttpServer
+
+    plane = getattr(robot, "plane", None)
+    if plane is None:
+        raise ConfigError("--http needs the high level in this process (not --only low)")
+    host, port = args.http
+    server = HttpServer(plane, host=host, port=port,
+                        world=_world_provider(robot, args.world))
+    server.start()
+    try:
+        _announce(server)
+        yield
+    finally:
+        server.stop()
+
+
+def _announce(server: object) -> None:
+    url = getattr(server, "url", "")
+    print(f"beehave: web view and API at {url} (OpenAPI: {url.split('#')[0]}docs)",
+          flush=True)
+    if getattr(server, "token_source", None) == "generated":
+        print(f"beehave: token {getattr(server, 'token', '')} (send 'Authorization: Bearer "
+              f"TOKEN'; set BEEHAVE_HTTP_TOKEN to choose one)", flush=True)
 
 
 # ---- the parser -------------------------------------------------------------------------
@@ -216,6 +305,7 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--console", action="store_true",
                       help="the console demo of the two managers instead: no simulation, "
                            "no ROS 2")
+    _add_http_options(demo, world=False)
     demo.set_defaults(func=_demo)
     run = sub.add_parser(
         "run", help="run a robot from its configuration file (ROS 2)",
@@ -228,6 +318,7 @@ def _parser() -> argparse.ArgumentParser:
                      help="run one manager only (the other runs in another process)")
     run.add_argument("--duration-s", type=seconds_arg, default=None, metavar="N",
                      help="stop after N wall-clock seconds (default: until Ctrl-C/SIGTERM)")
+    _add_http_options(run, world=True)
     run.set_defaults(func=_run)
     # graph and sim parse their own arguments (see main); these entries are for -h.
     sub.add_parser("graph", add_help=False,

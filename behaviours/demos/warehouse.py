@@ -23,6 +23,7 @@ import math
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -89,6 +90,25 @@ def _running_actions(node: dict[str, Any] | None) -> list[str]:
     return names
 
 
+@contextlib.contextmanager
+def _serve_http(console: Console, address: tuple[str, int], world: Any, *robots: Robot
+                ) -> Iterator[None]:
+    """Both robots' web view and API (``beehave demo --http PORT``), with the world map."""
+    from beehave.interfaces.http import HttpServer
+
+    planes = {robot.config.namespace: robot.plane for robot in robots
+              if robot.plane is not None}
+    server = HttpServer(planes, host=address[0], port=address[1],
+                        world=world.model_dump(mode="json"))
+    server.start()
+    try:
+        console.print(f"web view: [bold]{server.url}[/]  (API docs: "
+                      f"{server.url.split('#')[0]}docs)")
+        yield
+    finally:
+        server.stop()
+
+
 def _wait(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase: str,
           predicate: Any, timeout_sim_s: float, *, min_wall_s: float = 5.0) -> bool:
     """Wait until ``predicate()``; give up once ``timeout_sim_s`` of sim time *and*
@@ -108,8 +128,11 @@ def _wait(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase
 
 
 def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
-                 out_dir: Path = Path("out"), live_display: bool = True) -> list[str]:
-    """Run the scenario; return the problems (empty when every goal was reached)."""
+                 out_dir: Path = Path("out"), live_display: bool = True,
+                 http: tuple[str, int] | None = None) -> list[str]:
+    """Run the scenario; return the problems (empty when every goal was reached).
+
+    ``http``: (host, port) to serve both robots' web view and API on while it runs."""
     world = load_world("warehouse")
     dropoff = world.station("emili_dropoff")
     charging = world.station("emili_charging")
@@ -122,12 +145,15 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
     kobuki = Robot(load_config(CONFIG_DIR / "kobuki.yaml"))
     e1, k1 = sim.emili("emili1"), sim.kobuki("kobuki1")
     live = Live(console=console, refresh_per_second=8) if live_display else None
+    stack = contextlib.ExitStack()  # the web view, stopped before the robots
     try:
         ros.start()
         sim.start()
         emili.start()
         kobuki.start()
         assert emili.high is not None and kobuki.high is not None
+        if http is not None:
+            stack.enter_context(_serve_http(console, http, world, emili, kobuki))
         if live is not None:
             live.start()
         kobuki.high.switch("wander")
@@ -211,6 +237,7 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
         for child in wander.children if wander is not None else []:
             found.kobuki_bumps += int(getattr(child, "bumps", 0))
     finally:
+        stack.close()
         if live is not None:
             live.stop()
         out_dir.mkdir(parents=True, exist_ok=True)
