@@ -18,7 +18,10 @@ import threading
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from beehave.robot import Robot
 
 log = logging.getLogger("beehave.cli")
 
@@ -224,7 +227,7 @@ def _add_http_options(parser: argparse.ArgumentParser, *, world: bool) -> None:
                  "`sim:` runs it in this process)")
 
 
-def _world_provider(robot: object, world_file: str | None) -> dict[str, Any] | None:
+def _world_provider(robot: Robot, world_file: str | None) -> dict[str, Any] | None:
     """The web view's map: a world YAML as plain data, or the in-process simulation's
     world (any object with a pydantic ``model_dump``). The framework reads no simulator
     module for it."""
@@ -241,33 +244,37 @@ def _world_provider(robot: object, world_file: str | None) -> dict[str, Any] | N
             raise ConfigError(f"--world {world_file}: not a world (a mapping with 'floor', "
                               f"'walls', 'stations' …; see robots/worlds/)")
         return data
-    world = getattr(getattr(robot, "sim", None), "world", None)
+    world = getattr(robot.sim, "world", None)
     dump = getattr(world, "model_dump", None)
     data = dump(mode="json") if callable(dump) else None
     return data if isinstance(data, dict) else None
 
 
 @contextlib.contextmanager
-def _http_for_run(args: argparse.Namespace, robot: object) -> Iterator[None]:
+def _http_for_run(args: argparse.Namespace, robot: Robot) -> Iterator[None]:
     """Serve ``robot`` over HTTP while the block runs, when ``--http`` was given."""
     if args.http is None:
         yield
         return
     from beehave.errors import ConfigError
     from beehave.interfaces.http import HttpServer
+    from beehave.interfaces.http.server import VIEW_HALS, hold_hals
 
-    plane = getattr(robot, "plane", None)
+    plane = robot.plane
     if plane is None:
         raise ConfigError("--http needs the high level in this process (not --only low)")
     host, port = args.http
     server = HttpServer(plane, host=host, port=port,
                         world=_world_provider(robot, args.world))
     server.start()
-    try:
+    with contextlib.ExitStack() as stack:
+        stack.callback(server.stop)
+        low = robot.low
+        if low is not None:  # the map needs the pose even when no logic asks for it
+            configured = {h if isinstance(h, str) else h.name for h in robot.config.hals}
+            stack.callback(hold_hals(low, [n for n in VIEW_HALS if n in configured]))
         _announce(server)
         yield
-    finally:
-        server.stop()
 
 
 def _announce(server: object) -> None:

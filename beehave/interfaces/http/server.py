@@ -9,15 +9,24 @@ import os
 import secrets
 import socket
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Mapping
 from types import TracebackType
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Self
 
 from beehave.errors import BeehaveError, ConfigError
 from beehave.interfaces.core import ControlPlane
 from beehave.interfaces.http.app import Provider, create_app
 
+if TYPE_CHECKING:
+    from beehave.lowlevel import LowLevelBehaviorManager
+
 log = logging.getLogger(__name__)
+
+#: The HALs whose blackboard entries the web view's map draws (pose, battery). HALs load
+#: on demand, when a logic asks: a robot whose logics never need odometry would show no
+#: marker, so ``beehave run --http`` holds these (those the robot configures) while it
+#: serves. See :func:`hold_hals`.
+VIEW_HALS = ("odometry", "battery")
 
 #: The environment variable a token is taken from when none is passed.
 TOKEN_ENV = "BEEHAVE_HTTP_TOKEN"
@@ -203,6 +212,34 @@ class HttpServer:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.stop()
+
+
+def hold_hals(low: LowLevelBehaviorManager, names: Iterable[str], *,
+              timeout_s: float = 5.0) -> Callable[[], None]:
+    """Keep the HALs ``names`` loaded (one reference of their own, as a logic holds them)
+    so that their blackboard entries stay current for a viewer; returns the function that
+    gives the references back. A HAL that fails to load is reported (a warning naming it)
+    and skipped: the view then lacks its entries, the robot runs on."""
+    owner = object()  # the viewer's references, told apart from every logic's
+    held: list[str] = []
+    for name in names:
+        try:
+            low.call(low.hals.load(name, owner=owner), timeout_s=timeout_s)
+        except (BeehaveError, TimeoutError) as exc:
+            log.warning("web view: HAL %r not loaded (its entries stay off the view): %s",
+                        name, exc)
+        else:
+            held.append(name)
+
+    def release() -> None:
+        for name in held:
+            try:
+                low.call(low.hals.release(name, owner=owner), timeout_s=timeout_s)
+            except (BeehaveError, TimeoutError) as exc:
+                log.warning("web view: releasing HAL %r failed: %s", name, exc)
+        held.clear()
+
+    return release
 
 
 def serve(planes: ControlPlane | Mapping[str, ControlPlane], *, host: str = DEFAULT_HOST,
