@@ -245,3 +245,55 @@ def test_off_loopback_the_page_needs_the_token_and_a_wrong_one_is_refused(
             finally:
                 tab.close()
             plane.close()
+
+
+def test_a_behaviour_tree_is_drawn_with_py_trees_status_colours_that_follow_its_ticks(
+        browser: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    import py_trees
+
+    from beehave import HighLevelBehaviorManager
+    from beehave.engines.engine import EngineBehavior
+    from beehave.engines.tree import BlackboardCheck, StartLeaf, TreeEngine
+    from beehave.interfaces import ControlPlane
+    from beehave.interfaces.http import TOKEN_ENV, HttpServer
+    from beehave.testing import ScriptedAction
+
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    root = py_trees.composites.Selector("root", memory=False, children=[
+        py_trees.composites.Sequence("charge?", memory=False, children=[
+            BlackboardCheck("low", "battery/percentage < 20"),
+            StartLeaf("charge", lambda: ScriptedAction("lift", duration_s=60.0))]),
+        StartLeaf("patrol", lambda: ScriptedAction("driving", duration_s=60.0))])
+    with HighLevelBehaviorManager(stop_timeout_s=0.3) as hl:
+        hl.register("patrol", EngineBehavior, engine=TreeEngine(root, rate_hz=50.0))
+        hl.blackboard.set("battery/percentage", 80.0, writer="hal:battery")
+        plane = ControlPlane(hl, name="kobuki1")
+        with HttpServer(plane) as server:
+            tab = browser.new_page(viewport={"width": 1200, "height": 900})
+            try:
+                tab.goto(server.url)
+                tab.wait_for_selector("#conn.up", timeout=10_000)
+                tab.select_option("#behavior-choice", "patrol")
+                tab.click("#switch-btn")
+                running = '.bt-node[data-node="{}"][data-status="{}"]'
+                tab.wait_for_selector(running.format("root/patrol", "RUNNING"), timeout=10_000)
+                assert hl.current == "patrol"
+                assert tab.locator(running.format("root/charge?/low", "FAILURE")).count() == 1
+                # The battery runs low: the tree takes the charging branch, and the page
+                # follows tick by tick.
+                hl.blackboard.set("battery/percentage", 10.0, writer="hal:battery")
+                tab.wait_for_selector(running.format("root/charge?/charge", "RUNNING"),
+                                      timeout=10_000)
+                tab.wait_for_selector(running.format("root/patrol", "INVALID"),
+                                      timeout=10_000)
+                tab.wait_for_selector('#locks tr[data-lock="lift"]', timeout=10_000)
+                # A stale entry is marked as such in the blackboard table.
+                hl.blackboard.set("battery/percentage", 10.0, writer="hal:battery",
+                                  stale=True)
+                tab.wait_for_selector(
+                    '#blackboard tr[data-key="battery/percentage"][data-stale="true"]',
+                    timeout=10_000)
+                assert tab.locator('#events li[data-kind="switch_completed"]').count() >= 1
+            finally:
+                tab.close()
+        plane.close()
