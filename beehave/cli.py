@@ -174,6 +174,7 @@ def _run(args: argparse.Namespace) -> int:
     phase = "start"
     try:
         try:
+            _check_http_options(args)
             config = load_config(args.config)
             robot = Robot(config, only=args.only)
         except BeehaveError as exc:  # nothing has started yet
@@ -227,22 +228,44 @@ def _add_http_options(parser: argparse.ArgumentParser, *, world: bool) -> None:
                  "`sim:` runs it in this process)")
 
 
-def _world_provider(robot: Robot, world_file: str | None) -> dict[str, Any] | None:
-    """The web view's map: a world YAML as plain data, or the in-process simulation's
-    world (any object with a pydantic ``model_dump``). The framework reads no simulator
-    module for it."""
-    if world_file is not None:
-        import yaml
+def _check_http_options(args: argparse.Namespace) -> None:
+    """Refuse ``--http``/``--world`` combinations that cannot work, before anything starts
+    (a :class:`~beehave.errors.ConfigError`: exit 2)."""
+    from beehave.errors import ConfigError
 
-        from beehave.errors import ConfigError
+    if args.http is None:
+        if args.world is not None:
+            raise ConfigError("--world is the map of the web view: give --http too")
+        return
+    if args.only == "low":
+        raise ConfigError("--http serves the high level's control plane: it cannot run "
+                          "with --only low (serve it from the process that runs the high "
+                          "level)")
+    if args.world is not None:
+        args.world_data = _read_world(args.world)
 
-        try:
-            data = yaml.safe_load(Path(world_file).read_text())
-        except (OSError, yaml.YAMLError) as exc:
-            raise ConfigError(f"--world {world_file}: cannot read it: {exc}") from exc
-        if not isinstance(data, dict) or "floor" not in data:
-            raise ConfigError(f"--world {world_file}: not a world (a mapping with 'floor', "
-                              f"'walls', 'stations' …; see robots/worlds/)")
+
+def _read_world(world_file: str) -> dict[str, Any]:
+    """A world YAML as plain data (the web view draws it; the simulator validates it)."""
+    import yaml
+
+    from beehave.errors import ConfigError
+
+    try:
+        data = yaml.safe_load(Path(world_file).read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"--world {world_file}: cannot read it: {exc}") from exc
+    if not isinstance(data, dict) or not isinstance(data.get("floor"), dict):
+        raise ConfigError(f"--world {world_file}: not a world (a mapping with 'floor', "
+                          f"'walls', 'stations' …; see robots/worlds/warehouse.yaml)")
+    return data
+
+
+def _world_provider(robot: Robot, args: argparse.Namespace) -> dict[str, Any] | None:
+    """The web view's map: ``--world``'s file, or the in-process simulation's world (any
+    object with a pydantic ``model_dump``). The framework imports no simulator for it."""
+    data: dict[str, Any] | None = getattr(args, "world_data", None)
+    if data is not None:
         return data
     world = getattr(robot.sim, "world", None)
     dump = getattr(world, "model_dump", None)
@@ -265,7 +288,7 @@ def _http_for_run(args: argparse.Namespace, robot: Robot) -> Iterator[None]:
         raise ConfigError("--http needs the high level in this process (not --only low)")
     host, port = args.http
     server = HttpServer(plane, host=host, port=port,
-                        world=_world_provider(robot, args.world))
+                        world=_world_provider(robot, args))
     server.start()
     with contextlib.ExitStack() as stack:
         stack.callback(server.stop)
