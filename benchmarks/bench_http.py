@@ -104,7 +104,7 @@ def dom_latency(server: HttpServer, hl: HighLevelBehaviorManager) -> dict[str, A
                 page.wait_for_function(
                     "v => { const r = document.querySelector('#blackboard "
                     "tr[data-key=\"bench/dom\"] td.value'); return r && r.textContent === v; }",
-                    arg=str(i), polling="raf", timeout=10_000)
+                    arg=str(i), polling=5, timeout=10_000)  # checks the DOM every 5 ms
                 samples.append(time.perf_counter() - started)
         finally:
             browser.close()

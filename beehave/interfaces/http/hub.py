@@ -1,9 +1,11 @@
 """The WebSocket fan-out: one coalescing pump per server, one bounded mailbox per client.
 
-The pump wakes ``rate_hz`` times a second; for every robot that changed since its last
-turn (an event, a blackboard write) — and at least every ``refresh_s``, so ages and
-staleness move — it builds the robot's update once (snapshot + blackboard), serialises it
-once, and *offers* it to each client watching that robot. A client's mailbox holds one
+The pump sleeps until a robot changes (an event, a blackboard write: the first change
+after a turn wakes it) or ``refresh_s`` passes (ages and staleness move on), and takes at
+most ``rate_hz`` turns a second: a change to a quiet robot goes out at once, a burst is
+coalesced into one update per ``1/rate_hz``. In a turn, for every robot that changed it
+builds the update once (snapshot + blackboard), serialises it once, and *offers* it to
+each client watching that robot. A client's mailbox holds one
 update per robot: an offer that finds the previous one still unsent replaces it and counts
 it as dropped. Nothing the robot does waits for a client: the managers only set a flag,
 the pump never awaits a socket, and a client whose socket is full simply receives fewer,
@@ -16,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -114,13 +117,21 @@ class Hub:
     def start(self) -> None:
         """Subscribe to the robots and start the pump (in the server's running loop)."""
         loop = asyncio.get_running_loop()
-        self._wake = asyncio.Event()
+        self._wake = wake = asyncio.Event()
         for name, plane in self.planes.items():
             flag = self._dirty[name]
 
             def mark(_: object, flag: threading.Event = flag) -> None:
-                # Called in the robot's threads: only a flag, never the loop or a lock.
+                # Called in the robot's threads: set a flag and, on the first change since
+                # the last turn only, wake the pump (one non-blocking write to the loop's
+                # self-pipe): the rest of a burst costs the robot a flag test each.
+                if flag.is_set():
+                    return
                 flag.set()
+                try:
+                    loop.call_soon_threadsafe(wake.set)
+                except RuntimeError:  # the server's loop is closed: nobody to tell
+                    pass
 
             self._unsubscribe.append(plane.subscribe(mark))
             sub = plane.board.subscribe("**", mark)
@@ -170,19 +181,26 @@ class Hub:
 
     async def _pump(self) -> None:
         assert self._wake is not None
+        last_turn = -math.inf
         while True:
-            started = time.monotonic()
+            if not self.clients:
+                await self._wake.wait()  # nobody watches: build nothing
+            else:
+                # A change wakes the pump at once (the leading edge: a quiet robot's change
+                # is on its way within a build); the refresh moves ages on.
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._wake.wait(), self.refresh_s)
+            self._wake.clear()
+            # The coalescing: at most one turn every period_s; whatever changes meanwhile
+            # waits for it, and only the latest state is sent.
+            delay_s = last_turn + self.period_s - time.monotonic()
+            if delay_s > 0:
+                await asyncio.sleep(delay_s)
+            last_turn = time.monotonic()
             try:
                 await self._turn()
             except Exception:  # a robot's snapshot failed: report, keep serving
                 log.exception("web view: building an update failed")
-            if not self.clients:
-                await self._wake.wait()  # nobody watches: build nothing
-                self._wake.clear()
-                continue
-            # The coalescing: at most one update per robot every period_s, whatever
-            # changed in between (only the latest state is sent).
-            await asyncio.sleep(max(0.0, self.period_s - (time.monotonic() - started)))
 
     async def _turn(self) -> None:
         if not self.clients:
