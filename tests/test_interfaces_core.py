@@ -164,7 +164,7 @@ def test_snapshot_holds_the_tree_and_the_low_level_in_strict_json() -> None:
         core = ControlPlane(hl, low=ll, blackboard=ll.blackboard, name="kobuki")
         try:
             core.switch("drive")
-            assert wait_until(lambda: hl.current == "drive")
+            assert wait_until(lambda: "driving" in core.status()["locks"])
             snap = core.snapshot()
             assert strict_json(snap) == snap
             assert snap["robot"] == "kobuki" and snap["behavior"] == "drive"
@@ -250,7 +250,8 @@ def test_subscribers_get_every_event_and_one_that_raises_breaks_nothing(
     unsubscribe_broken = plane.subscribe(broken)
     unsubscribe = plane.subscribe(record)
     plane.switch("drive")
-    assert wait_until(lambda: any(e["kind"] == "switch_completed" and e["subject"] == "drive"
+    # Up to the action's start: no event of this switch is still on its way to `record`.
+    assert wait_until(lambda: any(e["kind"] == "started" and e["subject"] == "drive/to_station"
                                   for e in list(got)))
     assert hl.current == "drive"
     unsubscribe()

@@ -218,7 +218,8 @@ class ControlPlane:
 
         The callback runs in the thread that produced the event — a behaviour's, an
         action's, the low level's loop: hand the dict to your own queue or loop and never
-        block there. A callback that raises is logged and stays subscribed."""
+        block there. A callback that raises is logged and stays subscribed. After
+        unsubscribing, a call that another thread had already begun may still finish."""
         with self._lock:
             self._listeners = (*self._listeners, callback)
 
