@@ -345,3 +345,31 @@ def test_server_stops_with_clients_connected_and_leaves_no_thread(
         assert not any(t.name == "beehave:http" for t in threading.enumerate())
     with pytest.raises(httpx.ConnectError):
         httpx.get(srv.url, timeout=1)
+
+
+def test_one_server_serves_several_robots_and_a_client_picks_its_own(
+        hl: HighLevelBehaviorManager, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    other = HighLevelBehaviorManager(stop_timeout_s=0.3)
+    other.register("drive", Drive, station="dock")
+    other.start()
+    planes = {"emili1": ControlPlane(hl, name="emili1"),
+              "kobuki1": ControlPlane(other, name="kobuki1")}
+    fleet = {"agents": [{"name": "emili1"}, {"name": "kobuki1"}]}
+    try:
+        with HttpServer(planes, fleet=lambda: fleet) as srv:
+            api = f"http://127.0.0.1:{srv.port}/api"
+            listed = httpx.get(f"{api}/robots").json()["robots"]
+            assert [r["name"] for r in listed] == ["emili1", "kobuki1"]
+            assert httpx.get(f"{api}/fleet").json() == fleet
+            assert httpx.post(f"{api}/robots/kobuki1/switch",
+                              json={"behavior": "drive"}).status_code == 202
+            assert wait_until(lambda: other.current == "drive")
+            assert hl.current == "idle"  # only the robot asked
+            with connect(f"ws://127.0.0.1:{srv.port}/api/ws?robots=kobuki1") as ws:
+                robots = {json.loads(ws.recv(timeout=10))["robot"] for _ in range(3)}
+            assert robots == {"kobuki1"}
+    finally:
+        for plane in planes.values():
+            plane.close()
+        other.shutdown()

@@ -268,7 +268,9 @@ def test_a_behaviour_tree_is_drawn_with_py_trees_status_colours_that_follow_its_
         hl.register("patrol", EngineBehavior, engine=TreeEngine(root, rate_hz=50.0))
         hl.blackboard.set("battery/percentage", 80.0, writer="hal:battery")
         plane = ControlPlane(hl, name="kobuki1")
-        with HttpServer(plane) as server:
+        messages: list[dict[str, Any]] = []
+        fleet = {"agents": [{"name": "kobuki1", "services": "transport"}], "messages": messages}
+        with HttpServer(plane, fleet=lambda: fleet) as server:
             tab = browser.new_page(viewport={"width": 1200, "height": 900})
             try:
                 tab.goto(server.url)
@@ -294,6 +296,12 @@ def test_a_behaviour_tree_is_drawn_with_py_trees_status_colours_that_follow_its_
                     '#blackboard tr[data-key="battery/percentage"][data-stale="true"]',
                     timeout=10_000)
                 assert tab.locator('#events li[data-kind="switch_completed"]').count() >= 1
+                # A fleet process's view: its sections as live tables.
+                tab.wait_for_selector('#fleet table[data-section="agents"] tbody tr',
+                                      timeout=10_000)
+                messages.append({"performative": "cfp", "sender": "orders", "receiver": "*"})
+                tab.wait_for_selector('#fleet table[data-section="messages"] tbody tr',
+                                      timeout=10_000)
             finally:
                 tab.close()
         plane.close()
