@@ -195,7 +195,8 @@ def test_switching_on_the_page_drives_the_robot_and_the_view_follows(
     page.wait_for_selector('.engine.state_machine .sm-state.active[data-state="to_drop"]',
                            timeout=10_000)
     assert page.locator('.sm-state[data-state="to_charge"]:not(.active)').count() == 1
-    assert page.locator('#locks tr[data-lock="driving"]').count() == 1
+    # The state's Navigation holds the driving lock (it starts just after the state).
+    page.wait_for_selector('#locks tr[data-lock="driving"]', timeout=10_000)
     # The marker follows the physics toward the drop-off (x = 10).
     page.wait_for_function(
         f"Number(document.querySelector('#robot-emili1').dataset.x) > {start_x + 0.5}",
