@@ -207,6 +207,7 @@ def cpu_ratio() -> dict[str, Any]:
             without: list[float] = []
             with_clients: list[float] = []
             received = [0]
+            stats: dict[str, Any] = {}
             for _ in range(2):  # alternating, so a drift in the machine's load evens out
                 before = _cpu_s(proc.pid)
                 time.sleep(CPU_WINDOW_S)
@@ -229,6 +230,7 @@ def cpu_ratio() -> dict[str, Any]:
                 before = _cpu_s(proc.pid)
                 time.sleep(CPU_WINDOW_S)
                 with_clients.append(_cpu_s(proc.pid) - before)
+                stats = httpx.get(url + "api/stats", timeout=10).json()
                 stop.set()
                 for t in threads:
                     t.join()
@@ -240,6 +242,7 @@ def cpu_ratio() -> dict[str, Any]:
                   cpu_without_pct=round(100 * sum(without) / (2 * CPU_WINDOW_S), 1),
                   cpu_with_pct=round(100 * sum(with_clients) / (2 * CPU_WINDOW_S), 1),
                   updates_received=received[0],
+                  robot_build_ms_mean=stats["build_ms_mean"],
                   note="beehave run --http with the sim, EMILI driving; 5 WebSocket clients")
 
 

@@ -278,3 +278,19 @@ def test_close_stops_recording_and_a_shut_down_manager_refuses_switches() -> Non
     assert core.events() == []
     with pytest.raises(ManagerShutdown):
         core.switch("idle")
+
+
+def test_the_low_level_part_is_read_again_after_each_low_level_event() -> None:
+    ll = LowLevelBehaviorManager(default="quiet", stop_timeout_s=0.3)
+    ll.register("quiet", Quiet)
+    ll.register("other", Quiet)
+    with HighLevelBehaviorManager(stop_timeout_s=0.3) as hl, ll:
+        # Without events the cached part would stay an hour: only the event refreshes it.
+        core = ControlPlane(hl, low=ll, low_refresh_s=3600.0)
+        try:
+            assert wait_until(lambda: core.snapshot()["low"]["current"] == "quiet")
+            ll.switch("other")
+            assert wait_until(lambda: core.snapshot()["low"]["current"] == "other")
+            assert [lg["name"] for lg in core.logics() if lg["current"]] == ["other"]
+        finally:
+            core.close()
