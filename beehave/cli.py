@@ -9,16 +9,17 @@ message on stderr starts with ``beehave <command>:``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import os
 import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import FrameType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from beehave.recording.recorder import Recorder
@@ -82,6 +83,10 @@ def _demo(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     console = Console()
+    if args.console and args.http is not None:
+        print("beehave demo: --http serves the simulated demo's robots; the console demo "
+              "(--console) has none", file=sys.stderr)
+        return 2
     if not args.console:
         out = Path(args.out)
         if out.suffix.lower() in _PICTURE_SUFFIXES:
@@ -99,7 +104,7 @@ def _demo(args: argparse.Namespace) -> int:
                   "name it *.mcap", file=sys.stderr)
             return 2
         sim_problems = run_sim_demo(console, real_time_factor=speed, out_dir=out,
-                                    record=record)
+                                    record=record, http=args.http)
         for problem in sim_problems:
             console.print(f"[red]FAILED:[/] {problem}")
         if sim_problems:
@@ -178,6 +183,7 @@ def _run(args: argparse.Namespace) -> int:
     phase = "start"
     try:
         try:
+            _check_http_options(args)
             config = load_config(args.config)
             robot = Robot(config, only=args.only)
             recorder = _recording(args.record, robot)
@@ -193,9 +199,10 @@ def _run(args: argparse.Namespace) -> int:
             parts = "high and low level" if args.only is None else f"{args.only} level only"
             print(f"beehave: robot {config.namespace!r} running ({parts}); Ctrl-C to stop",
                   flush=True)
-            stop.wait(args.duration_s)
-            phase = "shutdown"
-            stopping.set()
+            with _http_for_run(args, robot):
+                stop.wait(args.duration_s)
+                phase = "shutdown"
+                stopping.set()
     except Exception as exc:  # the robot has been shut down (Robot.start/__exit__ do it)
         if phase == "shutdown":
             exc.add_note("(raised while shutting the robot down; everything else was "
@@ -277,6 +284,113 @@ def _close_recording(recorder: Recorder, *, verbose: bool) -> int:
     return 0
 
 
+# ---- --http: the HTTP/WebSocket interface and web view (docs/http.md) -------------------
+
+def http_address_arg(text: str) -> tuple[str, int]:
+    """An argparse ``type`` for ``[HOST:]PORT`` (127.0.0.1 unless a host is given)."""
+    from beehave.errors import ConfigError
+    from beehave.interfaces.http.server import parse_address
+
+    try:
+        return parse_address(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _add_http_options(parser: argparse.ArgumentParser, *, world: bool) -> None:
+    parser.add_argument(
+        "--http", type=http_address_arg, default=None, metavar="[HOST:]PORT",
+        help="serve the HTTP/WebSocket API and the live web view (docs/http.md) on "
+             "HOST:PORT (default host 127.0.0.1; port 0 picks a free one). Another host "
+             "needs a token: BEEHAVE_HTTP_TOKEN, else one is generated and printed")
+    if world:
+        parser.add_argument(
+            "--world", default=None, metavar="WORLD.yaml",
+            help="the world YAML the web view draws (default: the simulation's, when "
+                 "`sim:` runs it in this process)")
+
+
+def _check_http_options(args: argparse.Namespace) -> None:
+    """Refuse ``--http``/``--world`` combinations that cannot work, before anything starts
+    (a :class:`~beehave.errors.ConfigError`: exit 2)."""
+    from beehave.errors import ConfigError
+
+    if args.http is None:
+        if args.world is not None:
+            raise ConfigError("--world is the map of the web view: give --http too")
+        return
+    if args.only == "low":
+        raise ConfigError("--http serves the high level's control plane: it cannot run "
+                          "with --only low (serve it from the process that runs the high "
+                          "level)")
+    if args.world is not None:
+        args.world_data = _read_world(args.world)
+
+
+def _read_world(world_file: str) -> dict[str, Any]:
+    """A world YAML as plain data (the web view draws it; the simulator validates it)."""
+    import yaml
+
+    from beehave.errors import ConfigError
+
+    try:
+        data = yaml.safe_load(Path(world_file).read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"--world {world_file}: cannot read it: {exc}") from exc
+    if not isinstance(data, dict) or not isinstance(data.get("floor"), dict):
+        raise ConfigError(f"--world {world_file}: not a world (a mapping with 'floor', "
+                          f"'walls', 'stations' …; see robots/worlds/warehouse.yaml)")
+    return data
+
+
+def _world_provider(robot: Robot, args: argparse.Namespace) -> dict[str, Any] | None:
+    """The web view's map: ``--world``'s file, or the in-process simulation's world (any
+    object with a pydantic ``model_dump``). The framework imports no simulator for it."""
+    data: dict[str, Any] | None = getattr(args, "world_data", None)
+    if data is not None:
+        return data
+    world = getattr(robot.sim, "world", None)
+    dump = getattr(world, "model_dump", None)
+    data = dump(mode="json") if callable(dump) else None
+    return data if isinstance(data, dict) else None
+
+
+@contextlib.contextmanager
+def _http_for_run(args: argparse.Namespace, robot: Robot) -> Iterator[None]:
+    """Serve ``robot`` over HTTP while the block runs, when ``--http`` was given."""
+    if args.http is None:
+        yield
+        return
+    from beehave.errors import ConfigError
+    from beehave.interfaces.http import HttpServer
+    from beehave.interfaces.http.server import VIEW_HALS, hold_hals
+
+    plane = robot.plane
+    if plane is None:
+        raise ConfigError("--http needs the high level in this process (not --only low)")
+    host, port = args.http
+    server = HttpServer(plane, host=host, port=port,
+                        world=_world_provider(robot, args))
+    server.start()
+    with contextlib.ExitStack() as stack:
+        stack.callback(server.stop)
+        low = robot.low
+        if low is not None:  # the map needs the pose even when no logic asks for it
+            configured = {h if isinstance(h, str) else h.name for h in robot.config.hals}
+            stack.callback(hold_hals(low, [n for n in VIEW_HALS if n in configured]))
+        _announce(server)
+        yield
+
+
+def _announce(server: object) -> None:
+    url = getattr(server, "url", "")
+    print(f"beehave: web view and API at {url} (OpenAPI: {url.split('#')[0]}docs)",
+          flush=True)
+    if getattr(server, "token_source", None) == "generated":
+        print(f"beehave: token {getattr(server, 'token', '')} (send 'Authorization: Bearer "
+              f"TOKEN'; set BEEHAVE_HTTP_TOKEN to choose one)", flush=True)
+
+
 # ---- the parser -------------------------------------------------------------------------
 
 def _parser() -> argparse.ArgumentParser:
@@ -306,6 +420,7 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--record", nargs="?", const="", default=None, metavar="FILE.mcap",
                       help="record both robots into an MCAP file (default FOLDER/demo.mcap); "
                            "replay it with `beehave replay`")
+    _add_http_options(demo, world=False)
     demo.set_defaults(func=_demo)
     run = sub.add_parser(
         "run", help="run a robot from its configuration file (ROS 2)",
@@ -321,6 +436,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--record", default=None, metavar="FILE.mcap",
                      help="record the blackboard, events, HAL commands and robot topics "
                           "into an MCAP file (docs/recording.md)")
+    _add_http_options(run, world=True)
     run.set_defaults(func=_run)
     broker = sub.add_parser(
         "broker", help="a local MQTT broker (mosquitto) for VDA 5050 (docs/vda5050.md)",

@@ -164,7 +164,7 @@ def test_snapshot_holds_the_tree_and_the_low_level_in_strict_json() -> None:
         core = ControlPlane(hl, low=ll, blackboard=ll.blackboard, name="kobuki")
         try:
             core.switch("drive")
-            assert wait_until(lambda: hl.current == "drive")
+            assert wait_until(lambda: "driving" in core.status()["locks"])
             snap = core.snapshot()
             assert strict_json(snap) == snap
             assert snap["robot"] == "kobuki" and snap["behavior"] == "drive"
@@ -250,7 +250,8 @@ def test_subscribers_get_every_event_and_one_that_raises_breaks_nothing(
     unsubscribe_broken = plane.subscribe(broken)
     unsubscribe = plane.subscribe(record)
     plane.switch("drive")
-    assert wait_until(lambda: any(e["kind"] == "switch_completed" and e["subject"] == "drive"
+    # Up to the action's start: no event of this switch is still on its way to `record`.
+    assert wait_until(lambda: any(e["kind"] == "started" and e["subject"] == "drive/to_station"
                                   for e in list(got)))
     assert hl.current == "drive"
     unsubscribe()
@@ -277,3 +278,19 @@ def test_close_stops_recording_and_a_shut_down_manager_refuses_switches() -> Non
     assert core.events() == []
     with pytest.raises(ManagerShutdown):
         core.switch("idle")
+
+
+def test_the_low_level_part_is_read_again_after_each_low_level_event() -> None:
+    ll = LowLevelBehaviorManager(default="quiet", stop_timeout_s=0.3)
+    ll.register("quiet", Quiet)
+    ll.register("other", Quiet)
+    with HighLevelBehaviorManager(stop_timeout_s=0.3) as hl, ll:
+        # Without events the cached part would stay an hour: only the event refreshes it.
+        core = ControlPlane(hl, low=ll, low_refresh_s=3600.0)
+        try:
+            assert wait_until(lambda: core.snapshot()["low"]["current"] == "quiet")
+            ll.switch("other")
+            assert wait_until(lambda: core.snapshot()["low"]["current"] == "other")
+            assert [lg["name"] for lg in core.logics() if lg["current"]] == ["other"]
+        finally:
+            core.close()

@@ -60,7 +60,10 @@ class ControlPlane:
     (its logics and its events are then included); ``blackboard`` is what
     :meth:`blackboard` reads (default ``high.blackboard``: under ROS 2 the mirror of the
     low level's); ``name`` names the robot in what the adapters send; ``events_kept`` is
-    the length of the event ring buffer that :meth:`events` reads.
+    the length of the event ring buffer that :meth:`events` reads; ``low_refresh_s``: how
+    old the low level's part of :meth:`snapshot` may get when no low-level event came (it
+    is re-read at once after every one: reading it crosses into the low level's loop,
+    which at a viewer's 20 Hz cost a robot more than the rest of the snapshot).
 
     Every method is safe from any thread. The plane subscribes to the managers' events
     when it is created and unsubscribes in :meth:`close` (whoever creates it closes it).
@@ -69,7 +72,7 @@ class ControlPlane:
     def __init__(self, high: HighLevelBehaviorManager, *,
                  low: LowLevelBehaviorManager | None = None,
                  blackboard: Blackboard | None = None, name: str = "robot",
-                 events_kept: int = 500) -> None:
+                 events_kept: int = 500, low_refresh_s: float = 1.0) -> None:
         if not isinstance(events_kept, int) or isinstance(events_kept, bool) \
                 or events_kept < 1:
             raise BadRequest(f"ControlPlane {name!r}: events_kept must be an int >= 1, "
@@ -84,6 +87,9 @@ class ControlPlane:
         self._seq = 0
         self._listeners: tuple[EventListener, ...] = ()
         self._closed = False
+        self.low_refresh_s = low_refresh_s
+        self._low_cache: tuple[float, dict[str, Any]] | None = None
+        self._low_dirty = True
         self._unsubscribe = [high.subscribe(self._on_high_event)]
         if low is not None:
             self._unsubscribe.append(low.subscribe(self._on_low_event))
@@ -157,20 +163,30 @@ class ControlPlane:
         sub-behaviours and actions, each with status, durations and its engine),
         ``"lock_details"`` (who holds each type lock since when), ``"history"`` (the last
         ended top-level behaviours) and ``"low"`` (the low level's logic tree, HALs and
-        loop health; None without a low level — its blackboard is :meth:`blackboard`)."""
+        loop health, as of its last event or at most ``low_refresh_s`` old; None without
+        a low level — its blackboard is :meth:`blackboard`)."""
         high = self.high.snapshot()
         out = _status(high, self.high.top)
         out.update({"schema": SNAPSHOT_SCHEMA, "robot": self.name,
                     "tree": to_json(high["top"]), "lock_details": to_json(high["locks"]),
                     "history": to_json(high["history"]), "manager": high["state"]})
+        out["low"] = self._low_snapshot()
+        return out
+
+    def _low_snapshot(self) -> dict[str, Any] | None:
         low = self.low
         if low is None:
-            out["low"] = None
-        else:
-            snap = dict(low.snapshot())
-            snap.pop("blackboard", None)  # served by blackboard(), which viewers poll apart
-            out["low"] = to_json(snap)
-        return out
+            return None
+        now = time.monotonic()
+        cached = self._low_cache
+        if cached is not None and not self._low_dirty and now - cached[0] < self.low_refresh_s:
+            return cached[1]
+        self._low_dirty = False  # before reading: an event during the read marks it again
+        snap = dict(low.snapshot())
+        snap.pop("blackboard", None)  # served by blackboard(), which viewers poll apart
+        encoded: dict[str, Any] = to_json(snap)
+        self._low_cache = (now, encoded)
+        return encoded
 
     def blackboard(self, *, key: str | None = None, pattern: str = "**"
                    ) -> dict[str, dict[str, Any]]:
@@ -218,7 +234,8 @@ class ControlPlane:
 
         The callback runs in the thread that produced the event — a behaviour's, an
         action's, the low level's loop: hand the dict to your own queue or loop and never
-        block there. A callback that raises is logged and stays subscribed."""
+        block there. A callback that raises is logged and stays subscribed. After
+        unsubscribing, a call that another thread had already begun may still finish."""
         with self._lock:
             self._listeners = (*self._listeners, callback)
 
@@ -246,6 +263,7 @@ class ControlPlane:
         self._record(event, "high")
 
     def _on_low_event(self, event: Event) -> None:
+        self._low_dirty = True  # the logic tree, a HAL or the loop changed: read it again
         self._record(event, "low")
 
     def _record(self, event: Event, source: str) -> None:

@@ -23,6 +23,7 @@ import math
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -89,6 +90,25 @@ def _running_actions(node: dict[str, Any] | None) -> list[str]:
     return names
 
 
+@contextlib.contextmanager
+def _serve_http(console: Console, address: tuple[str, int], world: Any, *robots: Robot
+                ) -> Iterator[None]:
+    """Both robots' web view and API (``beehave demo --http PORT``), with the world map."""
+    from beehave.interfaces.http import HttpServer
+
+    planes = {robot.config.namespace: robot.plane for robot in robots
+              if robot.plane is not None}
+    server = HttpServer(planes, host=address[0], port=address[1],
+                        world=world.model_dump(mode="json"))
+    server.start()
+    try:
+        console.print(f"web view: [bold]{server.url}[/]  (API docs: "
+                      f"{server.url.split('#')[0]}docs)")
+        yield
+    finally:
+        server.stop()
+
+
 def _wait(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase: str,
           predicate: Any, timeout_sim_s: float, *, min_wall_s: float = 5.0) -> bool:
     """Wait until ``predicate()``; give up once ``timeout_sim_s`` of sim time *and*
@@ -127,12 +147,14 @@ def _finish_recording(recorder: Any, console: Console, problems: list[str]) -> N
 
 def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
                  out_dir: Path = Path("out"), live_display: bool = True,
-                 record: Path | None = None) -> list[str]:
+                 record: Path | None = None,
+                 http: tuple[str, int] | None = None) -> list[str]:
     """Run the scenario; return the problems (empty when every goal was reached).
 
     ``record``: an MCAP file to record both robots into (``beehave demo --record``), one
     channel prefix per robot; ``beehave replay FILE --robot robots/config/emili.yaml``
-    replays EMILI's logics on it."""
+    replays EMILI's logics on it. ``http``: (host, port) to serve both robots' web view
+    and API on while it runs."""
     world = load_world("warehouse")
     dropoff = world.station("emili_dropoff")
     charging = world.station("emili_charging")
@@ -146,6 +168,7 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
     e1, k1 = sim.emili("emili1"), sim.kobuki("kobuki1")
     live = Live(console=console, refresh_per_second=8) if live_display else None
     recorder = _start_recording(record, [emili, kobuki])
+    stack = contextlib.ExitStack()  # the web view, stopped before the robots
     try:
         ros.start()
         sim.start()
@@ -156,6 +179,8 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
 
             robots_started(recorder, [emili, kobuki])
         assert emili.high is not None and kobuki.high is not None
+        if http is not None:
+            stack.enter_context(_serve_http(console, http, world, emili, kobuki))
         if live is not None:
             live.start()
         kobuki.high.switch("wander")
@@ -239,6 +264,7 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
         for child in wander.children if wander is not None else []:
             found.kobuki_bumps += int(getattr(child, "bumps", 0))
     finally:
+        stack.close()
         if live is not None:
             live.stop()
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -249,12 +275,12 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
             problems.append(f"could not render {picture}: {exc!r}")
         # Every step runs whatever an earlier one raised (last pushed, first run):
         # nothing is left running.
-        with contextlib.ExitStack() as stack:
+        with contextlib.ExitStack() as steps:
             if recorder is not None:  # last: the robots' safe states are recorded too
-                stack.callback(_finish_recording, recorder, console, problems)
+                steps.callback(_finish_recording, recorder, console, problems)
             for step in (ros.shutdown, sim.close, node.destroy, kobuki.shutdown,
                          emili.shutdown):
-                stack.callback(step)
+                steps.callback(step)
 
     def m(value: float | None, unit: str) -> str:
         return "-" if value is None else f"{value:.3f} {unit}"

@@ -1,0 +1,320 @@
+"""The FastAPI application: REST endpoints, the WebSocket stream and the web view.
+
+Every endpoint calls the robot's :class:`~beehave.interfaces.ControlPlane` and maps its
+typed errors to HTTP (see :data:`STATUS_OF`); none validates a name or a parameter itself.
+"""
+
+
+import asyncio
+import contextlib
+import logging
+import secrets
+from collections.abc import AsyncIterator, Callable, Mapping
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import Depends, FastAPI, Query, Request, WebSocket, WebSocketDisconnect
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+from pydantic import BaseModel, ConfigDict, Field
+
+from beehave.errors import (
+    BadRequest,
+    BeehaveError,
+    BlackboardError,
+    ConfigError,
+    ConstructorFailed,
+    InvalidParameters,
+    ManagerShutdown,
+    UnknownKey,
+    UnknownNameError,
+)
+from beehave.interfaces.core import ControlPlane
+from beehave.interfaces.http.hub import Client, Hub
+
+log = logging.getLogger(__name__)
+
+STATIC_DIR = Path(__file__).parent / "static"
+
+#: A world map or a fleet view: a JSON-able mapping, or a function returning one (called
+#: on every request, so it may change), or None.
+Provider = Mapping[str, Any] | Callable[[], Mapping[str, Any] | None] | None
+
+#: HTTP status per error type (the first match in this order wins).
+STATUS_OF: list[tuple[type[BaseException], int]] = [
+    (UnknownKey, 404), (UnknownNameError, 404), (InvalidParameters, 422),
+    (BadRequest, 400), (BlackboardError, 400), (ConfigError, 400),
+    (ConstructorFailed, 500), (ManagerShutdown, 503), (BeehaveError, 400)]
+
+#: The subprotocol the web view offers; a token travels as a second one, ``bearer.TOKEN``.
+SUBPROTOCOL = "beehave"
+BEARER_PREFIX = "bearer."
+
+
+class Auth:
+    """The token rules. Without a token everything is open (only allowed on loopback:
+    :class:`~beehave.interfaces.http.HttpServer` enforces that). With one, commands
+    (switch, stop) always need it; reads need it too unless the server listens on loopback
+    only."""
+
+    def __init__(self, token: str | None, *, loopback: bool) -> None:
+        self.token = token
+        self.loopback = loopback
+
+    def allows(self, presented: str | None, *, command: bool) -> bool:
+        if self.token is None or (self.loopback and not command):
+            return True
+        return presented is not None and secrets.compare_digest(
+            presented.encode(), self.token.encode())
+
+    def describe(self) -> dict[str, Any]:
+        return {"token_required_for_reads": self.token is not None and not self.loopback,
+                "token_required_for_commands": self.token is not None}
+
+
+class SwitchRequest(BaseModel):
+    """``POST /api/robots/{robot}/switch``."""
+
+    model_config = ConfigDict(extra="forbid")
+    behavior: str = Field(description="a registered top-level behaviour (GET .../behaviors)")
+    params: dict[str, Any] = Field(default_factory=dict,
+                                   description="constructor parameters, JSON values")
+
+
+class HttpError(Exception):
+    def __init__(self, status: int, error: str, detail: str) -> None:
+        super().__init__(detail)
+        self.status, self.error, self.detail = status, error, detail
+
+
+def _bearer(request: Request) -> str | None:
+    header = request.headers.get("authorization", "")
+    scheme, _, value = header.partition(" ")
+    if scheme.lower() == "bearer" and value.strip():
+        return value.strip()
+    return request.query_params.get("token")
+
+
+def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
+               fleet: Provider = None, token: str | None = None, loopback: bool = True,
+               rate_hz: float = 20.0, refresh_s: float = 1.0,
+               on_started: Callable[[], None] | None = None) -> FastAPI:
+    """The application serving ``planes`` (robot name → its control plane).
+
+    ``world``: the map the web view draws (the world YAML as JSON: floor, walls, shelves,
+    obstacles, lanes, stations); ``fleet``: what ``GET /api/fleet`` returns (agents,
+    contracts, messages); ``token`` and ``loopback``: see :class:`Auth`; ``rate_hz``:
+    the most WebSocket updates per robot and second; ``refresh_s``: the longest time
+    between two updates of a robot that did not change (ages move on); ``on_started``:
+    called once the server has started (its lifespan began).
+    """
+    if not planes:
+        raise ConfigError("the HTTP interface needs at least one robot's ControlPlane")
+    for name in planes:
+        if not isinstance(name, str) or not name or "/" in name:
+            raise ConfigError(f"robot names served over HTTP must be non-empty strings "
+                              f"without '/', got {name!r}")
+    auth = Auth(token, loopback=loopback)
+    hub = Hub(planes, rate_hz=rate_hz, refresh_s=refresh_s)
+
+    @contextlib.asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        hub.start()
+        if on_started is not None:
+            on_started()
+        try:
+            yield
+        finally:
+            await hub.stop()
+
+    app = FastAPI(
+        title="beehave robot API", lifespan=lifespan,
+        description="Switch behaviours, read what runs, the blackboard and the events of "
+                    "beehave robots; `WS /api/ws` streams coalesced updates. The web view "
+                    "is at `/`. With a token: `Authorization: Bearer TOKEN`.")
+    app.state.hub = hub
+    app.state.auth = auth
+
+    @app.exception_handler(BeehaveError)
+    async def beehave_error(_: Request, exc: BeehaveError) -> JSONResponse:
+        status = next(code for kind, code in STATUS_OF if isinstance(exc, kind))
+        if status >= 500:
+            log.warning("HTTP %d: %s", status, exc)
+        return JSONResponse({"error": type(exc).__name__, "detail": str(exc)}, status)
+
+    @app.exception_handler(HttpError)
+    async def http_error(_: Request, exc: HttpError) -> JSONResponse:
+        return JSONResponse({"error": exc.error, "detail": exc.detail}, exc.status)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(_: Request, exc: RequestValidationError) -> JSONResponse:
+        # One readable sentence per problem, naming where it is (body.behavior, query.limit).
+        problems = ["{}: {}".format(".".join(str(p) for p in err.get("loc", ())),
+                                    err.get("msg", "invalid")) for err in exc.errors()]
+        return JSONResponse({"error": "BadRequest", "detail": "; ".join(problems)}, 422)
+
+    @app.exception_handler(Exception)
+    async def unexpected(_: Request, exc: Exception) -> JSONResponse:
+        log.exception("HTTP request failed")
+        return JSONResponse({"error": type(exc).__name__, "detail": str(exc)}, 500)
+
+    def read_access(request: Request) -> None:
+        if not auth.allows(_bearer(request), command=False):
+            raise HttpError(401, "Unauthorized", "missing or wrong token: send "
+                            "'Authorization: Bearer TOKEN' (printed when the server started, "
+                            "or BEEHAVE_HTTP_TOKEN)")
+
+    def command_access(request: Request) -> None:
+        if not auth.allows(_bearer(request), command=True):
+            raise HttpError(401, "Unauthorized", "switching needs the token: send "
+                            "'Authorization: Bearer TOKEN' (printed when the server started, "
+                            "or BEEHAVE_HTTP_TOKEN)")
+
+    def plane_of(robot: str) -> ControlPlane:
+        plane = planes.get(robot)
+        if plane is None:
+            raise HttpError(404, "UnknownRobot", f"unknown robot {robot!r}; serving: "
+                            f"{', '.join(repr(n) for n in sorted(planes))}")
+        return plane
+
+    Read = Annotated[None, Depends(read_access)]
+    Command = Annotated[None, Depends(command_access)]
+    Plane = Annotated[ControlPlane, Depends(plane_of)]
+
+    def provided(provider: Provider, what: str) -> Mapping[str, Any]:
+        value = provider() if callable(provider) else provider
+        if value is None:
+            raise HttpError(404, "NotServed", f"this server has no {what}")
+        return value
+
+    @app.get("/api/robots", summary="The robots served, with what each runs")
+    def robots(_: Read) -> dict[str, Any]:
+        return {"robots": [{"name": name, "behavior": plane.high.current,
+                            "logic": None if plane.low is None else plane.low.current}
+                           for name, plane in sorted(planes.items())],
+                "auth": auth.describe(), "world": world is not None,
+                "fleet": fleet is not None}
+
+    @app.get("/api/world", summary="The world map (floor, walls, shelves, lanes, stations)")
+    def get_world(_: Read) -> Mapping[str, Any]:
+        return provided(world, "world map (start it with world=…)")
+
+    @app.get("/api/fleet", summary="The fleet: agents, contracts, auctions, messages")
+    def get_fleet(_: Read) -> Mapping[str, Any]:
+        return provided(fleet, "fleet view (only a fleet process serves one)")
+
+    @app.get("/api/robots/{robot}/status", summary="What runs: behaviour, actions, locks, "
+                                                   "STUCK items, decision engines")
+    def status(_: Read, plane: Plane) -> dict[str, Any]:
+        return plane.status()
+
+    @app.get("/api/robots/{robot}/snapshot",
+             summary="status + the behaviour tree with statuses + the low level")
+    def snapshot(_: Read, plane: Plane) -> dict[str, Any]:
+        return plane.snapshot()
+
+    @app.get("/api/robots/{robot}/behaviors",
+             summary="Registered top-level behaviours with their parameters")
+    def behaviors(_: Read, plane: Plane) -> list[dict[str, Any]]:
+        return plane.behaviors()
+
+    @app.get("/api/robots/{robot}/logics",
+             summary="Registered top-level logics with their parameters")
+    def logics(_: Read, plane: Plane) -> list[dict[str, Any]]:
+        return plane.logics()
+
+    @app.post("/api/robots/{robot}/switch", status_code=202,
+              summary="Switch the top-level behaviour (validated before anything stops)")
+    def switch(_: Command, plane: Plane, body: SwitchRequest) -> dict[str, Any]:
+        return plane.switch(body.behavior, body.params)
+
+    @app.post("/api/robots/{robot}/stop", status_code=202,
+              summary="Switch to idle: every action ends in its safe state")
+    def stop(_: Command, plane: Plane) -> dict[str, Any]:
+        return plane.stop()
+
+    @app.get("/api/robots/{robot}/blackboard",
+             summary="Blackboard entries by key or pattern, with age and staleness")
+    def blackboard(_: Read, plane: Plane,
+                   key: Annotated[str | None, Query(description="one key")] = None,
+                   pattern: Annotated[str, Query(description="'*' one segment, '**' any"
+                                                 )] = "**") -> dict[str, Any]:
+        return plane.blackboard(key=key, pattern=pattern)
+
+    @app.get("/api/robots/{robot}/events", summary="Recent events (after_seq to read on)")
+    def events(_: Read, plane: Plane,
+               after_seq: Annotated[int, Query(ge=0)] = 0,
+               limit: Annotated[int, Query(ge=0, le=10_000)] = 200) -> list[dict[str, Any]]:
+        return plane.events(after_seq=after_seq, limit=limit)
+
+    @app.get("/api/stats", summary="WebSocket clients, updates built, snapshots dropped")
+    def stats(_: Read) -> dict[str, Any]:
+        return hub.stats()
+
+    @app.websocket("/api/ws")
+    async def stream(websocket: WebSocket, robots: str | None = None,
+                     token: str | None = None) -> None:
+        """Updates of the robots (comma-separated names, default all): one JSON message
+        per robot and turn, ``{"type": "update", "robot", "seq", "stamp", "snapshot",
+        "blackboard", "events", "dropped", "events_dropped"}`` (``snapshot`` and
+        ``blackboard`` may be missing from a message that only carries events)."""
+        offered = list(websocket.scope.get("subprotocols", []))
+        presented = token or next((p[len(BEARER_PREFIX):] for p in offered
+                                   if p.startswith(BEARER_PREFIX)), None)
+        if not auth.allows(presented, command=False):
+            await _deny(websocket, 401, "missing or wrong token: offer the subprotocol "
+                                        "'bearer.TOKEN' or add ?token=TOKEN")
+            return
+        names = sorted(planes) if not robots else [n.strip() for n in robots.split(",")
+                                                    if n.strip()]
+        unknown = [n for n in names if n not in planes]
+        if unknown or not names:
+            await _deny(websocket, 404, f"unknown robot(s) {unknown}; serving: "
+                                        f"{', '.join(sorted(planes))}")
+            return
+        await websocket.accept(subprotocol=SUBPROTOCOL if SUBPROTOCOL in offered else None)
+        client = hub.add(names)
+        sender = asyncio.get_running_loop().create_task(_send_loop(websocket, client))
+        try:
+            while True:  # nothing to read; a receive tells when the client has gone
+                message = await websocket.receive()
+                if message["type"] == "websocket.disconnect":
+                    break
+        except WebSocketDisconnect:
+            pass
+        finally:
+            hub.remove(client)
+            sender.cancel()
+            with contextlib.suppress(BaseException):
+                await sender
+
+    @app.get("/", include_in_schema=False)
+    def index() -> FileResponse:
+        return FileResponse(STATIC_DIR / "index.html")
+
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    return app
+
+
+async def _send_loop(websocket: WebSocket, client: Client) -> None:
+    while True:
+        for message in await client.next_messages():
+            # Awaits the socket's flow control: only this client waits, and the pump
+            # meanwhile replaces what it has not sent yet. Text frames: what a browser's
+            # JSON.parse takes without a Blob round trip.
+            await websocket.send_text(message.decode())
+            client.sent += 1
+
+
+async def _deny(websocket: WebSocket, status: int, detail: str) -> None:
+    """Refuse the handshake with an HTTP status (401, 404) the browser can see."""
+    response = JSONResponse({"error": "Unauthorized" if status == 401 else "UnknownRobot",
+                             "detail": detail}, status)
+    try:
+        await websocket.send_denial_response(response)
+    except RuntimeError:  # a server without the denial extension: close before accept
+        await websocket.close(code=4000 + status, reason=detail[:120])
+
+
+__all__ = ["STATUS_OF", "Auth", "Provider", "SwitchRequest", "create_app"]

@@ -1,0 +1,572 @@
+// beehave live view: plain JavaScript + SVG, no build step, no third-party code.
+// Data: REST under /api (behaviours, world, fleet, switch/stop) and the coalesced
+// WebSocket /api/ws (one message per robot and turn: snapshot, blackboard, events).
+"use strict";
+
+const SVG = "http://www.w3.org/2000/svg";
+const TRAIL_POINTS = 300;
+const EVENTS_SHOWN = 200;
+// Where a robot's pose, LEDs and battery are on its blackboard (the beehave HALs' keys).
+const KEYS = {x: "odom/x_m", y: "odom/y_m", yaw: "odom/yaw_rad", battery: "battery/percentage",
+              leds: ["leds/color", "leds/led1"]};
+
+const view = {
+  token: null, robots: [], selected: null, world: null, ws: null, retryMs: 500,
+  state: {},        // robot -> {snapshot, blackboard, events[], trail[], seq, dropped}
+  behaviors: {},    // robot -> list from /behaviors
+  renderQueued: false, updates: 0,
+};
+window.beehave = view;  // for debugging from the console (and tests)
+
+const $ = (sel) => document.querySelector(sel);
+function el(tag, attrs = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (k === "class") node.className = v; else if (k === "text") node.textContent = v;
+    else node.setAttribute(k, v);
+  }
+  for (const child of children) node.append(child);
+  return node;
+}
+function svg(tag, attrs = {}) {
+  const node = document.createElementNS(SVG, tag);
+  for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, v);
+  return node;
+}
+
+// ---- token and REST -----------------------------------------------------------------------
+
+function readToken() {
+  const match = /(?:^|[#&])token=([^&]+)/.exec(location.hash);
+  if (match) {
+    sessionStorage.setItem("beehave-token", decodeURIComponent(match[1]));
+    history.replaceState(null, "", location.pathname + location.search);  // off the screen
+  }
+  view.token = sessionStorage.getItem("beehave-token");
+}
+
+class ApiError extends Error {
+  constructor(status, body) {
+    super(body && body.detail ? body.detail : `HTTP ${status}`);
+    this.status = status;
+    this.body = body;
+  }
+}
+
+async function api(path, options = {}) {
+  const headers = Object.assign({"Accept": "application/json"}, options.headers || {});
+  if (view.token) headers["Authorization"] = `Bearer ${view.token}`;
+  if (options.body !== undefined) headers["Content-Type"] = "application/json";
+  const response = await fetch(path, Object.assign({}, options, {headers}));
+  let body = null;
+  try { body = await response.json(); } catch (e) { body = null; }
+  if (response.status === 401) askToken();
+  if (!response.ok) throw new ApiError(response.status, body);
+  return body;
+}
+
+function askToken() {
+  const form = $("#token-form");
+  form.hidden = false;
+  setConn(false, "token needed");
+}
+
+$("#token-form").addEventListener("submit", (event) => {
+  event.preventDefault();
+  view.token = $("#token-input").value.trim() || null;
+  if (view.token) sessionStorage.setItem("beehave-token", view.token);
+  $("#token-form").hidden = true;
+  start();
+});
+
+function setConn(up, text) {
+  const node = $("#conn");
+  node.className = `conn ${up ? "up" : "down"}`;
+  node.textContent = text;
+}
+
+// ---- the WebSocket stream -----------------------------------------------------------------
+
+function connect() {
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  const protocols = ["beehave"];
+  if (view.token) protocols.push(`bearer.${view.token}`);
+  const ws = new WebSocket(`${scheme}://${location.host}/api/ws`, protocols);
+  view.ws = ws;
+  ws.onopen = () => { view.retryMs = 500; setConn(true, "live"); };
+  ws.onmessage = (message) => receive(JSON.parse(message.data));
+  ws.onclose = () => {
+    if (view.ws !== ws) return;
+    setConn(false, "reconnecting…");
+    // A refused handshake (401) closes at once: ask REST why, then retry.
+    api("/api/robots").catch(() => {});
+    setTimeout(connect, view.retryMs);
+    view.retryMs = Math.min(view.retryMs * 2, 5000);
+  };
+}
+
+function robotState(name) {
+  if (!view.state[name]) {
+    view.state[name] = {snapshot: null, blackboard: {}, events: [], trail: [], seq: 0,
+                        dropped: 0, eventsDropped: 0};
+  }
+  return view.state[name];
+}
+
+function receive(message) {
+  if (message.type !== "update") return;
+  const state = robotState(message.robot);
+  if (message.snapshot) state.snapshot = message.snapshot;
+  if (message.blackboard) state.blackboard = message.blackboard;
+  if (message.seq) state.seq = message.seq;
+  state.dropped = message.dropped;
+  state.eventsDropped = message.events_dropped;
+  for (const event of message.events || []) state.events.push(event);
+  if (state.events.length > EVENTS_SHOWN) state.events.splice(0, state.events.length - EVENTS_SHOWN);
+  const pose = poseOf(state.blackboard);
+  if (pose) {
+    const last = state.trail[state.trail.length - 1];
+    if (!last || Math.hypot(pose.x - last[0], pose.y - last[1]) > 0.02) {
+      state.trail.push([pose.x, pose.y]);
+      if (state.trail.length > TRAIL_POINTS) state.trail.shift();
+    }
+  }
+  if (!view.robots.includes(message.robot)) { view.robots.push(message.robot); fillRobotSelect(); }
+  view.updates += 1;
+  // The selected robot's panels change at once (the DOM is what a test or a screen
+  // reader sees; the paint follows at the next frame); other robots only move markers,
+  // drawn once per frame however many messages arrive.
+  if (message.robot === view.selected) render(); else queueRender();
+}
+
+function queueRender() {
+  if (view.renderQueued) return;
+  view.renderQueued = true;
+  requestAnimationFrame(() => { view.renderQueued = false; render(); });
+}
+
+// ---- values -------------------------------------------------------------------------------
+
+function value(board, key) {
+  const entry = board && board[key];
+  return entry ? decode(entry.value) : undefined;
+}
+function decode(v) {
+  if (v && typeof v === "object" && !Array.isArray(v) && Object.keys(v).length === 1 && "$float" in v) {
+    return {inf: Infinity, "-inf": -Infinity, nan: NaN}[v.$float];
+  }
+  return v;
+}
+function show(v) {
+  v = decode(v);
+  if (typeof v === "number") return Number.isInteger(v) ? String(v) : v.toFixed(3);
+  if (typeof v === "string") return v;
+  return JSON.stringify(v, (k, x) => (typeof x === "number" && !Number.isInteger(x) ? +x.toFixed(3) : decode(x)));
+}
+function poseOf(board) {
+  const x = value(board, KEYS.x), y = value(board, KEYS.y);
+  if (typeof x !== "number" || typeof y !== "number") return null;
+  const yaw = value(board, KEYS.yaw);
+  return {x, y, yaw: typeof yaw === "number" ? yaw : 0};
+}
+function ledColour(board) {
+  for (const key of KEYS.leds) {
+    const v = value(board, key);
+    if (Array.isArray(v) && v.length >= 3) {
+      const c = v.slice(0, 3).map((f) => Math.round(Math.max(0, Math.min(1, f)) * 255));
+      return `rgb(${c[0]},${c[1]},${c[2]})`;
+    }
+    if (typeof v === "string" && v !== "off" && v !== "mixed") return v;
+  }
+  return "#cfcfcf";
+}
+
+// ---- the map ------------------------------------------------------------------------------
+
+function drawWorld(world) {
+  const layer = $("#world-layer");
+  layer.replaceChildren();
+  const [w, h] = world.floor.size_m;
+  const Y = (y) => h - y;  // the world's y points up, the SVG's down
+  $("#map").setAttribute("viewBox", `-0.3 -0.3 ${w + 0.6} ${h + 0.6}`);
+  view.flip = Y;
+  layer.append(svg("rect", {class: "floor", x: 0, y: 0, width: w, height: h}));
+  for (const hole of world.holes || []) {
+    const [cx, cy] = hole.center_m, [sx, sy] = hole.size_m;
+    layer.append(svg("rect", {class: "hole", x: cx - sx / 2, y: Y(cy + sy / 2), width: sx, height: sy}));
+  }
+  for (const lane of world.lanes || []) {
+    layer.append(svg("polyline", {class: "lane", "stroke-width": lane.width_m || 0.05,
+      points: lane.points_m.map(([x, y]) => `${x},${Y(y)}`).join(" ")}));
+  }
+  for (const station of world.stations || []) {
+    const [cx, cy] = station.center_m, [sx, sy] = station.size_m || [1, 1];
+    const rect = svg("rect", {class: `station ${station.kind}`, x: cx - sx / 2, y: Y(cy) - sy / 2,
+      width: sx, height: sy, transform: `rotate(${-(station.yaw_deg || 0)} ${cx} ${Y(cy)})`,
+      "data-station": station.name});
+    const label = svg("text", {x: cx - sx / 2 + 0.05, y: Y(cy) + sy / 2 - 0.08});
+    label.textContent = station.name;
+    layer.append(rect, label);
+  }
+  for (const box of world.shelves || []) layer.append(boxShape(box, "shelf", Y));
+  for (const ob of world.obstacles || []) {
+    if (ob.radius_m !== undefined) {
+      layer.append(svg("circle", {class: "obstacle", cx: ob.center_m[0], cy: Y(ob.center_m[1]), r: ob.radius_m}));
+    } else layer.append(boxShape(ob, "obstacle", Y));
+  }
+  for (const wall of world.walls || []) {
+    layer.append(svg("line", {class: "wall", x1: wall.from_m[0], y1: Y(wall.from_m[1]),
+      x2: wall.to_m[0], y2: Y(wall.to_m[1]), "stroke-width": wall.thickness_m || 0.2}));
+  }
+  $("#map-note").textContent = world.name ? `world: ${world.name}` : "";
+}
+
+function boxShape(box, cls, Y) {
+  const [cx, cy] = box.center_m, [sx, sy] = box.size_m;
+  return svg("rect", {class: cls, x: cx - sx / 2, y: Y(cy) - sy / 2, width: sx, height: sy,
+    transform: `rotate(${-(box.yaw_deg || 0)} ${cx} ${Y(cy)})`});
+}
+
+function fitWithoutWorld() {
+  // No world map: frame the robots' trails.
+  let xs = [], ys = [];
+  for (const s of Object.values(view.state)) for (const [x, y] of s.trail) { xs.push(x); ys.push(y); }
+  if (!xs.length) return;
+  const x0 = Math.min(...xs) - 2, x1 = Math.max(...xs) + 2;
+  const y0 = Math.min(...ys) - 2, y1 = Math.max(...ys) + 2;
+  view.flip = (y) => y1 - y + y0;
+  $("#map").setAttribute("viewBox", `${x0} ${y0} ${x1 - x0} ${y1 - y0}`);
+}
+
+function drawRobots() {
+  if (!view.world) fitWithoutWorld();
+  const Y = view.flip || ((y) => 12 - y);
+  const robots = $("#robot-layer"), trails = $("#trail-layer");
+  for (const [name, state] of Object.entries(view.state)) {
+    const pose = poseOf(state.blackboard);
+    let group = robots.querySelector(`[data-robot="${CSS.escape(name)}"]`);
+    if (!pose) { if (group) group.remove(); continue; }
+    let trail = trails.querySelector(`[data-robot="${CSS.escape(name)}"]`);
+    if (!group) {
+      group = svg("g", {class: "robot", "data-robot": name, id: `robot-${name}`});
+      const turning = svg("g", {class: "turning"});
+      turning.append(svg("circle", {class: "body", r: 0.3}),
+                     svg("line", {class: "heading", x1: 0, y1: 0, x2: 0.45, y2: 0}));
+      group.append(turning,
+                   svg("rect", {class: "battery-bg", x: -0.3, y: -0.55, width: 0.6, height: 0.09}),
+                   svg("rect", {class: "battery", x: -0.3, y: -0.55, width: 0.6, height: 0.09}),
+                   svg("text", {class: "label", x: -0.3, y: 0.62}));
+      group.addEventListener("click", () => select(name));
+      robots.append(group);
+      trail = svg("polyline", {class: "trail", "data-robot": name});
+      trails.append(trail);
+    }
+    // Only the body turns: the battery bar and the label stay upright.
+    group.setAttribute("transform", `translate(${pose.x} ${Y(pose.y)})`);
+    group.querySelector(".turning").setAttribute("transform", `rotate(${-pose.yaw * 180 / Math.PI})`);
+    group.dataset.x = pose.x.toFixed(3);
+    group.dataset.y = pose.y.toFixed(3);
+    group.dataset.yaw = pose.yaw.toFixed(3);
+    group.classList.toggle("selected", name === view.selected);
+    group.querySelector(".body").setAttribute("fill", ledColour(state.blackboard));
+    const battery = value(state.blackboard, KEYS.battery);
+    const bar = group.querySelector(".battery");
+    bar.setAttribute("width", typeof battery === "number" ? 0.6 * Math.max(0, Math.min(100, battery)) / 100 : 0);
+    bar.classList.toggle("low", typeof battery === "number" && battery < 20);
+    group.dataset.battery = typeof battery === "number" ? battery.toFixed(1) : "";
+    const label = group.querySelector(".label");
+    label.textContent = typeof battery === "number" ? `${name} ${battery.toFixed(0)}%` : name;
+    trail.setAttribute("points", state.trail.map(([x, y]) => `${x},${Y(y)}`).join(" "));
+  }
+}
+
+// ---- the selected robot -------------------------------------------------------------------
+
+function select(name) {
+  if (!name || name === view.selected) return;
+  view.selected = name;
+  $("#robot-select").value = name;
+  $("#control-msg").textContent = "";
+  loadBehaviors(name);
+  render();
+}
+
+function fillRobotSelect() {
+  const select_ = $("#robot-select");
+  const current = select_.value;
+  select_.replaceChildren(...view.robots.map((n) => el("option", {value: n, text: n})));
+  select_.value = current || view.selected || view.robots[0] || "";
+}
+
+$("#robot-select").addEventListener("change", (e) => select(e.target.value));
+
+async function loadBehaviors(name) {
+  try {
+    view.behaviors[name] = await api(`/api/robots/${encodeURIComponent(name)}/behaviors`);
+  } catch (err) {
+    message(err.message, true);
+    return;
+  }
+  if (name !== view.selected) return;
+  const choice = $("#behavior-choice");
+  const keep = choice.value;
+  choice.replaceChildren(...view.behaviors[name].map((b) => el("option", {value: b.name, text: b.name})));
+  const current = view.behaviors[name].find((b) => b.current);
+  choice.value = keep && view.behaviors[name].some((b) => b.name === keep) ? keep
+    : (current ? current.name : choice.value);
+  showParams();
+}
+
+function showParams() {
+  const list = view.behaviors[view.selected] || [];
+  const chosen = list.find((b) => b.name === $("#behavior-choice").value);
+  const box = $("#params");
+  box.replaceChildren();
+  $("#behavior-doc").textContent = chosen ? `${chosen.class} — ${chosen.doc || ""}` : "";
+  if (!chosen) return;
+  for (const p of chosen.parameters) {
+    const input = el("input", {name: p.name, "data-param": p.name,
+      placeholder: p.required ? `required${p.type ? " " + p.type : ""}` : `${JSON.stringify(p.default)}${p.type ? " (" + p.type + ")" : ""}`});
+    box.append(el("label", {}, el("span", {text: p.name}), input));
+  }
+}
+
+$("#behavior-choice").addEventListener("change", showParams);
+
+function message(text, error) {
+  const node = $("#control-msg");
+  node.textContent = text;
+  node.className = error ? "error" : "ok";
+}
+
+function paramValue(text) {
+  // JSON where it parses (numbers, true, lists, objects), else the text itself.
+  try { return JSON.parse(text); } catch (e) { return text; }
+}
+
+$("#switch-btn").addEventListener("click", async () => {
+  const name = view.selected;
+  const behavior = $("#behavior-choice").value;
+  const params = {};
+  for (const input of $("#params").querySelectorAll("input")) {
+    if (input.value.trim() !== "") params[input.dataset.param] = paramValue(input.value.trim());
+  }
+  try {
+    const answer = await api(`/api/robots/${encodeURIComponent(name)}/switch`,
+                             {method: "POST", body: JSON.stringify({behavior, params})});
+    message(`switching ${name} to ${answer.requested}`, false);
+  } catch (err) {
+    message(`${err.status || ""} ${err.message}`, true);
+  }
+});
+
+$("#stop-btn").addEventListener("click", async () => {
+  try {
+    await api(`/api/robots/${encodeURIComponent(view.selected)}/stop`, {method: "POST"});
+    message(`${view.selected}: stopping (idle: every action to its safe state)`, false);
+  } catch (err) {
+    message(`${err.status || ""} ${err.message}`, true);
+  }
+});
+
+// ---- panels -------------------------------------------------------------------------------
+
+function renderEngines(snapshot) {
+  const box = $("#engines");
+  const engines = (snapshot && snapshot.engines) || [];
+  if (!engines.length) {
+    box.replaceChildren(el("span", {class: "muted", text: "no decision engine runs"}));
+    return;
+  }
+  box.replaceChildren(...engines.map((engine) => {
+    const part = el("div", {class: `engine ${engine.kind}`, "data-engine": engine.path});
+    part.append(el("h3", {text: `${engine.path} — ${engine.kind || "engine"}`}));
+    if (engine.kind === "state_machine") {
+      const row = el("div", {class: "sm"});
+      for (const state of engine.states || []) {
+        const name = typeof state === "string" ? state : state.name;
+        row.append(el("span", {class: `sm-state${name === engine.state ? " active" : ""}`,
+                               "data-state": name, text: name}));
+      }
+      part.append(row);
+      const t = engine.last_transition;
+      if (t) part.append(el("div", {class: "muted", text: `last: ${t.source || "?"} → ${t.dest || "?"}${t.trigger ? " on " + t.trigger : ""}`}));
+    } else if (engine.kind === "behaviour_tree") {
+      for (const node of engine.nodes || []) {
+        const depth = (node.path.match(/\//g) || []).length;
+        const row = el("div", {class: `bt-node status-${node.status}`, "data-node": node.path,
+                               "data-status": node.status, style: `padding-left:${depth * 14}px`},
+                       el("span", {class: `dot status-${node.status}`}), node.name);
+        part.append(row);
+      }
+      part.append(el("div", {class: "muted", text: `tick ${engine.tick}`}));
+    } else {
+      const rest = Object.assign({}, engine);
+      delete rest.path; delete rest.kind;
+      part.append(el("pre", {class: "muted", text: JSON.stringify(rest, null, 1)}));
+    }
+    return part;
+  }));
+}
+
+function treeItem(node) {
+  const item = el("li", {class: `status-${node.status}`, "data-path": node.path, "data-status": node.status});
+  const extra = node.action_type ? ` [${node.action_type}]` : "";
+  item.append(el("span", {class: "node"}, el("span", {class: "dot"}),
+    el("span", {class: "kind", text: node.kind === "action" ? "action" : "behaviour"}),
+    el("b", {text: node.name}), `${extra} ${node.status} ${(node.elapsed_s || 0).toFixed(1)} s`));
+  const children = (node.children || []).filter((c) => c.status === "RUNNING" || c.status === "STUCK").slice(-20);
+  if (children.length) item.append(el("ul", {}, ...children.map(treeItem)));
+  return item;
+}
+
+function renderRunning(snapshot) {
+  $("#tree").replaceChildren(...(snapshot && snapshot.tree ? [treeItem(snapshot.tree)] : []));
+  const locks = (snapshot && snapshot.lock_details) || {};
+  $("#locks tbody").replaceChildren(...Object.entries(locks).map(([type, lock]) =>
+    el("tr", {"data-lock": type}, el("td", {text: type}), el("td", {text: lock.holder}),
+       el("td", {text: lock.status}), el("td", {text: `${(lock.held_s || 0).toFixed(1)} s`}))));
+  const stuck = (snapshot && snapshot.stuck) || [];
+  $("#stuck").textContent = stuck.length ? `STUCK: ${stuck.join(", ")}` : "";
+}
+
+function renderLow(snapshot) {
+  const low = snapshot && snapshot.low;
+  const box = $("#logics");
+  if (!low) { box.replaceChildren(el("span", {class: "muted", text: "no low level in this process"})); return; }
+  const parts = [el("div", {}, "logic ", el("b", {id: "current-logic-name", text: low.current || "–"}),
+                    ` (registered: ${(low.registered || []).join(", ")})`)];
+  const walk = (logic, depth) => {
+    if (!logic) return;
+    parts.push(el("div", {class: "bt-node", style: `padding-left:${depth * 14}px`},
+      el("span", {class: `dot status-${logic.status}`}), `${logic.name} ${logic.status}`));
+    for (const child of logic.children || []) walk(child, depth + 1);
+  };
+  walk(low.logic, 0);
+  const hals = low.hals && (low.hals.loaded || low.hals);
+  if (hals && typeof hals === "object") {
+    parts.push(el("div", {class: "muted", text: `HALs: ${Object.keys(hals).join(", ")}`}));
+  }
+  if (low.loop_blocked) parts.push(el("div", {class: "error", text: `loop blocked by ${low.loop_blocked.culprit} at ${low.loop_blocked.where}`}));
+  box.replaceChildren(...parts);
+}
+
+function renderBlackboard(board) {
+  const body = $("#blackboard tbody");
+  const filter = $("#bb-filter").value.trim();
+  const keys = Object.keys(board || {}).filter((k) => !filter || k.includes(filter)).sort();
+  const rows = new Map([...body.children].map((r) => [r.dataset.key, r]));
+  let previous = null;
+  for (const key of keys) {
+    const entry = board[key];
+    let row = rows.get(key);
+    if (!row) {
+      row = el("tr", {"data-key": key}, el("td", {text: key}), el("td", {class: "value"}),
+               el("td", {class: "age"}), el("td", {class: "writer"}));
+    }
+    rows.delete(key);
+    row.children[1].textContent = show(entry.value);
+    row.children[2].textContent = entry.age_s == null ? "–" : `${entry.age_s.toFixed(1)} s`;
+    row.children[3].textContent = entry.writer || "";
+    row.classList.toggle("stale", !!entry.stale);
+    row.dataset.stale = entry.stale ? "true" : "false";
+    // Keep the rows in key order without rebuilding the table (no flicker).
+    if (previous ? previous.nextSibling !== row : body.firstChild !== row) {
+      if (previous) previous.after(row); else body.prepend(row);
+    }
+    previous = row;
+  }
+  for (const row of rows.values()) row.remove();
+}
+
+$("#bb-filter").addEventListener("input", () => render());
+
+function renderEvents(state) {
+  const list = $("#events");
+  const shown = state.events.slice(-EVENTS_SHOWN).reverse();
+  if (list.dataset.last === String(shown.length && shown[0].seq) && list.children.length === shown.length) return;
+  list.dataset.last = String(shown.length && shown[0].seq);
+  list.replaceChildren(...shown.map((e) => {
+    const warn = /stuck|failed|rejected|blocked/.test(e.kind) || e.status === "FAILED";
+    const time = new Date(e.stamp * 1000).toLocaleTimeString();
+    return el("li", {class: warn ? "warn" : "", "data-seq": e.seq, "data-kind": e.kind},
+      `${time} ${e.source} ${e.kind} ${e.subject}${e.status ? " " + e.status : ""}${e.error ? " " + e.error : ""}`);
+  }));
+  $("#dropped").textContent = state.dropped ? `${state.dropped} updates skipped (slow link)` : "";
+}
+
+function render() {
+  drawRobots();
+  const name = view.selected;
+  const state = name && view.state[name];
+  if (!state) return;
+  const snap = state.snapshot;
+  const current = snap ? (snap.behavior || "switching…") : "–";
+  const badge = $("#current-behavior");
+  if (badge.textContent !== current) {
+    badge.textContent = current;
+    if (snap && snap.behavior) loadBehaviors(name);  // "current" flags changed
+  }
+  $("#current-logic").textContent = snap && snap.low && snap.low.current ? `logic: ${snap.low.current}` : "";
+  renderEngines(snap);
+  renderRunning(snap);
+  renderLow(snap);
+  renderBlackboard(state.blackboard);
+  renderEvents(state);
+}
+
+// ---- the fleet ----------------------------------------------------------------------------
+
+function renderFleet(fleet) {
+  const box = $("#fleet");
+  const parts = [];
+  for (const [section, items] of Object.entries(fleet || {})) {
+    parts.push(el("h3", {text: section}));
+    if (Array.isArray(items) && items.length && typeof items[0] === "object") {
+      const cols = [...new Set(items.flatMap((i) => Object.keys(i)))].slice(0, 8);
+      const table = el("table", {"data-section": section},
+        el("thead", {}, el("tr", {}, ...cols.map((c) => el("th", {text: c})))),
+        el("tbody", {}, ...items.slice(-100).map((i) => el("tr", {}, ...cols.map((c) => el("td", {text: show(i[c] === undefined ? "" : i[c])}))))));
+      parts.push(table);
+    } else {
+      parts.push(el("pre", {class: "muted", text: JSON.stringify(items, null, 1)}));
+    }
+  }
+  box.replaceChildren(...parts);
+}
+
+async function pollFleet() {
+  try {
+    renderFleet(await api("/api/fleet"));
+    $("#fleet-panel").hidden = false;
+  } catch (err) {
+    if (err.status === 404) return;  // not a fleet process
+  }
+  setTimeout(pollFleet, 1000);
+}
+
+// ---- start --------------------------------------------------------------------------------
+
+async function start() {
+  let info;
+  try {
+    info = await api("/api/robots");
+  } catch (err) {
+    setConn(false, err.status === 401 ? "token needed" : "no server");
+    if (err.status !== 401) setTimeout(start, 2000);
+    return;
+  }
+  view.robots = info.robots.map((r) => r.name);
+  fillRobotSelect();
+  if (info.world) {
+    try { view.world = await api("/api/world"); drawWorld(view.world); } catch (err) { view.world = null; }
+  }
+  if (info.fleet) pollFleet();
+  select(view.selected || view.robots[0]);
+  if (view.ws) { const old = view.ws; view.ws = null; old.close(); }
+  connect();
+}
+
+view.render = render;  // for the console: time a redraw with performance.now()
+readToken();
+start();

@@ -1,0 +1,269 @@
+"""HTTP/WebSocket interface and web view: what serving a browser costs the robot.
+
+Targets (issue 14):
+
+- blackboard change → visible in the browser's DOM at 20 Hz coalescing: p99 ≤ 100 ms
+  (headless Debian chromium; the figure includes playwright's own round trip);
+- HTTP switch round trip (``POST .../switch`` → 202): p99 reported, and the full switch
+  (request → the manager runs the new behaviour);
+- robot-side CPU of serving 5 WebSocket clients at 20 Hz, as a ratio to the same run with
+  none: ≤ 1.10 — measured on a real ``beehave run --http`` process with the pybullet
+  simulation and EMILI driving (its CPU time from /proc), the clients in this process;
+- one update's cost (snapshot + blackboard, serialised once for every client): p99, and
+  what 20 Hz of it is of one core (informational; the ratio above is the target).
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import re
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(101, 200)))
+
+import httpx  # noqa: E402
+from websockets.sync.client import connect  # noqa: E402
+
+from beehave import Behavior, HighLevelBehaviorManager  # noqa: E402
+from beehave.events import EventKind  # noqa: E402
+from beehave.interfaces import ControlPlane  # noqa: E402
+from beehave.interfaces.http import HttpServer  # noqa: E402
+from beehave.testing import ScriptedAction  # noqa: E402
+from benchmarks._util import median, percentile, report  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+CHROMIUM = "/usr/bin/chromium"
+N_BUILD = 2000
+N_DOM = 100
+N_SWITCH = 200
+CPU_WINDOW_S = 8.0
+CLIENTS = 5
+ALTERNATIONS = 3  # without/with pairs: the robot's own CPU drifts by ±5 % between windows
+
+
+class Busy(Behavior):
+    """A behaviour with a few running actions of different types (a realistic tree)."""
+
+    def __init__(self, n: int = 4) -> None:
+        self.n = n
+
+    def run(self) -> None:
+        for i in range(self.n):
+            self.start_action(ScriptedAction(f"type{i}", duration_s=3600.0, name=f"a{i}"))
+        while self.sleep(0.05):
+            pass
+
+
+def _manager() -> HighLevelBehaviorManager:
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    hl.register("busy", Busy)
+    hl.register("other", Busy, n=2)
+    hl.start()
+    for i in range(80):  # about what a mobile robot's HALs and logics keep
+        hl.blackboard.set(f"bench/key{i:02d}", float(i), writer="hal:bench")
+    hl.blackboard.set("laser/ranges", [1.5] * 90, writer="hal:laser")
+    hl.switch("busy")
+    return hl
+
+
+def update_cost(server: HttpServer) -> dict[str, Any]:
+    samples = []
+    for _ in range(N_BUILD):
+        started = time.perf_counter()
+        server.hub.build("robot")
+        samples.append(time.perf_counter() - started)
+    p99_ms = percentile(samples, 99) * 1e3
+    size = len(server.hub.build("robot"))
+    return report("http_update_build_p50", median(samples) * 1e3, "ms", None, None,
+                  p99_ms=round(p99_ms, 3), bytes=size,
+                  core_share_at_20hz=round(median(samples) * 20, 4),
+                  note="snapshot + blackboard (81 keys), serialised once for all clients")
+
+
+def dom_latency(server: HttpServer, hl: HighLevelBehaviorManager) -> dict[str, Any]:
+    from playwright.sync_api import sync_playwright
+
+    samples = []
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
+        try:
+            page = browser.new_page()
+            page.goto(server.url)
+            page.wait_for_selector("#conn.up", timeout=20_000)
+            for i in range(N_DOM):
+                time.sleep(random.uniform(0.0, 0.05))  # at any phase of the 20 Hz turn
+                started = time.perf_counter()
+                hl.blackboard.set("bench/dom", i)
+                page.wait_for_function(
+                    "v => { const r = document.querySelector('#blackboard "
+                    "tr[data-key=\"bench/dom\"] td.value'); return r && r.textContent === v; }",
+                    arg=str(i), polling=5, timeout=10_000)  # checks the DOM every 5 ms
+                samples.append(time.perf_counter() - started)
+        finally:
+            browser.close()
+    p99 = percentile(samples, 99) * 1e3
+    return report("http_dom_latency_p99", p99, "ms", "<= 100 ms at 20 Hz", p99 <= 100.0,
+                  p50_ms=round(median(samples) * 1e3, 3), n=len(samples))
+
+
+def switch_roundtrip(server: HttpServer, hl: HighLevelBehaviorManager) -> list[dict[str, Any]]:
+    accepted, completed = [], []
+    done = threading.Event()
+    target: list[str] = [""]
+
+    def on_event(event: Any) -> None:
+        if event.kind is EventKind.SWITCH_COMPLETED and event.subject == target[0]:
+            done.set()
+
+    unsubscribe = hl.subscribe(on_event)
+    url = server.url + "api/robots/robot/switch"
+    try:
+        with httpx.Client(timeout=10) as client:
+            for i in range(N_SWITCH):
+                target[0] = "other" if i % 2 == 0 else "busy"
+                done.clear()
+                started = time.perf_counter()
+                response = client.post(url, json={"behavior": target[0]})
+                accepted.append(time.perf_counter() - started)
+                assert response.status_code == 202, response.text
+                done.wait(5)
+                completed.append(time.perf_counter() - started)
+    finally:
+        unsubscribe()
+    return [report("http_switch_roundtrip_p99", percentile(accepted, 99) * 1e3, "ms", None,
+                   None, p50_ms=round(median(accepted) * 1e3, 3),
+                   note="POST .../switch → 202 (validated, queued)"),
+            report("http_switch_complete_p99", percentile(completed, 99) * 1e3, "ms", None,
+                   None, p50_ms=round(median(completed) * 1e3, 3),
+                   note="POST → the new behaviour runs (4 actions stopped and started)")]
+
+
+# ---- the robot-side CPU ratio, on a real robot process ---------------------------------------
+
+SHUTTLE = """\
+name: shuttle
+engine: state_machine
+actions:
+  to_drop:
+    {use: "behaviours.actions:Navigation", params: {goal: emili_dropoff, world: warehouse}}
+  to_charge:
+    {use: "behaviours.actions:Navigation", params: {goal: emili_charging, world: warehouse}}
+initial: to_drop
+states:
+  - {name: to_drop, start: to_drop}
+  - {name: to_charge, start: to_charge}
+transitions:
+  - {source: to_drop, dest: to_charge, on: succeeded}
+  - {source: to_charge, dest: to_drop, on: succeeded}
+"""
+
+CONFIG = """\
+namespace: emili1
+use_sim_time: true
+sim: {{world: warehouse, real_time_factor: 1.0}}
+behaviors:
+  shuttle: {{class: "behaviours.behaviors:YamlBehavior", params: {{file: "{shuttle}"}}}}
+default_behavior: shuttle
+logics:
+  emili: {{class: "behaviours.logics:EmiliLogic", params: {{threshold: 20}}}}
+default_logic: emili
+hals: [odometry, battery, laser, line_sensor, lift, emili_leds, display, sound]
+"""
+
+
+def _cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def cpu_ratio() -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as folder:
+        shuttle = Path(folder) / "shuttle.yaml"
+        shuttle.write_text(SHUTTLE)
+        config = Path(folder) / "emili.yaml"
+        config.write_text(CONFIG.format(shuttle=shuttle))
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "beehave.cli", "run", str(config), "--http", "127.0.0.1:0"],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            assert proc.stdout is not None
+            url = ""
+            for line in proc.stdout:
+                match = re.search(r"web view and API at (http://\S+)", line)
+                if match:
+                    url = match.group(1)
+                    break
+            assert url, "beehave run printed no URL"
+            threading.Thread(target=proc.stdout.read, daemon=True).start()
+            ws_url = url.replace("http://", "ws://") + "api/ws"
+            time.sleep(3.0)  # let it settle: discovery, the first path planned
+            without: list[float] = []
+            with_clients: list[float] = []
+            received = [0]
+            stats: dict[str, Any] = {}
+            for _ in range(ALTERNATIONS):  # alternating: a drift in the load evens out
+                before = _cpu_s(proc.pid)
+                time.sleep(CPU_WINDOW_S)
+                without.append(_cpu_s(proc.pid) - before)
+                stop = threading.Event()
+
+                def client(stop: threading.Event = stop) -> None:
+                    with connect(ws_url, max_size=None) as ws:
+                        while not stop.is_set():
+                            try:
+                                ws.recv(timeout=0.5)
+                                received[0] += 1
+                            except TimeoutError:
+                                pass
+
+                threads = [threading.Thread(target=client) for _ in range(CLIENTS)]
+                for t in threads:
+                    t.start()
+                time.sleep(1.0)
+                before = _cpu_s(proc.pid)
+                time.sleep(CPU_WINDOW_S)
+                with_clients.append(_cpu_s(proc.pid) - before)
+                stats = httpx.get(url + "api/stats", timeout=10).json()
+                stop.set()
+                for t in threads:
+                    t.join()
+        finally:
+            proc.terminate()
+            proc.wait(30)
+    ratio = sum(with_clients) / sum(without)
+    return report("http_robot_cpu_ratio_5_clients", ratio, "x", "<= 1.10", ratio <= 1.10,
+                  cpu_without_pct=round(100 * sum(without) / (ALTERNATIONS * CPU_WINDOW_S), 1),
+                  cpu_with_pct=round(100 * sum(with_clients) / (ALTERNATIONS * CPU_WINDOW_S),
+                                     1),
+                  updates_received=received[0],
+                  robot_build_ms_mean=stats["build_ms_mean"],
+                  note="beehave run --http with the sim, EMILI driving; 5 WebSocket clients")
+
+
+def main() -> list[dict[str, Any]]:
+    rows = []
+    hl = _manager()
+    plane = ControlPlane(hl, name="robot")
+    try:
+        with HttpServer(plane, rate_hz=20.0) as server:
+            rows.append(update_cost(server))
+            if Path(CHROMIUM).exists():
+                rows.append(dom_latency(server, hl))
+            rows += switch_roundtrip(server, hl)
+    finally:
+        plane.close()
+        hl.shutdown()
+    rows.append(cpu_ratio())
+    return rows
+
+
+if __name__ == "__main__":
+    main()

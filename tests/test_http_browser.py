@@ -1,0 +1,308 @@
+"""The web view in a real browser (Debian's chromium driven by playwright) against a real
+robot process: ``beehave run ROBOT.yaml --http 127.0.0.1:0`` with the pybullet simulation
+in it, EMILI on ROS 2 (this test run's own ROS_DOMAIN_ID, localhost only).
+
+What a developer sees must be what the robot does: the marker moves as the physics moves
+the robot, the state machine's highlight follows the running state, a switch clicked on the
+page reaches the manager, the blackboard table follows the blackboard.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("pybullet")
+pytest.importorskip("rclpy")
+pytest.importorskip("fastapi")
+httpx = pytest.importorskip("httpx")
+sync_api = pytest.importorskip("playwright.sync_api")
+
+ROOT = Path(__file__).resolve().parent.parent
+CHROMIUM = "/usr/bin/chromium"
+OUT = ROOT / "out"
+
+if not Path(CHROMIUM).exists():  # pragma: no cover - `make setup` installs it
+    pytest.skip(f"{CHROMIUM} is not installed (Debian package chromium)",
+                allow_module_level=True)
+
+SHUTTLE = """\
+# EMILI shuttles between its drop-off and its charging station.
+name: shuttle
+engine: state_machine
+actions:
+  to_drop:
+    {use: "behaviours.actions:Navigation", params: {goal: emili_dropoff, world: warehouse}}
+  to_charge:
+    {use: "behaviours.actions:Navigation", params: {goal: emili_charging, world: warehouse}}
+initial: to_drop
+states:
+  - {name: to_drop, start: to_drop}
+  - {name: to_charge, start: to_charge}
+transitions:
+  - {source: to_drop, dest: to_charge, on: succeeded}
+  - {source: to_charge, dest: to_drop, on: succeeded}
+"""
+
+CONFIG = """\
+namespace: emili1
+stop_timeout_s: 1.0
+use_sim_time: true
+sim: {{world: warehouse, real_time_factor: 2.0}}
+behaviors:
+  shuttle:
+    class: "behaviours.behaviors:YamlBehavior"
+    params: {{file: "{shuttle}"}}
+  maintenance: {{class: "behaviours.emili:Maintenance"}}
+default_behavior: idle
+logics:
+  emili: {{class: "behaviours.logics:EmiliLogic", params: {{threshold: 20}}}}
+default_logic: emili
+hals: [odometry, battery, laser, line_sensor, lift, emili_leds, display, sound]
+"""
+
+
+class RobotProcess:
+    """``beehave run`` in a process of its own; reads the web view's URL from its output."""
+
+    def __init__(self, config: Path) -> None:
+        env = dict(os.environ)
+        env.pop("BEEHAVE_HTTP_TOKEN", None)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "beehave.cli", "run", str(config), "--http", "127.0.0.1:0"],
+            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines: list[str] = []
+        self._url = threading.Event()
+        self.url = ""
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line)
+            match = re.search(r"web view and API at (http://\S+)", line)
+            if match:
+                self.url = match.group(1)
+                self._url.set()
+        self._url.set()  # ended without a URL: do not wait any longer
+
+    def wait_url(self, timeout_s: float) -> str:
+        self._url.wait(timeout_s)
+        assert self.url, "beehave run printed no URL:\n" + "".join(self.lines)
+        return self.url
+
+    def api(self, path: str, **kwargs: Any) -> Any:
+        response = httpx.request(kwargs.pop("method", "GET"), self.url + path.lstrip("/"),
+                                 timeout=10, **kwargs)
+        response.raise_for_status()
+        return response.json()
+
+    def stop(self) -> str:
+        self.proc.terminate()
+        try:
+            self.proc.wait(30)
+        except subprocess.TimeoutExpired:  # pragma: no cover - reported below
+            self.proc.kill()
+            self.proc.wait(5)
+        self._reader.join(5)
+        return "".join(self.lines)
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RobotProcess]:
+    folder = tmp_path_factory.mktemp("webview")
+    shuttle = folder / "shuttle.yaml"
+    shuttle.write_text(SHUTTLE)
+    config = folder / "emili.yaml"
+    config.write_text(CONFIG.format(shuttle=shuttle))
+    process = RobotProcess(config)
+    try:
+        process.wait_url(60)
+        yield process
+    finally:
+        output = process.stop()
+    assert process.proc.returncode == 0, output
+    assert "stopped cleanly" in output, output
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    with sync_api.sync_playwright() as playwright:
+        chromium = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
+        try:
+            yield chromium
+        finally:
+            chromium.close()
+
+
+@pytest.fixture(scope="module")
+def page(robot: RobotProcess, browser: Any) -> Iterator[Any]:
+    tab = browser.new_page(viewport={"width": 1400, "height": 860})
+    errors: list[str] = []
+    tab.on("pageerror", lambda exc: errors.append(str(exc)))
+    tab.goto(robot.url)
+    yield tab
+    tab.close()
+    assert not errors, errors
+
+
+def marker_pose(page: Any) -> tuple[float, float]:
+    marker = page.locator("#robot-emili1")
+    return float(marker.get_attribute("data-x")), float(marker.get_attribute("data-y"))
+
+
+def test_the_page_draws_the_world_and_the_robot_where_the_physics_has_it(
+        robot: RobotProcess, page: Any) -> None:
+    page.wait_for_selector("#conn.up", timeout=20_000)
+    assert page.locator('[data-station="emili_dropoff"]').count() == 1
+    assert page.locator("#map .wall").count() >= 4
+    page.wait_for_selector("#robot-emili1", timeout=20_000)
+    x, y = marker_pose(page)
+    board = robot.api("api/robots/emili1/blackboard", params={"pattern": "odom/*"})
+    # Where the robot's own odometry has it (it starts at (3, 2) in the warehouse).
+    assert abs(x - board["odom/x_m"]["value"]) < 0.3 and abs(y - 2.0) < 0.3
+    assert page.locator("#current-behavior").text_content() == "idle"
+    assert page.locator('#blackboard tr[data-key="battery/percentage"]').count() == 1
+
+
+def test_switching_on_the_page_drives_the_robot_and_the_view_follows(
+        robot: RobotProcess, page: Any) -> None:
+    page.wait_for_selector("#robot-emili1", timeout=20_000)
+    start_x, _ = marker_pose(page)
+    odom_cell = page.locator('#blackboard tr[data-key="odom/x_m"] td.value')
+    start_cell = odom_cell.text_content()
+    page.select_option("#behavior-choice", "shuttle")
+    page.click("#switch-btn")
+    # The manager (in the robot process) switched: asked through the API, not the page.
+    deadline = time.monotonic() + 20
+    while robot.api("api/robots/emili1/status")["behavior"] != "shuttle":
+        assert time.monotonic() < deadline, "the switch clicked on the page did not happen"
+        time.sleep(0.1)
+    page.wait_for_function(
+        "document.querySelector('#current-behavior').textContent === 'shuttle'",
+        timeout=10_000)
+    # The state machine is drawn with its running state highlighted.
+    page.wait_for_selector('.engine.state_machine .sm-state.active[data-state="to_drop"]',
+                           timeout=10_000)
+    assert page.locator('.sm-state[data-state="to_charge"]:not(.active)').count() == 1
+    # The state's Navigation holds the driving lock (it starts just after the state).
+    page.wait_for_selector('#locks tr[data-lock="driving"]', timeout=10_000)
+    # The marker follows the physics toward the drop-off (x = 10).
+    page.wait_for_function(
+        f"Number(document.querySelector('#robot-emili1').dataset.x) > {start_x + 0.5}",
+        timeout=40_000)
+    assert odom_cell.text_content() != start_cell  # the blackboard table follows too
+    assert page.locator("#trail-layer polyline").get_attribute("points").count(",") > 5
+    OUT.mkdir(exist_ok=True)
+    page.screenshot(path=str(OUT / "webview.png"))
+    # Stop: the page's button puts the robot in its safe state.
+    page.click("#stop-btn")
+    page.wait_for_function(
+        "document.querySelector('#current-behavior').textContent === 'idle'", timeout=10_000)
+    assert robot.api("api/robots/emili1/status")["behavior"] == "idle"
+
+
+def test_off_loopback_the_page_needs_the_token_and_a_wrong_one_is_refused(
+        browser: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    from beehave import HighLevelBehaviorManager
+    from beehave.interfaces import ControlPlane
+    from beehave.interfaces.http import TOKEN_ENV, HttpServer
+
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    with HighLevelBehaviorManager(stop_timeout_s=0.3) as hl:
+        plane = ControlPlane(hl, name="kobuki1")
+        # Every interface: a token is generated. The browser still talks over loopback.
+        with HttpServer(plane, host="0.0.0.0") as server:
+            assert server.token is not None
+            origin = f"http://127.0.0.1:{server.port}/"
+            tab = browser.new_page()
+            statuses: list[int] = []
+            tab.on("response", lambda r: statuses.append(r.status) if "/api/" in r.url
+                   else None)
+            try:
+                tab.goto(origin)
+                tab.wait_for_selector("#token-form:not([hidden])", timeout=10_000)
+                assert "token needed" in tab.locator("#conn").text_content()
+                tab.fill("#token-input", "not-the-token")
+                tab.click("#token-form button")
+                tab.wait_for_function("document.querySelector('#conn').textContent"
+                                      ".includes('token needed')", timeout=10_000)
+                assert 401 in statuses and 200 not in statuses
+                tab.goto(f"{origin}#token={server.token}")  # what `beehave run` prints
+                tab.reload()
+                tab.wait_for_selector("#conn.up", timeout=10_000)
+                assert tab.locator("#current-behavior").text_content() == "idle"
+                assert "token" not in tab.url  # taken off the address bar
+            finally:
+                tab.close()
+            plane.close()
+
+
+def test_a_behaviour_tree_is_drawn_with_py_trees_status_colours_that_follow_its_ticks(
+        browser: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    import py_trees
+
+    from beehave import HighLevelBehaviorManager
+    from beehave.engines.engine import EngineBehavior
+    from beehave.engines.tree import BlackboardCheck, StartLeaf, TreeEngine
+    from beehave.interfaces import ControlPlane
+    from beehave.interfaces.http import TOKEN_ENV, HttpServer
+    from beehave.testing import ScriptedAction
+
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    root = py_trees.composites.Selector("root", memory=False, children=[
+        py_trees.composites.Sequence("charge?", memory=False, children=[
+            BlackboardCheck("low", "battery/percentage < 20"),
+            StartLeaf("charge", lambda: ScriptedAction("lift", duration_s=60.0))]),
+        StartLeaf("patrol", lambda: ScriptedAction("driving", duration_s=60.0))])
+    with HighLevelBehaviorManager(stop_timeout_s=0.3) as hl:
+        hl.register("patrol", EngineBehavior, engine=TreeEngine(root, rate_hz=50.0))
+        hl.blackboard.set("battery/percentage", 80.0, writer="hal:battery")
+        plane = ControlPlane(hl, name="kobuki1")
+        messages: list[dict[str, Any]] = []
+        fleet = {"agents": [{"name": "kobuki1", "services": "transport"}], "messages": messages}
+        with HttpServer(plane, fleet=lambda: fleet) as server:
+            tab = browser.new_page(viewport={"width": 1200, "height": 900})
+            try:
+                tab.goto(server.url)
+                tab.wait_for_selector("#conn.up", timeout=10_000)
+                tab.select_option("#behavior-choice", "patrol")
+                tab.click("#switch-btn")
+                running = '.bt-node[data-node="{}"][data-status="{}"]'
+                tab.wait_for_selector(running.format("root/patrol", "RUNNING"), timeout=10_000)
+                assert hl.current == "patrol"
+                assert tab.locator(running.format("root/charge?/low", "FAILURE")).count() == 1
+                # The battery runs low: the tree takes the charging branch, and the page
+                # follows tick by tick.
+                hl.blackboard.set("battery/percentage", 10.0, writer="hal:battery")
+                tab.wait_for_selector(running.format("root/charge?/charge", "RUNNING"),
+                                      timeout=10_000)
+                tab.wait_for_selector(running.format("root/patrol", "INVALID"),
+                                      timeout=10_000)
+                tab.wait_for_selector('#locks tr[data-lock="lift"]', timeout=10_000)
+                # A stale entry is marked as such in the blackboard table.
+                hl.blackboard.set("battery/percentage", 10.0, writer="hal:battery",
+                                  stale=True)
+                tab.wait_for_selector(
+                    '#blackboard tr[data-key="battery/percentage"][data-stale="true"]',
+                    timeout=10_000)
+                assert tab.locator('#events li[data-kind="switch_completed"]').count() >= 1
+                # A fleet process's view: its sections as live tables.
+                tab.wait_for_selector('#fleet table[data-section="agents"] tbody tr',
+                                      timeout=10_000)
+                messages.append({"performative": "cfp", "sender": "orders", "receiver": "*"})
+                tab.wait_for_selector('#fleet table[data-section="messages"] tbody tr',
+                                      timeout=10_000)
+            finally:
+                tab.close()
+        plane.close()

@@ -1,0 +1,45 @@
+"""``beehave run --http`` / ``beehave demo --http``: what cannot work is refused before
+anything starts, with exit status 2 and a message that says what to change."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("fastapi")
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIG = str(ROOT / "tests" / "data" / "config" / "waits.yaml")
+
+
+def beehave(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "beehave.cli", *args], cwd=ROOT,
+                          env=dict(os.environ), capture_output=True, text=True, timeout=60)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["run", CONFIG, "--http", "nope"], "HTTP address 'nope': expected PORT or HOST:PORT"),
+    (["run", CONFIG, "--http", "99999"], "a port 0–65535"),
+    (["run", CONFIG, "--only", "low", "--http", "0"], "cannot run with --only low"),
+    (["run", CONFIG, "--world", "robots/worlds/warehouse.yaml"], "give --http too"),
+    (["run", CONFIG, "--http", "0", "--world", "missing.yaml"],
+     "--world missing.yaml: cannot read it"),
+    (["run", CONFIG, "--http", "0", "--world", CONFIG], "not a world"),
+    (["demo", "--console", "--http", "0"], "the console demo (--console) has none"),
+])
+def test_http_options_that_cannot_work_exit_2_before_anything_starts(
+        args: list[str], message: str) -> None:
+    done = beehave(*args)
+    assert done.returncode == 2, done
+    assert message in done.stderr, done.stderr
+    assert "running" not in done.stdout  # no robot was started
+
+
+def test_help_names_the_http_option() -> None:
+    for command in ("run", "demo"):
+        done = beehave(command, "-h")
+        assert done.returncode == 0 and "--http [HOST:]PORT" in done.stdout
