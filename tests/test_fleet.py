@@ -10,6 +10,7 @@ Every process runs on this test run's ROS_DOMAIN_ID and is killed by PID in a fi
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -194,3 +195,40 @@ def test_zone_limits_look_ahead_and_lift_outside() -> None:
     assert places.limit_at(11.1, 8.0, 0.0, lookahead_m=0.6) == ("walkway", 0.15)
     assert places.limit_at(11.1, 8.0, 3.1416, lookahead_m=0.6) == (None, float("inf"))
     assert places.limit_at(12.0, 8.0, 3.1416, lookahead_m=0.0) == ("walkway", 0.15)
+
+
+def test_the_fleet_web_view_serves_the_live_tables_without_a_robot_in_process() -> None:
+    """``beehave fleet --http``: the fleet process holds no robot (they run in their own
+    processes), and still serves the map and the fleet's tables — in a real browser."""
+    import httpx
+    from playwright.sync_api import sync_playwright
+
+    from beehave.interfaces.http import serve
+    from behaviours.demos.fleet import fleet_view
+
+    watch = Watch()
+    watch.on_order(json.dumps({"order": "press1-1", "machine": "press1", "state": "awarded",
+                               "atv": "atv2", "awards": ["atv2"], "reason": None,
+                               "stamp": 1.0}))
+    watch.on_directory(json.dumps({"agent": "atv2", "state": "alive",
+                                   "services": {"transport": {"kind": "kobuki"}}}))
+    server = serve({}, world=yaml.safe_load(FACTORY.read_text()),
+                   fleet=lambda: fleet_view(watch))
+    try:
+        base = server.url.split("#")[0].rstrip("/")
+        fleet = httpx.get(f"{base}/api/fleet").json()
+        assert fleet["contracts"][0]["awards"] == "atv2" and fleet["agents"][0]["agent"] == "atv2"
+        errors: list[str] = []
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path="/usr/bin/chromium", headless=True)
+            page = browser.new_page()
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+            page.goto(base + "/")
+            page.wait_for_selector("#fleet-panel:not([hidden])", timeout=15000)
+            text = page.inner_text("#fleet")
+            browser.close()
+        assert "press1-1" in text and "transport" in text, text
+        assert errors == []
+    finally:
+        server.stop()

@@ -40,6 +40,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from beehave.cli import http_address_arg
 from behaviours.fleet.mission import ORDERS_TOPIC
 from behaviours.fleet.site import site
 
@@ -102,6 +103,32 @@ class Watch:
             entry = json.loads(data)
             with self.lock:
                 self.agents[entry["agent"]] = entry
+
+
+def fleet_view(watch: Watch) -> dict[str, list[dict[str, Any]]]:
+    """What ``beehave fleet --http`` serves at ``GET /api/fleet`` (the web view draws each
+    section as a live table): the ATVs in the physics, the orders and their contracts, and
+    every agent of the directory with what it offers."""
+    with watch.lock:
+        state = dict(watch.state)
+        orders = list(watch.orders.values())
+        agents = dict(watch.agents)
+    robots = [{"atv": ns, "battery_pct": round(100 * r["battery_fraction"], 1),
+               "load": r["load"], "zone": r["zone"], "speed_mps": round(r["speed_mps"], 2),
+               "x_m": round(r["x_m"], 2), "y_m": round(r["y_m"], 2),
+               "charging_at": r["charging_at"]}
+              for ns, r in sorted(state.get("robots", {}).items())]
+    contracts = [{"order": o["order"], "machine": o["machine"], "state": o["state"],
+                  "atv": o["atv"], "awards": " → ".join(o["awards"]), "reason": o["reason"]}
+                 for o in sorted(orders, key=lambda o: o["stamp"], reverse=True)[:50]]
+    directory = [{"agent": name, "state": e.get("state"),
+                  "services": ", ".join(f"{k} {v}" if v else k
+                                        for k, v in e.get("services", {}).items())}
+                 for name, e in sorted(agents.items())]
+    machines = [{"machine": n, "level": round(m["level"], 1), "capacity": m["capacity"]}
+                for n, m in sorted(state.get("machines", {}).items())]
+    return {"robots": robots, "machines": machines, "contracts": contracts,
+            "agents": directory}
 
 
 def _table(watch: Watch, started: float) -> Group:
@@ -256,7 +283,7 @@ def checks(report: dict[str, Any], watch: Watch) -> list[tuple[str, bool, str]]:
 
 def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
               minutes: float = 5.0, fast: bool = False, out_dir: Path = Path("out"),
-              record: bool = False) -> int:
+              record: bool = False, http: tuple[str, int] | None = None) -> int:
     places = site(world)
     fleet_dir = out_dir / "fleet"
     fleet_dir.mkdir(parents=True, exist_ok=True)
@@ -284,8 +311,16 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
         for name in sorted(places.machines):
             procs.start(name, [py, "-m", "behaviours.fleet.machine", name, "--world", world,
                                "--lease-s", str(LEASE_S)])
-        with RosContext() as ros:
+        with RosContext() as ros, contextlib.ExitStack() as web:
             _watch(ros, watch)
+            if http is not None:
+                from beehave.interfaces.http import serve
+
+                server = serve({}, host=http[0], port=http[1],
+                               world=yaml.safe_load(Path(places.world_path).read_text()),
+                               fleet=lambda: fleet_view(watch))
+                web.callback(server.stop)
+                console.print(f"fleet web view at {server.url}")
             started = time.monotonic()
             # Wall-time bound: a fleet far slower than real time is a failure too.
             wall_limit_s = 120.0 + sim_s * (1.0 if fast else 1.5)
@@ -351,6 +386,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="as fast as the machine goes (lockstep), not at real time")
     parser.add_argument("--out", default="out", metavar="FOLDER",
                         help="where fleet.png, fleet_report.json and the logs go")
+    parser.add_argument("--http", type=http_address_arg, default=None, metavar="[HOST:]PORT",
+                        help="serve the fleet's live tables and the map (docs/http.md) on "
+                             "HOST:PORT (127.0.0.1 unless given; 0: a free port)")
     parser.add_argument("--record", action="store_true",
                         help="record every ATV into FOLDER/fleet/atvK.mcap (one file per "
                              "robot; docs/recording.md: beehave inspect/plot/replay)")
@@ -371,7 +409,8 @@ def main(argv: list[str] | None = None) -> int:
     console = Console()
     console.rule(f"[bold]beehave fleet — {args.robots} ATVs in {args.world}")
     return run_fleet(console, world=args.world, robots=args.robots, minutes=args.minutes,
-                     fast=args.fast, out_dir=Path(args.out), record=args.record)
+                     fast=args.fast, out_dir=Path(args.out), record=args.record,
+                     http=args.http)
 
 
 if __name__ == "__main__":

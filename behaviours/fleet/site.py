@@ -46,6 +46,15 @@ class SpeedZone:
         return inside
 
 
+def _world_file(world: str) -> str:
+    from pathlib import Path
+
+    from robots.world import WORLDS_DIR
+
+    path = Path(world)
+    return str(path if path.is_file() else WORLDS_DIR / f"{world}.yaml")
+
+
 def _inner_tolerance(size_m: tuple[float, float], margin_m: float = 0.1) -> float:
     """How far from an area's centre a robot's centre may stop and still be inside it."""
     return max(0.1, min(size_m) / 2 - margin_m)
@@ -64,6 +73,8 @@ class Site:
 
         self.world_name = world
         w = load_world(world)
+        #: The world's YAML file (what a web view draws).
+        self.world_path = _world_file(world)
         self.depots = {d.name: _place(d.name, d.area.center_m, d.area.size_m)
                        for d in w.depots}
         self.machines = {m.name: _place(m.name, m.delivery.center_m, m.delivery.size_m)

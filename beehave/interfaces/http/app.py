@@ -109,8 +109,9 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
     between two updates of a robot that did not change (ages move on); ``on_started``:
     called once the server has started (its lifespan began).
     """
-    if not planes:
-        raise ConfigError("the HTTP interface needs at least one robot's ControlPlane")
+    if not planes and fleet is None:
+        raise ConfigError("the HTTP interface needs at least one robot's ControlPlane, or a "
+                          "fleet view (a fleet process whose robots run elsewhere)")
     for name in planes:
         if not isinstance(name, str) or not name or "/" in name:
             raise ConfigError(f"robot names served over HTTP must be non-empty strings "

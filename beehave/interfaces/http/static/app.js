@@ -564,7 +564,8 @@ async function start() {
   if (info.fleet) pollFleet();
   select(view.selected || view.robots[0]);
   if (view.ws) { const old = view.ws; view.ws = null; old.close(); }
-  connect();
+  // A fleet process whose robots run elsewhere serves the fleet and the map only.
+  if (view.robots.length) connect(); else setConn(true, "fleet view");
 }
 
 view.render = render;  // for the console: time a redraw with performance.now()
