@@ -111,6 +111,7 @@ def _robot(watch: Watch, ns: str) -> dict[str, Any]:
     return dict(watch.state.get("robots", {}).get(ns, {}))
 
 
+@pytest.mark.timeout(300)  # real processes: slow on a loaded machine
 def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_served(
         fleet: Fleet) -> None:
     world = fleet.world()
@@ -141,6 +142,7 @@ def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_serve
         deliveries
 
 
+@pytest.mark.timeout(300)  # real processes: slow on a loaded machine
 def test_a_killed_station_agent_frees_nothing_twice_and_the_atv_charges_elsewhere(
         fleet: Fleet) -> None:
     world = fleet.world(atv1=0.30)  # below the 35 % at which an ATV goes to charge

@@ -61,6 +61,9 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
                             timeout_s=60)
             master.wait_state(lambda s: "agvPosition" in s, timeout_s=60)
+            # The probe must hear the lift before it moves (discovery is slow on a loaded
+            # machine): else the pick's rise is missed and the check reads only its end.
+            assert probe.wait(lambda: bool(lift) and bool(odom), 60), "no lift/odom probe"
             # The base: EMILI's start, then 3 m on, where it picks; the drop-off station
             # is the horizon, released by an update.
             n0 = node("n0", 0, x=3.0, y=2.0)
