@@ -15,6 +15,7 @@ from beehave.errors import (
                             AgentNameTaken,
                             AgentUnreachable,
                             AlreadyStarted,
+                            BadProposal,
                             BeehaveError,
                             ChildFailed,
                             ConfigError,
@@ -31,11 +32,13 @@ from beehave.errors import (
                             ReservedAttribute,
                             SwitchSuperseded,
                             UnknownBehavior,
+                            UnknownFusionSource,
                             UnknownHAL,
                             UnknownLogic,
                             UnknownNameError,
 )
 from beehave.events import Event, EventKind
+from beehave.fusion import Arbiter, FusionInput
 from beehave.hal import HAL, HALManager
 from beehave.highlevel import HighLevelBehaviorManager
 from beehave.logic import Logic
@@ -54,4 +57,6 @@ __all__ = [
     "NotASubclass", "ProtocolFailed", "ReservedAttribute",
     "Status", "SwitchSuperseded", "UnknownBehavior", "UnknownHAL", "UnknownLogic",
     "UnknownNameError",
+    # priority fusion (beehave.fusion)
+    "Arbiter", "BadProposal", "FusionInput", "UnknownFusionSource",
 ]

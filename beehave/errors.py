@@ -202,3 +202,20 @@ class ProtocolFailed(AgentError):
     def __init__(self, message: str, *, reply: object = None) -> None:
         super().__init__(message)
         self.reply = reply
+
+
+class UnknownFusionSource(UnknownNameError):
+    """A proposal for an actuator from a source its arbiter does not know
+    (``beehave.fusion``); ``.actuator`` names the actuator, ``.choices`` the sources."""
+
+    kind = "fusion source"
+
+    def __init__(self, name: str, choices: Iterable[str], *, actuator: str) -> None:
+        super().__init__(name, choices)
+        self.actuator = actuator
+        self.args = (f"arbiter {actuator!r}: {self.args[0]}",)
+
+
+class BadProposal(BeehaveError, TypeError):
+    """A proposal whose value the actuator's arbiter cannot take (``beehave.fusion``): the
+    message names the actuator, the source, what is wrong and what is expected."""
