@@ -24,6 +24,13 @@
       name: atv_1                        # unique in the DDS domain
       services: {transport: {payload_kg: 50}}
       lease_s: 2.0
+    fusion:                              # optional: priority fusion (docs/fusion.md)
+      cmd_vel:                           # the actuator; its arbiter is HAL fusion_cmd_vel
+        class: "hal.drive:CmdVelArbiter"
+        rate_hz: 20.0
+        inputs:                          # source: {priority (int), max_age_s, safety}
+          bumper: {priority: 100, max_age_s: 0.3, safety: true}
+          wander: {priority: 10, max_age_s: 0.5}
     sim:                                 # optional: run the simulation in this process
       simulator: pybullet                # entry point (group beehave.simulations)
       world: warehouse                   # (the one that runs the low level)
@@ -102,6 +109,37 @@ class AgentOptions(_Strict):
     lease_s: Seconds = 2.0
 
 
+class FusionInputOptions(_Strict):
+    """One source of an arbiter (:class:`beehave.fusion.FusionInput`)."""
+
+    priority: int = Field(strict=True, description="higher wins; an int")
+    max_age_s: Seconds
+    safety: bool = Field(False, strict=True)
+
+
+class FusionOptions(_Strict):
+    """The arbiter of one actuator (:class:`beehave.fusion.Arbiter`)."""
+
+    class_: str = Field(alias="class", description="import path of an Arbiter subclass")
+    rate_hz: Hertz = 20.0
+    safe_value: Any = None
+    inputs: dict[str, FusionInputOptions] = Field(min_length=1)
+
+    @field_validator("class_")
+    @classmethod
+    def _import_path(cls, value: str) -> str:
+        return ClassSpec._import_path(value)
+
+    def arbiter_params(self, actuator: str) -> dict[str, Any]:
+        """The keyword arguments of the arbiter's constructor."""
+        params: dict[str, Any] = {
+            "actuator": actuator, "rate_hz": self.rate_hz,
+            "inputs": {n: i.model_dump() for n, i in self.inputs.items()}}
+        if self.safe_value is not None:
+            params["safe_value"] = self.safe_value
+        return params
+
+
 class RobotConfig(_Strict):
     namespace: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
     stop_timeout_s: Seconds = 2.0
@@ -113,6 +151,7 @@ class RobotConfig(_Strict):
     hals: list[str | HALSpec] = Field(default_factory=list)
     ros: RosOptions = Field(default_factory=lambda: RosOptions())
     agent: AgentOptions | None = None
+    fusion: dict[str, FusionOptions] = Field(default_factory=dict)
     sim: SimOptions | None = None
     source: str = Field("<dict>", exclude=True)
 
@@ -149,7 +188,21 @@ def parse_config(data: Any, *, source: str = "<dict>") -> RobotConfig:
     if config.default_logic is not None and config.default_logic not in config.logics:
         raise ConfigError(f"{source}: default_logic: {config.default_logic!r} is not one of "
                           f"the logics ({', '.join(sorted(config.logics)) or 'none'})")
+    _check_fusion(config)
     return config
+
+
+def _check_fusion(config: RobotConfig) -> None:
+    """The ``fusion:`` section: names and priorities the schema cannot check (the same
+    rules as :func:`beehave.fusion.make_inputs`, reported with the file and key path)."""
+    from beehave.fusion import check_name, make_inputs
+
+    for actuator, spec in config.fusion.items():
+        try:
+            check_name("actuator", actuator)
+            make_inputs(actuator, {n: i.model_dump() for n, i in spec.inputs.items()})
+        except ConfigError as exc:
+            raise ConfigError(f"{config.source}: fusion.{actuator}: {exc}") from None
 
 
 _HAL_ENTRY = "a HAL name (str) or a mapping {class: 'package.module:Class', name: …, params: {…}}"
@@ -177,6 +230,8 @@ def _valid_keys(loc: list[Any]) -> list[str]:
                                           "hals": HALSpec, "ros": RosOptions,
                                           "sim": SimOptions, "agent": AgentOptions}
     model = nested.get(str(loc[0]), RobotConfig) if len(loc) > 1 else RobotConfig
+    if loc[0] == "fusion" and len(loc) > 2:  # fusion.<actuator>[.inputs.<source>].<key>
+        model = FusionInputOptions if len(loc) > 4 else FusionOptions
     return [field.alias or name for name, field in model.model_fields.items()
             if name != "source"]
 

@@ -69,7 +69,7 @@ from beehave.status import Status
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Arbiter", "FusionInput", "RESERVED_NAMES", "arbiter_name", "check_twist",
+__all__ = ["Arbiter", "FusionInput", "RESERVED_NAMES", "arbiter_name", "check_name", "check_twist",
            "make_inputs", "proposal_key"]
 
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
@@ -91,7 +91,7 @@ def proposal_key(actuator: str, source: str) -> str:
     return f"fusion/{actuator}/{source}"
 
 
-def _check_name(what: str, name: object) -> str:
+def check_name(what: str, name: object) -> str:
     if not isinstance(name, str) or _NAME.fullmatch(name) is None:
         raise ConfigError(f"{what} {name!r} must be a name: a letter, then letters, digits "
                           "or '_' (it becomes a blackboard key segment)")
@@ -131,7 +131,7 @@ def make_inputs(actuator: str, inputs: object) -> dict[str, FusionInput]:
                           f"source name → {{priority, max_age_s, safety}}, got {inputs!r:.80}")
     out: dict[str, FusionInput] = {}
     for name, spec in inputs.items():
-        _check_name(f"arbiter {actuator!r}: source name", name)
+        check_name(f"arbiter {actuator!r}: source name", name)
         if name in RESERVED_NAMES:
             raise ConfigError(f"arbiter {actuator!r}: source name {name!r} is reserved "
                               f"({', '.join(sorted(RESERVED_NAMES))} are written by the "
@@ -218,7 +218,7 @@ class Arbiter(HAL):
 
     def __init__(self, *, actuator: str, inputs: Mapping[str, FusionInput | Mapping[str, Any]],
                  rate_hz: float = 20.0, safe_value: Any = None) -> None:
-        self.actuator = _check_name("arbiter actuator", actuator)
+        self.actuator = check_name("arbiter actuator", actuator)
         self.sources = make_inputs(actuator, inputs)
         if isinstance(rate_hz, bool) or not isinstance(rate_hz, Real) \
                 or not math.isfinite(rate_hz) or not 0 < rate_hz <= 10_000:
