@@ -417,3 +417,81 @@ def test_a_garbage_proposal_does_not_crash_the_running_arbiter(
     assert set(Recorder.sent_by_all[count:]) == {(0.2, 0.0)}
     hal = low_level.hals.loaded[arbiter_name("cmd_vel")]
     assert hal.restarts == 0 and hal.status.name == "RUNNING"
+
+
+# ---- the robot file ------------------------------------------------------------------------
+
+FUSION_YAML = {"cmd_vel": {"class": "test_fusion:Recorder", "rate_hz": 20.0,
+                           "inputs": {"bumper": {"priority": 100, "max_age_s": 0.3,
+                                                 "safety": True},
+                                      "wander": {"priority": 10, "max_age_s": 0.5}}}}
+
+
+def _robot_file(fusion: dict[str, Any], **extra: Any) -> dict[str, Any]:
+    return {"namespace": "k", "fusion": fusion, **extra}
+
+
+def test_the_kobuki_fusion_file_registers_its_arbiter() -> None:
+    pytest.importorskip("rclpy")
+    from beehave.config import load_config
+    from beehave.robot import Robot
+    from hal.drive import CmdVelArbiter
+
+    robot = Robot(load_config("robots/config/kobuki_fusion.yaml"), only="low")
+    assert robot.low is not None
+    cls, params = robot.low.hals.resolve("fusion_cmd_vel")
+    assert cls is CmdVelArbiter
+    arbiter = cls(**params)
+    assert isinstance(arbiter, CmdVelArbiter)
+    assert arbiter.safe_value == STOP
+    assert [(n, s.safety) for n, s in arbiter.sources.items()] == [
+        ("bumper", True), ("joystick", False), ("wander", False)]
+
+
+@pytest.mark.parametrize(("change", "problem"), [
+    ({"inputs": {"wander": {"priority": 1.5, "max_age_s": 0.5}}},
+     "fusion.cmd_vel.inputs.wander.priority: Input should be a valid integer"),
+    ({"inputs": {"wander": {"priority": 1, "max_age_s": float("inf")}}},
+     "fusion.cmd_vel.inputs.wander.max_age_s: Input should be a finite number"),
+    ({"inputs": {"wander": {"priority": 1, "max_age": 0.5}}},
+     "fusion.cmd_vel.inputs.wander.max_age: unknown key; valid keys: priority, max_age_s, "
+     "safety"),
+    ({"rate": 5}, "fusion.cmd_vel.rate: unknown key; valid keys: class, rate_hz, safe_value, "
+                  "inputs"),
+    ({"inputs": {"a": {"priority": 1, "max_age_s": 1}, "b": {"priority": 1, "max_age_s": 1}}},
+     "fusion.cmd_vel: arbiter 'cmd_vel': inputs 'a' and 'b' are both non-safety"),
+    ({"inputs": {"winner": {"priority": 1, "max_age_s": 1}}},
+     "fusion.cmd_vel: arbiter 'cmd_vel': source name 'winner' is reserved"),
+])
+def test_a_bad_fusion_section_names_the_file_and_the_key_path(change: dict[str, Any],
+                                                               problem: str) -> None:
+    from beehave.config import parse_config
+
+    spec = {**FUSION_YAML["cmd_vel"], **change}
+    with pytest.raises(ConfigError) as err:
+        parse_config(_robot_file({"cmd_vel": spec}), source="k.yaml")
+    assert str(err.value).startswith("k.yaml: ")
+    assert problem in str(err.value)
+
+
+def test_bad_arbiter_values_fail_when_the_robot_is_built_not_at_the_first_load() -> None:
+    from beehave.config import parse_config
+    from beehave.errors import NotASubclass
+    from beehave.robot import Robot
+
+    bad_safe = {"cmd_vel": {**FUSION_YAML["cmd_vel"], "safe_value": [0.0]}}
+    with pytest.raises(ConfigError, match=r"k.yaml: fusion.cmd_vel: arbiter 'cmd_vel': "
+                                          r"safe_value \[0.0\] is not valid"):
+        Robot(parse_config(_robot_file(bad_safe), source="k.yaml"), only="low")
+    not_arbiter = {"cmd_vel": {**FUSION_YAML["cmd_vel"], "class": "test_fusion:Wander"}}
+    with pytest.raises(NotASubclass, match="k.yaml: fusion.cmd_vel.class: .* not a Arbiter"):
+        Robot(parse_config(_robot_file(not_arbiter), source="k.yaml"), only="low")
+    bad_name = {"cmd/vel": FUSION_YAML["cmd_vel"]}
+    with pytest.raises(ConfigError, match=r"k.yaml: fusion.cmd/vel: actuator 'cmd/vel' must"):
+        parse_config(_robot_file(bad_name), source="k.yaml")
+    twice = _robot_file(FUSION_YAML, hals=[{"class": "test_fusion:Recorder",
+                                            "name": "fusion_cmd_vel",
+                                            "params": {"actuator": "x", "inputs": INPUTS}}])
+    with pytest.raises(ConfigError, match="arbiter HAL 'fusion_cmd_vel' is already given by "
+                                          "hals.0"):
+        Robot(parse_config(twice, source="k.yaml"), only="low")
