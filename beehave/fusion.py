@@ -167,7 +167,7 @@ def check_twist(value: Any) -> tuple[float, float]:
     """A ``cmd_vel`` proposal: ``(linear_mps, angular_rps)``, two finite numbers (a list
     also does, as the blackboard's JSON mirror turns tuples into lists)."""
     if not isinstance(value, (tuple, list)) or len(value) != 2:
-        raise TypeError(f"expected (linear_mps, angular_rps), got {value!r:.60}")
+        raise TypeError(f"{value!r:.60} is not a pair of numbers")
     out: list[float] = []
     for part, label in zip(value, ("linear_mps", "angular_rps"), strict=True):
         if isinstance(part, bool) or not isinstance(part, Real) or not math.isfinite(part):
