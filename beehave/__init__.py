@@ -38,7 +38,7 @@ from beehave.errors import (
                             UnknownNameError,
 )
 from beehave.events import Event, EventKind
-from beehave.fusion import Arbiter, FusionInput
+from beehave.fusion import Arbiter, FusionInput, FusionLock
 from beehave.hal import HAL, HALManager
 from beehave.highlevel import HighLevelBehaviorManager
 from beehave.logic import Logic
@@ -58,5 +58,5 @@ __all__ = [
     "Status", "SwitchSuperseded", "UnknownBehavior", "UnknownHAL", "UnknownLogic",
     "UnknownNameError",
     # priority fusion (beehave.fusion)
-    "Arbiter", "BadProposal", "FusionInput", "UnknownFusionSource",
+    "Arbiter", "BadProposal", "FusionInput", "FusionLock", "UnknownFusionSource",
 ]

@@ -31,6 +31,8 @@
         inputs:                          # source: {priority (int), max_age_s, safety}
           bumper: {priority: 100, max_age_s: 0.3, safety: true}
           wander: {priority: 10, max_age_s: 0.5}
+        locks:                           # lock: {priority, max_age_s (heartbeat)}
+          pause: {priority: 50}
     sim:                                 # optional: run the simulation in this process
       simulator: pybullet                # entry point (group beehave.simulations)
       world: warehouse                   # (the one that runs the low level)
@@ -117,6 +119,13 @@ class FusionInputOptions(_Strict):
     safety: bool = Field(False, strict=True)
 
 
+class FusionLockOptions(_Strict):
+    """One lock of an arbiter (:class:`beehave.fusion.FusionLock`)."""
+
+    priority: int = Field(strict=True, description="mutes sources up to this priority")
+    max_age_s: Seconds | None = None
+
+
 class FusionOptions(_Strict):
     """The arbiter of one actuator (:class:`beehave.fusion.Arbiter`)."""
 
@@ -124,6 +133,7 @@ class FusionOptions(_Strict):
     rate_hz: Hertz = 20.0
     safe_value: Any = None
     inputs: dict[str, FusionInputOptions] = Field(min_length=1)
+    locks: dict[str, FusionLockOptions] = Field(default_factory=dict)
 
     @field_validator("class_")
     @classmethod
@@ -134,7 +144,8 @@ class FusionOptions(_Strict):
         """The keyword arguments of the arbiter's constructor."""
         params: dict[str, Any] = {
             "actuator": actuator, "rate_hz": self.rate_hz,
-            "inputs": {n: i.model_dump() for n, i in self.inputs.items()}}
+            "inputs": {n: i.model_dump() for n, i in self.inputs.items()},
+            "locks": {n: lock.model_dump() for n, lock in self.locks.items()}}
         if self.safe_value is not None:
             params["safe_value"] = self.safe_value
         return params
@@ -195,12 +206,13 @@ def parse_config(data: Any, *, source: str = "<dict>") -> RobotConfig:
 def _check_fusion(config: RobotConfig) -> None:
     """The ``fusion:`` section: names and priorities the schema cannot check (the same
     rules as :func:`beehave.fusion.make_inputs`, reported with the file and key path)."""
-    from beehave.fusion import check_name, make_inputs
+    from beehave.fusion import check_name, make_inputs, make_locks
 
     for actuator, spec in config.fusion.items():
         try:
             check_name("actuator", actuator)
             make_inputs(actuator, {n: i.model_dump() for n, i in spec.inputs.items()})
+            make_locks(actuator, {n: lock.model_dump() for n, lock in spec.locks.items()})
         except ConfigError as exc:
             raise ConfigError(f"{config.source}: fusion.{actuator}: {exc}") from None
 
@@ -231,7 +243,8 @@ def _valid_keys(loc: list[Any]) -> list[str]:
                                           "sim": SimOptions, "agent": AgentOptions}
     model = nested.get(str(loc[0]), RobotConfig) if len(loc) > 1 else RobotConfig
     if loc[0] == "fusion" and len(loc) > 2:  # fusion.<actuator>[.inputs.<source>].<key>
-        model = FusionInputOptions if len(loc) > 4 else FusionOptions
+        model = FusionOptions if len(loc) <= 4 else (
+            FusionLockOptions if loc[2] == "locks" else FusionInputOptions)
     return [field.alias or name for name, field in model.model_fields.items()
             if name != "source"]
 

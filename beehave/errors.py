@@ -205,12 +205,15 @@ class ProtocolFailed(AgentError):
 
 
 class UnknownFusionSource(UnknownNameError):
-    """A proposal for an actuator from a source its arbiter does not know
-    (``beehave.fusion``); ``.actuator`` names the actuator, ``.choices`` the sources."""
+    """A proposal for an actuator from a source its arbiter does not know, or a lock it
+    does not have (``beehave.fusion``); ``.actuator`` names the actuator, ``.choices`` the
+    sources (or locks)."""
 
     kind = "fusion source"
 
-    def __init__(self, name: str, choices: Iterable[str], *, actuator: str) -> None:
+    def __init__(self, name: str, choices: Iterable[str], *, actuator: str,
+                 kind: str = "fusion source") -> None:
+        self.kind = kind
         super().__init__(name, choices)
         self.actuator = actuator
         self.args = (f"arbiter {actuator!r}: {self.args[0]}",)

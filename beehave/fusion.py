@@ -69,14 +69,14 @@ from beehave.status import Status
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Arbiter", "FusionInput", "RESERVED_NAMES", "arbiter_name", "check_name", "check_twist",
-           "make_inputs", "proposal_key"]
+__all__ = ["Arbiter", "FusionInput", "FusionLock", "RESERVED_NAMES", "arbiter_name", "check_name",
+           "check_twist", "lock_key", "make_inputs", "make_locks", "proposal_key"]
 
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 
 _REJECTED: Any = object()
 
-RESERVED_NAMES = frozenset({"winner", "rejected"})
+RESERVED_NAMES = frozenset({"winner", "rejected", "locked", "locks"})
 """Keys under ``fusion/<actuator>/`` that the arbiter writes itself: not source names."""
 
 
@@ -89,6 +89,11 @@ def arbiter_name(actuator: str) -> str:
 def proposal_key(actuator: str, source: str) -> str:
     """The blackboard key of ``source``'s proposal for ``actuator``."""
     return f"fusion/{actuator}/{source}"
+
+
+def lock_key(actuator: str, lock: str) -> str:
+    """The blackboard key of lock ``lock`` of ``actuator`` (True: engaged)."""
+    return f"fusion/{actuator}/locks/{lock}"
 
 
 def check_name(what: str, name: object) -> str:
@@ -120,6 +125,57 @@ class FusionInput:
             raise ConfigError(f"fusion input safety must be true or false, got "
                               f"{self.safety!r}")
         object.__setattr__(self, "max_age_s", float(age))
+
+
+@dataclass(frozen=True)
+class FusionLock:
+    """A lock (``twist_mux``'s locks): while engaged it mutes every non-safety source whose
+    priority is at most ``priority``. It engages while its key holds True; with a
+    ``max_age_s`` it is a heartbeat and also engages when its key was never written, is
+    stale, or is older than that (a dead e-stop button must stop the robot, not free it)."""
+
+    priority: int
+    max_age_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.priority, int) or isinstance(self.priority, bool):
+            raise ConfigError(f"fusion lock priority must be an int, got {self.priority!r}")
+        age = self.max_age_s
+        if age is not None:
+            if isinstance(age, bool) or not isinstance(age, Real) or not math.isfinite(age) \
+                    or not 0 < age <= MAX_DURATION_S:
+                raise ConfigError(f"fusion lock max_age_s must be finite seconds in (0, "
+                                  f"{MAX_DURATION_S:g}] or None, got {age!r}")
+            object.__setattr__(self, "max_age_s", float(age))
+
+
+def make_locks(actuator: str, locks: object) -> dict[str, FusionLock]:
+    """Check and normalise the locks of ``actuator``'s arbiter: a mapping of lock name to
+    :class:`FusionLock` (or to a mapping of its fields); None or empty: no locks."""
+    if locks is None:
+        return {}
+    if not isinstance(locks, Mapping):
+        raise ConfigError(f"arbiter {actuator!r}: locks must be a mapping of lock name → "
+                          f"{{priority, max_age_s}}, got {locks!r:.80}")
+    out: dict[str, FusionLock] = {}
+    for name, spec in locks.items():
+        check_name(f"arbiter {actuator!r}: lock name", name)
+        try:
+            if isinstance(spec, FusionLock):
+                out[name] = spec
+            elif isinstance(spec, Mapping):
+                unknown = set(spec) - {"priority", "max_age_s"}
+                if unknown:
+                    raise ConfigError(f"unknown key(s) {', '.join(sorted(map(str, unknown)))}"
+                                      "; valid keys: priority, max_age_s")
+                if "priority" not in spec:
+                    raise ConfigError("priority is required")
+                out[name] = FusionLock(**spec)
+            else:
+                raise ConfigError(f"expected a FusionLock or a mapping, got {spec!r:.60}")
+        except ConfigError as exc:
+            raise ConfigError(f"arbiter {actuator!r}: lock {name!r}: {exc}") from None
+    return out
 
 
 def make_inputs(actuator: str, inputs: object) -> dict[str, FusionInput]:
@@ -185,6 +241,8 @@ class Arbiter(HAL):
 
     ``actuator``: the actuator's name (a blackboard key segment, e.g. ``"cmd_vel"``).
     ``inputs``: source name → :class:`FusionInput` (or a mapping of its fields).
+    ``locks``: lock name → :class:`FusionLock` (or a mapping of its fields), engaged by
+    writing True to :func:`lock_key` or with :meth:`set_lock`.
     ``rate_hz``: cycles per second. ``safe_value``: what is forwarded when nothing fresh is
     left and at unload (None: the class's :attr:`default_safe_value`). Ages are measured
     with the blackboard's clock (``Blackboard(clock=...)``: tests pass a fake one).
@@ -216,11 +274,17 @@ class Arbiter(HAL):
     _bad: dict[str, Any]
     _safe_sent: bool
     _sub: Subscription | None
+    locks: dict[str, FusionLock]
+    locked: tuple[str, ...]
+    _lock_slots: tuple[tuple[str, _Slot, FusionLock], ...]
+    _bad_locks: dict[str, Any]
 
     def __init__(self, *, actuator: str, inputs: Mapping[str, FusionInput | Mapping[str, Any]],
-                 rate_hz: float = 20.0, safe_value: Any = None) -> None:
+                 rate_hz: float = 20.0, safe_value: Any = None,
+                 locks: Mapping[str, FusionLock | Mapping[str, Any]] | None = None) -> None:
         self.actuator = check_name("arbiter actuator", actuator)
         self.sources = make_inputs(actuator, inputs)
+        self.locks = make_locks(actuator, locks)
         if isinstance(rate_hz, bool) or not isinstance(rate_hz, Real) \
                 or not math.isfinite(rate_hz) or not 0 < rate_hz <= 10_000:
             raise ConfigError(f"arbiter {actuator!r}: rate_hz must be a finite number in "
@@ -258,6 +322,10 @@ class Arbiter(HAL):
         self._safe_sent = False
         self._sub = None
         self._slots = ()
+        self.locked = ()
+        """The locks engaged at the last cycle."""
+        self._lock_slots = ()
+        self._bad_locks = {}
 
     # -- what subclasses write -----------------------------------------------------------
 
@@ -294,6 +362,17 @@ class Arbiter(HAL):
             raise UnknownFusionSource(source, self.sources, actuator=self.actuator)
         self.blackboard.board.mark_stale(pattern=self._prefix + source)
 
+    def set_lock(self, lock: str, engaged: bool) -> None:
+        """Engage (True) or release (False) lock ``lock``; a heartbeat lock (``max_age_s``)
+        must be released again within its max age, or it engages by itself."""
+        if lock not in self.locks:
+            raise UnknownFusionSource(lock, self.locks, actuator=self.actuator, kind="lock")
+        if not isinstance(engaged, bool):
+            raise BadProposal(f"arbiter {self.actuator!r}: lock {lock!r} must be set to "
+                              f"True or False, got {engaged!r:.40}")
+        self.blackboard.board.set(lock_key(self.actuator, lock), engaged,
+                                  writer=f"fusion:lock:{lock}")
+
     def _validate(self, source: str, value: Any) -> Any:
         if source not in self.sources:
             raise UnknownFusionSource(source, self.sources, actuator=self.actuator)
@@ -317,6 +396,8 @@ class Arbiter(HAL):
         # key check and stale copy -- ten sources must cost microseconds, not tens.
         self._slots = tuple((source, board._slot(key), max_age_s)
                             for source, key, max_age_s in self._order)
+        self._lock_slots = tuple((name, board._slot(lock_key(self.actuator, name)), spec)
+                                 for name, spec in self.locks.items())
         # Checks every change when it is written, so that a bad value is reported even if
         # it is overwritten before the next cycle looks.
         self._sub = self.blackboard.subscribe(f"fusion/{self.actuator}/*", self._on_change)
@@ -357,15 +438,48 @@ class Arbiter(HAL):
     def select(self, now: float) -> tuple[str, Any] | None:
         """The winning ``(source, checked value)`` at time ``now``, or None when no
         proposal is fresh. Forwards nothing (a bad value found here is reported)."""
+        muted = self._muted(now) if self._lock_slots else None
         for source, slot, max_age_s in self._slots:
             entry = slot.change
             if entry is None or entry.stale or now - entry.monotonic > max_age_s:
+                continue
+            if muted is not None and self.sources[source].priority <= muted \
+                    and not self.sources[source].safety:
                 continue
             checked = self._admit(source, entry.value)
             if checked is _REJECTED:
                 continue
             return source, checked
         return None
+
+    def _muted(self, now: float) -> int | None:
+        """The highest priority of the engaged locks (None: none is); sets :attr:`locked`."""
+        engaged: list[str] = []
+        top: int | None = None
+        for name, slot, spec in self._lock_slots:
+            entry = slot.change
+            if spec.max_age_s is not None and (
+                    entry is None or entry.stale or now - entry.monotonic > spec.max_age_s):
+                on = True  # a silent heartbeat: engaged
+            elif entry is None:
+                on = False
+            elif isinstance(entry.value, bool):
+                on = entry.value
+                self._bad_locks.pop(name, None)
+            else:  # fail safe: a lock that says nothing sensible is engaged
+                on = True
+                if self._bad_locks.get(name, _REJECTED) is not entry.value:
+                    self._bad_locks[name] = entry.value
+                    self._reject(f"locks/{name}", entry.value, BadProposal(
+                        f"arbiter {self.actuator!r}: lock {name!r} must hold True or False, "
+                        f"got {entry.value!r:.40}; engaged until it does"))
+            if on:
+                engaged.append(name)
+                top = spec.priority if top is None else max(top, spec.priority)
+        if tuple(engaged) != self.locked:
+            self.locked = tuple(engaged)
+            self.blackboard.set(f"fusion/{self.actuator}/locked", list(self.locked))
+        return top
 
     def cycle(self) -> str | None:
         """One arbitration: forward the winner (or the safe value, once) and publish it.
@@ -414,4 +528,7 @@ class Arbiter(HAL):
         return {"actuator": self.actuator, "rate_hz": self.rate_hz,
                 "inputs": {n: {"priority": s.priority, "max_age_s": s.max_age_s,
                                "safety": s.safety} for n, s in self.sources.items()},
-                "winner": self.winner, "cycles": self.cycles, "rejected": self.rejected}
+                "locks": {n: {"priority": s.priority, "max_age_s": s.max_age_s}
+                          for n, s in self.locks.items()},
+                "locked": list(self.locked), "winner": self.winner, "cycles": self.cycles,
+                "rejected": self.rejected}

@@ -23,12 +23,13 @@ from beehave import (
     Blackboard,
     ConfigError,
     FusionInput,
+    FusionLock,
     Logic,
     LowLevelBehaviorManager,
     UnknownFusionSource,
 )
 from beehave.events import Event, EventBus, EventKind
-from beehave.fusion import arbiter_name, check_twist, make_inputs, proposal_key
+from beehave.fusion import arbiter_name, check_twist, lock_key, make_inputs, proposal_key
 from beehave.testing import wait_until
 
 log = logging.getLogger(__name__)
@@ -70,10 +71,11 @@ class Recorder(Arbiter):
 class Rig:
     """An arbiter on an unbound blackboard (callbacks run in the writer's thread)."""
 
-    def __init__(self, inputs: dict[str, FusionInput] = INPUTS) -> None:
+    def __init__(self, inputs: dict[str, FusionInput] = INPUTS,
+                 locks: dict[str, FusionLock] | None = None) -> None:
         self.clock = FakeClock()
         self.board = Blackboard(clock=self.clock)
-        self.arb = Recorder(actuator="cmd_vel", inputs=inputs)
+        self.arb = Recorder(actuator="cmd_vel", inputs=inputs, locks=locks)
         self.arb.blackboard = self.board.client("hal:fusion_cmd_vel")
         self.events: list[Event] = []
         self.arb.events = EventBus(log)
@@ -170,6 +172,64 @@ def test_safe_state_sends_the_safe_value(rig: Rig) -> None:
     rig.at(0.0).cycle()
     rig.arb.safe_state()
     assert rig.arb.sent[-1] == STOP
+
+
+# ---- locks ---------------------------------------------------------------------------------
+
+def test_a_lock_mutes_the_sources_up_to_its_priority_but_never_safety() -> None:
+    rig = Rig(locks={"pause": FusionLock(priority=50)})
+    rig.arb.propose("wander", (0.2, 0.0))
+    assert rig.at(0.0).cycle() == (0.2, 0.0)  # never written: a plain lock is released
+    rig.arb.set_lock("pause", True)
+    rig.arb.propose("joystick", (0.5, 0.0))  # priority 50: muted too
+    assert (rig.at(0.1).cycle(), rig.arb.locked) == (STOP, ("pause",))
+    assert rig.board.get("fusion/cmd_vel/locked") == ["pause"]
+    rig.arb.propose("bumper", (-0.1, 0.0))  # safety passes any lock
+    assert rig.at(0.2).cycle() == (-0.1, 0.0)
+    rig.arb.withdraw("bumper")
+    assert rig.at(0.25).cycle() == STOP
+    rig.arb.set_lock("pause", False)
+    rig.arb.propose("joystick", (0.5, 0.0))
+    assert (rig.at(0.3).cycle(), rig.arb.locked) == ((0.5, 0.0), ())
+
+
+def test_a_heartbeat_lock_engages_while_it_is_silent() -> None:
+    rig = Rig(locks={"estop": FusionLock(priority=1000, max_age_s=0.2)})
+    rig.arb.propose("joystick", (0.5, 0.0))
+    assert rig.at(0.0).cycle() == STOP  # never heard from the e-stop: locked
+    rig.arb.set_lock("estop", False)  # the heartbeat: "not pressed"
+    rig.arb.propose("joystick", (0.5, 0.0))
+    assert rig.at(0.1).cycle() == (0.5, 0.0)
+    rig.arb.propose("joystick", (0.5, 0.0))
+    assert rig.at(0.35).cycle() == STOP  # the e-stop fell silent: locked again
+    assert rig.arb.locked == ("estop",)
+
+
+def test_a_lock_holding_garbage_is_engaged_and_reported() -> None:
+    rig = Rig(locks={"pause": FusionLock(priority=50)})
+    rig.arb.propose("wander", (0.2, 0.0))
+    rig.board.set(lock_key("cmd_vel", "pause"), "off", writer="teleop")
+    assert rig.at(0.0).cycle() == STOP
+    assert rig.at(0.1).cycle() is None
+    assert rig.arb.rejected == 1  # once, not per cycle
+    assert "lock 'pause' must hold True or False, got 'off'" in rig.board.get(
+        "fusion/cmd_vel/rejected")["reason"]
+    rig.board.set(lock_key("cmd_vel", "pause"), False, writer="teleop")
+    assert rig.at(0.2).cycle() == (0.2, 0.0)
+
+
+def test_bad_locks_are_refused() -> None:
+    rig = Rig(locks={"pause": FusionLock(priority=50)})
+    with pytest.raises(UnknownFusionSource, match="unknown lock 'paws'; registered: 'pause'"):
+        rig.arb.set_lock("paws", True)
+    with pytest.raises(BadProposal, match="lock 'pause' must be set to True or False"):
+        rig.arb.set_lock("pause", 1)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="lock priority must be an int"):
+        FusionLock(priority=0.5)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="lock max_age_s must be finite seconds"):
+        FusionLock(priority=1, max_age_s=math.inf)
+    with pytest.raises(ConfigError, match="lock 'x': unknown key.*valid keys: priority"):
+        Recorder(actuator="cmd_vel", inputs=INPUTS, locks={"x": {"priority": 1, "when": 2}})
 
 
 # ---- bad input -----------------------------------------------------------------------------
@@ -446,6 +506,7 @@ def test_the_kobuki_fusion_file_registers_its_arbiter() -> None:
     assert arbiter.safe_value == STOP
     assert [(n, s.safety) for n, s in arbiter.sources.items()] == [
         ("bumper", True), ("joystick", False), ("wander", False)]
+    assert arbiter.locks == {"pause": FusionLock(priority=50)}
 
 
 @pytest.mark.parametrize(("change", "problem"), [
@@ -456,6 +517,10 @@ def test_the_kobuki_fusion_file_registers_its_arbiter() -> None:
     ({"inputs": {"wander": {"priority": 1, "max_age": 0.5}}},
      "fusion.cmd_vel.inputs.wander.max_age: unknown key; valid keys: priority, max_age_s, "
      "safety"),
+    ({"locks": {"stop": {"priority": 1, "max_age": 1}}},
+     "fusion.cmd_vel.locks.stop.max_age: unknown key; valid keys: priority, max_age_s"),
+    ({"locks": {"stop": {"priority": 1.0}}},
+     "fusion.cmd_vel.locks.stop.priority: Input should be a valid integer"),
     ({"rate": 5}, "fusion.cmd_vel.rate: unknown key; valid keys: class, rate_hz, safe_value, "
                   "inputs"),
     ({"inputs": {"a": {"priority": 1, "max_age_s": 1}, "b": {"priority": 1, "max_age_s": 1}}},
