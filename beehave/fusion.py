@@ -27,6 +27,8 @@ Rules, in the order the arbiter applies them each cycle:
 2. Safety sources (``safety=True``: bumper, cliff, emergency stop) win over every
    non-safety source, whatever the priorities; among sources of one kind the higher
    priority wins (equal priorities are refused: the winner must never depend on order).
+   A :class:`FusionLock` (``twist_mux``'s locks) that is engaged mutes every non-safety
+   source up to its priority; a heartbeat lock also engages when it falls silent.
 3. The winner's value is forwarded every cycle (so the robot's own command watchdog stays
    fed). When no fresh proposal is left, the arbiter forwards the ``safe_value`` (zero
    velocity) *once* and then stays silent: the last command never stays standing.
