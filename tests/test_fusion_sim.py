@@ -18,6 +18,8 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("pybullet")
 
+from geometry_msgs.msg import Twist  # noqa: E402
+
 from beehave.config import load_config  # noqa: E402
 from beehave.robot import Robot  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
@@ -68,6 +70,11 @@ def test_the_bumper_reflex_stops_and_backs_off_the_kobuki_while_wander_pushes_on
     config = load_config(CONFIG).model_copy(update={"namespace": NS})
     kobuki = rig.kobuki
     start_x = kobuki.pose().x_m
+    # What reaches the robot's cmd_vel topic, as any other node on the bus sees it.
+    probe = rig.ros.create_node("fusion_probe", namespace=NS)
+    heard: list[tuple[float, float]] = []
+    probe.create_subscription(Twist, "cmd_vel",
+                              lambda m: heard.append((m.linear.x, m.angular.z)), 50)
     with Robot(config, only="low", ros=rig.ros) as robot:
         low = robot.low
         assert low is not None
@@ -89,3 +96,7 @@ def test_the_bumper_reflex_stops_and_backs_off_the_kobuki_while_wander_pushes_on
         assert wait_until(lambda: low.blackboard.get("fusion/cmd_vel/winner", {}).get("source")
                           == "wander", 5)
         assert wait_until(lambda: kobuki.cmd_vel()[0] > 0.2, 5)
+        assert heard[-1] == (0.3, 0.0)
+    # Unloaded at shutdown, the arbiter's safe state sends zero: the last word on the bus.
+    assert wait_until(lambda: heard[-1] == (0.0, 0.0), 5)
+    assert (-0.1, 0.0) in heard and any(w != 0.0 for _, w in heard)  # backed off, turned
