@@ -10,6 +10,7 @@ blackboard and forwards it, with no arbitration at all.
 
 from __future__ import annotations
 
+import asyncio
 import gc
 import time
 from typing import Any
@@ -48,12 +49,7 @@ def _arbiter(board: Blackboard) -> _NullArbiter:
     arb = _NullArbiter(actuator="cmd_vel", inputs=inputs, rate_hz=50.0)
     arb.blackboard = board.client("hal:fusion_cmd_vel")
     arb.events = EventBus()
-    # on_load without a loop: it only declares keys and subscribes.
-    coro = arb.on_load()
-    try:
-        coro.send(None)
-    except StopIteration:
-        pass
+    asyncio.run(arb.on_load())  # declares the keys, subscribes; the board stays unbound
     return arb
 
 
