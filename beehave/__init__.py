@@ -15,6 +15,7 @@ from beehave.errors import (
                             AgentNameTaken,
                             AgentUnreachable,
                             AlreadyStarted,
+                            BadProposal,
                             BadRequest,
                             BeehaveError,
                             ChildFailed,
@@ -33,12 +34,14 @@ from beehave.errors import (
                             ReservedAttribute,
                             SwitchSuperseded,
                             UnknownBehavior,
+                            UnknownFusionSource,
                             UnknownHAL,
                             UnknownKey,
                             UnknownLogic,
                             UnknownNameError,
 )
 from beehave.events import Event, EventKind
+from beehave.fusion import Arbiter, FusionInput, FusionLock
 from beehave.hal import HAL, HALManager
 from beehave.highlevel import HighLevelBehaviorManager
 from beehave.logic import Logic
@@ -57,4 +60,6 @@ __all__ = [
     "NotASubclass", "ProtocolFailed", "RecordingError", "ReservedAttribute",
     "Status", "SwitchSuperseded", "UnknownBehavior", "UnknownHAL", "UnknownKey", "UnknownLogic",
     "UnknownNameError",
+    # priority fusion (beehave.fusion)
+    "Arbiter", "BadProposal", "FusionInput", "FusionLock", "UnknownFusionSource",
 ]

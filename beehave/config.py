@@ -24,6 +24,15 @@
       name: atv_1                        # unique in the DDS domain
       services: {transport: {payload_kg: 50}}
       lease_s: 2.0
+    fusion:                              # optional: priority fusion (docs/fusion.md)
+      cmd_vel:                           # the actuator; its arbiter is HAL fusion_cmd_vel
+        class: "hal.drive:CmdVelArbiter"
+        rate_hz: 20.0
+        inputs:                          # source: {priority (int), max_age_s, safety}
+          bumper: {priority: 100, max_age_s: 0.3, safety: true}
+          wander: {priority: 10, max_age_s: 0.5}
+        locks:                           # lock: {priority, max_age_s (heartbeat)}
+          pause: {priority: 50}
     sim:                                 # optional: run the simulation in this process
       simulator: pybullet                # entry point (group beehave.simulations)
       world: warehouse                   # (the one that runs the low level)
@@ -152,6 +161,8 @@ class Vda5050Options(_Strict):
     speed_mps: Annotated[float, Field(gt=0, le=2.0)] = 0.6
     lift_pick_m: Annotated[float, Field(ge=0, le=0.3)] = 0.2
     lift_drop_m: Annotated[float, Field(ge=0, le=0.3)] = 0.0
+
+
 class RecordedTopic(_Strict):
     """A robot topic to record with its ROS 2 type (``recording.topics``)."""
 
@@ -172,6 +183,46 @@ class RecordingOptions(_Strict):
     max_file_mb: float | None = Field(None, gt=0, allow_inf_nan=False)
 
 
+class FusionInputOptions(_Strict):
+    """One source of an arbiter (:class:`beehave.fusion.FusionInput`)."""
+
+    priority: int = Field(strict=True, description="higher wins; an int")
+    max_age_s: Seconds
+    safety: bool = Field(False, strict=True)
+
+
+class FusionLockOptions(_Strict):
+    """One lock of an arbiter (:class:`beehave.fusion.FusionLock`)."""
+
+    priority: int = Field(strict=True, description="mutes sources up to this priority")
+    max_age_s: Seconds | None = None
+
+
+class FusionOptions(_Strict):
+    """The arbiter of one actuator (:class:`beehave.fusion.Arbiter`)."""
+
+    class_: str = Field(alias="class", description="import path of an Arbiter subclass")
+    rate_hz: Hertz = 20.0
+    safe_value: Any = None
+    inputs: dict[str, FusionInputOptions] = Field(min_length=1)
+    locks: dict[str, FusionLockOptions] = Field(default_factory=dict)
+
+    @field_validator("class_")
+    @classmethod
+    def _import_path(cls, value: str) -> str:
+        return ClassSpec._import_path(value)
+
+    def arbiter_params(self, actuator: str) -> dict[str, Any]:
+        """The keyword arguments of the arbiter's constructor."""
+        params: dict[str, Any] = {
+            "actuator": actuator, "rate_hz": self.rate_hz,
+            "inputs": {n: i.model_dump() for n, i in self.inputs.items()},
+            "locks": {n: lock.model_dump() for n, lock in self.locks.items()}}
+        if self.safe_value is not None:
+            params["safe_value"] = self.safe_value
+        return params
+
+
 class RobotConfig(_Strict):
     namespace: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
     stop_timeout_s: Seconds = 2.0
@@ -183,6 +234,7 @@ class RobotConfig(_Strict):
     hals: list[str | HALSpec] = Field(default_factory=list)
     ros: RosOptions = Field(default_factory=lambda: RosOptions())
     agent: AgentOptions | None = None
+    fusion: dict[str, FusionOptions] = Field(default_factory=dict)
     sim: SimOptions | None = None
     vda5050: Vda5050Options | None = None
     recording: RecordingOptions = Field(default_factory=lambda: RecordingOptions())
@@ -221,7 +273,22 @@ def parse_config(data: Any, *, source: str = "<dict>") -> RobotConfig:
     if config.default_logic is not None and config.default_logic not in config.logics:
         raise ConfigError(f"{source}: default_logic: {config.default_logic!r} is not one of "
                           f"the logics ({', '.join(sorted(config.logics)) or 'none'})")
+    _check_fusion(config)
     return config
+
+
+def _check_fusion(config: RobotConfig) -> None:
+    """The ``fusion:`` section: names and priorities the schema cannot check (the same
+    rules as :func:`beehave.fusion.make_inputs`, reported with the file and key path)."""
+    from beehave.fusion import check_name, make_inputs, make_locks
+
+    for actuator, spec in config.fusion.items():
+        try:
+            check_name("actuator", actuator)
+            make_inputs(actuator, {n: i.model_dump() for n, i in spec.inputs.items()})
+            make_locks(actuator, {n: lock.model_dump() for n, lock in spec.locks.items()})
+        except ConfigError as exc:
+            raise ConfigError(f"{config.source}: fusion.{actuator}: {exc}") from None
 
 
 _HAL_ENTRY = "a HAL name (str) or a mapping {class: 'package.module:Class', name: …, params: {…}}"
@@ -253,6 +320,9 @@ def _valid_keys(loc: list[Any]) -> list[str]:
     model = nested.get(str(loc[0]), RobotConfig) if len(loc) > 1 else RobotConfig
     if len(loc) > 2 and loc[0] == "vda5050" and loc[1] == "broker":
         model = BrokerOptions
+    if loc[0] == "fusion" and len(loc) > 2:  # fusion.<actuator>[.inputs.<source>].<key>
+        model = FusionOptions if len(loc) <= 4 else (
+            FusionLockOptions if loc[2] == "locks" else FusionInputOptions)
     return [field.alias or name for name, field in model.model_fields.items()
             if name != "source"]
 

@@ -236,7 +236,29 @@ class Vda5050Error(BeehaveError):
 class Vda5050ValidationError(Vda5050Error, ValueError):
     """A VDA 5050 message that breaks the 2.1.0 JSON schema; the message names each
     offending field by its path (``nodes[1].nodePosition.x``)."""
+
+
 class RecordingError(BeehaveError):
     """A recording cannot be written, read or replayed: the file is not MCAP, lacks the
     channels a replay needs (they are named, with the ones it has), or a recorder option
     is out of range. Exported from :mod:`beehave.recording`."""
+
+
+class UnknownFusionSource(UnknownNameError):
+    """A proposal for an actuator from a source its arbiter does not know, or a lock it
+    does not have (``beehave.fusion``); ``.actuator`` names the actuator, ``.choices`` the
+    sources (or locks)."""
+
+    kind = "fusion source"
+
+    def __init__(self, name: str, choices: Iterable[str], *, actuator: str,
+                 kind: str = "fusion source") -> None:
+        self.kind = kind
+        super().__init__(name, choices)
+        self.actuator = actuator
+        self.args = (f"arbiter {actuator!r}: {self.args[0]}",)
+
+
+class BadProposal(BeehaveError, TypeError):
+    """A proposal whose value the actuator's arbiter cannot take (``beehave.fusion``): the
+    message names the actuator, the source, what is wrong and what is expected."""

@@ -129,6 +129,7 @@ class Robot:
                     raise ConfigError(f"{src}: hals.{i}: HAL {hal_name!r} is already given by "
                                       f"hals.{seen[hal_name]}; list each HAL once")
                 seen[hal_name] = i
+            _register_arbiters(ll, cfg, seen)
             self.low = ll
 
     def start(self) -> None:
@@ -259,6 +260,25 @@ class Robot:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.shutdown()
+
+
+def _register_arbiters(ll: LowLevelBehaviorManager, cfg: RobotConfig,
+                       hals: dict[str, int]) -> None:
+    """The ``fusion:`` section: one arbiter HAL per actuator (``fusion_<actuator>``),
+    built once now so that a bad value fails here, naming its key path."""
+    from beehave.fusion import Arbiter, arbiter_name
+
+    for actuator, spec in cfg.fusion.items():
+        where = f"{cfg.source}: fusion.{actuator}"
+        cls = import_class(spec.class_, base=Arbiter, where=f"{where}.class")
+        name = arbiter_name(actuator)
+        if name in hals:
+            raise ConfigError(f"{where}: its arbiter HAL {name!r} is already given by "
+                              f"hals.{hals[name]}; list it in one place")
+        params = spec.arbiter_params(actuator)
+        with _located(where):
+            ll.hals.register(cls, name=name, **params)
+            cls(**params)  # an Arbiter's constructor only checks and stores
 
 
 @contextmanager
