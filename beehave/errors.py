@@ -202,3 +202,37 @@ class ProtocolFailed(AgentError):
     def __init__(self, message: str, *, reply: object = None) -> None:
         super().__init__(message)
         self.reply = reply
+
+
+class MavlinkError(BeehaveError):
+    """Something a MAVLink vehicle did not do (``hal.mavlink``): the message names the
+    connection, the vehicle's system id and the command or message."""
+
+
+class VehicleLost(MavlinkError):
+    """The vehicle's heartbeat stopped for longer than the link's ``heartbeat_timeout_s``:
+    its values are stale and whatever waited on it stops."""
+
+
+class CommandRejected(MavlinkError):
+    """The vehicle answered a command with a COMMAND_ACK that is not ACCEPTED, or a mission
+    upload with a MISSION_ACK that is not ACCEPTED; ``result`` is the MAVLink result name."""
+
+    def __init__(self, message: str, *, result: str = "") -> None:
+        super().__init__(message)
+        self.result = result
+
+
+class MavlinkTimeout(MavlinkError, TimeoutError):
+    """The vehicle did not answer within the timeout, after every retry."""
+
+
+class UnknownMode(UnknownNameError, MavlinkError):
+    """A flight mode the vehicle's firmware does not have; ``choices`` lists its modes."""
+
+    kind = "mode"
+
+    def __init__(self, name: str, choices: Iterable[str], *, vehicle: str = "vehicle") -> None:
+        super().__init__(name, choices)
+        self.args = (f"unknown mode {name!r} for a {vehicle}; valid modes: "
+                     f"{', '.join(self.choices)}",)
