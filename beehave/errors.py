@@ -236,3 +236,15 @@ class UnknownMode(UnknownNameError, MavlinkError):
         super().__init__(name, choices)
         self.args = (f"unknown mode {name!r} for a {vehicle}; valid modes: "
                      f"{', '.join(self.choices)}",)
+
+
+class MissionStalled(MavlinkError):
+    """A vehicle running a mission made no progress for the stall time (blocked by an
+    obstacle it cannot pass). ``remaining`` holds the waypoints it did not reach yet,
+    ``position`` where it stands (north_m, east_m, alt_m)."""
+
+    def __init__(self, message: str, *, remaining: list[object],
+                 position: tuple[float, float, float]) -> None:
+        super().__init__(message)
+        self.remaining = remaining
+        self.position = position

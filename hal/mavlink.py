@@ -32,7 +32,7 @@ HAL ``name``                blackboard keys (writer ``hal:<name>``)
 ==========================  ========================================================
 
 **Lost heartbeat.** The link expects the vehicle's HEARTBEAT at least every
-``heartbeat_timeout_s`` (default 2 s; ArduPilot sends 1 Hz). Past that it reports the
+``heartbeat_timeout_s`` (default 3 s; ArduPilot sends 1 Hz). Past that it reports the
 vehicle lost: every HAL marks all of its entries stale and sets ``vehicle/connected`` to
 False, and every wait of the protocol functions below raises
 :class:`~beehave.errors.VehicleLost` — so the actions waiting on it stop. The first
@@ -309,7 +309,7 @@ class MavlinkLink:
     """
 
     def __init__(self, url: str, *, system_id: int | None = None,
-                 heartbeat_timeout_s: float = 2.0, timeout_s: float = 1.0, retries: int = 3,
+                 heartbeat_timeout_s: float = 3.0, timeout_s: float = 1.0, retries: int = 3,
                  baud: int = 57600, source_system: int = GCS_SYSTEM_ID) -> None:
         self.url = _check_url(url)
         if system_id is not None and not (isinstance(system_id, int) and 1 <= system_id <= 255):
@@ -557,6 +557,14 @@ class MavlinkLink:
         raise MavlinkTimeout(f"{self.describe()}: no COMMAND_ACK for {label} after "
                              f"{self.retries + 1} tries of {self.timeout_s} s")
 
+    def request_mode(self, name: str) -> None:
+        """Send the mode change once and do not wait (safe states: they must be short)."""
+        kind = self.require_kind()
+        number = mode_number(kind, name)
+        self.send(lambda mav: mav.command_long_send(
+            self.system_id, self.component_id, mavlink.MAV_CMD_DO_SET_MODE, 0,
+            mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number, 0, 0, 0, 0, 0))
+
     def set_mode(self, name: str) -> None:
         """Switch the flight mode (MAV_CMD_DO_SET_MODE) and wait until the heartbeat shows
         it. :class:`UnknownMode` lists the modes of this vehicle's firmware."""
@@ -801,14 +809,14 @@ class MavlinkHAL(HAL):
     messages of :attr:`messages` into blackboard entries with :meth:`entries`.
 
     Parameters: ``connection`` (see the module doc), ``system_id`` (None: the first
-    autopilot heard), ``heartbeat_timeout_s`` (2 s). When the heartbeat is lost every
+    autopilot heard), ``heartbeat_timeout_s`` (3 s). When the heartbeat is lost every
     entry this HAL wrote is marked stale."""
 
     messages: ClassVar[tuple[str, ...]] = ()
     link: MavlinkLink
 
     def __init__(self, *, connection: str, system_id: int | None = None,
-                 heartbeat_timeout_s: float = 2.0) -> None:
+                 heartbeat_timeout_s: float = 3.0) -> None:
         self.connection = _check_url(connection)
         self.system_id = system_id
         self.heartbeat_timeout_s = check_duration_s(f"HAL {self.name!r}: heartbeat_timeout_s",

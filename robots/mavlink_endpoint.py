@@ -22,7 +22,7 @@ What it implements (ArduPilot 4.x behaviour, simplified):
   modes of ``mavutil.mode_mapping_rover``, starts in HOLD); the ``quad`` is a Copter
   (``MAV_TYPE_QUADROTOR``, Copter modes, starts in STABILIZE on the floor).
 - **Telemetry** at ``stream_rate_hz`` of sim time: GLOBAL_POSITION_INT, LOCAL_POSITION_NED,
-  ATTITUDE, SYS_STATUS; once a second HEARTBEAT (autopilot ARDUPILOTMEGA, armed flag,
+  ATTITUDE, SYS_STATUS; once a second of wall time HEARTBEAT (autopilot ARDUPILOTMEGA, armed flag,
   custom mode), BATTERY_STATUS, MISSION_CURRENT and GPS_GLOBAL_ORIGIN.
 - **Frames.** The local NED frame's origin is the world origin: north = world y, east =
   world x, down = −altitude. Its geodetic position is ``origin`` (default: ArduPilot
@@ -226,9 +226,6 @@ class MavlinkEndpoint:
         self._send("SYS_STATUS", lambda mav: mav.sys_status_send(
             0, 0, 0, 0, round(battery.voltage_v * 1000), round(-battery.current_a * 100),
             round(battery.percentage), 0, 0, 0, 0, 0, 0))
-        if time_s + 1e-9 >= self._next_beat_s:
-            self._next_beat_s = time_s + 1.0
-            self._beat(time_s, battery.percentage)
         with self._lock:
             upload = self._upload
             if upload is not None and time.monotonic() - upload.asked_at > self.rerequest_s:
@@ -239,7 +236,8 @@ class MavlinkEndpoint:
                 else:
                     self._request(upload)
 
-    def _beat(self, time_s: float, percentage: float) -> None:
+    def _beat(self) -> None:
+        percentage = self.robot.battery().percentage
         base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (
             mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
         state = mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY
@@ -372,6 +370,11 @@ class MavlinkEndpoint:
 
     def _read(self) -> None:
         while not self._stop.is_set():
+            # The heartbeat goes by wall time, as an autopilot's does: a simulation slowed
+            # down by a loaded host must not look like a lost link.
+            if time.monotonic() >= self._next_beat_s:
+                self._next_beat_s = time.monotonic() + 1.0
+                self._beat()
             try:
                 msg = self.conn.recv_match(blocking=True, timeout=0.05)
             except OSError:
