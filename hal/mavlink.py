@@ -84,6 +84,8 @@ __all__ = ["COPTER", "ROVER", "LocalFrame", "MavlinkHAL", "MavlinkLink", "Missio
 
 ROVER = "rover"
 COPTER = "copter"
+CONNECTION_ENV = "BEEHAVE_MAVLINK_CONNECTION"
+"""Where a MAVLink HAL loaded by name only (an entry point, no params) finds its link."""
 GCS_SYSTEM_ID = 255
 GCS_COMPONENT_ID = mavlink.MAV_COMP_ID_MISSIONPLANNER
 
@@ -541,8 +543,11 @@ class MavlinkLink:
         values = [*params, *([0.0] * (7 - len(params)))]
         with self.listen("COMMAND_ACK") as inbox:
             for attempt in range(self.retries + 1):
-                self.send(lambda mav, n=attempt: mav.command_long_send(
-                    self.system_id, self.component_id, command, n, *values))
+                def send(mav: Any, confirmation: int = attempt) -> None:
+                    mav.command_long_send(self.system_id, self.component_id, command,
+                                          confirmation, *values)
+
+                self.send(send)
                 ack = inbox.wait(lambda m: m.command == command, timeout_s=self.timeout_s,
                                  what=f"the COMMAND_ACK of {label}")
                 if ack is None:
@@ -808,15 +813,21 @@ class MavlinkHAL(HAL):
     """Base of the MAVLink HALs: opens (shares) the link of ``connection`` and turns the
     messages of :attr:`messages` into blackboard entries with :meth:`entries`.
 
-    Parameters: ``connection`` (see the module doc), ``system_id`` (None: the first
+    Parameters: ``connection`` (see the module doc; default: the environment variable
+    ``BEEHAVE_MAVLINK_CONNECTION``, so that ``hals: [mavlink_position]`` works), ``system_id`` (None: the first
     autopilot heard), ``heartbeat_timeout_s`` (3 s). When the heartbeat is lost every
     entry this HAL wrote is marked stale."""
 
     messages: ClassVar[tuple[str, ...]] = ()
     link: MavlinkLink
 
-    def __init__(self, *, connection: str, system_id: int | None = None,
+    def __init__(self, *, connection: str | None = None, system_id: int | None = None,
                  heartbeat_timeout_s: float = 3.0) -> None:
+        connection = connection or os.environ.get(CONNECTION_ENV)
+        if not connection:
+            raise ConfigError(f"HAL {self.name!r} needs a MAVLink connection: give it "
+                              f"params {{connection: 'udp:HOST:PORT'}} or set "
+                              f"{CONNECTION_ENV}")
         self.connection = _check_url(connection)
         self.system_id = system_id
         self.heartbeat_timeout_s = check_duration_s(f"HAL {self.name!r}: heartbeat_timeout_s",

@@ -27,7 +27,7 @@ from hal.mavlink import (
     close_all_links,
     open_link,
 )
-from robots.mavlink_endpoint import Faults, MavlinkEndpoint
+from robots.mavlink_endpoint import MavlinkEndpoint
 from robots.sim import Simulation
 from robots.world import world_from_dict
 
