@@ -614,10 +614,17 @@ class MavlinkLink:
         return float(local.z) if local is not None else 0.0
 
     def local_position(self) -> tuple[float, float, float]:
-        """(north_m, east_m, alt_m) from the newest LOCAL_POSITION_NED."""
+        """(north_m, east_m, alt_m) from the newest LOCAL_POSITION_NED (the first one is
+        waited for, at most ``heartbeat_timeout_s``: it follows the first heartbeat)."""
         local = self.latest("LOCAL_POSITION_NED")
         if local is None:
-            raise MavlinkError(f"{self.describe()}: no LOCAL_POSITION_NED heard yet")
+            with self.listen("LOCAL_POSITION_NED") as inbox:
+                local = self.latest("LOCAL_POSITION_NED") or inbox.wait(
+                    timeout_s=self.heartbeat_timeout_s, what="the first LOCAL_POSITION_NED")
+        if local is None:
+            raise MavlinkError(f"{self.describe()}: no LOCAL_POSITION_NED within "
+                               f"{self.heartbeat_timeout_s} s (does the vehicle have a "
+                               f"position estimate?)")
         return float(local.x), float(local.y), -float(local.z)
 
     def frame(self) -> LocalFrame:

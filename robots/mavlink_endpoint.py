@@ -352,17 +352,19 @@ class MavlinkEndpoint:
             galt = max(alt, self.params["RTL_ALT_M"])
         dx, dy, dz = gx - x, gy - y, galt - alt
         dist = math.hypot(dx, dy)
-        if dist <= self.params["WPNAV_RADIUS"] and abs(dz) <= 0.3:
+        # GUIDED holds its target exactly (a position controller); AUTO and RTL count a
+        # waypoint reached within WPNAV_RADIUS and go on.
+        if self.mode != "GUIDED" and dist <= self.params["WPNAV_RADIUS"] and abs(dz) <= 0.1:
             quad.set_velocity(0.0, 0.0, 0.0)
             with self._lock:
                 if self._goal() == goal:
                     self._arrived()
             return
-        climb = max(-1.0, min(1.0, 1.2 * dz))
+        climb = max(-1.0, min(1.0, 1.5 * dz))
         if alt < 0.8 * galt and galt > 0.5 and dist > 1.0:
             quad.set_velocity(0.0, 0.0, climb)  # climb first: never drag across the floor
             return
-        speed = min(self.params["WPNAV_SPEED"], 0.9 * dist)
+        speed = min(self.params["WPNAV_SPEED"], 1.5 * dist)
         scale = speed / dist if dist > 1e-6 else 0.0
         quad.set_velocity(dx * scale, dy * scale, climb)
 
