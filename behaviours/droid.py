@@ -450,6 +450,14 @@ class RoverDroid(AgentBehavior):
             pass  # no fleet: nobody to tell
 
     def run(self) -> dict[str, Any]:
+        from hal.mavlink import open_link
+
+        # Held for the whole behaviour: its actions share it, and it stays up between them.
+        with open_link(self.connection) as link:
+            link.wait_heartbeat(timeout_s=10.0)
+            return self._run(link)
+
+    def _run(self, link: MavlinkLink) -> dict[str, Any]:
         self._report(status="running", waypoints=len(self.waypoints))
         mission = self.start_action(RunMission(self.waypoints, stall_s=self.stall_s,
                                                connection=self.connection))
@@ -465,10 +473,7 @@ class RoverDroid(AgentBehavior):
         self._report(status="blocked", remaining=len(remaining))
         log.info("%s: blocked at %s; asking for help with %d waypoint(s)", self.path,
                  error.position, len(remaining))
-        from hal.mavlink import open_link
-
-        with open_link(self.connection) as link:
-            content = mission_content(link, remaining)
+        content = mission_content(link, remaining)
         home = self.start_action(ReturnHome(connection=self.connection))
         award = None
         failure: Exception | None = None

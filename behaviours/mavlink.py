@@ -263,14 +263,21 @@ class UploadMission(MavlinkAction):
         return link.upload_mission(link.mission_items(self.waypoints))
 
 
+def _vehicle_time_s(link: MavlinkLink) -> float:
+    """The vehicle's clock (LOCAL_POSITION_NED.time_boot_ms) in seconds."""
+    local = link.latest("LOCAL_POSITION_NED")
+    return float(local.time_boot_ms) / 1000.0 if local is not None else time.monotonic()
+
+
 class RunMission(MavlinkAction):
     """Fly or drive ``waypoints`` in AUTO and wait until the last one is reached.
 
     Uploads them first; a Copter on the ground takes off to the first waypoint's altitude
     (GUIDED) before AUTO. The result is ``{"reached": [seq, …], "resends": n}``.
 
-    ``stall_s``: when set, a vehicle that moved less than ``stall_m`` in that time without
-    reaching its next waypoint raises :class:`~beehave.errors.MissionStalled` with the
+    ``stall_s``: when set, a vehicle that moved less than ``stall_m`` in that time (the
+    vehicle's own clock, ``time_boot_ms``: a simulation running slower than real time
+    does not stall) without reaching its next waypoint raises :class:`~beehave.errors.MissionStalled` with the
     waypoints it has not reached — the rover's "I cannot pass" (the safe state then holds
     it). ``timeout_s`` bounds the whole mission."""
 
@@ -301,13 +308,13 @@ class RunMission(MavlinkAction):
             link.start_mission(1)
             deadline = time.monotonic() + self.timeout_s
             anchor = link.local_position()
-            anchor_at = time.monotonic()
+            anchor_at = _vehicle_time_s(link)
             while True:
                 msg = reached.wait(timeout_s=0.2, what="mission progress")
                 if msg is not None:
                     if msg.seq not in self.reached:
                         self.reached.append(int(msg.seq))
-                    anchor, anchor_at = link.local_position(), time.monotonic()
+                    anchor, anchor_at = link.local_position(), _vehicle_time_s(link)
                     if msg.seq >= last:
                         return {"reached": list(self.reached), "resends": resends}
                     continue
@@ -321,10 +328,10 @@ class RunMission(MavlinkAction):
                         f"last waypoint", remaining=list(self.remaining),
                         position=link.local_position())
                 if self.stall_s is not None:
-                    here = link.local_position()
+                    here, vehicle_now = link.local_position(), _vehicle_time_s(link)
                     if math.dist(here[:2], anchor[:2]) >= self.stall_m:
-                        anchor, anchor_at = here, now
-                    elif now - anchor_at > self.stall_s:
+                        anchor, anchor_at = here, vehicle_now
+                    elif vehicle_now - anchor_at > self.stall_s:
                         raise MissionStalled(
                             f"{self.path}: no progress for {self.stall_s} s at "
                             f"({here[0]:.1f}, {here[1]:.1f}); {len(self.remaining)} "

@@ -19,7 +19,7 @@ from beehave.agents import Agent
 from beehave.agents.fleet import FLEET_TOPIC, FLEET_QOS, Fleet
 from beehave.errors import ConfigError, ProtocolFailed
 from beehave.ros.context import RosContext
-from behaviours.droid import FollowLeader, RoverDroid, check_mission, vehicle_state
+from behaviours.droid import FollowLeader, RoverDroid, check_mission
 from hal.mavlink import close_all_links
 from robots.mavlink_endpoint import DEFAULT_ORIGIN, MavlinkEndpoint
 from robots.sim import Simulation
@@ -197,3 +197,53 @@ def test_follow_keeps_its_distance_and_holds_when_the_leader_goes_stale(
         close_all_links()
         quad.close()
         sim.close()
+
+
+# ---- handover ---------------------------------------------------------------------------------
+
+WALL_WORLD = {"name": "wall", "floor": {"size_m": [10, 6]},
+              "walls": [{"from_m": [4, 0], "to_m": [4, 6], "height_m": 1.5}],
+              "robots": [{"namespace": "rover", "kind": "kobuki",
+                          "start": {"x_m": 2, "y_m": 2}}]}
+
+
+def test_a_blocked_rover_without_any_helper_reports_failure_and_goes_home(
+        ros: RosContext) -> None:
+    sim = Simulation(world_from_dict(WALL_WORLD), real_time_factor=1.0)
+    port = free_port()
+    rover = MavlinkEndpoint(sim, "rover", url=f"udpout:127.0.0.1:{port}", system_id=1)
+    sim.start()
+    try:
+        with Agent("lonely_rover", ros=ros, probe_s=PROBE_S) as me, \
+                HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
+            me.attach(hl)
+            fleet = Fleet(me)
+            fleet.attach(hl)
+            hl.register("droid", RoverDroid, connection=f"udp:127.0.0.1:{port}",
+                        waypoints=[[2.0, 9.0]], stall_s=1.0, reply_by_s=0.5)
+            droid = hl.switch("droid")
+            assert droid.wait(40.0)
+            assert droid.status is Status.FAILED
+            assert isinstance(droid.error, ProtocolFailed)
+            assert "no vehicle took them" in str(droid.error)
+            assert "no agent offers 'mission'" in str(droid.error)
+            assert fleet.own["mission"]["status"] == "handover failed"
+            fleet.close()
+        pose = sim.robot("rover").pose()
+        assert math.hypot(pose.x_m - 2.0, pose.y_m - 2.0) <= 0.5  # home (WP_RADIUS 0.3)
+        assert rover.mode == "HOLD"
+        assert max(x for x, _ in sim.robot("rover").path()) > 3.4  # it did reach the wall
+    finally:
+        close_all_links()
+        rover.close()
+        sim.close()
+
+
+def test_handover_between_vehicle_processes_over_dds() -> None:
+    """The whole scenario of ``python -m behaviours.demos.droid``: every robot in its own
+    process, MAVLink to the simulation, DDS between the agents; checks in the physics."""
+    from behaviours.demos.droid import run
+
+    checks, measured = run(timeout_s=90.0)
+    failed = [f"{c.name}: {c.measured}" for c in checks if not c.passed]
+    assert not failed, (failed, measured)

@@ -32,7 +32,7 @@ from robots.sim import Simulation
 from robots.world import world_from_dict
 
 WORLD = {"name": "mav", "floor": {"size_m": [12, 8]},
-         "walls": [{"from_m": [7, 0], "to_m": [7, 8], "height_m": 1.5}],
+         "walls": [{"from_m": [4, 0], "to_m": [4, 8], "height_m": 1.5}],
          "robots": [{"namespace": "rover1", "kind": "kobuki", "start": {"x_m": 2, "y_m": 2}},
                     {"namespace": "quad1", "kind": "quad", "start": {"x_m": 2, "y_m": 5}}]}
 
@@ -289,11 +289,11 @@ def test_a_lost_heartbeat_stops_the_running_action_and_holds_the_vehicle(
 def test_a_rover_blocked_by_a_wall_stalls_with_its_remaining_waypoints(
         vehicles: Vehicles, hl: HighLevelBehaviorManager) -> None:
     url = vehicles.rover_url
-    # Across the wall at x = 7: the rover reaches the first waypoint, then pushes the wall.
-    waypoints = [[2.0, 4.0], [2.0, 9.0], [4.0, 9.0]]
+    # Across the wall at x = 4: the rover reaches the first waypoint, then pushes the wall.
+    waypoints = [[2.0, 3.0], [2.0, 9.0], [4.0, 9.0]]
     Run.started = []
     hl.register("mission", Run, make=lambda: RunMission(waypoints, connection=url,
-                                                        stall_s=1.5))
+                                                        stall_s=1.0))
     hl.switch("mission")
     deadline = time.monotonic() + 40.0
     while not (Run.started and Run.started[0].wait(0.1)):
@@ -304,5 +304,5 @@ def test_a_rover_blocked_by_a_wall_stalls_with_its_remaining_waypoints(
     assert isinstance(action.error, MissionStalled), vehicles.sim.time_s
     assert action.reached == [1]
     assert [(w.north_m, w.east_m) for w in action.error.remaining] == [(2.0, 9.0), (4.0, 9.0)]
-    assert action.error.position[1] < 7.0  # in front of the wall (east = world x)
+    assert action.error.position[1] < 4.0  # in front of the wall (east = world x)
     assert vehicles.rover.mode == "HOLD"
