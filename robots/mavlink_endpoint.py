@@ -77,8 +77,8 @@ DEFAULT_ORIGIN = LocalFrame(-35.363262, 149.165237)
 """ArduPilot SITL's default home (the CMAC model-aircraft field near Canberra)."""
 
 DEFAULT_PARAMS: dict[str, dict[str, float]] = {
-    ROVER: {"WP_RADIUS": 0.3, "WP_SPEED": 0.5, "BATT_LOW_PCT": 20.0, "SYSID_THISMAV": 1.0},
-    COPTER: {"WPNAV_RADIUS": 0.5, "WPNAV_SPEED": 1.5, "RTL_ALT_M": 3.0, "LAND_SPEED": 0.7,
+    ROVER: {"WP_RADIUS": 0.3, "WP_SPEED": 0.6, "BATT_LOW_PCT": 20.0, "SYSID_THISMAV": 1.0},
+    COPTER: {"WPNAV_RADIUS": 0.5, "WPNAV_SPEED": 2.0, "RTL_ALT_M": 3.0, "LAND_SPEED": 0.7,
              "BATT_LOW_PCT": 25.0, "SYSID_THISMAV": 1.0},
 }
 """The parameters an endpoint answers for, with their defaults (speeds in m/s, metres)."""

@@ -76,6 +76,8 @@ class Trace:
     """When the rover turned home (it does so as it asks for help)."""
     auto_at_s: float = math.inf
     """When the copter started the handed-over mission (AUTO): its follow had ended."""
+    airborne_at_s: float = math.inf
+    """When the copter had taken off to follow."""
 
 
 class _Process:
@@ -154,6 +156,8 @@ def run(*, timeout_s: float = 150.0, picture: Path | None = None,
             trace.rtl_at_s = time_s
         if trace.auto_at_s == math.inf and endpoints["copter1"].mode == "AUTO":
             trace.auto_at_s = time_s
+        if trace.airborne_at_s == math.inf and c.z_m > 1.5:
+            trace.airborne_at_s = time_s
 
     sim.on_step(sample, rate_hz=20.0)
     sim.start()
@@ -166,14 +170,7 @@ def run(*, timeout_s: float = 150.0, picture: Path | None = None,
         if not copter_proc.wait_line("droid copter1: running", 40.0):
             raise RuntimeError("the copter's robot did not start:\n"
                                + "\n".join(copter_proc.log[-30:]))
-        # The rover starts once the copter is up (in the air, following).
-        deadline = time.monotonic() + 40.0
-        while not (endpoints["copter1"].armed and copter.position().z_m > 1.5):
-            if time.monotonic() > deadline or copter_proc.proc.poll() is not None:
-                raise RuntimeError("the copter did not take off:\n"
-                                   + "\n".join(copter_proc.log[-30:]))
-            time.sleep(0.1)
-        follow_from_s = sim.time_s
+        # The rover's robot starts while the copter takes off (it then follows).
         rover_proc = _Process("rover1", [str(ROVER_CONFIG), "--connection",
                                          f"udp:127.0.0.1:{ports['rover1']}"])
         procs.append(rover_proc)
@@ -181,6 +178,7 @@ def run(*, timeout_s: float = 150.0, picture: Path | None = None,
             raise RuntimeError("the rover's robot did not start:\n"
                                + "\n".join(rover_proc.log[-30:]))
         rover_proc.wait_line("RESULT ", timeout_s)
+        follow_from_s = trace.airborne_at_s
         measured["rover_result"] = rover_proc.result
         # The helper informs the rover when it is done, so the rover's RESULT comes last.
     finally:
@@ -191,7 +189,8 @@ def run(*, timeout_s: float = 150.0, picture: Path | None = None,
             endpoint.close()
     if verbose:
         for proc in procs:
-            print(f"---- {proc.name}", *[line for line in proc.log if "watchdog" not in line][-60:], sep="\n")
+            lines = [line for line in proc.log if "watchdog" not in line]
+            print(f"---- {proc.name}", *lines[-60:], sep="\n")
     last = waypoints[-1]
     last_xy = (float(last[1]), float(last[0]))  # [north, east] → world (x, y)
     helper_alt = float(rover_cfg["behaviors"]["droid"]["params"]["helper_alt_m"])
