@@ -32,7 +32,7 @@ What it implements (ArduPilot 4.x behaviour, simplified):
   answered UNSUPPORTED. SET_POSITION_TARGET_LOCAL_NED / _GLOBAL_INT steer in GUIDED.
 - **Modes.** GUIDED (go to the position target), AUTO (fly the mission from the current
   item; MISSION_ITEM_REACHED on arrival; at the end it stays put), RTL (home; a Copter
-  climbs to ``RTL_ALT_M``, returns, lands and disarms), LAND (Copter), HOLD / LOITER / BRAKE
+  climbs to ``RTL_ALT``, returns, lands and disarms), LAND (Copter), HOLD / LOITER / BRAKE
   and every other mode (stand still). Disarmed vehicles do not move.
 - **Mission protocol** (upload): MISSION_COUNT → MISSION_REQUEST_INT(0..n−1) ↔
   MISSION_ITEM_INT → MISSION_ACK. A request unanswered for ``rerequest_s`` is sent again
@@ -78,10 +78,11 @@ DEFAULT_ORIGIN = LocalFrame(-35.363262, 149.165237)
 
 DEFAULT_PARAMS: dict[str, dict[str, float]] = {
     ROVER: {"WP_RADIUS": 0.3, "WP_SPEED": 0.6, "BATT_LOW_PCT": 20.0, "SYSID_THISMAV": 1.0},
-    COPTER: {"WPNAV_RADIUS": 0.5, "WPNAV_SPEED": 2.0, "RTL_ALT_M": 3.0, "LAND_SPEED": 0.7,
+    COPTER: {"WPNAV_RADIUS": 50.0, "WPNAV_SPEED": 200.0, "RTL_ALT": 300.0, "LAND_SPEED": 70.0,
              "BATT_LOW_PCT": 25.0, "SYSID_THISMAV": 1.0},
 }
-"""The parameters an endpoint answers for, with their defaults (speeds in m/s, metres)."""
+"""The parameters an endpoint answers for, with their defaults, in ArduPilot's units: Rover's
+WP_* in m and m/s, Copter's WPNAV_*, RTL_ALT and LAND_SPEED in cm and cm/s."""
 
 _START_MODE = {ROVER: "HOLD", COPTER: "STABILIZE"}
 _SUPPORTED_FRAMES = {mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
@@ -338,7 +339,7 @@ class MavlinkEndpoint:
         if not self.armed:
             return
         if self.mode == "LAND" or self._landing:
-            quad.set_velocity(0.0, 0.0, -self.params["LAND_SPEED"])
+            quad.set_velocity(0.0, 0.0, -self.params["LAND_SPEED"] / 100.0)
             if quad.landed:
                 with self._lock:
                     self._landing = False
@@ -349,12 +350,13 @@ class MavlinkEndpoint:
             return
         gx, gy, galt = goal
         if galt is None:  # RTL: at least RTL_ALT_M on the way home
-            galt = max(alt, self.params["RTL_ALT_M"])
+            galt = max(alt, self.params["RTL_ALT"] / 100.0)
         dx, dy, dz = gx - x, gy - y, galt - alt
         dist = math.hypot(dx, dy)
         # GUIDED holds its target exactly (a position controller); AUTO and RTL count a
         # waypoint reached within WPNAV_RADIUS and go on.
-        if self.mode != "GUIDED" and dist <= self.params["WPNAV_RADIUS"] and abs(dz) <= 0.1:
+        if self.mode != "GUIDED" and dist <= self.params["WPNAV_RADIUS"] / 100.0 \
+                and abs(dz) <= 0.1:
             quad.set_velocity(0.0, 0.0, 0.0)
             with self._lock:
                 if self._goal() == goal:
@@ -364,7 +366,7 @@ class MavlinkEndpoint:
         if alt < 0.8 * galt and galt > 0.5 and dist > 1.0:
             quad.set_velocity(0.0, 0.0, climb)  # climb first: never drag across the floor
             return
-        speed = min(self.params["WPNAV_SPEED"], 1.5 * dist)
+        speed = min(self.params["WPNAV_SPEED"] / 100.0, 1.5 * dist)
         scale = speed / dist if dist > 1e-6 else 0.0
         quad.set_velocity(dx * scale, dy * scale, climb)
 
