@@ -298,15 +298,16 @@ class FollowLeader(MavlinkAction):
     state (the fleet of this action's manager), in GUIDED.
 
     Every ``1 / rate_hz`` s: while the leader's state is stale, or the gap is below
-    ``safety_m``, the vehicle holds where it is (``holding`` says why); otherwise it heads
-    for the point ``distance_m`` from the leader on the line towards itself, shifted by
-    the leader's velocity × ``lead_s`` (where the leader will be). A Copter takes
+    ``safety_m``, the vehicle holds where it is (``holding`` says why); while the leader
+    stands and the gap is within the tolerance it holds too; otherwise it heads for the
+    point ``distance_m`` from the leader on the line towards itself, shifted by the
+    leader's velocity × ``lead_s`` (where the leader will be). A Copter takes
     off to ``alt_m`` first and follows at that altitude. Runs until interrupted; with
     ``give_up_s`` it fails once the leader has been stale that long. Its attributes
     ``min_gap_m`` and ``holding`` are for tests and pictures."""
 
-    def __init__(self, leader: str, *, distance_m: float = 2.0, tolerance_m: float = 0.3,
-                 safety_m: float = 1.0, alt_m: float = 2.5, rate_hz: float = 5.0,
+    def __init__(self, leader: str, *, distance_m: float = 2.0, tolerance_m: float = 0.2,
+                 safety_m: float = 1.0, alt_m: float = 2.5, rate_hz: float = 10.0,
                  give_up_s: float | None = None, lead_s: float = 0.6,
                  **link: Any) -> None:
         super().__init__(**link)
@@ -354,18 +355,20 @@ class FollowLeader(MavlinkAction):
                 stale_since = None
                 gap = math.hypot(here[0] - where[0], here[1] - where[1])
                 self.min_gap_m = min(self.min_gap_m, gap)
+                velocity = peer.state.get("velocity") or {} if peer is not None else {}
+                vn = _num(velocity.get("vn_mps")) or 0.0
+                ve = _num(velocity.get("ve_mps")) or 0.0
                 if gap < self.safety_m:
                     self._hold(link, here, alt, f"gap {gap:.2f} m below the safety distance "
                                                 f"{self.safety_m} m")
-                elif abs(gap - self.distance_m) <= self.tolerance_m:
-                    self._hold(link, here, alt, None)
+                elif abs(gap - self.distance_m) <= self.tolerance_m \
+                        and math.hypot(vn, ve) < 0.1:
+                    self._hold(link, here, alt, None)  # in place, and the leader stands
                 else:
+                    # Track continuously while the leader moves (holding inside the band
+                    # would stop and go), aiming where the leader will be: a position
+                    # controller chasing a moving point lags it by speed / gain otherwise.
                     un, ue = (here[0] - where[0]) / gap, (here[1] - where[1]) / gap
-                    # Aim where the leader will be: a position controller chasing a
-                    # moving point lags it by speed / gain otherwise.
-                    velocity = peer.state.get("velocity") or {} if peer is not None else {}
-                    vn = _num(velocity.get("vn_mps")) or 0.0
-                    ve = _num(velocity.get("ve_mps")) or 0.0
                     self.holding = None
                     link.goto_local(where[0] + un * self.distance_m + vn * self.lead_s,
                                     where[1] + ue * self.distance_m + ve * self.lead_s, alt)

@@ -277,9 +277,10 @@ class RunMission(MavlinkAction):
 
     ``stall_s``: when set, a vehicle that moved less than ``stall_m`` in that time (the
     vehicle's own clock, ``time_boot_ms``: a simulation running slower than real time
-    does not stall) without reaching its next waypoint raises :class:`~beehave.errors.MissionStalled` with the
-    waypoints it has not reached — the rover's "I cannot pass" (the safe state then holds
-    it). ``timeout_s`` bounds the whole mission."""
+    does not stall) without reaching its next waypoint raises
+    :class:`~beehave.errors.MissionStalled` with the waypoints it has not reached — the
+    rover's "I cannot pass" (the safe state then holds it). ``timeout_s`` bounds the whole
+    mission."""
 
     def __init__(self, waypoints: Sequence[Any], *, stall_s: float | None = None,
                  stall_m: float = 0.2, timeout_s: float = 600.0, **link: Any) -> None:

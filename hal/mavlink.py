@@ -821,9 +821,9 @@ class MavlinkHAL(HAL):
     messages of :attr:`messages` into blackboard entries with :meth:`entries`.
 
     Parameters: ``connection`` (see the module doc; default: the environment variable
-    ``BEEHAVE_MAVLINK_CONNECTION``, so that ``hals: [mavlink_position]`` works), ``system_id`` (None: the first
-    autopilot heard), ``heartbeat_timeout_s`` (3 s). When the heartbeat is lost every
-    entry this HAL wrote is marked stale."""
+    ``BEEHAVE_MAVLINK_CONNECTION``, so that ``hals: [mavlink_position]`` works),
+    ``system_id`` (None: the first autopilot heard), ``heartbeat_timeout_s`` (3 s). When
+    the heartbeat is lost every entry this HAL wrote is marked stale."""
 
     messages: ClassVar[tuple[str, ...]] = ()
     link: MavlinkLink

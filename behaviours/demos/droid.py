@@ -205,6 +205,8 @@ def run(*, timeout_s: float = 150.0, picture: Path | None = None,
     following = [g for t, g in trace.gaps if follow_from_s <= t < trace.auto_at_s]
     min_gap = min(following, default=math.inf)
     band = [g for t, g in trace.gaps if follow_from_s <= t <= trace.rtl_at_s]
+    low, high = distance_m - 0.2, distance_m + 0.5
+    # Settled: the first time the gap came within 0.2 m of d (after the approach).
     settled = next((i for i, g in enumerate(band) if abs(g - distance_m) <= 0.2), None)
     after = band[settled:] if settled is not None else []
     result = (measured.get("rover_result") or {}).get("result") or {}
@@ -223,8 +225,7 @@ def run(*, timeout_s: float = 150.0, picture: Path | None = None,
               f"closest {min_gap:.2f} m over {len(following) / 20:.1f} s"),
         Check(f"while following, the gap stayed in [{distance_m - 0.2:.1f}, "
               f"{distance_m + 0.5:.1f}] m after settling",
-              bool(after) and min(after) >= distance_m - 0.2
-              and max(after) <= distance_m + 0.5,
+              bool(after) and min(after) >= low and max(after) <= high,
               f"{min(after):.2f}–{max(after):.2f} m over {len(after) / 20:.1f} s"
               if after else "never settled"),
     ]
