@@ -16,7 +16,7 @@ from std_msgs.msg import String
 
 from beehave import Behavior, HighLevelBehaviorManager, Status
 from beehave.agents import Agent
-from beehave.agents.fleet import FLEET_TOPIC, FLEET_QOS, Fleet
+from beehave.agents.fleet import FLEET_QOS, FLEET_TOPIC, Fleet
 from beehave.errors import ConfigError, ProtocolFailed
 from beehave.ros.context import RosContext
 from behaviours.droid import FollowLeader, RoverDroid, check_mission
