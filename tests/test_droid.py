@@ -169,9 +169,9 @@ def test_follow_keeps_its_distance_and_holds_when_the_leader_goes_stale(
                        and abs(gaps[-1] - 2.0) < 0.4, 20.0,
                        "the follower to take off and close in")
             driver.start()
-            time.sleep(6.0)  # following a leader at 0.4 m/s
+            time.sleep(4.0)  # following a leader at 0.4 m/s: catching up
             start = len(gaps)
-            time.sleep(3.0)
+            time.sleep(2.5)
             following = gaps[start:]
             action = Follow.actions[0]
             assert action.status is Status.RUNNING, action.error
@@ -247,3 +247,58 @@ def test_handover_between_vehicle_processes_over_dds() -> None:
     checks, measured = run(timeout_s=90.0)
     failed = [f"{c.name}: {c.measured}" for c in checks if not c.passed]
     assert not failed, (failed, measured)
+
+
+def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosContext) -> None:
+    from beehave import LowLevelBehaviorManager
+    from behaviours.droid import CopterDroid, VehicleTelemetry
+    from hal.mavlink import (
+        MavlinkBatteryHAL,
+        MavlinkHeartbeatHAL,
+        MavlinkPositionHAL,
+        open_link,
+    )
+
+    world = {"name": "pad", "floor": {"size_m": [6, 6]},
+             "robots": [{"namespace": "quad", "kind": "quad", "start": {"x_m": 2, "y_m": 2},
+                         "battery": {"initial_fraction": 0.3}}]}
+    sim = Simulation(world_from_dict(world), real_time_factor=1.0)
+    port = free_port()
+    url = f"udp:127.0.0.1:{port}"
+    endpoint = MavlinkEndpoint(sim, "quad", url=f"udpout:127.0.0.1:{port}", system_id=1)
+    sim.start()
+    try:
+        link = open_link(url)
+        link.wait_heartbeat(timeout_s=5.0)
+        link.set_mode("GUIDED")
+        link.arm(True)
+        link.takeoff(2.0)
+        wait_until(lambda: sim.robot("quad").position().z_m > 1.8, 10.0,  # type: ignore[attr-defined]
+                   "the take-off")
+        ll = LowLevelBehaviorManager(default="telemetry")
+        for cls in (MavlinkHeartbeatHAL, MavlinkPositionHAL, MavlinkBatteryHAL):
+            ll.hals.register(cls, connection=url)
+        ll.register("telemetry", VehicleTelemetry,
+                    hals=["mavlink_heartbeat", "mavlink_position", "mavlink_battery"])
+        with ll, Agent("tired_copter", ros=ros, probe_s=PROBE_S) as me, \
+                Agent("copter_peer", ros=ros, probe_s=PROBE_S) as peer, \
+                HighLevelBehaviorManager(blackboard=ll.blackboard, stop_timeout_s=1.0) as hl:
+            me.attach(hl)
+            wait_until(lambda: me.directory.get("copter_peer") is not None, 5.0, "the peer")
+            hl.register("droid", CopterDroid, connection=url, battery_low_pct=31.0)
+            droid = hl.switch("droid")
+            assert droid.wait(30.0), hl.snapshot()
+            assert droid.status is Status.SUCCEEDED, droid.error
+            assert droid.result["status"] == "battery-low" and droid.result["landed"]
+            assert droid.result["told"] == ["copter_peer"]
+            news = peer.receive(timeout_s=2.0)
+            assert news.performative.value == "inform" and news.sender == "tired_copter"
+            assert news.content["event"] == "battery-low" and news.content["returning"]
+        quad = sim.robot("quad").position()  # type: ignore[attr-defined]
+        assert quad.z_m <= 0.01 and not endpoint.armed
+        assert math.hypot(quad.x_m - 2.0, quad.y_m - 2.0) < 0.6  # home (WPNAV_RADIUS 0.5)
+        link.close()
+    finally:
+        close_all_links()
+        endpoint.close()
+        sim.close()
