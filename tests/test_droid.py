@@ -302,3 +302,24 @@ def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosConte
         close_all_links()
         endpoint.close()
         sim.close()
+
+
+def test_a_malformed_mission_request_is_refused_with_its_reason(ros: RosContext) -> None:
+    from beehave.agents.protocols import request
+    from behaviours.droid import MissionRequestResponder
+
+    with Agent("mission_taker", ros=ros, probe_s=PROBE_S) as taker, \
+            Agent("mission_giver", ros=ros, probe_s=PROBE_S) as giver, \
+            HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
+        taker.attach(hl)
+        hl.register("take", MissionRequestResponder, connection="udp:127.0.0.1:14550")
+        hl.switch("take")
+        for content, reason in (({"waypoints": []}, "the mission has no waypoints"),
+                                ({"go": "north"}, "content must be {\"waypoints\""),
+                                ({"waypoints": [{"lat_deg": 95, "lon_deg": 0, "alt_m": 3}]},
+                                 "not on Earth")):
+            with pytest.raises(ProtocolFailed) as refused:
+                request(giver, "mission_taker", content, timeout_s=5.0)
+            reply = refused.value.reply
+            assert reply.performative.value == "refuse"  # type: ignore[attr-defined]
+            assert reason in reply.content["reason"]  # type: ignore[attr-defined]

@@ -306,3 +306,24 @@ def test_a_rover_blocked_by_a_wall_stalls_with_its_remaining_waypoints(
     assert [(w.north_m, w.east_m) for w in action.error.remaining] == [(2.0, 9.0), (4.0, 9.0)]
     assert action.error.position[1] < 4.0  # in front of the wall (east = world x)
     assert vehicles.rover.mode == "HOLD"
+
+
+def test_the_worlds_mavlink_option_is_checked_and_numbers_the_vehicles() -> None:
+    from robots.errors import WorldError
+    from robots.mavlink_endpoint import open_endpoints
+
+    with pytest.raises(WorldError, match=r"mavlink\.base_port"):
+        world_from_dict({**WORLD, "mavlink": {"base_port": 80}})
+    world = world_from_dict({**WORLD, "mavlink": {"base_port": 14900}})
+    assert world.mavlink is not None and world.mavlink.base_port == 14900
+    sim = Simulation(world, real_time_factor=None)
+    try:
+        endpoints = open_endpoints(sim, base_port=free_port())
+        try:
+            assert [(e.namespace, e.kind, e.system_id) for e in endpoints.values()] == \
+                [("rover1", "rover", 1), ("quad1", "copter", 2)]
+        finally:
+            for endpoint in endpoints.values():
+                endpoint.close()
+    finally:
+        sim.close()
