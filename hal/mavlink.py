@@ -52,6 +52,7 @@ import asyncio
 import logging
 import math
 import os
+import select
 import threading
 import time
 from collections import Counter
@@ -450,19 +451,42 @@ class MavlinkLink:
                 except OSError as exc:  # udpin before the peer is known, a closed port
                     log.debug("%s: GCS heartbeat not sent: %s", self.describe(), exc)
             try:
-                msg = self.conn.recv_match(blocking=True, timeout=0.05)
+                messages = self._receive()
             except Exception as exc:  # a broken socket must not end the link for good
                 if self._stop.is_set():
                     return
                 log.warning("%s: receive failed: %r", self.describe(), exc)
                 self._stop.wait(0.1)
-                msg = None
-            if msg is not None:
+                messages = []
+            for msg in messages:
                 try:
                     self._dispatch(msg)
                 except Exception:
                     log.exception("%s: handling %s failed", self.describe(), msg.get_type())
             self._check_heartbeat()
+
+    def _receive(self) -> list[Any]:
+        """The messages that arrived, waiting at most 50 ms for the first.
+
+        pymavlink's connections are not thread-safe: reading a UDP server socket adds to
+        the set of clients that a write iterates. So the wait happens outside the send
+        lock (``select`` on the connection's descriptor) and the reading inside it; the
+        messages are handled after it is released (a callback may send)."""
+        fd = getattr(self.conn, "fd", None)
+        if fd is None:  # no descriptor to wait on: pymavlink waits (not shared with writes)
+            msg = self.conn.recv_match(blocking=True, timeout=0.05)
+            return [] if msg is None else [msg]
+        ready, _, _ = select.select([fd], [], [], 0.05)
+        if not ready:
+            return []
+        messages = []
+        with self._send_lock:
+            for _ in range(100):  # a burst; the rest comes with the next pass
+                msg = self.conn.recv_match(blocking=False)
+                if msg is None:
+                    break
+                messages.append(msg)
+        return messages
 
     def _dispatch(self, msg: Any) -> None:
         kind = msg.get_type()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import math
 import socket
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -327,3 +328,39 @@ def test_the_worlds_mavlink_option_is_checked_and_numbers_the_vehicles() -> None
                 endpoint.close()
     finally:
         sim.close()
+
+
+def test_sending_while_new_peers_appear_never_breaks_the_link() -> None:
+    """pymavlink's UDP server adds each new peer to a set that every write iterates: reads
+    (the reader thread) and writes (any thread) must not interleave."""
+    from pymavlink import mavutil
+
+    port = free_port()
+    link = open_link(f"udp:127.0.0.1:{port}")
+    stop = threading.Event()
+
+    def newcomers() -> None:  # every socket is a new address for the server
+        while not stop.is_set():
+            peer = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=9)
+            peer.mav.heartbeat_send(6, 8, 0, 0, 4)
+            peer.close()
+
+    threads = [threading.Thread(target=newcomers, daemon=True) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    errors: list[BaseException] = []
+    try:
+        deadline = time.monotonic() + 1.5
+        while time.monotonic() < deadline:
+            try:
+                link.send(lambda mav: mav.heartbeat_send(6, 8, 0, 0, 4))
+            except RuntimeError as exc:  # "Set changed size during iteration"
+                errors.append(exc)
+                break
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join()
+        link.close()
+    assert not errors
+    assert link.ignored["message from system 9"] == 0  # GCS heartbeats are not the vehicle
