@@ -5,13 +5,16 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter
-from typing import Any, ClassVar, Self, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, Self, TypeVar
 
 from beehave.action import Action
 from beehave.errors import ChildFailed, Interrupted, NotASubclass
 from beehave.events import Event, EventKind
 from beehave.runnable import Runnable
 from beehave.status import Status
+
+if TYPE_CHECKING:
+    from beehave.agents.fleet import Fleet
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +82,14 @@ class Behavior(Runnable):
             raise
         action._start_thread()
         return action
+
+    @property
+    def fleet(self) -> Fleet:
+        """The shared state of every agent of the fleet (:mod:`beehave.agents.fleet`), once
+        a ``Fleet`` is attached to this behaviour's manager."""
+        from beehave.agents.fleet import fleet_of  # lazy: the fleet needs rclpy
+
+        return fleet_of(self.manager)
 
     def start_behavior(self, behavior: B) -> B:
         """Start ``behavior`` as a sub-behaviour in its own thread and return it."""

@@ -262,3 +262,49 @@ class UnknownFusionSource(UnknownNameError):
 class BadProposal(BeehaveError, TypeError):
     """A proposal whose value the actuator's arbiter cannot take (``beehave.fusion``): the
     message names the actuator, the source, what is wrong and what is expected."""
+
+
+class MavlinkError(BeehaveError):
+    """Something a MAVLink vehicle did not do (``hal.mavlink``): the message names the
+    connection, the vehicle's system id and the command or message."""
+
+
+class VehicleLost(MavlinkError):
+    """The vehicle's heartbeat stopped for longer than the link's ``heartbeat_timeout_s``:
+    its values are stale and whatever waited on it stops."""
+
+
+class CommandRejected(MavlinkError):
+    """The vehicle answered a command with a COMMAND_ACK that is not ACCEPTED, or a mission
+    upload with a MISSION_ACK that is not ACCEPTED; ``result`` is the MAVLink result name."""
+
+    def __init__(self, message: str, *, result: str = "") -> None:
+        super().__init__(message)
+        self.result = result
+
+
+class MavlinkTimeout(MavlinkError, TimeoutError):
+    """The vehicle did not answer within the timeout, after every retry."""
+
+
+class UnknownMode(UnknownNameError, MavlinkError):
+    """A flight mode the vehicle's firmware does not have; ``choices`` lists its modes."""
+
+    kind = "mode"
+
+    def __init__(self, name: str, choices: Iterable[str], *, vehicle: str = "vehicle") -> None:
+        super().__init__(name, choices)
+        self.args = (f"unknown mode {name!r} for a {vehicle}; valid modes: "
+                     f"{', '.join(self.choices)}",)
+
+
+class MissionStalled(MavlinkError):
+    """A vehicle running a mission made no progress for the stall time (blocked by an
+    obstacle it cannot pass). ``remaining`` holds the waypoints it did not reach yet,
+    ``position`` where it stands (north_m, east_m, alt_m)."""
+
+    def __init__(self, message: str, *, remaining: list[object],
+                 position: tuple[float, float, float]) -> None:
+        super().__init__(message)
+        self.remaining = remaining
+        self.position = position

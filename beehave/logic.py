@@ -35,13 +35,16 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Self, TypeVar, overload
+from typing import TYPE_CHECKING, Any, Self, TypeVar, overload
 
 from beehave.blackboard import Blackboard, BlackboardClient
 from beehave.errors import AlreadyStarted, BeehaveError, ChildFailed, HALError
 from beehave.events import Event, EventBus, EventKind
 from beehave.hal import HAL, HALManager, _wait_bounded_all
 from beehave.status import Status
+
+if TYPE_CHECKING:
+    from beehave.agents.fleet import Fleet
 
 log = logging.getLogger(__name__)
 
@@ -161,6 +164,14 @@ class Logic(abc.ABC):
                                f"{name or type(logic).__name__!r}")
         logic._start(runtime, parent=self, name=name)
         return logic
+
+    @property
+    def fleet(self) -> Fleet:
+        """The shared state of every agent of the fleet (:mod:`beehave.agents.fleet`), once
+        a ``Fleet`` is attached to this low level; available inside run()."""
+        from beehave.agents.fleet import fleet_of  # lazy: the fleet needs rclpy
+
+        return fleet_of(self._require_runtime("self.fleet").blackboard)
 
     def _require_runtime(self, what: str) -> Runtime:
         if self._runtime is None or self._status is not Status.RUNNING:

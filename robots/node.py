@@ -72,6 +72,7 @@ from robots import topics
 from robots.emili import Emili
 from robots.factory import Factory
 from robots.kobuki import LED_COLORS, Kobuki
+from robots.quad import Quad
 from robots.robot import SimRobot
 from robots.sim import SimState, Simulation
 from robots.world import load_world
@@ -307,7 +308,8 @@ class _KobukiPorts(_RobotPorts):
             self._buttons_pub.publish(_mask(*robot.buttons()))
 
 
-_PORTS: dict[type[SimRobot], type[_RobotPorts]] = {Emili: _EmiliPorts, Kobuki: _KobukiPorts}
+_PORTS: dict[type[SimRobot], type[_RobotPorts]] = {Emili: _EmiliPorts, Kobuki: _KobukiPorts,
+                                                    Quad: _RobotPorts}
 
 
 class SimNode:
@@ -568,7 +570,31 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--picture", type=Path, default=None, metavar="FILE.png",
                         help="on a clean stop, write a top-down picture with every robot's "
                              "trajectory")
+    # -- MAVLink (robots/mavlink_endpoint.py)
+    parser.add_argument("--mavlink", action="store_true",
+                        help="also expose every robot as a MAVLink vehicle (ArduPilot Rover "
+                             "or Copter): robot i sends to udp 127.0.0.1:BASE+i, system id "
+                             "i+1 (default BASE: the world's mavlink.base_port, else 14560)")
+    parser.add_argument("--mavlink-base-port", type=int, default=None, metavar="BASE",
+                        help="the first robot's MAVLink port (implies --mavlink)")
     return parser
+
+
+def _open_mavlink(args: argparse.Namespace, sim: Simulation) -> list[Any]:
+    """The MAVLink endpoints ``--mavlink`` or the world's ``mavlink:`` asks for."""
+    options = sim.world.mavlink
+    if not (args.mavlink or args.mavlink_base_port is not None or options is not None):
+        return []
+    from robots.mavlink_endpoint import open_endpoints
+
+    base = args.mavlink_base_port or (options.base_port if options is not None else 14560)
+    host = options.host if options is not None else "127.0.0.1"
+    endpoints = open_endpoints(sim, base_port=base, host=host)
+    for endpoint in endpoints.values():
+        print(f"beehave sim: {endpoint.namespace} is MAVLink {endpoint.kind} system "
+              f"{endpoint.system_id} at {endpoint.url} (connect with "
+              f"udp:{endpoint.url.split(':', 1)[1]})", flush=True)
+    return list(endpoints.values())
 
 
 def sim_main(argv: list[str]) -> int:
@@ -638,9 +664,11 @@ def sim_main(argv: list[str]) -> int:
     code = 0
     ros: RosContext | None = None
     node: SimNode | None = None
+    endpoints: list[Any] = []
     try:
         ros = RosContext()
         node = SimNode(sim, ros, lockstep=args.lockstep, factory=factory)
+        endpoints = _open_mavlink(args, sim)
         ros.start()
         sim.start()
         speed = "as fast as possible" if args.fast else f"{args.real_time_factor:g}x real time"
@@ -665,6 +693,8 @@ def sim_main(argv: list[str]) -> int:
             print(f"beehave sim: {exc}", file=sys.stderr)
             code = 1
         finally:
+            for endpoint in endpoints:
+                endpoint.close()
             if node is not None:
                 node.destroy()
             if ros is not None:

@@ -58,6 +58,7 @@ from pybullet_utils.bullet_client import BulletClient  # type: ignore[import-unt
 from robots.emili import Emili
 from robots.errors import SimulationError, UnknownRobot
 from robots.kobuki import Kobuki
+from robots.quad import Quad
 from robots.render import RobotSketch
 from robots.render import render_topdown as _render_topdown
 from robots.robot import URDF_DIR, SimRobot
@@ -70,7 +71,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-ROBOT_KINDS: dict[str, type[SimRobot]] = {"emili": Emili, "kobuki": Kobuki}
+ROBOT_KINDS: dict[str, type[SimRobot]] = {"emili": Emili, "kobuki": Kobuki, "quad": Quad}
 """The robot classes by the ``kind`` a world names."""
 
 StepCallback = Callable[[float], None]

@@ -273,13 +273,21 @@ class RobotSpec(_Model):
     """A robot in the world: its ROS namespace, its kind and where it starts."""
 
     namespace: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$")
-    kind: Literal["emili", "kobuki"]
+    kind: Literal["emili", "kobuki", "quad"]
     start: Pose
     battery: Battery = Battery()
     laser: Laser = Laser()
     charging_station: str | None = None
     pickup_station: str | None = None
     dropoff_station: str | None = None
+
+
+class MavlinkOptions(_Model):
+    """Expose every robot as a MAVLink vehicle (``robots.mavlink_endpoint``): robot i (in
+    the order of ``robots``) sends to ``udpout:HOST:base_port + i`` with system id i + 1."""
+
+    base_port: int = Field(14560, ge=1024, le=65000)
+    host: str = "127.0.0.1"
 
 
 class World(_Model):
@@ -298,6 +306,7 @@ class World(_Model):
     depots: list[Depot] = []
     zones: list[Zone] = []
     robots: list[RobotSpec] = []
+    mavlink: MavlinkOptions | None = None
 
     @model_validator(mode="after")
     def _names_resolve(self) -> World:

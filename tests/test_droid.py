@@ -1,0 +1,325 @@
+"""Droid-style cooperation: the fleet state, following a leader, handing a blocked mission
+over — against the simulation's MAVLink vehicles, over DDS (this test run's domain)."""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+from std_msgs.msg import String
+
+from beehave import Behavior, HighLevelBehaviorManager, Status
+from beehave.agents import Agent
+from beehave.agents.fleet import FLEET_QOS, FLEET_TOPIC, Fleet
+from beehave.errors import ConfigError, ProtocolFailed
+from beehave.ros.context import RosContext
+from behaviours.droid import FollowLeader, RoverDroid, check_mission
+from hal.mavlink import close_all_links
+from robots.mavlink_endpoint import DEFAULT_ORIGIN, MavlinkEndpoint
+from robots.sim import Simulation
+from robots.world import world_from_dict
+
+PROBE_S = 0.3
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def wait_until(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.02)
+
+
+@pytest.fixture
+def ros() -> Iterator[RosContext]:
+    with RosContext() as context:
+        yield context
+
+
+# ---- the fleet state ------------------------------------------------------------------------
+
+def test_peers_see_each_others_state_with_its_age_and_it_goes_stale(ros: RosContext) -> None:
+    with Agent("fleet_a", ros=ros, probe_s=PROBE_S) as a, \
+            Agent("fleet_b", ros=ros, probe_s=PROBE_S) as b:
+        fa = Fleet(a, state=lambda: {"battery_pct": 80.0}, rate_hz=20.0, stale_after_s=0.5)
+        fb = Fleet(b, rate_hz=20.0, stale_after_s=0.5)
+        fb.update(mode="HOLD")
+        try:
+            wait_until(lambda: fb.get("fleet_a") is not None and fa.get("fleet_b") is not None,
+                       5.0, "both states")
+            seen = fb.get("fleet_a")
+            assert seen is not None and seen.state == {"battery_pct": 80.0}
+            assert not seen.stale and seen.age_s < 0.5
+            assert fa.get("fleet_b").state == {"mode": "HOLD"}  # type: ignore[union-attr]
+            assert fa.get("fleet_a") is None  # its own state is not a peer
+            # Malformed states are counted and dropped, never raised.
+            raw = b.node.create_publisher(String, FLEET_TOPIC, FLEET_QOS)
+            raw.publish(String(data="not json"))
+            raw.publish(String(data=json.dumps({"schema": "other/9", "agent": "x"})))
+            wait_until(lambda: sum(fa.rejected.values()) >= 2, 3.0, "rejections")
+            fa.close()
+            wait_until(lambda: fb.get("fleet_a").stale, 3.0, "the closed peer going stale")  # type: ignore[union-attr]
+        finally:
+            fa.close()
+            fb.close()
+
+
+def test_self_fleet_names_the_fix_when_no_fleet_is_attached(
+        hl: HighLevelBehaviorManager) -> None:
+    class Look(Behavior):
+        def run(self) -> Any:
+            return self.fleet
+
+    hl.register("look", Look)
+    look = hl.switch("look")
+    look.wait(2.0)
+    assert look.status is Status.FAILED
+    assert isinstance(look.error, ConfigError) and "fleet.attach(manager)" in str(look.error)
+
+
+def test_a_malformed_mission_is_refused_with_the_reason() -> None:
+    assert check_mission({"waypoints": []}) == "the mission has no waypoints"
+    assert "waypoints[1]" in str(check_mission(
+        {"waypoints": [{"lat_deg": 1, "lon_deg": 2, "alt_m": 3}, {"lat_deg": "x"}]}))
+    assert "not on Earth" in str(check_mission(
+        {"waypoints": [{"lat_deg": 91, "lon_deg": 2, "alt_m": 3}]}))
+    assert check_mission({"waypoints": [{"lat_deg": 1, "lon_deg": 2, "alt_m": 3}]}) is None
+
+
+# ---- follow -----------------------------------------------------------------------------------
+
+FOLLOW_WORLD = {"name": "follow", "floor": {"size_m": [16, 8]},
+                "robots": [{"namespace": "lead", "kind": "kobuki",
+                            "start": {"x_m": 3, "y_m": 3}},
+                           {"namespace": "quad", "kind": "quad",
+                            "start": {"x_m": 1, "y_m": 5}}]}
+
+
+def ground_truth_state(sim: Simulation, namespace: str) -> Callable[[], dict[str, Any]]:
+    robot = sim.robot(namespace)
+
+    def state() -> dict[str, Any]:
+        o = robot.odometry()
+        lat, lon = DEFAULT_ORIGIN.to_global(o.y_m, o.x_m)
+        return {"position": {"lat_deg": lat, "lon_deg": lon, "alt_m": 0.0},
+                "velocity": {"vn_mps": o.linear_mps * math.sin(o.yaw_rad),
+                             "ve_mps": o.linear_mps * math.cos(o.yaw_rad)}}
+
+    return state
+
+
+class Follow(Behavior):
+    actions: list[FollowLeader] = []
+
+    def __init__(self, **params: Any) -> None:
+        self.params = params
+
+    def run(self) -> None:
+        action = self.start_action(FollowLeader(**self.params))
+        Follow.actions.append(action)
+        action.wait()
+
+
+def test_follow_keeps_its_distance_and_holds_when_the_leader_goes_stale(
+        ros: RosContext) -> None:
+    sim = Simulation(world_from_dict(FOLLOW_WORLD), real_time_factor=1.0)
+    port = free_port()
+    quad = MavlinkEndpoint(sim, "quad", url=f"udpout:127.0.0.1:{port}", system_id=2)
+    gaps: list[float] = []
+    lead, flyer = sim.robot("lead"), sim.robot("quad")
+
+    def sample(_: float) -> None:
+        a, b = lead.pose(), flyer.pose()
+        gaps.append(math.hypot(a.x_m - b.x_m, a.y_m - b.y_m))
+
+    sim.on_step(sample, rate_hz=20.0)
+    sim.start()
+    stop_driving = threading.Event()
+
+    def drive() -> None:
+        while not stop_driving.wait(0.1):
+            lead.set_cmd_vel(0.4, 0.0)
+
+    driver = threading.Thread(target=drive, daemon=True)
+    Follow.actions = []
+    try:
+        with Agent("lead", ros=ros, probe_s=PROBE_S) as lead_agent, \
+                Agent("follower", ros=ros, probe_s=PROBE_S) as me, \
+                HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
+            leader_fleet = Fleet(lead_agent, state=ground_truth_state(sim, "lead"),
+                                 stale_after_s=0.5)
+            fleet = Fleet(me, stale_after_s=0.5)
+            fleet.attach(hl)
+            hl.register("follow", Follow, leader="lead", distance_m=2.0, safety_m=1.0,
+                        alt_m=2.0, connection=f"udp:127.0.0.1:{port}")
+            hl.switch("follow")
+            wait_until(lambda: bool(Follow.actions) and flyer.position().z_m > 1.8  # type: ignore[attr-defined]
+                       and abs(gaps[-1] - 2.0) < 0.4, 20.0,
+                       "the follower to take off and close in")
+            driver.start()
+            time.sleep(4.0)  # following a leader at 0.4 m/s: catching up
+            start = len(gaps)
+            time.sleep(2.5)
+            following = gaps[start:]
+            action = Follow.actions[0]
+            assert action.status is Status.RUNNING, action.error
+            assert min(gaps) >= 1.0
+            assert 1.7 <= min(following) and max(following) <= 2.6, (min(following),
+                                                                      max(following))
+            # The leader's state stops: the follower holds where it is.
+            stop_driving.set()
+            leader_fleet.close()
+            wait_until(lambda: action.holding is not None and "stale" in action.holding,
+                       3.0, "the follower to notice")
+            time.sleep(0.5)  # braking
+            here = flyer.pose()
+            time.sleep(1.0)
+            there = flyer.pose()
+            assert math.hypot(there.x_m - here.x_m, there.y_m - here.y_m) < 0.1
+            assert action.status is Status.RUNNING
+            hl.switch("idle")
+            assert action.status is Status.INTERRUPTED
+            fleet.close()
+    finally:
+        stop_driving.set()
+        close_all_links()
+        quad.close()
+        sim.close()
+
+
+# ---- handover ---------------------------------------------------------------------------------
+
+WALL_WORLD = {"name": "wall", "floor": {"size_m": [10, 6]},
+              "walls": [{"from_m": [4, 0], "to_m": [4, 6], "height_m": 1.5}],
+              "robots": [{"namespace": "rover", "kind": "kobuki",
+                          "start": {"x_m": 2, "y_m": 2}}]}
+
+
+def test_a_blocked_rover_without_any_helper_reports_failure_and_goes_home(
+        ros: RosContext) -> None:
+    sim = Simulation(world_from_dict(WALL_WORLD), real_time_factor=1.0)
+    port = free_port()
+    rover = MavlinkEndpoint(sim, "rover", url=f"udpout:127.0.0.1:{port}", system_id=1)
+    sim.start()
+    try:
+        with Agent("lonely_rover", ros=ros, probe_s=PROBE_S) as me, \
+                HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
+            me.attach(hl)
+            fleet = Fleet(me)
+            fleet.attach(hl)
+            hl.register("droid", RoverDroid, connection=f"udp:127.0.0.1:{port}",
+                        waypoints=[[2.0, 9.0]], stall_s=1.0, reply_by_s=0.5)
+            droid = hl.switch("droid")
+            assert droid.wait(40.0)
+            assert droid.status is Status.FAILED
+            assert isinstance(droid.error, ProtocolFailed)
+            assert "no vehicle took them" in str(droid.error)
+            assert "no agent offers 'mission'" in str(droid.error)
+            assert fleet.own["mission"]["status"] == "handover failed"
+            fleet.close()
+        pose = sim.robot("rover").pose()
+        assert math.hypot(pose.x_m - 2.0, pose.y_m - 2.0) <= 0.5  # home (WP_RADIUS 0.3)
+        assert rover.mode == "HOLD"
+        assert max(x for x, _ in sim.robot("rover").path()) > 3.4  # it did reach the wall
+    finally:
+        close_all_links()
+        rover.close()
+        sim.close()
+
+
+def test_handover_between_vehicle_processes_over_dds() -> None:
+    """The whole scenario of ``python -m behaviours.demos.droid``: every robot in its own
+    process, MAVLink to the simulation, DDS between the agents; checks in the physics."""
+    from behaviours.demos.droid import run
+
+    checks, measured = run(timeout_s=90.0)
+    failed = [f"{c.name}: {c.measured}" for c in checks if not c.passed]
+    assert not failed, (failed, measured)
+
+
+def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosContext) -> None:
+    from beehave import LowLevelBehaviorManager
+    from behaviours.droid import CopterDroid, VehicleTelemetry
+    from hal.mavlink import (
+        MavlinkBatteryHAL,
+        MavlinkHeartbeatHAL,
+        MavlinkPositionHAL,
+        open_link,
+    )
+
+    world = {"name": "pad", "floor": {"size_m": [6, 6]},
+             "robots": [{"namespace": "quad", "kind": "quad", "start": {"x_m": 2, "y_m": 2},
+                         "battery": {"initial_fraction": 0.3}}]}
+    sim = Simulation(world_from_dict(world), real_time_factor=1.0)
+    port = free_port()
+    url = f"udp:127.0.0.1:{port}"
+    endpoint = MavlinkEndpoint(sim, "quad", url=f"udpout:127.0.0.1:{port}", system_id=1)
+    sim.start()
+    try:
+        link = open_link(url)
+        link.wait_heartbeat(timeout_s=5.0)
+        link.set_mode("GUIDED")
+        link.arm(True)
+        link.takeoff(2.0)
+        wait_until(lambda: sim.robot("quad").position().z_m > 1.8, 10.0,  # type: ignore[attr-defined]
+                   "the take-off")
+        ll = LowLevelBehaviorManager(default="telemetry")
+        for cls in (MavlinkHeartbeatHAL, MavlinkPositionHAL, MavlinkBatteryHAL):
+            ll.hals.register(cls, connection=url)
+        ll.register("telemetry", VehicleTelemetry,
+                    hals=["mavlink_heartbeat", "mavlink_position", "mavlink_battery"])
+        with ll, Agent("tired_copter", ros=ros, probe_s=PROBE_S) as me, \
+                Agent("copter_peer", ros=ros, probe_s=PROBE_S) as peer, \
+                HighLevelBehaviorManager(blackboard=ll.blackboard, stop_timeout_s=1.0) as hl:
+            me.attach(hl)
+            wait_until(lambda: me.directory.get("copter_peer") is not None, 5.0, "the peer")
+            hl.register("droid", CopterDroid, connection=url, battery_low_pct=31.0)
+            droid = hl.switch("droid")
+            assert droid.wait(30.0), hl.snapshot()
+            assert droid.status is Status.SUCCEEDED, droid.error
+            assert droid.result["status"] == "battery-low" and droid.result["landed"]
+            assert droid.result["told"] == ["copter_peer"]
+            news = peer.receive(timeout_s=2.0)
+            assert news.performative.value == "inform" and news.sender == "tired_copter"
+            assert news.content["event"] == "battery-low" and news.content["returning"]
+        quad = sim.robot("quad").position()  # type: ignore[attr-defined]
+        assert quad.z_m <= 0.01 and not endpoint.armed
+        assert math.hypot(quad.x_m - 2.0, quad.y_m - 2.0) < 0.6  # home (WPNAV_RADIUS 0.5)
+        link.close()
+    finally:
+        close_all_links()
+        endpoint.close()
+        sim.close()
+
+
+def test_a_malformed_mission_request_is_refused_with_its_reason(ros: RosContext) -> None:
+    from beehave.agents.protocols import request
+    from behaviours.droid import MissionRequestResponder
+
+    with Agent("mission_taker", ros=ros, probe_s=PROBE_S) as taker, \
+            Agent("mission_giver", ros=ros, probe_s=PROBE_S) as giver, \
+            HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
+        taker.attach(hl)
+        hl.register("take", MissionRequestResponder, connection="udp:127.0.0.1:14550")
+        hl.switch("take")
+        for content, reason in (({"waypoints": []}, "the mission has no waypoints"),
+                                ({"go": "north"}, "content must be {\"waypoints\""),
+                                ({"waypoints": [{"lat_deg": 95, "lon_deg": 0, "alt_m": 3}]},
+                                 "not on Earth")):
+            with pytest.raises(ProtocolFailed) as refused:
+                request(giver, "mission_taker", content, timeout_s=5.0)
+            reply = refused.value.reply
+            assert reply.performative.value == "refuse"  # type: ignore[attr-defined]
+            assert reason in reply.content["reason"]  # type: ignore[attr-defined]

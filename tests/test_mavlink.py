@@ -1,0 +1,366 @@
+"""MAVLink: the HALs, the actions and the mission protocol against the simulation's
+MAVLink endpoints (real UDP sockets, real pybullet), with faults injected by the endpoint."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import pytest
+
+from beehave import Behavior, HighLevelBehaviorManager, Status
+from beehave.blackboard import Blackboard
+from beehave.errors import ConfigError, MissionStalled, UnknownMode, VehicleLost
+from beehave.hal import HALManager
+from behaviours.mavlink import GotoPosition, RunMission, SetMode
+from hal.mavlink import (
+    MavlinkBatteryHAL,
+    MavlinkHeartbeatHAL,
+    MavlinkMissionHAL,
+    MavlinkPositionHAL,
+    Waypoint,
+    close_all_links,
+    open_link,
+)
+from robots.mavlink_endpoint import MavlinkEndpoint
+from robots.sim import Simulation
+from robots.world import world_from_dict
+
+WORLD = {"name": "mav", "floor": {"size_m": [12, 8]},
+         "walls": [{"from_m": [4, 0], "to_m": [4, 8], "height_m": 1.5}],
+         "robots": [{"namespace": "rover1", "kind": "kobuki", "start": {"x_m": 2, "y_m": 2}},
+                    {"namespace": "quad1", "kind": "quad", "start": {"x_m": 2, "y_m": 5}}]}
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+@pytest.fixture
+def cleanup(hl: HighLevelBehaviorManager) -> Iterator[Callable[[Callable[[], None]], None]]:
+    """Clean-ups that run before the ``hl`` fixture checks for leaked threads."""
+    cleanups: list[Callable[[], None]] = []
+    yield cleanups.append
+    for undo in reversed(cleanups):
+        undo()
+
+
+@dataclass
+class Vehicles:
+    sim: Simulation
+    rover: MavlinkEndpoint
+    quad: MavlinkEndpoint
+    rover_url: str
+    quad_url: str
+
+
+@pytest.fixture
+def vehicles() -> Iterator[Vehicles]:
+    sim = Simulation(world_from_dict(WORLD), real_time_factor=1.0)
+    ports = free_port(), free_port()
+    rover = MavlinkEndpoint(sim, "rover1", url=f"udpout:127.0.0.1:{ports[0]}", system_id=1,
+                            rerequest_s=30.0)  # the client's retries must do the work
+    quad = MavlinkEndpoint(sim, "quad1", url=f"udpout:127.0.0.1:{ports[1]}", system_id=2)
+    sim.start()
+    try:
+        yield Vehicles(sim, rover, quad, f"udp:127.0.0.1:{ports[0]}",
+                       f"udp:127.0.0.1:{ports[1]}")
+    finally:
+        close_all_links()
+        rover.close()
+        quad.close()
+        sim.close()
+
+
+def link_to(url: str, **options: Any) -> Any:
+    link = open_link(url, timeout_s=0.3, **options)
+    link.wait_heartbeat(timeout_s=5.0)
+    return link
+
+
+WAYPOINTS = [Waypoint(2.0, 3.0), Waypoint(3.0, 3.0), Waypoint(3.0, 4.0), Waypoint(2.5, 4.5),
+             Waypoint(2.0, 4.0)]
+
+
+def world_xy(point: Waypoint) -> tuple[float, float]:
+    return point.east_m, point.north_m  # the sim's NED origin is the world origin
+
+
+# ---- mission protocol ---------------------------------------------------------------------
+
+def test_mission_upload_round_trip_stores_every_item_where_it_was_meant(
+        vehicles: Vehicles) -> None:
+    link = link_to(vehicles.rover_url)
+    resends = link.upload_mission(link.mission_items(WAYPOINTS))
+    stored = vehicles.rover.mission
+    assert resends == 0
+    assert len(stored) == len(WAYPOINTS) + 1  # item 0 is home
+    assert stored[0][:2] == (2.0, 2.0)
+    for (x, y, _), point in zip(stored[1:], WAYPOINTS, strict=True):
+        assert math.dist((x, y), world_xy(point)) < 0.01
+
+
+def test_a_dropped_mission_request_is_recovered_by_the_clients_retry(
+        vehicles: Vehicles) -> None:
+    vehicles.rover.faults.drop_outgoing["MISSION_REQUEST_INT"] = 1
+    link = link_to(vehicles.rover_url)
+    resends = link.upload_mission(link.mission_items(WAYPOINTS))
+    assert vehicles.rover.faults.dropped["out:MISSION_REQUEST_INT"] == 1
+    assert resends == 1
+    assert len(vehicles.rover.mission) == len(WAYPOINTS) + 1
+
+
+def test_a_dropped_mission_item_is_sent_again(vehicles: Vehicles) -> None:
+    vehicles.rover.faults.drop_incoming["MISSION_ITEM_INT"] = 1
+    link = link_to(vehicles.rover_url)
+    resends = link.upload_mission(link.mission_items(WAYPOINTS))
+    assert vehicles.rover.faults.dropped["in:MISSION_ITEM_INT"] == 1
+    assert resends == 1
+    assert [round(x, 2) for x, _, _ in vehicles.rover.mission[1:]] == \
+        [round(world_xy(p)[0], 2) for p in WAYPOINTS]
+
+
+def test_unexpected_and_foreign_messages_are_ignored_with_a_count(vehicles: Vehicles) -> None:
+    link = link_to(vehicles.rover_url)
+    port = int(vehicles.rover_url.rsplit(":", 1)[1])
+    from pymavlink import mavutil  # type: ignore[import-untyped]
+
+    stranger = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=42,
+                                          source_component=1)
+    vehicle = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
+                                         source_component=1)
+    try:
+        stranger.mav.heartbeat_send(10, 3, 128, 15, 4)  # an armed rover in GUIDED: not ours
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+            raw.sendto(b"\xfd\x09garbage-that-is-no-frame", ("127.0.0.1", port))
+        vehicle.mav.mission_request_int_send(255, 190, 7)  # outside any upload: stray
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and not link.ignored["message from system 42"]:
+            time.sleep(0.02)
+        assert link.ignored["message from system 42"] >= 1
+        assert link.system_id == 1 and not link.armed  # the stranger changed nothing
+        # The link still works: a full upload goes through afterwards.
+        assert link.upload_mission(link.mission_items(WAYPOINTS[:2])) == 0
+    finally:
+        stranger.close()
+        vehicle.close()
+
+
+def test_out_of_order_items_are_ignored_by_the_vehicle(vehicles: Vehicles) -> None:
+    link = link_to(vehicles.rover_url)
+    items = link.mission_items(WAYPOINTS)
+    with link.listen("MISSION_REQUEST_INT") as inbox:
+        link.send(lambda mav: mav.mission_count_send(1, 1, len(items)))
+        assert inbox.wait(timeout_s=2.0, what="request 0").seq == 0
+        link.send(link._item_sender(items[3]))  # seq 3 when 0 is expected
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline and not vehicles.rover.ignored:
+            time.sleep(0.02)
+    assert any("out of order" in reason for reason in vehicles.rover.ignored)
+    assert link.upload_mission(items) == 0  # a new COUNT starts over cleanly
+
+
+# ---- modes --------------------------------------------------------------------------------
+
+def test_an_unknown_mode_is_refused_listing_the_valid_modes(vehicles: Vehicles) -> None:
+    with pytest.raises(UnknownMode, match="valid modes: .*HOLD.*") as err:
+        SetMode("FLY", connection=vehicles.rover_url)
+    assert "GUIDED" in err.value.choices
+    link = link_to(vehicles.rover_url)
+    with pytest.raises(UnknownMode, match="for a rover; valid modes: ACRO, AUTO") as err:
+        link.set_mode("LAND")  # a Copter mode: not in Rover's firmware
+    assert "LAND" not in err.value.choices
+    link.set_mode("guided")
+    assert link.mode == "GUIDED"
+
+
+def test_a_malformed_connection_names_the_supported_forms() -> None:
+    with pytest.raises(ConfigError, match="udpin:HOST:PORT"):
+        open_link("bluetooth:rover")
+    with pytest.raises(ConfigError, match="port 1–65535"):
+        open_link("udp:127.0.0.1:notaport")
+
+
+def test_a_bad_waypoint_names_its_index() -> None:
+    with pytest.raises(ConfigError, match=r"waypoints\[1\]"):
+        RunMission([[1, 2], {"north": 3}], connection="udp:127.0.0.1:14550")
+
+
+# ---- HALs ---------------------------------------------------------------------------------
+
+def run_hals(url: str, body: Callable[[Blackboard], Any]) -> Any:
+    async def main() -> Any:
+        board = Blackboard()
+        manager = HALManager(board, stop_timeout_s=0.5)
+        for cls in (MavlinkHeartbeatHAL, MavlinkPositionHAL, MavlinkBatteryHAL,
+                    MavlinkMissionHAL):
+            manager.register(cls, connection=url, heartbeat_timeout_s=1.5)
+            await manager.load(cls.name)
+        try:
+            return await body(board)
+        finally:
+            await manager.close()
+
+    return asyncio.run(main())
+
+
+async def until(predicate: Callable[[], bool], timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not met in time"
+        await asyncio.sleep(0.02)
+
+
+def test_hals_fill_the_blackboard_and_a_lost_heartbeat_makes_every_value_stale(
+        vehicles: Vehicles) -> None:
+    async def body(board: Blackboard) -> None:
+        await until(lambda: board.get("position/east_m") is not None
+                    and board.get("battery/percentage") is not None
+                    and board.get("vehicle/mode") is not None)
+        assert board.get("vehicle/type") == "rover"
+        assert board.get("vehicle/mode") == "HOLD"
+        assert board.get("position/east_m") == pytest.approx(2.0, abs=0.05)
+        assert board.get("position/north_m") == pytest.approx(2.0, abs=0.05)
+        assert board.get("battery/percentage") == pytest.approx(100, abs=1)
+        vehicles.rover.faults.silent = True
+        await until(lambda: board.get("vehicle/connected") is False, timeout_s=3.0)
+        for key in ("vehicle/mode", "position/east_m", "battery/percentage"):
+            assert board.is_stale(key), key
+        vehicles.rover.faults.silent = False
+        await until(lambda: board.get("vehicle/connected") is True, timeout_s=3.0)
+        await until(lambda: not board.is_stale("position/east_m"), timeout_s=3.0)
+
+    run_hals(vehicles.rover_url, body)
+
+
+# ---- actions ------------------------------------------------------------------------------
+
+class Run(Behavior):
+    """Starts one action and waits for it (the test keeps the handle)."""
+
+    started: list[Any] = []
+
+    def __init__(self, make: Callable[[], Any]) -> None:
+        self.make = make
+
+    def run(self) -> None:
+        action = self.start_action(self.make())
+        Run.started.append(action)
+        action.wait()
+
+
+def test_a_lost_heartbeat_stops_the_running_action_and_holds_the_vehicle(
+        vehicles: Vehicles, hl: HighLevelBehaviorManager,
+        cleanup: Callable[[Callable[[], None]], None]) -> None:
+    url = vehicles.rover_url
+    link = link_to(url, heartbeat_timeout_s=1.5)  # the action shares this link
+    cleanup(link.close)
+    Run.started = []
+    hl.register("go", Run, make=lambda: GotoPosition(2.0, 10.0, connection=url,
+                                                     heartbeat_timeout_s=1.5))
+    hl.switch("go")
+    deadline = time.monotonic() + 5.0
+    while not (Run.started and vehicles.rover.mode == "GUIDED" and vehicles.rover.armed):
+        assert time.monotonic() < deadline, (Run.started, hl.snapshot())
+        time.sleep(0.02)
+    action = Run.started[0]
+    vehicles.rover.faults.silent = True
+    assert action.wait(3.0)
+    assert action.status is Status.FAILED
+    assert isinstance(action.error, VehicleLost)
+    vehicles.rover.faults.silent = False
+    # Its safe state asked for HOLD; the vehicle got it once the link came back or before.
+    deadline = time.monotonic() + 3.0
+    while vehicles.rover.mode != "HOLD" and time.monotonic() < deadline:
+        if link.alive:
+            link.request_mode("HOLD")  # the safe state's single message may have been lost
+        time.sleep(0.1)
+    assert vehicles.rover.mode == "HOLD"
+
+
+def test_a_rover_blocked_by_a_wall_stalls_with_its_remaining_waypoints(
+        vehicles: Vehicles, hl: HighLevelBehaviorManager) -> None:
+    url = vehicles.rover_url
+    # Across the wall at x = 4: the rover reaches the first waypoint, then pushes the wall.
+    waypoints = [[2.0, 3.0], [2.0, 9.0], [4.0, 9.0]]
+    Run.started = []
+    hl.register("mission", Run, make=lambda: RunMission(waypoints, connection=url,
+                                                        stall_s=1.0))
+    hl.switch("mission")
+    deadline = time.monotonic() + 40.0
+    while not (Run.started and Run.started[0].wait(0.1)):
+        assert time.monotonic() < deadline
+    action = Run.started[0]
+    assert action.status is Status.FAILED
+    assert vehicles.sim.error is None
+    assert isinstance(action.error, MissionStalled), vehicles.sim.time_s
+    assert action.reached == [1]
+    assert [(w.north_m, w.east_m) for w in action.error.remaining] == [(2.0, 9.0), (4.0, 9.0)]
+    assert action.error.position[1] < 4.0  # in front of the wall (east = world x)
+    assert vehicles.rover.mode == "HOLD"
+
+
+def test_the_worlds_mavlink_option_is_checked_and_numbers_the_vehicles() -> None:
+    from robots.errors import WorldError
+    from robots.mavlink_endpoint import open_endpoints
+
+    with pytest.raises(WorldError, match=r"mavlink\.base_port"):
+        world_from_dict({**WORLD, "mavlink": {"base_port": 80}})
+    world = world_from_dict({**WORLD, "mavlink": {"base_port": 14900}})
+    assert world.mavlink is not None and world.mavlink.base_port == 14900
+    sim = Simulation(world, real_time_factor=None)
+    try:
+        endpoints = open_endpoints(sim, base_port=free_port())
+        try:
+            assert [(e.namespace, e.kind, e.system_id) for e in endpoints.values()] == \
+                [("rover1", "rover", 1), ("quad1", "copter", 2)]
+        finally:
+            for endpoint in endpoints.values():
+                endpoint.close()
+    finally:
+        sim.close()
+
+
+def test_sending_while_new_peers_appear_never_breaks_the_link() -> None:
+    """pymavlink's UDP server adds each new peer to a set that every write iterates: reads
+    (the reader thread) and writes (any thread) must not interleave."""
+    from pymavlink import mavutil
+
+    port = free_port()
+    link = open_link(f"udp:127.0.0.1:{port}")
+    stop = threading.Event()
+
+    def newcomers() -> None:  # every socket is a new address for the server
+        while not stop.is_set():
+            peer = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=9)
+            peer.mav.heartbeat_send(6, 8, 0, 0, 4)
+            peer.close()
+
+    threads = [threading.Thread(target=newcomers, daemon=True) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    errors: list[BaseException] = []
+    try:
+        deadline = time.monotonic() + 1.5
+        while time.monotonic() < deadline:
+            try:
+                link.send(lambda mav: mav.heartbeat_send(6, 8, 0, 0, 4))
+            except RuntimeError as exc:  # "Set changed size during iteration"
+                errors.append(exc)
+                break
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join()
+        link.close()
+    assert not errors
+    assert link.ignored["message from system 9"] == 0  # GCS heartbeats are not the vehicle
