@@ -202,3 +202,25 @@ class ProtocolFailed(AgentError):
     def __init__(self, message: str, *, reply: object = None) -> None:
         super().__init__(message)
         self.reply = reply
+
+
+class InvalidTask(AgentError, ValueError):
+    """A market task (``beehave.agents.market``) that is malformed: the message names the
+    task, the key path (``plans[1].roles[0].capability``) and what is valid there."""
+
+
+class UnknownCapability(InvalidTask, UnknownNameError):
+    """A role needs a capability that no broker offers (or that is outside the
+    auctioneer's vocabulary); ``.choices`` are the capabilities that exist."""
+
+    kind = "capability"
+
+    def __init__(self, name: str, choices: Iterable[str], *, where: str = "") -> None:
+        UnknownNameError.__init__(self, name, choices)
+        listed = ", ".join(repr(c) for c in self.choices) or "none"
+        self.args = (f"{where}unknown capability {name!r}; offered: {listed}",)
+
+
+class RendezvousTimeout(AgentError, TimeoutError):
+    """A coalition member waited in vain for another role's event (``Job.wait_for``):
+    the message names the task, the role and the event, and the events reached so far."""
