@@ -445,6 +445,20 @@ def choose(open_roles: Mapping[str, Mapping[str, Sequence[str]]], bids: Bids, *,
         if len(members) == len(open_roles[tid][c.plan]):
             chosen[tid] = Choice(tid, c.plan, members,
                                  sum(bids[(tid, c.plan, r)][b] for r, b in members.items()))
+    # The joint assignment may split brokers over the roles of more tasks than it can
+    # complete (a coalition task half staffed waits): what stays free then goes, cheapest
+    # task first, to whole tasks.
+    taken = {b for c in chosen.values() for b in c.members.values()}
+    for tid, c in sorted(solo.items(), key=lambda item: item[1].cost):
+        if tid in chosen:
+            continue
+        roles = open_roles[tid][c.plan]
+        table = {r: {b: x for b, x in bids.get((tid, c.plan, r), {}).items()
+                     if b not in taken} for r in roles}
+        found = best_assignment(list(roles), table)
+        if found is not None:
+            chosen[tid] = Choice(tid, c.plan, found[1], found[0])
+            taken.update(found[1].values())
     return chosen
 
 
