@@ -224,3 +224,13 @@ class UnknownCapability(InvalidTask, UnknownNameError):
 class RendezvousTimeout(AgentError, TimeoutError):
     """A coalition member waited in vain for another role's event (``Job.wait_for``):
     the message names the task, the role and the event, and the events reached so far."""
+
+
+class TaskFailed(ProtocolFailed):
+    """A market task failed for good (no assignment within the rounds allowed, its
+    deadline passed, or no plan's capabilities are offered). ``outcome`` is its
+    :class:`~beehave.agents.market.Outcome`: every round, who did what, and why it ended."""
+
+    def __init__(self, message: str, *, outcome: object = None) -> None:
+        super().__init__(message)
+        self.outcome = outcome

@@ -35,6 +35,7 @@ from beehave.agents import (  # noqa: E402
     ProtocolFailed,
     Role,
     Task,
+    TaskFailed,
     TaskState,
     UnknownCapability,
     auction,
@@ -285,9 +286,10 @@ def test_a_task_that_needs_two_robots_is_not_given_to_one(
     _see(boss, {"two_only"})
     task = Task.make("heavy", id="t_heavy", roles=[Role("front", "carry"),
                                                    Role("back", "carry")])
-    with pytest.raises(ProtocolFailed, match="no assignment of distinct brokers") as err:
+    with pytest.raises(TaskFailed, match="no assignment of distinct brokers") as err:
         auction(boss, task, reply_by_s=WAIT_S, max_rounds=1)
-    outcome: Outcome = err.value.outcome  # type: ignore[attr-defined]
+    outcome = err.value.outcome
+    assert isinstance(outcome, Outcome)
     assert outcome.state is TaskState.FAILED
     assert "'front': ['two_only'], 'back': ['two_only']" in outcome.reason
     assert not reports.of("perform")
@@ -465,3 +467,18 @@ def test_a_coalition_member_killed_mid_task_dissolves_it_and_the_task_still_comp
     assert ends == ["Interrupted", "done"]
     dear.wait_event("ended", outcome="done")
     assert outcome.reaward_s and outcome.reaward_s[0] >= 0.0
+
+
+def test_a_deadline_that_passes_fails_the_task_and_cancels_its_members(
+        boss: Agent, brokers: Callable[..., Agent], reports: Reports) -> None:
+    import time
+
+    brokers("late_carry", ["carry"], 1.0)
+    _see(boss, {"late_carry"})
+    task = Task.make("deliver", id="t_late", deadline=time.time() + 1.0, roles=[
+        Role("carry", "carry", params={"script": ["sleep:60"]})])
+    with pytest.raises(TaskFailed, match="its deadline passed") as err:
+        auction(boss, task, reply_by_s=WAIT_S)
+    assert isinstance(err.value.outcome, Outcome)
+    assert err.value.outcome.state is TaskState.FAILED
+    assert reports.wait("ended", broker="late_carry")["outcome"] == "Interrupted"

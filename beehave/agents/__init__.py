@@ -33,6 +33,7 @@ from beehave.errors import (
     NoReply,
     ProtocolFailed,
     RendezvousTimeout,
+    TaskFailed,
     UnknownCapability,
 )
 
@@ -43,5 +44,5 @@ __all__ = [
     "agent_of",
     # market-based allocation (beehave.agents.market)
     "Auctioneer", "Broker", "InvalidTask", "Job", "Outcome", "Plan", "RendezvousTimeout",
-    "Role", "Task", "TaskState", "UnknownCapability", "auction",
+    "Role", "Task", "TaskFailed", "TaskState", "UnknownCapability", "auction",
 ]

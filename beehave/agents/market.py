@@ -61,8 +61,8 @@ from beehave.errors import (
     Interrupted,
     InvalidTask,
     NoReply,
-    ProtocolFailed,
     RendezvousTimeout,
+    TaskFailed,
     UnknownCapability,
 )
 from beehave.runnable import Runnable
@@ -592,6 +592,12 @@ class Broker(Responder):
     def service_properties(self) -> dict[str, Any]:
         return {"capabilities": sorted(self.capabilities)}
 
+    def run(self) -> None:
+        #: The awarded roles not finished, by conversation (their rendezvous events go
+        #: there).
+        self._jobs: dict[str, Job] = {}
+        super().run()
+
     @property
     def offered(self) -> list[str]:
         """The capabilities of this broker's directory registration."""
@@ -601,7 +607,7 @@ class Broker(Responder):
 
     def queue(self) -> list[Job]:
         """The roles accepted and not finished, in the order they run."""
-        jobs = getattr(self, "_jobs", {})
+        jobs = self._jobs
         running = [jobs[c] for c, t in self.tasks.items()
                    if c in jobs and t.action is not None and not t.action.status.finished]
         return running + [jobs[t.request.conversation_id] for t in self.waiting
@@ -626,12 +632,12 @@ class Broker(Responder):
             self._answer_cfp(message)
         elif kind is Performative.INFORM and isinstance(message.content, dict) \
                 and "event" in message.content:
-            job = getattr(self, "_jobs", {}).get(message.conversation_id)
+            job = self._jobs.get(message.conversation_id)
             if job is not None:
                 job._deliver(str(message.content["event"]))
         else:
             if kind is Performative.CANCEL:
-                getattr(self, "_jobs", {}).pop(message.conversation_id, None)
+                self._jobs.pop(message.conversation_id, None)
             super()._handle(message)
 
     def _answer_cfp(self, cfp: Message) -> None:
@@ -673,8 +679,6 @@ class Broker(Responder):
             raise AgentError(f"{self.agent.name!r} cannot take role {job.role.name!r} of "
                              f"task {job.task.id!r} any more: {offer}")
         outcome = self.perform_role(job)
-        if not hasattr(self, "_jobs"):
-            self._jobs: dict[str, Job] = {}
         self._jobs[task.conversation_id] = job
         self._reply(task, Performative.AGREE, {"cost": offer, "queued": len(self.queue())})
         return outcome
@@ -682,7 +686,7 @@ class Broker(Responder):
     def _launch(self, task: _Task, *, queue: bool) -> bool:
         started = super()._launch(task, queue=queue)
         if started:
-            job = getattr(self, "_jobs", {}).get(task.request.conversation_id)
+            job = self._jobs.get(task.request.conversation_id)
             if job is not None:
                 try:
                     job.signal("started")
@@ -692,7 +696,7 @@ class Broker(Responder):
         return started
 
     def _reap_ended(self) -> None:
-        jobs = getattr(self, "_jobs", {})
+        jobs = self._jobs
         for cid in [c for c, t in self.tasks.items()
                     if t.action is not None and t.action.status.finished]:
             jobs.pop(cid, None)
@@ -1048,7 +1052,7 @@ def auction(agent: Agent, task: Task, *, reply_by_s: float = 0.5,
     """Auction ``task``, award it to a broker or a coalition, and monitor it to its end.
 
     Returns the :class:`Outcome` when the task is completed; raises
-    :class:`~beehave.errors.ProtocolFailed` (``.outcome`` holds it) when it failed: no
+    :class:`~beehave.errors.TaskFailed` (``.outcome`` holds it) when it failed: no
     assignment after ``max_rounds`` rounds (an unassigned round is retried after
     ``retry_s``), the deadline passed, or no plan's capabilities are offered.
     ``capabilities``: the valid capability names, checked before anything is sent.
@@ -1081,10 +1085,8 @@ def auction(agent: Agent, task: Task, *, reply_by_s: float = 0.5,
         if outcome.state is TaskState.WAITING:
             outcome.state = TaskState.FAILED
             outcome.reason = f"{max_rounds} rounds without completion; last: {outcome.reason}"
-        exc = ProtocolFailed(f"agent {agent.name!r}: task {task.id!r} failed: "
-                             f"{outcome.reason}")
-        exc.outcome = outcome  # type: ignore[attr-defined]
-        raise exc
+        raise TaskFailed(f"agent {agent.name!r}: task {task.id!r} failed: {outcome.reason}",
+                         outcome=outcome)
     raise AssertionError("unreachable")
 
 
