@@ -482,3 +482,26 @@ def test_a_deadline_that_passes_fails_the_task_and_cancels_its_members(
     assert isinstance(err.value.outcome, Outcome)
     assert err.value.outcome.state is TaskState.FAILED
     assert reports.wait("ended", broker="late_carry")["outcome"] == "Interrupted"
+
+
+def test_a_role_queued_behind_earlier_work_is_not_taken_for_a_liar(
+        boss: Agent, brokers: Callable[..., Agent], reports: Reports) -> None:
+    brokers("busy_only", ["carry"], 1.0)
+    _see(boss, {"busy_only"})
+    tasks = [Task.make("deliver", id=f"t_busy{i}", roles=[
+        Role("carry", "carry", params={"script": ["sleep:1.5"]})]) for i in range(2)]
+    steps = Steps()
+    with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
+        boss.attach(hl)
+        # The second role waits 1.5 s in the queue, longer than start_timeout_s: its agree
+        # says it is queued, and the auctioneer waits (within done_timeout_s).
+        hl.register("alloc", Auctioneer, tasks=tasks, reply_by_s=WAIT_S,
+                    start_timeout_s=0.5, max_rounds=1, observer=steps)
+        hl.switch("alloc")
+        top = hl.top
+        assert top is not None and top.wait(WAIT_S)
+        assert top.status is Status.SUCCEEDED, top.error
+        outcomes: dict[str, Outcome] = top.result
+    assert [o.state for o in outcomes.values()] == [TaskState.COMPLETED] * 2, \
+        [o.reason for o in outcomes.values()]
+    assert not [d for s, d in steps.items if s == "dissolved"]

@@ -23,8 +23,8 @@ The auctioneer chooses, over all plans, the cheapest assignment of the open role
 *distinct* brokers (a single robot, or a coalition), and never gives one broker two roles
 in one round, so no robot holds two roles of one task. It then monitors the members: one
 that fails, leaves the directory (its process died), does not start within
-``start_timeout_s`` (a broker that bid but never starts) or does not finish within
-``done_timeout_s`` dissolves the coalition — the other members get ``cancel`` — and the
+``start_timeout_s`` neither agrees (it queued the role) nor starts (a broker that bid
+but never starts), or then stays silent for ``done_timeout_s`` dissolves the coalition — the other members get ``cancel`` — and the
 task is auctioned again in a new round, keeping what was done: roles that finished stay
 finished (their results and events are handed to the new members) and, once a role has
 finished, the plan stays the one it belongs to.
@@ -761,6 +761,7 @@ class _Member:
     task: str
     role: str
     awarded_at: float
+    agreed_at: float | None = None
     started_at: float | None = None
 
 
@@ -851,17 +852,12 @@ class _Round:
                 table.pop(name, None)
         chosen = choose(open_roles, bids, batch=self.batch)
         lost: list[tuple[str, str]] = []
-        latency = time.monotonic() - started
         for tid, choice in chosen.items():
             o = self.outcomes[tid]
             o.plan = choice.plan
             o.state = TaskState.AWARDED
             o.members = {r: b for r, b in o.members.items() if r in o.results}
             o.members.update(choice.members)
-            o.award_latency_s.append(latency)
-            if o._failed_at is not None:
-                o.reaward_s.append(time.monotonic() - o._failed_at)
-                o._failed_at = None
             o.rounds.append({"round": cid, "plan": choice.plan, "members": choice.members,
                              "cost": choice.cost, "ended": "running"})
             for role, broker in choice.members.items():
@@ -875,6 +871,10 @@ class _Round:
                                "reached": o.reached})
                 except AgentError as exc:  # it died since its bid
                     lost.append((broker, f"award not deliverable: {exc}"))
+            o.award_latency_s.append(time.monotonic() - started)
+            if o._failed_at is not None:
+                o.reaward_s.append(time.monotonic() - o._failed_at)
+                o._failed_at = None
             self.tell("awarded", conversation_id=cid, task=tid, plan=choice.plan,
                       members=choice.members, cost=choice.cost)
         if undecided:
@@ -928,11 +928,13 @@ class _Round:
             # (when, member or None, task, why): the first limit to pass ends the wait.
             limits: list[tuple[float, str | None, str, str]] = []
             for name, m in self.members.items():
-                if m.started_at is None:
+                if m.started_at is None and m.agreed_at is None:
                     limits.append((m.awarded_at + self.start_timeout_s, name, m.task,
                                    f"did not start within {self.start_timeout_s} s"))
-                else:
-                    limits.append((m.started_at + self.done_timeout_s, name, m.task,
+                else:  # working, or queued behind its earlier roles (it agreed)
+                    since = m.started_at if m.started_at is not None else m.agreed_at
+                    assert since is not None
+                    limits.append((since + self.done_timeout_s, name, m.task,
                                    f"silent for {self.done_timeout_s} s"))
             for tid in {m.task for m in self.members.values()}:
                 deadline = self.outcomes[tid].task.deadline
@@ -963,6 +965,7 @@ class _Round:
                 self._dissolve(conv, reply.sender, f"{reply.performative.value}: {why}",
                                exclude=not content.get("departed"))
             elif reply.performative is Performative.AGREE:
+                m.agreed_at = time.monotonic()
                 self.tell("agreed", conversation_id=conv.conversation_id, task=o.task.id,
                           role=m.role, broker=reply.sender)
 
@@ -1045,7 +1048,7 @@ def _tell_with(observer: Observer | None) -> Callable[..., None]:
 
 
 def auction(agent: Agent, task: Task, *, reply_by_s: float = 0.5,
-            start_timeout_s: float = 30.0, done_timeout_s: float = 300.0,
+            start_timeout_s: float = 5.0, done_timeout_s: float = 300.0,
             max_rounds: int = 5, retry_s: float = 1.0,
             capabilities: Collection[str] | None = None,
             observer: Observer | None = None) -> Outcome:
@@ -1102,7 +1105,7 @@ class Auctioneer(AgentBehavior):
     ``keep_running`` it waits for more after the last one."""
 
     def __init__(self, tasks: Iterable[Task] = (), *, batch: bool = False,
-                 reply_by_s: float = 0.5, start_timeout_s: float = 30.0,
+                 reply_by_s: float = 0.5, start_timeout_s: float = 5.0,
                  done_timeout_s: float = 300.0, max_rounds: int = 5, retry_s: float = 1.0,
                  capabilities: Collection[str] | None = None, keep_running: bool = False,
                  observer: Observer | None = None) -> None:
