@@ -22,9 +22,10 @@ One auction *round* is one conversation of the protocol ``beehave-auction``::
 The auctioneer chooses, over all plans, the cheapest assignment of the open roles to
 *distinct* brokers (a single robot, or a coalition), and never gives one broker two roles
 in one round, so no robot holds two roles of one task. It then monitors the members: one
-that fails, leaves the directory (its process died), does not start within
-``start_timeout_s`` neither agrees (it queued the role) nor starts (a broker that bid
-but never starts), or then stays silent for ``done_timeout_s`` dissolves the coalition — the other members get ``cancel`` — and the
+that fails, leaves the directory (its process died), neither agrees (it queued the role)
+nor starts within ``start_timeout_s`` (a broker that bid but never starts), or then
+stays silent for ``done_timeout_s`` dissolves the coalition — the other members get
+``cancel`` — and the
 task is auctioned again in a new round, keeping what was done: roles that finished stay
 finished (their results and events are handed to the new members) and, once a role has
 finished, the plan stays the one it belongs to.
