@@ -505,3 +505,28 @@ def test_a_role_queued_behind_earlier_work_is_not_taken_for_a_liar(
     assert [o.state for o in outcomes.values()] == [TaskState.COMPLETED] * 2, \
         [o.reason for o in outcomes.values()]
     assert not [d for s, d in steps.items if s == "dissolved"]
+
+
+def test_a_task_waits_for_the_broker_whose_capability_it_needs_to_join(
+        boss: Agent, brokers: Callable[..., Agent], reports: Reports) -> None:
+    task = Task.make("lift", id="t_join", roles=[Role("up", "lift")])
+    steps = Steps()
+    result: list[Outcome | BaseException] = []
+
+    def run() -> None:
+        try:
+            result.append(auction(boss, task, reply_by_s=WAIT_S, retry_s=0.2,
+                                  max_rounds=1000, observer=steps))
+        except BaseException as exc:  # noqa: BLE001 - inspected below
+            result.append(exc)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    try:
+        first = steps.wait("unassigned")
+        assert "unknown capability 'lift'" in first["reason"]
+        brokers("join_lift", ["lift"], 1.0)  # starts after the first round
+    finally:
+        thread.join(WAIT_S)
+    assert isinstance(result[0], Outcome), result
+    assert result[0].members == {"up": "join_lift"}

@@ -804,22 +804,21 @@ class _Round:
                    if info.name != self.agent.name}
         offered = {c for info in brokers.values()
                    for c in info.properties(BROKER_SERVICE).get("capabilities", [])}
-        for o in list(self.outcomes.values()):
+        # A task no plan of which the brokers present can staff is not announced: this
+        # round leaves it unassigned, saying which capability is missing (the broker
+        # that has it may not have joined yet: the next round asks again).
+        unstaffable: dict[str, str] = {}
+        for o in self.outcomes.values():
             try:
                 check_capabilities(o.task, offered)
             except UnknownCapability as exc:
-                o.state = TaskState.FAILED
-                o.reason = str(exc)
-                self.tell("failed", conversation_id=cid, task=o.task.id, reason=o.reason)
-                self.on_settled(o)
-        entries: list[dict[str, Any]] = [{"task": o.task.to_dict(),
-                    "open": [[p, r] for p, rs in o.open_roles().items() for r in rs],
-                    "done": o.results, "reached": o.reached}
-                   for o in self.outcomes.values() if not o.done]
-        if not entries:
-            self.on_awarded()
-            return
-        names = sorted(brokers)
+                unstaffable[o.task.id] = str(exc)
+        entries: list[dict[str, Any]] = [
+            {"task": o.task.to_dict(),
+             "open": [[p, r] for p, rs in o.open_roles().items() for r in rs],
+             "done": o.results, "reached": o.reached}
+            for o in self.outcomes.values() if not o.done and o.task.id not in unstaffable]
+        names = sorted(brokers) if entries else []
         self.tell("cfp", conversation_id=cid, tasks=[e["task"]["id"] for e in entries],
                   candidates=names)
         bids: Bids = {}
@@ -886,7 +885,7 @@ class _Round:
         unassigned = [o for tid, o in self.outcomes.items() if not o.done and tid not in chosen]
         for o in unassigned:
             o.state = TaskState.WAITING
-            o.reason = self._why_not(o, bids, names)
+            o.reason = unstaffable.get(o.task.id) or self._why_not(o, bids, names)
             o.rounds.append({"round": cid, "plan": None, "members": {}, "cost": None,
                              "ended": f"unassigned: {o.reason}"})
             self.tell("unassigned", conversation_id=cid, task=o.task.id, reason=o.reason)
