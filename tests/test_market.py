@@ -530,3 +530,26 @@ def test_a_task_waits_for_the_broker_whose_capability_it_needs_to_join(
         thread.join(WAIT_S)
     assert isinstance(result[0], Outcome), result
     assert result[0].members == {"up": "join_lift"}
+
+
+def test_tasks_submitted_to_a_running_auctioneer_are_allocated(
+        boss: Agent, brokers: Callable[..., Agent], reports: Reports) -> None:
+    brokers("sub_carry", ["carry"], 1.0)
+    _see(boss, {"sub_carry"})
+    steps = Steps()
+    with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
+        boss.attach(hl)
+        hl.register("alloc", Auctioneer, keep_running=True, reply_by_s=WAIT_S,
+                    observer=steps)
+        hl.switch("alloc")
+        top = hl.top
+        assert isinstance(top, Auctioneer)
+        outcome = top.submit(Task.make("deliver", id="t_sub", roles=[
+            Role("carry", "carry", params={"script": ["sleep:0.01"]})]))
+        steps.wait("completed", task="t_sub")
+        assert outcome.state is TaskState.COMPLETED
+        assert outcome.members == {"carry": "sub_carry"}
+        with pytest.raises(InvalidTask, match="'t_sub' was submitted already"):
+            top.submit(outcome.task)
+        hl.switch("idle")  # keep_running: it waits for more until switched away
+        assert top.status is Status.INTERRUPTED
