@@ -308,3 +308,35 @@ class MissionStalled(MavlinkError):
         super().__init__(message)
         self.remaining = remaining
         self.position = position
+
+
+class InvalidTask(AgentError, ValueError):
+    """A market task (``beehave.agents.market``) that is malformed: the message names the
+    task, the key path (``plans[1].roles[0].capability``) and what is valid there."""
+
+
+class UnknownCapability(InvalidTask, UnknownNameError):
+    """A role needs a capability that no broker offers (or that is outside the
+    auctioneer's vocabulary); ``.choices`` are the capabilities that exist."""
+
+    kind = "capability"
+
+    def __init__(self, name: str, choices: Iterable[str], *, where: str = "") -> None:
+        UnknownNameError.__init__(self, name, choices)
+        listed = ", ".join(repr(c) for c in self.choices) or "none"
+        self.args = (f"{where}unknown capability {name!r}; offered: {listed}",)
+
+
+class RendezvousTimeout(AgentError, TimeoutError):
+    """A coalition member waited in vain for another role's event (``Job.wait_for``):
+    the message names the task, the role and the event, and the events reached so far."""
+
+
+class TaskFailed(ProtocolFailed):
+    """A market task failed for good (no assignment within the rounds allowed, its
+    deadline passed, or no plan's capabilities are offered). ``outcome`` is its
+    :class:`~beehave.agents.market.Outcome`: every round, who did what, and why it ended."""
+
+    def __init__(self, message: str, *, outcome: object = None) -> None:
+        super().__init__(message)
+        self.outcome = outcome

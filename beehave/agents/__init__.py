@@ -13,13 +13,28 @@ from beehave.agents.agent import (
     agent_of,
 )
 from beehave.agents.directory import AgentInfo, Change, Directory, DirectoryEvent
+from beehave.agents.market import (
+    Auctioneer,
+    Broker,
+    Job,
+    Outcome,
+    Plan,
+    Role,
+    Task,
+    TaskState,
+    auction,
+)
 from beehave.agents.message import SCHEMA, Message, Performative
 from beehave.errors import (
     AgentError,
     AgentNameTaken,
     AgentUnreachable,
+    InvalidTask,
     NoReply,
     ProtocolFailed,
+    RendezvousTimeout,
+    TaskFailed,
+    UnknownCapability,
 )
 
 __all__ = [
@@ -27,4 +42,7 @@ __all__ = [
     "AgentNameTaken", "AgentUnreachable", "Change", "Conversation", "Directory",
     "DirectoryEvent", "Mailbox", "Message", "NoReply", "Performative", "ProtocolFailed",
     "agent_of",
+    # market-based allocation (beehave.agents.market)
+    "Auctioneer", "Broker", "InvalidTask", "Job", "Outcome", "Plan", "RendezvousTimeout",
+    "Role", "Task", "TaskFailed", "TaskState", "UnknownCapability", "auction",
 ]
