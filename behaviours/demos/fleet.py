@@ -283,7 +283,8 @@ def checks(report: dict[str, Any], watch: Watch) -> list[tuple[str, bool, str]]:
 
 def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
               minutes: float = 5.0, fast: bool = False, out_dir: Path = Path("out"),
-              record: bool = False, http: tuple[str, int] | None = None) -> int:
+              record: bool = False, http: tuple[str, int] | None = None,
+              order_below: float = 0.6) -> int:
     places = site(world)
     fleet_dir = out_dir / "fleet"
     fleet_dir.mkdir(parents=True, exist_ok=True)
@@ -310,7 +311,7 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
             procs.start(ns, [py, "-m", "beehave.cli", "run", str(cfg), *recording])
         for name in sorted(places.machines):
             procs.start(name, [py, "-m", "behaviours.fleet.machine", name, "--world", world,
-                               "--lease-s", str(LEASE_S)])
+                               "--lease-s", str(LEASE_S), "--below", str(order_below)])
         with RosContext() as ros, contextlib.ExitStack() as web:
             _watch(ros, watch)
             if http is not None:
@@ -389,12 +390,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--http", type=http_address_arg, default=None, metavar="[HOST:]PORT",
                         help="serve the fleet's live tables and the map (docs/http.md) on "
                              "HOST:PORT (127.0.0.1 unless given; 0: a free port)")
+    parser.add_argument("--order-below", type=float, default=0.6, metavar="FRACTION",
+                        help="a machine orders material when its level falls below this "
+                             "fraction of its capacity (default 0.6)")
     parser.add_argument("--record", action="store_true",
                         help="record every ATV into FOLDER/fleet/atvK.mcap (one file per "
                              "robot; docs/recording.md: beehave inspect/plot/replay)")
     args = parser.parse_args(argv)
     if not 1 <= args.robots <= 10:
         parser.error(f"--robots must be 1..10 (the parking row), got {args.robots}")
+    if not 0 < args.order_below < 1:
+        parser.error(f"--order-below must be a fraction in (0, 1), got {args.order_below}")
     if not 0 < args.minutes <= 24 * 60:
         parser.error(f"--minutes must be in (0, 1440], got {args.minutes}")
     try:
@@ -410,7 +416,7 @@ def main(argv: list[str] | None = None) -> int:
     console.rule(f"[bold]beehave fleet — {args.robots} ATVs in {args.world}")
     return run_fleet(console, world=args.world, robots=args.robots, minutes=args.minutes,
                      fast=args.fast, out_dir=Path(args.out), record=args.record,
-                     http=args.http)
+                     http=args.http, order_below=args.order_below)
 
 
 if __name__ == "__main__":
