@@ -313,7 +313,12 @@ def test_a_malformed_mission_request_is_refused_with_its_reason(ros: RosContext)
             HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
         taker.attach(hl)
         hl.register("take", MissionRequestResponder, connection="udp:127.0.0.1:14550")
-        hl.switch("take")
+        responder = hl.switch("take")
+        # Until its mailbox is open, nothing here serves the protocol: a request then gets
+        # not-understood (by design), which a loaded machine makes likely.
+        deadline = time.monotonic() + 10.0
+        while getattr(responder, "_box", None) is None and time.monotonic() < deadline:
+            time.sleep(0.01)
         for content, reason in (({"waypoints": []}, "the mission has no waypoints"),
                                 ({"go": "north"}, "content must be {\"waypoints\""),
                                 ({"waypoints": [{"lat_deg": 95, "lon_deg": 0, "alt_m": 3}]},
