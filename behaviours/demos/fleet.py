@@ -373,9 +373,29 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
     return 0 if all(ok for _, ok, _ in results) else 1
 
 
+#: ``--scenario`` → what runs. ``follow`` and ``handover`` are one scenario (the MAVLink
+#: Droid paper's): the quadrotor follows the rover, then finishes the mission the rover's
+#: wall blocks (docs/mavlink.md).
+SCENARIOS = ("factory", "droid", "follow", "handover")
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    pre = argparse.ArgumentParser(prog="beehave fleet", add_help=False)
+    pre.add_argument("--scenario", choices=SCENARIOS, default="factory")
+    known, rest = pre.parse_known_args(argv)
+    if known.scenario != "factory":
+        from behaviours.demos.droid import main as droid_main
+
+        out = Path(next((rest[i + 1] for i, a in enumerate(rest[:-1]) if a == "--out"), "out"))
+        out.mkdir(parents=True, exist_ok=True)
+        return droid_main(["--picture", str(out / "droid.png")])
     parser = argparse.ArgumentParser(prog="beehave fleet", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenario", choices=SCENARIOS, default="factory",
+                        help="factory (default): the ROS-JADE factory; droid (also: follow, "
+                             "handover): a rover and a quadrotor over MAVLink, the copter "
+                             "follows and takes over the blocked mission (docs/mavlink.md)")
     parser.add_argument("world", nargs="?", default="factory",
                         help="a world name or YAML path with machines, depots and charging "
                              "stations (default: factory)")
