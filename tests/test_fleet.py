@@ -234,3 +234,19 @@ def test_the_fleet_web_view_serves_the_live_tables_without_a_robot_in_process() 
         assert errors == []
     finally:
         server.stop()
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--scenario", "nope"], "invalid choice: 'nope'"),
+    (["--robots", "0"], "--robots must be 1..10"),
+    (["--order-below", "1.5"], "--order-below must be a fraction"),
+    (["no_such_world"], "world 'no_such_world'"),
+])
+def test_bad_fleet_arguments_exit_2_naming_the_problem(
+        argv: list[str], says: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from behaviours.demos.fleet import main
+
+    with pytest.raises(SystemExit) as done:
+        main(argv)
+    assert done.value.code == 2
+    assert says in capsys.readouterr().err
