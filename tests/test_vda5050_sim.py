@@ -94,6 +94,8 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             here = node("emili_dropoff", 4)
             master.order("o2", 0, [here, back], [edge(here, back)])
             master.wait_state(lambda s: s["orderId"] == "o2" and s["driving"], timeout_s=30)
+            assert probe.wait(lambda: abs(odom[-1].twist.twist.linear.x) > 0.05, 10)
+            t_cancel = _stamp_s(odom[-1])  # sim time, the sim's own odometry stamp
             master.instant(action("cancelOrder", "cancel1"))
             cancelled = master.wait_state(
                 lambda s: _status(s).get("cancel1") == "FINISHED", timeout_s=10)
@@ -103,6 +105,10 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             assert probe.wait(lambda: len(odom) > count + 30, 10)
             still = odom[-1]
             assert abs(still.twist.twist.linear.x) < 0.01, still.twist.twist
+            # The bound: the wheels stand within 0.5 s of sim time of the cancel.
+            stopped = next(_stamp_s(m) for m in list(odom) if _stamp_s(m) >= t_cancel
+                           and abs(m.twist.twist.linear.x) < 0.01)
+            assert stopped - t_cancel <= 0.5, stopped - t_cancel
             assert still.pose.pose.position.x > 4.0 + 0.5  # stopped short of "back"
             assert not master.invalid, master.invalid
         finally:
@@ -119,3 +125,7 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
                     outputs.append(proc.communicate()[0])
             probe.close()
         assert "stopped cleanly" in outputs[1], outputs[1][-3000:]
+
+
+def _stamp_s(msg: Odometry) -> float:
+    return float(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
