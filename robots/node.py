@@ -555,6 +555,11 @@ def _parser() -> argparse.ArgumentParser:
                        help="sim seconds per wall-clock second (default: 1.0)")
     speed.add_argument("--fast", action="store_true",
                        help="as fast as the machine goes (no pacing)")
+    parser.add_argument("--clock-rate-hz", type=float, default=topics.CLOCK_RATE_HZ,
+                        metavar="HZ",
+                        help=f"/clock messages per second of sim time (default "
+                             f"{topics.CLOCK_RATE_HZ:g}; every use_sim_time process receives "
+                             "each one: a large fleet may want fewer)")
     parser.add_argument("--no-lockstep", dest="lockstep", action="store_false",
                         help="never hold the simulation for controllers that announce "
                              "their next step on /lockstep (default: hold, up to "
@@ -618,6 +623,10 @@ def sim_main(argv: list[str]) -> int:
         print(f"beehave sim: --real-time-factor must be a positive number, got "
               f"{args.real_time_factor}; use --fast for no pacing", file=sys.stderr)
         return 2
+    if not (math.isfinite(args.clock_rate_hz) and 1 <= args.clock_rate_hz <= 1000):
+        print(f"beehave sim: --clock-rate-hz must be in [1, 1000], got {args.clock_rate_hz}",
+              file=sys.stderr)
+        return 2
     if args.duration_s is not None and not (math.isfinite(args.duration_s)
                                             and args.duration_s > 0):
         print(f"beehave sim: --duration-s must be a positive, finite number of seconds, got "
@@ -667,7 +676,8 @@ def sim_main(argv: list[str]) -> int:
     endpoints: list[Any] = []
     try:
         ros = RosContext()
-        node = SimNode(sim, ros, lockstep=args.lockstep, factory=factory)
+        node = SimNode(sim, ros, lockstep=args.lockstep, factory=factory,
+                       clock_rate_hz=args.clock_rate_hz)
         endpoints = _open_mavlink(args, sim)
         ros.start()
         sim.start()

@@ -49,6 +49,8 @@ STOP_TIMEOUT_S = 15.0
 #: machine runs a dozen busy processes, and an announcement late by more than the lease
 #: reads as a death (and costs a re-award).
 LEASE_S = 3.0
+#: The sim's /clock rate for a fleet (see run_fleet).
+CLOCK_RATE_HZ = 50.0
 
 
 ATV_TEMPLATE = Path(__file__).resolve().parents[2] / "robots" / "config" / "atv.yaml"
@@ -297,7 +299,10 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
     from beehave.ros.context import RosContext
 
     try:
+        # /clock at 50 Hz, not 100: every ATV process receives each one (lockstep holds
+        # publish the held time anyway, so control loops keep their rate).
         procs.start("sim", [py, "-m", "beehave.cli", "sim", world, "--robots", str(robots),
+                            "--clock-rate-hz", str(CLOCK_RATE_HZ),
                             *(["--fast"] if fast else []), "--report", str(report_path),
                             "--picture", str(picture)])
         for name in sorted(places.stations):
