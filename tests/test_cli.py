@@ -72,6 +72,13 @@ def test_sim_duration_must_be_finite(value: str) -> None:
     assert "--duration-s must be a positive, finite number" in done.stderr, done.stderr
 
 
+@pytest.mark.parametrize("value", ["inf", "nan", "0", "5000"])
+def test_sim_clock_rate_must_be_sane(value: str) -> None:
+    done = beehave("sim", "--clock-rate-hz", value, timeout_s=30)
+    assert done.returncode == 2
+    assert "--clock-rate-hz must be in [1, 1000]" in done.stderr, done.stderr
+
+
 @pytest.mark.parametrize("value", ["inf", "nan", "0"])
 def test_demo_real_time_factor_must_be_finite_and_positive(value: str) -> None:
     done = beehave("demo", "--real-time-factor", value, timeout_s=30)
