@@ -214,6 +214,9 @@ def test_the_fleet_web_view_serves_the_live_tables_without_a_robot_in_process() 
                                "stamp": 1.0}))
     watch.on_directory(json.dumps({"agent": "atv2", "state": "alive",
                                    "services": {"transport": {"kind": "kobuki"}}}))
+    watch.on_state(json.dumps({"time_s": 12.0, "robots": {"atv2": {
+        "battery_fraction": 0.5, "load": 40.0, "zone": "walkway", "speed_mps": 0.13,
+        "x_m": 12.0, "y_m": 8.0, "charging_at": None}}, "machines": {}}))
     server = serve({}, world=yaml.safe_load(FACTORY.read_text()),
                    fleet=lambda: fleet_view(watch))
     try:
@@ -229,8 +232,13 @@ def test_the_fleet_web_view_serves_the_live_tables_without_a_robot_in_process() 
             page.goto(base + "/")
             page.wait_for_selector("#fleet-panel:not([hidden])", timeout=15000)
             text = page.inner_text("#fleet")
+            marker = page.wait_for_selector('[data-fleet-robot="atv2"]', timeout=5000)
+            assert marker is not None
+            where = (marker.get_attribute("data-x"), marker.get_attribute("data-y"))
+            label = marker.text_content()
             browser.close()
         assert "press1-1" in text and "transport" in text, text
+        assert where == ("12.000", "8.000") and label == "atv2 50%", (where, label)
         assert errors == []
     finally:
         server.stop()

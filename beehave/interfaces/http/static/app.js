@@ -517,7 +517,35 @@ function render() {
 
 // ---- the fleet ----------------------------------------------------------------------------
 
+// A fleet process whose robots run elsewhere: the rows of its "robots" section that carry
+// x_m/y_m (and no robot of this server has that name) are drawn on the map as markers.
+function drawFleetRobots(rows) {
+  const layer = $("#robot-layer");
+  const Y = view.flip || ((y) => 12 - y);
+  const seen = new Set();
+  for (const row of Array.isArray(rows) ? rows : []) {
+    const name = row && (row.atv || row.robot || row.name);
+    if (!name || typeof row.x_m !== "number" || typeof row.y_m !== "number" || view.state[name]) continue;
+    seen.add(String(name));
+    let group = layer.querySelector(`[data-fleet-robot="${CSS.escape(String(name))}"]`);
+    if (!group) {
+      group = svg("g", {class: "robot fleet-robot", "data-fleet-robot": String(name)});
+      group.append(svg("circle", {class: "body", r: 0.3}), svg("text", {class: "label", x: -0.3, y: 0.62}));
+      layer.append(group);
+    }
+    group.setAttribute("transform", `translate(${row.x_m} ${Y(row.y_m)})`);
+    group.dataset.x = row.x_m.toFixed(3);
+    group.dataset.y = row.y_m.toFixed(3);
+    const pct = row.battery_pct;
+    group.querySelector(".label").textContent = typeof pct === "number" ? `${name} ${pct.toFixed(0)}%` : String(name);
+  }
+  for (const group of layer.querySelectorAll("[data-fleet-robot]")) {
+    if (!seen.has(group.dataset.fleetRobot)) group.remove();
+  }
+}
+
 function renderFleet(fleet) {
+  drawFleetRobots(fleet && fleet.robots);
   const box = $("#fleet");
   const parts = [];
   for (const [section, items] of Object.entries(fleet || {})) {
