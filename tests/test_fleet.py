@@ -44,10 +44,14 @@ class Fleet:
         _watch(self.ros, self.watch)
         self.ros.start()
 
-    def world(self, **robot_battery: float) -> str:
-        """A copy of the factory with fewer robots and the given initial batteries."""
+    def world(self, *, capacity_wh: float, **robot_battery: float) -> str:
+        """A copy of the factory with the given battery capacity for every robot (the
+        shipped 1.2 Wh empties in minutes of sim time, and an idle fleet's sim runs many
+        times faster than real time: a test must not depend on how fast) and the given
+        initial batteries."""
         data = yaml.safe_load(FACTORY.read_text())
         for robot in data["robots"]:
+            robot["battery"]["capacity_wh"] = capacity_wh
             if robot["namespace"] in robot_battery:
                 robot["battery"]["initial_fraction"] = robot_battery[robot["namespace"]]
         path = self.tmp / "factory_test.yaml"
@@ -114,7 +118,7 @@ def _robot(watch: Watch, ns: str) -> dict[str, Any]:
 @pytest.mark.timeout(300)  # real processes: slow on a loaded machine
 def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_served(
         fleet: Fleet) -> None:
-    world = fleet.world()
+    world = fleet.world(capacity_wh=50.0)  # no ATV needs a charge during the test
     fleet.start("sim", "-m", "beehave.cli", "sim", world, "--robots", "2", "--fast")
     fleet.atv("atv1", world)
     fleet.atv("atv2", world)
@@ -145,7 +149,8 @@ def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_serve
 @pytest.mark.timeout(300)  # real processes: slow on a loaded machine
 def test_a_killed_station_agent_frees_nothing_twice_and_the_atv_charges_elsewhere(
         fleet: Fleet) -> None:
-    world = fleet.world(atv1=0.30)  # below the 35 % at which an ATV goes to charge
+    # Below the 35 % at which an ATV goes to charge, with enough left to drive anywhere.
+    world = fleet.world(capacity_wh=5.0, atv1=0.30)
     fleet.start("sim", "-m", "beehave.cli", "sim", world, "--robots", "1", "--fast")
     for station in ("charger1", "charger2"):
         fleet.start(station, "-m", "behaviours.fleet.station", station, "--world", world)
