@@ -330,6 +330,8 @@ class Watcher(Subscription):
         if waiter is not None:
             self._waiter = None
             if not waiter.done():
+                if self.board._on_wake:
+                    self.board._run_hooks("_on_wake")
                 waiter.set_result(None)
 
     def _wake(self) -> None:
@@ -413,6 +415,8 @@ class Blackboard:
         self._pending: dict[str, _Slot] = {}
         self._flush_scheduled = False
         self._taps: tuple[ChangeCallback, ...] = ()
+        self._on_notify: tuple[ChangeCallback, ...] = ()
+        self._on_wake: tuple[Callable[[], None], ...] = ()
 
     # -- binding -------------------------------------------------------------------------
 
@@ -521,7 +525,8 @@ class Blackboard:
 
     # -- taps (recorders) ------------------------------------------------------------------
 
-    def tap(self, callback: ChangeCallback) -> Callable[[], None]:
+    def tap(self, callback: ChangeCallback, *, on_notify: ChangeCallback | None = None,
+            on_wake: Callable[[], None] | None = None) -> Callable[[], None]:
         """Call ``callback(change)`` for every change *stored* -- each write that changed
         the entry and each entry that went stale -- in the thread that made it, before any
         subscriber hears of it and without coalescing. Returns a function that removes it.
@@ -529,15 +534,39 @@ class Blackboard:
         For recorders (:mod:`beehave.recording`), not for logic: it runs inside ``set`` (a
         HAL's or logic's write waits for it), so it must only hand the change on (append
         to a queue). One that raises is logged and removed; it never breaks the write.
+
+        Two optional hooks tell a recorder *when* the loop's logics can see what was
+        stored, so that a replay can hand a logic together what it saw together:
+        ``on_notify(change)`` runs just before ``change`` is delivered to the subscribers
+        (bound to a loop: in the loop's thread, so for a write from another thread later
+        than the tap, when the loop takes it); ``on_wake()`` runs in the loop's thread just
+        before a watcher wakes the task waiting on it (that task's next step sees what was
+        delivered until then). The same rules as for the tap apply to both.
         """
         with self._lock:
             self._taps = (*self._taps, callback)
+            if on_notify is not None:
+                self._on_notify = (*self._on_notify, on_notify)
+            if on_wake is not None:
+                self._on_wake = (*self._on_wake, on_wake)
 
         def remove() -> None:
             with self._lock:
                 self._taps = tuple(t for t in self._taps if t is not callback)
+                self._on_notify = tuple(h for h in self._on_notify if h is not on_notify)
+                self._on_wake = tuple(h for h in self._on_wake if h is not on_wake)
 
         return remove
+
+    def _run_hooks(self, name: str, *args: Any) -> None:
+        """Run the tap hooks in attribute ``name`` (``_on_notify``, ``_on_wake``)."""
+        for hook in getattr(self, name):
+            try:
+                hook(*args)
+            except Exception:
+                log.exception("blackboard tap hook %r raised; it was removed", hook)
+                with self._lock:
+                    setattr(self, name, tuple(h for h in getattr(self, name) if h is not hook))
 
     def _tapped(self, change: Change) -> None:
         for tap in self._taps:
@@ -549,6 +578,8 @@ class Blackboard:
                     self._taps = tuple(t for t in self._taps if t is not tap)
 
     def _notify(self, slot: _Slot, change: Change) -> None:
+        if self._on_notify:
+            self._run_hooks("_on_notify", change)
         slot.notified = change
         for sub in slot.subs:
             sub.deliver(change)

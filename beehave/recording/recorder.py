@@ -18,9 +18,11 @@ writer thread drains (:mod:`beehave.recording.writer`); a full queue drops and c
 
 from __future__ import annotations
 
+import asyncio
 import functools
 import inspect
 import logging
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -88,16 +90,116 @@ def command_methods(cls: type[HAL]) -> list[str]:
     return sorted(names)
 
 
-def _encode_change(item: Change | tuple[float, Change]) -> tuple[int, bytes]:
-    if isinstance(item, tuple):  # went stale at item[0]; its stamp is still the write's
-        at, change = item
-    else:
-        change = item
-        at = change.stamp
-    stamp = change.stamp
-    return int(at * 1e9), _dumps({"key": change.key, "value": to_json(change.value),
-                                     "stamp": stamp, "writer": change.writer,
-                                     "stale": change.stale})
+def _encode_change(item: tuple[Change, float | None, int | None]) -> tuple[int, bytes]:
+    change, went_stale_at, batch = item
+    # A stale change keeps the stamp of its write: it is logged when it went stale.
+    at = change.stamp if went_stale_at is None else went_stale_at
+    body = {"key": change.key, "value": to_json(change.value), "stamp": change.stamp,
+            "writer": change.writer, "stale": change.stale}
+    if batch is not None:
+        body["batch"] = batch
+    return int(at * 1e9), _dumps(body)
+
+
+class _BatchingTap:
+    """Records a blackboard's changes, each stamped with the *batch* in which the loop's
+    logics could first see it -- so that a replay hands a logic together exactly what it
+    saw together (:mod:`beehave.recording.replay`).
+
+    Why not wall time: a logic runs between two loop callbacks, and what it sees in one
+    step is everything delivered since its last. Under load, two writes a logic saw apart
+    can be stamped microseconds apart, and two it saw together milliseconds apart.
+
+    How: ``batch`` advances in a callback (:meth:`_bump`) queued with ``call_soon`` just
+    before a watcher wakes a waiting task (:meth:`on_wake`). The loop runs callbacks in
+    FIFO order, so every delivery queued before the bump belongs to the batch that task's
+    step sees, and every one queued after it to the next. A change stored in the loop's
+    thread is delivered at once: it takes the current batch at the tap. One stored in
+    another thread (a HAL's ROS 2 callback, the bridge's ``high_level/*``) reaches the
+    logics only when the loop delivers it, in a callback of its own: it is held until
+    then (:meth:`on_notify`) and recorded with the batch of that moment. Its log time is
+    still its write's. An unbound blackboard (no loop: no logic runs between writes)
+    records no batches.
+    """
+
+    def __init__(self, board: Blackboard, put: Callable[[Any], None], *,
+                 hold_limit: int) -> None:
+        self.board = board
+        self.put = put
+        self.batch = 0
+        self.hold_limit = hold_limit
+        self._bump_queued = False
+        # Changes stored in other threads that the loop has not delivered yet, by key, in
+        # the order they were stored; guarded by _lock (taps in other threads, delivery
+        # in the loop's).
+        self._held: dict[str, list[tuple[Change, float | None]]] = {}
+        self._n_held = 0
+        self._lock = threading.Lock()
+
+    def tap(self, change: Change) -> None:
+        stale_at = time.time() if change.stale else None
+        loop = self.board.loop
+        if loop is None:
+            self.put((change, stale_at, None))
+        elif asyncio._get_running_loop() is loop:
+            if self._held:  # it supersedes a value of its key that was never delivered
+                self._release(change)
+            self.put((change, stale_at, self.batch))
+        else:
+            with self._lock:
+                self._held.setdefault(change.key, []).append((change, stale_at))
+                self._n_held += 1
+                overflow = self._n_held > self.hold_limit
+            if overflow:  # the loop has not delivered anything for very long
+                self.release_all()
+
+    def on_notify(self, change: Change) -> None:
+        if self._held:
+            self._release(change)
+
+    def on_wake(self) -> None:
+        if self._bump_queued:
+            return  # the bump queued is ahead of the task woken now (FIFO)
+        loop = asyncio._get_running_loop()
+        if loop is None:  # delivering outside the loop: it is closed, nothing runs
+            self.batch += 1
+            return
+        self._bump_queued = True
+        loop.call_soon(self._bump)
+
+    def _bump(self) -> None:
+        self._bump_queued = False
+        self.batch += 1
+
+    def _release(self, upto: Change) -> None:
+        """Record the held changes of ``upto``'s key stored up to ``upto``: they are
+        delivered now (or superseded by it, and so never seen on their own)."""
+        with self._lock:
+            held = self._held.get(upto.key)
+            if not held:
+                return
+            n = next((i + 1 for i, (c, _) in enumerate(held) if c is upto), 0)
+            if not n:  # ``upto`` was not held: release what was stored before it
+                n = next((i for i, (c, _) in enumerate(held)
+                          if c.monotonic > upto.monotonic), len(held))
+            released = held[:n]
+            if n == len(held):
+                del self._held[upto.key]
+            else:
+                del held[:n]
+            self._n_held -= n
+        batch = self.batch
+        for change, stale_at in released:
+            self.put((change, stale_at, batch))
+
+    def release_all(self) -> None:
+        """Record every held change with the current batch (closing, or an overflow)."""
+        with self._lock:
+            held, self._held, self._n_held = self._held, {}, 0
+        batch = self.batch
+        for changes in held.values():
+            for change, stale_at in changes:
+                self.put((change, stale_at, batch))
 
 
 def _encode_event(event: Event) -> tuple[int, bytes]:
@@ -227,15 +329,19 @@ class Recorder:
     # -- what to record ------------------------------------------------------------------
 
     def attach_blackboard(self, board: Blackboard, *, prefix: str = "") -> None:
-        """Record every stored change of ``board`` (key, value, stamp, writer, stale)."""
+        """Record every stored change of ``board`` (key, value, stamp, writer, stale) and,
+        once it is bound to a loop, the batch in which the logics could first see it
+        (:class:`_BatchingTap`)."""
         channel = self._channel(prefix, schema.BLACKBOARD, _encode_change)
-        put = channel.put
+        batching = _BatchingTap(board, channel.put, hold_limit=self.queue_size)
+        remove = board.tap(batching.tap, on_notify=batching.on_notify,
+                           on_wake=batching.on_wake)
 
-        def tap(change: Change) -> None:
-            # A stale change keeps the stamp of its write: note when it went stale.
-            put((time.time(), change) if change.stale else change)
+        def detach() -> None:
+            remove()
+            batching.release_all()
 
-        self._detach.append(board.tap(tap))
+        self._detach.append(detach)
 
     def attach_events(self, events: EventBus, *, prefix: str = "",
                       level: str = "high") -> None:

@@ -30,7 +30,7 @@ import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -196,13 +196,49 @@ class _Input:
     writer: str | None = None
     stale: bool = False
     wall_ns: int = 0
+    batch: int | None = None
 
 
 BATCH_NS = 500_000
-"""Writes within this much (wall time) of a batch's first are fed as one batch, without
-letting the logics run in between: live, what the HALs and the bridge write from the ROS
-thread (odometry's five keys, the high level's state) reaches the loop together, so a
-logic never saw the first without the others."""
+"""For recordings without batch ids (older than them, or of a blackboard bound to no
+loop): writes within this much (wall time) of a batch's first are fed as one batch,
+without letting the logics run in between. A guess -- what the HALs and the bridge write
+from the ROS thread usually reaches the loop together -- that load can prove wrong;
+recordings with batch ids say which writes the logics saw together."""
+
+
+def _in_batch_order(inputs: list[_Input]) -> list[_Input]:
+    """``inputs`` (in log order) with the writes in the order the logics saw them.
+
+    A write from another thread is logged when it was made but seen when the loop took
+    it, so between two other inputs (switches, HAL loads) the writes are sorted by batch,
+    stably. A write superseded before it was delivered (a later write of its key has an
+    earlier batch: the loop's own write came first) counts in that earlier batch: it was
+    never seen on its own, and it must still come before the write that replaced it.
+    """
+    if any(i.kind == "set" and i.batch is None for i in inputs):
+        return inputs  # no batches (or not throughout): log order and the wall-time rule
+    later: dict[str, int] = {}
+    effective: list[_Input] = []
+    for item in reversed(inputs):
+        if item.kind == "set":
+            assert item.batch is not None
+            batch = min(item.batch, later.get(item.key, item.batch))
+            later[item.key] = batch
+            item = replace(item, batch=batch)
+        effective.append(item)
+    effective.reverse()
+    ordered: list[_Input] = []
+    run: list[_Input] = []
+    for item in effective:
+        if item.kind == "set":
+            run.append(item)
+            continue
+        ordered.extend(sorted(run, key=lambda i: i.batch or 0))
+        run = []
+        ordered.append(item)
+    ordered.extend(sorted(run, key=lambda i: i.batch or 0))
+    return ordered
 
 
 def _inputs(recording: Recording, prefix: str) -> list[_Input]:
@@ -216,7 +252,7 @@ def _inputs(recording: Recording, prefix: str) -> list[_Input]:
         if m.topic == bb and not _is_logic(m.data["writer"]):
             inputs.append(_Input(timeline(m.log_time_ns), "set", m.data["key"],
                                  from_json(m.data["value"]), m.data["writer"],
-                                 bool(m.data["stale"]), m.log_time_ns))
+                                 bool(m.data["stale"]), m.log_time_ns, m.data.get("batch")))
         elif m.topic == low:
             kind, subject, detail = m.data["kind"], m.data["subject"], m.data["detail"]
             if kind == "switch_requested":
@@ -235,7 +271,7 @@ def _inputs(recording: Recording, prefix: str) -> list[_Input]:
                 # shut down here. What follows (HALs unloaded, entries marked stale) is
                 # the replay's own shutdown's to produce, not an input.
                 break
-    return inputs
+    return _in_batch_order(inputs)
 
 
 # ---- the replay's side ---------------------------------------------------------------------
@@ -418,11 +454,17 @@ async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _Repl
                 warnings.append(f"t={item.t_s:.3f} s: HAL {item.key!r} was loaded in the "
                                 f"recording but not in the replay within {hal_wait_s} s")
         fed += 1
+        # One recorded batch is fed in one go (one loop callback: this step), then the
+        # logics run, as they ran live between two batches.
         following = inputs[n + 1] if n + 1 < len(inputs) else None
         if not batch_ns:
             batch_ns = item.wall_ns
-        batched = (following is not None and item.kind == following.kind == "set"
-                   and following.wall_ns - batch_ns < BATCH_NS)
+        if following is None or not item.kind == following.kind == "set":
+            batched = False
+        elif item.batch is not None and following.batch is not None:
+            batched = following.batch == item.batch
+        else:
+            batched = following.wall_ns - batch_ns < BATCH_NS
         if not batched:
             batch_ns = 0
         if not catching_up and not batched:

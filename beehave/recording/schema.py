@@ -47,6 +47,11 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "writer": {"type": ["string", "null"],
                        "description": "hal:<name>, logic:<path>, ros:<bridge> or null"},
             "stale": {"type": "boolean"},
+            "batch": {"type": "integer",
+                      "description": "the loop batch in which the logics could first see "
+                                     "it: changes with one batch were seen together "
+                                     "(absent: blackboard not bound to a loop, or a "
+                                     "recording older than batches)"},
         },
         "required": ["key", "value", "stamp", "writer", "stale"],
     },
