@@ -331,7 +331,7 @@ class Watcher(Subscription):
             self._waiter = None
             if not waiter.done():
                 if self.board._on_wake:
-                    self.board._run_hooks("_on_wake")
+                    self.board._woke()
                 waiter.set_result(None)
 
     def _wake(self) -> None:
@@ -415,7 +415,6 @@ class Blackboard:
         self._pending: dict[str, _Slot] = {}
         self._flush_scheduled = False
         self._taps: tuple[ChangeCallback, ...] = ()
-        self._on_notify: tuple[ChangeCallback, ...] = ()
         self._on_wake: tuple[Callable[[], None], ...] = ()
 
     # -- binding -------------------------------------------------------------------------
@@ -525,7 +524,7 @@ class Blackboard:
 
     # -- taps (recorders) ------------------------------------------------------------------
 
-    def tap(self, callback: ChangeCallback, *, on_notify: ChangeCallback | None = None,
+    def tap(self, callback: ChangeCallback, *,
             on_wake: Callable[[], None] | None = None) -> Callable[[], None]:
         """Call ``callback(change)`` for every change *stored* -- each write that changed
         the entry and each entry that went stale -- in the thread that made it, before any
@@ -535,38 +534,33 @@ class Blackboard:
         HAL's or logic's write waits for it), so it must only hand the change on (append
         to a queue). One that raises is logged and removed; it never breaks the write.
 
-        Two optional hooks tell a recorder *when* the loop's logics can see what was
-        stored, so that a replay can hand a logic together what it saw together:
-        ``on_notify(change)`` runs just before ``change`` is delivered to the subscribers
-        (bound to a loop: in the loop's thread, so for a write from another thread later
-        than the tap, when the loop takes it); ``on_wake()`` runs in the loop's thread just
-        before a watcher wakes the task waiting on it (that task's next step sees what was
-        delivered until then). The same rules as for the tap apply to both.
+        ``on_wake()``, when given, tells a recorder *when* the loop's logics look at the
+        blackboard, so that a replay can hand a logic together what it saw together
+        (:mod:`beehave.recording`): it runs in the loop's thread just before a watcher
+        wakes the task waiting on it, and when a task creates a watcher -- that task's
+        next step reads what was stored until then. The same rules as for the tap apply.
         """
         with self._lock:
             self._taps = (*self._taps, callback)
-            if on_notify is not None:
-                self._on_notify = (*self._on_notify, on_notify)
             if on_wake is not None:
                 self._on_wake = (*self._on_wake, on_wake)
 
         def remove() -> None:
             with self._lock:
                 self._taps = tuple(t for t in self._taps if t is not callback)
-                self._on_notify = tuple(h for h in self._on_notify if h is not on_notify)
                 self._on_wake = tuple(h for h in self._on_wake if h is not on_wake)
 
         return remove
 
-    def _run_hooks(self, name: str, *args: Any) -> None:
-        """Run the tap hooks in attribute ``name`` (``_on_notify``, ``_on_wake``)."""
-        for hook in getattr(self, name):
+    def _woke(self) -> None:
+        """Run the taps' ``on_wake`` hooks (in the loop's thread)."""
+        for hook in self._on_wake:
             try:
-                hook(*args)
+                hook()
             except Exception:
                 log.exception("blackboard tap hook %r raised; it was removed", hook)
                 with self._lock:
-                    setattr(self, name, tuple(h for h in getattr(self, name) if h is not hook))
+                    self._on_wake = tuple(h for h in self._on_wake if h is not hook)
 
     def _tapped(self, change: Change) -> None:
         for tap in self._taps:
@@ -578,8 +572,6 @@ class Blackboard:
                     self._taps = tuple(t for t in self._taps if t is not tap)
 
     def _notify(self, slot: _Slot, change: Change) -> None:
-        if self._on_notify:
-            self._run_hooks("_on_notify", change)
         slot.notified = change
         for sub in slot.subs:
             sub.deliver(change)
@@ -818,6 +810,8 @@ class Blackboard:
                     f"watch({pattern!r}) needs a running asyncio loop; use subscribe() for a "
                     "synchronous callback") from None
         assert self._loop is not None
+        if self._on_wake and threading.get_ident() == self._loop_tid:
+            self._woke()  # the calling task starts looking at the board
         watcher = Watcher(self, pattern, self._loop)
         with self._lock:
             self._add(watcher)

@@ -22,7 +22,6 @@ import asyncio
 import functools
 import inspect
 import logging
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -102,104 +101,47 @@ def _encode_change(item: tuple[Change, float | None, int | None]) -> tuple[int, 
 
 
 class _BatchingTap:
-    """Records a blackboard's changes, each stamped with the *batch* in which the loop's
-    logics could first see it -- so that a replay hands a logic together exactly what it
-    saw together (:mod:`beehave.recording.replay`).
+    """Records a blackboard's changes, each stamped with its *batch*: changes of one batch
+    were stored between the same two looks of the loop's logics at the blackboard, so a
+    replay that hands a logic one batch per step shows it what it saw live
+    (:mod:`beehave.recording.replay`).
 
-    Why not wall time: a logic runs between two loop callbacks, and what it sees in one
-    step is everything delivered since its last. Under load, two writes a logic saw apart
-    can be stamped microseconds apart, and two it saw together milliseconds apart.
+    Why not wall time: a logic runs between two loop callbacks. Under load, two writes a
+    logic saw apart can be stamped microseconds apart, and two it saw together
+    milliseconds apart.
 
     How: ``batch`` advances in a callback (:meth:`_bump`) queued with ``call_soon`` just
-    before a watcher wakes a waiting task (:meth:`on_wake`). The loop runs callbacks in
-    FIFO order, so every delivery queued before the bump belongs to the batch that task's
-    step sees, and every one queued after it to the next. A change stored in the loop's
-    thread is delivered at once: it takes the current batch at the tap. One stored in
-    another thread (a HAL's ROS 2 callback, the bridge's ``high_level/*``) reaches the
-    logics only when the loop delivers it, in a callback of its own: it is held until
-    then (:meth:`on_notify`) and recorded with the batch of that moment. Its log time is
-    still its write's. An unbound blackboard (no loop: no logic runs between writes)
-    records no batches.
+    before a watcher wakes a waiting task, or a task starts watching (:meth:`on_wake`).
+    The loop runs callbacks in FIFO order, so the bump runs right before that task's step:
+    what was stored until then (in the loop's thread or another: a logic reads the
+    blackboard, not only the changes its watcher hands it) has the batch the step saw,
+    what is stored after it the next. A blackboard bound to no loop (no logic runs between
+    writes) records no batches.
     """
 
-    def __init__(self, board: Blackboard, put: Callable[[Any], None], *,
-                 hold_limit: int) -> None:
+    def __init__(self, board: Blackboard, put: Callable[[Any], None]) -> None:
         self.board = board
         self.put = put
         self.batch = 0
-        self.hold_limit = hold_limit
         self._bump_queued = False
-        # Changes stored in other threads that the loop has not delivered yet, by key, in
-        # the order they were stored; guarded by _lock (taps in other threads, delivery
-        # in the loop's).
-        self._held: dict[str, list[tuple[Change, float | None]]] = {}
-        self._n_held = 0
-        self._lock = threading.Lock()
 
-    def tap(self, change: Change) -> None:
-        stale_at = time.time() if change.stale else None
-        loop = self.board.loop
-        if loop is None:
-            self.put((change, stale_at, None))
-        elif asyncio._get_running_loop() is loop:
-            if self._held:  # it supersedes a value of its key that was never delivered
-                self._release(change)
-            self.put((change, stale_at, self.batch))
-        else:
-            with self._lock:
-                self._held.setdefault(change.key, []).append((change, stale_at))
-                self._n_held += 1
-                overflow = self._n_held > self.hold_limit
-            if overflow:  # the loop has not delivered anything for very long
-                self.release_all()
+    def tap(self, change: Change) -> None:  # in the writer's thread
+        self.put((change, time.time() if change.stale else None,
+                  None if self.board.loop is None else self.batch))
 
-    def on_notify(self, change: Change) -> None:
-        if self._held:
-            self._release(change)
-
-    def on_wake(self) -> None:
+    def on_wake(self) -> None:  # in the loop's thread
         if self._bump_queued:
-            return  # the bump queued is ahead of the task woken now (FIFO)
-        loop = asyncio._get_running_loop()
-        if loop is None:  # delivering outside the loop: it is closed, nothing runs
+            return  # the bump queued is still ahead of the task woken now (FIFO)
+        try:
+            asyncio.get_running_loop().call_soon(self._bump)
+        except RuntimeError:  # delivered outside the loop (it closed): nothing runs there
             self.batch += 1
             return
         self._bump_queued = True
-        loop.call_soon(self._bump)
 
     def _bump(self) -> None:
         self._bump_queued = False
         self.batch += 1
-
-    def _release(self, upto: Change) -> None:
-        """Record the held changes of ``upto``'s key stored up to ``upto``: they are
-        delivered now (or superseded by it, and so never seen on their own)."""
-        with self._lock:
-            held = self._held.get(upto.key)
-            if not held:
-                return
-            n = next((i + 1 for i, (c, _) in enumerate(held) if c is upto), 0)
-            if not n:  # ``upto`` was not held: release what was stored before it
-                n = next((i for i, (c, _) in enumerate(held)
-                          if c.monotonic > upto.monotonic), len(held))
-            released = held[:n]
-            if n == len(held):
-                del self._held[upto.key]
-            else:
-                del held[:n]
-            self._n_held -= n
-        batch = self.batch
-        for change, stale_at in released:
-            self.put((change, stale_at, batch))
-
-    def release_all(self) -> None:
-        """Record every held change with the current batch (closing, or an overflow)."""
-        with self._lock:
-            held, self._held, self._n_held = self._held, {}, 0
-        batch = self.batch
-        for changes in held.values():
-            for change, stale_at in changes:
-                self.put((change, stale_at, batch))
 
 
 def _encode_event(event: Event) -> tuple[int, bytes]:
@@ -333,15 +275,8 @@ class Recorder:
         once it is bound to a loop, the batch in which the logics could first see it
         (:class:`_BatchingTap`)."""
         channel = self._channel(prefix, schema.BLACKBOARD, _encode_change)
-        batching = _BatchingTap(board, channel.put, hold_limit=self.queue_size)
-        remove = board.tap(batching.tap, on_notify=batching.on_notify,
-                           on_wake=batching.on_wake)
-
-        def detach() -> None:
-            remove()
-            batching.release_all()
-
-        self._detach.append(detach)
+        batching = _BatchingTap(board, channel.put)
+        self._detach.append(board.tap(batching.tap, on_wake=batching.on_wake))
 
     def attach_events(self, events: EventBus, *, prefix: str = "",
                       level: str = "high") -> None:

@@ -208,13 +208,13 @@ recordings with batch ids say which writes the logics saw together."""
 
 
 def _in_batch_order(inputs: list[_Input]) -> list[_Input]:
-    """``inputs`` (in log order) with the writes in the order the logics saw them.
+    """``inputs`` (in log order) with the writes in batch order.
 
-    A write from another thread is logged when it was made but seen when the loop took
-    it, so between two other inputs (switches, HAL loads) the writes are sorted by batch,
-    stably. A write superseded before it was delivered (a later write of its key has an
-    earlier batch: the loop's own write came first) counts in that earlier batch: it was
-    never seen on its own, and it must still come before the write that replaced it.
+    Log time and batch are taken a moment apart in the writer's thread, so where writes
+    of two threads interleave their orders may disagree: between two other inputs
+    (switches, HAL loads) the writes are sorted by batch, stably. A write whose key is
+    written again with an earlier batch counts in that batch: it was never seen on its
+    own, and it must still come before the write that replaced it.
     """
     if any(i.kind == "set" and i.batch is None for i in inputs):
         return inputs  # no batches (or not throughout): log order and the wall-time rule
