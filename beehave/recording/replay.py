@@ -11,9 +11,14 @@ run on them as they did live. What they produce -- HAL commands, their own black
 writes, the logic switches -- is compared with what the recording holds
 (:func:`compare`): the first divergence is reported with its time and key.
 
+Batches. The recorded writes carry the batch in which the logics saw them (see the
+recorder's ``_BatchingTap``): one batch is fed in one go, then the loop turns a few times
+so that the logics run, as they ran live between two batches. Recordings without batch
+ids are grouped by wall time (:data:`BATCH_NS`).
+
 Time. ``speed=1.0`` replays in real time, ``speed=N`` N times faster, ``speed=None`` as
-fast as the logics keep up (each input is followed by a few turns of the event loop, so
-every logic sees every change). A recording of a robot on sim time is paced by its sim
+fast as the logics keep up (each batch is followed by a few turns of the event loop, so
+every logic sees every batch). A recording of a robot on sim time is paced by its sim
 time (``/<robot>/beehave/clock``): a demo run at ``--fast`` replays at robot speed.
 Times reported are seconds since the start of the recording, sim time when there is one.
 
