@@ -89,10 +89,13 @@ def command_methods(cls: type[HAL]) -> list[str]:
     return sorted(names)
 
 
-def _encode_change(item: tuple[Change, float | None, int | None]) -> tuple[int, bytes]:
-    change, went_stale_at, batch = item
+def _encode_change(item: Change | tuple[Change, float, int | None]) -> tuple[int, bytes]:
+    if type(item) is Change:  # the hot path: no batch (no loop), not stale
+        return int(item.stamp * 1e9), _dumps({
+            "key": item.key, "value": to_json(item.value), "stamp": item.stamp,
+            "writer": item.writer, "stale": item.stale})
+    change, at, batch = item  # type: ignore[misc]
     # A stale change keeps the stamp of its write: it is logged when it went stale.
-    at = change.stamp if went_stale_at is None else went_stale_at
     body = {"key": change.key, "value": to_json(change.value), "stamp": change.stamp,
             "writer": change.writer, "stale": change.stale}
     if batch is not None:
@@ -120,14 +123,18 @@ class _BatchingTap:
     """
 
     def __init__(self, board: Blackboard, put: Callable[[Any], None]) -> None:
-        self.board = board
-        self.put = put
         self.batch = 0
         self._bump_queued = False
 
-    def tap(self, change: Change) -> None:  # in the writer's thread
-        self.put((change, time.time() if change.stale else None,
-                  None if self.board.loop is None else self.batch))
+        def tap(change: Change) -> None:  # in the writer's thread: keep it lean
+            if board.loop is not None:
+                put((change, time.time() if change.stale else change.stamp, self.batch))
+            elif change.stale:
+                put((change, time.time(), None))
+            else:
+                put(change)
+
+        self.tap = tap
 
     def on_wake(self) -> None:  # in the loop's thread
         if self._bump_queued:
