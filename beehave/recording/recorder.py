@@ -279,7 +279,7 @@ class Recorder:
 
     def attach_blackboard(self, board: Blackboard, *, prefix: str = "") -> None:
         """Record every stored change of ``board`` (key, value, stamp, writer, stale) and,
-        once it is bound to a loop, the batch in which the logics could first see it
+        once it is bound to a loop, its batch: which writes the logics saw together
         (:class:`_BatchingTap`)."""
         channel = self._channel(prefix, schema.BLACKBOARD, _encode_change)
         batching = _BatchingTap(board, channel.put)

@@ -48,10 +48,10 @@ SCHEMAS: dict[str, dict[str, Any]] = {
                        "description": "hal:<name>, logic:<path>, ros:<bridge> or null"},
             "stale": {"type": "boolean"},
             "batch": {"type": "integer",
-                      "description": "the loop batch in which the logics could first see "
-                                     "it: changes with one batch were seen together "
-                                     "(absent: blackboard not bound to a loop, or a "
-                                     "recording older than batches)"},
+                      "description": "changes with one batch were stored between the "
+                                     "same two looks of the logics at the blackboard: "
+                                     "a replay feeds them together (absent: blackboard "
+                                     "not bound to a loop, or an older recording)"},
         },
         "required": ["key", "value", "stamp", "writer", "stale"],
     },
