@@ -21,10 +21,12 @@ import asyncio
 import threading
 import time
 from pathlib import Path
+from typing import cast
 
 import pytest
 
 from beehave.config import RobotConfig, parse_config
+from beehave.logic import Logic
 from beehave.recording import Recorder, read_recording
 from beehave.recording import recorder as recorder_module
 from beehave.recording.replay import replay
@@ -148,3 +150,68 @@ def test_a_recording_without_batches_replays_by_wall_time(tmp_path: Path,
     assert result.divergence is None, result.divergence
     assert [o.value[0][0] for o in result.outputs if o.key == "debug.show"] == \
         ["40%", "battery-low", "30%"]
+
+
+class PairLogic(Logic):
+    """Shows ``x/y`` each time ``in/x`` changes, reading both with ``get()`` -- as EMILI's
+    display reads the battery and the high level's state."""
+
+    async def run(self) -> None:
+        display = cast(DebugHAL, await self.hal("debug"))
+        shown: str | None = None
+        async for _ in self.blackboard.watch("in/x"):
+            text = f"{self.blackboard.get('in/x')}/{self.blackboard.get('in/y')}"
+            if text != shown:
+                display.show(text)
+                shown = text
+
+
+def _pair_config() -> RobotConfig:
+    return parse_config({
+        "namespace": "bot",
+        "stop_timeout_s": 0.5,
+        "logics": {"pair": {"class": f"{__name__}:PairLogic"}},
+        "default_logic": "pair",
+        "hals": ["debug"],
+    }, source="bot.yaml")
+
+
+def test_a_write_stored_before_the_step_counts_in_its_batch(tmp_path: Path) -> None:
+    """A write from another thread that is stored after a logic was woken but before its
+    step runs is read by that step (``get()`` sees it at once, delivered or not): it
+    belongs to the batch the step saw, although the loop delivers it only later."""
+    path = tmp_path / "bot.mcap"
+    hardware = DebugRobot()
+    robot = Robot(_pair_config(), only="low")
+    low = robot.low
+    assert low is not None
+    low.hals.register(DebugHAL, robot=hardware)
+    with Recorder(path, flush_period_s=0.1) as recorder:
+        recorder.attach_robot(robot)
+        with low:
+            assert wait_until(lambda: "debug" in low.hals.loaded, 2)
+
+            async def settled() -> None:
+                for _ in range(10):
+                    await asyncio.sleep(0)
+
+            low.call(settled())  # the logic waits on its watcher
+            board = low.blackboard
+
+            def woken_then_written() -> None:  # one loop callback
+                board.set("in/x", 1, writer="hal:debug")  # wakes the logic
+                other = threading.Thread(target=board.set, args=("in/y", 1),
+                                         kwargs={"writer": "hal:debug"})
+                other.start()
+                other.join()
+
+            loop = low.loop
+            assert loop is not None
+            loop.call_soon_threadsafe(woken_then_written)
+            assert wait_until(lambda: hardware.display == "1/1", 2)
+    writes = {m.data["key"]: m.data["batch"] for m in read_recording(path).of(
+        "/bot/beehave/blackboard") if m.data["key"].startswith("in/")}
+    assert writes["in/x"] == writes["in/y"]
+    result = replay(path, _pair_config(), speed=None)
+    assert result.divergence is None, result.divergence
+    assert [o.value[0][0] for o in result.outputs if o.key == "debug.show"] == ["1/1"]
