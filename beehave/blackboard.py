@@ -330,6 +330,8 @@ class Watcher(Subscription):
         if waiter is not None:
             self._waiter = None
             if not waiter.done():
+                if self.board._on_wake:
+                    self.board._woke()
                 waiter.set_result(None)
 
     def _wake(self) -> None:
@@ -413,6 +415,7 @@ class Blackboard:
         self._pending: dict[str, _Slot] = {}
         self._flush_scheduled = False
         self._taps: tuple[ChangeCallback, ...] = ()
+        self._on_wake: tuple[Callable[[], None], ...] = ()
 
     # -- binding -------------------------------------------------------------------------
 
@@ -521,7 +524,8 @@ class Blackboard:
 
     # -- taps (recorders) ------------------------------------------------------------------
 
-    def tap(self, callback: ChangeCallback) -> Callable[[], None]:
+    def tap(self, callback: ChangeCallback, *,
+            on_wake: Callable[[], None] | None = None) -> Callable[[], None]:
         """Call ``callback(change)`` for every change *stored* -- each write that changed
         the entry and each entry that went stale -- in the thread that made it, before any
         subscriber hears of it and without coalescing. Returns a function that removes it.
@@ -529,15 +533,34 @@ class Blackboard:
         For recorders (:mod:`beehave.recording`), not for logic: it runs inside ``set`` (a
         HAL's or logic's write waits for it), so it must only hand the change on (append
         to a queue). One that raises is logged and removed; it never breaks the write.
+
+        ``on_wake()``, when given, tells a recorder *when* the loop's logics look at the
+        blackboard, so that a replay can hand a logic together what it saw together
+        (:mod:`beehave.recording`): it runs in the loop's thread just before a watcher
+        wakes the task waiting on it, and when a task creates a watcher -- that task's
+        next step reads what was stored until then. The same rules as for the tap apply.
         """
         with self._lock:
             self._taps = (*self._taps, callback)
+            if on_wake is not None:
+                self._on_wake = (*self._on_wake, on_wake)
 
         def remove() -> None:
             with self._lock:
                 self._taps = tuple(t for t in self._taps if t is not callback)
+                self._on_wake = tuple(h for h in self._on_wake if h is not on_wake)
 
         return remove
+
+    def _woke(self) -> None:
+        """Run the taps' ``on_wake`` hooks (in the loop's thread)."""
+        for hook in self._on_wake:
+            try:
+                hook()
+            except Exception:
+                log.exception("blackboard tap hook %r raised; it was removed", hook)
+                with self._lock:
+                    self._on_wake = tuple(h for h in self._on_wake if h is not hook)
 
     def _tapped(self, change: Change) -> None:
         for tap in self._taps:
@@ -787,6 +810,8 @@ class Blackboard:
                     f"watch({pattern!r}) needs a running asyncio loop; use subscribe() for a "
                     "synchronous callback") from None
         assert self._loop is not None
+        if self._on_wake and threading.get_ident() == self._loop_tid:
+            self._woke()  # the calling task starts looking at the board
         watcher = Watcher(self, pattern, self._loop)
         with self._lock:
             self._add(watcher)

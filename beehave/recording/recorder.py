@@ -18,6 +18,7 @@ writer thread drains (:mod:`beehave.recording.writer`); a full queue drops and c
 
 from __future__ import annotations
 
+import asyncio
 import functools
 import inspect
 import logging
@@ -88,16 +89,66 @@ def command_methods(cls: type[HAL]) -> list[str]:
     return sorted(names)
 
 
-def _encode_change(item: Change | tuple[float, Change]) -> tuple[int, bytes]:
-    if isinstance(item, tuple):  # went stale at item[0]; its stamp is still the write's
-        at, change = item
-    else:
-        change = item
-        at = change.stamp
-    stamp = change.stamp
-    return int(at * 1e9), _dumps({"key": change.key, "value": to_json(change.value),
-                                     "stamp": stamp, "writer": change.writer,
-                                     "stale": change.stale})
+def _encode_change(item: Change | tuple[Change, float, int | None]) -> tuple[int, bytes]:
+    if type(item) is Change:  # the hot path: no batch (no loop), not stale
+        return int(item.stamp * 1e9), _dumps({
+            "key": item.key, "value": to_json(item.value), "stamp": item.stamp,
+            "writer": item.writer, "stale": item.stale})
+    change, at, batch = item  # type: ignore[misc]
+    # A stale change keeps the stamp of its write: it is logged when it went stale.
+    body = {"key": change.key, "value": to_json(change.value), "stamp": change.stamp,
+            "writer": change.writer, "stale": change.stale}
+    if batch is not None:
+        body["batch"] = batch
+    return int(at * 1e9), _dumps(body)
+
+
+class _BatchingTap:
+    """Records a blackboard's changes, each stamped with its *batch*: changes of one batch
+    were stored between the same two looks of the loop's logics at the blackboard, so a
+    replay that hands a logic one batch per step shows it what it saw live
+    (:mod:`beehave.recording.replay`).
+
+    Why not wall time: a logic runs between two loop callbacks. Under load, two writes a
+    logic saw apart can be stamped microseconds apart, and two it saw together
+    milliseconds apart.
+
+    How: ``batch`` advances in a callback (:meth:`_bump`) queued with ``call_soon`` just
+    before a watcher wakes a waiting task, or a task starts watching (:meth:`on_wake`).
+    The loop runs callbacks in FIFO order, so the bump runs right before that task's step:
+    what was stored until then (in the loop's thread or another: a logic reads the
+    blackboard, not only the changes its watcher hands it) has the batch the step saw,
+    what is stored after it the next. A blackboard bound to no loop (no logic runs between
+    writes) records no batches.
+    """
+
+    def __init__(self, board: Blackboard, put: Callable[[Any], None]) -> None:
+        self.batch = 0
+        self._bump_queued = False
+
+        def tap(change: Change) -> None:  # in the writer's thread: keep it lean
+            if board.loop is not None:
+                put((change, time.time() if change.stale else change.stamp, self.batch))
+            elif change.stale:
+                put((change, time.time(), None))
+            else:
+                put(change)
+
+        self.tap = tap
+
+    def on_wake(self) -> None:  # in the loop's thread
+        if self._bump_queued:
+            return  # the bump queued is still ahead of the task woken now (FIFO)
+        try:
+            asyncio.get_running_loop().call_soon(self._bump)
+        except RuntimeError:  # delivered outside the loop (it closed): nothing runs there
+            self.batch += 1
+            return
+        self._bump_queued = True
+
+    def _bump(self) -> None:
+        self._bump_queued = False
+        self.batch += 1
 
 
 def _encode_event(event: Event) -> tuple[int, bytes]:
@@ -227,15 +278,12 @@ class Recorder:
     # -- what to record ------------------------------------------------------------------
 
     def attach_blackboard(self, board: Blackboard, *, prefix: str = "") -> None:
-        """Record every stored change of ``board`` (key, value, stamp, writer, stale)."""
+        """Record every stored change of ``board`` (key, value, stamp, writer, stale) and,
+        once it is bound to a loop, its batch: which writes the logics saw together
+        (:class:`_BatchingTap`)."""
         channel = self._channel(prefix, schema.BLACKBOARD, _encode_change)
-        put = channel.put
-
-        def tap(change: Change) -> None:
-            # A stale change keeps the stamp of its write: note when it went stale.
-            put((time.time(), change) if change.stale else change)
-
-        self._detach.append(board.tap(tap))
+        batching = _BatchingTap(board, channel.put)
+        self._detach.append(board.tap(batching.tap, on_wake=batching.on_wake))
 
     def attach_events(self, events: EventBus, *, prefix: str = "",
                       level: str = "high") -> None:

@@ -11,9 +11,14 @@ run on them as they did live. What they produce -- HAL commands, their own black
 writes, the logic switches -- is compared with what the recording holds
 (:func:`compare`): the first divergence is reported with its time and key.
 
+Batches. The recorded writes carry the batch in which the logics saw them (see the
+recorder's ``_BatchingTap``): one batch is fed in one go, then the loop turns a few times
+so that the logics run, as they ran live between two batches. Recordings without batch
+ids are grouped by wall time (:data:`BATCH_NS`).
+
 Time. ``speed=1.0`` replays in real time, ``speed=N`` N times faster, ``speed=None`` as
-fast as the logics keep up (each input is followed by a few turns of the event loop, so
-every logic sees every change). A recording of a robot on sim time is paced by its sim
+fast as the logics keep up (each batch is followed by a few turns of the event loop, so
+every logic sees every batch). A recording of a robot on sim time is paced by its sim
 time (``/<robot>/beehave/clock``): a demo run at ``--fast`` replays at robot speed.
 Times reported are seconds since the start of the recording, sim time when there is one.
 
@@ -30,7 +35,7 @@ import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -196,13 +201,49 @@ class _Input:
     writer: str | None = None
     stale: bool = False
     wall_ns: int = 0
+    batch: int | None = None
 
 
 BATCH_NS = 500_000
-"""Writes within this much (wall time) of a batch's first are fed as one batch, without
-letting the logics run in between: live, what the HALs and the bridge write from the ROS
-thread (odometry's five keys, the high level's state) reaches the loop together, so a
-logic never saw the first without the others."""
+"""For recordings without batch ids (older than them, or of a blackboard bound to no
+loop): writes within this much (wall time) of a batch's first are fed as one batch,
+without letting the logics run in between. A guess -- what the HALs and the bridge write
+from the ROS thread usually reaches the loop together -- that load can prove wrong;
+recordings with batch ids say which writes the logics saw together."""
+
+
+def _in_batch_order(inputs: list[_Input]) -> list[_Input]:
+    """``inputs`` (in log order) with the writes in batch order.
+
+    Log time and batch are taken a moment apart in the writer's thread, so where writes
+    of two threads interleave their orders may disagree: between two other inputs
+    (switches, HAL loads) the writes are sorted by batch, stably. A write whose key is
+    written again with an earlier batch counts in that batch: it was never seen on its
+    own, and it must still come before the write that replaced it.
+    """
+    if any(i.kind == "set" and i.batch is None for i in inputs):
+        return inputs  # no batches (or not throughout): log order and the wall-time rule
+    later: dict[str, int] = {}
+    effective: list[_Input] = []
+    for item in reversed(inputs):
+        if item.kind == "set":
+            assert item.batch is not None
+            batch = min(item.batch, later.get(item.key, item.batch))
+            later[item.key] = batch
+            item = replace(item, batch=batch)
+        effective.append(item)
+    effective.reverse()
+    ordered: list[_Input] = []
+    run: list[_Input] = []
+    for item in effective:
+        if item.kind == "set":
+            run.append(item)
+            continue
+        ordered.extend(sorted(run, key=lambda i: i.batch or 0))
+        run = []
+        ordered.append(item)
+    ordered.extend(sorted(run, key=lambda i: i.batch or 0))
+    return ordered
 
 
 def _inputs(recording: Recording, prefix: str) -> list[_Input]:
@@ -216,7 +257,7 @@ def _inputs(recording: Recording, prefix: str) -> list[_Input]:
         if m.topic == bb and not _is_logic(m.data["writer"]):
             inputs.append(_Input(timeline(m.log_time_ns), "set", m.data["key"],
                                  from_json(m.data["value"]), m.data["writer"],
-                                 bool(m.data["stale"]), m.log_time_ns))
+                                 bool(m.data["stale"]), m.log_time_ns, m.data.get("batch")))
         elif m.topic == low:
             kind, subject, detail = m.data["kind"], m.data["subject"], m.data["detail"]
             if kind == "switch_requested":
@@ -235,7 +276,7 @@ def _inputs(recording: Recording, prefix: str) -> list[_Input]:
                 # shut down here. What follows (HALs unloaded, entries marked stale) is
                 # the replay's own shutdown's to produce, not an input.
                 break
-    return inputs
+    return _in_batch_order(inputs)
 
 
 # ---- the replay's side ---------------------------------------------------------------------
@@ -418,11 +459,17 @@ async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _Repl
                 warnings.append(f"t={item.t_s:.3f} s: HAL {item.key!r} was loaded in the "
                                 f"recording but not in the replay within {hal_wait_s} s")
         fed += 1
+        # One recorded batch is fed in one go (one loop callback: this step), then the
+        # logics run, as they ran live between two batches.
         following = inputs[n + 1] if n + 1 < len(inputs) else None
         if not batch_ns:
             batch_ns = item.wall_ns
-        batched = (following is not None and item.kind == following.kind == "set"
-                   and following.wall_ns - batch_ns < BATCH_NS)
+        if following is None or not item.kind == following.kind == "set":
+            batched = False
+        elif item.batch is not None and following.batch is not None:
+            batched = following.batch == item.batch
+        else:
+            batched = following.wall_ns - batch_ns < BATCH_NS
         if not batched:
             batch_ns = 0
         if not catching_up and not batched:

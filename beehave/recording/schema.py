@@ -47,6 +47,11 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "writer": {"type": ["string", "null"],
                        "description": "hal:<name>, logic:<path>, ros:<bridge> or null"},
             "stale": {"type": "boolean"},
+            "batch": {"type": "integer",
+                      "description": "changes with one batch were stored between the "
+                                     "same two looks of the logics at the blackboard: "
+                                     "a replay feeds them together (absent: blackboard "
+                                     "not bound to a loop, or an older recording)"},
         },
         "required": ["key", "value", "stamp", "writer", "stale"],
     },
