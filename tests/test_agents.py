@@ -112,14 +112,17 @@ class Proc:
         self.popen.wait(10)
         self._reader.join(5)
 
-    def stop(self) -> None:
+    def terminate(self) -> None:
         if self.popen.poll() is None:
             self.popen.terminate()
-            try:
-                self.popen.wait(10)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait(10)
+
+    def stop(self) -> None:
+        self.terminate()
+        try:
+            self.popen.wait(10)
+        except subprocess.TimeoutExpired:
+            self.popen.kill()
+            self.popen.wait(10)
         self._reader.join(5)
 
 
@@ -129,6 +132,8 @@ def procs() -> Iterator[list[Proc]]:
     try:
         yield started
     finally:
+        for proc in started:  # all at once: on a loaded machine each takes a while
+            proc.terminate()
         for proc in started:
             proc.stop()
 
