@@ -1,5 +1,5 @@
 """``beehave fleet --fast``: the real-time factor of the whole factory fleet, every agent
-in its own process (the sim, each ATV's two managers, 5 machines, 3 stations), with 4 and
+in its own process (the sim, each ATV's two managers, each machine and station), with 4 and
 10 ATVs. The sim alone (no controllers, same run) is the baseline: the ratio says what the
 agents cost. Target: ≥ 1× at 10 ATVs (issue 10).
 
@@ -47,6 +47,14 @@ def _sim_alone(robots: int) -> float:
         return float(json.loads(report_path.read_text())["time_s"]) / max(took, 1e-9)
 
 
+def _processes(robots: int) -> int:
+    """The sim, the ATVs, and one agent per machine and charging station."""
+    from behaviours.fleet.site import site
+
+    places = site("factory")
+    return 1 + robots + len(places.machines) + len(places.stations)
+
+
 def main() -> list[dict[str, Any]]:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -60,7 +68,7 @@ def main() -> list[dict[str, Any]]:
                                sim_alone_x=round(alone, 2),
                                ratio_to_sim_alone=round(rtf / alone, 3),
                                checks_passed=result["passed"],
-                               processes=1 + robots + 5 + 3))
+                               processes=_processes(robots)))
     return rows
 
 

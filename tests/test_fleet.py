@@ -263,3 +263,15 @@ def test_bad_fleet_arguments_exit_2_naming_the_problem(
         main(argv)
     assert done.value.code == 2
     assert says in capsys.readouterr().err
+
+
+def test_the_watcher_counts_what_it_cannot_read() -> None:
+    watch = Watch()
+    watch.on_state("{not json")
+    watch.on_order('["no", "order"]')
+    watch.on_directory('{"no agent": 1}')
+    watch.on_order(json.dumps({"order": "o1", "machine": "m", "state": "announced",
+                               "atv": None, "awards": [], "reason": None, "stamp": 1.0}))
+    assert watch.malformed == {"/factory/state": 1, "/fleet/orders": 1,
+                               "/beehave/agents/directory": 1}
+    assert list(watch.orders) == ["o1"] and watch.state == {} and watch.agents == {}

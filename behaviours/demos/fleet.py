@@ -41,8 +41,9 @@ from rich.table import Table
 from rich.text import Text
 
 from beehave.cli import http_address_arg
-from behaviours.fleet.mission import ORDERS_TOPIC
+from behaviours.fleet.mission import ORDERS_QOS, ORDERS_TOPIC
 from behaviours.fleet.site import site
+from robots.topics import FACTORY_STATE
 
 STOP_TIMEOUT_S = 15.0
 #: The agents' directory lease. Above the 2 s default: at full simulation speed a 2-core
@@ -77,19 +78,29 @@ class Watch:
     orders: dict[str, dict[str, Any]] = field(default_factory=dict)
     violations: list[str] = field(default_factory=list)
     agents: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Messages that could not be read, by topic (shown in the summary, never silent).
+    malformed: dict[str, int] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
+    def _bad(self, topic: str) -> None:
+        with self.lock:
+            self.malformed[topic] = self.malformed.get(topic, 0) + 1
+
     def on_state(self, data: str) -> None:
-        with contextlib.suppress(ValueError):
+        try:
             state = json.loads(data)
-            with self.lock:
-                self.state = state
+        except ValueError:
+            self._bad(FACTORY_STATE)
+            return
+        with self.lock:
+            self.state = state
 
     def on_order(self, data: str) -> None:
         try:
             report = json.loads(data)
             order = report["order"]
         except (ValueError, KeyError, TypeError):
+            self._bad(ORDERS_TOPIC)
             return
         with self.lock:
             if report.get("violation"):
@@ -101,10 +112,14 @@ class Watch:
             self.orders[order] = report
 
     def on_directory(self, data: str) -> None:
-        with contextlib.suppress(ValueError, KeyError, TypeError):
+        try:
             entry = json.loads(data)
-            with self.lock:
-                self.agents[entry["agent"]] = entry
+            name = entry["agent"]
+        except (ValueError, KeyError, TypeError):
+            self._bad("/beehave/agents/directory")
+            return
+        with self.lock:
+            self.agents[name] = entry
 
 
 def fleet_view(watch: Watch) -> dict[str, list[dict[str, Any]]]:
@@ -219,19 +234,17 @@ class Processes:
 
 
 def _watch(ros: Any, watch: Watch) -> None:
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import String
 
     from beehave.agents.agent import DIRECTORY_READER_QOS
     from beehave.agents.directory import DIRECTORY_TOPIC
+    from hal.factory import STATE_QOS
 
     node = ros.create_node("fleet_watch")
-    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    node.create_subscription(String, "/factory/state", lambda m: watch.on_state(m.data),
-                             latched)
+    node.create_subscription(String, FACTORY_STATE, lambda m: watch.on_state(m.data),
+                             STATE_QOS)
     node.create_subscription(String, ORDERS_TOPIC, lambda m: watch.on_order(m.data),
-                             QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+                             ORDERS_QOS)
     node.create_subscription(String, DIRECTORY_TOPIC, lambda m: watch.on_directory(m.data),
                              DIRECTORY_READER_QOS)
 
@@ -242,8 +255,7 @@ def checks(report: dict[str, Any], watch: Watch) -> list[tuple[str, bool, str]]:
     out: list[tuple[str, bool, str]] = []
     machines = report.get("machines", {})
     empty = [f"{n} {m['empty_s']:.0f} s" for n, m in machines.items() if m["empty_s"] > 0]
-    lowest = min((m["min_level"] / m.get("capacity", 100.0) if "capacity" in m
-                  else m["min_level"] for m in machines.values()), default=0.0)
+    lowest = min((m["min_level"] / m["capacity"] for m in machines.values()), default=0.0)
     out.append(("no machine ran empty", not empty and bool(machines),
                 "; ".join(empty) or f"lowest level {lowest:.2f}"))
     stations = report.get("stations", {})
@@ -369,6 +381,8 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
         summary.add_row(name, Text("ok", style="green") if ok else Text("FAILED", style="red"),
                         measured)
     console.print(summary)
+    if watch.malformed:
+        console.print(f"[yellow]unreadable messages:[/] {watch.malformed}")
     console.print(f"picture: {picture}   facts: {report_path}   logs"
                   f"{' and recordings' if record else ''}: {fleet_dir}/")
     print(json.dumps({"fleet": {"robots": robots, "sim_s": round(now_s, 1),

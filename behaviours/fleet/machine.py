@@ -23,13 +23,14 @@ from std_msgs.msg import String
 from beehave.agents import AgentBehavior
 from beehave.agents.protocols import contract_net
 from beehave.errors import BeehaveError, Interrupted, ProtocolFailed
-from behaviours.fleet.mission import MissionController
+from behaviours.fleet.mission import ORDERS_QOS, ORDERS_TOPIC, MissionController
 from behaviours.fleet.process import say, serve
 from behaviours.fleet.site import site
+from hal.factory import STATE_QOS
+from robots.topics import FACTORY_STATE
 
 log = logging.getLogger(__name__)
 
-FACTORY_STATE = "/factory/state"
 
 
 class Replenish(AgentBehavior):
@@ -60,12 +61,9 @@ class Replenish(AgentBehavior):
             return None
 
     def run(self) -> None:
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-
-        qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        latest = self.ros.latest(String, FACTORY_STATE, qos=qos)
-        controller = MissionController(self.manager.node)
+        latest = self.ros.latest(String, FACTORY_STATE, qos=STATE_QOS)
+        controller = MissionController(self.ros.publisher(String, ORDERS_TOPIC,
+                                                          qos=ORDERS_QOS))
         while self.sleep(0.5):
             level = self._level(latest)
             if level is None or level[0] >= self.below * level[1]:

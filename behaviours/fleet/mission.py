@@ -30,12 +30,14 @@ import threading
 import time
 from typing import Any
 
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from transitions import Machine, MachineError
 
 log = logging.getLogger(__name__)
 
 ORDERS_TOPIC = "/fleet/orders"
+ORDERS_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 SCHEMA = "beehave.fleet.order/1"
 STATES = ["created", "announced", "awarded", "delivered", "failed"]
 TRANSITIONS: list[Any] = [
@@ -101,13 +103,12 @@ class Mission:
 
 
 class MissionController:
-    """Makes the :class:`Mission` of every order of one node and publishes its reports."""
+    """Makes the :class:`Mission` of every order and publishes its reports with
+    ``publisher`` (make it with the behaviour's ``self.ros.publisher(String, ORDERS_TOPIC,
+    qos=ORDERS_QOS)``, so that it ends with the behaviour)."""
 
-    def __init__(self, node: Any) -> None:
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-        self._pub = node.create_publisher(
-            String, ORDERS_TOPIC, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    def __init__(self, publisher: Any) -> None:
+        self._pub = publisher
         self.missions: dict[str, Mission] = {}
 
     def _publish(self, report: dict[str, Any]) -> None:

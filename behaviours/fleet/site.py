@@ -28,24 +28,6 @@ class Place:
         return (self.x_m, self.y_m)
 
 
-@dataclass(frozen=True)
-class SpeedZone:
-    name: str
-    points_m: tuple[tuple[float, float], ...]
-    max_speed_mps: float
-
-    def contains(self, x_m: float, y_m: float) -> bool:
-        inside = False
-        pts = self.points_m
-        j = len(pts) - 1
-        for i in range(len(pts)):
-            (xi, yi), (xj, yj) = pts[i], pts[j]
-            if (yi > y_m) != (yj > y_m) and x_m < xi + (y_m - yi) * (xj - xi) / (yj - yi):
-                inside = not inside
-            j = i
-        return inside
-
-
 def _world_file(world: str) -> str:
     from pathlib import Path
 
@@ -85,8 +67,8 @@ class Site:
         #: Battery capacity (Wh) of each robot the world places, by namespace.
         self.battery_wh = {r.namespace: r.battery.capacity_wh for r in w.robots
                            if r.battery.capacity_wh}
-        self.zones = [SpeedZone(z.name, tuple((p[0], p[1]) for p in z.points_m),
-                                z.max_speed_mps) for z in w.zones]
+        #: The speed zones (``robots.world.Zone``: name, points_m, max_speed_mps, contains).
+        self.zones = list(w.zones)
 
     @functools.cached_property
     def planner(self) -> GridPlanner:
