@@ -94,11 +94,12 @@ class FactoryHAL(RosHAL):
         self._entities.append(("subscription", sub))
 
     def _entries(self, msg: Any) -> dict[str, Any]:
-        entries = factory_entries(json.loads(msg.data), self.namespace)
+        data = json.loads(msg.data)
+        entries = factory_entries(data, self.namespace)
         if entries is None:
             if not self._warned_missing:
                 self._warned_missing = True
-                robots = sorted(json.loads(msg.data).get("robots", {}))
+                robots = sorted(data.get("robots", {}))
                 log.warning("HAL 'factory': robot %r is not in the factory's state; its "
                             "robots: %s", self.namespace, ", ".join(robots) or "none")
             return {}

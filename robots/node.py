@@ -686,7 +686,7 @@ def sim_main(argv: list[str]) -> int:
         extra = "" if factory is None else f"; {topics.FACTORY_STATE} at " \
             f"{topics.FACTORY_STATE_RATE_HZ:g} Hz"
         print(f"beehave sim: world {sim.world.name!r} running {speed}: {robots}; "
-              f"/clock at {topics.CLOCK_RATE_HZ:g} Hz{extra}; Ctrl-C to stop", flush=True)
+              f"/clock at {args.clock_rate_hz:g} Hz{extra}; Ctrl-C to stop", flush=True)
         deadline = None if args.duration_s is None else time.monotonic() + args.duration_s
         # Wake now and then to notice a failed simulation (an on_step callback raised).
         while not stop.wait(0.5 if deadline is None

@@ -481,13 +481,14 @@ def test_beehave_sim_factory_writes_report_and_picture_on_sigint(tmp_path: Path)
     report, picture = tmp_path / "facts.json", tmp_path / "fleet.png"
     proc = subprocess.Popen(
         [sys.executable, "-m", "robots.node", "factory", "--robots", "3", "--fast",
-         "--report", str(report), "--picture", str(picture)],
+         "--clock-rate-hz", "50", "--report", str(report), "--picture", str(picture)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None
         ready = proc.stdout.readline()
         assert "world 'factory' running" in ready and "atv3 (kobuki)" in ready, ready
         assert "atv4" not in ready
+        assert "/clock at 50 Hz" in ready, ready  # the rate in use, not the default
         time.sleep(0.5)  # let it step a little: the report then has a positive sim time
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
