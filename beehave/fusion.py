@@ -63,7 +63,7 @@ from dataclasses import dataclass
 from numbers import Real
 from typing import Any, ClassVar
 
-from beehave.blackboard import Change, Subscription, _Slot
+from beehave.blackboard import Change, _Slot
 from beehave.errors import BadProposal, ConfigError, UnknownFusionSource
 from beehave.events import Event, EventKind
 from beehave.hal import HAL, MAX_DURATION_S
@@ -275,7 +275,6 @@ class Arbiter(HAL):
     _checked: dict[str, tuple[Any, Any]]
     _bad: dict[str, Any]
     _safe_sent: bool
-    _sub: Subscription | None
     locks: dict[str, FusionLock]
     locked: tuple[str, ...]
     _lock_slots: tuple[tuple[str, _Slot, FusionLock], ...]
@@ -322,7 +321,6 @@ class Arbiter(HAL):
         self._checked = {}
         self._bad = {}
         self._safe_sent = False
-        self._sub = None
         self._slots = ()
         self.locked = ()
         """The locks engaged at the last cycle."""
@@ -401,8 +399,9 @@ class Arbiter(HAL):
         self._lock_slots = tuple((name, board._slot(lock_key(self.actuator, name)), spec)
                                  for name, spec in self.locks.items())
         # Checks every change when it is written, so that a bad value is reported even if
-        # it is overwritten before the next cycle looks.
-        self._sub = self.blackboard.subscribe(f"fusion/{self.actuator}/*", self._on_change)
+        # it is overwritten before the next cycle looks. The HAL's blackboard client closes
+        # the subscription when the arbiter is unloaded.
+        self.blackboard.subscribe(f"fusion/{self.actuator}/*", self._on_change)
         await super().on_load()
 
     def _on_change(self, change: Change) -> None:

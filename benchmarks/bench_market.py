@@ -23,12 +23,9 @@ Children: ``tests/market_node.py`` (a scripted broker).
 from __future__ import annotations
 
 import functools
-import json
 import math
 import os
 import random
-import signal
-import subprocess
 import sys
 import threading
 import time
@@ -38,11 +35,16 @@ from typing import Any
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(101, 200)))
 
+TESTS = Path(__file__).resolve().parents[1] / "tests"
+sys.path.insert(0, str(TESTS))  # the agent tests' process helper, shared with them
+
+from agent_procs import AgentProc, stop_all  # noqa: E402
+
 from beehave.agents import Agent, Role, Task, TaskState, auction  # noqa: E402
 from beehave.agents.market import Bids, choose  # noqa: E402
 from benchmarks._util import median, percentile, report  # noqa: E402
 
-NODE = Path(__file__).resolve().parents[1] / "tests" / "market_node.py"
+NODE = TESTS / "market_node.py"
 SEEDS = int(os.environ.get("BENCH_MARKET_SEEDS", 50))
 N_AUCTIONS = int(os.environ.get("BENCH_MARKET_N", 60))
 N_KILLS = int(os.environ.get("BENCH_MARKET_KILLS", 3))
@@ -164,44 +166,10 @@ def quality() -> list[dict[str, Any]]:
 
 
 # ---------------------------------------------------------------------- over DDS
-class _Broker:
-    def __init__(self, name: str, caps: str, cost: float) -> None:
-        self.name = name
-        self.popen = subprocess.Popen(
-            [sys.executable, str(NODE), name, "--caps", caps, "--cost", str(cost),
-             "--lease-s", str(LEASE_S)], stdout=subprocess.PIPE, text=True,
-            env=dict(os.environ))
-        self.lines: list[dict[str, Any]] = []
-        self.cond = threading.Condition()
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        assert self.popen.stdout is not None
-        for line in self.popen.stdout:
-            try:
-                event = json.loads(line)
-            except ValueError:
-                continue
-            with self.cond:
-                self.lines.append(event)
-                self.cond.notify_all()
-
-    def wait(self, kind: str, timeout_s: float = 60.0, **match: Any) -> None:
-        with self.cond:
-            ok = self.cond.wait_for(lambda: any(
-                e["event"] == kind and all(e.get(k) == v for k, v in match.items())
-                for e in self.lines), timeout_s)
-        if not ok:
-            raise RuntimeError(f"{self.name}: no {kind} {match} within {timeout_s} s")
-
-    def stop(self, sig: int = signal.SIGTERM) -> None:
-        if self.popen.poll() is None:
-            self.popen.send_signal(sig)
-        try:
-            self.popen.wait(10)
-        except subprocess.TimeoutExpired:
-            self.popen.kill()
-            self.popen.wait(10)
+def _Broker(name: str, caps: str, cost: float) -> AgentProc:  # noqa: N802 - reads as a class
+    """A scripted broker process (``tests/market_node.py``)."""
+    return AgentProc(name, [sys.executable, str(NODE), name, "--caps", caps,
+                            "--cost", str(cost), "--lease-s", str(LEASE_S)], wait_s=60.0)
 
 
 def _wait_brokers(agent: Agent, names: set[str]) -> None:
@@ -218,7 +186,7 @@ def award_latency() -> list[dict[str, Any]]:
     rows = []
     try:
         for p in procs:
-            p.wait("ready")
+            p.wait_event("ready")
         with Agent(f"bm{tag}_boss", lease_s=LEASE_S) as boss:
             _wait_brokers(boss, {p.name for p in procs})
             samples = []
@@ -233,16 +201,15 @@ def award_latency() -> list[dict[str, Any]]:
             rows.append(report("market_award_10_brokers_p99", p99, "ms", "<= 30 ms",
                                p99 <= 30.0, n=len(samples)))
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
     return rows
 
 
-def _one_kill(boss: Agent, backup: _Broker, name: str, task_id: str) -> float:
+def _one_kill(boss: Agent, backup: AgentProc, name: str, task_id: str) -> float:
     """Seconds from killing the working member to the award of its role to the backup."""
     victim = _Broker(name, "carry", 1.0)
     try:
-        victim.wait("ready")
+        victim.wait_event("ready")
         _wait_brokers(boss, {victim.name, backup.name})
         killed_at: list[float] = []
         awarded_at: list[float] = []
@@ -258,15 +225,15 @@ def _one_kill(boss: Agent, backup: _Broker, name: str, task_id: str) -> float:
         thread = threading.Thread(target=lambda: done.append(
             auction(boss, task, reply_by_s=2.0, observer=seen)))
         thread.start()
-        victim.wait("step", step="sleep:2")
+        victim.wait_event("step", step="sleep:2")
         killed_at.append(time.monotonic())
-        victim.stop(signal.SIGKILL)
+        victim.kill()
         thread.join(60)
         if not done or done[0].state is not TaskState.COMPLETED:
             raise RuntimeError(f"the task was not completed after the kill: {done}")
         return awarded_at[0] - killed_at[0]
     finally:
-        victim.stop(signal.SIGKILL)
+        victim.kill()
 
 
 def reaward() -> list[dict[str, Any]]:
@@ -274,7 +241,7 @@ def reaward() -> list[dict[str, Any]]:
     samples = []
     backup = _Broker(f"br{tag}_backup", "carry", 5.0)
     try:
-        backup.wait("ready")
+        backup.wait_event("ready")
         with Agent(f"br{tag}_boss", lease_s=LEASE_S) as boss:
             for k in range(N_KILLS):
                 samples.append(_one_kill(boss, backup, f"br{tag}_v{k}", f"r{k}"))

@@ -5,8 +5,10 @@ HAL ``name``        blackboard keys                                      methods
 ==================  ===================================================  ======================
 ``fusion_cmd_vel``  ``fusion/cmd_vel/<source>`` (proposals),             ``propose(source,
                     ``fusion/cmd_vel/winner``, ``fusion/cmd_vel/         (linear_mps,
-                    rejected``                                           angular_rps))``,
-                                                                         ``withdraw(source)``
+                    rejected``, ``fusion/cmd_vel/locks/<lock>``          angular_rps))``,
+                    (True: engaged), ``fusion/cmd_vel/locked``           ``withdraw(source)``,
+                                                                         ``set_lock(lock,
+                                                                         engaged)``
 ==================  ===================================================  ======================
 
 A proposal is ``(linear_mps, angular_rps)``; the winner is published on ``cmd_vel``

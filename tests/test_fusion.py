@@ -463,6 +463,8 @@ def test_the_arbiter_cycles_at_its_rate_and_stops_the_actuator_at_unload(
     low_level.switch("none")  # nobody holds the arbiter any more: unloaded, safe state
     assert wait_until(lambda: arbiter_name("cmd_vel") not in low_level.hals.loaded, 5)
     assert Recorder.sent_by_all[-1] == STOP
+    # Its blackboard subscription ended with it.
+    assert not [s for s in low_level.blackboard._subs if s.pattern == "fusion/cmd_vel/*"]
 
 
 def test_a_garbage_proposal_does_not_crash_the_running_arbiter(

@@ -10,9 +10,6 @@ generous timeouts; nothing asserts a duration.
 from __future__ import annotations
 
 import itertools
-import os
-import signal
-import subprocess
 import sys
 import threading
 from collections.abc import Callable, Iterator
@@ -23,7 +20,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from agents_events import read_events  # noqa: E402
+from agent_procs import AgentProc, stop_all  # noqa: E402
 from market_node import ScriptedBroker  # noqa: E402
 
 from beehave import HighLevelBehaviorManager, Status  # noqa: E402
@@ -372,63 +369,24 @@ def test_interrupted_auctioneer_cancels_every_role_it_started(
 
 
 # ---------------------------------------------------------------------- processes
-class Proc:
-    """A broker process whose JSON lines are collected as they come."""
-
-    def __init__(self, name: str, caps: str, cost: float) -> None:
-        self.name = name
-        self.popen = subprocess.Popen(
-            [sys.executable, str(NODE), name, "--caps", caps, "--cost", str(cost),
-             "--lease-s", str(LEASE_S)], stdout=subprocess.PIPE, text=True,
-            env=dict(os.environ))
-        self.events: list[dict[str, Any]] = []
-        self.cond = threading.Condition()
-        assert self.popen.stdout is not None
-        self.reader = threading.Thread(target=read_events,
-                                       args=(self.popen.stdout, self.events, self.cond),
-                                       daemon=True)
-        self.reader.start()
-
-    def wait_event(self, kind: str, **match: Any) -> dict[str, Any]:
-        def found() -> dict[str, Any] | None:
-            return next((e for e in self.events if e["event"] == kind
-                         and all(e.get(k) == v for k, v in match.items())), None)
-
-        with self.cond:
-            self.cond.wait_for(lambda: found() is not None, WAIT_S)
-            hit = found()
-        assert hit is not None, f"{self.name}: no {kind} {match}: {self.events}"
-        return hit
-
-    def kill(self) -> None:
-        if self.popen.poll() is None:
-            self.popen.send_signal(signal.SIGKILL)
-        self.popen.wait(10)
-
-    def stop(self) -> None:
-        if self.popen.poll() is None:
-            self.popen.terminate()
-            try:
-                self.popen.wait(10)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait(10)
-        self.reader.join(5)
+def Proc(name: str, caps: str, cost: float) -> AgentProc:  # noqa: N802 - reads as a class
+    """A broker process of ``market_node.py``."""
+    return AgentProc(name, [sys.executable, str(NODE), name, "--caps", caps,
+                            "--cost", str(cost), "--lease-s", str(LEASE_S)], wait_s=WAIT_S)
 
 
 @pytest.fixture
-def procs() -> Iterator[list[Proc]]:
-    started: list[Proc] = []
+def procs() -> Iterator[list[AgentProc]]:
+    started: list[AgentProc] = []
     try:
         yield started
     finally:
-        for proc in started:
-            proc.stop()
+        stop_all(started)
 
 
 def test_a_coalition_member_killed_mid_task_dissolves_it_and_the_task_still_completes(
         boss: Agent, brokers: Callable[..., Agent], reports: Reports,
-        procs: list[Proc]) -> None:
+        procs: list[AgentProc]) -> None:
     cheap = Proc("kill_fetch_cheap", "carry", 1.0)
     dear = Proc("kill_fetch_dear", "carry", 3.0)
     procs.extend([cheap, dear])
