@@ -11,9 +11,6 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import os
-import signal
-import subprocess
 import sys
 import threading
 import time
@@ -25,7 +22,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from agents_events import read_events  # noqa: E402
+from agent_procs import AgentProc, stop_all  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from beehave import (  # noqa: E402
@@ -69,61 +66,20 @@ WAIT_S = 30.0  # generous: the machine may be loaded
 PROBE_S = 0.3  # names in this file are unique: a short probe keeps the tests fast
 
 
-class Proc:
-    """An agent process whose JSON lines are collected as they come."""
+class Proc(AgentProc):
+    """An agent process (``tests/agents_node.py``) whose JSON lines are collected as they
+    come."""
 
     def __init__(self, name: str, **options: Any) -> None:
         args = [sys.executable, str(NODE), name, "--lease-s", str(LEASE_S)]
         for key, value in options.items():
             args += [f"--{key.replace('_', '-')}", str(value)]
-        self.name = name
-        self.popen = subprocess.Popen(args, stdout=subprocess.PIPE, text=True,
-                                      env=dict(os.environ))
-        self.events: list[dict[str, Any]] = []
-        self._cond = threading.Condition()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.popen.stdout is not None
-        read_events(self.popen.stdout, self.events, self._cond)
-
-    def wait_event(self, kind: str, *, timeout_s: float = WAIT_S,
-                   **match: Any) -> dict[str, Any]:
-        def found() -> dict[str, Any] | None:
-            return next((e for e in self.events if e["event"] == kind
-                         and all(e.get(k) == v for k, v in match.items())), None)
-
-        with self._cond:
-            self._cond.wait_for(lambda: found() is not None, timeout_s)
-            event = found()
-        assert event is not None, f"{self.name}: no {kind!r} event within {timeout_s} s; " \
-                                  f"events: {self.events}"
-        return event
+        super().__init__(name, args, wait_s=WAIT_S)
 
     def saw(self, kind: str, **match: Any) -> bool:
-        with self._cond:
+        with self.cond:
             return any(e["event"] == kind and all(e.get(k) == v for k, v in match.items())
                        for e in self.events)
-
-    def kill(self) -> None:
-        if self.popen.poll() is None:
-            self.popen.send_signal(signal.SIGKILL)
-        self.popen.wait(10)
-        self._reader.join(5)
-
-    def terminate(self) -> None:
-        if self.popen.poll() is None:
-            self.popen.terminate()
-
-    def stop(self) -> None:
-        self.terminate()
-        try:
-            self.popen.wait(10)
-        except subprocess.TimeoutExpired:
-            self.popen.kill()
-            self.popen.wait(10)
-        self._reader.join(5)
 
 
 @pytest.fixture
@@ -132,10 +88,7 @@ def procs() -> Iterator[list[Proc]]:
     try:
         yield started
     finally:
-        for proc in started:  # all at once: on a loaded machine each takes a while
-            proc.terminate()
-        for proc in started:
-            proc.stop()
+        stop_all(started)
 
 
 @pytest.fixture
@@ -358,7 +311,7 @@ def test_awaitable_api_for_logics(ros: RosContext) -> None:
             with pytest.raises(ConfigError, match="areceive"):
                 asyncio.run(bad(wrong))
             with pytest.raises(ConfigError, match="receive"):
-                a.receive(timeout_s=wrong)
+                a.receive(timeout_s=wrong)  # type: ignore[arg-type]
 
 
 def test_unattached_manager_names_the_fix() -> None:
@@ -672,7 +625,7 @@ def test_a_stalled_observer_does_not_expire_the_leases_of_live_agents(
     from beehave.agents import directory as d
 
     clock = [1000.0]
-    monkeypatch.setattr(d.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(d.time, "monotonic", lambda: clock[0])  # type: ignore[attr-defined]
     view = d.Directory("observer")
     departed: list[str] = []
     view._on_departure(lambda name, reason: departed.append(f"{name}: {reason}"))
