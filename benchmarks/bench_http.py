@@ -148,22 +148,8 @@ def switch_roundtrip(server: HttpServer, hl: HighLevelBehaviorManager) -> list[d
 
 # ---- the robot-side CPU ratio, on a real robot process ---------------------------------------
 
-SHUTTLE = """\
-name: shuttle
-engine: state_machine
-actions:
-  to_drop:
-    {use: "behaviours.actions:Navigation", params: {goal: emili_dropoff, world: warehouse}}
-  to_charge:
-    {use: "behaviours.actions:Navigation", params: {goal: emili_charging, world: warehouse}}
-initial: to_drop
-states:
-  - {name: to_drop, start: to_drop}
-  - {name: to_charge, start: to_charge}
-transitions:
-  - {source: to_drop, dest: to_charge, on: succeeded}
-  - {source: to_charge, dest: to_drop, on: succeeded}
-"""
+#: The state machine tests/test_http_browser.py drives too.
+SHUTTLE = ROOT / "tests" / "data" / "shuttle.yaml"
 
 CONFIG = """\
 namespace: emili1
@@ -186,10 +172,8 @@ def _cpu_s(pid: int) -> float:
 
 def cpu_ratio() -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as folder:
-        shuttle = Path(folder) / "shuttle.yaml"
-        shuttle.write_text(SHUTTLE)
         config = Path(folder) / "emili.yaml"
-        config.write_text(CONFIG.format(shuttle=shuttle))
+        config.write_text(CONFIG.format(shuttle=SHUTTLE))
         proc = subprocess.Popen(
             [sys.executable, "-m", "beehave.cli", "run", str(config), "--http", "127.0.0.1:0"],
             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

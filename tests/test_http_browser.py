@@ -35,23 +35,9 @@ if not Path(CHROMIUM).exists():  # pragma: no cover - `make setup` installs it
     pytest.skip(f"{CHROMIUM} is not installed (Debian package chromium)",
                 allow_module_level=True)
 
-SHUTTLE = """\
-# EMILI shuttles between its drop-off and its charging station.
-name: shuttle
-engine: state_machine
-actions:
-  to_drop:
-    {use: "behaviours.actions:Navigation", params: {goal: emili_dropoff, world: warehouse}}
-  to_charge:
-    {use: "behaviours.actions:Navigation", params: {goal: emili_charging, world: warehouse}}
-initial: to_drop
-states:
-  - {name: to_drop, start: to_drop}
-  - {name: to_charge, start: to_charge}
-transitions:
-  - {source: to_drop, dest: to_charge, on: succeeded}
-  - {source: to_charge, dest: to_drop, on: succeeded}
-"""
+#: EMILI shuttles between its drop-off and its charging station (shared with
+#: benchmarks/bench_http.py).
+SHUTTLE = ROOT / "tests" / "data" / "shuttle.yaml"
 
 CONFIG = """\
 namespace: emili1
@@ -121,10 +107,8 @@ class RobotProcess:
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RobotProcess]:
     folder = tmp_path_factory.mktemp("webview")
-    shuttle = folder / "shuttle.yaml"
-    shuttle.write_text(SHUTTLE)
     config = folder / "emili.yaml"
-    config.write_text(CONFIG.format(shuttle=shuttle))
+    config.write_text(CONFIG.format(shuttle=SHUTTLE))
     process = RobotProcess(config)
     try:
         process.wait_url(60)

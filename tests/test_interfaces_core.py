@@ -236,7 +236,8 @@ def test_events_are_numbered_kept_in_a_ring_and_read_on_from_a_seq(
 
 
 def test_subscribers_get_every_event_and_one_that_raises_breaks_nothing(
-        plane: ControlPlane, hl: HighLevelBehaviorManager) -> None:
+        plane: ControlPlane, hl: HighLevelBehaviorManager,
+        caplog: pytest.LogCaptureFixture) -> None:
     got: list[dict[str, Any]] = []
     lock = threading.Lock()
 
@@ -266,6 +267,9 @@ def test_subscribers_get_every_event_and_one_that_raises_breaks_nothing(
     requested = next(e for e in ring if e["kind"] == "switch_requested"
                      and e["subject"] == "drive")
     assert requested["detail"] == {"params": {}}
+    # The broken listener's exception was reported, not dropped silently.
+    assert any("event listener" in r.getMessage() and r.exc_info is not None
+               and "observer bug" in str(r.exc_info[1]) for r in caplog.records)
 
 
 def test_close_stops_recording_and_a_shut_down_manager_refuses_switches() -> None:
