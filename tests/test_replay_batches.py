@@ -18,8 +18,10 @@ A replay by wall time shows ``30%`` before ``battery-low``: the first divergence
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import cast
 
@@ -27,6 +29,7 @@ import pytest
 
 from beehave.config import RobotConfig, parse_config
 from beehave.logic import Logic
+from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.recording import Recorder, read_recording
 from beehave.recording import recorder as recorder_module
 from beehave.recording.replay import replay
@@ -47,51 +50,59 @@ def _config() -> RobotConfig:
     }, source="bot.yaml")
 
 
-def _record(path: Path) -> DebugRobot:
-    hardware = DebugRobot(battery_percentage=40.0)
-    robot = Robot(_config(), only="low")
+@contextlib.contextmanager
+def _recorded_low(path: Path, config: RobotConfig,
+                  hardware: DebugRobot) -> Iterator[LowLevelBehaviorManager]:
+    """A low level on the debug HAL of ``hardware``, running and recorded to ``path``."""
+    robot = Robot(config, only="low")
     low = robot.low
     assert low is not None
     low.hals.register(DebugHAL, robot=hardware)
     with Recorder(path, flush_period_s=0.1) as recorder:
         recorder.attach_robot(robot)
         with low:
-            assert wait_until(lambda: hardware.display == "40%", 2)
-            board = low.blackboard
+            yield low
 
-            async def apart() -> None:  # seen apart, stamped close
-                board.set(KEY, 15.0, writer="hal:debug")
-                for _ in range(5):  # the logic's step: battery-low
-                    await asyncio.sleep(0)
-                board.set(KEY, 30.0, writer="hal:debug")
-                for _ in range(5):
-                    await asyncio.sleep(0)
 
-            low.call(apart())
-            assert list(hardware.display_history) == ["40%", "battery-low", "30%"]
+def _record(path: Path) -> DebugRobot:
+    hardware = DebugRobot(battery_percentage=40.0)
+    with _recorded_low(path, _config(), hardware) as low:
+        assert wait_until(lambda: hardware.display == "40%", 2)
+        board = low.blackboard
 
-            # Seen together, stamped far apart: the loop is held in a callback meanwhile.
-            entered, release = threading.Event(), threading.Event()
+        async def apart() -> None:  # seen apart, stamped close
+            board.set(KEY, 15.0, writer="hal:debug")
+            for _ in range(5):  # the logic's step: battery-low
+                await asyncio.sleep(0)
+            board.set(KEY, 30.0, writer="hal:debug")
+            for _ in range(5):
+                await asyncio.sleep(0)
 
-            def busy() -> None:
-                entered.set()
-                release.wait(5)
+        low.call(apart())
+        assert list(hardware.display_history) == ["40%", "battery-low", "30%"]
 
-            loop = low.loop
-            assert loop is not None
-            loop.call_soon_threadsafe(busy)
-            assert entered.wait(5)
-            hardware.set_battery(12.0)
-            time.sleep(0.005)
-            hardware.set_battery(35.0)
-            release.set()
+        # Seen together, stamped far apart: the loop is held in a callback meanwhile.
+        entered, release = threading.Event(), threading.Event()
 
-            async def settled() -> None:
-                for _ in range(10):
-                    await asyncio.sleep(0)
+        def busy() -> None:
+            entered.set()
+            release.wait(5)
 
-            low.call(settled())
-            assert list(hardware.display_history) == ["40%", "battery-low", "30%", "35%"]
+        loop = low.loop
+        assert loop is not None
+        loop.call_soon_threadsafe(busy)
+        assert entered.wait(5)
+        hardware.set_battery(12.0)
+        time.sleep(0.005)
+        hardware.set_battery(35.0)
+        release.set()
+
+        async def settled() -> None:
+            for _ in range(10):
+                await asyncio.sleep(0)
+
+        low.call(settled())
+        assert list(hardware.display_history) == ["40%", "battery-low", "30%", "35%"]
     return hardware
 
 
@@ -134,17 +145,11 @@ def test_a_recording_without_batches_replays_by_wall_time(tmp_path: Path,
                         lambda item: encode((item[0], item[1], None)))
     path = tmp_path / "old.mcap"
     hardware = DebugRobot(battery_percentage=40.0)
-    robot = Robot(_config(), only="low")
-    low = robot.low
-    assert low is not None
-    low.hals.register(DebugHAL, robot=hardware)
-    with Recorder(path, flush_period_s=0.1) as recorder:
-        recorder.attach_robot(robot)
-        with low:
-            for pct, text in ((40.0, "40%"), (15.0, "battery-low"), (30.0, "30%")):
-                hardware.set_battery(pct)
-                assert wait_until(lambda t=text: hardware.display == t, 2)  # type: ignore[misc]
-                time.sleep(0.01)
+    with _recorded_low(path, _config(), hardware):
+        for pct, text in ((40.0, "40%"), (15.0, "battery-low"), (30.0, "30%")):
+            hardware.set_battery(pct)
+            assert wait_until(lambda t=text: hardware.display == t, 2)  # type: ignore[misc]
+            time.sleep(0.01)
     assert all("batch" not in w for w in _battery_writes(path))
     result = replay(path, _config(), speed=None)
     assert result.divergence is None, result.divergence
@@ -182,33 +187,27 @@ def test_a_write_stored_before_the_step_counts_in_its_batch(tmp_path: Path) -> N
     belongs to the batch the step saw, although the loop delivers it only later."""
     path = tmp_path / "bot.mcap"
     hardware = DebugRobot()
-    robot = Robot(_pair_config(), only="low")
-    low = robot.low
-    assert low is not None
-    low.hals.register(DebugHAL, robot=hardware)
-    with Recorder(path, flush_period_s=0.1) as recorder:
-        recorder.attach_robot(robot)
-        with low:
-            assert wait_until(lambda: "debug" in low.hals.loaded, 2)
+    with _recorded_low(path, _pair_config(), hardware) as low:
+        assert wait_until(lambda: "debug" in low.hals.loaded, 2)
 
-            async def settled() -> None:
-                for _ in range(10):
-                    await asyncio.sleep(0)
+        async def settled() -> None:
+            for _ in range(10):
+                await asyncio.sleep(0)
 
-            low.call(settled())  # the logic waits on its watcher
-            board = low.blackboard
+        low.call(settled())  # the logic waits on its watcher
+        board = low.blackboard
 
-            def woken_then_written() -> None:  # one loop callback
-                board.set("in/x", 1, writer="hal:debug")  # wakes the logic
-                other = threading.Thread(target=board.set, args=("in/y", 1),
-                                         kwargs={"writer": "hal:debug"})
-                other.start()
-                other.join()
+        def woken_then_written() -> None:  # one loop callback
+            board.set("in/x", 1, writer="hal:debug")  # wakes the logic
+            other = threading.Thread(target=board.set, args=("in/y", 1),
+                                     kwargs={"writer": "hal:debug"})
+            other.start()
+            other.join()
 
-            loop = low.loop
-            assert loop is not None
-            loop.call_soon_threadsafe(woken_then_written)
-            assert wait_until(lambda: hardware.display == "1/1", 2)
+        loop = low.loop
+        assert loop is not None
+        loop.call_soon_threadsafe(woken_then_written)
+        assert wait_until(lambda: hardware.display == "1/1", 2)
     writes = {m.data["key"]: m.data["batch"] for m in read_recording(path).of(
         "/bot/beehave/blackboard") if m.data["key"].startswith("in/")}
     assert writes["in/x"] == writes["in/y"]

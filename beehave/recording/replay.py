@@ -375,7 +375,7 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
             state.outputs.append(Output(f"blackboard:{change.key}",
                                         [to_json(change.value), change.stale], state.now_s))
 
-    low.events.subscribe(on_event)
+    unsubscribe = low.events.subscribe(on_event)
     remove_tap = low.blackboard.tap(on_change)
     state.comparing = from_s is None
     began = time.monotonic()
@@ -388,6 +388,7 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
                 state.comparing = False  # the shutdown's safe states lie outside the window
     finally:
         remove_tap()
+        unsubscribe()
     wall = time.monotonic() - began
     span = (min(hi, inputs[-1].t_s) if inputs else 0.0) - (max(lo, 0.0) if inputs else 0.0)
     got = state.outputs

@@ -32,72 +32,51 @@ RECORDER = "/beehave/recorder"
 PROFILE = "ros2"
 """The MCAP profile: ROS 2 tools and Foxglove read the ``ros2msg`` channels as ROS data."""
 
-_ANY: dict[str, Any] = {}
 _TIME = {"type": "number", "description": "time.time() when it happened (s)"}
 
-SCHEMAS: dict[str, dict[str, Any]] = {
-    "beehave.BlackboardChange": {
-        "title": "beehave.BlackboardChange",
-        "description": "One stored blackboard change (beehave.blackboard.Change).",
-        "type": "object",
-        "properties": {
-            "key": {"type": "string"},
-            "value": {"description": "strict JSON; non-finite floats as {\"$float\": \"inf\"}"},
-            "stamp": _TIME,
-            "writer": {"type": ["string", "null"],
-                       "description": "hal:<name>, logic:<path>, ros:<bridge> or null"},
-            "stale": {"type": "boolean"},
-            "batch": {"type": "integer",
-                      "description": "changes with one batch were stored between the "
-                                     "same two looks of the logics at the blackboard: "
-                                     "a replay feeds them together (absent: blackboard "
-                                     "not bound to a loop, or an older recording)"},
-        },
-        "required": ["key", "value", "stamp", "writer", "stale"],
-    },
-    "beehave.Event": {
-        "title": "beehave.Event",
-        "description": "One lifecycle event (beehave.events.Event).",
-        "type": "object",
-        "properties": {
-            "kind": {"type": "string"},
-            "subject": {"type": "string"},
-            "status": {"type": ["string", "null"]},
-            "error": {"type": ["string", "null"]},
-            "detail": {"type": "object"},
-            "stamp": _TIME,
-        },
-        "required": ["kind", "subject", "status", "error", "detail", "stamp"],
-    },
-    "beehave.HalCommand": {
-        "title": "beehave.HalCommand",
-        "description": "A HAL method a logic (or a safe state) called to drive hardware.",
-        "type": "object",
-        "properties": {
-            "hal": {"type": "string"},
-            "method": {"type": "string"},
-            "args": {"type": "array"},
-            "kwargs": {"type": "object"},
-            "stamp": _TIME,
-        },
-        "required": ["hal", "method", "args", "kwargs", "stamp"],
-    },
-    "beehave.ClockSample": {
-        "title": "beehave.ClockSample",
-        "description": "The robot's sim time at a wall time: replay paces by it.",
-        "type": "object",
-        "properties": {"sim_time_s": {"type": "number"}, "stamp": _TIME},
-        "required": ["sim_time_s", "stamp"],
-    },
-    "beehave.RecorderStats": {
-        "title": "beehave.RecorderStats",
-        "description": "How many messages the recorder wrote and dropped so far.",
-        "type": "object",
-        "properties": {"written": {"type": "integer"}, "dropped": {"type": "integer"},
-                       "dropped_by_channel": {"type": "object"}, "stamp": _TIME},
-        "required": ["written", "dropped", "stamp"],
-    },
-}
+
+def _object(title: str, description: str, properties: dict[str, Any],
+            required: list[str]) -> dict[str, Any]:
+    """The JSON Schema of a JSON object (each beehave channel's message is one)."""
+    return {"title": title, "description": description, "type": "object",
+            "properties": properties, "required": required}
+
+
+SCHEMAS: dict[str, dict[str, Any]] = {s["title"]: s for s in (
+    _object("beehave.BlackboardChange",
+            "One stored blackboard change (beehave.blackboard.Change).",
+            {"key": {"type": "string"},
+             "value": {"description": "strict JSON; non-finite floats as {\"$float\": \"inf\"}"},
+             "stamp": _TIME,
+             "writer": {"type": ["string", "null"],
+                        "description": "hal:<name>, logic:<path>, ros:<bridge> or null"},
+             "stale": {"type": "boolean"},
+             "batch": {"type": "integer",
+                       "description": "changes with one batch were stored between the "
+                                      "same two looks of the logics at the blackboard: "
+                                      "a replay feeds them together (absent: blackboard "
+                                      "not bound to a loop, or an older recording)"}},
+            ["key", "value", "stamp", "writer", "stale"]),
+    _object("beehave.Event", "One lifecycle event (beehave.events.Event).",
+            {"kind": {"type": "string"}, "subject": {"type": "string"},
+             "status": {"type": ["string", "null"]}, "error": {"type": ["string", "null"]},
+             "detail": {"type": "object"}, "stamp": _TIME},
+            ["kind", "subject", "status", "error", "detail", "stamp"]),
+    _object("beehave.HalCommand",
+            "A HAL method a logic (or a safe state) called to drive hardware.",
+            {"hal": {"type": "string"}, "method": {"type": "string"},
+             "args": {"type": "array"}, "kwargs": {"type": "object"}, "stamp": _TIME},
+            ["hal", "method", "args", "kwargs", "stamp"]),
+    _object("beehave.ClockSample", "The robot's sim time at a wall time: replay paces by it.",
+            {"sim_time_s": {"type": "number"}, "stamp": _TIME},
+            ["sim_time_s", "stamp"]),
+    _object("beehave.RecorderStats",
+            "How many messages the recorder wrote and dropped so far.",
+            {"written": {"type": "integer"}, "dropped": {"type": "integer"},
+             "dropped_by_channel": {"type": "object"}, "stamp": _TIME},
+            ["written", "dropped", "stamp"]),
+)}
+
 
 CHANNEL_SCHEMA = {BLACKBOARD: "beehave.BlackboardChange", EVENTS_HIGH: "beehave.Event",
                   EVENTS_LOW: "beehave.Event", OUTPUTS: "beehave.HalCommand",
