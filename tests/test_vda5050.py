@@ -9,6 +9,7 @@ interface drives EMILI in the physics in ``test_vda5050_sim.py``.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -406,10 +407,13 @@ def test_pause_and_resume(agv: Agv) -> None:
     reached = paused["lastNodeId"]
     agv.master.wait_state(lambda s: any(a["actionId"] == "s1" and a["actionStatus"] ==
                                         "FINISHED" for a in s["actionStates"]), timeout_s=5)
+    done_when_paused = list(FakeDrive.done)
+    time.sleep(2 * EDGE_S)  # long enough to reach the next node, had the pause not held
     agv.master.instant(action("stateRequest", "r1"))
     still = agv.master.wait_state(lambda s: any(a["actionId"] == "r1"
                                                 for a in s["actionStates"]), timeout_s=5)
     assert still["lastNodeId"] == reached and still["paused"] is True
+    assert FakeDrive.done == done_when_paused
     agv.master.instant(action("stopPause", "s2"))
     done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and not s["paused"],
                                  timeout_s=10)
