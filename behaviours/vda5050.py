@@ -18,6 +18,7 @@ the driving and lifting:
 
 from __future__ import annotations
 
+import abc
 import logging
 from collections.abc import Sequence
 from typing import Any
@@ -91,7 +92,40 @@ class WorldNodes:
         return None
 
 
-class OrderExecution(Behavior):
+class OrderLoop(Behavior):
+    """The order-execution loop: asks ``orders`` what is due next until switched away,
+    waiting ``idle_wait_s`` when nothing is; subclasses say how to :meth:`drive` an edge
+    and :meth:`execute` an action. :class:`OrderExecution` drives the robot; tests and
+    benchmarks subclass it with stand-ins."""
+
+    idle_wait_s = 0.05
+
+    orders: AgvOrders
+
+    def run(self) -> None:
+        self.orders.set_executing(True)
+        try:
+            while not self.interrupted:
+                task = self.orders.next_task()
+                if task is None:
+                    self.orders.wait_change(timeout_s=self.idle_wait_s)
+                elif isinstance(task, Drive):
+                    self.drive(task)
+                elif isinstance(task, RunAction):
+                    self.execute(task.action)
+        finally:
+            self.orders.set_executing(False)
+
+    @abc.abstractmethod
+    def drive(self, task: Drive) -> None:
+        """Go to ``task.node``; call ``orders.node_reached`` once there."""
+
+    @abc.abstractmethod
+    def execute(self, action: ActionState) -> None:
+        """Run ``action``; report its status with ``orders.set_action``."""
+
+
+class OrderExecution(OrderLoop):
     """Execute the VDA 5050 order held by ``orders`` (see the module docstring).
 
     It runs until switched away; with nothing due (no order, or the horizon not yet
@@ -111,20 +145,6 @@ class OrderExecution(Behavior):
         self.nodes = WorldNodes(world)
         self.speed_mps, self.tolerance_m = speed_mps, tolerance_m
         self.lift_pick_m, self.lift_drop_m = lift_pick_m, lift_drop_m
-
-    def run(self) -> None:
-        self.orders.set_executing(True)
-        try:
-            while not self.interrupted:
-                task = self.orders.next_task()
-                if task is None:
-                    self.orders.wait_change(timeout_s=0.05)
-                elif isinstance(task, Drive):
-                    self.drive(task)
-                elif isinstance(task, RunAction):
-                    self.execute(task.action)
-        finally:
-            self.orders.set_executing(False)
 
     def drive(self, task: Drive) -> None:
         node, edge = task.node, task.edge

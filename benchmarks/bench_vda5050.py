@@ -24,12 +24,19 @@ from typing import Any
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
-from beehave import Behavior, HighLevelBehaviorManager
+from beehave import HighLevelBehaviorManager
 from beehave.config import parse_config
 from beehave.interfaces import ControlPlane
 from beehave.interfaces.vda5050 import Vda5050Interface
-from beehave.interfaces.vda5050.order import AgvOrders, Drive, Point, RunAction
+from beehave.interfaces.vda5050.order import (
+    ActionState,
+    ActionStatus,
+    AgvOrders,
+    Drive,
+    Point,
+)
 from behaviours.demos.vda5050_master import Broker, Master, node
+from behaviours.vda5050 import OrderLoop
 from benchmarks._util import median, percentile, report
 
 N_ORDERS = int(os.environ.get("BENCH_VDA5050_N", 200))
@@ -51,31 +58,22 @@ class _FlatMap:
         return None
 
 
-class _Instant(Behavior):
+class _Instant(OrderLoop):
     """Takes each drive at once and notes when it took the first one of an order."""
 
     node_map = _FlatMap
+    idle_wait_s = 0.01
     drive_started: dict[str, float] = {}  # noqa: RUF012 - orderId -> perf_counter
 
     def __init__(self, *, orders: AgvOrders, **_options: Any) -> None:
         self.orders = orders
 
-    def run(self) -> None:
-        self.orders.set_executing(True)
-        try:
-            while not self.interrupted:
-                task = self.orders.next_task()
-                if task is None:
-                    self.orders.wait_change(timeout_s=0.01)
-                elif isinstance(task, Drive):
-                    _Instant.drive_started.setdefault(self.orders.order_id,
-                                                      time.perf_counter())
-                    self.orders.node_reached(task.node)
-                elif isinstance(task, RunAction):
-                    self.orders.set_action(task.action.action_id,
-                                           task.action.status.FINISHED)
-        finally:
-            self.orders.set_executing(False)
+    def drive(self, task: Drive) -> None:
+        _Instant.drive_started.setdefault(self.orders.order_id, time.perf_counter())
+        self.orders.node_reached(task.node)
+
+    def execute(self, action: ActionState) -> None:
+        self.orders.set_action(action.action_id, ActionStatus.FINISHED)
 
 
 def _agv(port: int, serial: str, **more: Any) -> tuple[HighLevelBehaviorManager,

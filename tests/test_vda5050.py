@@ -9,13 +9,14 @@ interface drives EMILI in the physics in ``test_vda5050_sim.py``.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator, Sequence
 from typing import Any
 
 import pytest
 from mqtt_broker import Broker, Master, action, broker, edge, node
 
-from beehave import Behavior, HighLevelBehaviorManager
+from beehave import HighLevelBehaviorManager
 from beehave.config import parse_config
 from beehave.errors import ConfigError, Vda5050ValidationError
 from beehave.interfaces import ControlPlane
@@ -27,8 +28,9 @@ from beehave.interfaces.vda5050 import (
     check,
     problems,
 )
-from beehave.interfaces.vda5050.order import Drive, Point, RunAction
+from beehave.interfaces.vda5050.order import ActionState, Drive, Point
 from beehave.interfaces.vda5050.validation import TOPICS, validator
+from behaviours.vda5050 import OrderLoop
 
 __all__ = ["broker"]  # the fixture, imported for pytest
 
@@ -67,36 +69,29 @@ class LineMap:
         return "dock" if abs(point[0] - 1.0) < 0.5 and abs(point[1] - 1.0) < 0.5 else None
 
 
-class FakeDrive(Behavior):
-    """Executes orders like ``OrderExecution``, without a robot: an edge takes ``EDGE_S``
-    (interruptible), an action ``EDGE_S / 3``; ``where`` is the fake position."""
+class FakeDrive(OrderLoop):
+    """Executes orders with ``OrderExecution``'s loop, without a robot: an edge takes
+    ``EDGE_S`` (interruptible), an action ``EDGE_S / 3``; ``where`` is the fake position."""
 
     node_map = LineMap
+    idle_wait_s = 0.02
     where: Point = (0.0, 0.0)
     done: list[str] = []  # noqa: RUF012 - shared log of the test's executions
 
     def __init__(self, *, orders: AgvOrders, **_options: Any) -> None:
         self.orders = orders
 
-    def run(self) -> None:
-        self.orders.set_executing(True)
-        try:
-            while not self.interrupted:
-                task = self.orders.next_task()
-                if task is None:
-                    self.orders.wait_change(timeout_s=0.02)
-                elif isinstance(task, Drive):
-                    if self.sleep(EDGE_S):
-                        FakeDrive.where = task.node.position
-                        FakeDrive.done.append(task.node.node_id)
-                        self.orders.node_reached(task.node)
-                elif isinstance(task, RunAction):
-                    self.orders.set_action(task.action.action_id, ActionStatus.RUNNING)
-                    if self.sleep(EDGE_S / 3):
-                        FakeDrive.done.append(task.action.action_id)
-                        self.orders.set_action(task.action.action_id, ActionStatus.FINISHED)
-        finally:
-            self.orders.set_executing(False)
+    def drive(self, task: Drive) -> None:
+        if self.sleep(EDGE_S):
+            FakeDrive.where = task.node.position
+            FakeDrive.done.append(task.node.node_id)
+            self.orders.node_reached(task.node)
+
+    def execute(self, action: ActionState) -> None:
+        self.orders.set_action(action.action_id, ActionStatus.RUNNING)
+        if self.sleep(EDGE_S / 3):
+            FakeDrive.done.append(action.action_id)
+            self.orders.set_action(action.action_id, ActionStatus.FINISHED)
 
 
 def options(port: int, **more: Any) -> Any:
@@ -412,10 +407,13 @@ def test_pause_and_resume(agv: Agv) -> None:
     reached = paused["lastNodeId"]
     agv.master.wait_state(lambda s: any(a["actionId"] == "s1" and a["actionStatus"] ==
                                         "FINISHED" for a in s["actionStates"]), timeout_s=5)
+    done_when_paused = list(FakeDrive.done)
+    time.sleep(2 * EDGE_S)  # long enough to reach the next node, had the pause not held
     agv.master.instant(action("stateRequest", "r1"))
     still = agv.master.wait_state(lambda s: any(a["actionId"] == "r1"
                                                 for a in s["actionStates"]), timeout_s=5)
     assert still["lastNodeId"] == reached and still["paused"] is True
+    assert FakeDrive.done == done_when_paused
     agv.master.instant(action("stopPause", "s2"))
     done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and not s["paused"],
                                  timeout_s=10)

@@ -47,8 +47,11 @@ class Broker:
         self.port = port or free_port()
         self._dir = tempfile.TemporaryDirectory(prefix="beehave-mqtt-")
         self.config = Path(self._dir.name) / "mosquitto.conf"
+        # Only errors and warnings reach stderr: it is a pipe read only when mosquitto
+        # exits at once, and a connection log line per client would fill it and block
+        # the broker in a long run.
         self.config.write_text(f"listener {self.port} 127.0.0.1\nallow_anonymous true\n"
-                               "persistence false\n")
+                               "persistence false\nlog_type error\nlog_type warning\n")
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
@@ -71,6 +74,8 @@ class Broker:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait(timeout=5)
+        if self.proc is not None and self.proc.stderr is not None:
+            self.proc.stderr.close()
         self.proc = None
 
     def restart(self) -> None:
