@@ -361,6 +361,7 @@ def _http_for_run(args: argparse.Namespace, robot: Robot) -> Iterator[None]:
     if args.http is None:
         yield
         return
+    from beehave.config import hal_names
     from beehave.errors import ConfigError
     from beehave.interfaces.http import HttpServer
     from beehave.interfaces.http.server import VIEW_HALS, hold_hals
@@ -376,7 +377,7 @@ def _http_for_run(args: argparse.Namespace, robot: Robot) -> Iterator[None]:
         stack.callback(server.stop)
         low = robot.low
         if low is not None:  # the map needs the pose even when no logic asks for it
-            configured = {h if isinstance(h, str) else h.name for h in robot.config.hals}
+            configured = set(hal_names(robot.config))
             stack.callback(hold_hals(low, [n for n in VIEW_HALS if n in configured]))
         _announce(server)
         yield

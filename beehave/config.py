@@ -327,6 +327,16 @@ def _valid_keys(loc: list[Any]) -> list[str]:
             if name != "source"]
 
 
+def hal_names(config: RobotConfig) -> list[str]:
+    """The names of the HALs ``config`` gives, in order: a string entry is its name, a
+    ``{class: …}`` entry its ``name`` or else its class's (what ``beehave run`` registers)."""
+    from beehave.hal import HAL
+
+    return [spec if isinstance(spec, str) else spec.name or import_class(
+        spec.class_, base=HAL, where=f"{config.source}: hals.{i}.class").name
+        for i, spec in enumerate(config.hals)]
+
+
 def import_class(path: str, *, where: str, base: type[Any]) -> type[Any]:
     """``package.module:Class`` → the class, which must derive from ``base``; errors name
     ``where`` (file and key path)."""

@@ -168,3 +168,13 @@ def test_a_missing_file_is_named(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"robot configuration '.*missing\.yaml' does not "
                                           r"exist"):
         load_config(tmp_path / "missing.yaml")
+
+
+def test_hal_names_are_what_beehave_run_registers(tmp_path: Path) -> None:
+    from beehave.config import hal_names, load_config
+
+    path = tmp_path / "r.yaml"
+    path.write_text("namespace: r\nhals:\n  - debug\n"
+                    "  - {class: 'hal.debug:DebugHAL', name: dbg2}\n"
+                    "  - {class: 'hal.mobile_base:OdometryHAL'}\n")
+    assert hal_names(load_config(path)) == ["debug", "dbg2", "odometry"]

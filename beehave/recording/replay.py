@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from beehave.blackboard import from_json, to_json
+from beehave.config import hal_names
 from beehave.errors import RecordingError
 from beehave.hal import HAL
 from beehave.recording import schema
@@ -360,7 +361,7 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
             state.outputs.append(Output(f"{hal}.{method}", [to_json(list(args)),
                                                             to_json(kwargs)], state.now_s))
 
-    for name in _hal_names(config):
+    for name in hal_names(config):
         cls, params = low.hals.resolve(name)
         low.hals.register(replay_hal_class(cls, name, capture), name=name, **params)
 
@@ -401,20 +402,6 @@ class _ReplayState:
         self.now_s = 0.0
         self.comparing = True
         self.outputs: list[Output] = []
-
-
-def _hal_names(config: RobotConfig) -> list[str]:
-    """The HALs the configuration gives: those a replay stands in for."""
-    from beehave.config import import_class
-
-    names = []
-    for i, spec in enumerate(config.hals):
-        if isinstance(spec, str):
-            names.append(spec)
-        else:
-            names.append(spec.name or import_class(
-                spec.class_, base=HAL, where=f"{config.source}: hals.{i}.class").name)
-    return names
 
 
 async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _ReplayState, *,
