@@ -280,6 +280,10 @@ class MissionResponder(_MissionTaker, ContractNetResponder):
             return None  # where am I? no bid without a position
         first = cfp.content["waypoints"][0]
         north, east = LocalFrame(lat, lon).to_local(first["lat_deg"], first["lon_deg"])
+        # Keep only the missions of proposals still open (rejected or expired ones are
+        # gone from the responder's ``proposals``): without this the dict only grows.
+        self._missions = {cid: mission for cid, mission in self._missions.items()
+                          if cid in self.proposals}
         self._missions[cfp.conversation_id] = cfp.content
         return {"cost": math.hypot(north, east), "kind": board.get("vehicle/type")}
 
@@ -624,7 +628,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = parse_config(data, source=str(path))
         robot = Robot(config)
-    except (ConfigError, Exception) as exc:
+    except Exception as exc:  # ConfigError, or anything building the robot raised
         print(f"{path}: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()

@@ -208,6 +208,9 @@ def main() -> list[dict[str, Any]]:
         age = median(ages) * 1e3
         rows.append(report("fleet_state_age_10hz_p50", age, "ms", "<= 100 ms", age <= 100.0,
                            p99_ms=round(percentile(ages, 99) * 1e3, 3), reads=len(ages)))
+    else:  # the peer's state never arrived: say so rather than drop the figure
+        rows.append(report("fleet_state_age_10hz_p50", float("nan"), "ms", "<= 100 ms", False,
+                           reads=0))
     return rows
 
 

@@ -746,7 +746,7 @@ class MavlinkLink:
             for _ in range(self.retries + 1):
                 self.send(lambda mav: mav.param_request_read_send(
                     self.system_id, self.component_id, name.encode(), -1))
-                msg = inbox.wait(lambda m: _param_id(m) == name, timeout_s=self.timeout_s,
+                msg = inbox.wait(lambda m: param_name(m) == name, timeout_s=self.timeout_s,
                                  what=f"PARAM_VALUE {name}")
                 if msg is not None:
                     return float(msg.param_value)
@@ -762,7 +762,7 @@ class MavlinkLink:
                 self.send(lambda mav: mav.param_set_send(
                     self.system_id, self.component_id, name.encode(), float(value),
                     mavlink.MAV_PARAM_TYPE_REAL32))
-                msg = inbox.wait(lambda m: _param_id(m) == name, timeout_s=self.timeout_s,
+                msg = inbox.wait(lambda m: param_name(m) == name, timeout_s=self.timeout_s,
                                  what=f"PARAM_VALUE {name}")
                 if msg is not None:
                     return float(msg.param_value)
@@ -799,7 +799,8 @@ class MavlinkLink:
                 f"{'alive' if self._alive else 'no heartbeat'} mode={self.mode}>")
 
 
-def _param_id(msg: Any) -> str:
+def param_name(msg: Any) -> str:
+    """The parameter name of a PARAM_* message (``param_id``, bytes or str, NUL-padded)."""
     pid = msg.param_id
     return (pid.decode(errors="replace") if isinstance(pid, bytes) else str(pid)).rstrip("\0")
 
@@ -983,7 +984,7 @@ class MavlinkParamsHAL(MavlinkHAL):
     messages = ("PARAM_VALUE",)
 
     def entries(self, msg: Any) -> dict[str, Any]:
-        return {f"param/{_param_id(msg)}": float(msg.param_value)}
+        return {f"param/{param_name(msg)}": float(msg.param_value)}
 
     async def get(self, name: str) -> float:
         return await asyncio.to_thread(self.link.get_param, name)

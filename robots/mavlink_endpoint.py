@@ -60,7 +60,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from hal.mavlink import COPTER, ROVER, LocalFrame, mode_name, mode_names
+from hal.mavlink import (
+    COPTER,
+    GCS_COMPONENT_ID,
+    GCS_SYSTEM_ID,
+    ROVER,
+    LocalFrame,
+    mode_name,
+    mode_names,
+    param_name,
+)
 from robots.quad import Quad
 from robots.robot import SimRobot
 from robots.sim import Simulation
@@ -552,7 +561,7 @@ class MavlinkEndpoint:
             name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32, len(names), index))
 
     def _on_param_request_read(self, msg: Any) -> None:
-        name = _text(msg.param_id)
+        name = param_name(msg)
         names = sorted(self.params)
         if msg.param_index >= 0 and msg.param_index < len(names):
             name = names[msg.param_index]
@@ -566,7 +575,7 @@ class MavlinkEndpoint:
             self._param_value(name)
 
     def _on_param_set(self, msg: Any) -> None:
-        name = _text(msg.param_id)
+        name = param_name(msg)
         if name not in self.params or not math.isfinite(msg.param_value):
             self._ignore(f"PARAM_SET of unknown {name!r} or a non-finite value")
             return
@@ -598,12 +607,8 @@ class MavlinkEndpoint:
                 f"{self.url} mode={self.mode} armed={self.armed}>")
 
 
-mavlink_gcs = (255, mavlink.MAV_COMP_ID_MISSIONPLANNER)
+mavlink_gcs = (GCS_SYSTEM_ID, GCS_COMPONENT_ID)
 """Where mission requests go (the ground station's ids, as ArduPilot replies to them)."""
-
-
-def _text(raw: Any) -> str:
-    return (raw.decode(errors="replace") if isinstance(raw, bytes) else str(raw)).rstrip("\0")
 
 
 def open_endpoints(sim: Simulation, *, base_port: int, host: str = "127.0.0.1",

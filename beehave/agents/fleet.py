@@ -243,7 +243,7 @@ def _key(manager: object) -> object:
 def fleet_of(manager: object) -> Fleet:
     """The fleet attached to a manager (a HighLevelBehaviorManager, or a
     LowLevelBehaviorManager's blackboard)."""
-    fleet = _ATTACHED.get(manager)
+    fleet = _ATTACHED.get(_key(manager))  # keyed as attach() keys it
     if fleet is None:
         raise ConfigError("no fleet is attached to this manager: make a "
                           "beehave.agents.fleet.Fleet(agent) and call fleet.attach(manager)")
