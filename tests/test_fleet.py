@@ -119,9 +119,17 @@ def _robot(watch: Watch, ns: str) -> dict[str, Any]:
 def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_served(
         fleet: Fleet) -> None:
     world = fleet.world(capacity_wh=50.0)  # no ATV needs a charge during the test
-    fleet.start("sim", "-m", "beehave.cli", "sim", world, "--robots", "2", "--fast")
+    # Twice real time, not --fast: at full speed a loaded ATV can reach the machine before
+    # a busy test host gets to kill it, and there would be no mid-delivery left to test.
+    fleet.start("sim", "-m", "beehave.cli", "sim", world, "--robots", "2",
+                "--real-time-factor", "2")
     fleet.atv("atv1", world)
     fleet.atv("atv2", world)
+    # Both must be able to bid on the first order (an ATV without odometry yet refuses):
+    # else there is nobody to re-award it to, and the machine rightly orders anew instead.
+    fleet.wait(lambda: all("transport" in fleet.watch.agents.get(n, {}).get("services", {})
+                           for n in ("atv1", "atv2")), "both ATVs offering transport", 60)
+    time.sleep(2.0)  # their odometry reaches their blackboards
     # lathe1 starts at 60 %: below 0.9 it orders at once.
     fleet.start("lathe1", "-m", "behaviours.fleet.machine", "lathe1", "--world", world,
                 "--below", "0.9")
@@ -130,8 +138,10 @@ def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_serve
                        "an award", 90)
     doomed = first["atv"]
     other = "atv2" if doomed == "atv1" else "atv1"
-    # Mid-delivery: it has picked up its load (in the physics) and is on its way.
-    fleet.wait(lambda: _robot(fleet.watch, doomed).get("load"), f"{doomed} loaded", 120)
+    # Mid-delivery: it drives its task (in the physics). Not later: on a busy host a
+    # loaded ATV can unload at the machine before the kill lands, leaving nothing to test.
+    fleet.wait(lambda: _robot(fleet.watch, doomed).get("speed_mps", 0.0) > 0.05,
+               f"{doomed} driving its delivery", 60)
     fleet.kill(doomed)
     order = first["order"]
     served = fleet.wait(lambda: fleet.watch.orders[order]["state"] == "delivered"
