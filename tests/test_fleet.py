@@ -150,10 +150,11 @@ def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_serve
     assert served["atv"] == other
     assert not fleet.watch.violations
     # The physics: the other ATV unloaded at lathe1; the dead one never did.
-    deliveries = fleet.wait(lambda: fleet.watch.state["facts"]["deliveries"],
-                            "a delivery fact", 10)
-    assert [(d["machine"], d["robot"]) for d in deliveries][:1] == [("lathe1", other)], \
-        deliveries
+    # The physics: the other ATV unloaded at lathe1. (Which unload comes first is a race
+    # on a busy host: the killed robot stands where it died, maybe loaded.)
+    fleet.wait(lambda: ("lathe1", other) in [(d["machine"], d["robot"]) for d in
+                                             fleet.watch.state["facts"]["deliveries"]],
+               f"{other}'s unload at lathe1", 30)
 
 
 @pytest.mark.timeout(300)  # real processes: slow on a loaded machine
@@ -169,16 +170,17 @@ def test_a_killed_station_agent_frees_nothing_twice_and_the_atv_charges_elsewher
         lambda: next((name for name, e in fleet.watch.agents.items()
                       if e.get("services", {}).get("charging", {}).get("holder") == "atv1"),
                      None), "a reservation by atv1", 90)
-    assert holder == "charger1"  # the nearest to the parking row
+    # Usually charger1, the nearest; charger2 when charger1 was not discovered yet.
+    spare = "charger2" if holder == "charger1" else "charger1"
     fleet.kill(holder)
-    fleet.wait(lambda: fleet.watch.agents.get("charger2", {}).get("services", {})
-               .get("charging", {}).get("holder") == "atv1", "atv1 reserving charger2", 30)
-    # The physics: it charges standing in charger2, never in the dead station's place.
-    fleet.wait(lambda: _robot(fleet.watch, "atv1").get("charging_at") == "charger2",
-               "atv1 charging in charger2", 180)
+    fleet.wait(lambda: fleet.watch.agents.get(spare, {}).get("services", {})
+               .get("charging", {}).get("holder") == "atv1", f"atv1 reserving {spare}", 30)
+    # The physics: it charges standing in the spare, never in the dead station's place.
+    fleet.wait(lambda: _robot(fleet.watch, "atv1").get("charging_at") == spare,
+               f"atv1 charging in {spare}", 180)
     stations = fleet.watch.state["facts"]["stations"]
-    assert stations["charger1"]["max_charging"] == 0, stations
-    assert stations["charger2"]["max_charging"] == 1, stations
+    assert stations[holder]["max_charging"] == 0, stations
+    assert stations[spare]["max_charging"] == 1, stations
 
 
 
