@@ -445,6 +445,32 @@ def test_broker_killed_and_restarted(broker: Broker) -> None:
     assert not made.master.invalid
 
 
+def test_a_resend_is_answered_with_a_state(broker: Broker) -> None:
+    """A master that missed the states (QoS 0) while it was away resends the order: the
+    AGV does not execute it again but answers with its state (the race CI once lost)."""
+    made = Agv(broker)
+    late = None
+    try:
+        made.master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                             timeout_s=10)
+        made.master.order("o1", 0, three_nodes())
+        made.master.wait_state(lambda s: s["lastNodeId"] == "n2" and not s["driving"]
+                               and all(a["actionStatus"] == "FINISHED"
+                                       for a in s["actionStates"]), timeout_s=10)
+        late = Master(broker.port, serial_number=SERIAL)
+        late.wait_for("connection", lambda m: m["connectionState"] == "ONLINE", timeout_s=10)
+        late._header = made.master._header  # the same master's headerIds, continued
+        late.order("o1", 0, three_nodes())
+        state = late.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=5)
+        assert state["orderId"] == "o1" and state["errors"] == []
+        assert FakeDrive.done.count("n1") == 1 and FakeDrive.done.count("d1") == 1
+    finally:
+        made.close()
+        if late is not None:
+            late.close()
+    assert late is not None and not late.invalid
+
+
 def test_the_last_will_says_connection_broken(broker: Broker) -> None:
     watcher = Master(broker.port, serial_number=SERIAL)
     made = Agv(broker)

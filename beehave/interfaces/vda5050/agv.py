@@ -386,6 +386,9 @@ class Vda5050Interface:
         if not accepted:
             log.info("vda5050: order %r update %d again: ignored (a resend)",
                      message["orderId"], message["orderUpdateId"])
+            # A master resends when it is unsure the order arrived, typically after it
+            # missed states (QoS 0) while the broker was away: answer with a state.
+            self._wake.set()
             return
         self.last_order_received_at = received_at
         self._run_orders()
