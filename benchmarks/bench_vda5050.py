@@ -144,8 +144,10 @@ def main() -> list[dict[str, Any]]:
                                            node("b", 2, x=2.0, y=1.0, map_id="flat")])
                 master.wait_state(lambda s, o=order_id: s["orderId"] == o, timeout_s=5)
                 to_state.append(time.perf_counter() - sent)
+                # Not ``lastNodeId == "b"``: that is still the previous order's last node
+                # until this order's first node is reached.
                 master.wait_state(lambda s, o=order_id: s["orderId"] == o
-                                  and s["lastNodeId"] == "b", timeout_s=5)
+                                  and not s["nodeStates"], timeout_s=5)
                 to_drive.append(_Instant.drive_started[order_id] - sent)
         finally:
             master.close()

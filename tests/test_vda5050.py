@@ -557,3 +557,14 @@ def test_beehave_broker_serves_until_sigterm() -> None:
         proc.terminate()
         out, _ = proc.communicate(timeout=10)
     assert proc.returncode == 0 and "broker stopped" in out, out
+
+
+def test_periodic_messages_keep_their_cadence_when_woken_late() -> None:
+    from beehave.interfaces.vda5050.agv import _next_tick
+
+    # Woken 8 ms late for a 50 ms period: the next one stays on the schedule.
+    assert _next_tick(1.000, 0.05, 1.008, restart=False) == pytest.approx(1.050)
+    # A state sent on a change restarts the period from now.
+    assert _next_tick(1.000, 0.05, 1.020, restart=True) == pytest.approx(1.070)
+    # A stall longer than a period: no burst of catch-up messages.
+    assert _next_tick(1.000, 0.05, 1.300, restart=False) == pytest.approx(1.350)

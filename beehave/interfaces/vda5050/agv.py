@@ -574,15 +574,26 @@ class Vda5050Interface:
             if self._closing.is_set():
                 return
             now = time.monotonic()
-            if self._wake.is_set() or now >= next_state:
+            woken = self._wake.is_set()
+            if woken or now >= next_state:
                 self._wake.clear()
                 if self.connected.is_set():
                     self._publish("state", self.state())
-                next_state = now + state_period
+                # A state sent on a change restarts the period; a periodic one keeps the
+                # cadence (timed from the schedule, not from this late wake-up, which
+                # would stretch every period by the wake-up and publishing time).
+                next_state = _next_tick(next_state, state_period, now, restart=woken)
             if now >= next_vis:
                 if self.connected.is_set():
                     self._publish("visualization", self.visualization())
-                next_vis = now + vis_period
+                next_vis = _next_tick(next_vis, vis_period, now, restart=False)
+
+
+def _next_tick(scheduled: float, period_s: float, now: float, *, restart: bool) -> float:
+    """The next time of a periodic message: one period after ``scheduled``, or after
+    ``now`` when restarted or when a whole period was missed (no burst to catch up)."""
+    following = scheduled + period_s
+    return now + period_s if restart or following <= now else following
 
 
 def make_interface(options: Vda5050Options, *, high: HighLevelBehaviorManager,
