@@ -54,6 +54,7 @@ from beehave.errors import (
     AgentError,
     ConfigError,
     Interrupted,
+    MavlinkTimeout,
     MissionStalled,
     NoReply,
     ProtocolFailed,
@@ -404,7 +405,7 @@ class ReturnHome(MavlinkAction):
             if done:
                 return link.mode
             if time.monotonic() > deadline:
-                raise Interrupted(f"{self.path}: not home after {self.timeout_s} s")
+                raise MavlinkTimeout(f"{self.path}: not home after {self.timeout_s} s")
             self.check_alive(link, "returning home")
             self.pause(0.1)
 

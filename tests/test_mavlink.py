@@ -16,7 +16,13 @@ import pytest
 
 from beehave import Behavior, HighLevelBehaviorManager, Status
 from beehave.blackboard import Blackboard
-from beehave.errors import ConfigError, MissionStalled, UnknownMode, VehicleLost
+from beehave.errors import (
+    ConfigError,
+    MavlinkTimeout,
+    MissionStalled,
+    UnknownMode,
+    VehicleLost,
+)
 from beehave.hal import HALManager
 from behaviours.mavlink import GotoPosition, RunMission, SetMode
 from hal.mavlink import (
@@ -364,3 +370,31 @@ def test_sending_while_new_peers_appear_never_breaks_the_link() -> None:
         link.close()
     assert not errors
     assert link.ignored["message from system 9"] == 0  # GCS heartbeats are not the vehicle
+
+
+def test_return_home_that_takes_too_long_fails_with_a_mavlink_timeout(
+        vehicles: Vehicles, hl: HighLevelBehaviorManager,
+        cleanup: Callable[[Callable[[], None]], None]) -> None:
+    from behaviours.droid import ReturnHome
+
+    url = vehicles.quad_url
+    link = link_to(url)
+    cleanup(link.close)
+    link.set_mode("GUIDED")
+    link.arm(True)
+    link.takeoff(2.0)
+    deadline = time.monotonic() + 10.0
+    while link.local_position()[2] < 1.0:
+        assert time.monotonic() < deadline, "the quad did not climb"
+        time.sleep(0.05)
+    Run.started = []
+    # Climbing to RTL_ALT and landing takes seconds: 0.3 s is not enough.
+    hl.register("home", Run, make=lambda: ReturnHome(timeout_s=0.3, connection=url))
+    hl.switch("home")
+    deadline = time.monotonic() + 5.0
+    while not (Run.started and Run.started[0].wait(0.1)):
+        assert time.monotonic() < deadline
+    action = Run.started[0]
+    assert action.status is Status.FAILED
+    assert isinstance(action.error, MavlinkTimeout), action.error
+    assert "not home after 0.3 s" in str(action.error)
