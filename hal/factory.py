@@ -34,11 +34,11 @@ import logging
 import math
 from typing import Any
 
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from beehave.errors import HALError
 from beehave.ros.hal import RosHAL, TopicInput
+from beehave.ros.io import LATCHED
 from robots import topics
 from robots.factory import STATE_SCHEMA
 
@@ -49,9 +49,7 @@ __all__ = ["FACTORY_KEYS", "FactoryHAL", "factory_entries"]
 FACTORY_KEYS = ("factory/load", "factory/loaded", "factory/zone",
                 "factory/zone_max_speed_mps", "factory/charging_at", "factory/time_s")
 
-STATE_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
-                       reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+STATE_QOS = LATCHED
 """As the sim node publishes it: a HAL loaded late still gets the last state at once."""
 
 

@@ -61,13 +61,13 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import BatteryState, LaserScan
 from std_msgs.msg import ColorRGBA, Float64, Header, Int32, String
 
 from beehave.clock import SimClock
 from beehave.ros.context import RosContext
+from beehave.ros.io import LATCHED
 from robots import topics
 from robots.emili import Emili
 from robots.factory import Factory
@@ -84,9 +84,7 @@ __all__ = ["STATE_QOS", "SimNode", "sim_main"]
 NODE_NAME = "sim"
 """The name of every node the sim node creates (one per robot namespace, one at ``/``)."""
 
-STATE_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
-                       reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+STATE_QOS = LATCHED
 """QoS of the state echoes (``leds/state``, ``display/state``): latched."""
 
 SENSOR_QOS = 10

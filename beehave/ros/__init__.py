@@ -7,7 +7,7 @@ Importing this package imports rclpy (the ``ros`` extra); ``import beehave`` doe
 from beehave.errors import GoalFailed
 from beehave.ros.actions import RosActionGoal, ServiceCall
 from beehave.ros.context import RosContext
-from beehave.ros.io import Goal, Latest, RosIO, WaitTimeout
+from beehave.ros.io import LATCHED, Goal, Latest, RosIO, WaitTimeout
 
-__all__ = ["Goal", "GoalFailed", "Latest", "RosActionGoal", "RosContext", "RosIO",
+__all__ = ["LATCHED", "Goal", "GoalFailed", "Latest", "RosActionGoal", "RosContext", "RosIO",
            "ServiceCall", "WaitTimeout"]

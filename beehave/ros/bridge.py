@@ -99,6 +99,7 @@ from beehave.interfaces.core import STATE_SCHEMA as STATE_SCHEMA  # the state to
 from beehave.interfaces.core import ControlPlane
 from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.ros.context import in_executor_thread
+from beehave.ros.io import LATCHED
 
 log = logging.getLogger(__name__)
 
@@ -108,10 +109,6 @@ STOP_SERVICE = "beehave/stop"
 BLACKBOARD_SCHEMA = "beehave/blackboard/2"
 MIRROR_WRITER = "ros:low_level"
 
-#: Reliable + transient-local, depth 1: a late joiner gets the last message.
-LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
-                     reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 #: ``beehave/blackboard``: reliable + transient-local, but deep. ``changes`` messages are
 #: deltas: with depth 1 a message the reader had not taken yet was replaced by the next

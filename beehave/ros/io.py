@@ -34,12 +34,18 @@ from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from beehave.clock import WallClock
 from beehave.errors import BeehaveError, ConfigError, GoalFailed, Interrupted
 
 log = logging.getLogger(__name__)
+
+LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+"""Reliable, transient-local, depth 1 (ROS 1's "latched"): a subscriber that joins late
+still gets the last message at once. For state topics (LEDs, display, the factory)."""
 
 M = TypeVar("M")
 
