@@ -19,9 +19,10 @@ the driving and lifting:
 from __future__ import annotations
 
 import abc
+import functools
 import logging
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from beehave import Behavior, Status
 from beehave.errors import NoPath
@@ -37,6 +38,9 @@ from beehave.interfaces.vda5050.order import (
 )
 from behaviours.actions import Goal, Lift, Navigation, world_planner
 
+if TYPE_CHECKING:
+    from robots.world import World
+
 log = logging.getLogger(__name__)
 
 ROBOT_RADIUS_M = 0.55
@@ -44,14 +48,20 @@ CLEARANCE_M = 0.1
 """Navigation's defaults: the route check plans with the same inflation as the drive."""
 
 
+@functools.lru_cache(maxsize=8)
+def _load_world(world: str) -> World:
+    """Worlds are immutable: the interface and every order behaviour share one load."""
+    from robots.world import load_world
+
+    return load_world(world)
+
+
 class WorldNodes:
     """Order nodes on a world's map (a world name or YAML path)."""
 
     def __init__(self, world: str) -> None:
-        from robots.world import load_world
-
         self.world_name = world
-        self.world = load_world(world)
+        self.world = _load_world(world)
 
     def locate(self, node_id: str, position: dict[str, Any] | None) -> Point:
         """``(x_m, y_m)`` of a node; :class:`OrderRejected` says why it cannot be placed."""
