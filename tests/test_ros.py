@@ -410,14 +410,18 @@ class _Brief(Logic):
 
 
 class _HoldsTheLoop(Logic):
-    """The mistake issue 9 describes: a blocking sleep inside a coroutine."""
+    """The mistake issue 9 describes: a blocking wait inside a coroutine. It blocks until
+    the test releases it (10 s at most), so a slow host cannot let it go too early."""
+
+    blocking = threading.Event()
+    release = threading.Event()
 
     async def run(self) -> None:
         import asyncio
-        import time
 
         await asyncio.sleep(0)
-        time.sleep(1.5)
+        _HoldsTheLoop.blocking.set()
+        _HoldsTheLoop.release.wait(10.0)
         await asyncio.sleep(3600)
 
 
@@ -461,8 +465,14 @@ def test_logic_parameter_shows_the_default_after_a_logic_ends_on_its_own(
 def test_logic_parameter_fails_with_a_reason_when_the_loop_is_blocked(
         low_node: tuple[Any, Any], probe: Probe) -> None:
     ll, _ = low_node
-    assert probe.set_param(LLP, "logic", "hog").successful
-    result = probe.set_param(LLP, "logic", "driving")  # the hog holds the loop for 1.5 s
+    _HoldsTheLoop.blocking.clear()
+    _HoldsTheLoop.release.clear()
+    try:
+        assert probe.set_param(LLP, "logic", "hog").successful
+        assert _HoldsTheLoop.blocking.wait(10.0)
+        result = probe.set_param(LLP, "logic", "driving")  # the hog holds the loop
+    finally:
+        _HoldsTheLoop.release.set()
     assert not result.successful
     assert "'driving'" in result.reason and "block" in result.reason, result.reason
     # Nothing was switched behind the caller's back once the loop is free again.
