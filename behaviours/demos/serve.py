@@ -397,13 +397,46 @@ def _last_role(outcome: dict[str, Any]) -> str | None:
     return "serve" if "serve" in members else next(iter(members), None)
 
 
+def item_trail(facts: dict[str, Any], outcome: dict[str, Any]) -> dict[str, Any]:
+    """Follow the item an order was served with back through the physics: the delivery at
+    the order's table by the robot of its serving role, the hand-over of that item (if
+    any) and its pick. ``{"delivery", "hand_over", "pick"}``, each None when missing."""
+    server = (outcome.get("members") or {}).get(_last_role(outcome) or "")
+    delivery = next((d for d in facts.get("deliveries", [])
+                     if d["table"] == outcome.get("table") and d["robot"] == server), None)
+    item = None if delivery is None else delivery["item"]
+    return {"delivery": delivery,
+            "hand_over": next((h for h in facts.get("hand_overs", [])
+                               if h["item"] == item), None),
+            "pick": next((p for p in facts.get("picks", []) if p["item"] == item), None)}
+
+
+def role_steps(facts: dict[str, Any], outcome: dict[str, Any]) -> dict[str, list[str]]:
+    """role -> what its robot did with the order's item, in the physics (for the
+    summary and the picture)."""
+    trail = item_trail(facts, outcome)
+    out: dict[str, list[str]] = {}
+    for role, robot in (outcome.get("members") or {}).items():
+        did = []
+        p, h, d = trail["pick"], trail["hand_over"], trail["delivery"]
+        if p is not None and p["robot"] == robot:
+            did.append(f"picked {p['item']} at {p['time_s']:.0f} s")
+        if h is not None and robot in (h["giver"], h["taker"]):
+            other = h["taker"] if h["giver"] == robot else h["giver"]
+            did.append(f"{'handed it to' if h['giver'] == robot else 'took it from'} "
+                       f"{other} at {h['time_s']:.0f} s")
+        if d is not None and d["robot"] == robot:
+            did.append(f"served it at {d['table']} at {d['time_s']:.0f} s")
+        out[role] = did
+    return out
+
+
 def checks(facts: dict[str, Any], outcomes: dict[str, dict[str, Any]], *,
            expected: list[str]) -> list[Check]:
     """(check, passed, what was measured): the auction's outcomes against the facts the
     simulation measured (:meth:`ServeFloor.facts`). ``expected``: the order ids."""
     out: list[Check] = []
     deliveries = list(facts.get("deliveries", []))
-    hand_overs = list(facts.get("hand_overs", []))
     tables = facts.get("tables", {})
     for tid in expected:
         o = outcomes.get(tid)
@@ -417,34 +450,32 @@ def checks(facts: dict[str, Any], outcomes: dict[str, dict[str, Any]], *,
                     + (f": {o.get('reason')}" if o.get("state") != "completed" else "")))
         server = members.get(_last_role(o) or "")
         table = o.get("table")
-        served = [d for d in deliveries if d["table"] == table and d["robot"] == server]
+        trail = item_trail(facts, o)
+        d = trail["delivery"]
         where = tables.get(table)
-        ok = bool(served) and where is not None
         measured = "no item put down there by it"
-        if served:
-            d = served[0]
-            off = math.hypot(d["x_m"] - where[0], d["y_m"] - where[1]) if where else math.inf
-            measured = f"{d['item']} by {server} at {d['time_s']:.1f} s, {off:.2f} m from " \
-                       f"the table's spot"
-        out.append((f"{tid}: served at {table} by {server}", ok, measured))
-        if ok and o.get("kind") == "serve":
-            d = served[0]
+        off = math.inf
+        if d is not None and where is not None:
+            off = math.hypot(d["x_m"] - where[0], d["y_m"] - where[1])
+            measured = (f"{d['item']} by {server} at {d['time_s']:.1f} s, {off:.2f} m from "
+                        f"the table's spot")
+        out.append((f"{tid}: served at {table} by {server}", off <= 0.6, measured))
+        if d is not None and o.get("kind") == "serve":
             shown = str(d.get("display") or "")
             out.append((f"{tid}: the order on {server}'s display when served",
                         shown.startswith(f"{tid}:"), repr(shown)))
         if "fetch" in members and "serve" in members:
-            given = [h for h in hand_overs if h["giver"] == members["fetch"]
-                     and h["taker"] == members["serve"]]
-            if not given:
-                out.append((f"{tid}: handed over {members['fetch']} → {members['serve']}",
-                            False, "no hand-over between them in the physics"))
+            h = trail["hand_over"]
+            name = (f"{tid}: handed over {members['fetch']} -> {members['serve']} at the "
+                    f"meeting point (both <= {HAND_OVER_RADIUS_M:g} m, lift up)")
+            if h is None:
+                out.append((name, False, "no hand-over of the served item in the physics"))
             else:
-                h = given[0]
                 near = max(h["giver_to_meeting_m"], h["taker_to_meeting_m"])
-                out.append((f"{tid}: hand-over at the meeting point (both ≤ "
-                            f"{HAND_OVER_RADIUS_M:g} m, lift up)",
-                            near <= HAND_OVER_RADIUS_M and h["taker_lift_m"] >= 0.15,
-                            f"at {h['time_s']:.1f} s: {h['giver']} "
+                out.append((name, h["giver"] == members["fetch"]
+                            and h["taker"] == members["serve"] and near <= HAND_OVER_RADIUS_M
+                            and h["taker_lift_m"] >= 0.15,
+                            f"{h['item']} at {h['time_s']:.1f} s: {h['giver']} "
                             f"{h['giver_to_meeting_m']:.2f} m, {h['taker']} "
                             f"{h['taker_to_meeting_m']:.2f} m away, lift "
                             f"{h['taker_lift_m']:.2f} m"))
@@ -456,7 +487,7 @@ def checks(facts: dict[str, Any], outcomes: dict[str, dict[str, Any]], *,
                           for ns, s in inside.items()) or "0.0 s inside"))
     zone = facts.get("zones", {}).get(AISLE)
     if zone is not None:
-        out.append((f"aisle limit {zone['max_speed_mps']:g} m/s kept (≤ +5 %)",
+        out.append((f"aisle limit {zone['max_speed_mps']:g} m/s kept (<= +5 %)",
                     zone["max_ratio"] <= 1.05,
                     f"worst speed / limit {zone['max_ratio']:.3f}"
                     + (f" ({zone['robot']})" if zone["robot"] else "")))
@@ -555,23 +586,13 @@ def _summary(outcomes: dict[str, dict[str, Any]], facts: dict[str, Any]) -> Any:
     from rich.table import Table
 
     table = Table(title="who did which role")
-    for col in ("order", "kind", "table", "plan", "role", "robot", "done in the physics"):
+    for col in ("order", "kind", "table", "plan", "role", "robot", "in the physics"):
         table.add_column(col)
     for tid, o in outcomes.items():
+        steps = role_steps(facts, o)
         for role, robot in (o.get("members") or {}).items():
-            did = []
-            for p in facts.get("picks", []):
-                if p["robot"] == robot:
-                    did.append(f"picked {p['item']} {p['time_s']:.0f} s")
-            for h in facts.get("hand_overs", []):
-                if robot in (h["giver"], h["taker"]):
-                    did.append(f"{'gave' if h['giver'] == robot else 'took'} {h['item']} "
-                               f"{h['time_s']:.0f} s")
-            for d in facts.get("deliveries", []):
-                if d["robot"] == robot and d["table"] == o.get("table"):
-                    did.append(f"served {d['item']} {d['time_s']:.0f} s")
             table.add_row(tid, o.get("kind", ""), o.get("table") or "", o.get("plan") or "",
-                          role, robot, "; ".join(did))
+                          role, robot, "; ".join(steps.get(role, [])) or "-")
     return table
 
 
@@ -580,7 +601,7 @@ def annotate(picture: Path, facts: dict[str, Any], outcomes: dict[str, dict[str,
              ) -> None:
     """Draw on the sim's picture who did which role: the meeting radius, each hand-over
     and delivery where it happened, and a legend of the orders' roles under the map."""
-    from PIL import Image, ImageDraw
+    from PIL import Image, ImageDraw, ImageFont
 
     from robots.world import load_world
 
@@ -590,10 +611,15 @@ def annotate(picture: Path, facts: dict[str, Any], outcomes: dict[str, dict[str,
         return ((x + margin_m) * scale_px_per_m, (depth + margin_m - y) * scale_px_per_m)
 
     base = Image.open(picture).convert("RGB")
-    legend = [f"{tid} ({o.get('kind')} → {o.get('table')}), plan {o.get('plan')}: "
-              + ", ".join(f"{r} = {b}" for r, b in (o.get("members") or {}).items())
-              + f"  [{o.get('state')}]" for tid, o in outcomes.items()]
-    img = Image.new("RGB", (base.width, base.height + 18 * (len(legend) + 1) + 6),
+    legend = []
+    for tid, o in outcomes.items():
+        steps = role_steps(facts, o)
+        legend.append(f"{tid} ({o.get('kind')} to {o.get('table')}, {o.get('state')}), "
+                      f"plan {o.get('plan')}: " + "; ".join(
+                          f"{r} = {b} ({', '.join(steps.get(r, [])) or 'nothing'})"
+                          for r, b in (o.get("members") or {}).items()))
+    font = ImageFont.load_default(size=13)
+    img = Image.new("RGB", (max(base.width, 1100), base.height + 18 * (len(legend) + 1) + 10),
                     (30, 30, 30))
     img.paste(base, (0, 0))
     draw = ImageDraw.Draw(img)
@@ -601,7 +627,8 @@ def annotate(picture: Path, facts: dict[str, Any], outcomes: dict[str, dict[str,
         cx, cy = px(mx, my)
         r = HAND_OVER_RADIUS_M * scale_px_per_m
         draw.ellipse((cx - r, cy - r, cx + r, cy + r), outline=(60, 160, 255), width=2)
-        draw.text((cx - r, cy - r - 14), f"{name} (hand-over radius)", fill=(60, 160, 255))
+        draw.text((cx - r, cy + r + 2), f"{name}: hand-over radius {HAND_OVER_RADIUS_M:g} m",
+                  fill=(20, 60, 160), font=font)
     for h in facts.get("hand_overs", []):
         for key in ("giver_xy", "taker_xy"):
             x, y = px(*h[key])
@@ -609,19 +636,19 @@ def annotate(picture: Path, facts: dict[str, Any], outcomes: dict[str, dict[str,
         gx, gy = px(*h["giver_xy"])
         tx, ty = px(*h["taker_xy"])
         draw.line((gx, gy, tx, ty), fill=(60, 160, 255), width=3)
-        draw.text((gx, gy + 10), f"{h['giver']} → {h['taker']} {h['time_s']:.0f} s",
-                  fill=(20, 60, 160))
+        draw.text((gx - 20, gy + 12), f"{h['giver']} -> {h['taker']} {h['time_s']:.0f} s",
+                  fill=(20, 60, 160), font=font)
     for d in facts.get("deliveries", []):
         x, y = px(d["x_m"], d["y_m"])
         draw.rectangle((x - 6, y - 6, x + 6, y + 6), outline=(0, 150, 0), width=3)
         task = next((t for t, o in outcomes.items() if o.get("table") == d["table"]), "?")
-        draw.text((x - 40, y + 10), f"{task}: {d['robot']} {d['time_s']:.0f} s",
-                  fill=(0, 90, 0))
+        draw.text((x - 40, y + 12), f"{task}: {d['robot']} {d['time_s']:.0f} s",
+                  fill=(0, 90, 0), font=font)
     y0 = base.height + 6
-    draw.text((8, y0), "orders — who did which role (blue: hand-overs, green: served)",
-              fill=(235, 235, 235))
+    draw.text((8, y0), "who did which role (blue: hand-overs, green: where served)",
+              fill=(235, 235, 235), font=font)
     for i, line in enumerate(legend, start=1):
-        draw.text((8, y0 + 18 * i), line, fill=(235, 235, 235))
+        draw.text((8, y0 + 18 * i), line, fill=(235, 235, 235), font=font)
     img.save(picture)
 
 
@@ -751,6 +778,8 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
         summary.add_row(name, Text("ok", style="green") if ok else Text("FAILED", style="red"),
                         measured)
     console.print(summary)
+    with watch.lock, open(log_dir / "orders.jsonl", "w") as steps:
+        steps.writelines(json.dumps(s) + "\n" for s in watch.steps)  # every auction step
     if picture.exists():
         annotate(picture, facts, outcomes, world=world)
     console.print(f"picture: {picture}   facts: {report_path}   logs: {log_dir}/")

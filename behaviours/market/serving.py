@@ -135,7 +135,11 @@ class ServeBroker(TravelBroker):
                                                f"{job.role.name!r}")
         except ValueError as exc:
             return str(exc)  # a malformed order is refused, saying why
-        return super().cost(job, queue)
+        offer = super().cost(job, queue)
+        log.info("%s: %s for %s/%s after %d queued role(s): %s", self.path,
+                 "refuses" if isinstance(offer, str) else "bids", job.task.id,
+                 job.role.name, len(queue), offer)
+        return offer
 
     def perform_role(self, job: Job) -> Action:
         return ServeRole(job, has_lift=self.has_lift, has_display=self.has_display,
