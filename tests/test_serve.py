@@ -95,7 +95,7 @@ def _bids(task: Task, brokers: dict[str, Standing]) -> tuple[dict[str, dict[str,
 def test_the_narrow_shelf_is_served_by_a_coalition_and_the_open_one_by_emili_alone() -> None:
     tea, cake, napkins = cafe_orders("serve")
     brokers = {"emili1": Standing((10.5, 4.5), **EMILI),
-               "kobuki1": Standing((4.5, 4.3), **KOBUKI)}
+               "kobuki1": Standing((3.1, 4.6), **KOBUKI)}
     open_roles, bids, refused = _bids(cake, brokers)
     # EMILI refuses everything in the aisle, saying why; it bids for serving at the meeting.
     assert refused[("emili1", "alone/serve")].startswith("no path")
@@ -224,7 +224,8 @@ FACTS = {
                "kobuki2": {"kind": "kobuki", "item": None, "in_aisle_s": 20.0,
                            "first_in_aisle_at_s": 20.0}},
     "zones": {AISLE: {"max_speed_mps": 0.25, "max_ratio": 0.94, "robot": "kobuki2",
-                      "at_s": 40.0}},
+                      "at_s": 40.0, "most_inside": 1, "most_inside_at_s": 20.0,
+                      "most_inside_robots": ["kobuki2"]}},
 }
 
 
@@ -261,6 +262,10 @@ def test_the_checks_pass_on_a_good_run() -> None:
     # An item was picked and never served.
     (lambda f: f["picks"].append({**f["picks"][0], "item": "shelf_open#2"}),
      "every item picked was served"),
+    # Two Kobukis in the one-lane aisle at once (the zone keeper let both in).
+    (lambda f: f["zones"][AISLE].update(most_inside=2, most_inside_robots=["kobuki1",
+                                                                          "kobuki2"]),
+     "at most one robot in the aisle at once"),
     # A Kobuki raced through the aisle.
     (lambda f: f["zones"][AISLE].update(max_ratio=1.3), "aisle limit"),
 ])

@@ -24,7 +24,9 @@ checks what the simulation measured:
 - a ``serve`` order: the server showed the order on its display while the guest took it;
 - every hand-over: from the coalition's ``fetch`` robot to its ``serve`` robot, both
   standing within ``HAND_OVER_RADIUS_M`` of the meeting point, the taker's lift raised;
-- EMILI never inside the narrow aisle; no robot faster than the aisle's limit + 5 %;
+- EMILI never inside the narrow aisle; at most one robot in it at once (a zone keeper
+  agent, ``python -m behaviours.market.serving shelf_aisle``, lets them in one by one);
+  no robot faster than the aisle's limit + 5 %;
 - nothing lost: every item picked was served.
 
 Exit 0 only if every check held, 1 otherwise, 2 for bad arguments.
@@ -126,7 +128,8 @@ class ServeFloor:
         self.deliveries: list[dict[str, Any]] = []
         self.zone_max: dict[str, dict[str, Any]] = {
             z.name: {"max_speed_mps": z.max_speed_mps, "max_ratio": 0.0, "robot": None,
-                     "at_s": None} for z in self.zones}
+                     "at_s": None, "most_inside": 0, "most_inside_at_s": None,
+                     "most_inside_robots": []} for z in self.zones}
         self._pair: tuple[str, str] | None = None
         self._pair_since_s = 0.0
         self._listeners: list[Callable[[], None]] = []
@@ -181,6 +184,12 @@ class ServeFloor:
             self._last_s = time_s
             odoms = {ns: self.sim.robot(ns).odometry() for ns in self._robots}
             still = {}
+            for zone in self.zones:  # how many robots at once (the aisle is one lane)
+                inside = sorted(ns for ns, o in odoms.items() if zone.contains(o.x_m, o.y_m))
+                entry = self.zone_max[zone.name]
+                if len(inside) > entry["most_inside"]:
+                    entry.update(most_inside=len(inside), most_inside_at_s=round(time_s, 3),
+                                 most_inside_robots=inside)
             for ns, r in self._robots.items():
                 o = odoms[ns]
                 r.speeds.append(abs(o.linear_mps))
@@ -487,6 +496,11 @@ def checks(facts: dict[str, Any], outcomes: dict[str, dict[str, Any]], *,
                           for ns, s in inside.items()) or "0.0 s inside"))
     zone = facts.get("zones", {}).get(AISLE)
     if zone is not None:
+        out.append(("at most one robot in the aisle at once", zone["most_inside"] <= 1,
+                    f"most at once: {zone['most_inside']}"
+                    + (f" ({', '.join(zone['most_inside_robots'])} at "
+                       f"{zone['most_inside_at_s']:.1f} s)" if zone["most_inside"] > 1
+                       else "")))
         out.append((f"aisle limit {zone['max_speed_mps']:g} m/s kept (<= +5 %)",
                     zone["max_ratio"] <= 1.05,
                     f"worst speed / limit {zone['max_ratio']:.3f}"
@@ -726,8 +740,11 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
             cfg = log_dir / f"{ns}.yaml"
             cfg.write_text(yaml.safe_dump(robot_config(kind, ns, world), sort_keys=False))
             procs.start(ns, [py, "-m", "beehave.cli", "run", str(cfg)])
+        procs.start("keeper", [py, "-m", "behaviours.market.serving", AISLE, "--world", world,
+                               "--lease-s", str(LEASE_S)])
         procs.start("orders", [py, "-m", "behaviours.market.cafe", "orders", "--world", world,
-                               "--brokers", str(len(names)), "--lease-s", str(LEASE_S)])
+                               "--brokers", str(len(names)), "--keepers", "1",
+                               "--lease-s", str(LEASE_S)])
         with RosContext() as ros:
             node = ros.create_node("serve_watch")
             node.create_subscription(String, ORDERS_TOPIC, lambda m: watch.on_order(m.data),

@@ -1,6 +1,7 @@
 """The serve scenario's orders and its order source: an agent that auctions them.
 
-    python -m behaviours.market.cafe [NAME] [--world serve] [--brokers N] [--lease-s S]
+    python -m behaviours.market.cafe [NAME] [--world serve] [--brokers N] [--keepers K]
+                                     [--lease-s S]
 
 :func:`cafe_orders` makes the scenario's orders from the world's stations (the vocabulary
 of ``robots/worlds/serve.yaml``: ``shelf_open``, ``shelf_narrow``, ``meeting``,
@@ -15,7 +16,8 @@ of ``robots/worlds/serve.yaml``: ``shelf_open``, ``shelf_narrow``, ``meeting``,
 - ``napkins`` (kind ``deliver``): from the narrow shelf to table 2 — any ``carry`` robot
   that can get there (a Kobuki).
 
-:class:`OrderSource` waits until ``brokers`` brokers are in the directory, auctions the
+:class:`OrderSource` waits until ``brokers`` brokers (and ``keepers`` zone keepers) are
+in the directory, auctions the
 orders with the :class:`~beehave.agents.market.Auctioneer` (sequential single-item
 auctions: each bid sees the queues of the awards before it) and reports every step on
 ``/serve/orders`` (:data:`ORDERS_TOPIC`, JSON lines ``{"step", "detail", "stamp"}``), and
@@ -37,6 +39,7 @@ from beehave.agents import AgentBehavior
 from beehave.agents.market import BROKER_SERVICE, Auctioneer, Outcome, Role, Task
 from beehave.errors import BeehaveError
 from behaviours.fleet.process import say, serve
+from behaviours.market.serving import ZONE_SERVICE
 
 log = logging.getLogger(__name__)
 
@@ -52,14 +55,14 @@ CAPABILITIES = ("carry", "serve")
 """The market's vocabulary: ``carry`` (move an item), ``serve`` (hand it to a guest:
 lift and display)."""
 HAND_OVER_OFFSET_M = 0.6
-"""Where the two robots stand at the meeting point: the giver this far west of its centre
-(towards the aisle it comes from), the taker as far east. 1.2 m between centres leaves
-EMILI's safety field clear of the Kobuki."""
+"""Where the two robots stand at the meeting point: the giver this far north of its
+centre (the aisle's side), the taker as far south (the tables' side), so neither stands
+in the other's way on. 1.2 m between centres keeps EMILI's safety field clear."""
 
 
-def _at(world: Any, name: str, dx_m: float = 0.0) -> list[Any]:
+def _at(world: Any, name: str, dy_m: float = 0.0) -> list[Any]:
     x, y = world.station(name).center_m  # UnknownStation lists the world's stations
-    return [name, [round(x + dx_m, 3), round(y, 3)]]
+    return [name, [round(x, 3), round(y + dy_m, 3)]]
 
 
 def cafe_orders(world: str = "serve") -> list[Task]:
@@ -68,8 +71,8 @@ def cafe_orders(world: str = "serve") -> list[Task]:
     from robots.world import load_world
 
     w = load_world(world)
-    meeting_give = _at(w, "meeting", -HAND_OVER_OFFSET_M)
-    meeting_take = _at(w, "meeting", +HAND_OVER_OFFSET_M)
+    meeting_give = _at(w, "meeting", +HAND_OVER_OFFSET_M)
+    meeting_take = _at(w, "meeting", -HAND_OVER_OFFSET_M)
 
     def steps(*pairs: tuple[str, list[Any]]) -> dict[str, Any]:
         return {"steps": [[op, *where] for op, where in pairs]}
@@ -111,11 +114,12 @@ class OrderSource(AgentBehavior):
     """Waits for ``brokers`` brokers, auctions the orders, reports every step (see the
     module docstring). Its result is ``{task id: outcome dict}``."""
 
-    def __init__(self, world: str = "serve", *, brokers: int = 3,
+    def __init__(self, world: str = "serve", *, brokers: int = 3, keepers: int = 0,
                  settle_s: float = 2.0, done_timeout_s: float = 300.0) -> None:
         if brokers < 1:
             raise BeehaveError(f"OrderSource: brokers must be 1 or more, got {brokers}")
         self.world, self.brokers, self.settle_s = world, brokers, settle_s
+        self.keepers = keepers
         self.done_timeout_s = done_timeout_s
         self.orders = cafe_orders(world)
 
@@ -126,7 +130,10 @@ class OrderSource(AgentBehavior):
             pub.publish(String(data=json.dumps({"step": step, "detail": detail,
                                                 "stamp": time.time()}, default=str)))
 
-        while len(self.agent.directory.search(BROKER_SERVICE)) < self.brokers:
+        # Every robot bidding, and the aisle kept (a robot in it unreserved could meet
+        # another head-on), before the first order goes out.
+        while len(self.agent.directory.search(BROKER_SERVICE)) < self.brokers or \
+                len(self.agent.directory.search(ZONE_SERVICE)) < self.keepers:
             if not self.sleep(0.2):
                 return {}
         # Registered is not yet bidding: a broker refuses until its odometry is in.
@@ -155,12 +162,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--world", default="serve")
     parser.add_argument("--brokers", type=int, default=3,
                         help="how many brokers to wait for before auctioning")
+    parser.add_argument("--keepers", type=int, default=0,
+                        help="how many zone keepers to wait for before auctioning")
     parser.add_argument("--lease-s", type=float, default=3.0, help="its directory lease")
     args = parser.parse_args(argv)
     if args.brokers < 1:
         parser.error(f"--brokers must be 1 or more, got {args.brokers}")
-    return serve(args.name, OrderSource, {"world": args.world, "brokers": args.brokers},
-                 lease_s=args.lease_s)
+    return serve(args.name, OrderSource, {"world": args.world, "brokers": args.brokers,
+                                          "keepers": args.keepers}, lease_s=args.lease_s)
 
 
 if __name__ == "__main__":

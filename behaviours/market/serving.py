@@ -25,6 +25,15 @@ a broker needs no names to bid). Whether a robot holds an item is decided by the
 simulation, not by the robot: it publishes ``/serve/state`` (:data:`SERVE_STATE`, JSON of
 schema :data:`STATE_SCHEMA`) and the action reads it.
 
+**One robot at a time in a narrow zone.** The aisle is one lane: two Kobukis that meet in
+it block each other for good (neither planner finds a way around). A zone keeper agent
+(:class:`ZoneKeeper`, ``python -m behaviours.market.serving ZONE``; the charging stations'
+leased reservations of :mod:`behaviours.fleet.station`, service :data:`ZONE_SERVICE`)
+hands the zone to one robot at a time: before a leg that ends inside a kept zone the
+role reserves it (waiting where it stands while another robot holds it), renews the lease
+while inside, and releases it as soon as its odometry is out again. A robot that dies
+leaves the directory, which frees its zone.
+
 The partner of ``give`` / ``take`` is ``role.params["partner"]``, else the plan's other
 role. Waiting never blocks the control loop: under sim time the action keeps ticking (and
 so keeps its lockstep with the simulator) while it waits — a blocking wait would hold the
@@ -33,9 +42,11 @@ simulation, and the partner could never arrive.
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import math
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -43,16 +54,28 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import Float64, String
 
 from beehave.action import Action
+from beehave.agents import Agent
 from beehave.agents.market import Job
-from beehave.errors import BeehaveError, Interrupted, RendezvousTimeout
-from behaviours.actions import Goal, Navigation, first_message, world_planner
+from beehave.agents.protocols import request
+from beehave.errors import (
+    AgentError,
+    BeehaveError,
+    Interrupted,
+    NoReply,
+    ProtocolFailed,
+    RendezvousTimeout,
+)
+from behaviours.actions import Goal, Navigation, SpeedLimit, first_message, world_planner
+from behaviours.fleet.process import serve
+from behaviours.fleet.site import site
+from behaviours.fleet.station import Reservations
 from behaviours.market.brokers import TravelBroker
 from robots import topics
 
 log = logging.getLogger(__name__)
 
-__all__ = ["OPS", "SERVE_STATE", "STATE_QOS", "STATE_SCHEMA", "ServeBroker", "ServeError",
-           "ServeRole", "Step", "parse_steps"]
+__all__ = ["OPS", "SERVE_STATE", "STATE_QOS", "STATE_SCHEMA", "ZONE_PROTOCOL", "ZONE_SERVICE",
+           "ServeBroker", "ServeError", "ServeRole", "Step", "ZoneKeeper", "parse_steps"]
 
 SERVE_STATE = "/serve/state"
 """The simulation's word on who holds which item (std_msgs/String, JSON)."""
@@ -66,6 +89,13 @@ STATE_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
 
 OPS = ("pick", "give", "take", "serve")
 """The steps a serving role may have (see the module docstring)."""
+
+ZONE_SERVICE = "zone"
+"""The directory service of a :class:`ZoneKeeper`: ``{"station": zone, "holder": robot}``."""
+ZONE_PROTOCOL = "zone"
+"""Its requests: ``{"op": "reserve" | "renew" | "release", "lease_s": L}``."""
+ZONE_LEASE_S = 30.0
+"""Wall seconds a zone reservation lasts unless renewed (every third of it while inside)."""
 
 Step = tuple[str, str, tuple[float, float]]
 
@@ -92,6 +122,18 @@ def parse_steps(params: Any, *, where: str = "role") -> list[Step]:
                              f"[x_m, y_m]] with op in {list(OPS)} and two finite numbers")
         out.append((str(step[0]), str(step[1]), (float(step[2][0]), float(step[2][1]))))
     return out
+
+
+class ZoneKeeper(Reservations):
+    """Lets one robot at a time into a zone of the world (the narrow aisle): the charging
+    stations' leased reservations (:class:`behaviours.fleet.station.Reservations`) under
+    service and protocol ``zone``."""
+
+    protocol = ZONE_PROTOCOL
+    service = ZONE_SERVICE
+
+    def _publish(self) -> None:
+        self.agent.register(ZONE_SERVICE, **self.service_properties())
 
 
 class ServeBroker(TravelBroker):
@@ -125,6 +167,13 @@ class ServeBroker(TravelBroker):
         self.has_lift, self.has_display = has_lift, has_display
         self.meet_timeout_s, self.wait_timeout_s = meet_timeout_s, wait_timeout_s
 
+    def run(self) -> None:
+        if self.manager.node is not None:
+            # Declared now, not at the first drive: the speed zones logic sets it from the
+            # start (a robot entering the aisle on its first role is already limited).
+            SpeedLimit.of(self.manager.node)
+        super().run()
+
     @staticmethod
     def stops(job: Job) -> list[tuple[float, float]]:
         return [xy for _, _, xy in parse_steps(job.role.params)]
@@ -142,7 +191,8 @@ class ServeBroker(TravelBroker):
         return offer
 
     def perform_role(self, job: Job) -> Action:
-        return ServeRole(job, has_lift=self.has_lift, has_display=self.has_display,
+        return ServeRole(job, agent=self.agent, has_lift=self.has_lift,
+                         has_display=self.has_display,
                          meet_timeout_s=self.meet_timeout_s,
                          wait_timeout_s=self.wait_timeout_s, **self.nav)
 
@@ -158,10 +208,14 @@ class ServeRole(Navigation):
 
     LIFT_UP_M = 0.2
 
-    def __init__(self, job: Job, *, has_lift: bool = False, has_display: bool = False,
-                 meet_timeout_s: float = 240.0, wait_timeout_s: float = 60.0,
-                 **nav: Any) -> None:
+    def __init__(self, job: Job, *, agent: Agent | None = None, has_lift: bool = False,
+                 has_display: bool = False, meet_timeout_s: float = 240.0,
+                 wait_timeout_s: float = 60.0, **nav: Any) -> None:
         self.job = job
+        self.agent = agent
+        self.world = nav.get("world")
+        #: Zone keepers whose zone this robot holds now: keeper → (zone, last renewal).
+        self.held: dict[str, tuple[Any, float]] = {}
         self.steps = parse_steps(job.role.params)
         first = self.steps[0]
         super().__init__(Goal(*first[2], name=first[1]), tolerance_m=0.12, **nav)
@@ -230,6 +284,76 @@ class ServeRole(Navigation):
         if self.has_display:
             self._display.publish(String(data=text))
 
+    # ---- one robot at a time in a kept zone ---------------------------------------------
+
+    def _keepers_at(self, x: float, y: float) -> list[tuple[str, Any]]:
+        """The zone keepers in the directory whose zone holds (x, y)."""
+        if self.agent is None or self.world is None:
+            return []
+        zones = {z.name: z for z in site(self.world).zones}
+        found = []
+        for info in self.agent.directory.search(ZONE_SERVICE):
+            zone = zones.get(str(info.properties(ZONE_SERVICE).get("station")))
+            if zone is not None and zone.contains(x, y):
+                found.append((info.name, zone))
+        return found
+
+    def _ask(self, keeper: str, op: str) -> None:
+        assert self.agent is not None
+        request(self.agent, keeper, {"op": op, "lease_s": ZONE_LEASE_S},
+                protocol=ZONE_PROTOCOL, timeout_s=3.0)
+
+    def _enter(self, x: float, y: float, place: str) -> None:
+        """Reserve every kept zone (x, y) lies in, standing where it is while another robot
+        holds one (up to ``meet_timeout_s``)."""
+        for keeper, zone in self._keepers_at(x, y):
+            if keeper in self.held:
+                continue
+            clock = self.manager.clock
+            deadline, why = clock.now() + self.meet_timeout_s, ""
+            retry_at = -math.inf
+            while True:
+                if clock.now() >= retry_at:
+                    try:
+                        self._ask(keeper, "reserve")
+                        break
+                    except (ProtocolFailed, NoReply, AgentError) as exc:
+                        why, retry_at = str(exc), clock.now() + 1.0
+                if self.interrupted:
+                    raise Interrupted(f"{self.name}: interrupted waiting for {zone.name}")
+                if clock.now() > deadline:
+                    raise ServeError(f"{self.name} ({self._me}): could not enter {zone.name} "
+                                     f"for {place} within {self.meet_timeout_s:g} s: {why}")
+                self.phase = f"waiting for {zone.name}"
+                self.command(0.0, 0.0)
+                super().tick()
+            self.held[keeper] = (zone, time.monotonic())
+            log.info("%s: %s is ours", self.name, zone.name)
+
+    def _leave(self, *, everything: bool = False) -> None:
+        """Release the kept zones the robot is out of (``everything``: all of them)."""
+        msg = self.odom.get() if getattr(self, "odom", None) is not None else None
+        for keeper, (zone, renewed) in list(self.held.items()):
+            out = msg is not None and not zone.contains(msg.pose.pose.position.x,
+                                                        msg.pose.pose.position.y)
+            goal_in = zone.contains(self.goal.x_m, self.goal.y_m)
+            try:
+                if everything or (out and not goal_in):
+                    del self.held[keeper]
+                    self._ask(keeper, "release")
+                    log.info("%s: left %s", self.name, zone.name)
+                elif time.monotonic() - renewed > ZONE_LEASE_S / 3:
+                    self.held[keeper] = (zone, time.monotonic())
+                    self._ask(keeper, "renew")
+            except (ProtocolFailed, NoReply, AgentError) as exc:  # its lease ends it
+                log.warning("%s: %s of %s: %s", self.name, "release" if keeper not in
+                            self.held else "renewal", zone.name, exc)
+
+    def tick(self) -> bool:
+        if self.held:
+            self._leave()
+        return super().tick()
+
     # ---- the role ---------------------------------------------------------------------
 
     def drive(self) -> dict[str, Any]:  # type: ignore[override]
@@ -242,9 +366,17 @@ class ServeRole(Navigation):
             first_message(self._lift_state)
         if self.has_display:
             self._display = self.ros.publisher(String, topics.DISPLAY)
+        try:
+            return self._perform()
+        finally:
+            if self.held:
+                self._leave(everything=True)
+
+    def _perform(self) -> dict[str, Any]:
         job, clock = self.job, self.manager.clock
         done: list[list[Any]] = []
         for op, place, (x, y) in self.steps:
+            self._enter(x, y, place)
             self.phase = f"to {place}"
             self.goal = Goal(x, y, name=place)
             super().drive()
@@ -285,3 +417,23 @@ class ServeRole(Navigation):
         self.phase = "done"
         return {"robot": self._me, "task": job.task.id, "role": job.role.name,
                 "steps": done}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m behaviours.market.serving ZONE [--world serve] [--lease-s S]``: the
+    zone keeper of ZONE (a speed zone of the world), as agent ``keeper_<ZONE>``."""
+    parser = argparse.ArgumentParser(prog="python -m behaviours.market.serving",
+                                     description=ZoneKeeper.__doc__)
+    parser.add_argument("zone", help="the world's zone it keeps (one robot at a time)")
+    parser.add_argument("--world", default="serve")
+    parser.add_argument("--lease-s", type=float, default=3.0, help="its directory lease")
+    args = parser.parse_args(argv)
+    zones = sorted(z.name for z in site(args.world).zones)
+    if args.zone not in zones:
+        parser.error(f"no zone {args.zone!r} in world {args.world!r}; it has {zones}")
+    return serve(f"keeper_{args.zone}", ZoneKeeper, {"station": args.zone},
+                 lease_s=args.lease_s)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
