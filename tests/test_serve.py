@@ -153,7 +153,9 @@ def test_a_hand_over_needs_both_at_the_meeting_point_and_the_lift_up() -> None:
         sim.run_for(3.0)
         facts = floor.facts()
         assert [p["robot"] for p in facts["picks"]] == ["kobuki1"]  # stood in the shelf
-        assert facts["hand_overs"] == []  # EMILI is there, its lift is down
+        floor.offer("kobuki1", "emili1", for_s=60.0)
+        sim.run_for(2.0)
+        assert floor.facts()["hand_overs"] == []  # offered, both there, the lift is down
         sim.emili("emili1").set_lift(0.2)
         sim.run_for(6.0)  # 2 s to raise it, 1 s to hand over, 1.5 s for the guest
         facts = floor.facts()
@@ -168,13 +170,20 @@ def test_a_hand_over_needs_both_at_the_meeting_point_and_the_lift_up() -> None:
         sim.close()
 
 
-def test_no_hand_over_away_from_the_meeting_point() -> None:
+@pytest.mark.parametrize("kobuki_at, offered", [
+    ((0.6, 0.6), True),    # offered, but 2 m from the meeting point
+    ((1.8, 2.0), False),   # at the meeting point, lift up, but never offered: passing by
+])
+def test_no_hand_over_away_from_the_meeting_point_or_without_an_offer(
+        kobuki_at: tuple[float, float], offered: bool) -> None:
     from robots.sim import Simulation
 
-    sim = Simulation(_cafe((0.6, 0.6)), real_time_factor=None)  # 2 m from the meeting
+    sim = Simulation(_cafe(kobuki_at), real_time_factor=None)
     try:
         floor = ServeFloor(sim)
         sim.emili("emili1").set_lift(0.2)
+        if offered:
+            floor.offer("kobuki1", "emili1", for_s=60.0)
         sim.run_for(6.0)
         facts = floor.facts()
         assert len(facts["picks"]) == 1 and facts["hand_overs"] == []

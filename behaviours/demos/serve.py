@@ -61,7 +61,9 @@ CONFIGS = {"emili": ROOT / "robots" / "config" / "serve_emili.yaml",
            "kobuki": ROOT / "robots" / "config" / "serve_kobuki.yaml"}
 WORLD = "serve"
 MAX_KOBUKIS = 4
-LEASE_S = 3.0
+#: The agents' directory lease: above the fleet's 3 s, since a robot that misses it (a busy
+#: 2-core host) counts as dead and dissolves its coalition.
+LEASE_S = 5.0
 CLOCK_RATE_HZ = 50.0
 STOP_TIMEOUT_S = 15.0
 HAND_OVER_RADIUS_M = 1.0
@@ -92,9 +94,12 @@ class ServeFloor:
 
     - **pick**: a robot holding nothing that stands still (``|v| < still_speed_mps``)
       inside a shelf station for ``pick_s`` gets an item (``<shelf>#<n>``);
-    - **hand-over**: a robot holding an item and an EMILI holding none, both standing
-      still within ``hand_over_radius_m`` of a meeting station's centre, EMILI's lift at
-      ``lift_min_m`` or higher, for ``hand_over_s``: the item moves onto EMILI's plate;
+    - **hand-over**: while a robot holding an item offers it to an EMILI holding none
+      (:meth:`offer`: the giver's ``/serve/hand_over`` message, valid ``for_s``), both
+      standing still within ``hand_over_radius_m`` of a meeting station's centre, EMILI's
+      lift at ``lift_min_m`` or higher, for ``hand_over_s``: the item moves onto EMILI's
+      plate. Without an offer nothing moves (a loaded robot that passes a waiting EMILI
+      keeps its item);
     - **serve**: a robot holding an item that stands still inside a table station for
       ``serve_s``: the guest takes it; recorded with the robot's display text and lift.
 
@@ -130,11 +135,19 @@ class ServeFloor:
             z.name: {"max_speed_mps": z.max_speed_mps, "max_ratio": 0.0, "robot": None,
                      "at_s": None, "most_inside": 0, "most_inside_at_s": None,
                      "most_inside_robots": []} for z in self.zones}
+        self._offers: dict[str, tuple[str, float]] = {}  # giver -> (taker, until sim s)
         self._pair: tuple[str, str] | None = None
         self._pair_since_s = 0.0
         self._listeners: list[Callable[[], None]] = []
         self._last_s = sim.time_s
         self._remove = sim.on_step(self._update, rate_hz=rate_hz)
+
+    def offer(self, giver: str, taker: str, *, for_s: float = 1.0) -> None:
+        """``giver`` offers its item to ``taker`` for the next ``for_s`` sim seconds (any
+        thread). Unknown robots are ignored: the physics decides, not the message."""
+        if giver in self._robots and taker in self._robots:
+            with self._lock:
+                self._offers[giver] = (taker, self._last_s + for_s)
 
     def on_event(self, callback: Callable[[], None]) -> None:
         self._listeners.append(callback)
@@ -257,15 +270,22 @@ class ServeFloor:
     def _hand_over(self, odoms: dict[str, Any], still: dict[str, bool],
                    time_s: float) -> bool:
         pair = None
-        for meeting in self.meetings:
-            mx, my = meeting.center_m
-            near = {ns for ns, o in odoms.items() if still[ns]
-                    and math.hypot(o.x_m - mx, o.y_m - my) <= self.hand_over_radius_m}
-            givers = sorted(ns for ns in near if self._robots[ns].item is not None)
-            takers = sorted(ns for ns in near & self._emilis if self._robots[ns].item is None
-                            and self.sim.emili(ns).lift_height() >= self.lift_min_m)
-            if givers and takers:
-                pair = (givers[0], takers[0], meeting)
+        for giver, (taker, until_s) in sorted(self._offers.items()):
+            if until_s < time_s:
+                del self._offers[giver]
+                continue
+            g, t = self._robots[giver], self._robots[taker]
+            if g.item is None or t.item is not None or taker not in self._emilis \
+                    or self.sim.emili(taker).lift_height() < self.lift_min_m \
+                    or not (still[giver] and still[taker]):
+                continue
+            for meeting in self.meetings:
+                mx, my = meeting.center_m
+                if all(math.hypot(odoms[ns].x_m - mx, odoms[ns].y_m - my)
+                       <= self.hand_over_radius_m for ns in (giver, taker)):
+                    pair = (giver, taker, meeting)
+                    break
+            if pair is not None:
                 break
         if pair is None or pair[:2] != self._pair:
             self._pair = None if pair is None else pair[:2]
@@ -286,6 +306,7 @@ class ServeFloor:
             "taker_to_meeting_m": round(math.hypot(to.x_m - mx, to.y_m - my), 3),
             "taker_lift_m": round(self.sim.emili(taker).lift_height(), 3)})
         t.item, g.item = g.item, None
+        self._offers.pop(giver, None)
         self._show(g)
         self._show(t)
         self._pair = None
@@ -346,7 +367,7 @@ def sim_main(argv: list[str]) -> int:
     from std_msgs.msg import String
 
     from beehave.ros.context import RosContext
-    from behaviours.market.serving import SERVE_STATE, STATE_QOS
+    from behaviours.market.serving import HAND_OVER_TOPIC, SERVE_STATE, STATE_QOS
     from robots.node import SimNode
     from robots.sim import SimState, Simulation
 
@@ -360,6 +381,16 @@ def sim_main(argv: list[str]) -> int:
     node = SimNode(sim, ros, clock_rate_hz=CLOCK_RATE_HZ)
     pub_node = ros.create_node("serve_floor")
     pub = pub_node.create_publisher(String, SERVE_STATE, STATE_QOS)
+
+    def on_offer(msg: String) -> None:
+        try:
+            data = json.loads(msg.data)
+            floor.offer(str(data["giver"]), str(data["taker"]))
+        except (ValueError, KeyError, TypeError) as exc:
+            print(json.dumps({"event": "bad_offer", "data": msg.data[:200],
+                              "error": str(exc)}), flush=True)
+
+    pub_node.create_subscription(String, HAND_OVER_TOPIC, on_offer, 10)
     lock = threading.Lock()
 
     def publish(_time_s: float = 0.0) -> None:
@@ -628,12 +659,12 @@ def annotate(picture: Path, facts: dict[str, Any], outcomes: dict[str, dict[str,
     legend = []
     for tid, o in outcomes.items():
         steps = role_steps(facts, o)
-        legend.append(f"{tid} ({o.get('kind')} to {o.get('table')}, {o.get('state')}), "
-                      f"plan {o.get('plan')}: " + "; ".join(
-                          f"{r} = {b} ({', '.join(steps.get(r, [])) or 'nothing'})"
-                          for r, b in (o.get("members") or {}).items()))
+        legend.append(f"{tid} ({o.get('kind')} to {o.get('table')}): {o.get('state')}, "
+                      f"plan {o.get('plan')}")
+        legend += [f"    {r} = {b}: {', '.join(steps.get(r, [])) or 'nothing'}"
+                   for r, b in (o.get("members") or {}).items()]
     font = ImageFont.load_default(size=13)
-    img = Image.new("RGB", (max(base.width, 1100), base.height + 18 * (len(legend) + 1) + 10),
+    img = Image.new("RGB", (base.width, base.height + 17 * (len(legend) + 1) + 10),
                     (30, 30, 30))
     img.paste(base, (0, 0))
     draw = ImageDraw.Draw(img)
@@ -662,7 +693,7 @@ def annotate(picture: Path, facts: dict[str, Any], outcomes: dict[str, dict[str,
     draw.text((8, y0), "who did which role (blue: hand-overs, green: where served)",
               fill=(235, 235, 235), font=font)
     for i, line in enumerate(legend, start=1):
-        draw.text((8, y0 + 18 * i), line, fill=(235, 235, 235), font=font)
+        draw.text((8, y0 + 17 * i), line, fill=(235, 235, 235), font=font)
     img.save(picture)
 
 

@@ -10,8 +10,8 @@ step        what the robot does there
 ==========  ==========================================================================
 ``pick``    stand in a shelf station until the simulation says it holds an item
 ``give``    meet the partner role at the meeting point (both signal ``at_meeting`` and
-            wait for the other's), stand still until the item has left it, signal
-            ``handed``
+            wait for the other's), offer the item to the partner's robot
+            (:data:`HAND_OVER_TOPIC`) until it has left this robot, signal ``handed``
 ``take``    raise the lift (the item goes onto the plate), meet the partner, stand still
             until it holds the item and the partner signalled ``handed``; signal
             ``received``
@@ -46,6 +46,7 @@ import argparse
 import json
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -74,14 +75,18 @@ from robots import topics
 
 log = logging.getLogger(__name__)
 
-__all__ = ["OPS", "SERVE_STATE", "STATE_QOS", "STATE_SCHEMA", "ZONE_PROTOCOL", "ZONE_SERVICE",
-           "ServeBroker", "ServeError", "ServeRole", "Step", "ZoneKeeper", "parse_steps"]
+__all__ = ["HAND_OVER_TOPIC", "OPS", "SERVE_STATE", "STATE_QOS", "STATE_SCHEMA",
+           "ZONE_PROTOCOL", "ZONE_SERVICE", "ServeBroker", "ServeError", "ServeRole", "Step",
+           "ZoneKeeper", "parse_steps"]
 
 SERVE_STATE = "/serve/state"
 """The simulation's word on who holds which item (std_msgs/String, JSON)."""
 STATE_SCHEMA = "beehave/serve/state/1"
 """``{"schema", "time_s", "robots": {ns: {"item": str | None, "x_m", "y_m", "lift_m"}},
 "events": [...]}``."""
+HAND_OVER_TOPIC = "/serve/hand_over"
+"""A giver's offer (std_msgs/String, JSON ``{"giver": ns, "taker": ns}``), repeated while
+it stands at the meeting point: the simulation hands the item over only on an offer."""
 STATE_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                        reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -266,6 +271,23 @@ class ServeRole(Navigation):
         self._until(self._reached(event), self.meet_timeout_s,
                     f"{event!r} (the rendezvous)", RendezvousTimeout)
 
+    def _offer(self) -> Callable[[], bool]:
+        """The giver's side of a hand-over: offer the item to the partner's robot (on
+        :data:`HAND_OVER_TOPIC`, at every control period) until it has left this robot.
+        The simulation moves it only while both stand at the meeting point, the taker's
+        lift up: a robot that merely passes by a waiting EMILI keeps its item."""
+        taker = self.job.members.get(self.partner or "")
+        pub = self.ros.publisher(String, HAND_OVER_TOPIC)
+        offer = String(data=json.dumps({"giver": self._me, "taker": taker}))
+
+        def handed() -> bool:
+            if self._item() is None:
+                return True
+            pub.publish(offer)
+            return False
+
+        return handed
+
     def _reached(self, event: str) -> Callable[[], bool]:
         return lambda: event in self.job.reached
 
@@ -338,7 +360,10 @@ class ServeRole(Navigation):
                                                         msg.pose.pose.position.y)
             goal_in = zone.contains(self.goal.x_m, self.goal.y_m)
             try:
-                if everything or (out and not goal_in):
+                if everything:
+                    del self.held[keeper]
+                    self._release_uninterrupted(keeper)
+                elif out and not goal_in:
                     del self.held[keeper]
                     self._ask(keeper, "release")
                     log.info("%s: left %s", self.name, zone.name)
@@ -348,6 +373,22 @@ class ServeRole(Navigation):
             except (ProtocolFailed, NoReply, AgentError) as exc:  # its lease ends it
                 log.warning("%s: %s of %s: %s", self.name, "release" if keeper not in
                             self.held else "renewal", zone.name, exc)
+
+    def _release_uninterrupted(self, keeper: str) -> None:
+        """Release a zone also when this action was interrupted (its coalition dissolved):
+        asked from a helper thread, which the interrupt does not reach, joined here — else
+        the zone would stay closed until the lease runs out."""
+        def release() -> None:
+            try:
+                self._ask(keeper, "release")
+            except (ProtocolFailed, NoReply, AgentError) as exc:
+                log.warning("%s: release of %s: %s (its lease ends it)", self.name, keeper,
+                            exc)
+
+        helper = threading.Thread(target=release, name=f"{self.name}:release",
+                                  daemon=True)
+        helper.start()
+        helper.join(5.0)
 
     def tick(self) -> bool:
         if self.held:
@@ -389,7 +430,7 @@ class ServeRole(Navigation):
                 job.signal("picked", {"item": self._item()})
             elif op == "give":
                 self._meet()
-                self._until(lambda: self._item() is None, self.wait_timeout_s,
+                self._until(self._offer(), self.wait_timeout_s,
                             "the hand-over (the item leaving this robot)")
                 job.signal("handed")
             elif op == "take":
