@@ -754,7 +754,9 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
     log_dir = out_dir / "serve"
     log_dir.mkdir(parents=True, exist_ok=True)
     report_path, picture = out_dir / "serve_report.json", out_dir / "serve.png"
-    report_path.unlink(missing_ok=True)
+    result_path = log_dir / "outcomes.json"
+    for stale in (report_path, result_path):
+        stale.unlink(missing_ok=True)
     expected = [t.id for t in cafe_orders(world)]
     py = sys.executable
     procs = _Procs(log_dir)
@@ -775,7 +777,7 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
                                "--lease-s", str(LEASE_S)])
         procs.start("orders", [py, "-m", "behaviours.market.cafe", "orders", "--world", world,
                                "--brokers", str(len(names)), "--keepers", "1",
-                               "--lease-s", str(LEASE_S)])
+                               "--lease-s", str(LEASE_S), "--result", str(result_path)])
         with RosContext() as ros:
             node = ros.create_node("serve_watch")
             node.create_subscription(String, ORDERS_TOPIC, lambda m: watch.on_order(m.data),
@@ -791,7 +793,7 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
                     live.update(_progress(watch, started))
                     with watch.lock:
                         now_s = float(watch.state.get("time_s", 0.0))
-                        finished = watch.finished is not None
+                        finished = watch.finished is not None or result_path.exists()
                     failed = procs.dead()
                     if failed or finished or now_s >= sim_limit_s \
                             or time.monotonic() - started > wall_limit_s:
@@ -806,14 +808,17 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
                       f"{log_dir / 'sim.log'}")
         return 1
     facts = json.loads(report_path.read_text())
+    # The order source's own record decides; the topic is for the live view.
+    final = json.loads(result_path.read_text()) if result_path.exists() else None
     with watch.lock:
-        outcomes = dict((watch.finished or {}).get("outcomes", {}))
+        final = final or watch.finished
+    outcomes = dict((final or {}).get("outcomes", {}))
     results = checks(facts, outcomes, expected=expected)
     if failed:
         results.append(("every process ran to the end", False,
                         ", ".join(f"{n} exit {c} (log: {log_dir / (n + '.log')})"
                                   for n, c in sorted(failed.items()))))
-    if watch.finished is None:
+    if final is None:
         results.append(("orders settled in time", False,
                         f"not within {minutes:g} sim minutes ({now_s:.0f} s sim, "
                         f"{wall_s:.0f} s wall)"))

@@ -1,7 +1,7 @@
 """The serve scenario's orders and its order source: an agent that auctions them.
 
     python -m behaviours.market.cafe [NAME] [--world serve] [--brokers N] [--keepers K]
-                                     [--lease-s S]
+                                     [--lease-s S] [--result FILE.json]
 
 :func:`cafe_orders` makes the scenario's orders from the world's stations (the vocabulary
 of ``robots/worlds/serve.yaml``: ``shelf_open``, ``shelf_narrow``, ``meeting``,
@@ -21,7 +21,9 @@ in the directory, auctions the
 orders with the :class:`~beehave.agents.market.Auctioneer` (sequential single-item
 auctions: each bid sees the queues of the awards before it) and reports every step on
 ``/serve/orders`` (:data:`ORDERS_TOPIC`, JSON lines ``{"step", "detail", "stamp"}``), and
-``{"step": "finished", "outcomes": {task: ...}}`` when every order is settled.
+``{"step": "finished", "outcomes": {task: ...}}`` when every order is settled (also
+written to ``--result`` FILE: the launcher that started it reads the outcome there, not
+depending on a DDS subscription for the verdict).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import argparse
 import json
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -115,11 +118,13 @@ class OrderSource(AgentBehavior):
     module docstring). Its result is ``{task id: outcome dict}``."""
 
     def __init__(self, world: str = "serve", *, brokers: int = 3, keepers: int = 0,
-                 settle_s: float = 2.0, done_timeout_s: float = 300.0) -> None:
+                 settle_s: float = 2.0, done_timeout_s: float = 300.0,
+                 result: str | None = None) -> None:
         if brokers < 1:
             raise BeehaveError(f"OrderSource: brokers must be 1 or more, got {brokers}")
         self.world, self.brokers, self.settle_s = world, brokers, settle_s
         self.keepers = keepers
+        self.result = None if result is None else Path(result)
         self.done_timeout_s = done_timeout_s
         self.orders = cafe_orders(world)
 
@@ -147,8 +152,13 @@ class OrderSource(AgentBehavior):
             done_timeout_s=self.done_timeout_s, observer=report))
         auctioneer.wait()
         outcomes = {tid: outcome_dict(o) for tid, o in auctioneer.outcomes.items()}
-        report("finished", {"outcomes": outcomes, "error": repr(auctioneer.error)
-                            if auctioneer.error is not None else None})
+        final = {"outcomes": outcomes, "error": repr(auctioneer.error)
+                 if auctioneer.error is not None else None}
+        if self.result is not None:  # whole or not at all: a reader never sees half
+            partial = self.result.with_suffix(".partial")
+            partial.write_text(json.dumps(final, default=str))
+            partial.replace(self.result)
+        report("finished", final)
         say("finished", outcomes={t: o["state"] for t, o in outcomes.items()})
         self.sleep(float("inf"))  # stay in the directory until stopped
         return outcomes
@@ -165,11 +175,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keepers", type=int, default=0,
                         help="how many zone keepers to wait for before auctioning")
     parser.add_argument("--lease-s", type=float, default=3.0, help="its directory lease")
+    parser.add_argument("--result", default=None, metavar="FILE.json",
+                        help="also write the final outcomes there (what a launcher reads)")
     args = parser.parse_args(argv)
     if args.brokers < 1:
         parser.error(f"--brokers must be 1 or more, got {args.brokers}")
     return serve(args.name, OrderSource, {"world": args.world, "brokers": args.brokers,
-                                          "keepers": args.keepers}, lease_s=args.lease_s)
+                                          "keepers": args.keepers, "result": args.result},
+                 lease_s=args.lease_s)
 
 
 if __name__ == "__main__":
