@@ -319,7 +319,9 @@ def test_the_serve_scenario_completes_every_order_and_every_check_holds(
     proc = subprocess.run([sys.executable, "-m", "beehave.cli", "fleet", "--scenario",
                            "serve", "--fast", "--out", str(out)], cwd=ROOT,
                           env=dict(os.environ), capture_output=True, text=True, timeout=280)
-    tail = proc.stdout[-6000:] + proc.stderr[-3000:]
+    logs = "".join(f"--- {log.name}\n{log.read_text(errors='replace')[-1500:]}\n"
+                   for log in sorted((out / "serve").glob("*.log")))
+    tail = proc.stdout[-6000:] + proc.stderr[-3000:] + logs
     lines = [line for line in proc.stdout.splitlines() if line.startswith('{"serve"')]
     assert lines, f"no result line:\n{tail}"
     result = json.loads(lines[-1])["serve"]

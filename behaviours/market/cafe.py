@@ -119,12 +119,12 @@ class OrderSource(AgentBehavior):
 
     def __init__(self, world: str = "serve", *, brokers: int = 3, keepers: int = 0,
                  settle_s: float = 2.0, done_timeout_s: float = 300.0,
-                 result: str | None = None) -> None:
+                 result_file: str | None = None) -> None:
         if brokers < 1:
             raise BeehaveError(f"OrderSource: brokers must be 1 or more, got {brokers}")
         self.world, self.brokers, self.settle_s = world, brokers, settle_s
         self.keepers = keepers
-        self.result = None if result is None else Path(result)
+        self.result_file = None if result_file is None else Path(result_file)
         self.done_timeout_s = done_timeout_s
         self.orders = cafe_orders(world)
 
@@ -154,10 +154,10 @@ class OrderSource(AgentBehavior):
         outcomes = {tid: outcome_dict(o) for tid, o in auctioneer.outcomes.items()}
         final = {"outcomes": outcomes, "error": repr(auctioneer.error)
                  if auctioneer.error is not None else None}
-        if self.result is not None:  # whole or not at all: a reader never sees half
-            partial = self.result.with_suffix(".partial")
+        if self.result_file is not None:  # whole or not at all: a reader never sees half
+            partial = self.result_file.with_suffix(".partial")
             partial.write_text(json.dumps(final, default=str))
-            partial.replace(self.result)
+            partial.replace(self.result_file)
         report("finished", final)
         say("finished", outcomes={t: o["state"] for t, o in outcomes.items()})
         self.sleep(float("inf"))  # stay in the directory until stopped
@@ -181,7 +181,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.brokers < 1:
         parser.error(f"--brokers must be 1 or more, got {args.brokers}")
     return serve(args.name, OrderSource, {"world": args.world, "brokers": args.brokers,
-                                          "keepers": args.keepers, "result": args.result},
+                                          "keepers": args.keepers,
+                                          "result_file": args.result},
                  lease_s=args.lease_s)
 
 
