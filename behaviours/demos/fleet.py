@@ -418,7 +418,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenario", choices=SCENARIOS, default="factory",
                         help="factory (default): the ROS-JADE factory; droid (also: follow, "
                              "handover): a rover and a quadrotor over MAVLink, the copter "
-                             "follows and takes over the blocked mission (docs/mavlink.md)")
+                             "follows and takes over the blocked mission (docs/mavlink.md); "
+                             "serve: EMILI and Kobukis serve guests through a market with "
+                             "coalitions (docs/allocation.md; --help with it for its options)")
     parser.add_argument("world", nargs="?", default="factory",
                         help="a world name or YAML path with machines, depots and charging "
                              "stations (default: factory)")
