@@ -395,7 +395,7 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
 #: ``--scenario`` → what runs. ``follow`` and ``handover`` are one scenario (the MAVLink
 #: Droid paper's): the quadrotor follows the rover, then finishes the mission the rover's
 #: wall blocks (docs/mavlink.md).
-SCENARIOS = ("factory", "droid", "follow", "handover")
+SCENARIOS = ("factory", "droid", "follow", "handover", "serve")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -403,6 +403,10 @@ def main(argv: list[str] | None = None) -> int:
     pre = argparse.ArgumentParser(prog="beehave fleet", add_help=False)
     pre.add_argument("--scenario", choices=SCENARIOS, default="factory")
     known, rest = pre.parse_known_args(argv)
+    if known.scenario == "serve":  # the ARCADE paper's SERVE task (docs/allocation.md)
+        from behaviours.demos.serve import main as serve_main
+
+        return serve_main(argv)
     if known.scenario != "factory":
         from behaviours.demos.droid import main as droid_main
 
@@ -414,7 +418,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenario", choices=SCENARIOS, default="factory",
                         help="factory (default): the ROS-JADE factory; droid (also: follow, "
                              "handover): a rover and a quadrotor over MAVLink, the copter "
-                             "follows and takes over the blocked mission (docs/mavlink.md)")
+                             "follows and takes over the blocked mission (docs/mavlink.md); "
+                             "serve: EMILI and Kobukis serve guests through a market with "
+                             "coalitions (docs/allocation.md; --help with it for its options)")
     parser.add_argument("world", nargs="?", default="factory",
                         help="a world name or YAML path with machines, depots and charging "
                              "stations (default: factory)")
