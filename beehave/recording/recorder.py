@@ -90,17 +90,84 @@ def command_methods(cls: type[HAL]) -> list[str]:
 
 
 def _encode_change(item: Change | tuple[Change, float, int | None]) -> tuple[int, bytes]:
-    if type(item) is Change:  # the hot path: no batch (no loop), not stale
-        return int(item.stamp * 1e9), _dumps({
-            "key": item.key, "value": to_json(item.value), "stamp": item.stamp,
-            "writer": item.writer, "stale": item.stale})
-    change, at, batch = item  # type: ignore[misc]
+    """A queued change → (log time in ns, its beehave.BlackboardChange JSON), in the
+    writer's thread (the writer's hot path)."""
+    if type(item) is Change:  # no batch (no loop), not stale
+        change, at, batch = item, item.stamp, None
+    else:
+        change, at, batch = item  # type: ignore[misc]
     # A stale change keeps the stamp of its write: it is logged when it went stale.
-    body = {"key": change.key, "value": to_json(change.value), "stamp": change.stamp,
+    value = change.value
+    if type(value) is not float or value - value != 0.0:  # finite floats pass as they are
+        value = to_json(value)
+    body = {"key": change.key, "value": value, "stamp": change.stamp,
             "writer": change.writer, "stale": change.stale}
     if batch is not None:
         body["batch"] = batch
     return int(at * 1e9), _dumps(body)
+
+
+_Head = tuple[bytes, bytes]
+_HEADS: dict[tuple[str, str | None, bool], _Head] = {}
+"""Per (key, writer, stale): the JSON of a change before its value and after its stamp.
+Keys repeat, so each is encoded once (up to :data:`_HEADS_MAX` of them)."""
+_HEADS_MAX = 10_000
+
+
+def _head(change: Change) -> _Head:
+    found = (change.key, change.writer, change.stale)
+    head = _HEADS.get(found)
+    if head is None:
+        head = (b'{"key":' + _dumps(change.key) + b',"value":',
+                b',"writer":' + _dumps(change.writer) + b',"stale":'
+                + (b"true" if change.stale else b"false"))
+        if len(_HEADS) < _HEADS_MAX:
+            _HEADS[found] = head
+    return head
+
+
+def _plain_number(value: Any) -> bool:
+    kind = type(value)
+    return (kind is float and value - value == 0.0) or kind is int or kind is bool \
+        or value is None
+
+
+def _encode_changes(items: list[Any]) -> list[tuple[int, bytes]]:
+    """:func:`_encode_change` for many at once, the same bytes at half the cost: nearly
+    every sensor value is a plain number (finite float, int, bool, None), and so is every
+    stamp, so those go through the JSON encoder in *one* call as a flat list; numbers never
+    contain a comma, so splitting its text gives each one's JSON. Each change's message is
+    then its cached key/writer text around them. Anything else takes the general path."""
+    numbers: list[Any] = []
+    add = numbers.extend
+    plain: list[bool] = []
+    mark = plain.append
+    for item in items:
+        change = item if type(item) is Change else item[0]
+        is_plain = _plain_number(change.value)
+        mark(is_plain)
+        if is_plain:
+            add((change.value, change.stamp))
+    texts = iter(_dumps(numbers)[1:-1].split(b","))
+    out: list[tuple[int, bytes]] = []
+    append = out.append
+    for item, is_plain in zip(items, plain, strict=True):
+        if not is_plain:
+            append(_encode_change(item))
+            continue
+        value, stamp = next(texts), next(texts)
+        if type(item) is Change:
+            head, tail = _head(item)
+            append((int(item.stamp * 1e9), b'%s%s,"stamp":%s%s}' % (head, value, stamp, tail)))
+            continue
+        change, at, batch = item
+        head, tail = _head(change)
+        if batch is None:
+            append((int(at * 1e9), b'%s%s,"stamp":%s%s}' % (head, value, stamp, tail)))
+        else:
+            append((int(at * 1e9), b'%s%s,"stamp":%s%s,"batch":%d}' % (
+                head, value, stamp, tail, batch)))
+    return out
 
 
 class _BatchingTap:
@@ -281,7 +348,8 @@ class Recorder:
         """Record every stored change of ``board`` (key, value, stamp, writer, stale) and,
         once it is bound to a loop, its batch: which writes the logics saw together
         (:class:`_BatchingTap`)."""
-        channel = self._channel(prefix, schema.BLACKBOARD, _encode_change)
+        channel = self._channel(prefix, schema.BLACKBOARD, _encode_change,
+                                encode_batch=_encode_changes)
         batching = _BatchingTap(board, channel.put)
         self._detach.append(board.tap(batching.tap, on_wake=batching.on_wake))
 
