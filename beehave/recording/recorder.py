@@ -107,6 +107,8 @@ def _encode_change(item: Change | tuple[Change, float, int | None]) -> tuple[int
     return int(at * 1e9), _dumps(body)
 
 
+_STOCK_ENCODE_CHANGE = _encode_change
+
 _Head = tuple[bytes, bytes]
 _HEADS: dict[tuple[str, str | None, bool], _Head] = {}
 """Per (key, writer, stale): the JSON of a change before its value and after its stamp.
@@ -189,17 +191,25 @@ class _BatchingTap:
     writes) records no batches.
     """
 
-    def __init__(self, board: Blackboard, put: Callable[[Any], None]) -> None:
+    def __init__(self, board: Blackboard, channel: Channel) -> None:
         self.batch = 0
         self._bump_queued = False
+        queue, append = channel.queue, channel.queue.append
+        capacity, drop = channel.capacity, channel.count_drop
 
-        def tap(change: Change) -> None:  # in the writer's thread: keep it lean
-            if board.loop is not None:
-                put((change, time.time() if change.stale else change.stamp, self.batch))
+        def tap(change: Change) -> None:
+            # Runs inside every set (in the thread that writes), so it is kept to a few
+            # steps: Channel.put fused in, ``_loop`` read rather than the ``loop`` property
+            # (a call: 4 % of a set), and a fresh change of an unbound board (a bare board,
+            # a bench) queued as it is -- no tuple.
+            if len(queue) >= capacity:
+                drop()
+            elif board._loop is not None:
+                append((change, time.time() if change.stale else change.stamp, self.batch))
             elif change.stale:
-                put((change, time.time(), None))
+                append((change, time.time(), None))
             else:
-                put(change)
+                append(change)
 
         self.tap = tap
 
@@ -348,9 +358,11 @@ class Recorder:
         """Record every stored change of ``board`` (key, value, stamp, writer, stale) and,
         once it is bound to a loop, its batch: which writes the logics saw together
         (:class:`_BatchingTap`)."""
-        channel = self._channel(prefix, schema.BLACKBOARD, _encode_change,
-                                encode_batch=_encode_changes)
-        batching = _BatchingTap(board, channel.put)
+        # _encode_changes is _encode_change in bulk, byte for byte; an _encode_change
+        # replaced (a test that writes the format of older recordings) is used as it is.
+        bulk = _encode_changes if _encode_change is _STOCK_ENCODE_CHANGE else None
+        channel = self._channel(prefix, schema.BLACKBOARD, _encode_change, encode_batch=bulk)
+        batching = _BatchingTap(board, channel)
         self._detach.append(board.tap(batching.tap, on_wake=batching.on_wake))
 
     def attach_events(self, events: EventBus, *, prefix: str = "",

@@ -100,7 +100,8 @@ class Channel:
     blocks and never raises; when the queue is full the message is dropped and counted."""
 
     __slots__ = ("topic", "encoding", "schema_name", "schema_encoding", "schema_data",
-                 "encode", "encode_batch", "queue", "capacity", "dropped", "_drop_lock", "put")
+                 "encode", "encode_batch", "queue", "capacity", "dropped", "_drop_lock",
+                 "put")
 
     def __init__(self, topic: str, *, encode: Encoder, capacity: int, schema_name: str,
                  schema_encoding: str = "jsonschema", schema_data: bytes | None = None,
@@ -126,11 +127,12 @@ class Channel:
             if len(queue) < capacity:
                 append(item)
             else:
-                self._drop()
+                self.count_drop()
 
         self.put = put
 
-    def _drop(self, n: int = 1) -> None:
+    def count_drop(self, n: int = 1) -> None:
+        """Count ``n`` messages lost (a tap that queues itself calls it when full)."""
         with self._drop_lock:
             self.dropped += n
 
@@ -377,7 +379,7 @@ class WriterThread:
             left = len(channel.queue)
             if left:
                 channel.queue.clear()
-                channel._drop(left)
+                channel.count_drop(left)
         self._count_drops()
         return self.stats
 
