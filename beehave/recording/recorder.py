@@ -109,67 +109,63 @@ def _encode_change(item: Change | tuple[Change, float, int | None]) -> tuple[int
 
 _STOCK_ENCODE_CHANGE = _encode_change
 
-_Head = tuple[bytes, bytes]
-_HEADS: dict[tuple[str, str | None, bool], _Head] = {}
-"""Per (key, writer, stale): the JSON of a change before its value and after its stamp.
-Keys repeat, so each is encoded once (up to :data:`_HEADS_MAX` of them)."""
+_HEADS: dict[str, tuple[str | None, bool, bytes, bytes]] = {}
+"""Per key: its writer and stale flag, and the JSON of such a change before its value and
+after its stamp. A key is mostly written by one writer, so each is encoded once (up to
+:data:`_HEADS_MAX` keys)."""
 _HEADS_MAX = 10_000
 
-
-def _head(change: Change) -> _Head:
-    found = (change.key, change.writer, change.stale)
-    head = _HEADS.get(found)
-    if head is None:
-        head = (b'{"key":' + _dumps(change.key) + b',"value":',
-                b',"writer":' + _dumps(change.writer) + b',"stale":'
-                + (b"true" if change.stale else b"false"))
-        if len(_HEADS) < _HEADS_MAX:
-            _HEADS[found] = head
-    return head
+_PLAIN = frozenset({float, int, bool, type(None)})
+"""Value types whose JSON is a bare number or word: never a comma in it."""
 
 
-def _plain_number(value: Any) -> bool:
-    kind = type(value)
-    return (kind is float and value - value == 0.0) or kind is int or kind is bool \
-        or value is None
+def _head(change: Change) -> tuple[str | None, bool, bytes, bytes]:
+    entry = (change.writer, change.stale,
+             b'{"key":' + _dumps(change.key) + b',"value":',
+             b',"writer":' + _dumps(change.writer) + b',"stale":'
+             + (b"true" if change.stale else b"false"))
+    if len(_HEADS) < _HEADS_MAX or change.key in _HEADS:
+        _HEADS[change.key] = entry
+    return entry
 
 
-def _encode_changes(items: list[Any]) -> list[tuple[int, bytes]]:
-    """:func:`_encode_change` for many at once, the same bytes at half the cost: nearly
-    every sensor value is a plain number (finite float, int, bool, None), and so is every
-    stamp, so those go through the JSON encoder in *one* call as a flat list; numbers never
-    contain a comma, so splitting its text gives each one's JSON. Each change's message is
-    then its cached key/writer text around them. Anything else takes the general path."""
+def _encode_changes(items: list[Any]) -> tuple[list[int], list[bytes]]:
+    """:func:`_encode_change` for many at once, byte for byte, at a fraction of the cost;
+    returns the log times and the messages.
+
+    Nearly every sensor value is a plain number (float, int, bool, None), and every stamp
+    is, so all of them go through the JSON encoder in *one* call, as a flat list; a
+    number's JSON never holds a comma, so splitting the list's text gives each one's.
+    Each message is then its key's cached text around them. A value of any other type
+    is sent as None, and comes out ``null`` as a non-finite float is made to: those take
+    the general path (which tags non-finite floats)."""
     numbers: list[Any] = []
     add = numbers.extend
-    plain: list[bool] = []
-    mark = plain.append
     for item in items:
         change = item if type(item) is Change else item[0]
-        is_plain = _plain_number(change.value)
-        mark(is_plain)
-        if is_plain:
-            add((change.value, change.stamp))
-    texts = iter(_dumps(numbers)[1:-1].split(b","))
-    out: list[tuple[int, bytes]] = []
-    append = out.append
-    for item, is_plain in zip(items, plain, strict=True):
-        if not is_plain:
-            append(_encode_change(item))
-            continue
-        value, stamp = next(texts), next(texts)
+        value = change.value
+        add((value if type(value) in _PLAIN else None, change.stamp))
+    texts = iter(_dumps(numbers, inf_nan_mode="null")[1:-1].split(b","))
+    times: list[int] = []
+    datas: list[bytes] = []
+    add_time, add_data, join, heads = times.append, datas.append, b"".join, _HEADS
+    for item, value, stamp in zip(items, texts, texts, strict=True):
         if type(item) is Change:
-            head, tail = _head(item)
-            append((int(item.stamp * 1e9), b'%s%s,"stamp":%s%s}' % (head, value, stamp, tail)))
-            continue
-        change, at, batch = item
-        head, tail = _head(change)
-        if batch is None:
-            append((int(at * 1e9), b'%s%s,"stamp":%s%s}' % (head, value, stamp, tail)))
+            change, at, batch = item, item.stamp, None
         else:
-            append((int(at * 1e9), b'%s%s,"stamp":%s%s,"batch":%d}' % (
-                head, value, stamp, tail, batch)))
-    return out
+            change, at, batch = item
+        if value == b"null" and change.value is not None:
+            at_ns, data = _encode_change(item)  # not a plain number, or not finite
+            add_time(at_ns)
+            add_data(data)
+            continue
+        entry = heads.get(change.key)
+        if entry is None or entry[0] != change.writer or entry[1] is not change.stale:
+            entry = _head(change)
+        add_time(int(at * 1e9))
+        add_data(join((entry[2], value, b',"stamp":', stamp, entry[3], b"}"
+                       if batch is None else b',"batch":%d}' % batch)))
+    return times, datas
 
 
 class _BatchingTap:

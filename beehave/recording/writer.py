@@ -20,6 +20,7 @@ plain MCAP: chunked, compressed, indexed, read by every MCAP tool.
 
 from __future__ import annotations
 
+import functools
 import logging
 import struct
 import threading
@@ -57,9 +58,10 @@ log = logging.getLogger(__name__)
 Encoder = Callable[[Any], tuple[int, bytes]]
 """An item of a queue → (log time in ns since the epoch, message bytes)."""
 
-BatchEncoder = Callable[[list[Any]], list[tuple[int, bytes]]]
-"""Items of a queue → their (log time, bytes), in order: for channels whose items are
-cheaper to encode together (:func:`beehave.recording.recorder._encode_changes`)."""
+BatchEncoder = Callable[[list[Any]], tuple[list[int], list[bytes]]]
+"""Items of a queue → their log times and their bytes (two lists, in order): for channels
+whose items are cheaper to encode together
+(:func:`beehave.recording.recorder._encode_changes`)."""
 
 DRAIN_BATCH = 4096
 """Items taken out of a queue at a time: bounds the writer's memory per step."""
@@ -113,8 +115,8 @@ class Channel:
         self.schema_data = schema_data if schema_data is not None else \
             schema.schema_bytes(schema_name)
         self.encode = encode
-        self.encode_batch: BatchEncoder = encode_batch or (
-            lambda items: [encode(item) for item in items])
+        self.encode_batch: BatchEncoder = encode_batch or functools.partial(
+            _encode_each, encode)
         self.queue: deque[Any] = deque()
         self.capacity = capacity
         self.dropped = 0
@@ -214,18 +216,18 @@ class McapFile:
         length = self._write_record(Metadata(name=name, metadata=data))
         self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
 
-    def add_messages(self, channel_id: int, messages: list[tuple[int, bytes]], *,
+    def add_messages(self, channel_id: int, times_ns: list[int], datas: list[bytes], *,
                      max_file_bytes: int | None = None) -> int:
-        """Add ``messages`` (log time in ns, data) of one channel to the chunk in progress,
-        writing each chunk that fills up; returns how many were added: all, or fewer when a
-        chunk written made the file reach ``max_file_bytes`` (time to roll over)."""
+        """Add messages of one channel (their log times in ns, their data) to the chunk in
+        progress, writing each chunk that fills up; returns how many were added: all, or
+        fewer when a chunk written made the file reach ``max_file_bytes`` (roll over)."""
         # The hot loop of the recorder: locals only, one struct call per message, the
         # chunk grows in place (no object per message kept).
         chunk, pack, chunk_bytes = self._chunk, _MESSAGE.pack, self.chunk_bytes
         times, offsets = self._index.setdefault(channel_id, ([], []))
         add_time, add_offset = times.append, offsets.append
         taken = 0
-        for stamp_ns, data in messages:
+        for stamp_ns, data in zip(times_ns, datas, strict=True):
             add_time(stamp_ns)
             add_offset(len(chunk))
             chunk += pack(_OP_MESSAGE, _MESSAGE_FIELDS + len(data), channel_id, 0, stamp_ns,
@@ -421,13 +423,13 @@ class WriterThread:
             while queue:
                 # Only this thread takes from the queue: what len() counts stays there.
                 items = [popleft() for _ in range(min(len(queue), DRAIN_BATCH))]
-                messages = channel.encode_batch(items)
-                while messages:
+                times, datas = channel.encode_batch(items)
+                while datas:
                     file = self._file
                     assert file is not None
-                    taken = file.add_messages(cid, messages, max_file_bytes=limit)
+                    taken = file.add_messages(cid, times, datas, max_file_bytes=limit)
                     self.stats.written += taken
-                    messages = messages[taken:]
+                    times, datas = times[taken:], datas[taken:]
                     if limit is not None and file.size >= limit:
                         # Roll over now; the rest goes to the next file.
                         self._roll()
@@ -507,6 +509,16 @@ class WriterThread:
 
 def _identity(item: tuple[int, bytes]) -> tuple[int, bytes]:
     return item
+
+
+def _encode_each(encode: Encoder, items: list[Any]) -> tuple[list[int], list[bytes]]:
+    times: list[int] = []
+    datas: list[bytes] = []
+    for item in items:
+        stamp_ns, data = encode(item)
+        times.append(stamp_ns)
+        datas.append(data)
+    return times, datas
 
 
 def schema_json(body: dict[str, Any]) -> bytes:
