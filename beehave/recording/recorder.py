@@ -139,6 +139,8 @@ def _encode_changes(items: list[Any]) -> tuple[list[int], list[bytes]]:
     Each message is then its key's cached text around them. A value of any other type
     is sent as None, and comes out ``null`` as a non-finite float is made to: those take
     the general path (which tags non-finite floats)."""
+    if not items:
+        return [], []
     numbers: list[Any] = []
     add = numbers.extend
     for item in items:
