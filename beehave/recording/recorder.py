@@ -91,7 +91,7 @@ def command_methods(cls: type[HAL]) -> list[str]:
 
 def _encode_change(item: Change | tuple[Change, float, int | None]) -> tuple[int, bytes]:
     """A queued change → (log time in ns, its beehave.BlackboardChange JSON), in the
-    writer's thread (the writer's hot path)."""
+    writer's thread: the general path (:func:`_encode_changes` is the fast one)."""
     if type(item) is Change:  # no batch (no loop), not stale
         change, at, batch = item, item.stamp, None
     else:
@@ -122,8 +122,7 @@ _PLAIN = frozenset({float, int, bool, type(None)})
 def _head(change: Change) -> tuple[str | None, bool, bytes, bytes]:
     entry = (change.writer, change.stale,
              b'{"key":' + _dumps(change.key) + b',"value":',
-             b',"writer":' + _dumps(change.writer) + b',"stale":'
-             + (b"true" if change.stale else b"false"))
+             b',"writer":' + _dumps(change.writer) + b',"stale":' + _dumps(change.stale))
     if len(_HEADS) < _HEADS_MAX or change.key in _HEADS:
         _HEADS[change.key] = entry
     return entry
