@@ -25,8 +25,8 @@ from beehave.highlevel import HighLevelBehaviorManager
 from beehave.recording import Recorder, read_recording
 from benchmarks._util import percentile, report
 
-BATCH = 2000
-BATCHES = 200
+BATCH = 1000
+BATCHES = 400
 ROUNDS = 10
 SWITCHES = 300
 THROUGHPUT_SETS = 300_000
@@ -64,7 +64,9 @@ def _blackboard_overhead(tmp: Path) -> list[dict[str, Any]]:
                     start += BATCH
                     # Let the writer drain between pairs (it runs every 20 ms), so a
                     # batch measures the tap on the set path -- the writer's own CPU is
-                    # the throughput figure.
+                    # the throughput figure. Batches are short (1000 sets: a pair takes
+                    # some 4 ms even on a loaded machine) so that the writer seldom wakes
+                    # in one and takes the GIL from a measured batch.
                     deadline = time.monotonic() + 1.0
                     while recorder.stats.written < (b + 1) * BATCH and \
                             time.monotonic() < deadline:
