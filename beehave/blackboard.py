@@ -518,8 +518,13 @@ class Blackboard:
             slot.change = Change(slot.key, old.value, time.time(), now, writer)
             return None
         change = slot.change = Change(slot.key, value, time.time(), now, writer, stale)
-        if self._taps:
-            self._tapped(change)
+        taps = self._taps
+        if taps:  # inline, not _tapped(): a recorder taps every set, so each call counts
+            for tap in taps:
+                try:
+                    tap(change)
+                except Exception:
+                    self._tap_failed(tap, change)
         return change
 
     # -- taps (recorders) ------------------------------------------------------------------
@@ -567,9 +572,12 @@ class Blackboard:
             try:
                 tap(change)
             except Exception:
-                log.exception("blackboard tap %r raised on %r; it was removed", tap, change.key)
-                with self._lock:
-                    self._taps = tuple(t for t in self._taps if t is not tap)
+                self._tap_failed(tap, change)
+
+    def _tap_failed(self, tap: ChangeCallback, change: Change) -> None:
+        log.exception("blackboard tap %r raised on %r; it was removed", tap, change.key)
+        with self._lock:
+            self._taps = tuple(t for t in self._taps if t is not tap)
 
     def _notify(self, slot: _Slot, change: Change) -> None:
         slot.notified = change

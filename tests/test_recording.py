@@ -4,6 +4,7 @@ disk drops and counts instead of stalling writers; files roll over by size."""
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
@@ -384,3 +385,134 @@ def test_an_unknown_robot_topic_is_named_with_the_choices(tmp_path: Path) -> Non
         robot.low.hals.node = None
         with pytest.raises(RecordingError, match="after robot.start"):
             recorder.attach_ros_topics(robot)
+
+
+def test_the_file_is_indexed_mcap_that_the_standard_readers_trust(tmp_path: Path) -> None:
+    """The writer packs MCAP records itself (for speed): the summary, the statistics, the
+    chunk and message indexes and the CRCs must be what MCAP tools rely on."""
+    import struct
+    import zlib
+
+    import zstandard
+    from mcap.reader import make_reader
+    from mcap.records import Chunk, ChunkIndex, Footer, MessageIndex
+    from mcap.stream_reader import StreamReader
+
+    path = tmp_path / "indexed.mcap"
+    board, events = Blackboard(), EventBus()
+    total = 20_000  # several chunks of 512 kB
+    with Recorder(path, flush_period_s=0.05) as recorder:
+        recorder.attach_blackboard(board, prefix="r")
+        recorder.attach_events(events, prefix="r", level="high")
+        recorder.attach_blackboard(Blackboard(), prefix="silent")
+        for i in range(total):
+            board.set("laser/front_m", i * 0.25 + 0.1, writer="hal:laser")
+            if i % 5000 == 0:
+                events.emit(Event(EventKind.STARTED, f"step{i}"))
+                time.sleep(0.02)  # let the writer keep up: no drops
+    stats = recorder.stats
+    assert stats.dropped == 0
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        by_topic = {c.topic: c.id for c in summary.channels.values()}
+        assert set(by_topic) == {"/r/beehave/blackboard", "/r/beehave/events/high",
+                                 "/silent/beehave/blackboard", "/beehave/recorder"}
+        assert summary.statistics.message_count == stats.written
+        counts = summary.statistics.channel_message_counts
+        assert counts[by_topic["/r/beehave/blackboard"]] == total
+        assert counts[by_topic["/r/beehave/events/high"]] == 4
+        assert len(summary.chunk_indexes) == summary.statistics.chunk_count >= 4
+        values = [json.loads(m.data)["value"] for _, c, m in reader.iter_messages(
+            topics=["/r/beehave/blackboard"], log_time_order=True)]
+        assert values == [i * 0.25 + 0.1 for i in range(total)]
+    # Every message index points at a message of its channel with its log time, and
+    # every chunk index at its chunk and indexes; the footer's CRC covers the summary.
+    data = path.read_bytes()
+    records = list(StreamReader(str(path), emit_chunks=True, validate_crcs=True).records)
+    chunks = [r for r in records if isinstance(r, Chunk)]
+    assert len(chunks) == len(summary.chunk_indexes)
+    indexed = 0
+    for chunk, index in zip(chunks, summary.chunk_indexes, strict=True):
+        assert isinstance(index, ChunkIndex) and index.compression == chunk.compression
+        body = zstandard.ZstdDecompressor().decompress(
+            chunk.data, max_output_size=chunk.uncompressed_size)
+        assert zlib.crc32(body) == chunk.uncompressed_crc
+        assert data[index.chunk_start_offset] == 0x06  # a Chunk record starts there
+        for channel_id, offset in index.message_index_offsets.items():
+            assert data[offset] == 0x07  # a MessageIndex record
+            length = struct.unpack_from("<Q", data, offset + 1)[0]
+            entry = MessageIndex.read(_stream(data[offset + 9:offset + 9 + length]))
+            assert entry.channel_id == channel_id
+            for log_time, at in entry.records:
+                op, _, cid, _, log, publish = struct.unpack_from("<BQHIQQ", body, at)
+                assert (op, cid, log, publish) == (0x05, channel_id, log_time, log_time)
+                assert index.message_start_time <= log_time <= index.message_end_time
+                indexed += 1
+    assert indexed == stats.written
+    [footer] = [r for r in records if isinstance(r, Footer)]
+    summary_bytes = data[footer.summary_start:len(data) - 8 - 4]  # up to the footer's CRC
+    assert zlib.crc32(summary_bytes) == footer.summary_crc
+
+
+def _stream(data: bytes) -> Any:
+    import io
+
+    from mcap.data_stream import ReadDataStream
+
+    return ReadDataStream(io.BytesIO(data))
+
+
+def test_bulk_change_encoding_is_the_general_encoding_byte_for_byte() -> None:
+    """The writer encodes blackboard changes in bulk through a fast path for plain
+    numbers; every other value, a stale change, a batch, a key that changes writer, must
+    come out exactly as the general (per change) encoder writes it."""
+    import enum
+
+    from beehave.blackboard import Change
+    from beehave.recording.recorder import _encode_change, _encode_changes
+
+    class Mode(enum.IntEnum):
+        AUTO = 2
+
+    class Meters(float):
+        pass
+
+    values: list[Any] = [1.5, 0.1 + 0.2, 1e16, -0.0, 5e-324, 3, -2**70, True, False, None,
+                         math.inf, -math.inf, math.nan, Mode.AUTO, Meters(2.5), "a,b\"c",
+                         "ünï", (1, 2.5), [math.nan], {"x": [math.inf]}, object(), 7.0]
+    now = time.time()
+    items: list[Any] = []
+    for i, value in enumerate(values):
+        key = ["k", "k,\"q\"", "ключ"][i % 3]  # few keys: their cached heads are reused
+        writer = [None, "hal:x", "logic:y/z"][i % 4 % 3]
+        change = Change(key, value, now + i * 1e-6, 0.0, writer, stale=i % 5 == 4)
+        if i % 3 == 0 and not change.stale:
+            items.append(change)  # how an unbound board queues a fresh change
+        else:
+            items.append((change, now + 1.0 + i, None if i % 3 == 1 else i))
+    expected = [_encode_change(item) for item in items]
+    times, datas = _encode_changes(items)
+    assert list(zip(times, datas, strict=True)) == expected
+    assert all(json.loads(d) for d in datas)  # strict JSON, also for NaN and infinities
+    assert _encode_changes([]) == ([], [])
+
+
+def test_a_raising_tap_is_removed_and_never_breaks_the_write(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Blackboard._store calls the taps inline (a recorder taps every set): a tap that
+    raises is still logged and removed, the write and the other taps go on."""
+    board = Blackboard()
+    seen: list[Any] = []
+
+    def broken(change: Any) -> None:
+        raise RuntimeError("tap broke")
+
+    board.tap(broken)
+    board.tap(lambda change: seen.append(change.value))
+    board.set("a", 1)
+    board.set("a", 2)
+    assert board.get("a") == 2 and seen == [1, 2]
+    assert [r.message for r in caplog.records].count(
+        f"blackboard tap {broken!r} raised on 'a'; it was removed") == 1
