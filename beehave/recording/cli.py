@@ -74,10 +74,15 @@ def start_recording(path: str | Path, robots: list[Robot]) -> Recorder:
 
 
 def robots_started(recorder: Recorder, robots: list[Robot]) -> None:
-    """Record the ROS 2 topics of the ``robots`` (their low levels' nodes exist now)."""
+    """Record the ROS 2 topics of the ``robots`` (their nodes exist now): those of their
+    configurations, and every topic their behaviours subscribe to from now on (what a
+    replay of the high level feeds them, :mod:`beehave.recording.inputs`)."""
+    from beehave.recording.inputs import attach_behavior_inputs
+
     for robot in robots:
         if robot.low is not None and robot.low.hals.node is not None:
             recorder.attach_ros_topics(robot)
+        attach_behavior_inputs(recorder, robot)
 
 
 def finish_recording(recorder: Recorder) -> str:

@@ -30,8 +30,11 @@ learnt of them (``high_level/*``) is part of the replayed input.
 from __future__ import annotations
 
 import asyncio
+import bisect
 import inspect
 import logging
+import sys
+import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -44,17 +47,20 @@ from beehave.config import hal_names
 from beehave.errors import RecordingError
 from beehave.hal import HAL
 from beehave.recording import schema
+from beehave.recording.inputs import input_channel
 from beehave.recording.reader import Recording, read_recording
 from beehave.recording.recorder import command_methods
+from beehave.recording.replay_node import Captured, ReplayClock, ReplayNode
 
 if TYPE_CHECKING:
     from beehave.config import RobotConfig
+    from beehave.highlevel import HighLevelBehaviorManager
     from beehave.lowlevel import LowLevelBehaviorManager
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Divergence", "Output", "ReplayResult", "compare", "recorded_outputs", "replay",
-           "replay_hal_class"]
+__all__ = ["Captured", "Divergence", "Output", "ReplayResult", "compare", "recorded_outputs",
+           "replay", "replay_hal_class"]
 
 REQUIRED = (schema.BLACKBOARD, schema.EVENTS_LOW, schema.OUTPUTS)
 """The channels of a robot a replay cannot do without."""
@@ -107,6 +113,11 @@ class ReplayResult:
     wall_s: float
     sim_time: bool
     warnings: list[str] = field(default_factory=list)
+    commands: list[Captured] = field(default_factory=list)
+    """What the replayed behaviours and actions published: captured, not sent."""
+    high: bool = False
+    """Whether the high level ran too (the configuration has one and the recording its
+    events)."""
 
     @property
     def speedup(self) -> float:
@@ -193,6 +204,53 @@ def recorded_outputs(recording: Recording, prefix: str) -> list[Output]:
     return outputs
 
 
+HIGH_SWITCH = "high:switch"
+"""The stream of the high level's top-level switches (requested, completed, superseded,
+rejected, fallback)."""
+
+_SWITCH_KINDS = {"switch_requested": "requested", "switch_completed": "completed",
+                 "switch_superseded": "superseded", "switch_rejected": "rejected"}
+_NOT_COMPARED = {"message_rejected", "agent_name_lost", "safe_state_overdue"}
+"""Events of the high level that say how busy the host was or what other agents sent,
+not what the behaviours decided."""
+
+
+def _high_output(kind: str, subject: str, status: str | None,
+                 error_type: str | None) -> tuple[str, Any] | None:
+    """The stream and value a high-level event adds to the determinism check: switches
+    go to :data:`HIGH_SWITCH`, the rest to ``high:<path>`` (one stream per behaviour or
+    action: its thread orders them). An error counts by its type: its text may carry
+    positions and times that differ in the last digit."""
+    if kind in _SWITCH_KINDS:
+        return HIGH_SWITCH, [_SWITCH_KINDS[kind], subject]
+    if kind == "fallback":
+        return HIGH_SWITCH, ["fallback", subject, status]
+    if kind in _NOT_COMPARED:
+        return None
+    return f"high:{subject}", [kind, status, error_type]
+
+
+def _error_type(error: Any) -> str | None:
+    if error is None:
+        return None
+    if isinstance(error, BaseException):
+        return type(error).__name__
+    return str(error).split("(", 1)[0]
+
+
+def recorded_high_outputs(recording: Recording, prefix: str) -> list[Output]:
+    """What the high level did in the recording (its switches, and each behaviour's and
+    action's lifecycle), as :class:`Output` s."""
+    timeline = _Timeline(recording, prefix)
+    outputs: list[Output] = []
+    for m in recording.of(schema.topic(prefix, schema.EVENTS_HIGH)):
+        d = m.data
+        made = _high_output(d["kind"], d["subject"], d["status"], _error_type(d["error"]))
+        if made is not None:
+            outputs.append(Output(made[0], made[1], timeline(m.log_time_ns)))
+    return outputs
+
+
 @dataclass(frozen=True)
 class _Input:
     t_s: float
@@ -265,12 +323,14 @@ def _inputs(recording: Recording, prefix: str) -> list[_Input]:
                 switching = True
                 if not detail.get("fallback"):
                     if not first_switch:  # the first is the start of the default logic
-                        inputs.append(_Input(timeline(m.log_time_ns), "switch", subject))
+                        inputs.append(_Input(timeline(m.log_time_ns), "switch", subject,
+                                             wall_ns=m.log_time_ns))
                     first_switch = False
             elif kind == "switch_completed":
                 switching, top = False, subject
             elif kind == "started" and subject.startswith("hal:") and subject.count(":") == 1:
-                inputs.append(_Input(timeline(m.log_time_ns), "hal", subject[len("hal:"):]))
+                inputs.append(_Input(timeline(m.log_time_ns), "hal", subject[len("hal:"):],
+                                     wall_ns=m.log_time_ns))
             elif (kind == "ended" and subject == top and not switching
                   and m.data["status"] == "INTERRUPTED"):
                 # The top-level logic was stopped without a switch: the recorded low level
@@ -278,6 +338,393 @@ def _inputs(recording: Recording, prefix: str) -> list[_Input]:
                 # the replay's own shutdown's to produce, not an input.
                 break
     return _in_batch_order(inputs)
+
+
+@dataclass(frozen=True)
+class _HighInput:
+    """What the high level got from outside at ``t_s``: a message (``kind="msg"``: the
+    CDR ``value`` of ``channel``, for the subscriptions to ``key``, a resolved topic) or
+    a switch request (``kind="request"``: behaviour ``key``, parameters ``value``).
+    ``before``: how many high-level events the recording logged before it."""
+
+    t_s: float
+    wall_ns: int
+    kind: str
+    key: str
+    value: Any = None
+    channel: str = ""
+    before: int = 0
+
+
+def _topic_of(channel: str, prefix: str, namespace: str) -> str:
+    """The resolved ROS topic the recorded ``channel`` carried (inverse of
+    :func:`~beehave.recording.inputs.input_channel`)."""
+    head = schema.topic(prefix, "")
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    if prefix.strip("/") and channel.startswith(head):
+        return f"{ns}/{channel[len(head):]}"
+    return channel
+
+
+def _high_inputs(recording: Recording, prefix: str, namespace: str) -> list[_HighInput]:
+    """The high level's inputs in the recording, in log order: the switch requests that
+    came from outside (the first -- the start of the default behaviour -- excepted; a
+    recording older than the ``source`` field counts every request as from outside) and
+    the messages of every ROS 2 channel of the robot (and the global ones): those nobody
+    subscribes to in the replay are held a moment, then dropped."""
+    timeline = _Timeline(recording, prefix)
+    events = schema.topic(prefix, schema.EVENTS_HIGH)
+    own = schema.topic(prefix, "")
+    robots = [schema.topic(p, "") for p in recording.prefixes if p]
+
+    def fed(topic: str, encoding: str) -> bool:
+        if encoding != "cdr":
+            return False
+        return topic.startswith(own) or not any(topic.startswith(r) for r in robots)
+
+    ros = {t for t, info in recording.channels.items() if fed(t, info.encoding)}
+    inputs: list[_HighInput] = []
+    # An input waits for the events the recording had SYNC_MARGIN_S before it: the replay's
+    # clock moves in the recording's steps, so a behaviour's timed step may come that much
+    # later than it did live.
+    stamps = [timeline(m.log_time_ns) for m in recording.of(events)]
+    first = True
+
+    def before(t_s: float) -> int:
+        return bisect.bisect_right(stamps, t_s - SYNC_MARGIN_S)
+
+    for m in recording.messages:
+        if m.topic == events:
+            d = m.data
+            if d["kind"] == "switch_requested":
+                source = d["detail"].get("source", "external")
+                if source == "external" and not first:
+                    params = d["detail"].get("params") or {}
+                    t_s = timeline(m.log_time_ns)
+                    inputs.append(_HighInput(t_s, m.log_time_ns, "request", d["subject"],
+                                             params, before=before(t_s)))
+                first = False
+        elif m.topic in ros:
+            t_s = timeline(m.log_time_ns)
+            inputs.append(_HighInput(t_s, m.log_time_ns, "msg",
+                                     _topic_of(m.topic, prefix, namespace), m.data,
+                                     channel=m.topic, before=before(t_s)))
+    return inputs
+
+
+def _settled_count(recording: Recording, prefix: str) -> int:
+    """How many high-level events the recording holds before its shutdown: the trailing
+    run of ``ended … INTERRUPTED`` (and STUCK) events is the shutdown's, which the
+    replay's own shutdown produces."""
+    kinds = [(m.data["kind"], m.data["status"])
+             for m in recording.of(schema.topic(prefix, schema.EVENTS_HIGH))]
+    n = len(kinds)
+    while n and (kinds[n - 1] == ("ended", "INTERRUPTED")
+                 or kinds[n - 1][0] in ("stuck", "stuck_released", "safe_state_overdue")):
+        n -= 1
+    return n
+
+
+def _batch_ends(inputs: list[Any]) -> list[bool]:
+    """For each input: whether the logics get to run after it (the end of its batch)."""
+    ends: list[bool] = []
+    batch_ns = 0
+    for n, item in enumerate(inputs):
+        following = inputs[n + 1] if n + 1 < len(inputs) else None
+        if not batch_ns:
+            batch_ns = item.wall_ns
+        if (following is None or not isinstance(item, _Input)
+                or not isinstance(following, _Input)
+                or not item.kind == following.kind == "set"):
+            batched = False
+        elif item.batch is not None and following.batch is not None:
+            batched = following.batch == item.batch
+        else:
+            batched = following.wall_ns - batch_ns < BATCH_NS
+        if not batched:
+            batch_ns = 0
+        ends.append(not batched)
+    return ends
+
+
+def _merge(low: list[_Input], high: list[_HighInput]) -> list[_Input | _HighInput]:
+    """The low level's inputs with the high level's placed by log time -- but only between
+    two batches, so that the logics see the same batches as without them."""
+    if not high:
+        return list(low)
+    ends = _batch_ends(low)
+    merged: list[_Input | _HighInput] = []
+    j = 0
+    reached = low[0].wall_ns if low else 0
+    while j < len(high) and high[j].wall_ns < reached:
+        merged.append(high[j])
+        j += 1
+    for i, item in enumerate(low):
+        if i == 0 or ends[i - 1]:  # a batch starts here: what came before it goes first
+            while j < len(high) and high[j].wall_ns < item.wall_ns:
+                merged.append(high[j])
+                j += 1
+        merged.append(item)
+        reached = max(reached, item.wall_ns)
+        if ends[i]:
+            while j < len(high) and high[j].wall_ns <= reached:
+                merged.append(high[j])
+                j += 1
+    merged.extend(high[j:])
+    return merged
+
+
+_POLL_S = 0.0002
+"""How often :meth:`_HighSide.settle` looks at the high level's threads (wall time)."""
+SYNC_MARGIN_S = 0.1
+"""See :func:`_high_inputs`: what the recorded high level had done by ``t - SYNC_MARGIN_S``
+the replayed one must have done before the input at ``t`` is fed (seconds of the
+recording's time)."""
+SETTLE_S = 1.0
+"""How long (wall time) the feed waits, after each step, for the high level's threads to
+wait again (see :meth:`_HighSide.settle`): a thread that computes for longer is left to
+it, and the feed goes on."""
+_MAX_MISSES = 3
+"""After this many catch-ups timed out the replay has diverged: the feed stops waiting."""
+CATCH_UP_S = 2.0
+"""How long (wall time) the feed waits, before an input of the high level, for the
+replayed behaviours to have done what the recorded ones had done by then. Bounded: a
+replay that diverged never catches up; the feed then goes on without waiting (and says
+so in a warning)."""
+HOLD_S = 0.5
+"""How long (wall time) a message of a topic nobody subscribes to yet is kept for the
+next subscription: a behaviour that has started but not yet subscribed must not miss the
+order that the recorded one received."""
+
+
+async def _wait(cond: threading.Condition, predicate: Callable[[], bool],
+               timeout_s: float) -> bool:
+    """Wait for ``predicate`` (whoever changes it notifies ``cond``) without blocking the
+    event loop: in a worker thread, and only when it does not hold already."""
+    with cond:
+        if predicate():
+            return True
+
+    def blocking() -> bool:
+        with cond:
+            return cond.wait_for(predicate, timeout_s)
+
+    return await asyncio.to_thread(blocking)
+
+
+class _HighSide:
+    """The replayed high level and what feeds it (see :func:`replay`)."""
+
+    def __init__(self, high: HighLevelBehaviorManager, recording: Recording, prefix: str,
+                 namespace: str, state: _ReplayState, warnings: list[str],
+                 sim0: float) -> None:
+        self.high = high
+        self.recording = recording
+        self.prefix, self.namespace = prefix, namespace
+        self.state = state
+        self.warnings = warnings
+        self.sim0 = sim0
+        self.clock = ReplayClock()
+        self.node = ReplayNode(namespace, now_s=lambda: state.now_s,
+                               on_subscribe=self._on_subscribe)
+        self.abort = threading.Event()
+        self.missing: dict[str, str] = {}
+        self._cond = threading.Condition()
+        self._events = 0
+        self._misses = 0  # catch-ups that timed out
+        self._given_up = 0  # the event count the last one waited for in vain
+        self._pending: dict[str, tuple[Any, float]] = {}
+        self._late: list[Any] = []  # subscriptions made while a message was held for them
+        self._decoded: dict[tuple[int, type], Any] = {}
+        self._settled_at = 0  # the event count when the high level last settled
+        self._last_activity: dict[int, float] | None = None
+        self._slow = False
+
+    def on_event(self, event: Any) -> None:  # in the high level's threads
+        with self._cond:
+            self._events += 1
+            self._cond.notify_all()
+
+    def _on_subscribe(self, sub: Any) -> None:  # in the subscribing behaviour's thread
+        from beehave.runnable import current
+
+        channel = input_channel(self.prefix, self.namespace, sub.topic)
+        if channel not in self.recording.channels:
+            who = current()
+            self.missing[channel] = (f"{who.path if who is not None else '?'} subscribed to "
+                                     f"{sub.topic} ({sub.msg_type.__name__})")
+            self.abort.set()
+            with self._cond:
+                self._cond.notify_all()
+            return
+        with self._cond:
+            held = self._pending.get(channel)
+            if held is not None and time.monotonic() - held[1] <= HOLD_S:
+                self._late.append((sub, held[0]))
+
+    async def advance(self, t_s: float) -> None:
+        """Move the clock to ``t_s`` (seconds since the recording's start), stopping at every
+        lockstep hold on the way until the high level has settled (as a simulator holds
+        for its controllers): a control loop sees every one of its periods."""
+        target = self.sim0 + t_s
+        clock, node = self.clock, self.node
+        gone: set[str] = set()
+        while not self.abort.is_set():
+            holds = node.holds()
+            early = [h for w, h in holds.items()
+                     if w not in gone and h < target - ReplayClock.SLACK_S]
+            if not early:
+                break
+            at = min(early)
+            if at > clock.now():
+                clock.set_time(at)
+                node.fire_timers(at)
+            await self.settle()
+            if node.holds() == holds:
+                # Its holder waits for something else than time (a first message): the
+                # clock goes on without it, as the simulator's lockstep timeout lets it.
+                gone.update(w for w, h in holds.items() if h <= at)
+        if target > clock.now():
+            clock.set_time(target)
+            node.fire_timers(target)
+            await self.settle()
+
+    def _activity(self) -> dict[int, float] | None:
+        """The CPU time each of the high level's threads has used so far, leaving out
+        those that wait on the clock or on a condition or event; None when one of them
+        is about to run (due on the clock, or not started yet)."""
+        if self.clock.ready():
+            return None
+        parked = self.clock.parked()
+        pool = self.high._pool
+        with pool._lock:
+            workers = list(pool._all)
+        if any(not w.jobs.empty() for w in workers):
+            return None  # a job handed to a thread that has not taken it yet
+        threads = [w.thread for w in workers]
+        frames = sys._current_frames()
+        used: dict[int, float] = {}
+        for thread in threads:
+            ident = thread.ident
+            if ident is None:
+                return None  # being started
+            frame = frames.get(ident)
+            if frame is None:
+                continue
+            code = frame.f_code
+            if code.co_filename == threading.__file__ and code.co_name == "wait":
+                # Waits on a condition (an event, a child's end, the clock …) -- unless it
+                # was notified already and only waits for its turn to run.
+                waiter = frame.f_locals.get("waiter")
+                if waiter is not None and not waiter.locked():
+                    return None
+                continue
+            if ident in parked:
+                continue
+            try:
+                used[ident] = time.clock_gettime(time.pthread_getcpuclockid(ident))
+            except (OSError, AttributeError):  # no per-thread CPU clock here: by its frame
+                used[ident] = float(hash((id(frame), frame.f_lasti)))
+        return used
+
+    async def settle(self) -> None:
+        """Let the high level's threads run until each waits again: on the clock, on a
+        condition or event, or anywhere else where it uses no CPU between two looks (a
+        queue's ``get``). Bounded by :data:`SETTLE_S`."""
+        deadline = time.monotonic() + SETTLE_S
+        last = self._last_activity
+        seen = self._settled_at
+        while True:
+            # Something ended or started since the last look: whoever waits for it (a
+            # parent, the switch) may have been woken and not run yet -- look again.
+            events, seen = seen, self._events
+            activity = self._activity() if events == seen else None
+            if activity is not None and activity == last:
+                break
+            last = activity
+            if time.monotonic() > deadline:
+                if not self._slow:
+                    self._slow = True
+                    self.warnings.append(
+                        f"t={self.state.now_s:.3f} s: the high level was still busy after "
+                        f"{SETTLE_S} s (wall time); the replay went on")
+                break
+            await asyncio.sleep(_POLL_S)
+        self._settled_at = self._events
+        self._last_activity = last
+
+    async def catch_up(self, count: int) -> None:
+        """Wait until the replayed high level has emitted ``count`` events (bounded)."""
+        if self._misses >= _MAX_MISSES or count <= self._given_up:
+            return
+        done = await _wait(self._cond, lambda: self._events >= count or self.abort.is_set(),
+                           CATCH_UP_S if not self._misses else CATCH_UP_S / 10)
+        if not done:
+            self._misses += 1
+            self._given_up = count
+            self.warnings.append(
+                f"t={self.state.now_s:.3f} s: the replayed high level did not catch up with "
+                f"the recording ({self._events} of {count} events)"
+                + ("; the replay goes on without waiting for it any more"
+                   if self._misses >= _MAX_MISSES else ""))
+
+    async def feed(self, item: _HighInput) -> None:
+        await self.advance(item.t_s)
+        await self.catch_up(item.before)
+        self._deliver_late()
+        if item.kind == "request":
+            params = item.value if isinstance(item.value, dict) else {}
+            try:
+                self.high.request_switch(item.key, **params)
+            except Exception as exc:  # the recording asked for it; say it did not work
+                self.warnings.append(f"t={item.t_s:.3f} s: switch to behaviour {item.key!r} "
+                                     f"failed: {exc!r}")
+            await self.settle()
+            return
+        subs = self.node.subscriptions(item.key)
+        if not subs:
+            with self._cond:
+                self._pending[item.channel] = (item.value, time.monotonic())
+            return
+        for sub in subs:
+            self._call(sub, item.value)
+        await self.settle()
+
+    def _deliver_late(self) -> None:
+        with self._cond:
+            late, self._late = self._late, []
+        for sub, data in late:
+            self._call(sub, data)
+
+    def _call(self, sub: Any, data: bytes) -> None:
+        from rclpy.serialization import deserialize_message
+
+        key = (id(data), sub.msg_type)
+        msg = self._decoded.get(key)
+        if msg is None:
+            msg = deserialize_message(data, sub.msg_type)
+            self._decoded = {key: msg}  # one message is shared by its subscriptions
+        try:
+            sub.callback(msg)
+        except Exception as exc:  # the behaviour's callback, not the replay, failed
+            self.warnings.append(f"t={self.state.now_s:.3f} s: a subscription to "
+                                 f"{sub.topic} raised {exc!r}")
+
+    async def finish(self, settled: int) -> None:
+        """After the last input: let the high level do what it did before the recorded
+        shutdown (its shutdown follows: its safe states and ends are compared too)."""
+        self._deliver_late()
+        await self.catch_up(settled)
+
+    def missing_error(self) -> RecordingError:
+        channels = ", ".join(sorted(self.missing))
+        who = "; ".join(self.missing[c] for c in sorted(self.missing))
+        return RecordingError(
+            f"{self.recording.files[0]}: cannot replay robot {self.prefix!r}'s high level: "
+            f"channel(s) {channels} missing ({who}); the recording has: "
+            f"{', '.join(sorted(self.recording.channels)) or 'no channels'}. Record "
+            "again with this version of beehave (it records what behaviours subscribe "
+            "to), or add the topic to the configuration's recording.topics")
 
 
 # ---- the replay's side ---------------------------------------------------------------------
@@ -325,7 +772,7 @@ def _capturing(original: Callable[..., Any], hal: str, method: str,
 def replay(recording: Recording | str | Path, config: RobotConfig, *,
            prefix: str | None = None, speed: float | None = 1.0,
            from_s: float | None = None, to_s: float | None = None,
-           hal_wait_s: float = 2.0) -> ReplayResult:
+           hal_wait_s: float = 2.0, high: bool | None = None) -> ReplayResult:
     """Run ``config``'s low level on ``recording`` (see the module docstring) and compare.
 
     ``prefix``: the robot in the recording (default: the configuration's namespace).
@@ -343,11 +790,15 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
     rec = recording if isinstance(recording, Recording) else read_recording(recording)
     prefix = config.namespace if prefix is None else prefix
     _check_channels(rec, prefix)
+    with_high = _check_high(rec, prefix, config, high)
     timeline = _Timeline(rec, prefix)
-    inputs = _inputs(rec, prefix)
+    inputs: list[_Input | _HighInput] = list(_inputs(rec, prefix))
     lo = from_s if from_s is not None else float("-inf")
     hi = to_s if to_s is not None else float("inf")
-    expected = [o for o in recorded_outputs(rec, prefix) if lo <= o.t_s <= hi]
+    recorded = recorded_outputs(rec, prefix)
+    if with_high:
+        recorded += recorded_high_outputs(rec, prefix)
+    expected = [o for o in recorded if lo <= o.t_s <= hi]
 
     robot = Robot(config, only="low")
     low = robot.low
@@ -355,6 +806,10 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
         raise RecordingError(f"{config.source}: the configuration has no low level to replay")
     state = _ReplayState()
     warnings: list[str] = []
+    side: _HighSide | None = None
+    if with_high:
+        side = _high_side(config, rec, prefix, low, state, warnings, timeline)
+        inputs = _merge(inputs, _high_inputs(rec, prefix, config.namespace))  # type: ignore[arg-type]
 
     def capture(hal: str, method: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> None:
         if state.comparing:
@@ -376,6 +831,15 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
             state.outputs.append(Output(f"blackboard:{change.key}",
                                         [to_json(change.value), change.stale], state.now_s))
 
+    def on_high_event(event: Any) -> None:  # in the high level's threads
+        if not state.comparing:
+            return
+        made = _high_output(event.kind.value, event.subject, event.status,
+                            _error_type(event.error))
+        if made is not None:
+            with state.lock:
+                state.outputs.append(Output(made[0], made[1], state.now_s))
+
     unsubscribe = low.events.subscribe(on_event)
     remove_tap = low.blackboard.tap(on_change)
     state.comparing = from_s is None
@@ -383,18 +847,75 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
     fed = 0
     try:
         with low:
-            fed = low.call(_feed(low, inputs, state, speed=speed, lo=lo, hi=hi,
-                                 hal_wait_s=hal_wait_s, warnings=warnings))
-            if to_s is not None:
-                state.comparing = False  # the shutdown's safe states lie outside the window
+            try:
+                if side is not None:
+                    side.high.events.subscribe(side.on_event)
+                    side.high.events.subscribe(on_high_event)
+                    side.high.start()
+                fed = low.call(_feed(low, inputs, state, speed=speed, lo=lo, hi=hi,
+                                     hal_wait_s=hal_wait_s, warnings=warnings, high=side))
+                if side is not None and not side.abort.is_set():
+                    low.call(side.finish(_settled_count(rec, prefix)))
+                if to_s is not None:
+                    state.comparing = False  # the shutdown's safe states lie outside it
+            finally:
+                if side is not None:
+                    side.high.shutdown()
     finally:
         remove_tap()
         unsubscribe()
+    if side is not None and side.missing:
+        raise side.missing_error()
     wall = time.monotonic() - began
     span = (min(hi, inputs[-1].t_s) if inputs else 0.0) - (max(lo, 0.0) if inputs else 0.0)
     got = state.outputs
     return ReplayResult(got, expected, compare(expected, got), fed, max(span, 0.0), wall,
-                        timeline.sim is not None, warnings)
+                        timeline.sim is not None, warnings,
+                        commands=list(side.node.captured) if side is not None else [],
+                        high=side is not None)
+
+
+def _check_high(recording: Recording, prefix: str, config: RobotConfig,
+                high: bool | None) -> bool:
+    """Whether to replay the high level too: ``high`` when given, else when the
+    configuration has behaviours of its own or the recording the high level's events. A
+    configuration with behaviours needs their events (the recorded decisions)."""
+    events = schema.topic(prefix, schema.EVENTS_HIGH)
+    own = bool(config.behaviors) or config.default_behavior != "idle"
+    if high is False:
+        return False
+    if events not in recording.channels:
+        if high or own:
+            raise RecordingError(
+                f"{recording.files[0]}: cannot replay robot {prefix!r}'s high level: "
+                f"channel(s) {events} missing (its behaviours' decisions); the recording "
+                f"has: {', '.join(sorted(recording.channels)) or 'no channels'} (pass "
+                "high=False to replay the low level alone)")
+        return False
+    return True
+
+
+def _high_side(config: RobotConfig, recording: Recording, prefix: str,
+               low: LowLevelBehaviorManager, state: _ReplayState, warnings: list[str],
+               timeline: _Timeline) -> _HighSide:
+    """The configuration's high level, built to run on the replay: the replay node (its
+    publishers captured, its subscriptions fed from the recording), a clock the feed
+    moves, and the replayed low level's blackboard."""
+    from beehave.blackboard import BlackboardView
+    from beehave.robot import Robot
+
+    built = Robot(config, only="high").high
+    assert built is not None
+    side = _HighSide(built, recording, prefix, config.namespace, state, warnings,
+                     timeline.sim0)
+    built.clock = side.clock
+    built.node = side.node
+    built.blackboard = low.blackboard
+    built.blackboard_view = BlackboardView(
+        low.blackboard, why="behaviours and actions read the low level's blackboard; they "
+                            "change the robot through actions")
+    side.clock.set_time(timeline.sim0)
+    return side
 
 
 class _ReplayState:
@@ -402,17 +923,18 @@ class _ReplayState:
         self.now_s = 0.0
         self.comparing = True
         self.outputs: list[Output] = []
+        self.lock = threading.Lock()  # the high level's threads append too
 
 
-async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _ReplayState, *,
-                speed: float | None, lo: float, hi: float, hal_wait_s: float,
-                warnings: list[str]) -> int:
+async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input | _HighInput],
+                state: _ReplayState, *, speed: float | None, lo: float, hi: float,
+                hal_wait_s: float, warnings: list[str], high: _HighSide | None = None) -> int:
     loop = asyncio.get_running_loop()
     board = low.blackboard
     fed = 0
     origin_wall: float | None = None
     origin_t = 0.0
-    batch_ns = 0  # wall time of the first write of the batch being fed
+    ends = _batch_ends(inputs)
     for n, item in enumerate(inputs):
         if item.t_s > hi:
             break
@@ -431,6 +953,19 @@ async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _Repl
                 if delay > 0:
                     await asyncio.sleep(delay)
         state.now_s = item.t_s
+        if isinstance(item, _HighInput):
+            # The high level runs in threads of its own: it is fed (and waited for) here,
+            # between two batches of the low level's inputs (see _merge).
+            assert high is not None
+            await high.feed(item)
+            fed += 1
+            if high.abort.is_set():
+                break  # it needs what the recording lacks: replay() says which
+            continue
+        if high is not None and (n == 0 or ends[n - 1]):
+            # Only between two batches: letting the high level run here lets the loop run
+            # too, and a batch must reach the logics in one go.
+            await high.advance(item.t_s)
         if item.kind == "set":
             board.set(item.key, item.value, writer=item.writer, stale=item.stale)
         elif item.kind == "switch":
@@ -449,18 +984,7 @@ async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _Repl
         fed += 1
         # One recorded batch is fed in one go (one loop callback: this step), then the
         # logics run, as they ran live between two batches.
-        following = inputs[n + 1] if n + 1 < len(inputs) else None
-        if not batch_ns:
-            batch_ns = item.wall_ns
-        if following is None or not item.kind == following.kind == "set":
-            batched = False
-        elif item.batch is not None and following.batch is not None:
-            batched = following.batch == item.batch
-        else:
-            batched = following.wall_ns - batch_ns < BATCH_NS
-        if not batched:
-            batch_ns = 0
-        if not catching_up and not batched:
+        if not catching_up and ends[n]:
             for _ in range(_YIELDS):
                 await asyncio.sleep(0)
     for _ in range(10 * _YIELDS):  # let the logics answer the last inputs
