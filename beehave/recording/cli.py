@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -98,11 +99,14 @@ def finish_recording(recorder: Recorder) -> str:
 def replay_main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(
         prog="beehave replay",
-        description="Run a robot's low level on a recording: its HALs replaced by a replay "
-                    "source writing the recorded values into the blackboard at the recorded "
-                    "times (sim time when recorded on it), HAL commands captured, not sent. "
-                    "Compares the logics' outputs and switches with the recording and "
-                    "reports the first divergence (exit 1). docs/recording.md")
+        description="Run a robot's logics and behaviours on a recording: its HALs replaced "
+                    "by a replay source writing the recorded values into the blackboard, its "
+                    "behaviours fed the recorded topics and switch requests, at the recorded "
+                    "times (sim time when recorded on it); HAL commands and published "
+                    "messages captured, not sent, and no ROS node made. Compares the logics' "
+                    "outputs and switches and the behaviours' switches, starts and ends with "
+                    "the recording and reports the first divergence (exit 1). "
+                    "docs/recording.md")
     parser.add_argument("recording", metavar="FILE.mcap")
     parser.add_argument("--robot", required=True, metavar="ROBOT.yaml",
                         help="the robot's configuration (its logics and HALs)")
@@ -116,6 +120,8 @@ def replay_main(argv: list[str]) -> int:
                         help="start at T seconds into the recording")
     parser.add_argument("--to", dest="to_s", type=_time_arg, default=None, metavar="T",
                         help="stop at T seconds into the recording")
+    parser.add_argument("--low-only", action="store_true",
+                        help="replay the logics alone, not the behaviours")
     args = parser.parse_args(argv)
     if args.from_s is not None and args.to_s is not None and args.to_s <= args.from_s:
         return _fail("replay", f"--to ({args.to_s}) must be after --from ({args.from_s})")
@@ -125,7 +131,8 @@ def replay_main(argv: list[str]) -> int:
     try:
         config = load_config(args.robot)
         result = replay(args.recording, config, prefix=args.prefix, speed=args.speed,
-                        from_s=args.from_s, to_s=args.to_s)
+                        from_s=args.from_s, to_s=args.to_s,
+                        high=False if args.low_only else None)
     except BeehaveError as exc:
         return _fail("replay", exc)
     print(describe_replay(result), flush=True)
@@ -134,12 +141,19 @@ def replay_main(argv: list[str]) -> int:
 
 def describe_replay(result: ReplayResult) -> str:
     clock = "sim time" if result.sim_time else "wall time"
-    lines = [f"replayed {result.span_s:.2f} s ({clock}) in {result.wall_s:.2f} s "
+    levels = "logics and behaviours" if result.high else "logics"
+    lines = [f"replayed {levels}: {result.span_s:.2f} s ({clock}) in {result.wall_s:.2f} s "
              f"(x{result.speedup:.1f}): {result.fed} inputs, {len(result.outputs)} outputs "
              f"(recorded: {len(result.expected)})"]
+    if result.high:
+        counts = Counter(c.topic for c in result.commands)
+        shown = ", ".join(f"{topic} x{n}" for topic, n in sorted(counts.items())) or "none"
+        lines.append(f"captured, not sent: {len(result.commands)} message(s): {shown}")
     lines += [f"warning: {w}" for w in result.warnings]
     if result.divergence is None:
-        lines.append("deterministic: the same logic outputs and switches as recorded")
+        what = ("logic outputs, logic and behaviour switches, behaviours and actions"
+                if result.high else "logic outputs and switches")
+        lines.append(f"deterministic: the same {what} as recorded")
     else:
         lines.append(f"DIVERGED: {result.divergence}")
     return "\n".join(lines)

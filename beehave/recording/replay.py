@@ -142,7 +142,9 @@ def compare(expected: list[Output], got: list[Output]) -> Divergence | None:
             y = b[i] if i < len(b) else None
             if x is not None and y is not None and x.value == y.value:
                 continue
-            t = x.t_s if x is not None else y.t_s  # type: ignore[union-attr]
+            # When the two differ: the earlier of the two (a replayed behaviour that
+            # switches too early diverges when it switches, not when the recorded did).
+            t = min(o.t_s for o in (x, y) if o is not None)
             if first is None or t < first.t_s:
                 first = Divergence(key, t, i, None if x is None else x.value,
                                    None if y is None else y.value)
