@@ -499,6 +499,20 @@ next subscription: a behaviour that has started but not yet subscribed must not 
 order that the recorded one received."""
 
 
+def _runnable(native_id: int | None) -> bool:
+    """Whether the OS thread ``native_id`` of this process runs or is ready to (Linux:
+    state ``R`` in /proc): a thread preempted on a busy host uses no CPU for a while, yet
+    it is not waiting for anything. False where /proc does not say."""
+    if native_id is None:
+        return False
+    try:
+        with open(f"/proc/self/task/{native_id}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return False
+    return stat[stat.rfind(b")") + 2:][:1] == b"R"
+
+
 async def _wait(cond: threading.Condition, predicate: Callable[[], bool],
                timeout_s: float) -> bool:
     """Wait for ``predicate`` (whoever changes it notifies ``cond``) without blocking the
@@ -623,6 +637,8 @@ class _HighSide:
                 continue
             if ident in parked:
                 continue
+            if _runnable(thread.native_id):
+                return None  # on a CPU, or waiting for one (a loaded host)
             try:
                 used[ident] = time.clock_gettime(time.pthread_getcpuclockid(ident))
             except (OSError, AttributeError):  # no per-thread CPU clock here: by its frame
