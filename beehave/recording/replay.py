@@ -1,30 +1,49 @@
-"""Replay: a robot's low level run again on a recording, and the determinism check.
+"""Replay: a robot's logics and behaviours run again on a recording, and the determinism check.
 
-:func:`replay` builds the robot's low level from its configuration, replaces every HAL by
-a *replay HAL* of the same name -- a subclass of the real one that opens no device and
-captures each command (``set_color``, ``show`` …) instead of sending it -- and feeds the
-recorded inputs into the blackboard at their recorded times: the values the HALs and the
-ROS 2 bridge wrote (``hal:*``, ``ros:*`` writers, the high level's ``high_level/*``
-state), the logic switches asked for from outside, and the HAL loads (the feed waits for
-a HAL the recording loaded at that point, so values never overtake a load). The logics
-run on them as they did live. What they produce -- HAL commands, their own blackboard
-writes, the logic switches -- is compared with what the recording holds
-(:func:`compare`): the first divergence is reported with its time and key.
+Low level. :func:`replay` builds the robot's low level from its configuration, replaces
+every HAL by a *replay HAL* of the same name -- a subclass of the real one that opens no
+device and captures each command (``set_color``, ``show`` …) instead of sending it -- and
+feeds the recorded inputs into the blackboard at their recorded times: the values the HALs
+and the ROS 2 bridge wrote (``hal:*``, ``ros:*`` writers, the high level's
+``high_level/*`` state), the logic switches asked for from outside, and the HAL loads (the
+feed waits for a HAL the recording loaded at that point, so values never overtake a load).
+
+High level. When the configuration has behaviours (and the recording their events), its
+HighLevelBehaviorManager runs too, on a :class:`~beehave.recording.replay_node.ReplayNode`
+instead of a ROS node: what behaviours and actions publish (``cmd_vel``, the lift's
+command, sounds) is captured, not sent, and their subscriptions get the recorded messages
+of their topics (odometry, scan, the lift's state, another agent's orders: the recorder
+records every topic a behaviour subscribes to, :mod:`beehave.recording.inputs`). The
+switch requests that came from outside (events with ``source: external``) are asked again
+at their recorded times; those the behaviours asked for they ask for again by themselves.
+Service and action clients cannot be replayed (their answers are not recorded): making one
+fails the action with a :class:`RecordingError` that names it. No ROS node is made.
+
+What both produce -- HAL commands, logic writes and switches; top-level switches and each
+behaviour's and action's start and end with its status -- is compared with what the
+recording holds (:func:`compare`): the first divergence is reported with its time and key.
+
+Keeping pace. The high level runs in threads, the feed in the low level's event loop. The
+feed moves the high level's clock (a :class:`~beehave.recording.replay_node.ReplayClock`)
+to each input's recorded time, and after every step waits until the high level has
+*settled*: each of its threads waits again -- on the clock, on a condition or event, or
+elsewhere using no CPU -- and none is due to run. A driving action's lockstep hold stops
+the clock at each control period, as it stops a simulator. Before each input of the high
+level, the feed also waits (bounded) until the replayed behaviours have done what the
+recorded ones had done :data:`SYNC_MARGIN_S` earlier, so that a behaviour polling on wall
+time (a queue's ``get(timeout=…)``) cannot fall behind.
 
 Batches. The recorded writes carry the batch in which the logics saw them (see the
 recorder's ``_BatchingTap``): one batch is fed in one go, then the loop turns a few times
 so that the logics run, as they ran live between two batches. Recordings without batch
-ids are grouped by wall time (:data:`BATCH_NS`).
+ids are grouped by wall time (:data:`BATCH_NS`). The high level's inputs are fed between
+two batches only.
 
 Time. ``speed=1.0`` replays in real time, ``speed=N`` N times faster, ``speed=None`` as
-fast as the logics keep up (each batch is followed by a few turns of the event loop, so
-every logic sees every batch). A recording of a robot on sim time is paced by its sim
-time (``/<robot>/beehave/clock``): a demo run at ``--fast`` replays at robot speed.
-Times reported are seconds since the start of the recording, sim time when there is one.
-
-The high level is not run again: its behaviours drive the robot in closed loop over ROS 2
-(odometry in, ``cmd_vel`` out) and their switches come from outside; what the low level
-learnt of them (``high_level/*``) is part of the replayed input.
+fast as the logics and behaviours keep up. A recording of a robot on sim time is paced by
+its sim time (``/<robot>/beehave/clock``): a demo run at ``--fast`` replays at robot
+speed. Times reported are seconds since the start of the recording, sim time when there
+is one.
 """
 
 from __future__ import annotations
@@ -791,14 +810,18 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
            prefix: str | None = None, speed: float | None = 1.0,
            from_s: float | None = None, to_s: float | None = None,
            hal_wait_s: float = 2.0, high: bool | None = None) -> ReplayResult:
-    """Run ``config``'s low level on ``recording`` (see the module docstring) and compare.
+    """Run ``config``'s low level -- and its high level, see ``high`` -- on ``recording``
+    (see the module docstring) and compare.
 
+    ``high``: replay the behaviours too (None: when the configuration has behaviours or
+    the recording their events; False: the logics alone).
     ``prefix``: the robot in the recording (default: the configuration's namespace).
     ``speed``: 1.0 real time, N times faster, None as fast as possible. ``from_s`` /
     ``to_s``: the window to replay, in seconds since the recording's start; the state
     before ``from_s`` is set at once, and only outputs inside the window are compared.
     Raises :class:`RecordingError` when the robot or a channel a replay needs is not in
-    the recording (naming them and what is there).
+    the recording (naming them and what is there) -- for a topic a behaviour subscribes
+    to, as soon as it subscribes (naming the behaviour).
     """
     from beehave.robot import Robot
 
