@@ -228,8 +228,10 @@ def inspect_main(argv: list[str]) -> int:
         t = (m.log_time_ns - rec.start_ns) / 1e9
         status = f" {data['status']}" if data["status"] else ""
         error = f"  [red]{data['error']}[/]" if data["error"] else ""
+        source = data["detail"].get("source") if data["kind"] == "switch_requested" else None
+        asked = f" (asked by {source})" if source not in (None, "external") else ""
         console.print(f"{t:9.3f}  {topics[m.topic]:<10} {level} {data['kind']:<17} "
-                      f"{data['subject']}{status}{error}", highlight=False)
+                      f"{data['subject']}{status}{error}{asked}", highlight=False)
         shown += 1
     return 0
 
