@@ -895,7 +895,7 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
                     side.high.start()
                 fed = low.call(_feed(low, inputs, state, speed=speed, lo=lo, hi=hi,
                                      hal_wait_s=hal_wait_s, warnings=warnings, high=side))
-                if side is not None and not side.abort.is_set():
+                if side is not None and not side.abort.is_set() and to_s is None:
                     low.call(side.finish(_settled_count(rec, prefix)))
                 if to_s is not None:
                     state.comparing = False  # the shutdown's safe states lie outside it
