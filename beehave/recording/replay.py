@@ -366,7 +366,8 @@ class _HighInput:
     """What the high level got from outside at ``t_s``: a message (``kind="msg"``: the
     CDR ``value`` of ``channel``, for the subscriptions to ``key``, a resolved topic) or
     a switch request (``kind="request"``: behaviour ``key``, parameters ``value``).
-    ``before``: how many high-level events the recording logged before it."""
+    ``before``: how many high-level events the recording had :data:`SYNC_MARGIN_S`
+    before it; ``logged_before``: how many it had logged before it at all."""
 
     t_s: float
     wall_ns: int
@@ -375,6 +376,7 @@ class _HighInput:
     value: Any = None
     channel: str = ""
     before: int = 0
+    logged_before: int = 0
 
 
 def _topic_of(channel: str, prefix: str, namespace: str) -> str:
@@ -408,7 +410,9 @@ def _high_inputs(recording: Recording, prefix: str, namespace: str) -> list[_Hig
     # An input waits for the events the recording had SYNC_MARGIN_S before it: the replay's
     # clock moves in the recording's steps, so a behaviour's timed step may come that much
     # later than it did live.
-    stamps = [timeline(m.log_time_ns) for m in recording.of(events)]
+    logged = recording.of(events)
+    stamps = [timeline(m.log_time_ns) for m in logged]
+    walls = [m.log_time_ns for m in logged]
     first = True
 
     def before(t_s: float) -> int:
@@ -422,8 +426,10 @@ def _high_inputs(recording: Recording, prefix: str, namespace: str) -> list[_Hig
                 if source == "external" and not first:
                     params = d["detail"].get("params") or {}
                     t_s = timeline(m.log_time_ns)
-                    inputs.append(_HighInput(t_s, m.log_time_ns, "request", d["subject"],
-                                             params, before=before(t_s)))
+                    inputs.append(_HighInput(
+                        t_s, m.log_time_ns, "request", d["subject"], params,
+                        before=before(t_s),
+                        logged_before=bisect.bisect_left(walls, m.log_time_ns)))
                 first = False
         elif m.topic in ros:
             t_s = timeline(m.log_time_ns)
@@ -706,8 +712,14 @@ class _HighSide:
                    if self._misses >= _MAX_MISSES else ""))
 
     async def feed(self, item: _HighInput) -> None:
-        await self.advance(item.t_s)
-        await self.catch_up(item.before)
+        # A request comes as soon as the replay has done all the recording had done by
+        # then: before the clock moves on when it has. A timed step due between the last
+        # input and this one (a chime) then comes after the request, as it did live -- or
+        # the recording shows it before the request, and the clock moves first.
+        if item.kind != "request" or self._events < item.logged_before:
+            await self.advance(item.t_s)
+            await self.catch_up(item.logged_before if item.kind == "request"
+                                else item.before)
         self._deliver_late()
         if item.kind == "request":
             params = item.value if isinstance(item.value, dict) else {}
