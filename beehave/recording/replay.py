@@ -211,18 +211,23 @@ def _is_logic(writer: object) -> bool:
 def recorded_outputs(recording: Recording, prefix: str) -> list[Output]:
     """What the low level produced in the recording, as :class:`Output` s."""
     timeline = _Timeline(recording, prefix)
-    outputs: list[Output] = []
+    return [Output(key, value, timeline(m.log_time_ns))
+            for m, key, value in _low_outputs(recording, prefix)]
+
+
+def _low_outputs(recording: Recording, prefix: str) -> list[tuple[Any, str, Any]]:
+    """The low level's outputs in the recording: (message, stream, value)."""
+    found: list[tuple[Any, str, Any]] = []
     bb, low, cmds = (schema.topic(prefix, c) for c in REQUIRED)
     for m in recording.messages:
         if m.topic == cmds:
-            outputs.append(Output(f"{m.data['hal']}.{m.data['method']}",
-                                  [m.data["args"], m.data["kwargs"]], timeline(m.log_time_ns)))
+            found.append((m, f"{m.data['hal']}.{m.data['method']}",
+                          [m.data["args"], m.data["kwargs"]]))
         elif m.topic == bb and _is_logic(m.data["writer"]):
-            outputs.append(Output(f"blackboard:{m.data['key']}",
-                                  [m.data["value"], m.data["stale"]], timeline(m.log_time_ns)))
+            found.append((m, f"blackboard:{m.data['key']}", [m.data["value"], m.data["stale"]]))
         elif m.topic == low and m.data["kind"] == "switch_completed":
-            outputs.append(Output("logic", m.data["subject"], timeline(m.log_time_ns)))
-    return outputs
+            found.append((m, "logic", m.data["subject"]))
+    return found
 
 
 HIGH_SWITCH = "high:switch"
@@ -282,6 +287,7 @@ class _Input:
     stale: bool = False
     wall_ns: int = 0
     batch: int | None = None
+    outputs_before: int = 0  # the low level's outputs the recording logged before it
 
 
 BATCH_NS = 500_000
@@ -358,7 +364,14 @@ def _inputs(recording: Recording, prefix: str) -> list[_Input]:
                 # shut down here. What follows (HALs unloaded, entries marked stale) is
                 # the replay's own shutdown's to produce, not an input.
                 break
-    return _in_batch_order(inputs)
+    # What the logics had produced when each input came: the feed waits for as much
+    # (see _feed), so that a logic still starting up (loading its HALs) sees the inputs
+    # in the batches it saw them live.
+    # Outputs logged less than BATCH_NS before an input may be its effect all the same
+    # (a safe state's command and the stale marks of the shutdown that gave it): not those.
+    done = sorted(m.log_time_ns for m, _, _ in _low_outputs(recording, prefix))
+    return [replace(i, outputs_before=bisect.bisect_left(done, i.wall_ns - BATCH_NS))
+            for i in _in_batch_order(inputs)]
 
 
 @dataclass(frozen=True)
@@ -865,6 +878,7 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
         inputs = _merge(inputs, _high_inputs(rec, prefix, config.namespace))  # type: ignore[arg-type]
 
     def capture(hal: str, method: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> None:
+        state.low_done += 1
         if state.comparing:
             state.outputs.append(Output(f"{hal}.{method}", [to_json(list(args)),
                                                             to_json(kwargs)], state.now_s))
@@ -874,12 +888,14 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
         low.hals.register(replay_hal_class(cls, name, capture), name=name, **params)
 
     def on_event(event: Any) -> None:
-        if not state.comparing:
-            return
         if event.kind.value == "switch_completed":
-            state.outputs.append(Output("logic", event.subject, state.now_s))
+            state.low_done += 1
+            if state.comparing:
+                state.outputs.append(Output("logic", event.subject, state.now_s))
 
     def on_change(change: Any) -> None:
+        if _is_logic(change.writer):
+            state.low_done += 1
         if state.comparing and _is_logic(change.writer):
             state.outputs.append(Output(f"blackboard:{change.key}",
                                         [to_json(change.value), change.stale], state.now_s))
@@ -977,6 +993,30 @@ class _ReplayState:
         self.comparing = True
         self.outputs: list[Output] = []
         self.lock = threading.Lock()  # the high level's threads append too
+        self.low_done = 0  # the low level's outputs so far (compared or not)
+        self.low_misses = 0  # waits for them that timed out
+
+
+LOW_CATCH_UP_S = 0.5
+"""How long (wall time) the feed waits, before a batch, for the logics to have produced
+what the recorded ones had by then (a logic loading its HALs at the start). Three waits in
+vain and it stops waiting: the replay has diverged."""
+
+
+async def _low_catch_up(state: _ReplayState, item: _Input, warnings: list[str]) -> None:
+    if state.low_done >= item.outputs_before or state.low_misses >= _MAX_MISSES:
+        return
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + LOW_CATCH_UP_S
+    turns = 0
+    while state.low_done < item.outputs_before and loop.time() < deadline:
+        turns += 1
+        await asyncio.sleep(0 if turns < 50 else 0.001)  # turns first, then time
+    if state.low_done < item.outputs_before:
+        state.low_misses += 1
+        warnings.append(f"t={item.t_s:.3f} s: the logics had not produced what the recorded "
+                        f"ones had by then ({state.low_done} of {item.outputs_before} "
+                        f"outputs) after {LOW_CATCH_UP_S} s")
 
 
 async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input | _HighInput],
@@ -1015,6 +1055,8 @@ async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input | _HighInput],
             if high.abort.is_set():
                 break  # it needs what the recording lacks: replay() says which
             continue
+        if not catching_up and (n == 0 or ends[n - 1]):
+            await _low_catch_up(state, item, warnings)
         if high is not None and (n == 0 or ends[n - 1]):
             # Only between two batches: letting the high level run here lets the loop run
             # too, and a batch must reach the logics in one go.
