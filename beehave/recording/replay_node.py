@@ -113,7 +113,6 @@ class ReplayNode:
         self.captured: list[Captured] = []
         #: Lockstep: participant → the sim time it asked to be held at.
         self._holds: dict[str, float] = {}
-        self.hold_changed = threading.Condition(self._lock)
 
     # -- what rclpy's Node offers and RosIO uses --------------------------------------------
 
@@ -231,7 +230,6 @@ class ReplayNode:
                     self._holds.pop(who, None)
                 else:
                     self._holds[who] = float(until)
-                self.hold_changed.notify_all()
             return
         item = Captured(publisher.topic, f"{publisher.msg_type.__module__.split('.')[0]}/"
                                          f"{publisher.msg_type.__name__}",
