@@ -300,11 +300,16 @@ class HighLevelBehaviorManager:
             become = not self._processing
             if become:
                 self._processing = True
+        # Who asked: a behaviour of this manager (its path) or "external" (an operator, an
+        # interface, a test). A replay repeats only the external requests: the behaviours
+        # it runs ask again by themselves.
+        caller = current()
+        source = caller.path if caller is not None and caller._manager is self else "external"
         if become:
             _tls.holding = self
         try:
             self.events.emit(Event(EventKind.SWITCH_REQUESTED, name,
-                                   detail={"params": _jsonable(params)}))
+                                   detail={"params": _jsonable(params), "source": source}))
             for old in replaced:
                 if old.fallback_from is None:
                     self._supersede(old, request)

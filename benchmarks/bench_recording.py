@@ -160,12 +160,21 @@ def _demo(tmp: Path) -> list[dict[str, Any]]:
     sim = rec.sim_time("emili1")
     span_min = ((sim(rec.end_ns) - sim(rec.start_ns)) if sim else rec.duration_s) / 60
     size_mb = sum(f.stat().st_size for f in rec.files) / 1e6
-    result = replay(rec, load_config(CONFIG_DIR / "emili.yaml"), speed=None)
+    emili = load_config(CONFIG_DIR / "emili.yaml")
+    low = replay(rec, emili, speed=None, high=False)
+    both = replay(rec, emili, speed=None)
+    kobuki = replay(rec, load_config(CONFIG_DIR / "kobuki.yaml"), speed=None)
     return [
         report("demo recording size per minute of robot time (2 robots)", size_mb / span_min,
                "MB/min", problems=len(problems), messages=len(rec.messages)),
-        report("replay of EMILI's logics at --speed max", result.speedup, "× real time",
-               deterministic=result.divergence is None),
+        report("replay of EMILI's logics at --speed max", low.speedup, "× real time",
+               deterministic=low.divergence is None),
+        report("replay of EMILI's logics and behaviours at --speed max", both.speedup,
+               "× real time", deterministic=both.divergence is None,
+               captured=len(both.commands)),
+        report("replay of Kobuki's logics and behaviours at --speed max", kobuki.speedup,
+               "× real time", deterministic=kobuki.divergence is None,
+               captured=len(kobuki.commands)),
     ]
 
 

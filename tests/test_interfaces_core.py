@@ -266,7 +266,7 @@ def test_subscribers_get_every_event_and_one_that_raises_breaks_nothing(
     assert [e["seq"] for e in ring][-1] >= seen  # the ring kept recording
     requested = next(e for e in ring if e["kind"] == "switch_requested"
                      and e["subject"] == "drive")
-    assert requested["detail"] == {"params": {}}
+    assert requested["detail"] == {"params": {}, "source": "external"}
     # The broken listener's exception was reported, not dropped silently.
     assert any("event listener" in r.getMessage() and r.exc_info is not None
                and "observer bug" in str(r.exc_info[1]) for r in caplog.records)

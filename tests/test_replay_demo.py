@@ -1,63 +1,213 @@
-"""Replay determinism on the main demo: record `beehave demo --fast --record`, replay each
-robot's logics on the recording at `--speed max`, and get the same LED colours, display
-texts and logic switches as live. Also checks what `beehave inspect` and `beehave plot`
-make of the recording."""
+"""Replay determinism on the main demo: record `beehave demo --fast --record` once, replay
+each robot's logics *and behaviours* on the recording at `--speed max`, and get the same
+LED colours, display texts, logic switches, behaviour switches and behaviour/action
+lifecycles as live -- with nothing sent to ROS. A behaviour changed on purpose is caught at
+its first divergence; a recording without a channel the behaviours read is refused naming
+it. Also checks what `beehave inspect` and `beehave plot` make of the recording."""
 
 from __future__ import annotations
 
 import io
+import threading
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 pytest.importorskip("pybullet")
 pytest.importorskip("rclpy")
 
+import yaml  # noqa: E402
 from rich.console import Console  # noqa: E402
 
 from beehave.cli import main  # noqa: E402
-from beehave.recording import read_recording  # noqa: E402
+from beehave.config import RobotConfig, load_config, parse_config  # noqa: E402
+from beehave.errors import RecordingError  # noqa: E402
+from beehave.recording import Recording, read_recording  # noqa: E402
+from beehave.recording.replay import HIGH_SWITCH, replay  # noqa: E402
 from behaviours.demos.warehouse import CONFIG_DIR, run_sim_demo  # noqa: E402
+from behaviours.emili import Commanded  # noqa: E402
 from behaviours.logics import LIGHT_BLUE  # noqa: E402
 
+DEMO_SWITCHES = ["idle", "tour", "commanded", "maintenance"]
 
-def test_demo_recording_replays_to_the_same_decisions(tmp_path: Path,
-                                                       capsys: pytest.CaptureFixture[str]
-                                                       ) -> None:
-    path = tmp_path / "demo.mcap"
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest
+         ) -> Iterator[Path]:
+    """One recorded demo run (about 20 s) shared by the tests of this file."""
+    folder = tmp_path_factory.mktemp("demo")
+    path = folder / "demo.mcap"
     out = io.StringIO()
-    with capsys.disabled():  # rclpy's executor wants the real stdout
+    capture = request.config.pluginmanager.getplugin("capturemanager")
+    with capture.global_and_fixture_disabled():  # rclpy's executor wants the real stdout
         problems = run_sim_demo(Console(file=out, width=120), real_time_factor=None,
-                                out_dir=tmp_path, live_display=False, record=path)
+                                out_dir=folder, live_display=False, record=path)
     assert problems == [], out.getvalue()
     assert f"into {path}" in out.getvalue()
+    yield path
 
-    rec = read_recording(path)
+
+def _emili(commanded: str | None = None) -> RobotConfig:
+    """EMILI's configuration, with another class for its `commanded` behaviour."""
+    source = CONFIG_DIR / "emili.yaml"
+    if commanded is None:
+        return load_config(source)
+    data = yaml.safe_load(source.read_text())
+    data["behaviors"]["commanded"]["class"] = commanded
+    return parse_config(data, source=f"{source} (variant)")
+
+
+def test_demo_recording_replays_to_the_same_decisions(demo: Path,
+                                                       capsys: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    rec = read_recording(demo)
     assert rec.prefixes == ["emili1", "kobuki1"] and rec.dropped() == 0
     for robot in ("emili1", "kobuki1"):
         for channel in ("beehave/blackboard", "beehave/events/high", "beehave/events/low",
                         "beehave/outputs", "beehave/clock", "odom", "scan", "cmd_vel",
                         "battery_state"):
             assert rec.channels[f"/{robot}/{channel}"].count > 0, (robot, channel)
+    # What the behaviours read beyond the configured topics was recorded too: the lift's
+    # state (Lift), the other agent's order (Commanded), the bumpers (Wander).
+    for channel in ("/emili1/lift/state", "/emili1/orders", "/kobuki1/bumpers"):
+        assert rec.channels[channel].count > 0, channel
     commands = [m.data for m in rec.of("/emili1/beehave/outputs")]
     assert {"hal": "emili_leds", "method": "set_color", "args": list(LIGHT_BLUE)}.items() \
         <= next(c for c in commands if c["args"] == list(LIGHT_BLUE)).items()
-    switches = [m.data["subject"] for m in rec.of("/emili1/beehave/events/high")
-                if m.data["kind"] == "switch_completed"]
-    assert switches == ["idle", "tour", "commanded", "maintenance"]
+    requested = [m.data for m in rec.of("/emili1/beehave/events/high")
+                 if m.data["kind"] == "switch_requested"]
+    assert [r["subject"] for r in requested] == DEMO_SWITCHES
+    assert {r["detail"]["source"] for r in requested} == {"external"}
 
     capsys.readouterr()
     for config in ("emili.yaml", "kobuki.yaml"):
-        code = main(["replay", str(path), "--robot", str(CONFIG_DIR / config),
+        code = main(["replay", str(demo), "--robot", str(CONFIG_DIR / config),
                      "--speed", "max"])
         printed = capsys.readouterr().out
         assert code == 0, printed
-        assert "deterministic" in printed and "(sim time)" in printed
+        assert "deterministic" in printed and "behaviours and actions" in printed, printed
+        assert "(sim time)" in printed and "/cmd_vel x" in printed, printed
 
-    assert main(["inspect", str(path), "--limit", "500"]) == 0
+    # The behaviour switch sequence itself, from the replay (not only "no divergence").
+    result = replay(rec, _emili(), speed=None)
+    assert result.divergence is None, result.divergence
+    switches = [o.value for o in result.outputs if o.key == HIGH_SWITCH]
+    assert [v[1] for v in switches if v[0] == "completed"] == DEMO_SWITCHES
+    assert [v[1] for v in switches if v[0] == "requested"] == DEMO_SWITCHES
+    ended = {o.key: o.value for o in result.outputs if o.value[0] == "ended"}
+    assert ended["high:tour/Navigation→emili_dropoff"][1] == "SUCCEEDED"
+    assert ended["high:tour/Navigation→emili_pickup"][1] == "INTERRUPTED"
+    assert ended["high:commanded/Navigation→emili_charging"][1] == "SUCCEEDED"
+    assert ended["high:maintenance/Lift→0m"][1] == "SUCCEEDED"
+
+    assert main(["inspect", str(demo), "--limit", "500"]) == 0
     shown = capsys.readouterr().out
     assert "/emili1/odom" in shown and "switch_completed  maintenance" in shown
 
-    picture = tmp_path / "timeline.png"
-    assert main(["plot", str(path), "-o", str(picture)]) == 0
+    picture = demo.parent / "timeline.png"
+    assert main(["plot", str(demo), "-o", str(picture)]) == 0
     assert picture.stat().st_size > 20_000
+
+
+class ImpatientCommanded(Commanded):
+    """`commanded`, changed: once it has reached an order it switches the robot to `idle`
+    by itself -- the recorded one waited for the operator's next switch."""
+
+    def report(self, order_id: str, status: str, detail: str = "", **extra: Any) -> None:
+        super().report(order_id, status, detail, **extra)
+        if status == "reached":
+            self.manager.switch("idle")
+
+
+def test_a_behaviour_that_switches_differently_is_the_first_divergence(demo: Path) -> None:
+    rec = read_recording(demo)
+    result = replay(rec, _emili("tests.test_replay_demo:ImpatientCommanded"), speed=None)
+    div = result.divergence
+    assert div is not None
+    # The recording's next switch was the operator's `maintenance`; the changed behaviour
+    # asked for `idle` as soon as the order was reached.
+    assert div.key == HIGH_SWITCH, str(div)
+    assert (div.expected, div.got) == (["requested", "maintenance"], ["requested", "idle"])
+    reached = next(o for o in result.expected
+                   if o.key == "high:commanded/Navigation→emili_charging"
+                   and o.value[0] == "ended")
+    assert div.t_s == pytest.approx(reached.t_s, abs=0.5)  # when it switched, not later
+    assert f"t={div.t_s:.3f} s" in str(div) and "'high:switch'" in str(div)
+    # Everything before it was the same: the tour, the order, the drive.
+    assert all(o.t_s >= div.t_s for o in result.expected
+               if o.key == HIGH_SWITCH and o.value[1] == "maintenance")
+
+
+def test_a_recording_without_what_a_behaviour_reads_is_refused_naming_it(demo: Path) -> None:
+    rec = read_recording(demo)
+
+    def without(*topics: str) -> Recording:
+        return Recording(rec.files, [m for m in rec.messages if m.topic not in topics],
+                         {t: c for t, c in rec.channels.items() if t not in topics},
+                         rec.truncated, rec.metadata, rec.schemas)
+
+    with pytest.raises(RecordingError) as err:
+        replay(without("/emili1/lift/state"), _emili(), speed=None)
+    text = str(err.value)
+    assert "channel(s) /emili1/lift/state missing" in text, text
+    assert "tour/Lift→0.2m subscribed to /emili1/lift/state (Float64)" in text, text
+    assert "/emili1/odom" in text.split("has:")[1]  # what the recording does have
+
+    with pytest.raises(RecordingError, match="/emili1/beehave/events/high missing"):
+        replay(without("/emili1/beehave/events/high"), _emili(), speed=None)
+    # The low level alone still replays without the behaviours' channels.
+    low = replay(without("/emili1/lift/state", "/emili1/beehave/events/high"), _emili(),
+                 speed=None, high=False)
+    assert low.divergence is None and not low.high
+
+
+def test_nothing_reaches_ros_during_a_replay(demo: Path, monkeypatch: pytest.MonkeyPatch
+                                             ) -> None:
+    import rclpy.node
+    from geometry_msgs.msg import Twist
+    from std_msgs.msg import Float64, String
+
+    from tests.ros_probe import Probe
+
+    probe = Probe()
+    try:
+        heard = {topic: probe.record(t, topic) for topic, t in (
+            ("/emili1/cmd_vel", Twist), ("/emili1/sound", String),
+            ("/emili1/lift/command", Float64), ("/emili1/orders/progress", String))}
+        # The probe does hear a robot that publishes: its silence below means something.
+        talker = probe.ros.create_node("talker")
+        pub = talker.create_publisher(Twist, "/emili1/cmd_vel", 10)
+        assert probe.wait(lambda: (pub.publish(Twist()), bool(heard["/emili1/cmd_vel"]))[1])
+        probe.ros.destroy_node(talker)
+        probe.wait(lambda: False, timeout_s=0.3)  # the talker's last messages arrive
+        heard["/emili1/cmd_vel"].clear()
+
+        made: list[str] = []
+        init = rclpy.node.Node.__init__
+        lock = threading.Lock()
+
+        def spy(self: Any, name: str, *args: Any, **kwargs: Any) -> None:
+            with lock:
+                made.append(name)
+            init(self, name, *args, **kwargs)
+
+        monkeypatch.setattr(rclpy.node.Node, "__init__", spy)
+        result = replay(demo, _emili(), speed=None)
+        monkeypatch.undo()
+        assert result.divergence is None, result.divergence
+        assert made == []  # the replay made no ROS node
+        captured = {c.topic for c in result.commands}
+        assert {"/emili1/cmd_vel", "/emili1/sound", "/emili1/lift/command",
+                "/emili1/orders/progress"} <= captured
+        assert "/lockstep" not in captured  # pacing, not a command
+        lift = [c.value["data"] for c in result.commands if c.topic == "/emili1/lift/command"]
+        assert lift[:2] == [0.2, 0.0]  # the tour's lift up and down, as commanded live
+        moving = [c for c in result.commands if c.topic == "/emili1/cmd_vel"
+                  and c.value["linear"]["x"] > 0.1]
+        assert moving  # the navigation drove (captured): it is not a silent no-op
+        probe.wait(lambda: False, timeout_s=0.3)  # anything sent would have arrived
+        assert {topic: len(got) for topic, got in heard.items()} == dict.fromkeys(heard, 0)
+    finally:
+        probe.ros.shutdown()

@@ -3,8 +3,9 @@
 - :class:`Recorder` taps blackboards, event buses, HAL commands and ROS 2 topics into an
   MCAP file without ever blocking them (a bounded queue per channel, counted drops).
 - :func:`read_recording` reads a recording back, also one cut short by a crash.
-- :func:`replay` runs a robot's low level on a recording: its HALs replaced by a replay
-  source, their commands captured; :func:`compare` finds the first divergence.
+- :func:`replay` runs a robot's logics and behaviours on a recording: its HALs replaced
+  by a replay source, its behaviours fed the recorded topics, every command captured;
+  :func:`compare` finds the first divergence.
 - ``beehave replay | inspect | plot`` on the command line (:mod:`beehave.recording.cli`).
 """
 

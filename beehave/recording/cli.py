@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -74,10 +75,15 @@ def start_recording(path: str | Path, robots: list[Robot]) -> Recorder:
 
 
 def robots_started(recorder: Recorder, robots: list[Robot]) -> None:
-    """Record the ROS 2 topics of the ``robots`` (their low levels' nodes exist now)."""
+    """Record the ROS 2 topics of the ``robots`` (their nodes exist now): those of their
+    configurations, and every topic their behaviours subscribe to from now on (what a
+    replay of the high level feeds them, :mod:`beehave.recording.inputs`)."""
+    from beehave.recording.inputs import attach_behavior_inputs
+
     for robot in robots:
         if robot.low is not None and robot.low.hals.node is not None:
             recorder.attach_ros_topics(robot)
+        attach_behavior_inputs(recorder, robot)
 
 
 def finish_recording(recorder: Recorder) -> str:
@@ -93,11 +99,14 @@ def finish_recording(recorder: Recorder) -> str:
 def replay_main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(
         prog="beehave replay",
-        description="Run a robot's low level on a recording: its HALs replaced by a replay "
-                    "source writing the recorded values into the blackboard at the recorded "
-                    "times (sim time when recorded on it), HAL commands captured, not sent. "
-                    "Compares the logics' outputs and switches with the recording and "
-                    "reports the first divergence (exit 1). docs/recording.md")
+        description="Run a robot's logics and behaviours on a recording: its HALs replaced "
+                    "by a replay source writing the recorded values into the blackboard, its "
+                    "behaviours fed the recorded topics and switch requests, at the recorded "
+                    "times (sim time when recorded on it); HAL commands and published "
+                    "messages captured, not sent, and no ROS node made. Compares the logics' "
+                    "outputs and switches and the behaviours' switches, starts and ends with "
+                    "the recording and reports the first divergence (exit 1). "
+                    "docs/recording.md")
     parser.add_argument("recording", metavar="FILE.mcap")
     parser.add_argument("--robot", required=True, metavar="ROBOT.yaml",
                         help="the robot's configuration (its logics and HALs)")
@@ -111,6 +120,8 @@ def replay_main(argv: list[str]) -> int:
                         help="start at T seconds into the recording")
     parser.add_argument("--to", dest="to_s", type=_time_arg, default=None, metavar="T",
                         help="stop at T seconds into the recording")
+    parser.add_argument("--low-only", action="store_true",
+                        help="replay the logics alone, not the behaviours")
     args = parser.parse_args(argv)
     if args.from_s is not None and args.to_s is not None and args.to_s <= args.from_s:
         return _fail("replay", f"--to ({args.to_s}) must be after --from ({args.from_s})")
@@ -120,7 +131,8 @@ def replay_main(argv: list[str]) -> int:
     try:
         config = load_config(args.robot)
         result = replay(args.recording, config, prefix=args.prefix, speed=args.speed,
-                        from_s=args.from_s, to_s=args.to_s)
+                        from_s=args.from_s, to_s=args.to_s,
+                        high=False if args.low_only else None)
     except BeehaveError as exc:
         return _fail("replay", exc)
     print(describe_replay(result), flush=True)
@@ -129,12 +141,19 @@ def replay_main(argv: list[str]) -> int:
 
 def describe_replay(result: ReplayResult) -> str:
     clock = "sim time" if result.sim_time else "wall time"
-    lines = [f"replayed {result.span_s:.2f} s ({clock}) in {result.wall_s:.2f} s "
+    levels = "logics and behaviours" if result.high else "logics"
+    lines = [f"replayed {levels}: {result.span_s:.2f} s ({clock}) in {result.wall_s:.2f} s "
              f"(x{result.speedup:.1f}): {result.fed} inputs, {len(result.outputs)} outputs "
              f"(recorded: {len(result.expected)})"]
+    if result.high:
+        counts = Counter(c.topic for c in result.commands)
+        shown = ", ".join(f"{topic} x{n}" for topic, n in sorted(counts.items())) or "none"
+        lines.append(f"captured, not sent: {len(result.commands)} message(s): {shown}")
     lines += [f"warning: {w}" for w in result.warnings]
     if result.divergence is None:
-        lines.append("deterministic: the same logic outputs and switches as recorded")
+        what = ("logic outputs, logic and behaviour switches, behaviours and actions"
+                if result.high else "logic outputs and switches")
+        lines.append(f"deterministic: the same {what} as recorded")
     else:
         lines.append(f"DIVERGED: {result.divergence}")
     return "\n".join(lines)
@@ -209,8 +228,10 @@ def inspect_main(argv: list[str]) -> int:
         t = (m.log_time_ns - rec.start_ns) / 1e9
         status = f" {data['status']}" if data["status"] else ""
         error = f"  [red]{data['error']}[/]" if data["error"] else ""
+        source = data["detail"].get("source") if data["kind"] == "switch_requested" else None
+        asked = f" (asked by {source})" if source not in (None, "external") else ""
         console.print(f"{t:9.3f}  {topics[m.topic]:<10} {level} {data['kind']:<17} "
-                      f"{data['subject']}{status}{error}", highlight=False)
+                      f"{data['subject']}{status}{error}{asked}", highlight=False)
         shown += 1
     return 0
 

@@ -1,37 +1,59 @@
-"""Replay: a robot's low level run again on a recording, and the determinism check.
+"""Replay: a robot's logics and behaviours run again on a recording, and the determinism check.
 
-:func:`replay` builds the robot's low level from its configuration, replaces every HAL by
-a *replay HAL* of the same name -- a subclass of the real one that opens no device and
-captures each command (``set_color``, ``show`` …) instead of sending it -- and feeds the
-recorded inputs into the blackboard at their recorded times: the values the HALs and the
-ROS 2 bridge wrote (``hal:*``, ``ros:*`` writers, the high level's ``high_level/*``
-state), the logic switches asked for from outside, and the HAL loads (the feed waits for
-a HAL the recording loaded at that point, so values never overtake a load). The logics
-run on them as they did live. What they produce -- HAL commands, their own blackboard
-writes, the logic switches -- is compared with what the recording holds
-(:func:`compare`): the first divergence is reported with its time and key.
+Low level. :func:`replay` builds the robot's low level from its configuration, replaces
+every HAL by a *replay HAL* of the same name -- a subclass of the real one that opens no
+device and captures each command (``set_color``, ``show`` …) instead of sending it -- and
+feeds the recorded inputs into the blackboard at their recorded times: the values the HALs
+and the ROS 2 bridge wrote (``hal:*``, ``ros:*`` writers, the high level's
+``high_level/*`` state), the logic switches asked for from outside, and the HAL loads (the
+feed waits for a HAL the recording loaded at that point, so values never overtake a load).
+
+High level. When the configuration has behaviours (and the recording their events), its
+HighLevelBehaviorManager runs too, on a :class:`~beehave.recording.replay_node.ReplayNode`
+instead of a ROS node: what behaviours and actions publish (``cmd_vel``, the lift's
+command, sounds) is captured, not sent, and their subscriptions get the recorded messages
+of their topics (odometry, scan, the lift's state, another agent's orders: the recorder
+records every topic a behaviour subscribes to, :mod:`beehave.recording.inputs`). The
+switch requests that came from outside (events with ``source: external``) are asked again
+at their recorded times; those the behaviours asked for they ask for again by themselves.
+Service and action clients cannot be replayed (their answers are not recorded): making one
+fails the action with a :class:`RecordingError` that names it. No ROS node is made.
+
+What both produce -- HAL commands, logic writes and switches; top-level switches and each
+behaviour's and action's start and end with its status -- is compared with what the
+recording holds (:func:`compare`): the first divergence is reported with its time and key.
+
+Keeping pace. The high level runs in threads, the feed in the low level's event loop. The
+feed moves the high level's clock (a :class:`~beehave.recording.replay_node.ReplayClock`)
+to each input's recorded time, and after every step waits until the high level has
+*settled*: each of its threads waits again -- on the clock, on a condition or event, or
+elsewhere using no CPU -- and none is due to run. A driving action's lockstep hold stops
+the clock at each control period, as it stops a simulator. Before each input of the high
+level, the feed also waits (bounded) until the replayed behaviours have done what the
+recorded ones had done :data:`SYNC_MARGIN_S` earlier, so that a behaviour polling on wall
+time (a queue's ``get(timeout=…)``) cannot fall behind.
 
 Batches. The recorded writes carry the batch in which the logics saw them (see the
 recorder's ``_BatchingTap``): one batch is fed in one go, then the loop turns a few times
 so that the logics run, as they ran live between two batches. Recordings without batch
-ids are grouped by wall time (:data:`BATCH_NS`).
+ids are grouped by wall time (:data:`BATCH_NS`). The high level's inputs are fed between
+two batches only.
 
 Time. ``speed=1.0`` replays in real time, ``speed=N`` N times faster, ``speed=None`` as
-fast as the logics keep up (each batch is followed by a few turns of the event loop, so
-every logic sees every batch). A recording of a robot on sim time is paced by its sim
-time (``/<robot>/beehave/clock``): a demo run at ``--fast`` replays at robot speed.
-Times reported are seconds since the start of the recording, sim time when there is one.
-
-The high level is not run again: its behaviours drive the robot in closed loop over ROS 2
-(odometry in, ``cmd_vel`` out) and their switches come from outside; what the low level
-learnt of them (``high_level/*``) is part of the replayed input.
+fast as the logics and behaviours keep up. A recording of a robot on sim time is paced by
+its sim time (``/<robot>/beehave/clock``): a demo run at ``--fast`` replays at robot
+speed. Times reported are seconds since the start of the recording, sim time when there
+is one.
 """
 
 from __future__ import annotations
 
 import asyncio
+import bisect
 import inspect
 import logging
+import sys
+import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -44,17 +66,20 @@ from beehave.config import hal_names
 from beehave.errors import RecordingError
 from beehave.hal import HAL
 from beehave.recording import schema
+from beehave.recording.inputs import input_channel
 from beehave.recording.reader import Recording, read_recording
 from beehave.recording.recorder import command_methods
+from beehave.recording.replay_node import Captured, ReplayClock, ReplayNode
 
 if TYPE_CHECKING:
     from beehave.config import RobotConfig
+    from beehave.highlevel import HighLevelBehaviorManager
     from beehave.lowlevel import LowLevelBehaviorManager
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Divergence", "Output", "ReplayResult", "compare", "recorded_outputs", "replay",
-           "replay_hal_class"]
+__all__ = ["Captured", "Divergence", "Output", "ReplayResult", "compare", "recorded_outputs",
+           "replay", "replay_hal_class"]
 
 REQUIRED = (schema.BLACKBOARD, schema.EVENTS_LOW, schema.OUTPUTS)
 """The channels of a robot a replay cannot do without."""
@@ -107,6 +132,11 @@ class ReplayResult:
     wall_s: float
     sim_time: bool
     warnings: list[str] = field(default_factory=list)
+    commands: list[Captured] = field(default_factory=list)
+    """What the replayed behaviours and actions published: captured, not sent."""
+    high: bool = False
+    """Whether the high level ran too (the configuration has one and the recording its
+    events)."""
 
     @property
     def speedup(self) -> float:
@@ -131,7 +161,9 @@ def compare(expected: list[Output], got: list[Output]) -> Divergence | None:
             y = b[i] if i < len(b) else None
             if x is not None and y is not None and x.value == y.value:
                 continue
-            t = x.t_s if x is not None else y.t_s  # type: ignore[union-attr]
+            # When the two differ: the earlier of the two (a replayed behaviour that
+            # switches too early diverges when it switches, not when the recorded did).
+            t = min(o.t_s for o in (x, y) if o is not None)
             if first is None or t < first.t_s:
                 first = Divergence(key, t, i, None if x is None else x.value,
                                    None if y is None else y.value)
@@ -179,17 +211,69 @@ def _is_logic(writer: object) -> bool:
 def recorded_outputs(recording: Recording, prefix: str) -> list[Output]:
     """What the low level produced in the recording, as :class:`Output` s."""
     timeline = _Timeline(recording, prefix)
-    outputs: list[Output] = []
+    return [Output(key, value, timeline(m.log_time_ns))
+            for m, key, value in _low_outputs(recording, prefix)]
+
+
+def _low_outputs(recording: Recording, prefix: str) -> list[tuple[Any, str, Any]]:
+    """The low level's outputs in the recording: (message, stream, value)."""
+    found: list[tuple[Any, str, Any]] = []
     bb, low, cmds = (schema.topic(prefix, c) for c in REQUIRED)
     for m in recording.messages:
         if m.topic == cmds:
-            outputs.append(Output(f"{m.data['hal']}.{m.data['method']}",
-                                  [m.data["args"], m.data["kwargs"]], timeline(m.log_time_ns)))
+            found.append((m, f"{m.data['hal']}.{m.data['method']}",
+                          [m.data["args"], m.data["kwargs"]]))
         elif m.topic == bb and _is_logic(m.data["writer"]):
-            outputs.append(Output(f"blackboard:{m.data['key']}",
-                                  [m.data["value"], m.data["stale"]], timeline(m.log_time_ns)))
+            found.append((m, f"blackboard:{m.data['key']}", [m.data["value"], m.data["stale"]]))
         elif m.topic == low and m.data["kind"] == "switch_completed":
-            outputs.append(Output("logic", m.data["subject"], timeline(m.log_time_ns)))
+            found.append((m, "logic", m.data["subject"]))
+    return found
+
+
+HIGH_SWITCH = "high:switch"
+"""The stream of the high level's top-level switches (requested, completed, superseded,
+rejected, fallback)."""
+
+_SWITCH_KINDS = {"switch_requested": "requested", "switch_completed": "completed",
+                 "switch_superseded": "superseded", "switch_rejected": "rejected"}
+_NOT_COMPARED = {"message_rejected", "agent_name_lost", "safe_state_overdue"}
+"""Events of the high level that say how busy the host was or what other agents sent,
+not what the behaviours decided."""
+
+
+def _high_output(kind: str, subject: str, status: str | None,
+                 error_type: str | None) -> tuple[str, Any] | None:
+    """The stream and value a high-level event adds to the determinism check: switches
+    go to :data:`HIGH_SWITCH`, the rest to ``high:<path>`` (one stream per behaviour or
+    action: its thread orders them). An error counts by its type: its text may carry
+    positions and times that differ in the last digit."""
+    if kind in _SWITCH_KINDS:
+        return HIGH_SWITCH, [_SWITCH_KINDS[kind], subject]
+    if kind == "fallback":
+        return HIGH_SWITCH, ["fallback", subject, status]
+    if kind in _NOT_COMPARED:
+        return None
+    return f"high:{subject}", [kind, status, error_type]
+
+
+def _error_type(error: Any) -> str | None:
+    if error is None:
+        return None
+    if isinstance(error, BaseException):
+        return type(error).__name__
+    return str(error).split("(", 1)[0]
+
+
+def recorded_high_outputs(recording: Recording, prefix: str) -> list[Output]:
+    """What the high level did in the recording (its switches, and each behaviour's and
+    action's lifecycle), as :class:`Output` s."""
+    timeline = _Timeline(recording, prefix)
+    outputs: list[Output] = []
+    for m in recording.of(schema.topic(prefix, schema.EVENTS_HIGH)):
+        d = m.data
+        made = _high_output(d["kind"], d["subject"], d["status"], _error_type(d["error"]))
+        if made is not None:
+            outputs.append(Output(made[0], made[1], timeline(m.log_time_ns)))
     return outputs
 
 
@@ -203,6 +287,7 @@ class _Input:
     stale: bool = False
     wall_ns: int = 0
     batch: int | None = None
+    outputs_before: int = 0  # the low level's outputs the recording logged before it
 
 
 BATCH_NS = 500_000
@@ -265,19 +350,443 @@ def _inputs(recording: Recording, prefix: str) -> list[_Input]:
                 switching = True
                 if not detail.get("fallback"):
                     if not first_switch:  # the first is the start of the default logic
-                        inputs.append(_Input(timeline(m.log_time_ns), "switch", subject))
+                        inputs.append(_Input(timeline(m.log_time_ns), "switch", subject,
+                                             wall_ns=m.log_time_ns))
                     first_switch = False
             elif kind == "switch_completed":
                 switching, top = False, subject
             elif kind == "started" and subject.startswith("hal:") and subject.count(":") == 1:
-                inputs.append(_Input(timeline(m.log_time_ns), "hal", subject[len("hal:"):]))
+                inputs.append(_Input(timeline(m.log_time_ns), "hal", subject[len("hal:"):],
+                                     wall_ns=m.log_time_ns))
             elif (kind == "ended" and subject == top and not switching
                   and m.data["status"] == "INTERRUPTED"):
                 # The top-level logic was stopped without a switch: the recorded low level
                 # shut down here. What follows (HALs unloaded, entries marked stale) is
                 # the replay's own shutdown's to produce, not an input.
                 break
-    return _in_batch_order(inputs)
+    # What the logics had produced when each input came: the feed waits for as much
+    # (see _feed), so that a logic still starting up (loading its HALs) sees the inputs
+    # in the batches it saw them live.
+    # Outputs logged less than BATCH_NS before an input may be its effect all the same
+    # (a safe state's command and the stale marks of the shutdown that gave it): not those.
+    done = sorted(m.log_time_ns for m, _, _ in _low_outputs(recording, prefix))
+    return [replace(i, outputs_before=bisect.bisect_left(done, i.wall_ns - BATCH_NS))
+            for i in _in_batch_order(inputs)]
+
+
+@dataclass(frozen=True)
+class _HighInput:
+    """What the high level got from outside at ``t_s``: a message (``kind="msg"``: the
+    CDR ``value`` of ``channel``, for the subscriptions to ``key``, a resolved topic) or
+    a switch request (``kind="request"``: behaviour ``key``, parameters ``value``).
+    ``before``: how many high-level events the recording had :data:`SYNC_MARGIN_S`
+    before it; ``logged_before``: how many it had logged before it at all."""
+
+    t_s: float
+    wall_ns: int
+    kind: str
+    key: str
+    value: Any = None
+    channel: str = ""
+    before: int = 0
+    logged_before: int = 0
+
+
+def _topic_of(channel: str, prefix: str, namespace: str) -> str:
+    """The resolved ROS topic the recorded ``channel`` carried (inverse of
+    :func:`~beehave.recording.inputs.input_channel`)."""
+    head = schema.topic(prefix, "")
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    if prefix.strip("/") and channel.startswith(head):
+        return f"{ns}/{channel[len(head):]}"
+    return channel
+
+
+def _high_inputs(recording: Recording, prefix: str, namespace: str) -> list[_HighInput]:
+    """The high level's inputs in the recording, in log order: the switch requests that
+    came from outside (the first -- the start of the default behaviour -- excepted; a
+    recording older than the ``source`` field counts every request as from outside) and
+    the messages of every ROS 2 channel of the robot (and the global ones): those nobody
+    subscribes to in the replay are held a moment, then dropped."""
+    timeline = _Timeline(recording, prefix)
+    events = schema.topic(prefix, schema.EVENTS_HIGH)
+    own = schema.topic(prefix, "")
+    robots = [schema.topic(p, "") for p in recording.prefixes if p]
+
+    def fed(topic: str, encoding: str) -> bool:
+        if encoding != "cdr":
+            return False
+        return topic.startswith(own) or not any(topic.startswith(r) for r in robots)
+
+    ros = {t for t, info in recording.channels.items() if fed(t, info.encoding)}
+    inputs: list[_HighInput] = []
+    # An input waits for the events the recording had SYNC_MARGIN_S before it: the replay's
+    # clock moves in the recording's steps, so a behaviour's timed step may come that much
+    # later than it did live.
+    logged = recording.of(events)
+    stamps = [timeline(m.log_time_ns) for m in logged]
+    walls = [m.log_time_ns for m in logged]
+    first = True
+
+    def before(t_s: float) -> int:
+        return bisect.bisect_right(stamps, t_s - SYNC_MARGIN_S)
+
+    for m in recording.messages:
+        if m.topic == events:
+            d = m.data
+            if d["kind"] == "switch_requested":
+                source = d["detail"].get("source", "external")
+                if source == "external" and not first:
+                    params = d["detail"].get("params") or {}
+                    t_s = timeline(m.log_time_ns)
+                    inputs.append(_HighInput(
+                        t_s, m.log_time_ns, "request", d["subject"], params,
+                        before=before(t_s),
+                        logged_before=bisect.bisect_left(walls, m.log_time_ns)))
+                first = False
+        elif m.topic in ros:
+            t_s = timeline(m.log_time_ns)
+            inputs.append(_HighInput(t_s, m.log_time_ns, "msg",
+                                     _topic_of(m.topic, prefix, namespace), m.data,
+                                     channel=m.topic, before=before(t_s)))
+    return inputs
+
+
+def _settled_count(recording: Recording, prefix: str) -> int:
+    """How many high-level events the recording holds before its shutdown: the trailing
+    run of ``ended … INTERRUPTED`` (and STUCK) events is the shutdown's, which the
+    replay's own shutdown produces."""
+    kinds = [(m.data["kind"], m.data["status"])
+             for m in recording.of(schema.topic(prefix, schema.EVENTS_HIGH))]
+    n = len(kinds)
+    while n and (kinds[n - 1] == ("ended", "INTERRUPTED")
+                 or kinds[n - 1][0] in ("stuck", "stuck_released", "safe_state_overdue")):
+        n -= 1
+    return n
+
+
+def _batch_ends(inputs: list[Any]) -> list[bool]:
+    """For each input: whether the logics get to run after it (the end of its batch)."""
+    ends: list[bool] = []
+    batch_ns = 0
+    for n, item in enumerate(inputs):
+        following = inputs[n + 1] if n + 1 < len(inputs) else None
+        if not batch_ns:
+            batch_ns = item.wall_ns
+        if (following is None or not isinstance(item, _Input)
+                or not isinstance(following, _Input)
+                or not item.kind == following.kind == "set"):
+            batched = False
+        elif item.batch is not None and following.batch is not None:
+            batched = following.batch == item.batch
+        else:
+            batched = following.wall_ns - batch_ns < BATCH_NS
+        if not batched:
+            batch_ns = 0
+        ends.append(not batched)
+    return ends
+
+
+def _merge(low: list[_Input], high: list[_HighInput]) -> list[_Input | _HighInput]:
+    """The low level's inputs with the high level's placed by log time -- but only between
+    two batches, so that the logics see the same batches as without them."""
+    if not high:
+        return list(low)
+    ends = _batch_ends(low)
+    merged: list[_Input | _HighInput] = []
+    j = 0
+    reached = low[0].wall_ns if low else 0
+    while j < len(high) and high[j].wall_ns < reached:
+        merged.append(high[j])
+        j += 1
+    for i, item in enumerate(low):
+        if i == 0 or ends[i - 1]:  # a batch starts here: what came before it goes first
+            while j < len(high) and high[j].wall_ns < item.wall_ns:
+                merged.append(high[j])
+                j += 1
+        merged.append(item)
+        reached = max(reached, item.wall_ns)
+        if ends[i]:
+            while j < len(high) and high[j].wall_ns <= reached:
+                merged.append(high[j])
+                j += 1
+    merged.extend(high[j:])
+    return merged
+
+
+_POLL_S = 0.0002
+"""How often :meth:`_HighSide.settle` looks at the high level's threads (wall time)."""
+SYNC_MARGIN_S = 0.1
+"""See :func:`_high_inputs`: what the recorded high level had done by ``t - SYNC_MARGIN_S``
+the replayed one must have done before the input at ``t`` is fed (seconds of the
+recording's time)."""
+SETTLE_S = 1.0
+"""How long (wall time) the feed waits, after each step, for the high level's threads to
+wait again (see :meth:`_HighSide.settle`): a thread that computes for longer is left to
+it, and the feed goes on."""
+_MAX_MISSES = 3
+"""After this many catch-ups timed out the replay has diverged: the feed stops waiting."""
+CATCH_UP_S = 2.0
+"""How long (wall time) the feed waits, before an input of the high level, for the
+replayed behaviours to have done what the recorded ones had done by then. Bounded: a
+replay that diverged never catches up; the feed then goes on without waiting (and says
+so in a warning)."""
+HOLD_S = 0.5
+"""How long (wall time) a message of a topic nobody subscribes to yet is kept for the
+next subscription: a behaviour that has started but not yet subscribed must not miss the
+order that the recorded one received."""
+
+
+def _runnable(native_id: int | None) -> bool:
+    """Whether the OS thread ``native_id`` of this process runs or is ready to (Linux:
+    state ``R`` in /proc): a thread preempted on a busy host uses no CPU for a while, yet
+    it is not waiting for anything. False where /proc does not say."""
+    if native_id is None:
+        return False
+    try:
+        with open(f"/proc/self/task/{native_id}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return False
+    return stat[stat.rfind(b")") + 2:][:1] == b"R"
+
+
+async def _wait(cond: threading.Condition, predicate: Callable[[], bool],
+               timeout_s: float) -> bool:
+    """Wait for ``predicate`` (whoever changes it notifies ``cond``) without blocking the
+    event loop: in a worker thread, and only when it does not hold already."""
+    with cond:
+        if predicate():
+            return True
+
+    def blocking() -> bool:
+        with cond:
+            return cond.wait_for(predicate, timeout_s)
+
+    return await asyncio.to_thread(blocking)
+
+
+class _HighSide:
+    """The replayed high level and what feeds it (see :func:`replay`)."""
+
+    def __init__(self, high: HighLevelBehaviorManager, recording: Recording, prefix: str,
+                 namespace: str, state: _ReplayState, warnings: list[str],
+                 sim0: float) -> None:
+        self.high = high
+        self.recording = recording
+        self.prefix, self.namespace = prefix, namespace
+        self.state = state
+        self.warnings = warnings
+        self.sim0 = sim0
+        self.clock = ReplayClock()
+        self.node = ReplayNode(namespace, now_s=lambda: state.now_s,
+                               on_subscribe=self._on_subscribe)
+        self.abort = threading.Event()
+        self.missing: dict[str, str] = {}
+        self._cond = threading.Condition()
+        self._events = 0
+        self._misses = 0  # catch-ups that timed out
+        self._given_up = 0  # the event count the last one waited for in vain
+        self._pending: dict[str, tuple[Any, float]] = {}
+        self._late: list[Any] = []  # subscriptions made while a message was held for them
+        self._decoded: dict[tuple[int, type], Any] = {}
+        self._settled_at = 0  # the event count when the high level last settled
+        self._last_activity: dict[int, float] | None = None
+        self._slow = False
+
+    def on_event(self, event: Any) -> None:  # in the high level's threads
+        with self._cond:
+            self._events += 1
+            self._cond.notify_all()
+
+    def _on_subscribe(self, sub: Any) -> None:  # in the subscribing behaviour's thread
+        from beehave.runnable import current
+
+        channel = input_channel(self.prefix, self.namespace, sub.topic)
+        if channel not in self.recording.channels:
+            who = current()
+            self.missing[channel] = (f"{who.path if who is not None else '?'} subscribed to "
+                                     f"{sub.topic} ({sub.msg_type.__name__})")
+            self.abort.set()
+            with self._cond:
+                self._cond.notify_all()
+            return
+        with self._cond:
+            held = self._pending.get(channel)
+            if held is not None and time.monotonic() - held[1] <= HOLD_S:
+                self._late.append((sub, held[0]))
+
+    async def advance(self, t_s: float) -> None:
+        """Move the clock to ``t_s`` (seconds since the recording's start), stopping at every
+        lockstep hold on the way until the high level has settled (as a simulator holds
+        for its controllers): a control loop sees every one of its periods."""
+        target = self.sim0 + t_s
+        clock, node = self.clock, self.node
+        gone: set[str] = set()
+        while not self.abort.is_set():
+            holds = node.holds()
+            early = [h for w, h in holds.items()
+                     if w not in gone and h < target - ReplayClock.SLACK_S]
+            if not early:
+                break
+            at = min(early)
+            if at > clock.now():
+                clock.set_time(at)
+                node.fire_timers(at)
+            await self.settle()
+            if node.holds() == holds:
+                # Its holder waits for something else than time (a first message): the
+                # clock goes on without it, as the simulator's lockstep timeout lets it.
+                gone.update(w for w, h in holds.items() if h <= at)
+        if target > clock.now():
+            clock.set_time(target)
+            node.fire_timers(target)
+            await self.settle()
+
+    def _activity(self) -> dict[int, float] | None:
+        """The CPU time each of the high level's threads has used so far, leaving out
+        those that wait on the clock or on a condition or event; None when one of them
+        is about to run (due on the clock, or not started yet)."""
+        if self.clock.ready():
+            return None
+        parked = self.clock.parked()
+        pool = self.high._pool
+        with pool._lock:
+            workers = list(pool._all)
+        if any(not w.jobs.empty() for w in workers):
+            return None  # a job handed to a thread that has not taken it yet
+        threads = [w.thread for w in workers]
+        frames = sys._current_frames()
+        used: dict[int, float] = {}
+        for thread in threads:
+            ident = thread.ident
+            if ident is None:
+                return None  # being started
+            frame = frames.get(ident)
+            if frame is None:
+                continue
+            code = frame.f_code
+            if code.co_filename == threading.__file__ and code.co_name == "wait":
+                # Waits on a condition (an event, a child's end, the clock …) -- unless it
+                # was notified already and only waits for its turn to run.
+                waiter = frame.f_locals.get("waiter")
+                if waiter is not None and not waiter.locked():
+                    return None
+                continue
+            if ident in parked:
+                continue
+            if _runnable(thread.native_id):
+                return None  # on a CPU, or waiting for one (a loaded host)
+            try:
+                used[ident] = time.clock_gettime(time.pthread_getcpuclockid(ident))
+            except (OSError, AttributeError):  # no per-thread CPU clock here: by its frame
+                used[ident] = float(hash((id(frame), frame.f_lasti)))
+        return used
+
+    async def settle(self) -> None:
+        """Let the high level's threads run until each waits again: on the clock, on a
+        condition or event, or anywhere else where it uses no CPU between two looks (a
+        queue's ``get``). Bounded by :data:`SETTLE_S`."""
+        deadline = time.monotonic() + SETTLE_S
+        last = self._last_activity
+        seen = self._settled_at
+        while True:
+            # Something ended or started since the last look: whoever waits for it (a
+            # parent, the switch) may have been woken and not run yet -- look again.
+            events, seen = seen, self._events
+            activity = self._activity() if events == seen else None
+            if activity is not None and activity == last:
+                break
+            last = activity
+            if time.monotonic() > deadline:
+                if not self._slow:
+                    self._slow = True
+                    self.warnings.append(
+                        f"t={self.state.now_s:.3f} s: the high level was still busy after "
+                        f"{SETTLE_S} s (wall time); the replay went on")
+                break
+            await asyncio.sleep(_POLL_S)
+        self._settled_at = self._events
+        self._last_activity = last
+
+    async def catch_up(self, count: int) -> None:
+        """Wait until the replayed high level has emitted ``count`` events (bounded)."""
+        if self._misses >= _MAX_MISSES or count <= self._given_up:
+            return
+        done = await _wait(self._cond, lambda: self._events >= count or self.abort.is_set(),
+                           CATCH_UP_S if not self._misses else CATCH_UP_S / 10)
+        if not done:
+            self._misses += 1
+            self._given_up = count
+            self.warnings.append(
+                f"t={self.state.now_s:.3f} s: the replayed high level did not catch up with "
+                f"the recording ({self._events} of {count} events)"
+                + ("; the replay goes on without waiting for it any more"
+                   if self._misses >= _MAX_MISSES else ""))
+
+    async def feed(self, item: _HighInput) -> None:
+        # A request comes as soon as the replay has done all the recording had done by
+        # then: before the clock moves on when it has. A timed step due between the last
+        # input and this one (a chime) then comes after the request, as it did live -- or
+        # the recording shows it before the request, and the clock moves first.
+        if item.kind != "request" or self._events < item.logged_before:
+            await self.advance(item.t_s)
+            await self.catch_up(item.logged_before if item.kind == "request"
+                                else item.before)
+        self._deliver_late()
+        if item.kind == "request":
+            params = item.value if isinstance(item.value, dict) else {}
+            try:
+                self.high.request_switch(item.key, **params)
+            except Exception as exc:  # the recording asked for it; say it did not work
+                self.warnings.append(f"t={item.t_s:.3f} s: switch to behaviour {item.key!r} "
+                                     f"failed: {exc!r}")
+            await self.settle()
+            return
+        subs = self.node.subscriptions(item.key)
+        if not subs:
+            with self._cond:
+                self._pending[item.channel] = (item.value, time.monotonic())
+            return
+        for sub in subs:
+            self._call(sub, item.value)
+        await self.settle()
+
+    def _deliver_late(self) -> None:
+        with self._cond:
+            late, self._late = self._late, []
+        for sub, data in late:
+            self._call(sub, data)
+
+    def _call(self, sub: Any, data: bytes) -> None:
+        from rclpy.serialization import deserialize_message
+
+        key = (id(data), sub.msg_type)
+        msg = self._decoded.get(key)
+        if msg is None:
+            msg = deserialize_message(data, sub.msg_type)
+            self._decoded = {key: msg}  # one message is shared by its subscriptions
+        try:
+            sub.callback(msg)
+        except Exception as exc:  # the behaviour's callback, not the replay, failed
+            self.warnings.append(f"t={self.state.now_s:.3f} s: a subscription to "
+                                 f"{sub.topic} raised {exc!r}")
+
+    async def finish(self, settled: int) -> None:
+        """After the last input: let the high level do what it did before the recorded
+        shutdown (its shutdown follows: its safe states and ends are compared too)."""
+        self._deliver_late()
+        await self.catch_up(settled)
+
+    def missing_error(self) -> RecordingError:
+        channels = ", ".join(sorted(self.missing))
+        who = "; ".join(self.missing[c] for c in sorted(self.missing))
+        return RecordingError(
+            f"{self.recording.files[0]}: cannot replay robot {self.prefix!r}'s high level: "
+            f"channel(s) {channels} missing ({who}); the recording has: "
+            f"{', '.join(sorted(self.recording.channels)) or 'no channels'}. Record "
+            "again with this version of beehave (it records what behaviours subscribe "
+            "to), or add the topic to the configuration's recording.topics")
 
 
 # ---- the replay's side ---------------------------------------------------------------------
@@ -325,15 +834,19 @@ def _capturing(original: Callable[..., Any], hal: str, method: str,
 def replay(recording: Recording | str | Path, config: RobotConfig, *,
            prefix: str | None = None, speed: float | None = 1.0,
            from_s: float | None = None, to_s: float | None = None,
-           hal_wait_s: float = 2.0) -> ReplayResult:
-    """Run ``config``'s low level on ``recording`` (see the module docstring) and compare.
+           hal_wait_s: float = 2.0, high: bool | None = None) -> ReplayResult:
+    """Run ``config``'s low level -- and its high level, see ``high`` -- on ``recording``
+    (see the module docstring) and compare.
 
+    ``high``: replay the behaviours too (None: when the configuration has behaviours or
+    the recording their events; False: the logics alone).
     ``prefix``: the robot in the recording (default: the configuration's namespace).
     ``speed``: 1.0 real time, N times faster, None as fast as possible. ``from_s`` /
     ``to_s``: the window to replay, in seconds since the recording's start; the state
     before ``from_s`` is set at once, and only outputs inside the window are compared.
     Raises :class:`RecordingError` when the robot or a channel a replay needs is not in
-    the recording (naming them and what is there).
+    the recording (naming them and what is there) -- for a topic a behaviour subscribes
+    to, as soon as it subscribes (naming the behaviour).
     """
     from beehave.robot import Robot
 
@@ -343,11 +856,15 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
     rec = recording if isinstance(recording, Recording) else read_recording(recording)
     prefix = config.namespace if prefix is None else prefix
     _check_channels(rec, prefix)
+    with_high = _check_high(rec, prefix, config, high)
     timeline = _Timeline(rec, prefix)
-    inputs = _inputs(rec, prefix)
+    inputs: list[_Input | _HighInput] = list(_inputs(rec, prefix))
     lo = from_s if from_s is not None else float("-inf")
     hi = to_s if to_s is not None else float("inf")
-    expected = [o for o in recorded_outputs(rec, prefix) if lo <= o.t_s <= hi]
+    recorded = recorded_outputs(rec, prefix)
+    if with_high:
+        recorded += recorded_high_outputs(rec, prefix)
+    expected = [o for o in recorded if lo <= o.t_s <= hi]
 
     robot = Robot(config, only="low")
     low = robot.low
@@ -355,8 +872,13 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
         raise RecordingError(f"{config.source}: the configuration has no low level to replay")
     state = _ReplayState()
     warnings: list[str] = []
+    side: _HighSide | None = None
+    if with_high:
+        side = _high_side(config, rec, prefix, low, state, warnings, timeline)
+        inputs = _merge(inputs, _high_inputs(rec, prefix, config.namespace))  # type: ignore[arg-type]
 
     def capture(hal: str, method: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> None:
+        state.low_done += 1
         if state.comparing:
             state.outputs.append(Output(f"{hal}.{method}", [to_json(list(args)),
                                                             to_json(kwargs)], state.now_s))
@@ -366,15 +888,26 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
         low.hals.register(replay_hal_class(cls, name, capture), name=name, **params)
 
     def on_event(event: Any) -> None:
-        if not state.comparing:
-            return
         if event.kind.value == "switch_completed":
-            state.outputs.append(Output("logic", event.subject, state.now_s))
+            state.low_done += 1
+            if state.comparing:
+                state.outputs.append(Output("logic", event.subject, state.now_s))
 
     def on_change(change: Any) -> None:
+        if _is_logic(change.writer):
+            state.low_done += 1
         if state.comparing and _is_logic(change.writer):
             state.outputs.append(Output(f"blackboard:{change.key}",
                                         [to_json(change.value), change.stale], state.now_s))
+
+    def on_high_event(event: Any) -> None:  # in the high level's threads
+        if not state.comparing:
+            return
+        made = _high_output(event.kind.value, event.subject, event.status,
+                            _error_type(event.error))
+        if made is not None:
+            with state.lock:
+                state.outputs.append(Output(made[0], made[1], state.now_s))
 
     unsubscribe = low.events.subscribe(on_event)
     remove_tap = low.blackboard.tap(on_change)
@@ -383,18 +916,75 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
     fed = 0
     try:
         with low:
-            fed = low.call(_feed(low, inputs, state, speed=speed, lo=lo, hi=hi,
-                                 hal_wait_s=hal_wait_s, warnings=warnings))
-            if to_s is not None:
-                state.comparing = False  # the shutdown's safe states lie outside the window
+            try:
+                if side is not None:
+                    side.high.events.subscribe(side.on_event)
+                    side.high.events.subscribe(on_high_event)
+                    side.high.start()
+                fed = low.call(_feed(low, inputs, state, speed=speed, lo=lo, hi=hi,
+                                     hal_wait_s=hal_wait_s, warnings=warnings, high=side))
+                if side is not None and not side.abort.is_set() and to_s is None:
+                    low.call(side.finish(_settled_count(rec, prefix)))
+                if to_s is not None:
+                    state.comparing = False  # the shutdown's safe states lie outside it
+            finally:
+                if side is not None:
+                    side.high.shutdown()
     finally:
         remove_tap()
         unsubscribe()
+    if side is not None and side.missing:
+        raise side.missing_error()
     wall = time.monotonic() - began
     span = (min(hi, inputs[-1].t_s) if inputs else 0.0) - (max(lo, 0.0) if inputs else 0.0)
     got = state.outputs
     return ReplayResult(got, expected, compare(expected, got), fed, max(span, 0.0), wall,
-                        timeline.sim is not None, warnings)
+                        timeline.sim is not None, warnings,
+                        commands=list(side.node.captured) if side is not None else [],
+                        high=side is not None)
+
+
+def _check_high(recording: Recording, prefix: str, config: RobotConfig,
+                high: bool | None) -> bool:
+    """Whether to replay the high level too: ``high`` when given, else when the
+    configuration has behaviours of its own or the recording the high level's events. A
+    configuration with behaviours needs their events (the recorded decisions)."""
+    events = schema.topic(prefix, schema.EVENTS_HIGH)
+    own = bool(config.behaviors) or config.default_behavior != "idle"
+    if high is False:
+        return False
+    if events not in recording.channels:
+        if high or own:
+            raise RecordingError(
+                f"{recording.files[0]}: cannot replay robot {prefix!r}'s high level: "
+                f"channel(s) {events} missing (its behaviours' decisions); the recording "
+                f"has: {', '.join(sorted(recording.channels)) or 'no channels'} (pass "
+                "high=False to replay the low level alone)")
+        return False
+    return True
+
+
+def _high_side(config: RobotConfig, recording: Recording, prefix: str,
+               low: LowLevelBehaviorManager, state: _ReplayState, warnings: list[str],
+               timeline: _Timeline) -> _HighSide:
+    """The configuration's high level, built to run on the replay: the replay node (its
+    publishers captured, its subscriptions fed from the recording), a clock the feed
+    moves, and the replayed low level's blackboard."""
+    from beehave.blackboard import BlackboardView
+    from beehave.robot import Robot
+
+    built = Robot(config, only="high").high
+    assert built is not None
+    side = _HighSide(built, recording, prefix, config.namespace, state, warnings,
+                     timeline.sim0)
+    built.clock = side.clock
+    built.node = side.node
+    built.blackboard = low.blackboard
+    built.blackboard_view = BlackboardView(
+        low.blackboard, why="behaviours and actions read the low level's blackboard; they "
+                            "change the robot through actions")
+    side.clock.set_time(timeline.sim0)
+    return side
 
 
 class _ReplayState:
@@ -402,17 +992,42 @@ class _ReplayState:
         self.now_s = 0.0
         self.comparing = True
         self.outputs: list[Output] = []
+        self.lock = threading.Lock()  # the high level's threads append too
+        self.low_done = 0  # the low level's outputs so far (compared or not)
+        self.low_misses = 0  # waits for them that timed out
 
 
-async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _ReplayState, *,
-                speed: float | None, lo: float, hi: float, hal_wait_s: float,
-                warnings: list[str]) -> int:
+LOW_CATCH_UP_S = 0.5
+"""How long (wall time) the feed waits, before a batch, for the logics to have produced
+what the recorded ones had by then (a logic loading its HALs at the start). Three waits in
+vain and it stops waiting: the replay has diverged."""
+
+
+async def _low_catch_up(state: _ReplayState, item: _Input, warnings: list[str]) -> None:
+    if state.low_done >= item.outputs_before or state.low_misses >= _MAX_MISSES:
+        return
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + LOW_CATCH_UP_S
+    turns = 0
+    while state.low_done < item.outputs_before and loop.time() < deadline:
+        turns += 1
+        await asyncio.sleep(0 if turns < 50 else 0.001)  # turns first, then time
+    if state.low_done < item.outputs_before:
+        state.low_misses += 1
+        warnings.append(f"t={item.t_s:.3f} s: the logics had not produced what the recorded "
+                        f"ones had by then ({state.low_done} of {item.outputs_before} "
+                        f"outputs) after {LOW_CATCH_UP_S} s")
+
+
+async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input | _HighInput],
+                state: _ReplayState, *, speed: float | None, lo: float, hi: float,
+                hal_wait_s: float, warnings: list[str], high: _HighSide | None = None) -> int:
     loop = asyncio.get_running_loop()
     board = low.blackboard
     fed = 0
     origin_wall: float | None = None
     origin_t = 0.0
-    batch_ns = 0  # wall time of the first write of the batch being fed
+    ends = _batch_ends(inputs)
     for n, item in enumerate(inputs):
         if item.t_s > hi:
             break
@@ -431,6 +1046,21 @@ async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _Repl
                 if delay > 0:
                     await asyncio.sleep(delay)
         state.now_s = item.t_s
+        if isinstance(item, _HighInput):
+            # The high level runs in threads of its own: it is fed (and waited for) here,
+            # between two batches of the low level's inputs (see _merge).
+            assert high is not None
+            await high.feed(item)
+            fed += 1
+            if high.abort.is_set():
+                break  # it needs what the recording lacks: replay() says which
+            continue
+        if not catching_up and (n == 0 or ends[n - 1]):
+            await _low_catch_up(state, item, warnings)
+        if high is not None and (n == 0 or ends[n - 1]):
+            # Only between two batches: letting the high level run here lets the loop run
+            # too, and a batch must reach the logics in one go.
+            await high.advance(item.t_s)
         if item.kind == "set":
             board.set(item.key, item.value, writer=item.writer, stale=item.stale)
         elif item.kind == "switch":
@@ -449,18 +1079,7 @@ async def _feed(low: LowLevelBehaviorManager, inputs: list[_Input], state: _Repl
         fed += 1
         # One recorded batch is fed in one go (one loop callback: this step), then the
         # logics run, as they ran live between two batches.
-        following = inputs[n + 1] if n + 1 < len(inputs) else None
-        if not batch_ns:
-            batch_ns = item.wall_ns
-        if following is None or not item.kind == following.kind == "set":
-            batched = False
-        elif item.batch is not None and following.batch is not None:
-            batched = following.batch == item.batch
-        else:
-            batched = following.wall_ns - batch_ns < BATCH_NS
-        if not batched:
-            batch_ns = 0
-        if not catching_up and not batched:
+        if not catching_up and ends[n]:
             for _ in range(_YIELDS):
                 await asyncio.sleep(0)
     for _ in range(10 * _YIELDS):  # let the logics answer the last inputs

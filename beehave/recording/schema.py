@@ -8,7 +8,10 @@ shows and plots it as it is. Channels of one robot share a prefix (its namespace
     /<robot>/beehave/events/low     low-level events (logic switches, HAL loads …)
     /<robot>/beehave/outputs        HAL commands the logics gave (set_color, show …)
     /<robot>/beehave/clock          sim time beside wall time (robots on sim time)
-    /<robot>/<topic>                ROS 2 topics, ros2msg/CDR (odom, scan, cmd_vel …)
+    /<robot>/<topic>                ROS 2 topics, ros2msg/CDR (odom, scan, cmd_vel …):
+                                    those of the configuration, and every topic a
+                                    behaviour subscribes to (lift/state, orders …)
+    /<topic>                        a global topic a behaviour subscribes to
     /beehave/recorder               the recorder's own counts (written, dropped)
 
 A recording without a prefix (a bare blackboard in a test) uses ``/beehave/...``.
@@ -57,7 +60,10 @@ SCHEMAS: dict[str, dict[str, Any]] = {s["title"]: s for s in (
                                       "a replay feeds them together (absent: blackboard "
                                       "not bound to a loop, or an older recording)"}},
             ["key", "value", "stamp", "writer", "stale"]),
-    _object("beehave.Event", "One lifecycle event (beehave.events.Event).",
+    _object("beehave.Event", "One lifecycle event (beehave.events.Event); a high-level "
+            "switch_requested has detail.source: 'external' or the path of the behaviour "
+            "that asked (absent in recordings older than it: a replay takes them all as "
+            "external).",
             {"kind": {"type": "string"}, "subject": {"type": "string"},
              "status": {"type": ["string", "null"]}, "error": {"type": ["string", "null"]},
              "detail": {"type": "object"}, "stamp": _TIME},

@@ -278,6 +278,29 @@ def _wait_answered(future: Any, cond: threading.Condition, clock: WallClock,
                    max(0.0, deadline - clock.now()))
 
 
+_watchers: dict[int, list[Callable[[type, str], None]]] = {}
+_watchers_lock = threading.Lock()
+
+
+def watch_subscriptions(node: Any, callback: Callable[[type, str], None]) -> Callable[[], None]:
+    """Call ``callback(msg_type, topic)`` (the fully resolved topic) whenever a behaviour,
+    action or HAL subscribes on ``node`` through :class:`RosIO`; returns a function that
+    stops it. The recorder uses it to record what the high level reads
+    (:mod:`beehave.recording.inputs`), in the thread that subscribes: keep it short."""
+    with _watchers_lock:
+        _watchers.setdefault(id(node), []).append(callback)
+
+    def unwatch() -> None:
+        with _watchers_lock:
+            callbacks = _watchers.get(id(node), [])
+            if callback in callbacks:
+                callbacks.remove(callback)
+            if not callbacks:
+                _watchers.pop(id(node), None)
+
+    return unwatch
+
+
 class RosIO:
     """ROS entities owned by one behaviour, action or HAL; :meth:`destroy_all` ends them.
 
@@ -315,6 +338,13 @@ class RosIO:
     def subscription(self, msg_type: type, topic: str, callback: Callable[[Any], None], *,
                      qos: QoSProfile | int = 10) -> Any:
         """``callback(msg)`` runs in the executor thread: keep it short."""
+        with _watchers_lock:
+            watchers = list(_watchers.get(id(self.node), ()))
+        if watchers:
+            # Before subscribing: a recorder must not miss the first message it gets.
+            resolved = self.node.resolve_topic_name(topic)
+            for watch in watchers:
+                watch(msg_type, resolved)
         return self._track("subscription",
                            self.node.create_subscription(msg_type, topic, callback, qos))
 
@@ -327,6 +357,9 @@ class RosIO:
     def action_client(self, action_type: type, name: str) -> Any:
         """An ``rclpy.action.ActionClient`` for the action server ``name``; prefer
         :meth:`send_goal`, which waits interruptibly."""
+        make = getattr(self.node, "create_action_client", None)
+        if make is not None:  # a stand-in node (a replay's) makes its own, or refuses
+            return self._track("action_client", make(action_type, name))
         from rclpy.action.client import ActionClient
 
         return self._track("action_client", ActionClient(self.node, action_type, name))
