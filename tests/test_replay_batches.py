@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import cast
+from typing import Any, cast
 
 import pytest
 
@@ -32,6 +33,7 @@ from beehave.logic import Logic
 from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.recording import Recorder, read_recording
 from beehave.recording import recorder as recorder_module
+from beehave.recording import writer as writer_module
 from beehave.recording.replay import replay
 from beehave.robot import Robot
 from beehave.testing import wait_until
@@ -141,8 +143,13 @@ def test_a_recording_without_batches_replays_by_wall_time(tmp_path: Path,
     """Recordings made before batch ids still replay, with the 0.5 ms rule (which gets
     both cases above wrong, so this run waits for the logic after each write)."""
     encode = recorder_module._encode_change
-    monkeypatch.setattr(recorder_module, "_encode_change",
-                        lambda item: encode((item[0], item[1], None)))
+
+    def old_format(item: Any) -> tuple[int, bytes]:
+        return encode((item[0], item[1], None))
+
+    monkeypatch.setattr(recorder_module, "_encode_change", old_format)
+    monkeypatch.setattr(recorder_module, "_encode_changes",
+                        functools.partial(writer_module._encode_each, old_format))
     path = tmp_path / "old.mcap"
     hardware = DebugRobot(battery_percentage=40.0)
     with _recorded_low(path, _config(), hardware):

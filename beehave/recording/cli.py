@@ -82,8 +82,9 @@ def robots_started(recorder: Recorder, robots: list[Robot]) -> None:
 
     for robot in robots:
         if robot.low is not None and robot.low.hals.node is not None:
-            recorder.attach_ros_topics(robot)
-        attach_behavior_inputs(recorder, robot)
+            recorder.attach_ros_topics(robot)  # the behaviours' inputs too
+        else:
+            attach_behavior_inputs(recorder, robot)
 
 
 def finish_recording(recorder: Recorder) -> str:

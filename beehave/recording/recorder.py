@@ -107,8 +107,6 @@ def _encode_change(item: Change | tuple[Change, float, int | None]) -> tuple[int
     return int(at * 1e9), _dumps(body)
 
 
-_STOCK_ENCODE_CHANGE = _encode_change
-
 _HEADS: dict[str, tuple[str | None, bool, bytes, bytes]] = {}
 """Per key: its writer and stale flag, and the JSON of such a change before its value and
 after its stamp. A key is mostly written by one writer, so each is encoded once (up to
@@ -355,10 +353,9 @@ class Recorder:
         """Record every stored change of ``board`` (key, value, stamp, writer, stale) and,
         once it is bound to a loop, its batch: which writes the logics saw together
         (:class:`_BatchingTap`)."""
-        # _encode_changes is _encode_change in bulk, byte for byte; an _encode_change
-        # replaced (a test that writes the format of older recordings) is used as it is.
-        bulk = _encode_changes if _encode_change is _STOCK_ENCODE_CHANGE else None
-        channel = self._channel(prefix, schema.BLACKBOARD, _encode_change, encode_batch=bulk)
+        # _encode_changes is _encode_change in bulk, byte for byte.
+        channel = self._channel(prefix, schema.BLACKBOARD, _encode_change,
+                                encode_batch=_encode_changes)
         batching = _BatchingTap(board, channel)
         self._detach.append(board.tap(batching.tap, on_wake=batching.on_wake))
 
@@ -453,9 +450,14 @@ class Recorder:
     def attach_ros_topics(self, robot: Robot, *, prefix: str | None = None,
                           topics: list[Any] | None = None) -> None:
         """Record the robot topics of its configuration's ``recording.topics`` (default
-        :data:`DEFAULT_TOPICS`), on the low level's node. Call it after ``robot.start()``.
-        A topic is a name of :data:`STANDARD_TOPICS` or ``{name: …, type: pkg/msg/Type}``;
-        anything else raises :class:`RecordingError` naming the entry and the choices."""
+        :data:`DEFAULT_TOPICS`), on the low level's node, and every topic its behaviours
+        subscribe to from now on (what a replay of the high level feeds them:
+        :func:`beehave.recording.inputs.attach_behavior_inputs`). Call it after
+        ``robot.start()``. A topic is a name of :data:`STANDARD_TOPICS` or ``{name: …,
+        type: pkg/msg/Type}``; anything else raises :class:`RecordingError` naming the
+        entry and the choices."""
+        from beehave.recording.inputs import attach_behavior_inputs
+
         prefix = robot.config.namespace if prefix is None else prefix
         options = getattr(robot.config, "recording", None)
         wanted = list(topics if topics is not None else
@@ -477,6 +479,7 @@ class Recorder:
                     "pkg/msg/Type}")
             self.attach_topic(node, name, message_type(type_name, where=where),
                               prefix=prefix)
+        attach_behavior_inputs(self, robot, prefix=prefix)
 
 
 def _recording_call(original: Callable[..., Any], hal: str, method: str,
