@@ -41,6 +41,7 @@ from rich.table import Table
 from rich.text import Text
 
 from beehave.cli import http_address_arg
+from behaviours.demos.checks import checks_table, process_failures
 from behaviours.fleet.mission import ORDERS_QOS, ORDERS_TOPIC
 from behaviours.fleet.site import site
 from robots.topics import FACTORY_STATE
@@ -366,21 +367,12 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
         return 1
     report = json.loads(report_path.read_text())
     results = checks(report, watch)
-    if failed:
-        results.append(("every process ran to the end", False,
-                         ", ".join(f"{n} exit {c} (log: {fleet_dir / (n + '.log')})"
-                                   for n, c in sorted(failed.items()))))
+    results += process_failures(failed, fleet_dir)
     if now_s < sim_s:
         results.append((f"{minutes:g} sim minutes run", False,
                         f"only {now_s:.0f} s in {wall_s:.0f} s wall"))
-    summary = Table(title=f"fleet summary — {robots} ATVs, {now_s:.0f} s sim in {wall_s:.0f} s "
-                          f"wall (×{now_s / wall_s:.2f})")
-    for col in ("check", "result", "measured"):
-        summary.add_column(col)
-    for name, ok, measured in results:
-        summary.add_row(name, Text("ok", style="green") if ok else Text("FAILED", style="red"),
-                        measured)
-    console.print(summary)
+    console.print(checks_table(f"fleet summary — {robots} ATVs, {now_s:.0f} s sim in "
+                               f"{wall_s:.0f} s wall (×{now_s / wall_s:.2f})", results))
     if watch.malformed:
         console.print(f"[yellow]unreadable messages:[/] {watch.malformed}")
     console.print(f"picture: {picture}   facts: {report_path}   logs"

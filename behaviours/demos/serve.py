@@ -743,11 +743,10 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
               ) -> int:
     """Run the scenario (see the module docstring); 0 when every check held."""
     from rich.live import Live
-    from rich.table import Table
-    from rich.text import Text
     from std_msgs.msg import String
 
     from beehave.ros.context import RosContext
+    from behaviours.demos.checks import checks_table, process_failures
     from behaviours.market.cafe import ORDERS_QOS, ORDERS_TOPIC, cafe_orders
     from behaviours.market.serving import SERVE_STATE, STATE_QOS
 
@@ -814,23 +813,14 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
         final = final or watch.finished
     outcomes = dict((final or {}).get("outcomes", {}))
     results = checks(facts, outcomes, expected=expected)
-    if failed:
-        results.append(("every process ran to the end", False,
-                        ", ".join(f"{n} exit {c} (log: {log_dir / (n + '.log')})"
-                                  for n, c in sorted(failed.items()))))
+    results += process_failures(failed, log_dir)
     if final is None:
         results.append(("orders settled in time", False,
                         f"not within {minutes:g} sim minutes ({now_s:.0f} s sim, "
                         f"{wall_s:.0f} s wall)"))
     console.print(_summary(outcomes, facts))
-    summary = Table(title=f"serve summary — EMILI + {kobukis} Kobukis, {facts['time_s']:.0f} s "
-                          f"sim in {wall_s:.0f} s wall")
-    for col in ("check", "result", "measured"):
-        summary.add_column(col)
-    for name, ok, measured in results:
-        summary.add_row(name, Text("ok", style="green") if ok else Text("FAILED", style="red"),
-                        measured)
-    console.print(summary)
+    console.print(checks_table(f"serve summary — EMILI + {kobukis} Kobukis, "
+                               f"{facts['time_s']:.0f} s sim in {wall_s:.0f} s wall", results))
     with watch.lock, open(log_dir / "orders.jsonl", "w") as steps:
         steps.writelines(json.dumps(s) + "\n" for s in watch.steps)  # every auction step
     if picture.exists():

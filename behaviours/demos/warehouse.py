@@ -36,6 +36,7 @@ from rich.text import Text
 from beehave.config import load_config
 from beehave.robot import Robot
 from beehave.ros.context import RosContext
+from behaviours.demos.checks import checks_table
 from robots.node import SimNode
 from robots.sim import Simulation
 from robots.world import load_world
@@ -303,15 +304,7 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
         ("Kobuki wandered (> 1 m)", found.kobuki_travel_m > 1.0,
          f"{found.kobuki_travel_m:.2f} m, {found.kobuki_bumps} bump(s)"),
     ]
-    summary = Table(title="demo summary")
-    summary.add_column("check")
-    summary.add_column("result")
-    summary.add_column("measured")
-    for name, ok, measured in checks:
-        summary.add_row(name, Text("ok", style="green") if ok else Text("FAILED", style="red"),
-                        measured)
-        if not ok:
-            problems.append(f"{name}: measured {measured}")
-    console.print(summary)
+    problems += [f"{name}: measured {measured}" for name, ok, measured in checks if not ok]
+    console.print(checks_table("demo summary", checks))
     console.print(f"picture: {out_dir / 'demo.png'}")
     return problems
