@@ -51,7 +51,7 @@ import uuid
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any
+from typing import Any, TypeVar
 
 from beehave.action import Action
 from beehave.agents.agent import Agent, AgentBehavior, Conversation, _waiter
@@ -464,6 +464,44 @@ def choose(open_roles: Mapping[str, Mapping[str, Sequence[str]]], bids: Bids, *,
 
 
 # ---------------------------------------------------------------------- broker side
+_J = TypeVar("_J")
+
+
+def cheapest_insertion(new: _J, queue: Sequence[_J],
+                       queue_cost: Callable[[list[_J]], float | str | None], *,
+                       fixed: int = 0) -> tuple[float, int] | str:
+    """Where ``new`` costs least in ``queue``, and what it adds: ``(marginal cost,
+    position)``, or the reason it fits nowhere.
+
+    ``queue_cost(order)`` is the cost, in the market's global metric, of doing ``order``
+    in that order (a float), or a reason (str) / None when that order is not feasible.
+    The marginal cost of a position is ``queue_cost(with new there) -
+    queue_cost(queue)``: the new role's own cost *and* the delay it puts on the roles it
+    goes before. The first ``fixed`` entries (roles already running) keep their place.
+    Ties go to the later position (the earlier roles are not delayed for nothing).
+
+    A market whose brokers bid this way minimises the sum of the queues' costs: the sum
+    of the winning bids is exactly what the accepted roles add to it. Bidding the new
+    role's own completion time at the end of the queue instead ignores the roles queued
+    behind it and that one a short role could go before a long one."""
+    base = queue_cost(list(queue))
+    if base is None or isinstance(base, str):
+        return f"the queue as it is: {base or 'not feasible'}"
+    best: tuple[float, int] | None = None
+    why: str | None = None
+    for i in range(max(0, min(fixed, len(queue))), len(queue) + 1):
+        order = [*queue[:i], new, *queue[i:]]
+        cost = queue_cost(order)
+        if cost is None or isinstance(cost, str):
+            why = why or cost or "not feasible"
+            continue
+        if best is None or cost - base <= best[0]:
+            best = (cost - base, i)
+    if best is None:
+        return why or "not feasible"
+    return best
+
+
 class Job:
     """One role a broker was awarded, as :meth:`Broker.cost` and
     :meth:`Broker.perform_role` see it; the rendezvous API for the action that performs
@@ -561,16 +599,19 @@ class Job:
 class Broker(Responder):
     """Bids for the roles of auctioned tasks and performs the roles it wins.
 
-    Subclass it and write :meth:`cost` (the bid for one role, in the market's one global
-    metric: e.g. seconds to complete, from a path planner, plus the work queued before it)
-    and :meth:`perform_role` (the :class:`~beehave.Action` that does the role). Set
-    :attr:`capabilities`: they are registered in the directory (service ``broker``) while
-    the broker runs, and the broker bids only for roles whose capability is among them.
+    Subclass it and write how a role is priced — either :meth:`queue_cost` (the cost of
+    doing a whole queue of roles in a given order, in the market's one global metric:
+    the broker then bids the *marginal* cost of the cheapest place for the new role in its
+    queue, and puts an awarded role there) or :meth:`cost` (the bid for one role appended
+    after the queue) — and :meth:`perform_role` (the :class:`~beehave.Action` that does
+    the role). Set :attr:`capabilities`: they are registered in the directory (service
+    ``broker``) while the broker runs, and the broker bids only for roles whose capability
+    is among them.
 
     Awarded roles queue behind each other (:attr:`queue_tasks`); every bid is computed on
-    the queue as it is at that moment, and an award is priced again when it arrives (the
-    queue may have changed since the bid): a role it can no longer fill is answered with
-    ``failure``, and the auctioneer re-auctions it."""
+    the queue as it is at that moment, and an award is priced (and placed) again when it
+    arrives (the queue may have changed since the bid): a role it can no longer fill is
+    answered with ``failure``, and the auctioneer re-auctions it."""
 
     protocol = AUCTION
     service = BROKER_SERVICE
@@ -581,8 +622,26 @@ class Broker(Responder):
         """The bid for ``job`` (a role not awarded yet), given the roles already accepted
         and not finished (``queue``, in the order they will run: this one would come
         after them). Return the cost (lower is better), or a reason (str) / None to refuse.
-        Called in this broker's thread for every role it has the capability for."""
-        raise NotImplementedError(f"{type(self).__name__} must override cost()")
+        Called in this broker's thread for every role it has the capability for.
+
+        Not called when the broker writes :meth:`queue_cost` instead."""
+        raise NotImplementedError(f"{type(self).__name__} must override cost() or "
+                                  f"queue_cost()")
+
+    def queue_cost(self, queue: list[Job]) -> float | str | None:
+        """Optional hook, instead of :meth:`cost`: the cost of doing ``queue`` in this
+        order, in the market's global metric — e.g. the sum of the roles' completion
+        times (seconds from now until each is done, driving from stop to stop), so that a
+        role that makes the others wait pays for their waiting. Return a reason (str) or
+        None when this order is not feasible (a deadline missed, the battery too low).
+
+        When you write it, the broker bids for a role the least it adds to this cost at
+        any place in its queue after the roles already running
+        (:func:`cheapest_insertion`), and an awarded role takes the place that is
+        cheapest when the award arrives. Called several times per bid (once per place):
+        keep it short."""
+        raise NotImplementedError(f"{type(self).__name__} must override cost() or "
+                                  f"queue_cost()")
 
     def perform_role(self, job: Job) -> Action | Any:
         """Do the awarded role: return the :class:`~beehave.Action` that does it (give it
@@ -597,7 +656,20 @@ class Broker(Responder):
         #: The awarded roles not finished, by conversation (their rendezvous events go
         #: there).
         self._jobs: dict[str, Job] = {}
+        #: Where the award being started goes: (conversation id, index among waiting).
+        self._place: tuple[str, int] | None = None
         super().run()
+
+    @property
+    def inserts(self) -> bool:
+        """Whether this broker bids marginal insertion costs (it writes
+        :meth:`queue_cost`)."""
+        return type(self).queue_cost is not Broker.queue_cost
+
+    def _running(self) -> list[Job]:
+        jobs = self._jobs
+        return [jobs[c] for c, t in self.tasks.items()
+                if c in jobs and t.action is not None and not t.action.status.finished]
 
     @property
     def offered(self) -> list[str]:
@@ -609,23 +681,43 @@ class Broker(Responder):
     def queue(self) -> list[Job]:
         """The roles accepted and not finished, in the order they run."""
         jobs = self._jobs
-        running = [jobs[c] for c, t in self.tasks.items()
-                   if c in jobs and t.action is not None and not t.action.status.finished]
-        return running + [jobs[t.request.conversation_id] for t in self.waiting
-                          if t.request.conversation_id in jobs]
+        return self._running() + [jobs[t.request.conversation_id] for t in self.waiting
+                                  if t.request.conversation_id in jobs]
 
     def _bid(self, job: Job) -> float | str:
+        return self._price(job)[0]
+
+    def _price(self, job: Job) -> tuple[float | str, int | None]:
+        """The bid for ``job`` and, for an inserting broker, its place among the waiting
+        roles."""
         if job.role.capability not in self.offered:
             return (f"lacks capability {job.role.capability!r} (it offers: "
-                    f"{', '.join(self.offered) or 'nothing'})")
-        offer = self.cost(job, self.queue())
+                    f"{', '.join(self.offered) or 'nothing'})"), None
+        place: int | None = None
+        if self.inserts:
+            running = len(self._running())
+            found = cheapest_insertion(job, self.queue(), self._queue_cost, fixed=running)
+            if isinstance(found, str):
+                return found, None
+            offer: float | str | None = found[0]
+            place = found[1] - running
+        else:
+            offer = self.cost(job, self.queue())
         if offer is None or isinstance(offer, str):
-            return offer or "no bid"
-        if isinstance(offer, bool) or not isinstance(offer, (int, float)) \
-                or not math.isfinite(offer):
-            raise TypeError(f"{self.path}: cost() must return a finite number, a reason "
-                            f"(str) or None, got {offer!r}")
-        return float(offer)
+            return offer or "no bid", None
+        return self._finite("cost", offer), place
+
+    def _finite(self, hook: str, value: object) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not math.isfinite(value):
+            raise TypeError(f"{self.path}: {hook}() must return a finite number, a reason "
+                            f"(str) or None, got {value!r}")
+        return float(value)
+
+    def _queue_cost(self, queue: list[Job]) -> float | str | None:
+        cost = self.queue_cost(queue)
+        return cost if cost is None or isinstance(cost, str) else \
+            self._finite("queue_cost", cost)
 
     def _handle(self, message: Message) -> None:
         kind = message.performative
@@ -675,14 +767,30 @@ class Broker(Responder):
                   conversation_id=task.conversation_id, initiator=task.sender,
                   members=c.get("members"), done=c.get("done"),
                   reached=c.get("reached", ()), agent=self.agent)
-        offer = self._bid(job)  # re-planned: the queue may have changed since the bid
+        # Re-planned: the queue may have changed since the bid.
+        offer, place = self._price(job)
         if isinstance(offer, str):
             raise AgentError(f"{self.agent.name!r} cannot take role {job.role.name!r} of "
                              f"task {job.task.id!r} any more: {offer}")
         outcome = self.perform_role(job)
         self._jobs[task.conversation_id] = job
+        self._place = None if place is None else (task.conversation_id, place)
         self._reply(task, Performative.AGREE, {"cost": offer, "queued": len(self.queue())})
         return outcome
+
+    def _start(self, message: Message) -> None:
+        self._place = None
+        super()._start(message)
+        place, self._place = self._place, None
+        if place is None:
+            return
+        # Responder queues an award last; an inserting broker moves it to the place its
+        # bid was computed for (re-planned in perform()).
+        cid, index = place
+        mine = next((t for t in self.waiting if t.request.conversation_id == cid), None)
+        if mine is not None:
+            self.waiting.remove(mine)
+            self.waiting.insert(max(0, min(index, len(self.waiting))), mine)
 
     def _launch(self, task: _Task, *, queue: bool) -> bool:
         started = super()._launch(task, queue=queue)
