@@ -14,7 +14,15 @@ import pytest
 pytest.importorskip("rclpy")
 
 from beehave import Action, HighLevelBehaviorManager, Status  # noqa: E402
-from beehave.agents import Agent, Auctioneer, Outcome, Role, Task, TaskState  # noqa: E402
+from beehave.agents import (  # noqa: E402
+    Agent,
+    Auctioneer,
+    Outcome,
+    Role,
+    Task,
+    TaskState,
+    auction,
+)
 from beehave.agents.market import Broker, Job, cheapest_insertion  # noqa: E402
 from beehave.errors import Interrupted  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
@@ -137,3 +145,26 @@ def test_a_short_role_is_bid_and_queued_before_a_long_one(ros: RosContext) -> No
         assert cost == {"hold": pytest.approx(1.0), "long": pytest.approx(11.0),
                         "short": pytest.approx(5.0)}
         assert started == ["hold", "short", "long"]
+
+
+def test_a_rejected_bid_is_not_kept(ros: RosContext) -> None:
+    """An auction never accepts a bid it rejected (a task auctioned again gets a new
+    round): the broker forgets it at once instead of keeping every bid for
+    ``proposal_valid_s``."""
+    gate = threading.Event()
+    gate.set()
+    with Agent("rej_a", ros=ros, lease_s=1.0, probe_s=0.3) as a, \
+            Agent("rej_b", ros=ros, lease_s=1.0, probe_s=0.3) as b, \
+            Agent("rej_boss", ros=ros, lease_s=1.0, probe_s=0.3) as boss, \
+            HighLevelBehaviorManager(stop_timeout_s=0.5) as hl_a, \
+            HighLevelBehaviorManager(stop_timeout_s=0.5) as hl_b:
+        for agent, hl in ((a, hl_a), (b, hl_b)):
+            agent.attach(hl)
+            hl.register("broker", Inserting, started=[], gate=gate)
+            hl.switch("broker")
+        assert wait_until(lambda: len(boss.directory.search("broker")) == 2, WAIT_S)
+        outcome = auction(boss, _task("t_rej", 1.0), reply_by_s=WAIT_S)
+        assert outcome.state is TaskState.COMPLETED
+        loser = hl_b.top if outcome.members["carry"] == "rej_a" else hl_a.top
+        assert isinstance(loser, Inserting)
+        assert wait_until(lambda: not loser.proposals, 5.0), loser.proposals

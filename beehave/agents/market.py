@@ -728,6 +728,11 @@ class Broker(Responder):
             job = self._jobs.get(message.conversation_id)
             if job is not None:
                 job._deliver(str(message.content["event"]))
+        elif kind is Performative.REJECT_PROPOSAL:
+            # An auction never takes back a rejection: a task auctioned again gets a new
+            # round (a new conversation and cfp). Kept, every bid of a busy market would
+            # stay for proposal_valid_s — thousands of messages to scan and to collect.
+            self.proposals.pop(message.conversation_id, None)
         else:
             if kind is Performative.CANCEL:
                 self._jobs.pop(message.conversation_id, None)
@@ -759,7 +764,7 @@ class Broker(Responder):
             self._reply(cfp, Performative.REFUSE, {"reason": "no role it can fill",
                                                    "refused": refused})
         elif self._reply(cfp, Performative.PROPOSE, {"bids": bids, "refused": refused}):
-            self.proposals[cfp.conversation_id] = (cfp, time.monotonic())
+            self._propose(cfp.conversation_id, cfp)
 
     def perform(self, task: Message) -> Any:
         c = task.content
