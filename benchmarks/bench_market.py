@@ -20,7 +20,8 @@ centrally on the same metric:
   (``scipy.optimize.milp``).
 
 Both for sequential single-item auctions (one task per round, in arrival order) and batch
-mode (all waiting tasks per round). Informational rows: ``*_append`` (brokers bid the
+mode (all waiting tasks per round, assigned jointly; a task that would not get its
+cheapest brokers waits for the next round). Informational rows: ``*_append`` (brokers bid the
 role's own completion time at the end of the queue, as a ``cost()`` broker that ignores
 whom it delays), and ``*_capacity`` (the earlier model: a bid is the round trip whatever
 the queue, at most 2 tasks per robot, optimum ``linear_sum_assignment`` on 2 slots per

@@ -33,8 +33,9 @@ finished, the plan stays the one it belongs to.
 Several tasks: :class:`Auctioneer` auctions them one at a time (a round is announced once
 the previous one has awarded, so every bid sees the queues the earlier awards made), or,
 with ``batch=True``, all waiting tasks in one round, assigned jointly (every broker gets
-at most one role per round; what is left waits for the next round, whose bids are
-re-planned on the new queues).
+at most one role per round, and a task is awarded only if that gives it its cheapest
+brokers; what is left waits for the next round, whose bids are re-planned on the new
+queues).
 
 Robot-agnostic: what a role costs and how it is performed is the broker's business
 (``Broker.cost`` and ``Broker.perform_role``). See ``docs/allocation.md``.
@@ -406,7 +407,15 @@ def choose(open_roles: Mapping[str, Mapping[str, Sequence[str]]], bids: Bids, *,
     Single task (or ``batch=False`` with several: one after another, greedily): the
     cheapest plan with its cheapest assignment to distinct brokers. ``batch``: every
     task's cheapest plan on its own, then one joint minimum-cost assignment in which a
-    broker fills at most one role; a task that does not get all its roles waits."""
+    broker fills at most one role (a bid is priced on the broker's queue as it is: a
+    second role in the same round would make it stale). A task is awarded only when the
+    joint assignment gives it its cheapest assignment; a task that would have to settle
+    for dearer brokers (its cheapest went to other tasks), or does not get all its roles,
+    waits for the next round, whose bids are re-planned on the queues this one left —
+    forcing it on a second choice now is what makes one-shot joint rounds worse than
+    sequential auctions when brokers queue work. When no task gets its cheapest
+    assignment, the task whose cheapest assignment is cheapest is awarded alone, so
+    every round that can award something does."""
     chosen: dict[str, Choice] = {}
     taken: set[str] = set()
     solo: dict[str, Choice] = {}
@@ -443,23 +452,14 @@ def choose(open_roles: Mapping[str, Mapping[str, Sequence[str]]], bids: Bids, *,
             got.setdefault(tid, {})[role] = brokers[col]
     for tid, c in solo.items():
         members = got.get(tid, {})
-        if len(members) == len(open_roles[tid][c.plan]):
-            chosen[tid] = Choice(tid, c.plan, members,
-                                 sum(bids[(tid, c.plan, r)][b] for r, b in members.items()))
-    # The joint assignment may split brokers over the roles of more tasks than it can
-    # complete (a coalition task half staffed waits): what stays free then goes, cheapest
-    # task first, to whole tasks.
-    taken = {b for c in chosen.values() for b in c.members.values()}
-    for tid, c in sorted(solo.items(), key=lambda item: item[1].cost):
-        if tid in chosen:
-            continue
-        roles = open_roles[tid][c.plan]
-        table = {r: {b: x for b, x in bids.get((tid, c.plan, r), {}).items()
-                     if b not in taken} for r in roles}
-        found = best_assignment(list(roles), table)
-        if found is not None:
-            chosen[tid] = Choice(tid, c.plan, found[1], found[0])
-            taken.update(found[1].values())
+        if len(members) != len(open_roles[tid][c.plan]):
+            continue  # half staffed: it waits
+        cost = sum(bids[(tid, c.plan, r)][b] for r, b in members.items())
+        if cost <= c.cost + 1e-9 * max(1.0, abs(c.cost)):
+            chosen[tid] = Choice(tid, c.plan, members, cost)
+    if not chosen:
+        first = min(solo.values(), key=lambda c: (c.cost, c.task))
+        chosen[first.task] = first
     return chosen
 
 
@@ -853,6 +853,8 @@ class Outcome:
     #: Seconds from detecting a member's failure to the next award.
     reaward_s: list[float] = field(default_factory=list)
     _failed_at: float | None = field(default=None, repr=False)
+    #: A batch round deferred it (it bids again at once; the round does not count).
+    _deferred: bool = field(default=False, repr=False)
 
     @property
     def done(self) -> bool:
@@ -996,6 +998,17 @@ class _Round:
             _cancel_quietly(conv, losers, Performative.REJECT_PROPOSAL,
                             {"reason": "not chosen in this round"})
         unassigned = [o for tid, o in self.outcomes.items() if not o.done and tid not in chosen]
+        # Batch: a task whose cheapest brokers went to other tasks of this round is
+        # deferred — asked again at once, on re-planned bids; not a failed round.
+        deferred = [o for o in unassigned if self.batch and choose(
+            {o.task.id: open_roles[o.task.id]}, bids)]
+        for o in deferred:
+            unassigned.remove(o)
+            o.state = TaskState.WAITING
+            o.reason = ("deferred: its cheapest brokers were given to other tasks of this "
+                        "round; it is auctioned again on their new queues")
+            o._deferred = True
+            self.tell("deferred", conversation_id=cid, task=o.task.id, reason=o.reason)
         for o in unassigned:
             o.state = TaskState.WAITING
             o.reason = unstaffable.get(o.task.id) or self._why_not(o, bids, names)
@@ -1005,6 +1018,8 @@ class _Round:
         for broker, why in lost:
             if broker in self.members:
                 self._dissolve(conv, broker, why)
+        for o in deferred:  # before on_awarded: the next round must include them
+            self.on_settled(o)
         self.on_awarded()
         for o in unassigned:
             self.on_settled(o)  # back to the auctioneer: again later, or given up
@@ -1172,7 +1187,8 @@ def auction(agent: Agent, task: Task, *, reply_by_s: float = 0.5,
     assignment after ``max_rounds`` rounds (an unassigned round is retried after
     ``retry_s``), the deadline passed, or no plan's capabilities are offered.
     ``capabilities``: the valid capability names, checked before anything is sent.
-    ``observer(step, detail)`` hears ``cfp``, ``awarded``, ``unassigned``, ``agreed``,
+    ``observer(step, detail)`` hears ``cfp``, ``awarded``, ``unassigned`` (``deferred``
+    too, from a batch :class:`Auctioneer`), ``agreed``,
     ``event``, ``role_done``, ``dissolved``, ``completed`` and ``failed``.
 
     Interrupted (called from a Behavior that is switched away): every member gets
@@ -1213,7 +1229,10 @@ class Auctioneer(AgentBehavior):
     Sequential (default): one round per task, the next announced once the previous has
     awarded (so the next bids see the queues the award made); rounds run in parallel
     while their coalitions work. ``batch=True``: every waiting task in one round, jointly
-    assigned. A dissolved coalition's task goes to the front of the queue. Give tasks to
+    assigned (see :func:`choose`); a task deferred because its cheapest brokers went to
+    other tasks of the round is in the next round at once, and a deferral does not count
+    against ``max_rounds``. A dissolved coalition's task goes to the front of the queue.
+    Give tasks to
     the constructor, or hand them over while it runs with :meth:`submit`; with
     ``keep_running`` it waits for more after the last one."""
 
@@ -1266,7 +1285,12 @@ class Auctioneer(AgentBehavior):
     def _settled(self, outcome: Outcome) -> None:
         """A round handed ``outcome`` back (its round's thread): completed, failed, or
         waiting again (unassigned: retried after ``retry_s``; dissolved: at once)."""
-        if outcome.state is TaskState.WAITING:
+        if outcome.state is TaskState.WAITING and outcome._deferred:
+            outcome._deferred = False
+            with self._lock:
+                self._retry_at[outcome.task.id] = 0.0
+                self._pending.insert(0, outcome)
+        elif outcome.state is TaskState.WAITING:
             if len(outcome.rounds) >= self.max_rounds:
                 outcome.state = TaskState.FAILED
                 outcome.reason = (f"{self.max_rounds} rounds without completion; last: "
