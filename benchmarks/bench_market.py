@@ -30,7 +30,7 @@ robot; there the queue changes no bid, and a sequence of single-item auctions is
 Over DDS:
 
 - ``market_award``: one auction (cfp → accept-proposals) with 10 brokers, each in its
-  own process, p50/p99 over repeated auctions; target p99 ≤ 30 ms.
+  own process: p50/p99 of 60 auctions, medians over 5 such runs; target p99 ≤ 30 ms.
 - ``market_reaward``: a member killed (SIGKILL) while it works → the next award of its
   role, with the brokers' lease of 1 s (a dead process is noticed when its lease runs out).
 
@@ -67,6 +67,7 @@ from benchmarks._util import median, percentile, report  # noqa: E402
 NODE = TESTS / "market_node.py"
 SEEDS = int(os.environ.get("BENCH_MARKET_SEEDS", 200))
 N_AUCTIONS = int(os.environ.get("BENCH_MARKET_N", 60))
+N_RUNS = int(os.environ.get("BENCH_MARKET_RUNS", 5))
 N_KILLS = int(os.environ.get("BENCH_MARKET_KILLS", 3))
 LEASE_S = 1.0
 
@@ -282,28 +283,40 @@ def _wait_brokers(agent: Agent, names: set[str]) -> None:
 
 
 def award_latency() -> list[dict[str, Any]]:
+    """p50 and p99 of one run of ``N_AUCTIONS`` auctions, ``N_RUNS`` times with the same
+    brokers: the figures are the medians over the runs (a p99 of 60 samples is nearly
+    their maximum: one run is at the mercy of whatever else the host does)."""
     tag = random.randint(0, 99999)
     procs = [_Broker(f"bm{tag}_{i}", "carry", 1.0 + i) for i in range(10)]
-    rows = []
+    p50s: list[float] = []
+    p99s: list[float] = []
+    loads: list[float] = []
     try:
         for p in procs:
             p.wait_event("ready")
         with Agent(f"bm{tag}_boss", lease_s=LEASE_S) as boss:
             _wait_brokers(boss, {p.name for p in procs})
-            samples = []
-            for i in range(N_AUCTIONS + 3):
-                task = Task.make("deliver", id=f"b{i}", roles=[Role("carry", "carry")])
-                outcome = auction(boss, task, reply_by_s=2.0)
-                if i >= 3:  # the first rounds open the DDS writers to every broker
+            for i in range(3):  # the first rounds open the DDS writers to every broker
+                auction(boss, Task.make("deliver", id=f"w{i}", roles=[Role("carry", "carry")]),
+                        reply_by_s=2.0)
+            for run in range(N_RUNS):
+                samples = []
+                for i in range(N_AUCTIONS):
+                    task = Task.make("deliver", id=f"b{run}_{i}",
+                                     roles=[Role("carry", "carry")])
+                    outcome = auction(boss, task, reply_by_s=2.0)
                     samples.append(outcome.award_latency_s[0] * 1000)
-            p50, p99 = median(samples), percentile(samples, 99)
-            rows.append(report("market_award_10_brokers_p50", p50, "ms", None, None,
-                               n=len(samples)))
-            rows.append(report("market_award_10_brokers_p99", p99, "ms", "<= 30 ms",
-                               p99 <= 30.0, n=len(samples)))
+                p50s.append(median(samples))
+                p99s.append(percentile(samples, 99))
+                loads.append(os.getloadavg()[0])
     finally:
         stop_all(procs)
-    return rows
+    p50, p99 = median(p50s), median(p99s)
+    extra = {"n": N_AUCTIONS, "runs": N_RUNS, "load": [round(x, 1) for x in loads]}
+    return [report("market_award_10_brokers_p50", p50, "ms", None, None,
+                   per_run=[round(x, 2) for x in p50s], **extra),
+            report("market_award_10_brokers_p99", p99, "ms", "<= 30 ms", p99 <= 30.0,
+                   per_run=[round(x, 2) for x in p99s], **extra)]
 
 
 def _one_kill(boss: Agent, backup: AgentProc, name: str, task_id: str) -> float:
