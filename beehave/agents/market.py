@@ -33,8 +33,9 @@ finished, the plan stays the one it belongs to.
 Several tasks: :class:`Auctioneer` auctions them one at a time (a round is announced once
 the previous one has awarded, so every bid sees the queues the earlier awards made), or,
 with ``batch=True``, all waiting tasks in one round, assigned jointly (every broker gets
-at most one role per round; what is left waits for the next round, whose bids are
-re-planned on the new queues).
+at most one role per round, and a task is awarded only if that gives it its cheapest
+brokers; what is left waits for the next round, whose bids are re-planned on the new
+queues).
 
 Robot-agnostic: what a role costs and how it is performed is the broker's business
 (``Broker.cost`` and ``Broker.perform_role``). See ``docs/allocation.md``.
@@ -51,7 +52,7 @@ import uuid
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any
+from typing import Any, TypeVar
 
 from beehave.action import Action
 from beehave.agents.agent import Agent, AgentBehavior, Conversation, _waiter
@@ -406,7 +407,15 @@ def choose(open_roles: Mapping[str, Mapping[str, Sequence[str]]], bids: Bids, *,
     Single task (or ``batch=False`` with several: one after another, greedily): the
     cheapest plan with its cheapest assignment to distinct brokers. ``batch``: every
     task's cheapest plan on its own, then one joint minimum-cost assignment in which a
-    broker fills at most one role; a task that does not get all its roles waits."""
+    broker fills at most one role (a bid is priced on the broker's queue as it is: a
+    second role in the same round would make it stale). A task is awarded only when the
+    joint assignment gives it its cheapest assignment; a task that would have to settle
+    for dearer brokers (its cheapest went to other tasks), or does not get all its roles,
+    waits for the next round, whose bids are re-planned on the queues this one left —
+    forcing it on a second choice now is what makes one-shot joint rounds worse than
+    sequential auctions when brokers queue work. When no task gets its cheapest
+    assignment, the task whose cheapest assignment is cheapest is awarded alone, so
+    every round that can award something does."""
     chosen: dict[str, Choice] = {}
     taken: set[str] = set()
     solo: dict[str, Choice] = {}
@@ -443,27 +452,56 @@ def choose(open_roles: Mapping[str, Mapping[str, Sequence[str]]], bids: Bids, *,
             got.setdefault(tid, {})[role] = brokers[col]
     for tid, c in solo.items():
         members = got.get(tid, {})
-        if len(members) == len(open_roles[tid][c.plan]):
-            chosen[tid] = Choice(tid, c.plan, members,
-                                 sum(bids[(tid, c.plan, r)][b] for r, b in members.items()))
-    # The joint assignment may split brokers over the roles of more tasks than it can
-    # complete (a coalition task half staffed waits): what stays free then goes, cheapest
-    # task first, to whole tasks.
-    taken = {b for c in chosen.values() for b in c.members.values()}
-    for tid, c in sorted(solo.items(), key=lambda item: item[1].cost):
-        if tid in chosen:
-            continue
-        roles = open_roles[tid][c.plan]
-        table = {r: {b: x for b, x in bids.get((tid, c.plan, r), {}).items()
-                     if b not in taken} for r in roles}
-        found = best_assignment(list(roles), table)
-        if found is not None:
-            chosen[tid] = Choice(tid, c.plan, found[1], found[0])
-            taken.update(found[1].values())
+        if len(members) != len(open_roles[tid][c.plan]):
+            continue  # half staffed: it waits
+        cost = sum(bids[(tid, c.plan, r)][b] for r, b in members.items())
+        if cost <= c.cost + 1e-9 * max(1.0, abs(c.cost)):
+            chosen[tid] = Choice(tid, c.plan, members, cost)
+    if not chosen:
+        first = min(solo.values(), key=lambda c: (c.cost, c.task))
+        chosen[first.task] = first
     return chosen
 
 
 # ---------------------------------------------------------------------- broker side
+_J = TypeVar("_J")
+
+
+def cheapest_insertion(new: _J, queue: Sequence[_J],
+                       queue_cost: Callable[[list[_J]], float | str | None], *,
+                       fixed: int = 0) -> tuple[float, int] | str:
+    """Where ``new`` costs least in ``queue``, and what it adds: ``(marginal cost,
+    position)``, or the reason it fits nowhere.
+
+    ``queue_cost(order)`` is the cost, in the market's global metric, of doing ``order``
+    in that order (a float), or a reason (str) / None when that order is not feasible.
+    The marginal cost of a position is ``queue_cost(with new there) -
+    queue_cost(queue)``: the new role's own cost *and* the delay it puts on the roles it
+    goes before. The first ``fixed`` entries (roles already running) keep their place.
+    Ties go to the later position (the earlier roles are not delayed for nothing).
+
+    A market whose brokers bid this way minimises the sum of the queues' costs: the sum
+    of the winning bids is exactly what the accepted roles add to it. Bidding the new
+    role's own completion time at the end of the queue instead ignores the roles queued
+    behind it and that one a short role could go before a long one."""
+    base = queue_cost(list(queue))
+    if base is None or isinstance(base, str):
+        return f"the queue as it is: {base or 'not feasible'}"
+    best: tuple[float, int] | None = None
+    why: str | None = None
+    for i in range(max(0, min(fixed, len(queue))), len(queue) + 1):
+        order = [*queue[:i], new, *queue[i:]]
+        cost = queue_cost(order)
+        if cost is None or isinstance(cost, str):
+            why = why or cost or "not feasible"
+            continue
+        if best is None or cost - base <= best[0]:
+            best = (cost - base, i)
+    if best is None:
+        return why or "not feasible"
+    return best
+
+
 class Job:
     """One role a broker was awarded, as :meth:`Broker.cost` and
     :meth:`Broker.perform_role` see it; the rendezvous API for the action that performs
@@ -561,16 +599,19 @@ class Job:
 class Broker(Responder):
     """Bids for the roles of auctioned tasks and performs the roles it wins.
 
-    Subclass it and write :meth:`cost` (the bid for one role, in the market's one global
-    metric: e.g. seconds to complete, from a path planner, plus the work queued before it)
-    and :meth:`perform_role` (the :class:`~beehave.Action` that does the role). Set
-    :attr:`capabilities`: they are registered in the directory (service ``broker``) while
-    the broker runs, and the broker bids only for roles whose capability is among them.
+    Subclass it and write how a role is priced — either :meth:`queue_cost` (the cost of
+    doing a whole queue of roles in a given order, in the market's one global metric:
+    the broker then bids the *marginal* cost of the cheapest place for the new role in its
+    queue, and puts an awarded role there) or :meth:`cost` (the bid for one role appended
+    after the queue) — and :meth:`perform_role` (the :class:`~beehave.Action` that does
+    the role). Set :attr:`capabilities`: they are registered in the directory (service
+    ``broker``) while the broker runs, and the broker bids only for roles whose capability
+    is among them.
 
     Awarded roles queue behind each other (:attr:`queue_tasks`); every bid is computed on
-    the queue as it is at that moment, and an award is priced again when it arrives (the
-    queue may have changed since the bid): a role it can no longer fill is answered with
-    ``failure``, and the auctioneer re-auctions it."""
+    the queue as it is at that moment, and an award is priced (and placed) again when it
+    arrives (the queue may have changed since the bid): a role it can no longer fill is
+    answered with ``failure``, and the auctioneer re-auctions it."""
 
     protocol = AUCTION
     service = BROKER_SERVICE
@@ -581,8 +622,26 @@ class Broker(Responder):
         """The bid for ``job`` (a role not awarded yet), given the roles already accepted
         and not finished (``queue``, in the order they will run: this one would come
         after them). Return the cost (lower is better), or a reason (str) / None to refuse.
-        Called in this broker's thread for every role it has the capability for."""
-        raise NotImplementedError(f"{type(self).__name__} must override cost()")
+        Called in this broker's thread for every role it has the capability for.
+
+        Not called when the broker writes :meth:`queue_cost` instead."""
+        raise NotImplementedError(f"{type(self).__name__} must override cost() or "
+                                  f"queue_cost()")
+
+    def queue_cost(self, queue: list[Job]) -> float | str | None:
+        """Optional hook, instead of :meth:`cost`: the cost of doing ``queue`` in this
+        order, in the market's global metric — e.g. the sum of the roles' completion
+        times (seconds from now until each is done, driving from stop to stop), so that a
+        role that makes the others wait pays for their waiting. Return a reason (str) or
+        None when this order is not feasible (a deadline missed, the battery too low).
+
+        When you write it, the broker bids for a role the least it adds to this cost at
+        any place in its queue after the roles already running
+        (:func:`cheapest_insertion`), and an awarded role takes the place that is
+        cheapest when the award arrives. Called several times per bid (once per place):
+        keep it short."""
+        raise NotImplementedError(f"{type(self).__name__} must override cost() or "
+                                  f"queue_cost()")
 
     def perform_role(self, job: Job) -> Action | Any:
         """Do the awarded role: return the :class:`~beehave.Action` that does it (give it
@@ -597,7 +656,20 @@ class Broker(Responder):
         #: The awarded roles not finished, by conversation (their rendezvous events go
         #: there).
         self._jobs: dict[str, Job] = {}
+        #: Where the award being started goes: (conversation id, index among waiting).
+        self._place: tuple[str, int] | None = None
         super().run()
+
+    @property
+    def inserts(self) -> bool:
+        """Whether this broker bids marginal insertion costs (it writes
+        :meth:`queue_cost`)."""
+        return type(self).queue_cost is not Broker.queue_cost
+
+    def _running(self) -> list[Job]:
+        jobs = self._jobs
+        return [jobs[c] for c, t in self.tasks.items()
+                if c in jobs and t.action is not None and not t.action.status.finished]
 
     @property
     def offered(self) -> list[str]:
@@ -609,23 +681,43 @@ class Broker(Responder):
     def queue(self) -> list[Job]:
         """The roles accepted and not finished, in the order they run."""
         jobs = self._jobs
-        running = [jobs[c] for c, t in self.tasks.items()
-                   if c in jobs and t.action is not None and not t.action.status.finished]
-        return running + [jobs[t.request.conversation_id] for t in self.waiting
-                          if t.request.conversation_id in jobs]
+        return self._running() + [jobs[t.request.conversation_id] for t in self.waiting
+                                  if t.request.conversation_id in jobs]
 
     def _bid(self, job: Job) -> float | str:
+        return self._price(job)[0]
+
+    def _price(self, job: Job) -> tuple[float | str, int | None]:
+        """The bid for ``job`` and, for an inserting broker, its place among the waiting
+        roles."""
         if job.role.capability not in self.offered:
             return (f"lacks capability {job.role.capability!r} (it offers: "
-                    f"{', '.join(self.offered) or 'nothing'})")
-        offer = self.cost(job, self.queue())
+                    f"{', '.join(self.offered) or 'nothing'})"), None
+        place: int | None = None
+        if self.inserts:
+            running = len(self._running())
+            found = cheapest_insertion(job, self.queue(), self._queue_cost, fixed=running)
+            if isinstance(found, str):
+                return found, None
+            offer: float | str | None = found[0]
+            place = found[1] - running
+        else:
+            offer = self.cost(job, self.queue())
         if offer is None or isinstance(offer, str):
-            return offer or "no bid"
-        if isinstance(offer, bool) or not isinstance(offer, (int, float)) \
-                or not math.isfinite(offer):
-            raise TypeError(f"{self.path}: cost() must return a finite number, a reason "
-                            f"(str) or None, got {offer!r}")
-        return float(offer)
+            return offer or "no bid", None
+        return self._finite("cost", offer), place
+
+    def _finite(self, hook: str, value: object) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not math.isfinite(value):
+            raise TypeError(f"{self.path}: {hook}() must return a finite number, a reason "
+                            f"(str) or None, got {value!r}")
+        return float(value)
+
+    def _queue_cost(self, queue: list[Job]) -> float | str | None:
+        cost = self.queue_cost(queue)
+        return cost if cost is None or isinstance(cost, str) else \
+            self._finite("queue_cost", cost)
 
     def _handle(self, message: Message) -> None:
         kind = message.performative
@@ -636,6 +728,11 @@ class Broker(Responder):
             job = self._jobs.get(message.conversation_id)
             if job is not None:
                 job._deliver(str(message.content["event"]))
+        elif kind is Performative.REJECT_PROPOSAL:
+            # An auction never takes back a rejection: a task auctioned again gets a new
+            # round (a new conversation and cfp). Kept, every bid of a busy market would
+            # stay for proposal_valid_s — thousands of messages to scan and to collect.
+            self.proposals.pop(message.conversation_id, None)
         else:
             if kind is Performative.CANCEL:
                 self._jobs.pop(message.conversation_id, None)
@@ -667,7 +764,7 @@ class Broker(Responder):
             self._reply(cfp, Performative.REFUSE, {"reason": "no role it can fill",
                                                    "refused": refused})
         elif self._reply(cfp, Performative.PROPOSE, {"bids": bids, "refused": refused}):
-            self.proposals[cfp.conversation_id] = (cfp, time.monotonic())
+            self._propose(cfp.conversation_id, cfp)
 
     def perform(self, task: Message) -> Any:
         c = task.content
@@ -675,14 +772,30 @@ class Broker(Responder):
                   conversation_id=task.conversation_id, initiator=task.sender,
                   members=c.get("members"), done=c.get("done"),
                   reached=c.get("reached", ()), agent=self.agent)
-        offer = self._bid(job)  # re-planned: the queue may have changed since the bid
+        # Re-planned: the queue may have changed since the bid.
+        offer, place = self._price(job)
         if isinstance(offer, str):
             raise AgentError(f"{self.agent.name!r} cannot take role {job.role.name!r} of "
                              f"task {job.task.id!r} any more: {offer}")
         outcome = self.perform_role(job)
         self._jobs[task.conversation_id] = job
+        self._place = None if place is None else (task.conversation_id, place)
         self._reply(task, Performative.AGREE, {"cost": offer, "queued": len(self.queue())})
         return outcome
+
+    def _start(self, message: Message) -> None:
+        self._place = None
+        super()._start(message)
+        place, self._place = self._place, None
+        if place is None:
+            return
+        # Responder queues an award last; an inserting broker moves it to the place its
+        # bid was computed for (re-planned in perform()).
+        cid, index = place
+        mine = next((t for t in self.waiting if t.request.conversation_id == cid), None)
+        if mine is not None:
+            self.waiting.remove(mine)
+            self.waiting.insert(max(0, min(index, len(self.waiting))), mine)
 
     def _launch(self, task: _Task, *, queue: bool) -> bool:
         started = super()._launch(task, queue=queue)
@@ -740,6 +853,8 @@ class Outcome:
     #: Seconds from detecting a member's failure to the next award.
     reaward_s: list[float] = field(default_factory=list)
     _failed_at: float | None = field(default=None, repr=False)
+    #: A batch round deferred it (it bids again at once; the round does not count).
+    _deferred: bool = field(default=False, repr=False)
 
     @property
     def done(self) -> bool:
@@ -883,6 +998,17 @@ class _Round:
             _cancel_quietly(conv, losers, Performative.REJECT_PROPOSAL,
                             {"reason": "not chosen in this round"})
         unassigned = [o for tid, o in self.outcomes.items() if not o.done and tid not in chosen]
+        # Batch: a task whose cheapest brokers went to other tasks of this round is
+        # deferred — asked again at once, on re-planned bids; not a failed round.
+        deferred = [o for o in unassigned if self.batch and choose(
+            {o.task.id: open_roles[o.task.id]}, bids)]
+        for o in deferred:
+            unassigned.remove(o)
+            o.state = TaskState.WAITING
+            o.reason = ("deferred: its cheapest brokers were given to other tasks of this "
+                        "round; it is auctioned again on their new queues")
+            o._deferred = True
+            self.tell("deferred", conversation_id=cid, task=o.task.id, reason=o.reason)
         for o in unassigned:
             o.state = TaskState.WAITING
             o.reason = unstaffable.get(o.task.id) or self._why_not(o, bids, names)
@@ -892,6 +1018,8 @@ class _Round:
         for broker, why in lost:
             if broker in self.members:
                 self._dissolve(conv, broker, why)
+        for o in deferred:  # before on_awarded: the next round must include them
+            self.on_settled(o)
         self.on_awarded()
         for o in unassigned:
             self.on_settled(o)  # back to the auctioneer: again later, or given up
@@ -1059,7 +1187,8 @@ def auction(agent: Agent, task: Task, *, reply_by_s: float = 0.5,
     assignment after ``max_rounds`` rounds (an unassigned round is retried after
     ``retry_s``), the deadline passed, or no plan's capabilities are offered.
     ``capabilities``: the valid capability names, checked before anything is sent.
-    ``observer(step, detail)`` hears ``cfp``, ``awarded``, ``unassigned``, ``agreed``,
+    ``observer(step, detail)`` hears ``cfp``, ``awarded``, ``unassigned`` (``deferred``
+    too, from a batch :class:`Auctioneer`), ``agreed``,
     ``event``, ``role_done``, ``dissolved``, ``completed`` and ``failed``.
 
     Interrupted (called from a Behavior that is switched away): every member gets
@@ -1100,7 +1229,10 @@ class Auctioneer(AgentBehavior):
     Sequential (default): one round per task, the next announced once the previous has
     awarded (so the next bids see the queues the award made); rounds run in parallel
     while their coalitions work. ``batch=True``: every waiting task in one round, jointly
-    assigned. A dissolved coalition's task goes to the front of the queue. Give tasks to
+    assigned (see :func:`choose`); a task deferred because its cheapest brokers went to
+    other tasks of the round is in the next round at once, and a deferral does not count
+    against ``max_rounds``. A dissolved coalition's task goes to the front of the queue.
+    Give tasks to
     the constructor, or hand them over while it runs with :meth:`submit`; with
     ``keep_running`` it waits for more after the last one."""
 
@@ -1153,7 +1285,12 @@ class Auctioneer(AgentBehavior):
     def _settled(self, outcome: Outcome) -> None:
         """A round handed ``outcome`` back (its round's thread): completed, failed, or
         waiting again (unassigned: retried after ``retry_s``; dissolved: at once)."""
-        if outcome.state is TaskState.WAITING:
+        if outcome.state is TaskState.WAITING and outcome._deferred:
+            outcome._deferred = False
+            with self._lock:
+                self._retry_at[outcome.task.id] = 0.0
+                self._pending.insert(0, outcome)
+        elif outcome.state is TaskState.WAITING:
             if len(outcome.rounds) >= self.max_rounds:
                 outcome.state = TaskState.FAILED
                 outcome.reason = (f"{self.max_rounds} rounds without completion; last: "

@@ -408,7 +408,7 @@ class Responder(AgentBehavior):
             if offer is None:
                 self._reply(message, Performative.REFUSE, {"reason": "no proposal"})
             elif self._reply(message, Performative.PROPOSE, jsonable(offer)):
-                self.proposals[cid] = (message, time.monotonic())
+                self._propose(cid, message)
         elif kind is Performative.ACCEPT_PROPOSAL:
             entry = self.proposals.pop(cid, None)
             if entry is None or cid in self.tasks:
@@ -493,10 +493,20 @@ class Responder(AgentBehavior):
                                        f"{f': {action.error!r}' if action.error else ''}"})
 
     def _expire_proposals(self) -> None:
+        # Proposals are kept in the order they were made (see _propose): the expired ones
+        # are at the front, and the scan stops at the first that is still valid — called
+        # for every cfp, it must not walk every proposal of the last proposal_valid_s.
         now = time.monotonic()
-        for cid, (_, at) in list(self.proposals.items()):
-            if now - at > self.proposal_valid_s:
-                del self.proposals[cid]
+        while self.proposals:
+            cid, (_, at) = next(iter(self.proposals.items()))
+            if now - at <= self.proposal_valid_s:
+                return
+            del self.proposals[cid]
+
+    def _propose(self, cid: str, cfp: Message) -> None:
+        """Keep a proposal made now (after any older one: see _expire_proposals)."""
+        self.proposals.pop(cid, None)
+        self.proposals[cid] = (cfp, time.monotonic())
 
     def _abandon(self) -> None:
         for task in self.waiting:
