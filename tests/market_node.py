@@ -6,7 +6,8 @@
 
 The broker bids ``cost + 10 × its queue length`` for every role whose capability it
 has. An awarded role runs the *script* the task gives in the role's params, step by step
-(``"sleep:0.5"``, ``"signal:at_meeting"``, ``"wait:serve:at_meeting"``), so a test writes
+(``"sleep:0.5"``, ``"signal:at_meeting"``, ``"wait:serve:at_meeting"``, ``"fail_first:N"``:
+fail the first N times this broker performs the role), so a test writes
 the choreography of a coalition in the task itself. ``--lie``: it bids, then ignores the
 award (never starts). Every step is printed as a JSON line (``ready``, ``perform``,
 ``step``, ``ended``, ``ignored``).
@@ -18,6 +19,7 @@ import argparse
 import signal
 import sys
 import threading
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -39,6 +41,7 @@ class Script(Action):
     """Performs one role by its script (``job.role.params["script"]``)."""
 
     action_type = "role"  # one role at a time per robot: the others queue
+    performed: Counter[tuple[str, str, str]] = Counter()  # (broker, task, role) → times
 
     def __init__(self, job: Job, report: Report, me: str) -> None:
         self.job = job
@@ -49,6 +52,7 @@ class Script(Action):
         job = self.job
         ids = {"task": job.task.id, "role": job.role.name, "broker": self.me}
         self.report("perform", **ids)
+        Script.performed[(self.me, job.task.id, job.role.name)] += 1
         try:
             for step in job.role.params.get("script", []):
                 op, _, arg = step.partition(":")
@@ -59,6 +63,9 @@ class Script(Action):
                     job.signal(arg)
                 elif op == "wait":
                     job.wait_for(arg, timeout_s=float(job.role.params.get("wait_s", 20.0)))
+                elif op == "fail_first" and \
+                        Script.performed[(self.me, job.task.id, job.role.name)] <= int(arg):
+                    raise RuntimeError(f"{self.path}: scripted failure ({step})")
         except BaseException as exc:
             self.report("ended", outcome=type(exc).__name__, **ids)
             raise

@@ -350,6 +350,24 @@ def test_a_broker_that_bids_but_never_starts_is_timed_out_and_the_role_re_awarde
     assert steps.wait("dissolved")["broker"] == "liar"
 
 
+def test_a_member_that_failed_is_awarded_again_when_nobody_else_can_do_it(
+        boss: Agent, brokers: Callable[..., Agent], reports: Reports) -> None:
+    """A failed member is avoided, not banned: when it is the only one with the
+    capability, the re-auction gives it the role again (CI: EMILI's rendezvous timed out
+    once on a loaded host, and the café's cake was never served)."""
+    brokers("only", ["lift"], 1.0)
+    brokers("other", ["carry"], 0.5)
+    _see(boss, {"only", "other"})
+    task = Task.make("lift", id="t_again", roles=[
+        Role("lift", "lift", params={"script": ["fail_first:1", "sleep:0.01"]})])
+    outcome = auction(boss, task, reply_by_s=WAIT_S, retry_s=0.1)
+    assert outcome.state is TaskState.COMPLETED, outcome.reason
+    assert [r["members"] for r in outcome.rounds] == [{"lift": "only"}, {"lift": "only"}]
+    assert "scripted failure" in outcome.rounds[0]["ended"]
+    assert outcome.excluded == {"only"}  # still avoided where another could do it
+    assert len(reports.of("perform", broker="only")) == 2
+
+
 def test_queued_roles_re_plan_the_bids_and_batch_mode_assigns_jointly(
         boss: Agent, brokers: Callable[..., Agent], reports: Reports) -> None:
     brokers("q_a", ["carry"], 1.0)

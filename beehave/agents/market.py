@@ -962,10 +962,7 @@ class _Round:
                 _cancel_quietly(conv, late, Performative.CANCEL,
                                 {"reason": "no proposal before reply_by"})
         open_roles = {tid: o.open_roles() for tid, o in self.outcomes.items() if not o.done}
-        for (tid, _plan, _role), table in bids.items():
-            for name in self.outcomes[tid].excluded:
-                table.pop(name, None)
-        chosen = choose(open_roles, bids, batch=self.batch)
+        chosen = self._choose_avoiding_excluded(open_roles, bids)
         lost: list[tuple[str, str]] = []
         for tid, choice in chosen.items():
             o = self.outcomes[tid]
@@ -1096,6 +1093,28 @@ class _Round:
                 m.agreed_at = time.monotonic()
                 self.tell("agreed", conversation_id=conv.conversation_id, task=o.task.id,
                           role=m.role, broker=reply.sender)
+
+    def _choose_avoiding_excluded(self, open_roles: dict[str, dict[str, list[str]]],
+                                  bids: Bids) -> dict[str, Choice]:
+        """:func:`choose`, without the brokers that failed a task before -- unless only
+        they can fill it: a member that failed (a rendezvous that timed out on a busy
+        host, say) may well succeed the next time, and the task's ``max_rounds`` bounds
+        the retries, where leaving it out would fail the task for certain."""
+        avoided: Bids = {}
+        for key, table in bids.items():
+            for name in self.outcomes[key[0]].excluded:
+                if name in table:
+                    avoided.setdefault(key, {})[name] = table.pop(name)
+        chosen = choose(open_roles, bids, batch=self.batch)
+        stuck = {tid: roles for tid, roles in open_roles.items()
+                 if tid not in chosen and any(key[0] == tid for key in avoided)}
+        if stuck:
+            taken = {b for c in chosen.values() for b in c.members.values()}
+            again = {key: {b: c for b, c in {**bids.get(key, {}), **avoided.get(key, {})}.items()
+                           if b not in taken}
+                     for key in {*bids, *avoided} if key[0] in stuck}
+            chosen.update(choose(stuck, again, batch=self.batch))
+        return chosen
 
     def _event(self, conv: Conversation, sender: str, m: _Member, event: str,
                content: dict[str, Any]) -> None:
