@@ -124,6 +124,81 @@ def test_malformed_steps_are_refused_naming_the_step_and_the_valid_ops() -> None
                                                          "params.steps must be")
 
 
+# ---- an item left on a robot by a dissolved round (issue 11, CI) -----------------------------
+
+def _job(task: Task, plan: str, role: str) -> Job:
+    return Job(task, plan, role, conversation_id=f"c-{task.id}", initiator="orders")
+
+
+def test_a_robot_carrying_another_orders_item_refuses_to_take_or_pick_until_it_is_put_down(
+        ) -> None:
+    """CI: the tea's first round was dissolved after EMILI picked its item; re-awarded the
+    cake's serve role first, EMILI stood at the meeting point with the tea on its plate,
+    read it as the cake's hand-over, and waited for ``fetch:handed`` until its rendezvous
+    timed out (the physics hands nothing onto a full plate). Now its bid says why not."""
+    tea, cake, _ = cafe_orders("serve")
+    emili = Standing((9.0, 6.3), **EMILI)
+    emili.hold.set("shelf_open#1", "tea")
+    take = _job(cake, "coalition", "serve")
+    reason = emili.cost(take, [])
+    assert isinstance(reason, str), f"bid {reason} for a take with the tea on the plate"
+    assert "shelf_open#1" in reason and "'tea'" in reason and "cake/serve" in reason
+    # With the tea's role queued ahead, the plate is free by then: it bids.
+    tea_role = _job(tea, "main", "serve")
+    assert isinstance(emili.cost(take, [tea_role]), float)
+    # A robot that carries nothing bids for it at once.
+    assert isinstance(Standing((9.0, 6.3), **EMILI).cost(take, []), float)
+    # An item of no known order (never recorded) blocks too, naming it.
+    emili.hold.sync("shelf_open#7")
+    blocked = emili.cost(take, [])
+    assert isinstance(blocked, str) and "shelf_open#7 of no known order" in blocked
+
+
+def test_the_robot_that_holds_an_orders_item_carries_on_with_it_and_bids_less() -> None:
+    """A re-awarded round: the robot holding the order's item skips the pick (no second
+    item from the shelf, so "every item picked was served" can hold) — its bid leaves out
+    the drive to the shelf, so it is the cheaper one for the order."""
+    tea, cake, _ = cafe_orders("serve")
+    role = _job(tea, "main", "serve")
+    empty, carrying = Standing((7.0, 4.5), **EMILI), Standing((7.0, 4.5), **EMILI)
+    carrying.hold.set("shelf_open#1", "tea")
+    assert [xy for xy in carrying.stops(role)] == [parse_steps(role.role.params)[1][2]]
+    with_item, without = carrying.cost(role, []), empty.cost(role, [])
+    assert isinstance(with_item, float) and isinstance(without, float)
+    assert with_item < without
+    # A Kobuki that picked the cake's item for a dissolved round: its fetch goes straight
+    # to the meeting point; the napkins (a pick of another order) wait until it is given.
+    kobuki = Standing((1.3, 6.65), **KOBUKI)
+    kobuki.hold.set("shelf_narrow#1", "cake")
+    fetch = _job(cake, "coalition", "fetch")
+    assert kobuki.stops(fetch) == [parse_steps(fetch.role.params)[1][2]]
+    _, _, napkins = cafe_orders("serve")
+    assert isinstance(kobuki.cost(_job(napkins, "main", "carry"), []), str)
+    assert isinstance(kobuki.cost(_job(napkins, "main", "carry"), [fetch]), float)
+
+
+def test_a_role_never_reads_another_orders_item_as_its_hand_over() -> None:
+    """The runtime side: a take or pick that finds the robot carrying another order's item
+    fails at once, naming it (not after a 60 s rendezvous timeout); its own order's item
+    is carried on with."""
+    from beehave.errors import BeehaveError
+    from behaviours.market.serving import Hold, ServeError, ServeRole
+
+    _, cake, _ = cafe_orders("serve")
+    hold = Hold()
+    hold.set("shelf_open#1", "tea")
+    role = ServeRole(_job(cake, "coalition", "serve"), hold=hold, world="serve")
+    role._me = "emili1"
+    with pytest.raises(ServeError, match=r"cannot take at meeting: it carries shelf_open#1 "
+                                         r"of order 'tea'"):
+        role._carried("take", "meeting")
+    assert issubclass(ServeError, BeehaveError)
+    hold.set("shelf_narrow#1", "cake")
+    assert role._carried("take", "meeting") == "shelf_narrow#1"
+    hold.set(None, None)
+    assert role._carried("take", "meeting") is None
+
+
 # ---- the physics of the items ---------------------------------------------------------------
 
 def _cafe(kobuki_at: tuple[float, float]) -> Any:

@@ -47,6 +47,8 @@ from collections.abc import Callable, Iterable
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self
 
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
 from rclpy.duration import Duration
 from rclpy.exceptions import InvalidHandle
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -411,8 +413,13 @@ class Agent:
             String, DIRECTORY_TOPIC, self._on_directory, DIRECTORY_READER_QOS)))
         self._entities.append(("subscription", node.create_subscription(
             String, INBOX_PREFIX + name, self._on_inbox, inbox_qos(inbox_depth))))
+        # Leases are wall time for every agent: on a robot's node under use_sim_time a
+        # timer of the node's clock would stop whenever the simulation stalls, and every
+        # robot would leave the directory at once (issue 11).
+        self._wall = Clock(clock_type=ClockType.STEADY_TIME)
         self._entities.append(("timer", node.create_timer(EXPIRY_CHECK_S,
-                                                          self.directory._expire)))
+                                                          self.directory._expire,
+                                                          clock=self._wall)))
         self._remove_listener = self.directory._on_departure(self._peer_departed)
         #: Set when the agent lost its name to an older process after it started (then it
         #: is closed, and sending raises this).
@@ -423,7 +430,8 @@ class Agent:
         except BaseException:
             self.close()
             raise
-        self._entities.append(("timer", node.create_timer(self.lease_s / 4, self._announce)))
+        self._entities.append(("timer", node.create_timer(self.lease_s / 4, self._announce,
+                                                          clock=self._wall)))
 
     # ------------------------------------------------------------------ directory
     def _probe(self, probe_s: float) -> None:

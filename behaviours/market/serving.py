@@ -34,6 +34,15 @@ role reserves it (waiting where it stands while another robot holds it), renews 
 while inside, and releases it as soon as its odometry is out again. A robot that dies
 leaves the directory, which frees its zone.
 
+**An item belongs to an order.** The physics says *whether* a robot holds an item; only
+the robot knows *for which order* it picked or took it (:class:`Hold`, one per broker,
+kept across its roles). A role whose coalition was dissolved may leave the item on the
+robot; when the order is awarded again, the robot that holds its item carries on with it
+(its ``pick`` / ``take`` steps are skipped, and its bid is the cheaper for it) instead of
+picking a second one, and a robot never starts a ``pick`` or ``take`` for another order
+with a full plate: it refuses such a role in its bid until the order it carries is queued
+ahead, and a role that finds it so anyway fails at once, naming the item.
+
 The partner of ``give`` / ``take`` is ``role.params["partner"]``, else the plan's other
 role. Waiting never blocks the control loop: under sim time the action keeps ticking (and
 so keeps its lockstep with the simulator) while it waits — a blocking wait would hold the
@@ -75,7 +84,7 @@ from robots import topics
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HAND_OVER_TOPIC", "OPS", "SERVE_STATE", "STATE_QOS", "STATE_SCHEMA",
+__all__ = ["HAND_OVER_TOPIC", "OPS", "Hold", "SERVE_STATE", "STATE_QOS", "STATE_SCHEMA",
            "ZONE_PROTOCOL", "ZONE_SERVICE", "ServeBroker", "ServeError", "ServeRole", "Step",
            "ZoneKeeper", "parse_steps"]
 
@@ -107,6 +116,50 @@ Step = tuple[str, str, tuple[float, float]]
 
 class ServeError(BeehaveError):
     """A serving step did not happen in time (no item at the shelf, no guest took it)."""
+
+
+class Hold:
+    """What one robot carries, and for which order (thread-safe: the broker reads it in its
+    bids, the robot's roles write it). ``item`` is the physics' name of the item
+    (``shelf_open#1``), ``task`` the id of the order this robot picked or took it for."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._item: str | None = None
+        self._task: str | None = None
+
+    def get(self) -> tuple[str | None, str | None]:
+        """``(item, task)``; ``(None, None)`` when the robot carries nothing."""
+        with self._lock:
+            return self._item, self._task
+
+    def set(self, item: str | None, task: str | None) -> None:
+        with self._lock:
+            self._item, self._task = item, (task if item is not None else None)
+
+    def sync(self, physics_item: str | None) -> None:
+        """Agree with the physics: an item it does not hold any more is forgotten, one it
+        holds that was never recorded belongs to no known order."""
+        with self._lock:
+            if physics_item != self._item:
+                self._item, self._task = physics_item, None
+
+    def conflict(self, jobs: list[Job]) -> str | None:
+        """Why this robot cannot do ``jobs`` in this order with what it carries now, or
+        None: a role that picks or takes an item must not come while the robot still
+        carries another order's item (every role that gets an item also puts it down, so
+        the plate is free again after the carried order's role)."""
+        item, task = self.get()
+        for job in jobs:
+            if item is None:
+                return None
+            if job.task.id == task:
+                item = None  # this role carries on with it and puts it down
+            elif any(op in ("pick", "take") for op, _, _ in parse_steps(job.role.params)):
+                return (f"carries {item} of order {task!r}" if task is not None else
+                        f"carries {item} of no known order") + \
+                    f": it cannot {job.task.id}/{job.role.name} before that is put down"
+        return None
 
 
 def parse_steps(params: Any, *, where: str = "role") -> list[Step]:
@@ -171,17 +224,36 @@ class ServeBroker(TravelBroker):
                     "slow_distance_m": stop_distance_m + 0.4}
         self.has_lift, self.has_display = has_lift, has_display
         self.meet_timeout_s, self.wait_timeout_s = meet_timeout_s, wait_timeout_s
+        #: What this robot carries, for which order (shared by its roles).
+        self.hold = Hold()
+        self._state: Any = None  # the physics' word, for the bids (None without ROS)
 
     def run(self) -> None:
         if self.manager.node is not None:
             # Declared now, not at the first drive: the speed zones logic sets it from the
             # start (a robot entering the aisle on its first role is already limited).
             SpeedLimit.of(self.manager.node)
+            self._state = self.ros.latest(String, SERVE_STATE, qos=STATE_QOS)
         super().run()
 
-    @staticmethod
-    def stops(job: Job) -> list[tuple[float, float]]:
-        return [xy for _, _, xy in parse_steps(job.role.params)]
+    def _physics_item(self) -> tuple[bool, str | None]:
+        """(known, item): whether the simulation said yet, and what this robot holds."""
+        msg = self._state.get() if self._state is not None else None
+        if msg is None or self.manager.node is None:
+            return False, None
+        node = self.manager.node
+        try:
+            robot = json.loads(msg.data)["robots"][node.get_namespace().strip("/")]
+        except (ValueError, KeyError, TypeError):
+            return False, None
+        item = robot.get("item") if isinstance(robot, dict) else None
+        return True, item if isinstance(item, str) else None
+
+    def stops(self, job: Job) -> list[tuple[float, float]]:  # type: ignore[override]
+        # The robot that carries the order's item already skips its pick / take.
+        carried = self.hold.get()[1] == job.task.id
+        return [xy for op, _, xy in parse_steps(job.role.params)
+                if not (carried and op in ("pick", "take"))]
 
     def cost(self, job: Job, queue: list[Job]) -> float | str | None:
         try:
@@ -189,14 +261,20 @@ class ServeBroker(TravelBroker):
                                                f"{job.role.name!r}")
         except ValueError as exc:
             return str(exc)  # a malformed order is refused, saying why
-        offer = super().cost(job, queue)
+        known, item = self._physics_item()
+        if known and not queue:
+            # Nothing running that could change it: the physics' word is current (a role
+            # interrupted right after its hand-over did not get to forget the item).
+            self.hold.sync(item)
+        conflict = self.hold.conflict([*queue, job])
+        offer = conflict if conflict is not None else super().cost(job, queue)
         log.info("%s: %s for %s/%s after %d queued role(s): %s", self.path,
                  "refuses" if isinstance(offer, str) else "bids", job.task.id,
                  job.role.name, len(queue), offer)
         return offer
 
     def perform_role(self, job: Job) -> Action:
-        return ServeRole(job, agent=self.agent, has_lift=self.has_lift,
+        return ServeRole(job, agent=self.agent, hold=self.hold, has_lift=self.has_lift,
                          has_display=self.has_display,
                          meet_timeout_s=self.meet_timeout_s,
                          wait_timeout_s=self.wait_timeout_s, **self.nav)
@@ -213,11 +291,13 @@ class ServeRole(Navigation):
 
     LIFT_UP_M = 0.2
 
-    def __init__(self, job: Job, *, agent: Agent | None = None, has_lift: bool = False,
-                 has_display: bool = False, meet_timeout_s: float = 240.0,
-                 wait_timeout_s: float = 60.0, **nav: Any) -> None:
+    def __init__(self, job: Job, *, agent: Agent | None = None, hold: Hold | None = None,
+                 has_lift: bool = False, has_display: bool = False,
+                 meet_timeout_s: float = 240.0, wait_timeout_s: float = 60.0,
+                 **nav: Any) -> None:
         self.job = job
         self.agent = agent
+        self.hold = hold if hold is not None else Hold()
         self.world = nav.get("world")
         #: Zone keepers whose zone this robot holds now: keeper → (zone, last renewal).
         self.held: dict[str, tuple[Any, float]] = {}
@@ -407,16 +487,42 @@ class ServeRole(Navigation):
             first_message(self._lift_state)
         if self.has_display:
             self._display = self.ros.publisher(String, topics.DISPLAY)
+        # What the robot carries now, in the physics' word (latched: here at once).
+        first_message(self._state)
+        self.hold.sync(self._item())
         try:
             return self._perform()
         finally:
             if self.held:
                 self._leave(everything=True)
 
+    def _carried(self, op: str, place: str) -> str | None:
+        """Before a ``pick`` / ``take``: the item to carry on with when the robot already
+        holds this order's item (an earlier round of it, dissolved, left it here), None
+        when the plate is free; :class:`ServeError` when it holds another order's item —
+        no second item onto a full plate, and no hand-over could ever happen."""
+        item, task = self.hold.get()
+        if item is None:
+            return None
+        if task == self.job.task.id:
+            log.info("%s: carries on with %s (picked for this order in an earlier round); "
+                     "no %s at %s", self.name, item, op, place)
+            return item
+        raise ServeError(f"{self.name} ({self._me}): cannot {op} at {place}: it carries "
+                         f"{item} of " + (f"order {task!r}" if task is not None
+                                          else "no known order") + " (put down first)")
+
     def _perform(self) -> dict[str, Any]:
         job, clock = self.job, self.manager.clock
         done: list[list[Any]] = []
         for op, place, (x, y) in self.steps:
+            if op in ("pick", "take"):
+                carried = self._carried(op, place)
+                if carried is not None:
+                    job.signal("picked" if op == "pick" else "received",
+                               {"item": carried, "carried_over": True})
+                    done.append([f"kept ({op})", place, round(clock.now(), 2)])
+                    continue
             self._enter(x, y, place)
             self.phase = f"to {place}"
             self.goal = Goal(x, y, name=place)
@@ -427,17 +533,20 @@ class ServeRole(Navigation):
             if op == "pick":
                 self._until(lambda: self._item() is not None, self.wait_timeout_s,
                             f"an item picked at {place}")
+                self.hold.set(self._item(), job.task.id)
                 job.signal("picked", {"item": self._item()})
             elif op == "give":
                 self._meet()
                 self._until(self._offer(), self.wait_timeout_s,
                             "the hand-over (the item leaving this robot)")
+                self.hold.set(None, None)
                 job.signal("handed")
             elif op == "take":
                 self._lift(self.LIFT_UP_M)  # the item goes onto the raised plate
                 self._meet()
                 self._until(lambda: self._item() is not None, self.wait_timeout_s,
                             "the hand-over (an item on this robot)")
+                self.hold.set(self._item(), job.task.id)
                 handed = f"{self.partner}:handed"
                 self._until(self._reached(handed), self.wait_timeout_s,
                             f"{handed!r}", RendezvousTimeout)
@@ -451,6 +560,7 @@ class ServeRole(Navigation):
                 self._show(f"{job.task.id}: {job.task.params.get('item', item)} for {table}")
                 self._until(lambda: self._item() is None, self.wait_timeout_s,
                             f"the guest at {place} taking {item}")
+                self.hold.set(None, None)
                 self._show("")
                 self._lift(0.0)
                 job.signal("served")
