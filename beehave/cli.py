@@ -453,9 +453,11 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("sim", add_help=False,
                    help="run a simulated world and put its robots on ROS 2 (beehave sim -h)")
     sub.add_parser("fleet", add_help=False,
-                   help="the factory fleet: ATVs, machines and charging stations as agents, "
-                        "each in its own process, checked in the physics (beehave fleet -h)")
-    for name, (_, text) in _RECORDING_COMMANDS.items():
+                   help="multi-robot scenarios, every agent in its own process, checked in "
+                        "the physics: the factory fleet (default), --scenario serve (a "
+                        "market with coalitions), --scenario droid (MAVLink) (beehave "
+                        "fleet -h)")
+    for name, text in _RECORDING_COMMANDS.items():
         sub.add_parser(name, add_help=False, help=text)
     return parser
 
@@ -498,37 +500,32 @@ def _fleet(argv: list[str]) -> int:
 
 # ---- recordings: beehave replay | inspect | plot (beehave/recording/cli.py) -----------------
 
-def _replay(argv: list[str]) -> int:
-    from beehave.recording.cli import replay_main
+def _recording_command(name: str) -> Callable[[list[str]], int]:
+    """``beehave replay|inspect|plot``: ``beehave.recording.cli.<name>_main``, imported only
+    when the command runs (it needs the ``record`` extra)."""
+    def command(argv: list[str]) -> int:
+        import importlib
 
-    return replay_main(argv)
+        main: Callable[[list[str]], int] = getattr(
+            importlib.import_module("beehave.recording.cli"), f"{name}_main")
+        return main(argv)
 
-
-def _inspect(argv: list[str]) -> int:
-    from beehave.recording.cli import inspect_main
-
-    return inspect_main(argv)
-
-
-def _plot(argv: list[str]) -> int:
-    from beehave.recording.cli import plot_main
-
-    return plot_main(argv)
+    return command
 
 
-_RECORDING_COMMANDS: dict[str, tuple[Callable[[list[str]], int], str]] = {
-    "replay": (_replay, "run a robot's logics again on a recording and check they decide "
-                        "the same (beehave replay -h)"),
-    "inspect": (_inspect, "a recording's channels, counts, duration and event timeline"),
-    "plot": (_plot, "a recording as a Gantt chart of behaviours and actions with blackboard "
-                    "series (beehave plot -h)"),
+_RECORDING_COMMANDS: dict[str, str] = {
+    "replay": "run a robot's logics and behaviours again on a recording and check they "
+              "decide the same (beehave replay -h)",
+    "inspect": "a recording's channels, counts, duration and event timeline",
+    "plot": "a recording as a Gantt chart of behaviours and actions with blackboard series "
+            "(beehave plot -h)",
 }
 
 
 #: Commands that parse their own arguments (with their own ``-h``).
 _OWN_PARSERS: dict[str, Callable[[list[str]], int]] = {
     "graph": _graph, "sim": _sim, "fleet": _fleet,
-    **{k: v[0] for k, v in _RECORDING_COMMANDS.items()}}
+    **{name: _recording_command(name) for name in _RECORDING_COMMANDS}}
 
 
 def main(argv: list[str] | None = None) -> int:
