@@ -285,8 +285,9 @@ def _check_fusion(config: RobotConfig) -> None:
     for actuator, spec in config.fusion.items():
         try:
             check_name("actuator", actuator)
-            make_inputs(actuator, {n: i.model_dump() for n, i in spec.inputs.items()})
-            make_locks(actuator, {n: lock.model_dump() for n, lock in spec.locks.items()})
+            params = spec.arbiter_params(actuator)
+            make_inputs(actuator, params["inputs"])
+            make_locks(actuator, params["locks"])
         except ConfigError as exc:
             raise ConfigError(f"{config.source}: fusion.{actuator}: {exc}") from None
 
