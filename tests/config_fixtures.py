@@ -7,6 +7,7 @@ import asyncio
 import time
 
 from beehave import HAL, Behavior, Logic
+from beehave.testing import ScriptedAction
 
 
 class Waits(Behavior):
@@ -17,6 +18,22 @@ class Waits(Behavior):
 
     def run(self) -> None:
         while self.sleep(1.0):
+            pass
+
+
+class Drive(Behavior):
+    """Drives to a station and waits there.
+
+    More text that the listing leaves out (the control plane lists the first paragraph)."""
+
+    def __init__(self, station: str, speed_mps: float = 0.5) -> None:
+        self.station = station
+        self.speed_mps = speed_mps
+        self.action = ScriptedAction("driving", duration_s=60.0, name="to_station")
+
+    def run(self) -> None:
+        self.start_action(self.action)
+        while self.sleep(0.01):
             pass
 
 

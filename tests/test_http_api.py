@@ -17,44 +17,24 @@ import pytest
 pytest.importorskip("fastapi")
 pytest.importorskip("uvicorn")
 httpx = pytest.importorskip("httpx")
+from config_fixtures import Drive, Explodes  # noqa: E402
 from websockets.exceptions import InvalidStatus  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
-from beehave import Behavior, HighLevelBehaviorManager  # noqa: E402
+from beehave import HighLevelBehaviorManager  # noqa: E402
 from beehave.errors import ConfigError  # noqa: E402
 from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer, parse_address  # noqa: E402
-from beehave.testing import ScriptedAction, wait_until  # noqa: E402
+from beehave.testing import wait_until  # noqa: E402
 
 WORLD = {"name": "tiny", "floor": {"size_m": [6, 4]},
          "stations": [{"name": "dock", "kind": "charging", "center_m": [1, 1]}]}
 
 
-class Drive(Behavior):
-    """Drives to a station."""
-
-    def __init__(self, station: str, speed_mps: float = 0.5) -> None:
-        self.station = station
-        self.speed_mps = speed_mps
-
-    def run(self) -> None:
-        self.start_action(ScriptedAction("driving", duration_s=60.0, name="to_station"))
-        while self.sleep(0.01):
-            pass
-
-
-class Broken(Behavior):
-    def __init__(self) -> None:
-        raise RuntimeError("a bug in __init__")
-
-    def run(self) -> None:  # pragma: no cover - never constructed
-        pass
-
-
 @pytest.fixture
 def plane(hl: HighLevelBehaviorManager) -> Iterator[ControlPlane]:
     hl.register("drive", Drive, station="dock")
-    hl.register("broken", Broken)
+    hl.register("broken", Explodes)
     hl.blackboard.set("battery/percentage", 54.0, writer="hal:debug")
     hl.blackboard.set("scan/front_m", float("inf"), writer="hal:laser")
     core = ControlPlane(hl, name="emili1")
@@ -137,7 +117,8 @@ def test_switch_and_stop_reach_the_manager(server: HttpServer,
      "unknown behavior 'patrol'; registered: 'broken', 'drive', 'idle'"),
     ("post", "/api/robots/emili1/switch", {"behavior": "drive", "params": {"colour": 1}},
      422, "it accepts: station, speed_mps"),
-    ("post", "/api/robots/emili1/switch", {"behavior": "broken"}, 500, "a bug in __init__"),
+    ("post", "/api/robots/emili1/switch", {"behavior": "broken"}, 500,
+     "motor controller not found"),
     ("post", "/api/robots/emili1/switch", {"behavior": 7}, 422,
      "body.behavior: Input should be a valid string"),
     ("post", "/api/robots/emili1/switch", {"name": "drive"}, 422, "body.behavior: Field required"),

@@ -9,9 +9,9 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from config_fixtures import Drive, Explodes
 
 from beehave import (
-    Behavior,
     ConstructorFailed,
     HighLevelBehaviorManager,
     InvalidParameters,
@@ -22,31 +22,7 @@ from beehave import (
 )
 from beehave.errors import BadRequest, BlackboardError, UnknownKey
 from beehave.interfaces import STATE_SCHEMA, ControlPlane
-from beehave.testing import ScriptedAction, wait_until
-
-
-class Drive(Behavior):
-    """Drives to a station and waits there.
-
-    More text that the listing leaves out."""
-
-    def __init__(self, station: str, speed_mps: float = 0.5) -> None:
-        self.station = station
-        self.speed_mps = speed_mps
-        self.action = ScriptedAction("driving", duration_s=60.0, name="to_station")
-
-    def run(self) -> None:
-        self.start_action(self.action)
-        while self.sleep(0.01):
-            pass
-
-
-class Broken(Behavior):
-    def __init__(self) -> None:
-        raise RuntimeError("a bug in __init__")
-
-    def run(self) -> None:  # pragma: no cover - never constructed
-        pass
+from beehave.testing import wait_until
 
 
 class Quiet(Logic):
@@ -110,10 +86,10 @@ def test_a_refused_switch_names_the_problem_and_stops_nothing(
 
 def test_a_constructor_that_raises_is_reported_as_its_own_fault(hl: HighLevelBehaviorManager
                                                                  ) -> None:
-    hl.register("broken", Broken)
+    hl.register("broken", Explodes)
     core = ControlPlane(hl)
     try:
-        with pytest.raises(ConstructorFailed, match="a bug in __init__"):
+        with pytest.raises(ConstructorFailed, match="motor controller not found"):
             core.switch("broken")
         assert hl.current == "idle"
     finally:

@@ -230,6 +230,8 @@ class Vda5050Interface:
         self._wake.set()
         for thread in self._threads:
             thread.join(timeout=5.0)
+            if thread.is_alive():
+                log.warning("vda5050: thread %s still running 5 s after close()", thread.name)
         self._threads.clear()
         client = self._client
         if client is not None:
