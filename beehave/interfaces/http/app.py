@@ -287,8 +287,11 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
         finally:
             hub.remove(client)
             sender.cancel()
-            with contextlib.suppress(BaseException):
-                await sender
+            await asyncio.wait([sender])  # never raises; the handler's own cancel still does
+            error = None if sender.cancelled() else sender.exception()
+            if error is not None and not isinstance(error, _CLIENT_GONE):
+                log.warning("web view: the stream to a WebSocket client failed: %r", error,
+                            exc_info=error)
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:
@@ -296,6 +299,11 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     return app
+
+
+_CLIENT_GONE = (WebSocketDisconnect, RuntimeError, OSError)
+"""What a send raises when the client has just gone (starlette: RuntimeError after the
+close; uvicorn: ClientDisconnected, an OSError): not worth a warning. Anything else is."""
 
 
 async def _send_loop(websocket: WebSocket, client: Client) -> None:
