@@ -177,18 +177,13 @@ def test_a_crash_leaves_the_file_readable_up_to_the_last_chunk(tmp_path: Path) -
         list(make_reader(f).iter_messages())
 
 
-class _BlockedDisk:
-    """A file whose writes wait until ``release`` is set: a disk that stalls."""
+class _Disk:
+    """A file opened for the recorder (``open_file``); subclasses make its disk misbehave."""
 
-    def __init__(self, path: Path, release: threading.Event) -> None:
+    def __init__(self, path: Path) -> None:
         self._f: IO[bytes] = open(path, "wb")  # noqa: SIM115
-        self._release = release
-        self.blocked = threading.Event()
 
     def write(self, data: bytes) -> int:
-        if not self._release.is_set():
-            self.blocked.set()
-            self._release.wait(30)  # bounded: a broken test must not hang the suite
         return self._f.write(data)
 
     def tell(self) -> int:
@@ -199,6 +194,21 @@ class _BlockedDisk:
 
     def close(self) -> None:
         self._f.close()
+
+
+class _BlockedDisk(_Disk):
+    """A file whose writes wait until ``release`` is set: a disk that stalls."""
+
+    def __init__(self, path: Path, release: threading.Event) -> None:
+        super().__init__(path)
+        self._release = release
+        self.blocked = threading.Event()
+
+    def write(self, data: bytes) -> int:
+        if not self._release.is_set():
+            self.blocked.set()
+            self._release.wait(30)  # bounded: a broken test must not hang the suite
+        return super().write(data)
 
 
 def test_a_slow_disk_drops_and_counts_instead_of_stalling(tmp_path: Path) -> None:
@@ -269,25 +279,13 @@ def test_files_roll_over_by_size(tmp_path: Path) -> None:
 
 
 def test_a_failing_disk_is_reported_and_never_breaks_the_writers(tmp_path: Path) -> None:
-    class Full:
+    class Full(_Disk):
         full = False
-
-        def __init__(self, p: Path) -> None:
-            self._f = open(p, "wb")  # noqa: SIM115
 
         def write(self, data: bytes) -> int:
             if Full.full:
                 raise OSError(28, "No space left on device")
-            return self._f.write(data)
-
-        def tell(self) -> int:
-            return self._f.tell()
-
-        def flush(self) -> None:
-            self._f.flush()
-
-        def close(self) -> None:
-            self._f.close()
+            return super().write(data)
 
     board = Blackboard()
     recorder = Recorder(tmp_path / "full.mcap", flush_period_s=0.02, queue_size=50,

@@ -162,22 +162,29 @@ def describe_replay(result: ReplayResult) -> str:
 
 # ---- beehave inspect --------------------------------------------------------------------
 
+def _recording_parser(prog: str, description: str, *,
+                      robot_help: str) -> argparse.ArgumentParser:
+    """The arguments ``inspect`` and ``plot`` share: the recording and ``--robot``."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser.add_argument("recording", metavar="FILE.mcap")
+    parser.add_argument("--robot", action="append", default=None, metavar="NAME",
+                        help=robot_help)
+    return parser
+
+
 _TIMELINE_KINDS = {"started", "ended", "stuck", "switch_requested", "switch_completed",
                    "switch_rejected", "fallback", "lock_rejected", "lock_preempted",
                    "safe_state_failed", "restarted", "loop_blocked"}
 
 
 def inspect_main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="beehave inspect",
-        description="What a recording holds: its channels with their message counts, its "
-                    "duration, losses, and the event timeline (behaviours, actions, logic "
-                    "switches, locks, STUCK).")
-    parser.add_argument("recording", metavar="FILE.mcap")
+    parser = _recording_parser(
+        "beehave inspect",
+        "What a recording holds: its channels with their message counts, its duration, "
+        "losses, and the event timeline (behaviours, actions, logic switches, locks, STUCK).",
+        robot_help="only this robot's events (repeatable)")
     parser.add_argument("--limit", type=int, default=200, metavar="N",
                         help="show at most N timeline lines (default 200; 0: none)")
-    parser.add_argument("--robot", action="append", default=None, metavar="NAME",
-                        help="only this robot's events (repeatable)")
     args = parser.parse_args(argv)
     from rich.console import Console
     from rich.table import Table
@@ -240,16 +247,13 @@ def inspect_main(argv: list[str]) -> int:
 # ---- beehave plot -----------------------------------------------------------------------
 
 def plot_main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="beehave plot",
-        description="A recording as a picture: a Gantt chart of the behaviours, actions and "
-                    "logics of each robot (coloured by outcome, switches marked) with "
-                    "blackboard series underneath.")
-    parser.add_argument("recording", metavar="FILE.mcap")
+    parser = _recording_parser(
+        "beehave plot",
+        "A recording as a picture: a Gantt chart of the behaviours, actions and logics of "
+        "each robot (coloured by outcome, switches marked) with blackboard series underneath.",
+        robot_help="only this robot (repeatable; default: every robot)")
     parser.add_argument("-o", "--out", required=True, metavar="OUT.png",
                         help="the picture to write (.png, .svg or .pdf)")
-    parser.add_argument("--robot", action="append", default=None, metavar="NAME",
-                        help="only this robot (repeatable; default: every robot)")
     parser.add_argument("--series", action="append", default=None, metavar="KEY",
                         help="a blackboard key to plot under the chart (repeatable; default: "
                              "speed, battery, front distance, lift height where recorded)")
