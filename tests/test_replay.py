@@ -9,14 +9,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from replay_fixtures import recorded_low
 
 from beehave.config import RobotConfig, parse_config
 from beehave.errors import RecordingError
 from beehave.recording import Recorder, read_recording
 from beehave.recording.replay import Output, compare, replay
-from beehave.robot import Robot
 from beehave.testing import wait_until
-from hal.debug import DebugHAL, DebugRobot
+from hal.debug import DebugRobot
 
 
 def _config(threshold: float = 20.0) -> RobotConfig:
@@ -35,26 +35,20 @@ def _record_live(path: Path) -> DebugRobot:
     """A low level (debug HAL, LED logic) recorded while its battery drains and its logic
     is switched once, as `beehave run --record` records it (without ROS)."""
     hardware = DebugRobot(battery_percentage=40.0)
-    robot = Robot(_config(), only="low")
-    low = robot.low
-    assert low is not None
-    low.hals.register(DebugHAL, robot=hardware)
-    with Recorder(path, flush_period_s=0.1) as recorder:
-        recorder.attach_robot(robot)
-        with low:
-            assert wait_until(lambda: "debug" in low.hals.loaded, 2)
-            # Each step waits for the logic's answer: a watcher coalesces changes it has
-            # not taken yet, and this test is about replaying what happened, not a race.
-            for pct, colour in ((35.0, "green"), (25.0, "green"), (15.0, "red"),
-                                (10.0, "red"), (30.0, "green"), (12.0, "red")):
-                hardware.set_battery(pct)
-                assert wait_until(lambda c=colour: hardware.led_color == c, 2)  # type: ignore[misc]
-                time.sleep(0.01)
-            low.switch("display")
-            for pct, text in ((50.0, "50%"), (18.0, "battery-low"), (60.0, "60%")):
-                hardware.set_battery(pct)
-                assert wait_until(lambda t=text: hardware.display == t, 2)  # type: ignore[misc]
-                time.sleep(0.01)
+    with recorded_low(path, _config(), hardware) as low:
+        assert wait_until(lambda: "debug" in low.hals.loaded, 2)
+        # Each step waits for the logic's answer: a watcher coalesces changes it has
+        # not taken yet, and this test is about replaying what happened, not a race.
+        for pct, colour in ((35.0, "green"), (25.0, "green"), (15.0, "red"),
+                            (10.0, "red"), (30.0, "green"), (12.0, "red")):
+            hardware.set_battery(pct)
+            assert wait_until(lambda c=colour: hardware.led_color == c, 2)  # type: ignore[misc]
+            time.sleep(0.01)
+        low.switch("display")
+        for pct, text in ((50.0, "50%"), (18.0, "battery-low"), (60.0, "60%")):
+            hardware.set_battery(pct)
+            assert wait_until(lambda t=text: hardware.display == t, 2)  # type: ignore[misc]
+            time.sleep(0.01)
     return hardware
 
 

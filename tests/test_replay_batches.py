@@ -18,24 +18,21 @@ A replay by wall time shows ``30%`` before ``battery-low``: the first divergence
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import functools
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, cast
 
 import pytest
+from replay_fixtures import recorded_low
 
 from beehave.config import RobotConfig, parse_config
 from beehave.logic import Logic
-from beehave.lowlevel import LowLevelBehaviorManager
-from beehave.recording import Recorder, read_recording
+from beehave.recording import read_recording
 from beehave.recording import recorder as recorder_module
 from beehave.recording import writer as writer_module
 from beehave.recording.replay import replay
-from beehave.robot import Robot
 from beehave.testing import wait_until
 from hal.debug import DebugHAL, DebugRobot
 
@@ -52,23 +49,9 @@ def _config() -> RobotConfig:
     }, source="bot.yaml")
 
 
-@contextlib.contextmanager
-def _recorded_low(path: Path, config: RobotConfig,
-                  hardware: DebugRobot) -> Iterator[LowLevelBehaviorManager]:
-    """A low level on the debug HAL of ``hardware``, running and recorded to ``path``."""
-    robot = Robot(config, only="low")
-    low = robot.low
-    assert low is not None
-    low.hals.register(DebugHAL, robot=hardware)
-    with Recorder(path, flush_period_s=0.1) as recorder:
-        recorder.attach_robot(robot)
-        with low:
-            yield low
-
-
 def _record(path: Path) -> DebugRobot:
     hardware = DebugRobot(battery_percentage=40.0)
-    with _recorded_low(path, _config(), hardware) as low:
+    with recorded_low(path, _config(), hardware) as low:
         assert wait_until(lambda: hardware.display == "40%", 2)
         board = low.blackboard
 
@@ -122,6 +105,7 @@ def test_the_recording_says_which_writes_the_logic_saw_together(tmp_path: Path) 
     assert [w["value"] for w in writes] == [40.0, 15.0, 30.0, 12.0, 35.0]
     first, apart_15, apart_30, together_12, together_35 = (w["batch"] for w in writes)
     assert isinstance(apart_15, int) and isinstance(apart_30, int)
+    assert isinstance(together_12, int)
     assert apart_15 < apart_30  # the logic ran between them
     assert together_12 == together_35  # the loop delivered them in one callback
     assert apart_30 < together_12  # batches follow the order the logics saw them in
@@ -152,7 +136,7 @@ def test_a_recording_without_batches_replays_by_wall_time(tmp_path: Path,
                         functools.partial(writer_module._encode_each, old_format))
     path = tmp_path / "old.mcap"
     hardware = DebugRobot(battery_percentage=40.0)
-    with _recorded_low(path, _config(), hardware):
+    with recorded_low(path, _config(), hardware):
         for pct, text in ((40.0, "40%"), (15.0, "battery-low"), (30.0, "30%")):
             hardware.set_battery(pct)
             assert wait_until(lambda t=text: hardware.display == t, 2)  # type: ignore[misc]
@@ -194,7 +178,7 @@ def test_a_write_stored_before_the_step_counts_in_its_batch(tmp_path: Path) -> N
     belongs to the batch the step saw, although the loop delivers it only later."""
     path = tmp_path / "bot.mcap"
     hardware = DebugRobot()
-    with _recorded_low(path, _pair_config(), hardware) as low:
+    with recorded_low(path, _pair_config(), hardware) as low:
         assert wait_until(lambda: "debug" in low.hals.loaded, 2)
 
         async def settled() -> None:
