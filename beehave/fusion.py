@@ -61,7 +61,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from numbers import Real
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 from beehave.blackboard import Change, _Slot
 from beehave.errors import BadProposal, ConfigError, UnknownFusionSource
@@ -151,6 +151,27 @@ class FusionLock:
             object.__setattr__(self, "max_age_s", float(age))
 
 
+_Spec = TypeVar("_Spec", FusionLock, FusionInput)
+
+
+def _make_spec(cls: type[_Spec], spec: object, keys: tuple[str, ...],
+               required: tuple[str, ...]) -> _Spec:
+    """``spec`` as a ``cls``: one already, or a mapping of its fields (only ``keys``, with
+    every one of ``required``)."""
+    if isinstance(spec, cls):
+        return spec
+    if not isinstance(spec, Mapping):
+        raise ConfigError(f"expected a {cls.__name__} or a mapping, got {spec!r:.60}")
+    unknown = set(spec) - set(keys)
+    if unknown:
+        raise ConfigError(f"unknown key(s) {', '.join(sorted(map(str, unknown)))}"
+                          f"; valid keys: {', '.join(keys)}")
+    if any(key not in spec for key in required):
+        raise ConfigError(f"{' and '.join(required)} "
+                          f"{'is' if len(required) == 1 else 'are'} required")
+    return cls(**spec)
+
+
 def make_locks(actuator: str, locks: object) -> dict[str, FusionLock]:
     """Check and normalise the locks of ``actuator``'s arbiter: a mapping of lock name to
     :class:`FusionLock` (or to a mapping of its fields); None or empty: no locks."""
@@ -163,18 +184,7 @@ def make_locks(actuator: str, locks: object) -> dict[str, FusionLock]:
     for name, spec in locks.items():
         check_name(f"arbiter {actuator!r}: lock name", name)
         try:
-            if isinstance(spec, FusionLock):
-                out[name] = spec
-            elif isinstance(spec, Mapping):
-                unknown = set(spec) - {"priority", "max_age_s"}
-                if unknown:
-                    raise ConfigError(f"unknown key(s) {', '.join(sorted(map(str, unknown)))}"
-                                      "; valid keys: priority, max_age_s")
-                if "priority" not in spec:
-                    raise ConfigError("priority is required")
-                out[name] = FusionLock(**spec)
-            else:
-                raise ConfigError(f"expected a FusionLock or a mapping, got {spec!r:.60}")
+            out[name] = _make_spec(FusionLock, spec, ("priority", "max_age_s"), ("priority",))
         except ConfigError as exc:
             raise ConfigError(f"arbiter {actuator!r}: lock {name!r}: {exc}") from None
     return out
@@ -195,18 +205,8 @@ def make_inputs(actuator: str, inputs: object) -> dict[str, FusionInput]:
                               f"({', '.join(sorted(RESERVED_NAMES))} are written by the "
                               "arbiter itself)")
         try:
-            if isinstance(spec, FusionInput):
-                out[name] = spec
-            elif isinstance(spec, Mapping):
-                unknown = set(spec) - {"priority", "max_age_s", "safety"}
-                if unknown:
-                    raise ConfigError(f"unknown key(s) {', '.join(sorted(map(str, unknown)))}"
-                                      "; valid keys: priority, max_age_s, safety")
-                if "priority" not in spec or "max_age_s" not in spec:
-                    raise ConfigError("priority and max_age_s are required")
-                out[name] = FusionInput(**spec)
-            else:
-                raise ConfigError(f"expected a FusionInput or a mapping, got {spec!r:.60}")
+            out[name] = _make_spec(FusionInput, spec, ("priority", "max_age_s", "safety"),
+                                   ("priority", "max_age_s"))
         except ConfigError as exc:
             raise ConfigError(f"arbiter {actuator!r}: input {name!r}: {exc}") from None
     # Equal priorities within one kind would make the winner depend on dict order.

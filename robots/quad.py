@@ -213,19 +213,15 @@ class Quad(SimRobot):
                               self._yaw_rate)
 
     def _sense(self, time_s: float, dt_s: float, *, scan: bool) -> None:
-        flying = self._z > 0.01
-        self._extra_power_w = self.hover_w if flying else 0.0
-        odom = self._odom
+        self._extra_power_w = self.hover_w if self._z > 0.01 else 0.0
+        # The base class does battery and path; the flyer has no laser (scan=False).
+        super()._sense(time_s, dt_s, scan=False)
+
+    def _update_battery(self, time_s: float, dt_s: float, odom: Odometry) -> None:
         # Horizontal speed counts whatever the heading (the base model uses linear_mps).
         moving = Odometry(odom.time_s, odom.x_m, odom.y_m, odom.yaw_rad,
                           math.hypot(self._pos.vx_mps, self._pos.vy_mps), 0.0)
-        self._update_battery(time_s, dt_s, moving)
-        if time_s >= self._next_path_s:
-            self._next_path_s = time_s + self.path_interval_s
-            last = self._path[-1]
-            if math.hypot(odom.x_m - last[0], odom.y_m - last[1]) > 0.02:
-                with self._lock:
-                    self._path.append((odom.x_m, odom.y_m))
+        super()._update_battery(time_s, dt_s, moving)
 
     def _outline_distance_m(self, angles: np.ndarray) -> np.ndarray:
         return np.full(len(angles), 0.3)

@@ -264,6 +264,18 @@ class Run(Behavior):
         action.wait()
 
 
+def run_to_end(hl: HighLevelBehaviorManager, name: str, make: Callable[[], Any],
+               timeout_s: float) -> Any:
+    """Switch to a :class:`Run` of ``make()`` and return the action once it has ended."""
+    Run.started = []
+    hl.register(name, Run, make=make)
+    hl.switch(name)
+    deadline = time.monotonic() + timeout_s
+    while not (Run.started and Run.started[0].wait(0.1)):
+        assert time.monotonic() < deadline
+    return Run.started[0]
+
+
 def test_a_lost_heartbeat_stops_the_running_action_and_holds_the_vehicle(
         vehicles: Vehicles, hl: HighLevelBehaviorManager,
         cleanup: Callable[[Callable[[], None]], None]) -> None:
@@ -298,14 +310,8 @@ def test_a_rover_blocked_by_a_wall_stalls_with_its_remaining_waypoints(
     url = vehicles.rover_url
     # Across the wall at x = 4: the rover reaches the first waypoint, then pushes the wall.
     waypoints = [[2.0, 3.0], [2.0, 9.0], [4.0, 9.0]]
-    Run.started = []
-    hl.register("mission", Run, make=lambda: RunMission(waypoints, connection=url,
-                                                        stall_s=1.0))
-    hl.switch("mission")
-    deadline = time.monotonic() + 40.0
-    while not (Run.started and Run.started[0].wait(0.1)):
-        assert time.monotonic() < deadline
-    action = Run.started[0]
+    action = run_to_end(hl, "mission",
+                        lambda: RunMission(waypoints, connection=url, stall_s=1.0), 40.0)
     assert action.status is Status.FAILED
     assert vehicles.sim.error is None
     assert isinstance(action.error, MissionStalled), vehicles.sim.time_s
@@ -387,14 +393,10 @@ def test_return_home_that_takes_too_long_fails_with_a_mavlink_timeout(
     while link.local_position()[2] < 1.0:
         assert time.monotonic() < deadline, "the quad did not climb"
         time.sleep(0.05)
-    Run.started = []
+    # Airborne, the quad draws hover_w (150 W) on top of idle: amperes, not a trickle.
+    assert vehicles.sim.robot("quad1").battery().current_a < -5.0
     # Climbing to RTL_ALT and landing takes seconds: 0.3 s is not enough.
-    hl.register("home", Run, make=lambda: ReturnHome(timeout_s=0.3, connection=url))
-    hl.switch("home")
-    deadline = time.monotonic() + 5.0
-    while not (Run.started and Run.started[0].wait(0.1)):
-        assert time.monotonic() < deadline
-    action = Run.started[0]
+    action = run_to_end(hl, "home", lambda: ReturnHome(timeout_s=0.3, connection=url), 5.0)
     assert action.status is Status.FAILED
     assert isinstance(action.error, MavlinkTimeout), action.error
     assert "not home after 0.3 s" in str(action.error)
