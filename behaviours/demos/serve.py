@@ -776,6 +776,8 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
     console.print(_summary(outcomes, facts))
     console.print(checks_table(f"serve summary — EMILI + {kobukis} Kobukis, "
                                f"{facts['time_s']:.0f} s sim in {wall_s:.0f} s wall", results))
+    if watch.malformed:  # counted by the watcher: shown, never silent (as the fleet does)
+        console.print(f"[yellow]unreadable messages:[/] {watch.malformed}")
     with watch.lock, open(log_dir / "orders.jsonl", "w") as steps:
         steps.writelines(json.dumps(s) + "\n" for s in watch.steps)  # every auction step
     if picture.exists():
