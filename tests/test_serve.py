@@ -30,7 +30,7 @@ from beehave.errors import NoPath  # noqa: E402
 from behaviours.actions import world_planner  # noqa: E402
 from behaviours.demos.serve import AISLE, ServeFloor, checks  # noqa: E402
 from behaviours.market.cafe import cafe_orders  # noqa: E402
-from behaviours.market.serving import ServeBroker, parse_steps  # noqa: E402
+from behaviours.market.serving import ServeBroker, held_item, parse_steps  # noqa: E402
 from robots.world import load_world, world_from_dict  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -128,6 +128,18 @@ def test_malformed_steps_are_refused_naming_the_step_and_the_valid_ops() -> None
 
 def _job(task: Task, plan: str, role: str) -> Job:
     return Job(task, plan, role, conversation_id=f"c-{task.id}", initiator="orders")
+
+
+def test_the_physics_word_on_a_held_item_is_unknown_until_it_names_the_robot() -> None:
+    from std_msgs.msg import String
+
+    state = String(data=json.dumps({"robots": {"kobuki1": {"item": "shelf_open#1"},
+                                               "emili1": {"item": None}}}))
+    assert held_item(state, "kobuki1") == (True, "shelf_open#1")
+    assert held_item(state, "emili1") == (True, None)
+    assert held_item(state, "kobuki2") == (False, None)  # not in the message
+    assert held_item(String(data="not json"), "kobuki1") == (False, None)
+    assert held_item(None, "kobuki1") == (False, None)
 
 
 def test_a_robot_carrying_another_orders_item_refuses_to_take_or_pick_until_it_is_put_down(
@@ -411,3 +423,14 @@ def test_the_serve_scenario_completes_every_order_and_every_check_holds(
     assert (hand_over["giver"], hand_over["taker"]) == (cake["members"]["fetch"], "emili1")
     assert facts["robots"]["emili1"]["in_aisle_s"] == 0.0
     assert len(facts["deliveries"]) == 3 and (out / "serve.png").stat().st_size > 10_000
+
+
+def test_the_serve_watcher_counts_what_it_cannot_read() -> None:
+    from behaviours.demos.serve import Watch
+
+    watch = Watch()
+    watch.on_order("not json")
+    watch.on_order(json.dumps({"step": "finished"}))  # no detail
+    watch.on_state("{")
+    watch.on_order(json.dumps({"step": "finished", "detail": {"outcomes": {}}}))
+    assert watch.malformed == 3 and watch.finished == {"outcomes": {}}

@@ -164,19 +164,18 @@ def run(*, timeout_s: float = 150.0, picture: Path | None = None,
     procs: list[_Process] = []
     measured: dict[str, Any] = {}
     try:
-        copter_proc = _Process("copter1", [str(COPTER_CONFIG), "--connection",
-                                           f"udp:127.0.0.1:{ports['copter1']}"])
-        procs.append(copter_proc)
-        if not copter_proc.wait_line("droid copter1: running", 40.0):
-            raise RuntimeError("the copter's robot did not start:\n"
-                               + "\n".join(copter_proc.log[-30:]))
+        def launch(name: str, config: Path, what: str) -> _Process:
+            proc = _Process(name, [str(config), "--connection",
+                                   f"udp:127.0.0.1:{ports[name]}"])
+            procs.append(proc)
+            if not proc.wait_line(f"droid {name}: running", 40.0):
+                raise RuntimeError(f"the {what}'s robot did not start:\n"
+                                   + "\n".join(proc.log[-30:]))
+            return proc
+
+        launch("copter1", COPTER_CONFIG, "copter")
         # The rover's robot starts while the copter takes off (it then follows).
-        rover_proc = _Process("rover1", [str(ROVER_CONFIG), "--connection",
-                                         f"udp:127.0.0.1:{ports['rover1']}"])
-        procs.append(rover_proc)
-        if not rover_proc.wait_line("droid rover1: running", 40.0):
-            raise RuntimeError("the rover's robot did not start:\n"
-                               + "\n".join(rover_proc.log[-30:]))
+        rover_proc = launch("rover1", ROVER_CONFIG, "rover")
         rover_proc.wait_line("RESULT ", timeout_s)
         follow_from_s = trace.airborne_at_s
         measured["rover_result"] = rover_proc.result

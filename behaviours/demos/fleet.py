@@ -25,14 +25,12 @@ import argparse
 import contextlib
 import json
 import os
-import signal
-import subprocess
 import sys
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import yaml
 from rich.console import Console, Group
@@ -41,12 +39,11 @@ from rich.table import Table
 from rich.text import Text
 
 from beehave.cli import http_address_arg
-from behaviours.demos.checks import checks_table, process_failures
+from behaviours.demos.checks import Processes, checks_table, process_failures
 from behaviours.fleet.mission import ORDERS_QOS, ORDERS_TOPIC
 from behaviours.fleet.site import site
 from robots.topics import FACTORY_STATE
 
-STOP_TIMEOUT_S = 15.0
 #: The agents' directory lease. Above the 2 s default: at full simulation speed a 2-core
 #: machine runs a dozen busy processes, and an announcement late by more than the lease
 #: reads as a death (and costs a re-award).
@@ -190,48 +187,6 @@ def _table(watch: Watch, started: float) -> Group:
         stations.add_row(name, props.get("station", ""), props.get("holder") or "",
                          ", ".join(occupants.get(props.get("station", ""), [])))
     return Group(robots, machines, stations)
-
-
-class Processes:
-    """Child processes by name, each with its log file; killed by PID in the end."""
-
-    def __init__(self, log_dir: Path) -> None:
-        self.log_dir = log_dir
-        self.procs: dict[str, subprocess.Popen[bytes]] = {}
-        self._logs: list[TextIO] = []
-
-    def start(self, name: str, argv: list[str]) -> None:
-        log = open(self.log_dir / f"{name}.log", "w")  # noqa: SIM115 - closed in stop_all
-        self._logs.append(log)
-        self.procs[name] = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
-                                            stdin=subprocess.DEVNULL)
-
-    def dead(self) -> dict[str, int]:
-        return {n: p.returncode for n, p in self.procs.items() if p.poll() is not None}
-
-    def stop(self, names: list[str], timeout_s: float = STOP_TIMEOUT_S) -> dict[str, int]:
-        """SIGINT (a clean stop), then SIGKILL what is still there after ``timeout_s``."""
-        for name in names:
-            with contextlib.suppress(ProcessLookupError):
-                self.procs[name].send_signal(signal.SIGINT)
-        deadline = time.monotonic() + timeout_s
-        codes = {}
-        for name in names:
-            proc = self.procs[name]
-            try:
-                codes[name] = proc.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                codes[name] = proc.wait()
-        return codes
-
-    def kill_all(self) -> None:
-        for proc in self.procs.values():
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-        for log in self._logs:
-            log.close()
 
 
 def _watch(ros: Any, watch: Watch) -> None:

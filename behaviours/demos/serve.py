@@ -35,7 +35,6 @@ Exit 0 only if every check held, 1 otherwise, 2 for bad arguments.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import os
@@ -54,6 +53,7 @@ import yaml
 if TYPE_CHECKING:
     from rich.console import Console, Group
 
+    from behaviours.demos.checks import Check
     from robots.sim import Simulation
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -65,7 +65,6 @@ MAX_KOBUKIS = 4
 #: 2-core host) counts as dead and dissolves its coalition.
 LEASE_S = 5.0
 CLOCK_RATE_HZ = 50.0
-STOP_TIMEOUT_S = 15.0
 HAND_OVER_RADIUS_M = 1.0
 """How close to the meeting point's centre both robots must stand for a hand-over."""
 AISLE = "shelf_aisle"
@@ -428,9 +427,6 @@ def sim_main(argv: list[str]) -> int:
 
 # ---- the checks (launcher) ---------------------------------------------------------------
 
-Check = tuple[str, bool, str]
-
-
 def _last_role(outcome: dict[str, Any]) -> str | None:
     """The role that serves the table: ``serve`` in a coalition, else the only one."""
     members = outcome.get("members") or {}
@@ -697,47 +693,6 @@ def annotate(picture: Path, facts: dict[str, Any], outcomes: dict[str, dict[str,
     img.save(picture)
 
 
-class _Procs:
-    """Child processes by name with their log files; stopped by PID."""
-
-    def __init__(self, log_dir: Path) -> None:
-        import subprocess
-
-        self.sp = subprocess
-        self.log_dir = log_dir
-        self.procs: dict[str, Any] = {}
-        self.logs: list[Any] = []
-
-    def start(self, name: str, argv: list[str]) -> None:
-        log = open(self.log_dir / f"{name}.log", "w")  # noqa: SIM115 - closed in kill_all
-        self.logs.append(log)
-        self.procs[name] = self.sp.Popen(argv, stdout=log, stderr=self.sp.STDOUT,
-                                         stdin=self.sp.DEVNULL, cwd=ROOT)
-
-    def dead(self) -> dict[str, int]:
-        return {n: p.returncode for n, p in self.procs.items() if p.poll() is not None}
-
-    def stop(self, names: list[str]) -> None:
-        for name in names:
-            with contextlib.suppress(ProcessLookupError):
-                self.procs[name].send_signal(signal.SIGINT)
-        deadline = time.monotonic() + STOP_TIMEOUT_S
-        for name in names:
-            try:
-                self.procs[name].wait(max(0.1, deadline - time.monotonic()))
-            except self.sp.TimeoutExpired:
-                self.procs[name].kill()
-                self.procs[name].wait()
-
-    def kill_all(self) -> None:
-        for proc in self.procs.values():
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-        for log in self.logs:
-            log.close()
-
-
 def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
               minutes: float = 5.0, fast: bool = False, out_dir: Path = Path("out")
               ) -> int:
@@ -746,7 +701,7 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
     from std_msgs.msg import String
 
     from beehave.ros.context import RosContext
-    from behaviours.demos.checks import checks_table, process_failures
+    from behaviours.demos.checks import Processes, checks_table, process_failures
     from behaviours.market.cafe import ORDERS_QOS, ORDERS_TOPIC, cafe_orders
     from behaviours.market.serving import SERVE_STATE, STATE_QOS
 
@@ -758,7 +713,7 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
         stale.unlink(missing_ok=True)
     expected = [t.id for t in cafe_orders(world)]
     py = sys.executable
-    procs = _Procs(log_dir)
+    procs = Processes(log_dir, cwd=ROOT)
     watch = Watch()
     sim_limit_s = minutes * 60.0
     now_s, wall_s, failed = 0.0, 0.0, {}
@@ -821,6 +776,8 @@ def run_serve(console: Console, *, world: str = WORLD, kobukis: int = 2,
     console.print(_summary(outcomes, facts))
     console.print(checks_table(f"serve summary — EMILI + {kobukis} Kobukis, "
                                f"{facts['time_s']:.0f} s sim in {wall_s:.0f} s wall", results))
+    if watch.malformed:  # counted by the watcher: shown, never silent (as the fleet does)
+        console.print(f"[yellow]unreadable messages:[/] {watch.malformed}")
     with watch.lock, open(log_dir / "orders.jsonl", "w") as steps:
         steps.writelines(json.dumps(s) + "\n" for s in watch.steps)  # every auction step
     if picture.exists():

@@ -162,6 +162,19 @@ class Hold:
         return None
 
 
+def held_item(msg: String | None, robot: str) -> tuple[bool, str | None]:
+    """(known, item) from a ``/serve/state`` message: whether it says anything about
+    ``robot`` (no message or an unreadable one: not known), and the item it holds."""
+    if msg is None:
+        return False, None
+    try:
+        entry = json.loads(msg.data)["robots"][robot]
+    except (ValueError, KeyError, TypeError):
+        return False, None
+    item = entry.get("item") if isinstance(entry, dict) else None
+    return True, item if isinstance(item, str) else None
+
+
 def parse_steps(params: Any, *, where: str = "role") -> list[Step]:
     """``params["steps"]`` as ``(op, place, (x_m, y_m))`` tuples; raises
     :class:`ValueError` naming the step, what is wrong and the valid ops."""
@@ -238,16 +251,9 @@ class ServeBroker(TravelBroker):
 
     def _physics_item(self) -> tuple[bool, str | None]:
         """(known, item): whether the simulation said yet, and what this robot holds."""
-        msg = self._state.get() if self._state is not None else None
-        if msg is None or self.manager.node is None:
+        if self._state is None or self.manager.node is None:
             return False, None
-        node = self.manager.node
-        try:
-            robot = json.loads(msg.data)["robots"][node.get_namespace().strip("/")]
-        except (ValueError, KeyError, TypeError):
-            return False, None
-        item = robot.get("item") if isinstance(robot, dict) else None
-        return True, item if isinstance(item, str) else None
+        return held_item(self._state.get(), self.manager.node.get_namespace().strip("/"))
 
     def stops(self, job: Job) -> list[tuple[float, float]]:  # type: ignore[override]
         # The robot that carries the order's item already skips its pick / take.
@@ -316,15 +322,7 @@ class ServeRole(Navigation):
     # ---- the physics' word ------------------------------------------------------------
 
     def _item(self) -> str | None:
-        msg = self._state.get()
-        if msg is None:
-            return None
-        try:
-            robot = json.loads(msg.data)["robots"][self._me]
-        except (ValueError, KeyError, TypeError):
-            return None
-        item = robot.get("item") if isinstance(robot, dict) else None
-        return item if isinstance(item, str) else None
+        return held_item(self._state.get(), self._me)[1]
 
     def _until(self, done: Callable[[], bool], timeout_s: float, what: str,
                error: type[BeehaveError] = ServeError) -> None:
