@@ -266,6 +266,7 @@ def test_the_fleet_web_view_serves_the_live_tables_without_a_robot_in_process() 
     (["--robots", "0"], "--robots must be 1..10"),
     (["--order-below", "1.5"], "--order-below must be a fraction"),
     (["no_such_world"], "world 'no_such_world'"),
+    (["--scenario", "droid", "--robots", "3"], "unrecognized arguments: --robots 3"),
 ])
 def test_bad_fleet_arguments_exit_2_naming_the_problem(
         argv: list[str], says: str, capsys: pytest.CaptureFixture[str]) -> None:

@@ -357,7 +357,14 @@ def main(argv: list[str] | None = None) -> int:
     if known.scenario != "factory":
         from behaviours.demos.droid import main as droid_main
 
-        out = Path(next((rest[i + 1] for i, a in enumerate(rest[:-1]) if a == "--out"), "out"))
+        # The MAVLink scenario has one rover and one copter: the fleet's other options
+        # mean nothing there, and are refused rather than ignored.
+        droid = argparse.ArgumentParser(prog=f"beehave fleet --scenario {known.scenario}",
+                                        description="a rover and a quadrotor over MAVLink "
+                                                    "(docs/mavlink.md)")
+        droid.add_argument("--out", default="out", metavar="FOLDER",
+                           help="where droid.png goes")
+        out = Path(droid.parse_args(rest).out)
         out.mkdir(parents=True, exist_ok=True)
         return droid_main(["--picture", str(out / "droid.png")])
     parser = argparse.ArgumentParser(prog="beehave fleet", description=__doc__,
