@@ -12,6 +12,7 @@ import logging
 import math
 import random
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -462,7 +463,12 @@ def test_the_arbiter_cycles_at_its_rate_and_stops_the_actuator_at_unload(
                                                                   "value": (0.2, 0.0)}
     low_level.switch("none")  # nobody holds the arbiter any more: unloaded, safe state
     assert wait_until(lambda: arbiter_name("cmd_vel") not in low_level.hals.loaded, 5)
-    assert Recorder.sent_by_all[-1] == STOP
+    # The manager lists it as gone before its safe state has run (the unload finishes in
+    # a task of its own): wait for the stop, then check nothing is sent after it.
+    assert wait_until(lambda: Recorder.sent_by_all[-1] == STOP, 5)
+    sent = len(Recorder.sent_by_all)
+    time.sleep(0.1)  # ten of its cycles
+    assert len(Recorder.sent_by_all) == sent and Recorder.sent_by_all[-1] == STOP
     # Its blackboard subscription ended with it.
     assert not [s for s in low_level.blackboard._subs if s.pattern == "fusion/cmd_vel/*"]
 
