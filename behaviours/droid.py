@@ -49,6 +49,7 @@ from beehave.agents.fleet import PeerState, fleet_of
 from beehave.agents.message import Message, Performative
 from beehave.agents.protocols import ContractNetResponder, RequestResponder, contract_net
 from beehave.agents.protocols import request as fipa_request
+from beehave.behavior import Behavior
 from beehave.blackboard import Blackboard
 from beehave.errors import (
     AgentError,
@@ -65,7 +66,7 @@ from hal.mavlink import COPTER, LocalFrame, MavlinkLink, Waypoint
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CopterDroid", "FollowLeader", "MissionRequestResponder", "MissionResponder",
+__all__ = ["CopterDroid", "FollowLeader", "Follower", "MissionRequestResponder", "MissionResponder",
            "ReturnHome", "RoverDroid", "SendMission", "VehicleTelemetry", "main",
            "vehicle_state"]
 
@@ -387,6 +388,27 @@ class FollowLeader(MavlinkAction):
         link.goto_local(here[0], here[1], alt)
 
 
+class Follower(Behavior):
+    """A vehicle that only follows: :class:`FollowLeader` of ``leader`` until switched away
+    (the paper's follow mode for any Droid, a rover as well as a copter). It fails with
+    the action's error (a lost link, ``give_up_s`` of stale leader state); its result,
+    once interrupted, is the closest gap it saw."""
+
+    def __init__(self, *, connection: str, leader: str, distance_m: float = 2.0,
+                 tolerance_m: float = 0.2, safety_m: float = 1.0, alt_m: float = 2.5,
+                 give_up_s: float | None = None) -> None:
+        self.follow = FollowLeader(leader, distance_m=distance_m, tolerance_m=tolerance_m,
+                                   safety_m=safety_m, alt_m=alt_m, give_up_s=give_up_s,
+                                   connection=connection)
+
+    def run(self) -> dict[str, Any]:
+        follow = self.start_action(self.follow)
+        follow.wait()
+        if follow.error is not None:
+            raise follow.error
+        return {"min_gap_m": follow.min_gap_m}
+
+
 # ---- return home --------------------------------------------------------------------------
 
 class ReturnHome(MavlinkAction):
@@ -437,11 +459,12 @@ class RoverDroid(AgentBehavior):
     service (at ``helper_alt_m``) and return home. The result says how it ended:
     ``{"status": "completed" | "handed-over", "awardee", "remaining", "home"}``; when no
     vehicle takes the mission it still goes home, then fails with
-    :class:`~beehave.errors.ProtocolFailed` naming why."""
+    :class:`~beehave.errors.ProtocolFailed` naming why. ``speed_mps``, when given, is set
+    as the vehicle's ``WP_SPEED`` parameter (PARAM_SET) before the mission starts."""
 
     def __init__(self, *, connection: str, waypoints: Sequence[Any], stall_s: float = 3.0,
                  helper_alt_m: float = 3.0, reply_by_s: float = 2.0,
-                 done_timeout_s: float = 300.0) -> None:
+                 done_timeout_s: float = 300.0, speed_mps: float | None = None) -> None:
         from behaviours.mavlink import parse_waypoints
 
         self.connection = connection
@@ -450,6 +473,7 @@ class RoverDroid(AgentBehavior):
         self.helper_alt_m = helper_alt_m
         self.reply_by_s = reply_by_s
         self.done_timeout_s = done_timeout_s
+        self.speed_mps = speed_mps
 
     def _report(self, **mission: Any) -> None:
         try:
@@ -466,6 +490,8 @@ class RoverDroid(AgentBehavior):
             return self._run(link)
 
     def _run(self, link: MavlinkLink) -> dict[str, Any]:
+        if self.speed_mps is not None:
+            link.set_param("WP_SPEED", self.speed_mps)
         self._report(status="running", waypoints=len(self.waypoints))
         mission = self.start_action(RunMission(self.waypoints, stall_s=self.stall_s,
                                                connection=self.connection))
