@@ -107,10 +107,18 @@ FOLLOW_WORLD = {"name": "follow", "floor": {"size_m": [16, 8]},
                             "start": {"x_m": 1, "y_m": 5}}]}
 
 
-def ground_truth_state(sim: Simulation, namespace: str) -> Callable[[], dict[str, Any]]:
+def ground_truth_state(sim: Simulation, namespace: str, *,
+                       fake: list[tuple[float, float]] | None = None,
+                       ) -> Callable[[], dict[str, Any]]:
+    """The robot's state from the physics; while ``fake`` holds an (x, y), that position
+    (standing) instead — fault injection."""
     robot = sim.robot(namespace)
 
     def state() -> dict[str, Any]:
+        if fake:
+            lat, lon = DEFAULT_ORIGIN.to_global(fake[0][1], fake[0][0])
+            return {"position": {"lat_deg": lat, "lon_deg": lon, "alt_m": 0.0},
+                    "velocity": {"vn_mps": 0.0, "ve_mps": 0.0}}
         o = robot.odometry()
         lat, lon = DEFAULT_ORIGIN.to_global(o.y_m, o.x_m)
         return {"position": {"lat_deg": lat, "lon_deg": lon, "alt_m": 0.0},
@@ -132,7 +140,7 @@ class Follow(Behavior):
         action.wait()
 
 
-def test_follow_keeps_its_distance_and_holds_when_the_leader_goes_stale(
+def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_goes_stale(
         ros: RosContext) -> None:
     sim = Simulation(world_from_dict(FOLLOW_WORLD), real_time_factor=1.0)
     port = free_port()
@@ -158,7 +166,8 @@ def test_follow_keeps_its_distance_and_holds_when_the_leader_goes_stale(
         with Agent("lead", ros=ros, probe_s=PROBE_S) as lead_agent, \
                 Agent("follower", ros=ros, probe_s=PROBE_S) as me, \
                 HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
-            leader_fleet = Fleet(lead_agent, state=ground_truth_state(sim, "lead"),
+            fake: list[tuple[float, float]] = []
+            leader_fleet = Fleet(lead_agent, state=ground_truth_state(sim, "lead", fake=fake),
                                  stale_after_s=0.5)
             fleet = Fleet(me, stale_after_s=0.5)
             fleet.attach(hl)
@@ -178,8 +187,22 @@ def test_follow_keeps_its_distance_and_holds_when_the_leader_goes_stale(
             assert min(gaps) >= 1.0
             assert 1.7 <= min(following) and max(following) <= 2.6, (min(following),
                                                                       max(following))
-            # The leader's state stops: the follower holds where it is.
+            # The leader shows up closer than the safety distance: the follower stops where
+            # it is (keeping its distance would make it fly 1.4 m away).
             stop_driving.set()
+            time.sleep(0.5)
+            f = flyer.pose()
+            fake.append((f.x_m + 0.6, f.y_m))
+            wait_until(lambda: action.holding is not None and "safety" in action.holding,
+                       3.0, "the follower to stop below the safety distance")
+            time.sleep(0.5)  # braking
+            here = flyer.pose()
+            time.sleep(1.0)
+            there = flyer.pose()
+            assert math.hypot(there.x_m - here.x_m, there.y_m - here.y_m) < 0.1
+            assert math.hypot(there.x_m - f.x_m, there.y_m - f.y_m) < 0.5
+            fake.clear()
+            # The leader's state stops: the follower holds where it is.
             leader_fleet.close()
             wait_until(lambda: action.holding is not None and "stale" in action.holding,
                        3.0, "the follower to notice")
@@ -239,12 +262,22 @@ def test_a_blocked_rover_without_any_helper_reports_failure_and_goes_home(
         sim.close()
 
 
-def test_handover_between_vehicle_processes_over_dds() -> None:
-    """The whole scenario of ``python -m behaviours.demos.droid``: every robot in its own
-    process, MAVLink to the simulation, DDS between the agents; checks in the physics."""
+@pytest.mark.parametrize(("scenario", "expected"), [
+    ("follow", ("the leader drove its whole tour", "never came closer than",
+                "the gap stayed in")),
+    ("handover", ("handed its remaining mission over", "reached every remaining waypoint",
+                  "the rover is home")),
+])
+def test_the_scenario_between_vehicle_processes_over_dds(
+        scenario: str, expected: tuple[str, ...]) -> None:
+    """``beehave fleet --scenario follow|handover`` (``python -m behaviours.demos.droid``):
+    every robot in its own process, MAVLink to the simulation, DDS between the agents;
+    checks in the physics. (``droid``, both at once, runs the same code paths.)"""
     from behaviours.demos.droid import run
 
-    checks, measured = run(timeout_s=90.0)
+    checks, measured = run(scenario=scenario, timeout_s=80.0)
+    for part in expected:  # each scenario checks what it promises
+        assert any(part in c.name for c in checks), ([c.name for c in checks], part)
     failed = [f"{c.name}: {c.measured}" for c in checks if not c.passed]
     assert not failed, (failed, measured)
 

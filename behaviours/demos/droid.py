@@ -1,25 +1,35 @@
-"""The MAVLink Droid scenario: a rover meets a wall it cannot pass, and the quadrotor that
-followed it finishes its mission over the wall while the rover returns home.
+"""The MAVLink Droid scenarios: a rover follows a rover leading a tour (``follow``); a rover
+meets a wall it cannot pass and the quadrotor finishes its mission over the wall while the
+rover returns home (``handover``); or both at once, the copter following the rover before
+it takes the mission over (``droid``).
 
-``python -m behaviours.demos.droid [--picture docs/img/droid.png] [--timeout-s 150]``
+``python -m behaviours.demos.droid [--scenario follow|handover|droid]
+[--picture docs/img/follow.png] [--timeout-s 150]`` (``beehave fleet --scenario …`` runs
+the same).
 
 What runs, each in its own process, as on a real fleet:
 
-1. this process: the physics (pybullet, real time) with ``robots/worlds/droid.yaml``, each
-   robot exposed as an ArduPilot-style MAVLink vehicle (:mod:`robots.mavlink_endpoint`) on
-   a free UDP port — the Kobuki as a Rover, the ``quad`` as a Copter;
-2. the copter's robot (``python -m behaviours.droid robots/config/copter.yaml``): its
-   MAVLink HALs, its agent and fleet state; it takes off and follows the rover at 2 m and
-   offers the ``mission`` service;
-3. the rover's robot (``robots/config/rover.yaml``): it runs its mission, is stopped by
-   the wall, hands the remaining waypoints to the best bidder over the agent layer
-   (contract net on DDS, this ``ROS_DOMAIN_ID``) and returns home.
+1. this process: the physics (pybullet, real time) with ``robots/worlds/follow.yaml`` or
+   ``robots/worlds/droid.yaml``, each robot exposed as an ArduPilot-style MAVLink vehicle
+   (:mod:`robots.mavlink_endpoint`) on a free UDP port — a Kobuki as a Rover, the
+   ``quad`` as a Copter;
+2. the other vehicle's robot (``python -m behaviours.droid CONFIG.yaml``): its MAVLink
+   HALs, its agent and fleet state. ``follow``: ``robots/config/follower.yaml`` (rover2
+   keeps 2 m from rover1's shared state); ``handover``: ``robots/config/copter.yaml``
+   without following (it waits on its pad and offers the ``mission`` service); ``droid``:
+   the same copter, which takes off and follows the rover at 2 m;
+3. rover1's robot: ``robots/config/tour.yaml`` (its tour, at 0.45 m/s set as WP_SPEED)
+   or ``robots/config/rover.yaml`` (its mission is stopped by the wall; it hands the
+   remaining waypoints to the best bidder over the agent layer — contract net on DDS,
+   this ``ROS_DOMAIN_ID`` — and returns home).
 
-It ends with a table of checks measured in the physics (not in what the robots believe):
-the copter reached every remaining waypoint, the last one included; the rover is back
-home; the copter never came closer to the rover than the safety distance; the follower's
-gap stayed within [d − 0.2 m, d + 0.5 m] once settled. Exit code 0 only if every check
-passes. ``--picture`` writes the top-down picture with both paths and the mission.
+It ends with a table of checks measured in the physics (not in what the robots believe).
+``follow``: the leader reached every waypoint of its tour; the follower never came closer
+than the safety distance; its gap stayed within [d − 0.2 m, d + 0.5 m] once settled.
+``handover``: the copter reached every remaining waypoint (3-D, and the vehicle reported
+each item reached); the rover is back home. ``droid``: all of these. Exit code 0 only if
+every check passes. ``--picture`` writes the top-down picture with the paths and the
+planned mission.
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -50,6 +61,14 @@ ROOT = Path(__file__).resolve().parents[2]
 WORLD = ROOT / "robots" / "worlds" / "droid.yaml"
 ROVER_CONFIG = ROOT / "robots" / "config" / "rover.yaml"
 COPTER_CONFIG = ROOT / "robots" / "config" / "copter.yaml"
+FOLLOW_WORLD = ROOT / "robots" / "worlds" / "follow.yaml"
+TOUR_CONFIG = ROOT / "robots" / "config" / "tour.yaml"
+FOLLOWER_CONFIG = ROOT / "robots" / "config" / "follower.yaml"
+
+SCENARIOS = ("follow", "handover", "droid")
+"""``follow``: rover1 leads a tour, rover2 follows it at 2 m; ``handover``: rover1 meets
+a wall, the quadrotor finishes its mission; ``droid``: both at once (the copter follows the
+rover, then takes its mission over)."""
 
 
 def free_udp_port() -> int:
@@ -78,6 +97,8 @@ class Trace:
     """When the copter started the handed-over mission (AUTO): its follow had ended."""
     airborne_at_s: float = math.inf
     """When the copter had taken off to follow."""
+    tour_at_s: float = math.inf
+    """When rover1 started its mission (AUTO)."""
 
 
 class _Process:
@@ -130,56 +151,105 @@ class _Process:
         return self.proc.returncode
 
 
-def run(*, timeout_s: float = 150.0, picture: Path | None = None,
+def _variant(config: Path, folder: Path, **params: Any) -> Path:
+    """A copy of a robot configuration with other ``droid`` behaviour parameters."""
+    data = yaml.safe_load(config.read_text(encoding="utf-8"))
+    data["behaviors"]["droid"]["params"].update(params)
+    path = folder / config.name
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    return path
+
+
+def _gap_checks(gaps: list[tuple[float, float]], *, start_s: float, band_end_s: float,
+                safety_end_s: float, distance_m: float, safety_m: float,
+                who: str) -> tuple[list[Check], float]:
+    """The follow checks: never closer than the safety distance while following
+    (``start_s`` … ``safety_end_s``), and the gap in [d − 0.2, d + 0.5] m from the moment it
+    first came within 0.2 m of d (settled) until ``band_end_s``."""
+    following = [g for t, g in gaps if start_s <= t < safety_end_s]
+    min_gap = min(following, default=math.inf)
+    band = [g for t, g in gaps if start_s <= t <= band_end_s]
+    low, high = distance_m - 0.2, distance_m + 0.5
+    settled = next((i for i, g in enumerate(band) if abs(g - distance_m) <= 0.2), None)
+    after = band[settled:] if settled is not None else []
+    return [
+        Check(f"following, {who} never came closer than {safety_m} m (safety)",
+              bool(following) and min_gap >= safety_m,
+              f"closest {min_gap:.2f} m over {len(following) / 20:.1f} s"),
+        Check(f"while following, the gap stayed in [{low:.1f}, {high:.1f}] m after settling",
+              bool(after) and min(after) >= low and max(after) <= high,
+              f"{min(after):.2f}–{max(after):.2f} m over {len(after) / 20:.1f} s"
+              if after else "never settled"),
+    ], min_gap
+
+
+def run(*, scenario: str = "droid", timeout_s: float = 150.0, picture: Path | None = None,
         verbose: bool = False) -> tuple[list[Check], dict[str, Any]]:
-    """Run the scenario; returns the checks and what was measured."""
-    world = load_world(WORLD)
-    rover_cfg = yaml.safe_load(ROVER_CONFIG.read_text(encoding="utf-8"))
-    copter_cfg = yaml.safe_load(COPTER_CONFIG.read_text(encoding="utf-8"))
-    waypoints = rover_cfg["behaviors"]["droid"]["params"]["waypoints"]
-    follow = copter_cfg["behaviors"]["droid"]["params"]
+    """Run ``scenario`` (one of :data:`SCENARIOS`); returns the checks and what was
+    measured."""
+    if scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; there are {', '.join(SCENARIOS)}")
+    tour = scenario == "follow"
+    world = load_world(FOLLOW_WORLD if tour else WORLD)
+    rover_config = TOUR_CONFIG if tour else ROVER_CONFIG
+    other, other_config = ("rover2", FOLLOWER_CONFIG) if tour else ("copter1", COPTER_CONFIG)
+    rover_cfg = yaml.safe_load(rover_config.read_text(encoding="utf-8"))
+    other_cfg = yaml.safe_load(other_config.read_text(encoding="utf-8"))
+    rover_params = rover_cfg["behaviors"]["droid"]["params"]
+    waypoints = rover_params["waypoints"]
+    follow = other_cfg["behaviors"]["droid"]["params"]
     distance_m, safety_m = float(follow["distance_m"]), float(follow["safety_m"])
     sim = Simulation(world, real_time_factor=1.0)
-    ports = {"rover1": free_udp_port(), "copter1": free_udp_port()}
+    ports = {"rover1": free_udp_port(), other: free_udp_port()}
     endpoints = {name: MavlinkEndpoint(sim, name, url=f"udpout:127.0.0.1:{port}",
                                        system_id=i + 1)
                  for i, (name, port) in enumerate(ports.items())}
-    rover, copter = sim.robot("rover1"), sim.robot("copter1")
-    assert isinstance(copter, Quad)
+    rover, follower = sim.robot("rover1"), sim.robot(other)
     trace = Trace()
 
     def sample(time_s: float) -> None:
-        r, c = rover.pose(), copter.position()
+        r = rover.pose()
+        c = follower.position() if isinstance(follower, Quad) else follower.pose()
+        z_m = c.z_m if isinstance(follower, Quad) else 0.0  # type: ignore[union-attr]
         trace.gaps.append((time_s, math.hypot(r.x_m - c.x_m, r.y_m - c.y_m)))
-        trace.copter_points.append((c.x_m, c.y_m, c.z_m))
+        trace.copter_points.append((c.x_m, c.y_m, z_m))
         if trace.rtl_at_s == math.inf and endpoints["rover1"].mode == "RTL":
             trace.rtl_at_s = time_s
-        if trace.auto_at_s == math.inf and endpoints["copter1"].mode == "AUTO":
+        if trace.auto_at_s == math.inf and endpoints[other].mode == "AUTO":
             trace.auto_at_s = time_s
-        if trace.airborne_at_s == math.inf and c.z_m > 1.5:
+        if trace.airborne_at_s == math.inf and z_m > 1.5:
             trace.airborne_at_s = time_s
+        if trace.tour_at_s == math.inf and endpoints["rover1"].mode == "AUTO":
+            trace.tour_at_s = time_s
 
     sim.on_step(sample, rate_hz=20.0)
     sim.start()
     procs: list[_Process] = []
-    measured: dict[str, Any] = {}
+    measured: dict[str, Any] = {"scenario": scenario}
     try:
-        def launch(name: str, config: Path, what: str) -> _Process:
-            proc = _Process(name, [str(config), "--connection",
-                                   f"udp:127.0.0.1:{ports[name]}"])
-            procs.append(proc)
-            if not proc.wait_line(f"droid {name}: running", 40.0):
-                raise RuntimeError(f"the {what}'s robot did not start:\n"
-                                   + "\n".join(proc.log[-30:]))
-            return proc
+        with tempfile.TemporaryDirectory(prefix="beehave-droid-") as folder:
+            if scenario == "handover":  # the copter waits on its pad: no following
+                other_config = _variant(other_config, Path(folder), follow=None)
 
-        launch("copter1", COPTER_CONFIG, "copter")
-        # The rover's robot starts while the copter takes off (it then follows).
-        rover_proc = launch("rover1", ROVER_CONFIG, "rover")
-        rover_proc.wait_line("RESULT ", timeout_s)
-        follow_from_s = trace.airborne_at_s
-        measured["rover_result"] = rover_proc.result
-        # The helper informs the rover when it is done, so the rover's RESULT comes last.
+            def launch(name: str, config: Path) -> _Process:
+                proc = _Process(name, [str(config), "--connection",
+                                       f"udp:127.0.0.1:{ports[name]}"])
+                procs.append(proc)
+                if not proc.wait_line(f"droid {name}: running", 40.0):
+                    raise RuntimeError(f"the robot of {name} did not start:\n"
+                                       + "\n".join(proc.log[-30:]))
+                return proc
+
+            launch(other, other_config)
+            # The rover's robot starts while the other one gets ready (the copter takes off).
+            rover_proc = launch("rover1", rover_config)
+            rover_proc.wait_line("RESULT ", timeout_s)
+            measured["rover_result"] = rover_proc.result
+            # A helper informs the rover when it is done, so the rover's RESULT comes last;
+            # a follower gets a moment to close up behind the leader that stopped.
+            if tour:
+                time.sleep(3.0)
+            end_s = sim.time_s
     finally:
         for proc in procs:
             proc.stop()
@@ -190,48 +260,59 @@ def run(*, timeout_s: float = 150.0, picture: Path | None = None,
         for proc in procs:
             lines = [line for line in proc.log if "watchdog" not in line]
             print(f"---- {proc.name}", *lines[-60:], sep="\n")
-    last = waypoints[-1]
-    last_xy = (float(last[1]), float(last[0]))  # [north, east] → world (x, y)
-    helper_alt = float(rover_cfg["behaviors"]["droid"]["params"]["helper_alt_m"])
-    reached_last = min((math.hypot(x - last_xy[0], y - last_xy[1]) + abs(z - helper_alt)
-                        for x, y, z in trace.copter_points), default=math.inf)
+    result = (measured.get("rover_result") or {}).get("result") or {}
+    checks: list[Check] = []
     home = world.robots[0].start
     rover_end = rover.pose()
     home_m = math.hypot(rover_end.x_m - home.x_m, rover_end.y_m - home.y_m)
-    # Following: from the copter's take-off until it starts the handed-over mission. The
-    # gap band applies until the rover turns home (it then drives towards its follower,
-    # which backs off: the gap dips below d by design, never below the safety distance).
-    following = [g for t, g in trace.gaps if follow_from_s <= t < trace.auto_at_s]
-    min_gap = min(following, default=math.inf)
-    band = [g for t, g in trace.gaps if follow_from_s <= t <= trace.rtl_at_s]
-    low, high = distance_m - 0.2, distance_m + 0.5
-    # Settled: the first time the gap came within 0.2 m of d (after the approach).
-    settled = next((i for i, g in enumerate(band) if abs(g - distance_m) <= 0.2), None)
-    after = band[settled:] if settled is not None else []
-    result = (measured.get("rover_result") or {}).get("result") or {}
-    checks = [
-        Check("the rover handed its remaining mission over",
-              result.get("status") == "handed-over" and result.get("awardee") == "copter1",
-              f"{result.get('status')} to {result.get('awardee')}"),
-        Check("the copter reached the mission's last waypoint",
-              reached_last <= 0.8 and endpoints["copter1"].reached[-1:] == [
-                  len(result.get("remaining") or []) or -1],
-              f"closest approach {reached_last:.2f} m (3-D), vehicle reached items "
-              f"{endpoints['copter1'].reached}"),
-        Check("the rover is home", home_m <= 0.5, f"{home_m:.2f} m from its start"),
-        Check(f"following, the copter never came closer than {safety_m} m (safety)",
-              bool(following) and min_gap >= safety_m,
-              f"closest {min_gap:.2f} m over {len(following) / 20:.1f} s"),
-        Check(f"while following, the gap stayed in [{distance_m - 0.2:.1f}, "
-              f"{distance_m + 0.5:.1f}] m after settling",
-              bool(after) and min(after) >= low and max(after) <= high,
-              f"{min(after):.2f}–{max(after):.2f} m over {len(after) / 20:.1f} s"
-              if after else "never settled"),
-    ]
-    measured.update({"min_gap_m": min_gap, "home_m": home_m, "reached_last_m": reached_last,
-                     "sim_time_s": sim.time_s})
+    if tour:
+        # [north, east] → world (x, y); the closest the leader came to each waypoint.
+        misses = [min((math.hypot(x - float(w[1]), y - float(w[0])) for x, y in rover.path()),
+                      default=math.inf) for w in waypoints]
+        checks.append(Check(
+            f"the leader drove its whole tour ({len(waypoints)} waypoints)",
+            result.get("status") == "completed" and max(misses) <= 0.5
+            and endpoints["rover1"].reached == list(range(1, len(waypoints) + 1)),
+            f"{result.get('status')}; farthest miss {max(misses):.2f} m, vehicle reached "
+            f"items {endpoints['rover1'].reached}"))
+        gap_checks, min_gap = _gap_checks(
+            trace.gaps, start_s=trace.tour_at_s, band_end_s=end_s, safety_end_s=math.inf,
+            distance_m=distance_m, safety_m=safety_m, who="rover2")
+        checks += gap_checks
+        measured.update({"min_gap_m": min_gap, "misses_m": misses})
+    else:
+        remaining = [(float(w["east_m"]), float(w["north_m"]), float(w["alt_m"]))
+                     for w in result.get("remaining") or []]
+        # The closest the copter came (3-D) to each remaining waypoint, in the physics.
+        misses = [min((math.dist(p, w) for p in trace.copter_points), default=math.inf)
+                  for w in remaining]
+        checks += [
+            Check("the rover handed its remaining mission over",
+                  result.get("status") == "handed-over" and result.get("awardee") == "copter1",
+                  f"{result.get('status')} to {result.get('awardee')}"),
+            Check(f"the copter reached every remaining waypoint ({len(remaining)})",
+                  bool(remaining) and max(misses) <= 0.8
+                  and endpoints["copter1"].reached == list(range(1, len(remaining) + 1)),
+                  f"farthest miss {max(misses, default=math.inf):.2f} m (3-D), vehicle "
+                  f"reached items {endpoints['copter1'].reached}"),
+            Check("the rover is home", home_m <= 0.5, f"{home_m:.2f} m from its start"),
+        ]
+        measured.update({"misses_m": misses})
+        if scenario == "droid":
+            # Following: from the copter's take-off until it starts the handed-over mission.
+            # The gap band applies until the rover turns home (it then drives towards its
+            # follower, which backs off: the gap dips below d by design, never below the
+            # safety distance).
+            gap_checks, min_gap = _gap_checks(
+                trace.gaps, start_s=trace.airborne_at_s, band_end_s=trace.rtl_at_s,
+                safety_end_s=trace.auto_at_s, distance_m=distance_m, safety_m=safety_m,
+                who="the copter")
+            checks += gap_checks
+            measured["min_gap_m"] = min_gap
+    measured.update({"home_m": home_m, "sim_time_s": sim.time_s})
     if picture is not None:
-        planned = [[(2.0, 2.0)] + [(float(w[1]), float(w[0])) for w in waypoints]]
+        start = world.robots[0].start
+        planned = [[(start.x_m, start.y_m)] + [(float(w[1]), float(w[0])) for w in waypoints]]
         sim.render_topdown(picture, planned=planned)
     sim.close()
     return checks, measured
@@ -240,12 +321,17 @@ def run(*, timeout_s: float = 150.0, picture: Path | None = None,
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m behaviours.demos.droid",
                                      description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenario", choices=SCENARIOS, default="droid",
+                        help="follow: a rover leads a tour, another follows; handover: a "
+                             "rover meets a wall, the quadrotor finishes its mission; "
+                             "droid (default): both at once")
     parser.add_argument("--picture", type=Path, default=None)
     parser.add_argument("--timeout-s", type=float, default=150.0)
     parser.add_argument("--verbose", action="store_true")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    checks, measured = run(timeout_s=args.timeout_s, picture=args.picture,
+    checks, measured = run(scenario=args.scenario, timeout_s=args.timeout_s,
+                           picture=args.picture,
                            verbose=args.verbose)
     width = max(len(c.name) for c in checks)
     print(f"{'check'.ljust(width)}  result  measured")
