@@ -455,8 +455,8 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("fleet", add_help=False,
                    help="multi-robot scenarios, every agent in its own process, checked in "
                         "the physics: the factory fleet (default), --scenario serve (a "
-                        "market with coalitions), --scenario droid (MAVLink) (beehave "
-                        "fleet -h)")
+                        "market with coalitions), --scenario follow|handover|droid (MAVLink) "
+                        "(beehave fleet -h)")
     for name, text in _RECORDING_COMMANDS.items():
         sub.add_parser(name, add_help=False, help=text)
     return parser

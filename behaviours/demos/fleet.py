@@ -339,9 +339,9 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
     return 0 if all(ok for _, ok, _ in results) else 1
 
 
-#: ``--scenario`` → what runs. ``follow`` and ``handover`` are one scenario (the MAVLink
-#: Droid paper's): the quadrotor follows the rover, then finishes the mission the rover's
-#: wall blocks (docs/mavlink.md).
+#: ``--scenario`` → what runs. ``follow``, ``handover`` and ``droid`` (both at once) are the
+#: MAVLink Droid paper's: a rover follows a rover leading a tour; the quadrotor finishes the
+#: mission a wall blocks (docs/mavlink.md).
 SCENARIOS = ("factory", "droid", "follow", "handover", "serve")
 
 
@@ -363,16 +363,18 @@ def main(argv: list[str] | None = None) -> int:
                                         description="a rover and a quadrotor over MAVLink "
                                                     "(docs/mavlink.md)")
         droid.add_argument("--out", default="out", metavar="FOLDER",
-                           help="where droid.png goes")
+                           help=f"where {known.scenario}.png goes")
         out = Path(droid.parse_args(rest).out)
         out.mkdir(parents=True, exist_ok=True)
-        return droid_main(["--picture", str(out / "droid.png")])
+        return droid_main(["--scenario", known.scenario,
+                           "--picture", str(out / f"{known.scenario}.png")])
     parser = argparse.ArgumentParser(prog="beehave fleet", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenario", choices=SCENARIOS, default="factory",
-                        help="factory (default): the ROS-JADE factory; droid (also: follow, "
-                             "handover): a rover and a quadrotor over MAVLink, the copter "
-                             "follows and takes over the blocked mission (docs/mavlink.md); "
+                        help="factory (default): the ROS-JADE factory; follow: over "
+                             "MAVLink, a rover leads a tour and another follows; handover: "
+                             "a rover meets a wall and the quadrotor finishes its mission; "
+                             "droid: both at once (docs/mavlink.md); "
                              "serve: EMILI and Kobukis serve guests through a market with "
                              "coalitions (docs/allocation.md; --help with it for its options)")
     parser.add_argument("world", nargs="?", default="factory",
