@@ -400,3 +400,33 @@ def test_return_home_that_takes_too_long_fails_with_a_mavlink_timeout(
     assert action.status is Status.FAILED
     assert isinstance(action.error, MavlinkTimeout), action.error
     assert "not home after 0.3 s" in str(action.error)
+
+
+def test_beehave_sim_mavlink_opens_one_port_per_vehicle() -> None:
+    """``beehave sim WORLD --mavlink-base-port B``: robot i is a MAVLink vehicle on B + i
+    (system i + 1), the Kobuki a Rover, the quad a Copter, and they take commands."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    base = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "beehave.cli", "sim", "robots/worlds/droid.yaml",
+         "--mavlink-base-port", str(base), "--duration-s", "30"],
+        cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        rover = open_link(f"udp:127.0.0.1:{base}")
+        copter = open_link(f"udp:127.0.0.1:{base + 1}")
+        rover.wait_heartbeat(timeout_s=30.0)
+        copter.wait_heartbeat(timeout_s=10.0)
+        assert (rover.kind, rover.system_id) == ("rover", 1)
+        assert (copter.kind, copter.system_id) == ("copter", 2)
+        rover.set_mode("GUIDED")
+        assert rover.mode == "GUIDED"
+        assert copter.get_param("WPNAV_SPEED") == 200.0
+    finally:
+        close_all_links()
+        proc.terminate()
+        out, _ = proc.communicate(timeout=20.0)
+    assert "rover1 is MAVLink rover system 1" in out and f":{base + 1}" in out, out
