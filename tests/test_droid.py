@@ -361,3 +361,39 @@ def test_a_malformed_mission_request_is_refused_with_its_reason(ros: RosContext)
             reply = refused.value.reply
             assert reply.performative.value == "refuse"  # type: ignore[attr-defined]
             assert reason in reply.content["reason"]  # type: ignore[attr-defined]
+
+
+def test_a_mission_sent_to_another_agent_is_run_by_its_vehicle(ros: RosContext) -> None:
+    from behaviours.droid import MissionRequestResponder, SendMission
+
+    world = {"name": "send", "floor": {"size_m": [6, 4]},
+             "robots": [{"namespace": "rover", "kind": "kobuki", "start": {"x_m": 1, "y_m": 2}}]}
+    sim = Simulation(world_from_dict(world), real_time_factor=1.0)
+    port = free_port()
+    url = f"udp:127.0.0.1:{port}"
+    rover = MavlinkEndpoint(sim, "rover", url=f"udpout:127.0.0.1:{port}", system_id=1)
+    sim.start()
+    try:
+        with Agent("mission_runner", ros=ros, probe_s=PROBE_S) as taker, \
+                Agent("mission_sender", ros=ros, probe_s=PROBE_S) as giver, \
+                HighLevelBehaviorManager(stop_timeout_s=1.0) as hl_taker, \
+                HighLevelBehaviorManager(stop_timeout_s=1.0) as hl_giver:
+            taker.attach(hl_taker)
+            giver.attach(hl_giver)
+            hl_taker.register("take", MissionRequestResponder, connection=url)
+            responder = hl_taker.switch("take")
+            wait_until(lambda: getattr(responder, "_box", None) is not None, 10.0,
+                       "the responder's mailbox")
+            # The sender's frame is the same vehicle's here: [north, east] in metres.
+            hl_giver.register("send", SendMission, receiver="mission_runner",
+                              waypoints=[[2.0, 2.5]], connection=url, timeout_s=30.0)
+            send = hl_giver.switch("send")
+            assert send.wait(40.0), hl_giver.snapshot()
+            assert send.status is Status.SUCCEEDED, send.error
+        pose = sim.robot("rover").pose()
+        assert math.hypot(pose.x_m - 2.5, pose.y_m - 2.0) <= 0.5  # WP_RADIUS 0.3
+        assert rover.reached == [1]
+    finally:
+        close_all_links()
+        rover.close()
+        sim.close()
