@@ -4,6 +4,7 @@ MAVLink endpoints (real UDP sockets, real pybullet), with faults injected by the
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import socket
 import threading
@@ -135,7 +136,9 @@ def test_a_dropped_mission_item_is_sent_again(vehicles: Vehicles) -> None:
         [round(world_xy(p)[0], 2) for p in WAYPOINTS]
 
 
-def test_unexpected_and_foreign_messages_are_ignored_with_a_count(vehicles: Vehicles) -> None:
+def test_unexpected_and_foreign_messages_are_ignored_with_a_count(
+        vehicles: Vehicles, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.DEBUG, logger="hal.mavlink")
     link = link_to(vehicles.rover_url)
     port = int(vehicles.rover_url.rsplit(":", 1)[1])
     from pymavlink import mavutil  # type: ignore[import-untyped]
@@ -153,6 +156,8 @@ def test_unexpected_and_foreign_messages_are_ignored_with_a_count(vehicles: Vehi
         while time.monotonic() < deadline and not link.ignored["message from system 42"]:
             time.sleep(0.02)
         assert link.ignored["message from system 42"] >= 1
+        assert any("ignored message from system 42" in r.getMessage()
+                   for r in caplog.records if r.name == "hal.mavlink"), caplog.text
         assert link.system_id == 1 and not link.armed  # the stranger changed nothing
         # The link still works: a full upload goes through afterwards.
         assert link.upload_mission(link.mission_items(WAYPOINTS[:2])) == 0
@@ -161,7 +166,9 @@ def test_unexpected_and_foreign_messages_are_ignored_with_a_count(vehicles: Vehi
         vehicle.close()
 
 
-def test_out_of_order_items_are_ignored_by_the_vehicle(vehicles: Vehicles) -> None:
+def test_out_of_order_items_are_ignored_by_the_vehicle(
+        vehicles: Vehicles, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO, logger="robots.mavlink_endpoint")
     link = link_to(vehicles.rover_url)
     items = link.mission_items(WAYPOINTS)
     with link.listen("MISSION_REQUEST_INT") as inbox:
@@ -172,6 +179,7 @@ def test_out_of_order_items_are_ignored_by_the_vehicle(vehicles: Vehicles) -> No
         while time.monotonic() < deadline and not vehicles.rover.ignored:
             time.sleep(0.02)
     assert any("out of order" in reason for reason in vehicles.rover.ignored)
+    assert "out of order" in caplog.text  # logged, not only counted
     assert link.upload_mission(items) == 0  # a new COUNT starts over cleanly
 
 
