@@ -11,6 +11,7 @@ Every process runs on this test run's ROS_DOMAIN_ID and is killed by PID in a fi
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -186,8 +187,6 @@ def test_a_killed_station_agent_frees_nothing_twice_and_the_atv_charges_elsewher
 
 
 def test_max_speed_mps_is_a_validated_parameter_that_clamps_every_drive() -> None:
-    import math
-
     from rclpy.parameter import Parameter
 
     from behaviours.actions import SpeedLimit
@@ -203,6 +202,59 @@ def test_max_speed_mps_is_a_validated_parameter_that_clamps_every_drive() -> Non
             assert not result.successful and "max_speed_mps must be a float > 0" in \
                 result.reason, result
         assert limit.mps == 0.2  # a refused value changes nothing
+
+
+def test_entering_a_zone_sets_the_robots_speed_parameter_online_and_leaving_lifts_it(
+        ) -> None:
+    """The speed-zones logic of a running robot (low level) sets ``max_speed_mps`` on the
+    robot's high-level node by a ROS 2 parameter call as the odometry crosses into the
+    walkway, and lifts it (``inf``) outside; the robot's own node holds the value."""
+    from beehave.config import parse_config
+    from beehave.robot import Robot
+    from beehave.testing import wait_until
+    from behaviours.actions import SpeedLimit
+
+    config = parse_config({
+        "namespace": "zones_atv", "stop_timeout_s": 0.5,
+        "behaviors": {"drive": {"class": "tests.test_fleet:DeclaresSpeedLimit"}},
+        "default_behavior": "drive",
+        "logics": {"zones": {"class": "behaviours.fleet.zones:SpeedZones",
+                             "params": {"world": "factory"}}},
+        "default_logic": "zones", "hals": ["speed_limit"]}, source="zones_atv.yaml")
+    with Robot(config) as robot:
+        assert robot.high is not None and robot.low is not None
+        limit = SpeedLimit.of(robot.high.node)
+        board = robot.low.blackboard
+
+        def at(x_m: float) -> None:  # heading east along y = 8 m
+            for key, value in (("odom/x_m", x_m), ("odom/y_m", 8.0), ("odom/yaw_rad", 0.0)):
+                board.set(key, value)
+
+        at(12.0)  # in the walkway: 0.15 m/s, kept 10 % below
+        assert wait_until(lambda: limit.mps == pytest.approx(0.135), 30.0), limit.mps
+        assert wait_until(lambda: board.get("fleet/zone") == "walkway", 5.0)
+        at(15.0)  # between the walkway and the east hall: no limit
+        assert wait_until(lambda: math.isinf(limit.mps), 30.0), limit.mps
+        assert wait_until(lambda: board.get("fleet/zone") is None, 5.0)
+        at(21.0)  # the east hall: 0.25 m/s
+        assert wait_until(lambda: limit.mps == pytest.approx(0.225), 30.0), limit.mps
+        assert robot.high.node.get_parameter("max_speed_mps").value == pytest.approx(0.225)
+
+
+try:
+    from beehave import Behavior as _Behavior
+except ImportError:  # pragma: no cover
+    _Behavior = object  # type: ignore[assignment,misc]
+
+
+class DeclaresSpeedLimit(_Behavior):  # type: ignore[valid-type,misc]
+    """Declares ``max_speed_mps`` on its node, as a driving action does, and waits."""
+
+    def run(self) -> None:
+        from behaviours.actions import SpeedLimit
+
+        SpeedLimit.of(self.manager.node)
+        self.sleep(math.inf)
 
 
 def test_zone_limits_look_ahead_and_lift_outside() -> None:
