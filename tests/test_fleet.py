@@ -145,6 +145,10 @@ def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_serve
                f"{doomed} driving its delivery", 60)
     fleet.kill(doomed)
     order = first["order"]
+    # The bound: the re-award follows the dead ATV's lease (2 s), not the machine's
+    # silence timeout (done_timeout_s, 240 s), which this wait stays well below.
+    fleet.wait(lambda: fleet.watch.orders[order]["awards"] == [doomed, other],
+               f"{order} re-awarded to {other}", 90)
     served = fleet.wait(lambda: fleet.watch.orders[order]["state"] == "delivered"
                         and fleet.watch.orders[order], f"{order} served by {other}", 150)
     assert served["awards"] == [doomed, other], served
