@@ -47,11 +47,13 @@ from beehave.agents import (  # noqa: E402
 )
 from beehave.agents.agent import INBOX_PREFIX, inbox_qos  # noqa: E402
 from beehave.agents.protocols import (  # noqa: E402
+    REQUEST,
     Award,
     ContractNetInitiator,
     ContractNetResponder,
     RequestInitiator,
     RequestResponder,
+    arequest,
     contract_net,
     request,
 )
@@ -559,6 +561,62 @@ def test_a_logic_talks_with_the_awaitable_api(ros: RosContext) -> None:
             conv.send(Performative.REQUEST, ["logic_echo"], {"n": 7})
             answer = conv.receive(timeout_s=WAIT_S)
         assert (answer.performative, answer.content) == (Performative.INFORM, {"n": 7})
+
+
+class AskLogic(Logic):
+    """A Logic that runs a FIPA request with the awaitable initiator; its result is the
+    inform's content, its error what arequest raised."""
+
+    def __init__(self, talker: Agent, receiver: str, content: Any = None,
+                 protocol: str = REQUEST) -> None:
+        self.talker, self.receiver, self.content = talker, receiver, content
+        self.protocol = protocol
+
+    async def run(self) -> Any:
+        return await arequest(self.talker, self.receiver, self.content,
+                              protocol=self.protocol, timeout_s=WAIT_S)
+
+
+def _ended(logic: Logic | None) -> Logic:
+    assert logic is not None
+    _wait(lambda: logic.status is not Status.RUNNING, f"{logic.path} to end")
+    return logic
+
+
+def test_a_logic_runs_a_fipa_request_and_cancels_it_when_switched_away(
+        ros: RosContext, procs: list[Proc]) -> None:
+    target = _spawn(procs, "arq_target")
+    target.wait_event("ready")
+    with Agent("arq_asker", ros=ros, probe_s=PROBE_S) as asker, \
+            Agent("arq_silent", ros=ros, probe_s=PROBE_S) as silent, \
+            silent.mailbox(protocols=[REQUEST]) as held, \
+            LowLevelBehaviorManager(stop_timeout_s=0.5) as ll:
+        _wait(lambda: asker.directory.alive("arq_target"), "arq_target")
+        ll.register("ask", AskLogic, talker=asker, receiver="arq_target",
+                    content={"bring": "steel"})
+        ll.register("refused", AskLogic, talker=asker, receiver="arq_target",
+                    protocol="nobody-serves-this")
+        ll.register("hold", AskLogic, talker=asker, receiver="arq_silent", content="wait")
+        # Across processes: agree, then the inform's content.
+        asked = _ended(ll.switch("ask"))
+        assert asked.status is Status.SUCCEEDED, asked.error
+        assert asked.result == {"result": {"bring": "steel"}}
+        assert target.saw("got", performative="request", sender="arq_asker")
+        # A refusal (not-understood: nobody serves that protocol) is a typed failure.
+        refused = _ended(ll.switch("refused"))
+        assert isinstance(refused.error, ProtocolFailed), refused.error
+        assert refused.error.reply is not None
+        assert refused.error.reply.performative is Performative.NOT_UNDERSTOOD
+        # Switched away while it waits: the receiver gets a cancel of that conversation.
+        holding = ll.switch("hold")
+        asked_to_hold = held.receive(timeout_s=WAIT_S)
+        assert (asked_to_hold.performative, asked_to_hold.content) == \
+            (Performative.REQUEST, "wait")
+        ll.switch("ask")  # switching returns once the old logic has ended
+        assert holding is not None and holding.status is Status.INTERRUPTED
+        cancel = held.receive(timeout_s=WAIT_S)
+        assert cancel.performative is Performative.CANCEL
+        assert cancel.conversation_id == asked_to_hold.conversation_id
 
 
 class QueuedBidder(Bidder):

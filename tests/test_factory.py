@@ -278,6 +278,21 @@ def test_speeding_in_a_zone_is_measured_over_the_limit(sim_of: Any) -> None:
     assert any(p.startswith("zone slow: k1 drove") for p in factory.facts().problems())
 
 
+def test_a_battery_that_runs_flat_is_measured_at_zero(sim_of: Any) -> None:
+    # A Kobuki idles at 5 W: half of a 0.01 Wh battery (18 J) is gone in 3.6 s of sim time.
+    sim, factory = sim_of(shop(robots=[{
+        "namespace": "k1", "kind": "kobuki", "start": {"x_m": 4.5, "y_m": 1.0},
+        "battery": {"capacity_wh": 0.01, "initial_fraction": 0.5}}]))
+    sim.run_for(0.2)
+    assert factory.facts().robot("k1").min_battery_fraction > 0.0
+    assert not [p for p in factory.facts().problems() if "battery" in p]
+    sim.run_for(6.0)
+    robot = factory.facts().robot("k1")
+    assert robot.min_battery_fraction == 0.0 and robot.battery_fraction == 0.0
+    assert any(p.startswith("robot k1: battery reached zero at") for p in
+               factory.facts().problems())
+
+
 def test_the_facts_are_plain_json_keyed_by_name(sim_of: Any) -> None:
     sim, factory = sim_of(shop())
     sim.run_for(1.5)

@@ -11,6 +11,7 @@ Every process runs on this test run's ROS_DOMAIN_ID and is killed by PID in a fi
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -144,6 +145,10 @@ def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_serve
                f"{doomed} driving its delivery", 60)
     fleet.kill(doomed)
     order = first["order"]
+    # The bound: the re-award follows the dead ATV's lease (2 s), not the machine's
+    # silence timeout (done_timeout_s, 240 s), which this wait stays well below.
+    fleet.wait(lambda: fleet.watch.orders[order]["awards"] == [doomed, other],
+               f"{order} re-awarded to {other}", 90)
     served = fleet.wait(lambda: fleet.watch.orders[order]["state"] == "delivered"
                         and fleet.watch.orders[order], f"{order} served by {other}", 150)
     assert served["awards"] == [doomed, other], served
@@ -186,8 +191,6 @@ def test_a_killed_station_agent_frees_nothing_twice_and_the_atv_charges_elsewher
 
 
 def test_max_speed_mps_is_a_validated_parameter_that_clamps_every_drive() -> None:
-    import math
-
     from rclpy.parameter import Parameter
 
     from behaviours.actions import SpeedLimit
@@ -203,6 +206,59 @@ def test_max_speed_mps_is_a_validated_parameter_that_clamps_every_drive() -> Non
             assert not result.successful and "max_speed_mps must be a float > 0" in \
                 result.reason, result
         assert limit.mps == 0.2  # a refused value changes nothing
+
+
+def test_entering_a_zone_sets_the_robots_speed_parameter_online_and_leaving_lifts_it(
+        ) -> None:
+    """The speed-zones logic of a running robot (low level) sets ``max_speed_mps`` on the
+    robot's high-level node by a ROS 2 parameter call as the odometry crosses into the
+    walkway, and lifts it (``inf``) outside; the robot's own node holds the value."""
+    from beehave.config import parse_config
+    from beehave.robot import Robot
+    from beehave.testing import wait_until
+    from behaviours.actions import SpeedLimit
+
+    config = parse_config({
+        "namespace": "zones_atv", "stop_timeout_s": 0.5,
+        "behaviors": {"drive": {"class": "tests.test_fleet:DeclaresSpeedLimit"}},
+        "default_behavior": "drive",
+        "logics": {"zones": {"class": "behaviours.fleet.zones:SpeedZones",
+                             "params": {"world": "factory"}}},
+        "default_logic": "zones", "hals": ["speed_limit"]}, source="zones_atv.yaml")
+    with Robot(config) as robot:
+        assert robot.high is not None and robot.low is not None
+        limit = SpeedLimit.of(robot.high.node)
+        board = robot.low.blackboard
+
+        def at(x_m: float) -> None:  # heading east along y = 8 m
+            for key, value in (("odom/x_m", x_m), ("odom/y_m", 8.0), ("odom/yaw_rad", 0.0)):
+                board.set(key, value)
+
+        at(12.0)  # in the walkway: 0.15 m/s, kept 10 % below
+        assert wait_until(lambda: limit.mps == pytest.approx(0.135), 30.0), limit.mps
+        assert wait_until(lambda: board.get("fleet/zone") == "walkway", 5.0)
+        at(15.0)  # between the walkway and the east hall: no limit
+        assert wait_until(lambda: math.isinf(limit.mps), 30.0), limit.mps
+        assert wait_until(lambda: board.get("fleet/zone") is None, 5.0)
+        at(21.0)  # the east hall: 0.25 m/s
+        assert wait_until(lambda: limit.mps == pytest.approx(0.225), 30.0), limit.mps
+        assert robot.high.node.get_parameter("max_speed_mps").value == pytest.approx(0.225)
+
+
+try:
+    from beehave import Behavior as _Behavior
+except ImportError:  # pragma: no cover
+    _Behavior = object  # type: ignore[assignment,misc]
+
+
+class DeclaresSpeedLimit(_Behavior):  # type: ignore[valid-type,misc]
+    """Declares ``max_speed_mps`` on its node, as a driving action does, and waits."""
+
+    def run(self) -> None:
+        from behaviours.actions import SpeedLimit
+
+        SpeedLimit.of(self.manager.node)
+        self.sleep(math.inf)
 
 
 def test_zone_limits_look_ahead_and_lift_outside() -> None:
@@ -288,3 +344,128 @@ def test_the_watcher_counts_what_it_cannot_read() -> None:
     assert watch.malformed == {"/factory/state": 1, "/fleet/orders": 1,
                                "/beehave/agents/directory": 1}
     assert list(watch.orders) == ["o1"] and watch.state == {} and watch.agents == {}
+
+
+# ---- the exit checks: each one can fail ---------------------------------------------------
+
+#: A good run's facts, as the sim reports them (the fields the checks read).
+FACTS: dict[str, Any] = {
+    "machines": {"lathe1": {"capacity": 100.0, "min_level": 35.0, "empty_s": 0.0},
+                 "press1": {"capacity": 100.0, "min_level": 41.0, "empty_s": 0.0}},
+    "stations": {"charger1": {"max_charging": 1}, "charger2": {"max_charging": 0}},
+    "robots": {"atv1": {"min_battery_fraction": 0.31}, "atv2": {"min_battery_fraction": 0.4}},
+    "zones": {"walkway": {"max_ratio": 0.93}},
+    "deliveries": [{"machine": "lathe1", "robot": "atv1"},
+                   {"machine": "press1", "robot": "atv2"}],
+}
+
+
+def _order(order: str, machine: str, state: str, awards: list[str]) -> str:
+    return json.dumps({"order": order, "machine": machine, "state": state,
+                       "atv": awards[-1] if awards else None, "awards": awards,
+                       "reason": None, "stamp": 1.0})
+
+
+def _watched(*reports: str) -> Watch:
+    watch = Watch()
+    for report in reports or (_order("lathe1-1", "lathe1", "delivered", ["atv1"]),
+                              _order("press1-1", "press1", "delivered", ["atv2"])):
+        watch.on_order(report)
+    return watch
+
+
+def _failed_checks(facts: dict[str, Any], watch: Watch | None = None) -> list[str]:
+    from behaviours.demos.fleet import checks
+
+    return [name for name, ok, _ in checks(facts, watch or _watched()) if not ok]
+
+
+def _facts(change: Callable[[dict[str, Any]], Any]) -> dict[str, Any]:
+    import copy
+
+    facts = copy.deepcopy(FACTS)
+    change(facts)
+    return facts
+
+
+def test_the_fleet_checks_pass_on_a_good_run() -> None:
+    assert _failed_checks(FACTS) == []
+
+
+@pytest.mark.parametrize("change, fails", [
+    (lambda f: f["machines"]["press1"].update(empty_s=4.0, min_level=0.0),
+     "no machine ran empty"),
+    (lambda f: f["stations"]["charger2"].update(max_charging=2),
+     "at most one robot charging per station"),
+    (lambda f: f["robots"]["atv2"].update(min_battery_fraction=0.0),
+     "no battery reached zero"),
+    (lambda f: f["zones"]["walkway"].update(max_ratio=1.06), "zone limits kept (≤ +5 %)"),
+    # One unload more than the orders the machine saw done or under way: a second robot
+    # delivered on one contract.
+    (lambda f: f["deliveries"].append({"machine": "lathe1", "robot": "atv2"}),
+     "every contract awarded at most once"),
+    (lambda f: f.update(deliveries=[]), "deliveries made"),
+])
+def test_each_fleet_check_fails_when_its_rule_is_broken(
+        change: Callable[[dict[str, Any]], Any], fails: str) -> None:
+    failed = _failed_checks(_facts(change))
+    assert fails in failed and len(set(failed) - {fails, "every contract awarded at most "
+                                                          "once"}) == 0, failed
+
+
+def test_a_zone_limit_within_5_percent_passes() -> None:
+    assert _failed_checks(_facts(lambda f: f["zones"]["walkway"].update(max_ratio=1.05))) \
+        == []
+
+
+def _mission_reports() -> tuple[Any, list[dict[str, Any]]]:
+    from behaviours.fleet.mission import MissionController
+
+    reports: list[dict[str, Any]] = []
+
+    class Sink:  # the behaviour's ROS publisher, as far as the controller uses it
+        def publish(self, msg: Any) -> None:
+            reports.append(json.loads(msg.data))
+
+    return MissionController(Sink()), reports
+
+
+def test_the_mission_controller_reports_every_state_of_an_order() -> None:
+    controller, reports = _mission_reports()
+    mission = controller.new("lathe1-1", "lathe1", "depot")
+    for step, detail in [("cfp", {"candidates": ["atv1", "atv2"]}),
+                         ("awarded", {"awardee": "atv1", "cost": 3.0, "attempt": 1}),
+                         ("failed", {"awardee": "atv1", "reason": "failure: died"}),
+                         ("awarded", {"awardee": "atv2", "cost": 4.0, "attempt": 2}),
+                         ("done", {"awardee": "atv2", "result": None})]:
+        mission.step(step, {"conversation_id": "lathe1/1", **detail})
+    assert [(r["state"], r["atv"], r["awards"]) for r in reports] == [
+        ("created", None, []), ("announced", None, []), ("awarded", "atv1", ["atv1"]),
+        ("announced", "atv1", ["atv1"]), ("awarded", "atv2", ["atv1", "atv2"]),
+        ("delivered", "atv2", ["atv1", "atv2"])]
+    assert reports[3]["reason"] == "failure: died"
+    assert all(r["schema"] == "beehave.fleet.order/1" and r["violation"] is None
+               for r in reports)
+    failing = controller.new("lathe1-2", "lathe1", "depot")
+    failing.step("cfp", {"candidates": []})
+    failing.fail("no proposal")
+    assert (reports[-1]["order"], reports[-1]["state"], reports[-1]["reason"]) == \
+        ("lathe1-2", "failed", "no proposal")
+
+
+def test_a_second_award_on_a_standing_one_is_a_violation_and_fails_the_fleet() -> None:
+    controller, reports = _mission_reports()
+    mission = controller.new("press1-1", "press1", "depot")
+    mission.step("cfp", {"candidates": ["atv1", "atv2"]})
+    mission.step("awarded", {"awardee": "atv1", "cost": 1.0, "attempt": 1})
+    mission.step("awarded", {"awardee": "atv2", "cost": 2.0, "attempt": 2})
+    assert mission.state == "awarded"  # not taken
+    assert reports[-1]["violation"] == "awarded in state awarded"
+    watch = _watched(*(json.dumps(r) for r in reports))
+    assert watch.violations == ["order press1-1: awarded in state awarded"]
+    assert "every contract awarded at most once" in _failed_checks(FACTS, watch)
+    # An order reported delivered twice is one too.
+    twice = _watched(_order("lathe1-1", "lathe1", "delivered", ["atv1"]),
+                     _order("lathe1-1", "lathe1", "delivered", ["atv1"]))
+    assert twice.violations == ["order lathe1-1 delivered twice"]
+    assert "every contract awarded at most once" in _failed_checks(FACTS, twice)

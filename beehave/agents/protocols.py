@@ -1,7 +1,8 @@
 """Interaction protocols as Behaviors: FIPA request and contract net, both sides.
 
 Initiators are functions (:func:`request`, :func:`contract_net`) usable from any thread,
-and Behaviors that call them (:class:`RequestInitiator`, :class:`ContractNetInitiator`).
+an awaitable one for asyncio code (:func:`arequest`, from a Logic), and Behaviors that
+call them (:class:`RequestInitiator`, :class:`ContractNetInitiator`).
 Inside a Behavior or Action every wait ends as soon as it is interrupted, and the
 initiator then cancels what it started before :class:`~beehave.errors.Interrupted`
 propagates: a cancel to an agent that agreed or was awarded, a reject-proposal to every
@@ -18,6 +19,7 @@ failure) and reports its result when it ends; a cancel interrupts it.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from collections.abc import Callable
@@ -68,7 +70,8 @@ def request(agent: Agent, receiver: str, content: Any = None, *, protocol: str =
     :class:`~beehave.errors.ProtocolFailed` on refuse, not-understood or failure (``reply``
     holds it) and when ``receiver`` leaves the directory; :class:`~beehave.errors.NoReply`
     at the deadline and :class:`~beehave.errors.Interrupted` when the calling Behavior or
-    Action is interrupted — both after sending ``cancel``."""
+    Action is interrupted — both after sending ``cancel``. From asyncio code (a Logic),
+    await :func:`arequest` instead."""
     with agent.conversation(protocol=protocol) as conv:
         deadline = time.monotonic() + timeout_s
         conv.watch(receiver)
@@ -76,21 +79,64 @@ def request(agent: Agent, receiver: str, content: Any = None, *, protocol: str =
         try:
             while True:
                 reply = conv.receive(timeout_s=max(0.0, deadline - time.monotonic()))
-                if reply.sender != receiver:
-                    continue
-                if reply.performative is Performative.AGREE:
-                    continue
-                if reply.performative is Performative.INFORM:
+                if _request_done(agent, receiver, sent, reply):
                     return reply.content
-                if reply.performative in (*_REFUSALS, Performative.FAILURE):
-                    raise ProtocolFailed(
-                        f"agent {agent.name!r}: {receiver!r} answered the request "
-                        f"{sent.message_id[:8]} with {reply.performative.value}: "
-                        f"{reply.content!r:.200}", reply=reply)
         except (NoReply, Interrupted):
             _cancel_quietly(conv, [receiver], Performative.CANCEL,
                             {"reason": "the initiator stopped waiting"})
             raise
+
+
+async def arequest(agent: Agent, receiver: str, content: Any = None, *,
+                   protocol: str = REQUEST, timeout_s: float = 10.0) -> Any:
+    """:func:`request` for asyncio code (a Logic): the same exchange, awaited without
+    blocking the event loop. Cancelling the awaiting task (the Logic is switched away or
+    stopped) sends ``cancel`` to ``receiver`` before the :class:`asyncio.CancelledError`
+    propagates, as :class:`~beehave.errors.NoReply` at the deadline does; refusals and
+    failures raise :class:`~beehave.errors.ProtocolFailed`.
+
+    ::
+
+        class Fetch(Logic):
+            async def run(self) -> None:
+                done = await arequest(self.talker, "depot_1", {"bring": "steel"},
+                                      timeout_s=5.0)
+    """
+    with agent.conversation(protocol=protocol) as conv:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        conv.watch(receiver)
+        sent = await agent.asend(Message(
+            performative=Performative.REQUEST, sender=agent.name, receivers=[receiver],
+            conversation_id=conv.conversation_id, protocol=protocol, content=content,
+            reply_by=time.time() + timeout_s))
+        try:
+            while True:
+                reply = await conv.areceive(timeout_s=max(0.0, deadline - loop.time()))
+                if _request_done(agent, receiver, sent, reply):
+                    return reply.content
+        except (NoReply, asyncio.CancelledError):
+            # The receiver's inbox is matched (the request went out): this send hands the
+            # cancel to DDS without waiting, so the loop is not blocked while unwinding.
+            _cancel_quietly(conv, [receiver], Performative.CANCEL,
+                            {"reason": "the initiator stopped waiting"})
+            raise
+
+
+def _request_done(agent: Agent, receiver: str, sent: Message, reply: Message) -> bool:
+    """True when ``reply`` is the inform that ends the request; raises
+    :class:`~beehave.errors.ProtocolFailed` on a refusal or failure of ``receiver``;
+    False for what is no answer yet (its agree, another agent's message)."""
+    if reply.sender != receiver or reply.performative is Performative.AGREE:
+        return False
+    if reply.performative is Performative.INFORM:
+        return True
+    if reply.performative in (*_REFUSALS, Performative.FAILURE):
+        raise ProtocolFailed(
+            f"agent {agent.name!r}: {receiver!r} answered the request "
+            f"{sent.message_id[:8]} with {reply.performative.value}: "
+            f"{reply.content!r:.200}", reply=reply)
+    return False
 
 
 class RequestInitiator(AgentBehavior):
