@@ -14,7 +14,7 @@ from collections.abc import Iterator, Sequence
 from typing import Any
 
 import pytest
-from mqtt_broker import Broker, Master, action, broker, edge, node
+from mqtt_broker import Broker, Master, TlsFiles, action, broker, edge, make_tls_files, node
 
 from beehave import HighLevelBehaviorManager
 from beehave.config import parse_config
@@ -512,6 +512,81 @@ def test_username_from_a_missing_environment_variable_is_refused(broker: Broker)
         interface.start(control=ControlPlane(hl, name="t"))
     interface.close()
     hl.shutdown()
+
+
+@pytest.fixture(scope="module")
+def tls_files(tmp_path_factory: pytest.TempPathFactory) -> TlsFiles:
+    return make_tls_files(tmp_path_factory.mktemp("tls"))
+
+
+def test_username_password_from_the_environment_over_tls(
+        tls_files: TlsFiles, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A broker that wants TLS and a password (mosquitto: password_file, allow_anonymous
+    false, a certificate of a CA of our own): the AGV connects with the credentials of the
+    environment variables its YAML names and the CA of ``ca_file``; a wrong password is
+    reported as refused and nothing is exchanged."""
+    monkeypatch.setenv("BEEHAVE_TEST_VDA_USER", "agv")
+    monkeypatch.setenv("BEEHAVE_TEST_VDA_PASSWORD", "s3cret")
+    with Broker(users={"agv": "s3cret", "fm": "fleet"}, tls=tls_files) as secure:
+        broker_options = {"port": secure.port, "username_env": "BEEHAVE_TEST_VDA_USER",
+                          "password_env": "BEEHAVE_TEST_VDA_PASSWORD", "tls": True,
+                          "ca_file": str(tls_files.cafile), "reconnect_max_s": 1.0}
+        hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+        interface = Vda5050Interface(options(secure.port, broker=broker_options), high=hl,
+                                     executor=FakeDrive)
+        hl.start()
+        plane = ControlPlane(hl, name="t")
+        master = Master(secure.port, serial_number=SERIAL, username="fm", password="fleet",
+                        ca_file=tls_files.cafile)
+        try:
+            interface.start(control=plane)
+            master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                            timeout_s=10)
+            master.order("o1", 0, three_nodes())
+            master.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=10)
+        finally:
+            hl.shutdown()
+            interface.close()
+            plane.close()
+            master.close()
+        assert not master.invalid, master.invalid
+
+        monkeypatch.setenv("BEEHAVE_TEST_VDA_PASSWORD", "wrong")
+        hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+        intruder = Vda5050Interface(options(secure.port, broker=broker_options), high=hl,
+                                    executor=FakeDrive)
+        plane = ControlPlane(hl, name="t")
+        try:
+            with caplog.at_level("WARNING", logger="beehave.interfaces.vda5050.agv"):
+                intruder.start(control=plane)
+                assert not intruder.connected.wait(1.5)
+            assert f"broker 127.0.0.1:{secure.port} refused the connection" in caplog.text
+        finally:
+            intruder.close()
+            plane.close()
+            hl.shutdown()
+
+
+def test_tls_without_the_brokers_ca_does_not_connect(
+        tls_files: TlsFiles, caplog: pytest.LogCaptureFixture) -> None:
+    """The broker's certificate is checked: without its CA (the system CAs by default)
+    the AGV does not talk to it, and says so."""
+    with Broker(tls=tls_files) as secure:
+        hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+        interface = Vda5050Interface(options(secure.port, broker={
+            "port": secure.port, "tls": True, "reconnect_max_s": 1.0}), high=hl,
+            executor=FakeDrive)
+        plane = ControlPlane(hl, name="t")
+        try:
+            with caplog.at_level("WARNING", logger="beehave.interfaces.vda5050.agv"):
+                interface.start(control=plane)
+                assert not interface.connected.wait(1.5)
+            assert f"no MQTT broker reachable at 127.0.0.1:{secure.port}" in caplog.text
+        finally:
+            interface.close()
+            plane.close()
+            hl.shutdown()
 
 
 def test_no_broker_is_reported_and_retried_until_one_appears(

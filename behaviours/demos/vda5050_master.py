@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import shutil
 import socket
 import subprocess
@@ -40,18 +41,74 @@ def free_port() -> int:
         return port
 
 
-class Broker:
-    """mosquitto on ``127.0.0.1:port``; a context manager."""
+@dataclass(frozen=True)
+class TlsFiles:
+    """A broker's TLS files (PEM): the CA that signed ``certfile``, and its key."""
 
-    def __init__(self, port: int | None = None) -> None:
+    cafile: Path
+    certfile: Path
+    keyfile: Path
+
+
+def make_tls_files(folder: Path, *, host: str = "127.0.0.1") -> TlsFiles:
+    """A self-signed CA and a server certificate for ``host`` (an IP address, as its
+    subjectAltName), made with ``openssl`` in ``folder``: enough for a TLS broker in tests
+    or on a lab network; a real deployment uses its own CA."""
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        raise RuntimeError("openssl not found: it makes the test certificates")
+    files = TlsFiles(folder / "ca.pem", folder / "server.pem", folder / "server.key")
+    ca_key, csr = folder / "ca.key", folder / "server.csr"
+
+    def run(*args: str) -> None:
+        subprocess.run([openssl, *args], check=True, capture_output=True)
+
+    run("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj",
+        "/CN=beehave test CA", "-keyout", str(ca_key), "-out", str(files.cafile))
+    run("req", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={host}", "-keyout",
+        str(files.keyfile), "-out", str(csr))
+    ext = folder / "san.ext"
+    ext.write_text(f"subjectAltName=IP:{host}\n")
+    run("x509", "-req", "-in", str(csr), "-CA", str(files.cafile), "-CAkey", str(ca_key),
+        "-CAcreateserial", "-days", "2", "-extfile", str(ext), "-out", str(files.certfile))
+    return files
+
+
+class Broker:
+    """mosquitto on ``127.0.0.1:port``; a context manager.
+
+    ``users`` (name → password) switches anonymous access off and writes a password file
+    (``mosquitto_passwd``); ``tls`` makes the listener TLS only."""
+
+    def __init__(self, port: int | None = None, *, users: dict[str, str] | None = None,
+                 tls: TlsFiles | None = None) -> None:
         self.port = port or free_port()
+        self.tls = tls
         self._dir = tempfile.TemporaryDirectory(prefix="beehave-mqtt-")
         self.config = Path(self._dir.name) / "mosquitto.conf"
         # Only errors and warnings reach stderr: it is a pipe read only when mosquitto
         # exits at once, and a connection log line per client would fill it and block
         # the broker in a long run.
-        self.config.write_text(f"listener {self.port} 127.0.0.1\nallow_anonymous true\n"
-                               "persistence false\nlog_type error\nlog_type warning\n")
+        lines = [f"listener {self.port} 127.0.0.1", "persistence false", "log_type error",
+                 "log_type warning"]
+        if os.geteuid() == 0:
+            # Started by root, mosquitto would switch to the user "mosquitto", who cannot
+            # read the password and key files in this private folder.
+            lines.append("user root")
+        if users:
+            passwd = shutil.which("mosquitto_passwd") or "/usr/bin/mosquitto_passwd"
+            password_file = Path(self._dir.name) / "passwd"
+            password_file.touch(mode=0o600)
+            for user, password in users.items():
+                subprocess.run([passwd, "-b", str(password_file), user, password],
+                               check=True, capture_output=True)
+            lines += ["allow_anonymous false", f"password_file {password_file}"]
+        else:
+            lines.append("allow_anonymous true")
+        if tls is not None:
+            lines += [f"cafile {tls.cafile}", f"certfile {tls.certfile}",
+                      f"keyfile {tls.keyfile}"]
+        self.config.write_text("\n".join(lines) + "\n")
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
@@ -104,7 +161,9 @@ class Master:
 
     def __init__(self, port: int, *, manufacturer: str = "beehave", serial_number: str,
                  interface_name: str = "uagv", host: str = "127.0.0.1",
-                 clock: Callable[[], float] | None = None) -> None:
+                 clock: Callable[[], float] | None = None,
+                 username: str | None = None, password: str | None = None,
+                 ca_file: Path | str | None = None) -> None:
         self.topics = Topics.of(interface_name, manufacturer, serial_number)
         self.manufacturer, self.serial_number = manufacturer, serial_number
         self.received: dict[str, list[dict[str, Any]]] = {t: [] for t in validation.TOPICS}
@@ -118,6 +177,10 @@ class Master:
                                   client_id=f"master-{serial_number}-{id(self):x}")
         self.client.on_message = self._on_message
         self.client.on_connect = self._on_connect
+        if username is not None:
+            self.client.username_pw_set(username, password)
+        if ca_file is not None:
+            self.client.tls_set(ca_certs=str(ca_file))
         self.client.connect_async(host, port, keepalive=5)
         self.client.reconnect_delay_set(min_delay=1, max_delay=1)
         self.client.loop_start()
