@@ -19,6 +19,7 @@ from mqtt_broker import Broker, Master, TlsFiles, action, broker, edge, make_tls
 from beehave import HighLevelBehaviorManager
 from beehave.config import parse_config
 from beehave.errors import ConfigError, Vda5050ValidationError
+from beehave.highlevel import ManagerState
 from beehave.interfaces import ControlPlane
 from beehave.interfaces.vda5050 import (
     ActionStatus,
@@ -643,3 +644,29 @@ def test_periodic_messages_keep_their_cadence_when_woken_late() -> None:
     assert _next_tick(1.000, 0.05, 1.020, restart=True) == pytest.approx(1.070)
     # A stall longer than a period: no burst of catch-up messages.
     assert _next_tick(1.000, 0.05, 1.300, restart=False) == pytest.approx(1.350)
+
+
+def test_benchmark_closes_the_agvs_it_started_when_one_fails(
+        broker: Broker, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``python -m benchmarks vda5050`` starts ten AGVs: when the third fails to start,
+    the two already running are closed (their threads and MQTT links ended) before the
+    error propagates, instead of being left running in the benchmark process."""
+    from benchmarks import bench_vda5050
+
+    real_agv = bench_vda5050._agv
+    started: list[Any] = []
+
+    def third_fails(port: int, serial: str, **more: Any) -> Any:
+        if len(started) == 2:
+            raise RuntimeError("third AGV failed to start")
+        made = real_agv(port, serial, **more)
+        started.append(made)
+        return made
+
+    monkeypatch.setattr(bench_vda5050, "_agv", third_fails)
+    with pytest.raises(RuntimeError, match="third AGV"):
+        bench_vda5050._fleet(broker.port, 10, state_period_s=0.05)
+    assert len(started) == 2
+    for hl, interface, _plane in started:
+        assert interface._client is None and not interface._threads
+        assert hl._state is ManagerState.STOPPED, hl._state
