@@ -307,10 +307,14 @@ class Timeline:
 
 
 def run_scenario(*, out: Path, real_time_factor: float | None = None,
-                 console: Any = None) -> list[str]:
+                 console: Any = None, figures: dict[str, float] | None = None) -> list[str]:
     """EMILI takes a VDA 5050 order over a local broker: pick at ``emili_pickup``, drop at
     ``emili_dropoff``; a second order to the charging station is cancelled mid-edge.
-    Returns the problems (empty: the physics matched)."""
+    Returns the problems (empty: the physics matched). ``figures``, when given, gets the
+    latencies measured on the way (the benchmark reads them): ``order_to_wheels_<id>_ms``
+    (wall time from the master publishing an order to the first physics step with a
+    non-zero wheel command), ``cancel_to_stop_sim_s`` and ``cancel_to_stop_wall_ms``
+    (cancelOrder published → EMILI's measured velocity below 0.01 m/s)."""
     import math as _math
 
     from rich.console import Console
@@ -345,6 +349,22 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
         remove = sim.on_step(lambda _t: lift_max.__setitem__(
             0, max(lift_max[0], emili.lift_height())))
 
+        measured: dict[str, float] = {} if figures is None else figures
+
+        def send_order(order_id: str, nodes: list[dict[str, Any]]) -> None:
+            """Send an order and note when the physics first gets a wheel command."""
+            commanded: list[float] = []
+
+            def on_step(_t: float) -> None:
+                if not commanded and emili.cmd_vel() != (0.0, 0.0):
+                    commanded.append(time.perf_counter())
+                    measured[f"order_to_wheels_{order_id}_ms"] = (commanded[0] - sent) * 1e3
+            sent = time.perf_counter()
+            watches.append(sim.on_step(on_step))
+            master.order(order_id, 0, nodes)
+
+        watches: list[Callable[[], None]] = []
+
         def wait(predicate: Callable[[dict[str, Any]], bool], timeout_s: float
                  ) -> dict[str, Any] | None:
             try:
@@ -365,7 +385,7 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
             put = node("emili_dropoff", 4, actions=[action("drop", "drop-1")])
             console.print("master → order o1: start → emili_pickup (pick) → emili_dropoff "
                           "(drop)")
-            master.order("o1", 0, [start, take, put])
+            send_order("o1", [start, take, put])
             picked = wait(lambda s: s["lastNodeId"] == "emili_pickup" and any(
                 a["actionId"] == "pick-1" and a["actionStatus"] == "FINISHED"
                 for a in s["actionStates"]), 120)
@@ -394,15 +414,21 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
             charge = node("emili_charging", 2, actions=[action("startCharging", "charge-1")])
             console.print("master → order o2: emili_dropoff → emili_charging; cancelOrder "
                           "mid-edge")
-            master.order("o2", 0, [here, charge])
+            send_order("o2", [here, charge])
             wait(lambda s: s["orderId"] == "o2" and s["driving"], 60)
             t_drive = sim.time_s
             while sim.time_s < t_drive + 3.0:
                 time.sleep(0.01)
             stopped: list[float] = []
+            stopped_wall: list[float] = []
+
+            def on_stop(t: float) -> None:
+                if not stopped and abs(emili.odometry().linear_mps) < 0.01:
+                    stopped_wall.append(time.perf_counter())
+                    stopped.append(t)
             t_cancel = sim.time_s
-            watch = sim.on_step(lambda t: stopped.append(t) if not stopped and abs(
-                emili.odometry().linear_mps) < 0.01 else None)
+            watch = sim.on_step(on_stop)
+            wall_cancel = time.perf_counter()
             master.instant(action("cancelOrder", "cancel-1"))
             cancelled = wait(lambda s: any(a["actionId"] == "cancel-1" and
                                            a["actionStatus"] == "FINISHED"
@@ -412,6 +438,9 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
                 time.sleep(0.01)
             watch()
             stop_s = stopped[0] - t_cancel if stopped else _math.inf
+            measured["cancel_to_stop_sim_s"] = stop_s
+            measured["cancel_to_stop_wall_ms"] = (
+                (stopped_wall[0] - wall_cancel) * 1e3 if stopped_wall else _math.inf)
             checks.append(("velocity 0 after cancelOrder", f"{stop_s:.3f} s sim",
                            "≤ 0.5 s sim", stop_s <= 0.5))
             if cancelled is not None:
@@ -423,6 +452,8 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
                            "0", not master.invalid))
         finally:
             remove()
+            for remove_watch in watches:
+                remove_watch()
             out.parent.mkdir(parents=True, exist_ok=True)
             try:
                 sim.render_topdown(out)
@@ -450,6 +481,9 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
         if not ok:
             problems.append(f"{name}: {measured} (target {target})")
     console.print(table)
+    if measured:
+        console.print("latencies: " + ", ".join(
+            f"{k} {v:.3f}" for k, v in sorted(measured.items())))
     console.print(f"picture: {out}")
     return problems
 
