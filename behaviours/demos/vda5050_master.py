@@ -172,6 +172,8 @@ class Master:
         self.stamped: list[tuple[float, dict[str, Any]]] = []
         self._clock = clock
         self._cond = threading.Condition()
+        #: Set once the master is on the broker.
+        self.connected = threading.Event()
         self._header = 0
         self.client = mqtt.Client(CallbackAPIVersion.VERSION2,
                                   client_id=f"master-{serial_number}-{id(self):x}")
@@ -185,9 +187,13 @@ class Master:
         self.client.reconnect_delay_set(min_delay=1, max_delay=1)
         self.client.loop_start()
 
-    def _on_connect(self, client: mqtt.Client, *_: Any) -> None:
+    def _on_connect(self, client: mqtt.Client, _userdata: Any, _flags: Any, reason: Any,
+                    _props: Any) -> None:
+        if reason.is_failure:
+            return
         for topic in ("state", "visualization", "connection", "factsheet"):
             client.subscribe(self.topics[topic], qos=1)
+        self.connected.set()
 
     def _on_message(self, _c: mqtt.Client, _u: Any, message: mqtt.MQTTMessage) -> None:
         kind = message.topic.rsplit("/", 1)[-1]
@@ -307,14 +313,17 @@ class Timeline:
 
 
 def run_scenario(*, out: Path, real_time_factor: float | None = None,
-                 console: Any = None, figures: dict[str, float] | None = None) -> list[str]:
+                 console: Any = None, figures: dict[str, float] | None = None,
+                 broker: tuple[str, int] | None = None) -> list[str]:
     """EMILI takes a VDA 5050 order over a local broker: pick at ``emili_pickup``, drop at
     ``emili_dropoff``; a second order to the charging station is cancelled mid-edge.
     Returns the problems (empty: the physics matched). ``figures``, when given, gets the
     latencies measured on the way (the benchmark reads them): ``order_to_wheels_<id>_ms``
     (wall time from the master publishing an order to the first physics step with a
     non-zero wheel command), ``cancel_to_stop_sim_s`` and ``cancel_to_stop_wall_ms``
-    (cancelOrder published → EMILI's measured velocity below 0.01 m/s)."""
+    (cancelOrder published → EMILI's measured velocity below 0.01 m/s).
+    ``broker``: ``(host, port)`` of a running broker to use instead of a local mosquitto
+    of the scenario's own (anonymous access)."""
     import math as _math
 
     from rich.console import Console
@@ -334,22 +343,24 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
     checks: list[tuple[str, str, str, bool]] = []
     timeline = Timeline()
     root = Path(__file__).resolve().parents[2]
-    with Broker() as broker:
+    with Broker() if broker is None else contextlib.nullcontext() as local:
+        host, port = (("127.0.0.1", local.port) if isinstance(local, Broker)
+                      else broker or ("127.0.0.1", 1883))
         data = load_config(root / "robots/config/emili_vda5050.yaml").model_dump(
             by_alias=True, exclude={"source"})
-        data["vda5050"]["broker"]["port"] = broker.port
+        data["vda5050"]["broker"].update(host=host, port=port)
         config = parse_config(data, source="emili_vda5050.yaml")
         sim = Simulation(world, real_time_factor=real_time_factor)
         ros = RosContext()
         sim_node = SimNode(sim, ros)
         robot = Robot(config)
-        master = Master(broker.port, serial_number="emili1", clock=lambda: sim.time_s)
+        master = Master(port, host=host, serial_number="emili1", clock=lambda: sim.time_s)
         emili = sim.emili("emili1")
         lift_max = [0.0]
         remove = sim.on_step(lambda _t: lift_max.__setitem__(
             0, max(lift_max[0], emili.lift_height())))
 
-        measured: dict[str, float] = {} if figures is None else figures
+        latencies: dict[str, float] = {} if figures is None else figures
 
         def send_order(order_id: str, nodes: list[dict[str, Any]]) -> None:
             """Send an order and note when the physics first gets a wheel command."""
@@ -358,7 +369,7 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
             def on_step(_t: float) -> None:
                 if not commanded and emili.cmd_vel() != (0.0, 0.0):
                     commanded.append(time.perf_counter())
-                    measured[f"order_to_wheels_{order_id}_ms"] = (commanded[0] - sent) * 1e3
+                    latencies[f"order_to_wheels_{order_id}_ms"] = (commanded[0] - sent) * 1e3
             sent = time.perf_counter()
             watches.append(sim.on_step(on_step))
             master.order(order_id, 0, nodes)
@@ -377,6 +388,9 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
             ros.start()
             sim.start()
             robot.start()
+            if not master.connected.wait(30):
+                # The robot logs the same and keeps retrying; the scenario cannot wait.
+                raise RuntimeError(f"no MQTT broker reachable at {host}:{port} within 30 s")
             master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
                             timeout_s=30)
             wait(lambda s: "agvPosition" in s, 30)
@@ -438,8 +452,8 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
                 time.sleep(0.01)
             watch()
             stop_s = stopped[0] - t_cancel if stopped else _math.inf
-            measured["cancel_to_stop_sim_s"] = stop_s
-            measured["cancel_to_stop_wall_ms"] = (
+            latencies["cancel_to_stop_sim_s"] = stop_s
+            latencies["cancel_to_stop_wall_ms"] = (
                 (stopped_wall[0] - wall_cancel) * 1e3 if stopped_wall else _math.inf)
             checks.append(("velocity 0 after cancelOrder", f"{stop_s:.3f} s sim",
                            "≤ 0.5 s sim", stop_s <= 0.5))
@@ -481,9 +495,9 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
         if not ok:
             problems.append(f"{name}: {measured} (target {target})")
     console.print(table)
-    if measured:
+    if latencies:
         console.print("latencies: " + ", ".join(
-            f"{k} {v:.3f}" for k, v in sorted(measured.items())))
+            f"{k} {v:.3f}" for k, v in sorted(latencies.items())))
     console.print(f"picture: {out}")
     return problems
 
@@ -499,8 +513,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="docs/img/vda5050.png", metavar="FILE.png")
     parser.add_argument("--real-time-factor", type=float, default=None, metavar="X",
                         help="default: as fast as possible")
+    parser.add_argument("--broker", type=broker_address, default=None, metavar="HOST:PORT",
+                        help="a running MQTT broker to use (default: a local mosquitto of "
+                             "the scenario's own on a free port)")
     args = parser.parse_args(argv)
-    problems = run_scenario(out=Path(args.out), real_time_factor=args.real_time_factor)
+    return scenario_exit(out=Path(args.out), real_time_factor=args.real_time_factor,
+                         broker=args.broker)
+
+
+def broker_address(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (or ``HOST``, port 1883) for ``--broker``."""
+    host, _, port = text.rpartition(":") if ":" in text else (text, "", "1883")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"expected HOST:PORT, got {text!r}")
+    return host, int(port)
+
+
+def scenario_exit(*, out: Path, real_time_factor: float | None,
+                  broker: tuple[str, int] | None = None) -> int:
+    """Run the scenario, print its problems; the exit status (0: the physics matched)."""
+    try:
+        problems = run_scenario(out=out, real_time_factor=real_time_factor, broker=broker)
+    except RuntimeError as exc:
+        problems = [str(exc)]
     for problem in problems:
         print(f"FAILED: {problem}", file=sys.stderr)
     return 1 if problems else 0
