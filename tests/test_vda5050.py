@@ -670,3 +670,20 @@ def test_benchmark_closes_the_agvs_it_started_when_one_fails(
     for hl, interface, _plane in started:
         assert interface._client is None and not interface._threads
         assert hl._state is ManagerState.STOPPED, hl._state
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--broker", "127.0.0.1:1883"], "--broker is for the VDA 5050 demo"),
+    (["--vda5050", "--console"], "--console and --vda5050 are different demos"),
+    (["--vda5050", "--broker", "host:notaport"], "expected HOST:PORT"),
+])
+def test_demo_vda5050_refuses_options_it_cannot_honour(
+        args: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from beehave.cli import main
+
+    try:
+        status = main(["demo", *args])
+    except SystemExit as exc:  # argparse's own error
+        status = exc.code  # type: ignore[assignment]
+    assert status == 2
+    assert message in capsys.readouterr().err
