@@ -301,6 +301,25 @@ def test_connection_online_then_factsheet_and_state_validate(agv: Agv) -> None:
     agv.master.wait_for("visualization", lambda m: True, timeout_s=5)
 
 
+def test_state_is_repeated_without_changes_and_never_less_often_than_every_30_s(
+        broker: Broker) -> None:
+    """Nothing happens, yet states keep coming every ``state_period_s`` (the master sees
+    the AGV alive); a longer configured period is cut to the standard's 30 s."""
+    made = Agv(broker, state_period_s=0.2, visualization_rate_hz=1.0)
+    try:
+        first = made.master.wait_state(lambda s: True, timeout_s=10)
+        # Three more states with nothing changed (the header counts them).
+        made.master.wait_state(lambda s: s["headerId"] >= first["headerId"] + 3,
+                               timeout_s=10)
+    finally:
+        made.close()
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    lazy = Vda5050Interface(options(broker.port, state_period_s=120.0), high=hl,
+                            executor=FakeDrive)
+    assert lazy.state_period_s == 30.0
+    assert lazy.factsheet()["protocolLimits"]["timing"]["defaultStateInterval"] == 30.0
+
+
 def test_order_is_executed_node_by_node_with_its_actions(agv: Agv) -> None:
     agv.master.order("o1", 0, three_nodes())
     done = agv.master.wait_state(

@@ -118,6 +118,9 @@ class Telemetry:
     driving: bool = False
 
 
+STATE_PERIOD_MAX_S = 30.0
+"""VDA 5050 2.1 (6.10): the AGV sends a state at least every 30 s, changes or not."""
+
 DRIVING_MPS = 0.01
 """Speeds (m/s, and rad/s for turning) above which the AGV counts as ``driving``."""
 
@@ -150,6 +153,12 @@ class Vda5050Interface:
         except Exception as exc:
             raise ConfigError(f"{source}: vda5050.world: {exc}") from exc
         self.telemetry = Telemetry()
+        #: Seconds between periodic states: ``state_period_s``, at most 30 s (the standard).
+        self.state_period_s = min(options.state_period_s, STATE_PERIOD_MAX_S)
+        if options.state_period_s > STATE_PERIOD_MAX_S:
+            log.warning("%s: vda5050.state_period_s %g s is longer than VDA 5050 allows; "
+                        "a state is sent every %g s", source, options.state_period_s,
+                        STATE_PERIOD_MAX_S)
         self._wake = threading.Event()
         self.orders = AgvOrders(locate=self.nodes.locate, check_route=self.nodes.check_route,
                                 position=self._position, on_change=self._wake.set)
@@ -531,7 +540,7 @@ class Vda5050Interface:
                                    "length": 0.8},
             "protocolLimits": {"maxStringLens": {}, "maxArrayLens": {},
                                "timing": {"minOrderInterval": 0.1, "minStateInterval": 0.02,
-                                          "defaultStateInterval": opts.state_period_s,
+                                          "defaultStateInterval": self.state_period_s,
                                           "visualizationInterval":
                                               1.0 / opts.visualization_rate_hz}},
             "protocolFeatures": {
@@ -567,7 +576,7 @@ class Vda5050Interface:
         return info
 
     def _publish_loop(self) -> None:
-        state_period = self.options.state_period_s
+        state_period = self.state_period_s
         vis_period = 1.0 / self.options.visualization_rate_hz
         now = time.monotonic()
         next_state, next_vis = now, now + vis_period
