@@ -706,3 +706,37 @@ def test_demo_vda5050_refuses_options_it_cannot_honour(
         status = exc.code  # type: ignore[assignment]
     assert status == 2
     assert message in capsys.readouterr().err
+
+
+def test_charging_and_factsheet_instant_actions(agv: Agv) -> None:
+    """startCharging only on a charging station (chargingError elsewhere), stopCharging,
+    and factsheetRequest publishes the factsheet again."""
+    sheets = len(agv.master.received["factsheet"])
+    agv.master.instant(action("startCharging", "c-away"), action("factsheetRequest", "f1"))
+    state = agv.master.wait_state(lambda s: {"c-away", "f1"} <= {
+        a["actionId"] for a in s["actionStates"] if a["actionStatus"] in ("FINISHED",
+                                                                        "FAILED")},
+        timeout_s=5)
+    status = {a["actionId"]: a["actionStatus"] for a in state["actionStates"]}
+    assert status["c-away"] == "FAILED" and status["f1"] == "FINISHED"
+    assert errors_of(state, "chargingError")
+    agv.master.wait_for("factsheet", lambda m: len(agv.master.received["factsheet"]) >
+                        sheets, timeout_s=5)
+    FakeDrive.where = LineMap.STATIONS["dock"]
+    agv.master.instant(action("startCharging", "c-dock"), action("stopCharging", "c-off"))
+    agv.master.wait_state(lambda s: {"c-dock", "c-off"} <= {
+        a["actionId"] for a in s["actionStates"] if a["actionStatus"] == "FINISHED"},
+        timeout_s=5)
+
+
+def test_malformed_messages_during_an_order_do_not_disturb_it(agv: Agv) -> None:
+    agv.master.order("o1", 0, three_nodes())
+    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=5)
+    agv.master.send("order", b"{broken")
+    agv.master.send("order", {**agv.master.header(), "orderId": "o1", "orderUpdateId": 1,
+                              "nodes": "not a list", "edges": []})
+    agv.master.send("instantActions", {**agv.master.header(), "actions": [{"x": 1}]})
+    done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and all(
+        a["actionStatus"] == "FINISHED" for a in s["actionStates"]), timeout_s=10)
+    assert done["orderUpdateId"] == 0 and len(errors_of(done, "validationError")) == 3
+    assert FakeDrive.done == ["n0", "n1", "p1", "n2", "d1"]
