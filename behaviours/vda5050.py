@@ -21,6 +21,7 @@ from __future__ import annotations
 import abc
 import functools
 import logging
+import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -170,6 +171,12 @@ class OrderExecution(OrderLoop):
 
     def drive(self, task: Drive) -> None:
         node, edge = task.node, task.edge
+        here = self.orders.position()
+        if here is not None and math.dist(here, node.position) <= self.tolerance_m:
+            # Already there (typically an order's first node): what Navigation would
+            # find after subscribing and waiting for odometry, without that wait.
+            self.orders.node_reached(node)
+            return
         speed = self.speed_mps
         if edge is not None and edge.max_speed_mps:
             speed = min(speed, edge.max_speed_mps)

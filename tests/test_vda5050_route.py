@@ -208,3 +208,18 @@ def test_without_an_initial_path_navigation_plans_as_before() -> None:
     goal, _plan = _leg()
     _nav, spy = _navigate(START, goal, None)
     assert spy.plans == 1
+
+
+def test_a_node_the_agv_already_stands_on_is_reached_without_driving() -> None:
+    from behaviours.vda5050 import OrderExecution
+
+    orders = _orders(WorldNodes("warehouse"))
+    assert orders.accept(_order([node("start", 0, x=START[0] + 0.1, y=START[1]),
+                                 node("emili_pickup", 2)]))
+    execution = OrderExecution(orders=orders, world="warehouse")
+    task = orders.next_task()
+    assert isinstance(task, Drive) and task.node.node_id == "start"
+    execution.drive(task)  # outside a manager: starting an action here would raise
+    assert orders.last_node_id == "start"
+    task = orders.next_task()
+    assert isinstance(task, Drive) and task.node.node_id == "emili_pickup"
