@@ -217,6 +217,14 @@ class SpeedLimit:
         return float(value) if isinstance(value, float) and value > 0 else math.inf
 
 
+def prepare_driving(node: Any) -> None:
+    """Make ``node``'s shared driving entities now — its ``/lockstep`` line (whose first
+    use waits for the simulator's subscription) and its :class:`SpeedLimit` parameter — so
+    the first driving action does not wait for them (e.g. when a robot is set up)."""
+    _LockstepLine.of(node)
+    SpeedLimit.of(node)
+
+
 def twist(linear_mps: float = 0.0, angular_rps: float = 0.0) -> Twist:
     msg = Twist()
     msg.linear.x = float(linear_mps)
