@@ -38,7 +38,7 @@ from beehave.interfaces.vda5050.order import (
     error_entry,
 )
 from beehave.planning import PlannedPath
-from behaviours.actions import Goal, Lift, Navigation, world_planner
+from behaviours.actions import Goal, Lift, Navigation, prepare_driving, world_planner
 
 if TYPE_CHECKING:
     from robots.world import World
@@ -168,6 +168,12 @@ class OrderExecution(OrderLoop):
         self.nodes = WorldNodes(world)
         self.speed_mps, self.tolerance_m = speed_mps, tolerance_m
         self.lift_pick_m, self.lift_drop_m = lift_pick_m, lift_drop_m
+
+    @classmethod
+    def prepare(cls, node: Any) -> None:
+        """Called by the interface when it starts on the robot's high-level ``node``: the
+        driving entities Navigation shares are made then, not on the first order."""
+        prepare_driving(node)
 
     def drive(self, task: Drive) -> None:
         node, edge = task.node, task.edge

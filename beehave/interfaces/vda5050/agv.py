@@ -141,6 +141,7 @@ class Vda5050Interface:
                  executor: type[Any], source: str = "<dict>") -> None:
         self.options = options
         self.high = high
+        self._executor = executor
         self.topics = Topics.of(options.interface_name, options.manufacturer,
                                 options.serial_number)
         node_map = getattr(executor, "node_map", None)
@@ -203,6 +204,9 @@ class Vda5050Interface:
         self._control = control
         if node is not None:
             self._subscribe_ros(node)
+            prepare = getattr(self._executor, "prepare", None)
+            if callable(prepare):
+                prepare(node)  # the order behaviour's ROS entities, before the first order
         opts = self.options.broker
         client = mqtt.Client(CallbackAPIVersion.VERSION2,
                              client_id=f"beehave-{self.options.manufacturer}-"
