@@ -83,6 +83,13 @@ def _demo(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     console = Console()
+    if args.broker is not None and not args.vda5050:
+        print("beehave demo: --broker is for the VDA 5050 demo (--vda5050)", file=sys.stderr)
+        return 2
+    if args.console and args.vda5050:
+        print("beehave demo: --console and --vda5050 are different demos; pick one",
+              file=sys.stderr)
+        return 2
     if args.console and args.http is not None:
         print("beehave demo: --http serves the simulated demo's robots; the console demo "
               "(--console) has none", file=sys.stderr)
@@ -93,6 +100,8 @@ def _demo(args: argparse.Namespace) -> int:
             print(f"beehave demo: --out is a folder (the picture is written to "
                   f"FOLDER/demo.png), got the file name {args.out!r}", file=sys.stderr)
             return 2
+        if args.vda5050:
+            return _demo_vda5050(args, out)
         # The demos live with the ready-made behaviours, not in the framework.
         from behaviours.demos.warehouse import run_sim_demo
 
@@ -129,6 +138,18 @@ def _demo(args: argparse.Namespace) -> int:
         return 1
     console.print("[green]demo OK[/]: every step was checked")
     return 0
+
+
+def _demo_vda5050(args: argparse.Namespace, out: Path) -> int:
+    """EMILI as a VDA 5050 AGV driven by a master over MQTT (docs/vda5050.md)."""
+    if args.http is not None or args.record is not None:
+        print("beehave demo: --vda5050 takes neither --http nor --record", file=sys.stderr)
+        return 2
+    from behaviours.demos.vda5050_master import scenario_exit
+
+    return scenario_exit(out=out / "vda5050.png",
+                         real_time_factor=None if args.fast else args.real_time_factor,
+                         broker=args.broker)
 
 
 # ---- beehave run ------------------------------------------------------------------------
@@ -221,6 +242,15 @@ def _run(args: argparse.Namespace) -> int:
 
 
 # ---- beehave broker ---------------------------------------------------------------------
+
+def _broker_address(text: str) -> tuple[str, int]:
+    from behaviours.demos.vda5050_master import broker_address
+
+    try:
+        return broker_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
 
 def _broker(args: argparse.Namespace) -> int:
     """A local mosquitto on 127.0.0.1 with a generated configuration, for VDA 5050
@@ -421,6 +451,12 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--record", nargs="?", const="", default=None, metavar="FILE.mcap",
                       help="record both robots into an MCAP file (default FOLDER/demo.mcap); "
                            "replay it with `beehave replay`")
+    demo.add_argument("--vda5050", action="store_true",
+                      help="EMILI takes VDA 5050 orders from a master over MQTT (pick, drop, "
+                           "a cancelled order); picture FOLDER/vda5050.png (docs/vda5050.md)")
+    demo.add_argument("--broker", type=_broker_address, default=None, metavar="HOST:PORT",
+                      help="with --vda5050: a running MQTT broker (default: a local "
+                           "mosquitto of the demo's own)")
     _add_http_options(demo, world=False)
     demo.set_defaults(func=_demo)
     run = sub.add_parser(

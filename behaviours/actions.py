@@ -217,6 +217,14 @@ class SpeedLimit:
         return float(value) if isinstance(value, float) and value > 0 else math.inf
 
 
+def prepare_driving(node: Any) -> None:
+    """Make ``node``'s shared driving entities now — its ``/lockstep`` line (whose first
+    use waits for the simulator's subscription) and its :class:`SpeedLimit` parameter — so
+    the first driving action does not wait for them (e.g. when a robot is set up)."""
+    _LockstepLine.of(node)
+    SpeedLimit.of(node)
+
+
 def twist(linear_mps: float = 0.0, angular_rps: float = 0.0) -> Twist:
     msg = Twist()
     msg.linear.x = float(linear_mps)
@@ -362,6 +370,13 @@ class Navigation(_Drive):
     a shelf) is approached at the nearest free point, which must lie within
     ``tolerance_m`` of it (less :attr:`end_precision_m`); otherwise the action fails with
     :class:`~beehave.errors.NoPath` saying so.
+
+    ``initial_path``: a plan already made for this leg (on the same map, robot size and
+    clearance, e.g. when an order was checked), followed from the start instead of planning
+    again — only when the robot stands within ``tolerance_m`` of its first waypoint and it
+    ends within ``tolerance_m`` less :attr:`end_precision_m` of the goal; otherwise the
+    leg is planned from where the robot stands, as without it. Re-planning when blocked is
+    unchanged.
     """
 
     TURN_ON_SPOT_RAD = 0.8
@@ -376,8 +391,10 @@ class Navigation(_Drive):
                  field_half_angle_rad: float = 0.5, blocked_timeout_s: float = 30.0,
                  replan_after_s: float = 3.0, robot_radius_m: float = 0.55,
                  clearance_m: float = 0.1, waypoint_tolerance_m: float = 0.3,
-                 forget_obstacles_after_s: float = 60.0, timeout_s: float = 300.0) -> None:
+                 forget_obstacles_after_s: float = 60.0, timeout_s: float = 300.0,
+                 initial_path: PlannedPath | None = None) -> None:
         self.goal = resolve_goal(goal, world)
+        self.initial_path = initial_path
         if speed_mps <= 0 or tolerance_m <= 0:
             raise BeehaveError("speed_mps and tolerance_m must be positive")
         self.speed_mps, self.tolerance_m = speed_mps, tolerance_m
@@ -425,6 +442,21 @@ class Navigation(_Drive):
                  len(self.planned.waypoints_m) - 2)
         return list(self.planned.waypoints_m[1:])
 
+    def _initial_path_fits(self, x: float, y: float) -> bool:
+        """Whether :attr:`initial_path` may be followed from ``(x, y)`` (see the class)."""
+        path = self.initial_path
+        if path is None or len(path.waypoints_m) < 2:
+            return False
+        (sx, sy), (gx, gy) = path.waypoints_m[0], path.goal_m
+        fits = (math.hypot(sx - x, sy - y) <= self.tolerance_m
+                and math.hypot(gx - self.goal.x_m, gy - self.goal.y_m)
+                <= self.tolerance_m - self.end_precision_m + 1e-9)
+        if not fits:
+            log.info("%s: the initial path (%.2f, %.2f) → (%.2f, %.2f) does not start where "
+                     "the robot stands (%.2f, %.2f) or end at the goal: planning again",
+                     self.name, sx, sy, gx, gy, x, y)
+        return fits
+
     def drive(self) -> tuple[float, float]:
         scan = self.ros.latest(LaserScan, topics.SCAN)
         odom = first_message(self.odom)
@@ -432,8 +464,13 @@ class Navigation(_Drive):
         start = clock.now()
         p = odom.pose.pose.position
         planner = self.planner
-        waypoints = ([(self.goal.x_m, self.goal.y_m)] if planner is None
-                     else self._plan(planner, p.x, p.y))  # NoPath fails the action
+        if planner is None:
+            waypoints = [(self.goal.x_m, self.goal.y_m)]
+        elif self.initial_path is not None and self._initial_path_fits(p.x, p.y):
+            self.planned = self.initial_path
+            waypoints = list(self.initial_path.waypoints_m[1:])
+        else:
+            waypoints = self._plan(planner, p.x, p.y)  # NoPath fails the action
         blocked_since: float | None = None
         last_replan = -math.inf
         turning = False

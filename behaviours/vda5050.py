@@ -21,6 +21,7 @@ from __future__ import annotations
 import abc
 import functools
 import logging
+import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -36,7 +37,8 @@ from beehave.interfaces.vda5050.order import (
     RunAction,
     error_entry,
 )
-from behaviours.actions import Goal, Lift, Navigation, world_planner
+from beehave.planning import PlannedPath
+from behaviours.actions import Goal, Lift, Navigation, prepare_driving, world_planner
 
 if TYPE_CHECKING:
     from robots.world import World
@@ -46,6 +48,11 @@ log = logging.getLogger(__name__)
 ROBOT_RADIUS_M = 0.55
 CLEARANCE_M = 0.1
 """Navigation's defaults: the route check plans with the same inflation as the drive."""
+TOLERANCE_M = 0.15
+"""How close the drive brings the AGV to a node (``OrderExecution``'s default)."""
+GOAL_TOLERANCE_M = 0.1
+"""The route check's plans end this close to a node: ``Navigation``'s own planning
+tolerance for ``TOLERANCE_M`` (less its ``end_precision_m``), so the drive can follow them."""
 
 
 @functools.lru_cache(maxsize=8)
@@ -62,6 +69,9 @@ class WorldNodes:
     def __init__(self, world: str) -> None:
         self.world_name = world
         self.world = _load_world(world)
+        # Built now (~0.1 s, once per process), when the AGV is set up: not on its first
+        # order, whose acceptance and first wheel command would wait for it.
+        self.planner = world_planner(world, ROBOT_RADIUS_M, CLEARANCE_M)
 
     def locate(self, node_id: str, position: dict[str, Any] | None) -> Point:
         """``(x_m, y_m)`` of a node; :class:`OrderRejected` says why it cannot be placed."""
@@ -83,17 +93,20 @@ class WorldNodes:
                                 f"{width:g} x {depth:g} m floor of {self.world.name!r}")
         return (x, y)
 
-    def check_route(self, points: Sequence[tuple[str, Point]]) -> None:
+    def check_route(self, points: Sequence[tuple[str, Point]]) -> list[PlannedPath]:
         """Plan each leg of the released base; ``noRouteError`` naming the node that no
-        path reaches."""
-        planner = world_planner(self.world_name, ROBOT_RADIUS_M, CLEARANCE_M)
+        path reaches. Returns the plans, one per leg: :class:`OrderExecution` hands each
+        to the drive of its leg (``Navigation(initial_path=...)``), which then need not
+        plan it again before its first command."""
+        plans = []
         for (from_id, a), (to_id, b) in zip(points, points[1:], strict=False):
             try:
-                planner.plan(a, b, goal_tolerance_m=0.1)
+                plans.append(self.planner.plan(a, b, goal_tolerance_m=GOAL_TOLERANCE_M))
             except NoPath as exc:
                 raise OrderRejected("noRouteError", f"no path from {from_id!r} to node "
                                     f"{to_id!r} on map {self.world.name!r}: {exc}",
                                     references={"nodeId": to_id}) from None
+        return plans
 
     def charging_station_at(self, point: Point) -> str | None:
         for station in self.world.stations_of_kind("charging"):
@@ -149,21 +162,36 @@ class OrderExecution(OrderLoop):
 
     def __init__(self, *, orders: AgvOrders, world: str = "warehouse", speed_mps: float = 0.6,
                  lift_pick_m: float = 0.2, lift_drop_m: float = 0.0,
-                 tolerance_m: float = 0.15) -> None:
+                 tolerance_m: float = TOLERANCE_M) -> None:
         self.orders = orders
         self.world = world
         self.nodes = WorldNodes(world)
         self.speed_mps, self.tolerance_m = speed_mps, tolerance_m
         self.lift_pick_m, self.lift_drop_m = lift_pick_m, lift_drop_m
 
+    @classmethod
+    def prepare(cls, node: Any) -> None:
+        """Called by the interface when it starts on the robot's high-level ``node``: the
+        driving entities Navigation shares are made then, not on the first order."""
+        prepare_driving(node)
+
     def drive(self, task: Drive) -> None:
         node, edge = task.node, task.edge
+        here = self.orders.position()
+        if here is not None and math.dist(here, node.position) <= self.tolerance_m:
+            # Already there (typically an order's first node): what Navigation would
+            # find after subscribing and waiting for odometry, without that wait.
+            self.orders.node_reached(node)
+            return
         speed = self.speed_mps
         if edge is not None and edge.max_speed_mps:
             speed = min(speed, edge.max_speed_mps)
+        # The route check's plan of this leg: followed when the AGV stands at its start
+        # (Navigation plans again otherwise).
+        path = node.route if isinstance(node.route, PlannedPath) else None
         nav = self.start_action(Navigation(Goal(*node.position, name=node.node_id),
                                            world=self.world, speed_mps=speed,
-                                           tolerance_m=self.tolerance_m))
+                                           tolerance_m=self.tolerance_m, initial_path=path))
         nav.wait()
         if nav.status is Status.SUCCEEDED:
             self.orders.node_reached(node)

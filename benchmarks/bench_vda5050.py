@@ -10,11 +10,18 @@
   (``python -m behaviours.demos.vda5050_master``: cancelOrder → velocity 0 in sim time);
 - ``order_to_state``: from the order to the first ``state`` carrying it at the master;
 - ``state_rate_10_agvs``: ten AGVs on one broker, each asked for a state every 50 ms
-  (``state_period_s``), the states the master receives per AGV and second (target ≥ 19).
+  (``state_period_s``), the states the master receives per AGV and second (target ≥ 19);
+- the physics (the demo's scenario, EMILI in pybullet at real time,
+  ``BENCH_VDA5050_RTF`` to change): ``order_to_wheels_physics`` — the master publishing
+  an order to the first physics step with a non-zero wheel command, through the real
+  ``OrderExecution`` and ``Navigation`` over ROS 2 (two orders); ``cancel_to_stop`` —
+  cancelOrder published → EMILI's measured velocity 0, in sim time (target ≤ 0.5 s) and
+  wall time. One run of the scenario: two and one samples, no percentiles.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
@@ -41,6 +48,7 @@ from benchmarks._util import median, percentile, report
 
 N_ORDERS = int(os.environ.get("BENCH_VDA5050_N", 200))
 N_ROUNDTRIP = int(os.environ.get("BENCH_VDA5050_RT", 500))
+PHYSICS_RTF = float(os.environ.get("BENCH_VDA5050_RTF", 1.0))
 
 
 class _FlatMap:
@@ -76,16 +84,25 @@ class _Instant(OrderLoop):
         self.orders.set_action(action.action_id, ActionStatus.FINISHED)
 
 
-def _agv(port: int, serial: str, **more: Any) -> tuple[HighLevelBehaviorManager,
-                                                      Vda5050Interface, ControlPlane]:
+_Agv = tuple[HighLevelBehaviorManager, Vda5050Interface, ControlPlane]
+
+
+def _agv(port: int, serial: str, **more: Any) -> _Agv:
+    """One AGV on the broker; whatever of it was started is closed again if a later part
+    fails to start."""
     config = parse_config({"namespace": serial, "vda5050": {
         "broker": {"port": port}, "serial_number": serial, "world": "flat", **more}})
     assert config.vda5050 is not None
     hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
-    interface = Vda5050Interface(config.vda5050, high=hl, executor=_Instant)
-    hl.start()
-    plane = ControlPlane(hl, name=serial)
-    interface.start(control=plane)
+    with contextlib.ExitStack() as undo:
+        undo.callback(hl.shutdown)
+        interface = Vda5050Interface(config.vda5050, high=hl, executor=_Instant)
+        hl.start()
+        plane = ControlPlane(hl, name=serial)
+        undo.callback(plane.close)
+        undo.callback(interface.close)
+        interface.start(control=plane)
+        undo.pop_all()
     return hl, interface, plane
 
 
@@ -94,6 +111,27 @@ def _close(hl: HighLevelBehaviorManager, interface: Vda5050Interface,
     hl.shutdown()
     interface.close()
     plane.close()
+
+
+def _fleet(port: int, count: int, **more: Any) -> list[_Agv]:
+    """``count`` AGVs; when one fails to start, those already started are closed before
+    the error propagates."""
+    agvs: list[_Agv] = []
+    try:
+        for i in range(count):
+            agvs.append(_agv(port, f"fleet{i}", **more))
+    except BaseException:
+        _close_all(agvs)
+        raise
+    return agvs
+
+
+def _close_all(agvs: Sequence[_Agv]) -> None:
+    """Close every AGV, even when closing one of them raises (the first error is
+    re-raised after all were closed)."""
+    with contextlib.ExitStack() as stack:
+        for made in agvs:
+            stack.callback(_close, *made)
 
 
 def _roundtrip(port: int) -> list[float]:
@@ -132,11 +170,12 @@ def main() -> list[dict[str, Any]]:
                            p99_ms=round(percentile(floor, 99) * 1e3, 3), n=len(floor)))
 
         agv = _agv(broker.port, "bench1")
-        master = Master(broker.port, serial_number="bench1")
-        master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
-                        timeout_s=10)
         to_drive, to_state = [], []
+        master: Master | None = None
         try:
+            master = Master(broker.port, serial_number="bench1")
+            master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                            timeout_s=10)
             for i in range(N_ORDERS):
                 order_id = f"o{i}"
                 sent = time.perf_counter()
@@ -150,7 +189,8 @@ def main() -> list[dict[str, Any]]:
                                   and not s["nodeStates"], timeout_s=5)
                 to_drive.append(_Instant.drive_started[order_id] - sent)
         finally:
-            master.close()
+            if master is not None:
+                master.close()
             _close(*agv)
         p99 = percentile(to_drive, 99) * 1e3
         rows.append(report("order_to_drive_p99", p99, "ms", "<= 50 ms", p99 <= 50.0,
@@ -159,7 +199,7 @@ def main() -> list[dict[str, Any]]:
         rows.append(report("order_to_state_p50", median(to_state) * 1e3, "ms", None, None,
                            p99_ms=round(percentile(to_state, 99) * 1e3, 3)))
 
-        agvs = [_agv(broker.port, f"fleet{i}", state_period_s=0.05) for i in range(10)]
+        agvs = _fleet(broker.port, 10, state_period_s=0.05)
         counts: dict[str, int] = {}
         lock = threading.Lock()
 
@@ -169,7 +209,11 @@ def main() -> list[dict[str, Any]]:
 
         listener = mqtt.Client(CallbackAPIVersion.VERSION2)
         listener.on_message = count
-        listener.connect("127.0.0.1", broker.port)
+        try:
+            listener.connect("127.0.0.1", broker.port)
+        except BaseException:
+            _close_all(agvs)
+            raise
         listener.subscribe("uagv/v2/beehave/+/state")
         listener.loop_start()
         try:
@@ -184,11 +228,43 @@ def main() -> list[dict[str, Any]]:
         finally:
             listener.disconnect()
             listener.loop_stop()
-            for made in agvs:
-                _close(*made)
+            _close_all(agvs)
         worst = min(per_agv)
         rows.append(report("state_rate_10_agvs_min", worst, "Hz", ">= 19 Hz per AGV",
                            worst >= 19.0, mean_hz=round(sum(per_agv) / 10, 2)))
+    rows += _physics()
+    return rows
+
+
+def _physics() -> list[dict[str, Any]]:
+    """The demo's scenario in pybullet (its own broker): order → wheels, cancel → stop."""
+    import tempfile
+    from pathlib import Path
+
+    from rich.console import Console
+
+    from behaviours.demos.vda5050_master import run_scenario
+
+    figures: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="bench-vda5050-") as folder:
+        problems = run_scenario(out=Path(folder) / "vda5050.png",
+                                real_time_factor=PHYSICS_RTF, figures=figures,
+                                console=Console(stderr=True))
+    rows = []
+    wheels = [v for k, v in sorted(figures.items()) if k.startswith("order_to_wheels_")]
+    if wheels:
+        rows.append(report("order_to_wheels_physics_max", max(wheels), "ms",
+                           "<= 50 ms", max(wheels) <= 50.0,
+                           samples_ms=[round(w, 3) for w in wheels],
+                           real_time_factor=PHYSICS_RTF))
+    if "cancel_to_stop_sim_s" in figures:
+        sim_s = figures["cancel_to_stop_sim_s"]
+        rows.append(report("cancel_to_stop_sim", sim_s, "s", "<= 0.5 s sim", sim_s <= 0.5,
+                           wall_ms=round(figures["cancel_to_stop_wall_ms"], 3),
+                           real_time_factor=PHYSICS_RTF))
+    if problems:
+        rows.append(report("vda5050_scenario_problems", len(problems), "", "0", False,
+                           problems=problems))
     return rows
 
 

@@ -7,9 +7,19 @@ from collections.abc import Iterator
 
 import pytest
 
-from behaviours.demos.vda5050_master import Broker, Master, action, edge, free_port, node
+from behaviours.demos.vda5050_master import (
+    Broker,
+    Master,
+    TlsFiles,
+    action,
+    edge,
+    free_port,
+    make_tls_files,
+    node,
+)
 
-__all__ = ["Broker", "Master", "action", "broker", "edge", "free_port", "node"]
+__all__ = ["Broker", "Master", "TlsFiles", "action", "broker", "edge", "free_port",
+           "make_tls_files", "node"]
 
 
 @pytest.fixture

@@ -14,11 +14,12 @@ from collections.abc import Iterator, Sequence
 from typing import Any
 
 import pytest
-from mqtt_broker import Broker, Master, action, broker, edge, node
+from mqtt_broker import Broker, Master, TlsFiles, action, broker, edge, make_tls_files, node
 
 from beehave import HighLevelBehaviorManager
 from beehave.config import parse_config
 from beehave.errors import ConfigError, Vda5050ValidationError
+from beehave.highlevel import ManagerState
 from beehave.interfaces import ControlPlane
 from beehave.interfaces.vda5050 import (
     ActionStatus,
@@ -300,6 +301,25 @@ def test_connection_online_then_factsheet_and_state_validate(agv: Agv) -> None:
     agv.master.wait_for("visualization", lambda m: True, timeout_s=5)
 
 
+def test_state_is_repeated_without_changes_and_never_less_often_than_every_30_s(
+        broker: Broker) -> None:
+    """Nothing happens, yet states keep coming every ``state_period_s`` (the master sees
+    the AGV alive); a longer configured period is cut to the standard's 30 s."""
+    made = Agv(broker, state_period_s=0.2, visualization_rate_hz=1.0)
+    try:
+        first = made.master.wait_state(lambda s: True, timeout_s=10)
+        # Three more states with nothing changed (the header counts them).
+        made.master.wait_state(lambda s: s["headerId"] >= first["headerId"] + 3,
+                               timeout_s=10)
+    finally:
+        made.close()
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    lazy = Vda5050Interface(options(broker.port, state_period_s=120.0), high=hl,
+                            executor=FakeDrive)
+    assert lazy.state_period_s == 30.0
+    assert lazy.factsheet()["protocolLimits"]["timing"]["defaultStateInterval"] == 30.0
+
+
 def test_order_is_executed_node_by_node_with_its_actions(agv: Agv) -> None:
     agv.master.order("o1", 0, three_nodes())
     done = agv.master.wait_state(
@@ -514,6 +534,81 @@ def test_username_from_a_missing_environment_variable_is_refused(broker: Broker)
     hl.shutdown()
 
 
+@pytest.fixture(scope="module")
+def tls_files(tmp_path_factory: pytest.TempPathFactory) -> TlsFiles:
+    return make_tls_files(tmp_path_factory.mktemp("tls"))
+
+
+def test_username_password_from_the_environment_over_tls(
+        tls_files: TlsFiles, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A broker that wants TLS and a password (mosquitto: password_file, allow_anonymous
+    false, a certificate of a CA of our own): the AGV connects with the credentials of the
+    environment variables its YAML names and the CA of ``ca_file``; a wrong password is
+    reported as refused and nothing is exchanged."""
+    monkeypatch.setenv("BEEHAVE_TEST_VDA_USER", "agv")
+    monkeypatch.setenv("BEEHAVE_TEST_VDA_PASSWORD", "s3cret")
+    with Broker(users={"agv": "s3cret", "fm": "fleet"}, tls=tls_files) as secure:
+        broker_options = {"port": secure.port, "username_env": "BEEHAVE_TEST_VDA_USER",
+                          "password_env": "BEEHAVE_TEST_VDA_PASSWORD", "tls": True,
+                          "ca_file": str(tls_files.cafile), "reconnect_max_s": 1.0}
+        hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+        interface = Vda5050Interface(options(secure.port, broker=broker_options), high=hl,
+                                     executor=FakeDrive)
+        hl.start()
+        plane = ControlPlane(hl, name="t")
+        master = Master(secure.port, serial_number=SERIAL, username="fm", password="fleet",
+                        ca_file=tls_files.cafile)
+        try:
+            interface.start(control=plane)
+            master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                            timeout_s=10)
+            master.order("o1", 0, three_nodes())
+            master.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=10)
+        finally:
+            hl.shutdown()
+            interface.close()
+            plane.close()
+            master.close()
+        assert not master.invalid, master.invalid
+
+        monkeypatch.setenv("BEEHAVE_TEST_VDA_PASSWORD", "wrong")
+        hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+        intruder = Vda5050Interface(options(secure.port, broker=broker_options), high=hl,
+                                    executor=FakeDrive)
+        plane = ControlPlane(hl, name="t")
+        try:
+            with caplog.at_level("WARNING", logger="beehave.interfaces.vda5050.agv"):
+                intruder.start(control=plane)
+                assert not intruder.connected.wait(1.5)
+            assert f"broker 127.0.0.1:{secure.port} refused the connection" in caplog.text
+        finally:
+            intruder.close()
+            plane.close()
+            hl.shutdown()
+
+
+def test_tls_without_the_brokers_ca_does_not_connect(
+        tls_files: TlsFiles, caplog: pytest.LogCaptureFixture) -> None:
+    """The broker's certificate is checked: without its CA (the system CAs by default)
+    the AGV does not talk to it, and says so."""
+    with Broker(tls=tls_files) as secure:
+        hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+        interface = Vda5050Interface(options(secure.port, broker={
+            "port": secure.port, "tls": True, "reconnect_max_s": 1.0}), high=hl,
+            executor=FakeDrive)
+        plane = ControlPlane(hl, name="t")
+        try:
+            with caplog.at_level("WARNING", logger="beehave.interfaces.vda5050.agv"):
+                interface.start(control=plane)
+                assert not interface.connected.wait(1.5)
+            assert f"no MQTT broker reachable at 127.0.0.1:{secure.port}" in caplog.text
+        finally:
+            interface.close()
+            plane.close()
+            hl.shutdown()
+
+
 def test_no_broker_is_reported_and_retried_until_one_appears(
         caplog: pytest.LogCaptureFixture) -> None:
     late = Broker()
@@ -568,3 +663,80 @@ def test_periodic_messages_keep_their_cadence_when_woken_late() -> None:
     assert _next_tick(1.000, 0.05, 1.020, restart=True) == pytest.approx(1.070)
     # A stall longer than a period: no burst of catch-up messages.
     assert _next_tick(1.000, 0.05, 1.300, restart=False) == pytest.approx(1.350)
+
+
+def test_benchmark_closes_the_agvs_it_started_when_one_fails(
+        broker: Broker, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``python -m benchmarks vda5050`` starts ten AGVs: when the third fails to start,
+    the two already running are closed (their threads and MQTT links ended) before the
+    error propagates, instead of being left running in the benchmark process."""
+    from benchmarks import bench_vda5050
+
+    real_agv = bench_vda5050._agv
+    started: list[Any] = []
+
+    def third_fails(port: int, serial: str, **more: Any) -> Any:
+        if len(started) == 2:
+            raise RuntimeError("third AGV failed to start")
+        made = real_agv(port, serial, **more)
+        started.append(made)
+        return made
+
+    monkeypatch.setattr(bench_vda5050, "_agv", third_fails)
+    with pytest.raises(RuntimeError, match="third AGV"):
+        bench_vda5050._fleet(broker.port, 10, state_period_s=0.05)
+    assert len(started) == 2
+    for hl, interface, _plane in started:
+        assert interface._client is None and not interface._threads
+        assert hl._state is ManagerState.STOPPED, hl._state
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--broker", "127.0.0.1:1883"], "--broker is for the VDA 5050 demo"),
+    (["--vda5050", "--console"], "--console and --vda5050 are different demos"),
+    (["--vda5050", "--broker", "host:notaport"], "expected HOST:PORT"),
+])
+def test_demo_vda5050_refuses_options_it_cannot_honour(
+        args: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from beehave.cli import main
+
+    try:
+        status = main(["demo", *args])
+    except SystemExit as exc:  # argparse's own error
+        status = exc.code  # type: ignore[assignment]
+    assert status == 2
+    assert message in capsys.readouterr().err
+
+
+def test_charging_and_factsheet_instant_actions(agv: Agv) -> None:
+    """startCharging only on a charging station (chargingError elsewhere), stopCharging,
+    and factsheetRequest publishes the factsheet again."""
+    sheets = len(agv.master.received["factsheet"])
+    agv.master.instant(action("startCharging", "c-away"), action("factsheetRequest", "f1"))
+    state = agv.master.wait_state(lambda s: {"c-away", "f1"} <= {
+        a["actionId"] for a in s["actionStates"] if a["actionStatus"] in ("FINISHED",
+                                                                        "FAILED")},
+        timeout_s=5)
+    status = {a["actionId"]: a["actionStatus"] for a in state["actionStates"]}
+    assert status["c-away"] == "FAILED" and status["f1"] == "FINISHED"
+    assert errors_of(state, "chargingError")
+    agv.master.wait_for("factsheet", lambda m: len(agv.master.received["factsheet"]) >
+                        sheets, timeout_s=5)
+    FakeDrive.where = LineMap.STATIONS["dock"]
+    agv.master.instant(action("startCharging", "c-dock"), action("stopCharging", "c-off"))
+    agv.master.wait_state(lambda s: {"c-dock", "c-off"} <= {
+        a["actionId"] for a in s["actionStates"] if a["actionStatus"] == "FINISHED"},
+        timeout_s=5)
+
+
+def test_malformed_messages_during_an_order_do_not_disturb_it(agv: Agv) -> None:
+    agv.master.order("o1", 0, three_nodes())
+    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=5)
+    agv.master.send("order", b"{broken")
+    agv.master.send("order", {**agv.master.header(), "orderId": "o1", "orderUpdateId": 1,
+                              "nodes": "not a list", "edges": []})
+    agv.master.send("instantActions", {**agv.master.header(), "actions": [{"x": 1}]})
+    done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and all(
+        a["actionStatus"] == "FINISHED" for a in s["actionStates"]), timeout_s=10)
+    assert done["orderUpdateId"] == 0 and len(errors_of(done, "validationError")) == 3
+    assert FakeDrive.done == ["n0", "n1", "p1", "n2", "d1"]

@@ -129,3 +129,37 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
 
 def _stamp_s(msg: Odometry) -> float:
     return float(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+
+
+def test_beehave_run_reports_an_unreachable_broker_and_keeps_retrying(
+        tmp_path: Path) -> None:
+    """No broker at the configured address: ``beehave run`` says so on stderr, retries
+    (more than once, backing off), keeps the robot running and stops cleanly."""
+    from mqtt_broker import free_port
+
+    config = yaml.safe_load((ROOT / "robots/config/emili_vda5050.yaml").read_text())
+    port = free_port()  # nobody listens there
+    config["vda5050"]["broker"].update(port=port, reconnect_max_s=2.0)
+    config["use_sim_time"] = False  # no simulation in this test
+    path = tmp_path / "emili_vda5050.yaml"
+    path.write_text(yaml.safe_dump(config))
+    proc = subprocess.run([sys.executable, "-m", "beehave.cli", "run", str(path),
+                           "--only", "high", "--duration-s", "6"], cwd=ROOT,
+                          env=dict(os.environ), capture_output=True, text=True, timeout=90)
+    reported = proc.stderr.count(f"no MQTT broker reachable at 127.0.0.1:{port}; retrying")
+    assert reported >= 2, proc.stderr[-3000:]
+    assert proc.returncode == 0 and "stopped cleanly" in proc.stdout, \
+        (proc.returncode, proc.stdout[-2000:], proc.stderr[-2000:])
+
+
+def test_beehave_demo_vda5050_checks_the_physics(tmp_path: Path) -> None:
+    """``beehave demo --vda5050``: the scenario with its own broker, the timeline and the
+    physics checks printed, the picture written, exit 0 because every check held."""
+    proc = subprocess.run([sys.executable, "-m", "beehave.cli", "demo", "--vda5050",
+                           "--fast", "--out", str(tmp_path)], cwd=ROOT, env=dict(os.environ),
+                          capture_output=True, text=True, timeout=110)
+    out = proc.stdout
+    assert proc.returncode == 0, (out[-3000:], proc.stderr[-3000:])
+    assert "order timeline" in out and "lastNodeId: emili_dropoff" in out, out[-3000:]
+    assert "velocity 0 after cancelOrder" in out and "NO" not in out.split("physics")[-1]
+    assert (tmp_path / "vda5050.png").stat().st_size > 10_000

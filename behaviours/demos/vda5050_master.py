@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import shutil
 import socket
 import subprocess
@@ -40,18 +41,74 @@ def free_port() -> int:
         return port
 
 
-class Broker:
-    """mosquitto on ``127.0.0.1:port``; a context manager."""
+@dataclass(frozen=True)
+class TlsFiles:
+    """A broker's TLS files (PEM): the CA that signed ``certfile``, and its key."""
 
-    def __init__(self, port: int | None = None) -> None:
+    cafile: Path
+    certfile: Path
+    keyfile: Path
+
+
+def make_tls_files(folder: Path, *, host: str = "127.0.0.1") -> TlsFiles:
+    """A self-signed CA and a server certificate for ``host`` (an IP address, as its
+    subjectAltName), made with ``openssl`` in ``folder``: enough for a TLS broker in tests
+    or on a lab network; a real deployment uses its own CA."""
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        raise RuntimeError("openssl not found: it makes the test certificates")
+    files = TlsFiles(folder / "ca.pem", folder / "server.pem", folder / "server.key")
+    ca_key, csr = folder / "ca.key", folder / "server.csr"
+
+    def run(*args: str) -> None:
+        subprocess.run([openssl, *args], check=True, capture_output=True)
+
+    run("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj",
+        "/CN=beehave test CA", "-keyout", str(ca_key), "-out", str(files.cafile))
+    run("req", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={host}", "-keyout",
+        str(files.keyfile), "-out", str(csr))
+    ext = folder / "san.ext"
+    ext.write_text(f"subjectAltName=IP:{host}\n")
+    run("x509", "-req", "-in", str(csr), "-CA", str(files.cafile), "-CAkey", str(ca_key),
+        "-CAcreateserial", "-days", "2", "-extfile", str(ext), "-out", str(files.certfile))
+    return files
+
+
+class Broker:
+    """mosquitto on ``127.0.0.1:port``; a context manager.
+
+    ``users`` (name → password) switches anonymous access off and writes a password file
+    (``mosquitto_passwd``); ``tls`` makes the listener TLS only."""
+
+    def __init__(self, port: int | None = None, *, users: dict[str, str] | None = None,
+                 tls: TlsFiles | None = None) -> None:
         self.port = port or free_port()
+        self.tls = tls
         self._dir = tempfile.TemporaryDirectory(prefix="beehave-mqtt-")
         self.config = Path(self._dir.name) / "mosquitto.conf"
         # Only errors and warnings reach stderr: it is a pipe read only when mosquitto
         # exits at once, and a connection log line per client would fill it and block
         # the broker in a long run.
-        self.config.write_text(f"listener {self.port} 127.0.0.1\nallow_anonymous true\n"
-                               "persistence false\nlog_type error\nlog_type warning\n")
+        lines = [f"listener {self.port} 127.0.0.1", "persistence false", "log_type error",
+                 "log_type warning"]
+        if os.geteuid() == 0:
+            # Started by root, mosquitto would switch to the user "mosquitto", who cannot
+            # read the password and key files in this private folder.
+            lines.append("user root")
+        if users:
+            passwd = shutil.which("mosquitto_passwd") or "/usr/bin/mosquitto_passwd"
+            password_file = Path(self._dir.name) / "passwd"
+            password_file.touch(mode=0o600)
+            for user, password in users.items():
+                subprocess.run([passwd, "-b", str(password_file), user, password],
+                               check=True, capture_output=True)
+            lines += ["allow_anonymous false", f"password_file {password_file}"]
+        else:
+            lines.append("allow_anonymous true")
+        if tls is not None:
+            lines += [f"cafile {tls.cafile}", f"certfile {tls.certfile}",
+                      f"keyfile {tls.keyfile}"]
+        self.config.write_text("\n".join(lines) + "\n")
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
@@ -104,7 +161,9 @@ class Master:
 
     def __init__(self, port: int, *, manufacturer: str = "beehave", serial_number: str,
                  interface_name: str = "uagv", host: str = "127.0.0.1",
-                 clock: Callable[[], float] | None = None) -> None:
+                 clock: Callable[[], float] | None = None,
+                 username: str | None = None, password: str | None = None,
+                 ca_file: Path | str | None = None) -> None:
         self.topics = Topics.of(interface_name, manufacturer, serial_number)
         self.manufacturer, self.serial_number = manufacturer, serial_number
         self.received: dict[str, list[dict[str, Any]]] = {t: [] for t in validation.TOPICS}
@@ -113,18 +172,28 @@ class Master:
         self.stamped: list[tuple[float, dict[str, Any]]] = []
         self._clock = clock
         self._cond = threading.Condition()
+        #: Set once the master is on the broker.
+        self.connected = threading.Event()
         self._header = 0
         self.client = mqtt.Client(CallbackAPIVersion.VERSION2,
                                   client_id=f"master-{serial_number}-{id(self):x}")
         self.client.on_message = self._on_message
         self.client.on_connect = self._on_connect
+        if username is not None:
+            self.client.username_pw_set(username, password)
+        if ca_file is not None:
+            self.client.tls_set(ca_certs=str(ca_file))
         self.client.connect_async(host, port, keepalive=5)
         self.client.reconnect_delay_set(min_delay=1, max_delay=1)
         self.client.loop_start()
 
-    def _on_connect(self, client: mqtt.Client, *_: Any) -> None:
+    def _on_connect(self, client: mqtt.Client, _userdata: Any, _flags: Any, reason: Any,
+                    _props: Any) -> None:
+        if reason.is_failure:
+            return
         for topic in ("state", "visualization", "connection", "factsheet"):
             client.subscribe(self.topics[topic], qos=1)
+        self.connected.set()
 
     def _on_message(self, _c: mqtt.Client, _u: Any, message: mqtt.MQTTMessage) -> None:
         kind = message.topic.rsplit("/", 1)[-1]
@@ -244,10 +313,17 @@ class Timeline:
 
 
 def run_scenario(*, out: Path, real_time_factor: float | None = None,
-                 console: Any = None) -> list[str]:
+                 console: Any = None, figures: dict[str, float] | None = None,
+                 broker: tuple[str, int] | None = None) -> list[str]:
     """EMILI takes a VDA 5050 order over a local broker: pick at ``emili_pickup``, drop at
     ``emili_dropoff``; a second order to the charging station is cancelled mid-edge.
-    Returns the problems (empty: the physics matched)."""
+    Returns the problems (empty: the physics matched). ``figures``, when given, gets the
+    latencies measured on the way (the benchmark reads them): ``order_to_wheels_<id>_ms``
+    (wall time from the master publishing an order to the first physics step with a
+    non-zero wheel command), ``cancel_to_stop_sim_s`` and ``cancel_to_stop_wall_ms``
+    (cancelOrder published → EMILI's measured velocity below 0.01 m/s).
+    ``broker``: ``(host, port)`` of a running broker to use instead of a local mosquitto
+    of the scenario's own (anonymous access)."""
     import math as _math
 
     from rich.console import Console
@@ -267,20 +343,38 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
     checks: list[tuple[str, str, str, bool]] = []
     timeline = Timeline()
     root = Path(__file__).resolve().parents[2]
-    with Broker() as broker:
+    with Broker() if broker is None else contextlib.nullcontext() as local:
+        host, port = (("127.0.0.1", local.port) if isinstance(local, Broker)
+                      else broker or ("127.0.0.1", 1883))
         data = load_config(root / "robots/config/emili_vda5050.yaml").model_dump(
             by_alias=True, exclude={"source"})
-        data["vda5050"]["broker"]["port"] = broker.port
+        data["vda5050"]["broker"].update(host=host, port=port)
         config = parse_config(data, source="emili_vda5050.yaml")
         sim = Simulation(world, real_time_factor=real_time_factor)
         ros = RosContext()
         sim_node = SimNode(sim, ros)
         robot = Robot(config)
-        master = Master(broker.port, serial_number="emili1", clock=lambda: sim.time_s)
+        master = Master(port, host=host, serial_number="emili1", clock=lambda: sim.time_s)
         emili = sim.emili("emili1")
         lift_max = [0.0]
         remove = sim.on_step(lambda _t: lift_max.__setitem__(
             0, max(lift_max[0], emili.lift_height())))
+
+        latencies: dict[str, float] = {} if figures is None else figures
+
+        def send_order(order_id: str, nodes: list[dict[str, Any]]) -> None:
+            """Send an order and note when the physics first gets a wheel command."""
+            commanded: list[float] = []
+
+            def on_step(_t: float) -> None:
+                if not commanded and emili.cmd_vel() != (0.0, 0.0):
+                    commanded.append(time.perf_counter())
+                    latencies[f"order_to_wheels_{order_id}_ms"] = (commanded[0] - sent) * 1e3
+            sent = time.perf_counter()
+            watches.append(sim.on_step(on_step))
+            master.order(order_id, 0, nodes)
+
+        watches: list[Callable[[], None]] = []
 
         def wait(predicate: Callable[[dict[str, Any]], bool], timeout_s: float
                  ) -> dict[str, Any] | None:
@@ -294,6 +388,9 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
             ros.start()
             sim.start()
             robot.start()
+            if not master.connected.wait(30):
+                # The robot logs the same and keeps retrying; the scenario cannot wait.
+                raise RuntimeError(f"no MQTT broker reachable at {host}:{port} within 30 s")
             master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
                             timeout_s=30)
             wait(lambda s: "agvPosition" in s, 30)
@@ -302,7 +399,7 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
             put = node("emili_dropoff", 4, actions=[action("drop", "drop-1")])
             console.print("master → order o1: start → emili_pickup (pick) → emili_dropoff "
                           "(drop)")
-            master.order("o1", 0, [start, take, put])
+            send_order("o1", [start, take, put])
             picked = wait(lambda s: s["lastNodeId"] == "emili_pickup" and any(
                 a["actionId"] == "pick-1" and a["actionStatus"] == "FINISHED"
                 for a in s["actionStates"]), 120)
@@ -331,15 +428,21 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
             charge = node("emili_charging", 2, actions=[action("startCharging", "charge-1")])
             console.print("master → order o2: emili_dropoff → emili_charging; cancelOrder "
                           "mid-edge")
-            master.order("o2", 0, [here, charge])
+            send_order("o2", [here, charge])
             wait(lambda s: s["orderId"] == "o2" and s["driving"], 60)
             t_drive = sim.time_s
             while sim.time_s < t_drive + 3.0:
                 time.sleep(0.01)
             stopped: list[float] = []
+            stopped_wall: list[float] = []
+
+            def on_stop(t: float) -> None:
+                if not stopped and abs(emili.odometry().linear_mps) < 0.01:
+                    stopped_wall.append(time.perf_counter())
+                    stopped.append(t)
             t_cancel = sim.time_s
-            watch = sim.on_step(lambda t: stopped.append(t) if not stopped and abs(
-                emili.odometry().linear_mps) < 0.01 else None)
+            watch = sim.on_step(on_stop)
+            wall_cancel = time.perf_counter()
             master.instant(action("cancelOrder", "cancel-1"))
             cancelled = wait(lambda s: any(a["actionId"] == "cancel-1" and
                                            a["actionStatus"] == "FINISHED"
@@ -349,6 +452,9 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
                 time.sleep(0.01)
             watch()
             stop_s = stopped[0] - t_cancel if stopped else _math.inf
+            latencies["cancel_to_stop_sim_s"] = stop_s
+            latencies["cancel_to_stop_wall_ms"] = (
+                (stopped_wall[0] - wall_cancel) * 1e3 if stopped_wall else _math.inf)
             checks.append(("velocity 0 after cancelOrder", f"{stop_s:.3f} s sim",
                            "≤ 0.5 s sim", stop_s <= 0.5))
             if cancelled is not None:
@@ -360,6 +466,8 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
                            "0", not master.invalid))
         finally:
             remove()
+            for remove_watch in watches:
+                remove_watch()
             out.parent.mkdir(parents=True, exist_ok=True)
             try:
                 sim.render_topdown(out)
@@ -387,6 +495,9 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
         if not ok:
             problems.append(f"{name}: {measured} (target {target})")
     console.print(table)
+    if latencies:
+        console.print("latencies: " + ", ".join(
+            f"{k} {v:.3f}" for k, v in sorted(latencies.items())))
     console.print(f"picture: {out}")
     return problems
 
@@ -402,8 +513,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="docs/img/vda5050.png", metavar="FILE.png")
     parser.add_argument("--real-time-factor", type=float, default=None, metavar="X",
                         help="default: as fast as possible")
+    parser.add_argument("--broker", type=broker_address, default=None, metavar="HOST:PORT",
+                        help="a running MQTT broker to use (default: a local mosquitto of "
+                             "the scenario's own on a free port)")
     args = parser.parse_args(argv)
-    problems = run_scenario(out=Path(args.out), real_time_factor=args.real_time_factor)
+    return scenario_exit(out=Path(args.out), real_time_factor=args.real_time_factor,
+                         broker=args.broker)
+
+
+def broker_address(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (or ``HOST``, port 1883) for ``--broker``."""
+    host, _, port = text.rpartition(":") if ":" in text else (text, "", "1883")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"expected HOST:PORT, got {text!r}")
+    return host, int(port)
+
+
+def scenario_exit(*, out: Path, real_time_factor: float | None,
+                  broker: tuple[str, int] | None = None) -> int:
+    """Run the scenario, print its problems; the exit status (0: the physics matched)."""
+    try:
+        problems = run_scenario(out=out, real_time_factor=real_time_factor, broker=broker)
+    except RuntimeError as exc:
+        problems = [str(exc)]
     for problem in problems:
         print(f"FAILED: {problem}", file=sys.stderr)
     return 1 if problems else 0

@@ -73,7 +73,7 @@ class NodeMap(Protocol):
     """How order nodes are placed on the robot's map (``behaviours.vda5050.WorldNodes``)."""
 
     def locate(self, node_id: str, position: dict[str, Any] | None) -> Point: ...
-    def check_route(self, points: Sequence[tuple[str, Point]]) -> None: ...
+    def check_route(self, points: Sequence[tuple[str, Point]]) -> Sequence[Any] | None: ...
     def charging_station_at(self, point: Point) -> str | None: ...
 
 
@@ -118,6 +118,9 @@ class Telemetry:
     driving: bool = False
 
 
+STATE_PERIOD_MAX_S = 30.0
+"""VDA 5050 2.1 (6.10): the AGV sends a state at least every 30 s, changes or not."""
+
 DRIVING_MPS = 0.01
 """Speeds (m/s, and rad/s for turning) above which the AGV counts as ``driving``."""
 
@@ -138,6 +141,7 @@ class Vda5050Interface:
                  executor: type[Any], source: str = "<dict>") -> None:
         self.options = options
         self.high = high
+        self._executor = executor
         self.topics = Topics.of(options.interface_name, options.manufacturer,
                                 options.serial_number)
         node_map = getattr(executor, "node_map", None)
@@ -150,12 +154,21 @@ class Vda5050Interface:
         except Exception as exc:
             raise ConfigError(f"{source}: vda5050.world: {exc}") from exc
         self.telemetry = Telemetry()
+        #: Seconds between periodic states: ``state_period_s``, at most 30 s (the standard).
+        self.state_period_s = min(options.state_period_s, STATE_PERIOD_MAX_S)
+        if options.state_period_s > STATE_PERIOD_MAX_S:
+            log.warning("%s: vda5050.state_period_s %g s is longer than VDA 5050 allows; "
+                        "a state is sent every %g s", source, options.state_period_s,
+                        STATE_PERIOD_MAX_S)
         self._wake = threading.Event()
         self.orders = AgvOrders(locate=self.nodes.locate, check_route=self.nodes.check_route,
                                 position=self._position, on_change=self._wake.set)
         high.register(options.behavior, executor, orders=self.orders, world=options.world,
                       speed_mps=options.speed_mps, lift_pick_m=options.lift_pick_m,
                       lift_drop_m=options.lift_drop_m)
+        for topic in validation.TOPICS:
+            # Compiled now (~25 ms for the order schema): not when the first order waits.
+            validation.validator(topic)
         self._header_ids: dict[str, itertools.count[int]] = {
             t: itertools.count() for t in validation.TOPICS}
         self._inbox: queue.SimpleQueue[tuple[str, bytes] | None] = queue.SimpleQueue()
@@ -191,6 +204,9 @@ class Vda5050Interface:
         self._control = control
         if node is not None:
             self._subscribe_ros(node)
+            prepare = getattr(self._executor, "prepare", None)
+            if callable(prepare):
+                prepare(node)  # the order behaviour's ROS entities, before the first order
         opts = self.options.broker
         client = mqtt.Client(CallbackAPIVersion.VERSION2,
                              client_id=f"beehave-{self.options.manufacturer}-"
@@ -531,7 +547,7 @@ class Vda5050Interface:
                                    "length": 0.8},
             "protocolLimits": {"maxStringLens": {}, "maxArrayLens": {},
                                "timing": {"minOrderInterval": 0.1, "minStateInterval": 0.02,
-                                          "defaultStateInterval": opts.state_period_s,
+                                          "defaultStateInterval": self.state_period_s,
                                           "visualizationInterval":
                                               1.0 / opts.visualization_rate_hz}},
             "protocolFeatures": {
@@ -567,7 +583,7 @@ class Vda5050Interface:
         return info
 
     def _publish_loop(self) -> None:
-        state_period = self.options.state_period_s
+        state_period = self.state_period_s
         vis_period = 1.0 / self.options.visualization_rate_hz
         now = time.monotonic()
         next_state, next_vis = now, now + vis_period

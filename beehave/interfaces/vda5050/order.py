@@ -110,6 +110,10 @@ class Node:
     actions: list[str]          # action ids, in order
     description: str = ""
     raw_position: dict[str, Any] | None = None
+    route: Any = None
+    """The node map's plan of the leg that ends here (from the AGV's position or the
+    previous released node), made when the order was checked; the order behaviour hands
+    it to the drive so the first command does not wait for the same plan again."""
 
 
 @dataclass
@@ -175,12 +179,14 @@ class AgvOrders:
     ``locate(node_id, position)`` maps a node to world coordinates: the ``nodePosition``
     dict (None when the order gave none) → ``(x_m, y_m)``, raising ``OrderRejected`` with
     the reason. ``check_route(points)`` raises ``OrderRejected`` (``noRouteError``) when
-    the polyline through ``points`` cannot be driven. ``position()`` is where the robot
-    is now (None before the first odometry).
+    the polyline through ``points`` cannot be driven; it may return the plan of each leg
+    (one per pair of points), which become the end nodes' :attr:`Node.route`.
+    ``position()`` is where the robot is now (None before the first odometry).
     """
 
     def __init__(self, *, locate: Callable[[str, dict[str, Any] | None], Point],
-                 check_route: Callable[[Sequence[tuple[str, Point]]], None] | None = None,
+                 check_route: Callable[[Sequence[tuple[str, Point]]], Sequence[Any] | None]
+                 | None = None,
                  position: Callable[[], Point | None] = lambda: None,
                  on_change: Callable[[], None] = lambda: None) -> None:
         self._locate = locate
@@ -442,12 +448,19 @@ class AgvOrders:
     def _route(self, nodes: list[Node], *, from_robot: bool) -> None:
         if self._check_route is None:
             return
-        points = [(n.node_id, n.position) for n in nodes if n.released]
+        released = [n for n in nodes if n.released]
+        points = [(n.node_id, n.position) for n in released]
         here = self._position() if from_robot else None
         if here is not None:
             points.insert(0, ("(the AGV)", here))
-        if len(points) > 1:
-            self._check_route(points)
+        if len(points) < 2:
+            return
+        routes = self._check_route(points)
+        # Leg i ends at points[i + 1]: that node of ``released``.
+        ends = released if here is not None else released[1:]
+        if routes is not None and len(routes) == len(ends):
+            for node, route in zip(ends, routes, strict=True):
+                node.route = route
 
     # ---- instant actions and execution --------------------------------------------------
 
