@@ -185,6 +185,8 @@ class GridPlanner:
         self._add(occupancy.obstacles)
 
     def _add(self, shapes: Iterable[Shape]) -> None:
+        self._flat_cache: list[bool] | None = None  # derived from blocked: made again
+        self._regions_cache: list[int] | None = None
         r = self.inflation_m
         res = self.resolution_m
         for shape in shapes:
@@ -246,6 +248,33 @@ class GridPlanner:
         segments. Raises :class:`~beehave.errors.NoPath` (saying why) when the goal is off
         the floor, inside an obstacle's inflation with no free cell within
         ``goal_tolerance_m``, or cut off."""
+        start_cell, goal_cell = self._endpoints(start, goal, goal_tolerance_m)
+        cells = self._astar(start_cell, goal_cell)
+        if cells is None:
+            raise self._cut_off(start, goal)
+        end = goal if goal_cell == self.cell(goal) else self.center(goal_cell)
+        points: list[Point] = [(float(start[0]), float(start[1]))]
+        if start_cell != self.cell(start):
+            points.append(self.center(start_cell))  # leave the inflation first
+        points += [self.center(c) for c in cells[1:-1]]
+        points.append((float(end[0]), float(end[1])))
+        return PlannedPath(tuple(self._pull_tight(points)))
+
+    def check_reachable(self, start: Point, goal: Point, *, goal_tolerance_m: float = 0.0
+                        ) -> None:
+        """Raise :class:`~beehave.errors.NoPath` exactly when :meth:`plan` would, without
+        planning: whether two cells are connected is one look-up in the map's free regions,
+        labelled once per planner (tens of milliseconds for a warehouse). For checking a
+        long route before driving it, e.g. every leg of an order when it arrives."""
+        start_cell, goal_cell = self._endpoints(start, goal, goal_tolerance_m)
+        regions, width = self.regions(), self.width
+        if regions[start_cell[1] * width + start_cell[0]] != regions[
+                goal_cell[1] * width + goal_cell[0]]:
+            raise self._cut_off(start, goal)
+
+    def _endpoints(self, start: Point, goal: Point, goal_tolerance_m: float
+                   ) -> tuple[tuple[int, int], tuple[int, int]]:
+        """The free cells a plan from ``start`` to ``goal`` runs between (see :meth:`plan`)."""
         for name, p in (("start", start), ("goal", goal)):
             if not (len(p) == 2 and all(math.isfinite(v) for v in p)):
                 raise NoPath(f"{name} must be (x_m, y_m) with finite numbers, got {p!r}")
@@ -263,18 +292,45 @@ class GridPlanner:
             raise NoPath(f"goal ({goal[0]:.2f}, {goal[1]:.2f}) is {self._why_blocked(goal)}"
                          f", and no free point lies within goal_tolerance_m="
                          f"{goal_tolerance_m:.3g} m")
-        cells = self._astar(start_cell, goal_cell)
-        if cells is None:
-            raise NoPath(f"no path from ({start[0]:.2f}, {start[1]:.2f}) to ({goal[0]:.2f}, "
-                         f"{goal[1]:.2f}) for a robot of radius {self.robot_radius_m} m with "
-                         f"{self.clearance_m} m clearance: obstacles cut the goal off")
-        end = goal if goal_cell == self.cell(goal) else self.center(goal_cell)
-        points: list[Point] = [(float(start[0]), float(start[1]))]
-        if start_cell != self.cell(start):
-            points.append(self.center(start_cell))  # leave the inflation first
-        points += [self.center(c) for c in cells[1:-1]]
-        points.append((float(end[0]), float(end[1])))
-        return PlannedPath(tuple(self._pull_tight(points)))
+        return start_cell, goal_cell
+
+    def _cut_off(self, start: Point, goal: Point) -> NoPath:
+        return NoPath(f"no path from ({start[0]:.2f}, {start[1]:.2f}) to ({goal[0]:.2f}, "
+                      f"{goal[1]:.2f}) for a robot of radius {self.robot_radius_m} m with "
+                      f"{self.clearance_m} m clearance: obstacles cut the goal off")
+
+    def _flat(self) -> list[bool]:
+        """``blocked`` as a flat list (indexing it is several times faster than numpy
+        scalars), made once per planner."""
+        if self._flat_cache is None:
+            self._flat_cache = self.blocked.ravel().tolist()
+        return self._flat_cache
+
+    def regions(self) -> list[int]:
+        """A label per cell: free cells joined by 4-neighbour moves share one (0 for
+        blocked ones). A* moves diagonally only past two free side cells, so it connects
+        exactly the cells one label joins."""
+        if self._regions_cache is None:
+            blocked, width = self._flat(), self.width
+            n = len(blocked)
+            regions = [0] * n
+            label = 0
+            for seed in range(n):
+                if blocked[seed] or regions[seed]:
+                    continue
+                label += 1
+                regions[seed] = label
+                stack = [seed]
+                while stack:
+                    k = stack.pop()
+                    i = k % width
+                    for m in (k - 1 if i > 0 else -1, k + 1 if i < width - 1 else -1,
+                              k - width, k + width):
+                        if 0 <= m < n and not blocked[m] and not regions[m]:
+                            regions[m] = label
+                            stack.append(m)
+            self._regions_cache = regions
+        return self._regions_cache
 
     def _nearest_free(self, point: Point, within_m: float) -> tuple[int, int] | None:
         """The cell holding ``point`` when it is free, else the free cell whose centre is
@@ -316,8 +372,7 @@ class GridPlanner:
     def _astar(self, start: tuple[int, int], goal: tuple[int, int]
                ) -> list[tuple[int, int]] | None:
         width, height = self.width, self.height
-        # Plain Python lists: indexing them is several times faster than numpy scalars.
-        blocked = self.blocked.ravel().tolist()
+        blocked = self._flat()
         s = start[1] * width + start[0]
         g = goal[1] * width + goal[0]
         gi, gj = goal

@@ -72,6 +72,7 @@ class WorldNodes:
         # Built now (~0.1 s, once per process), when the AGV is set up: not on its first
         # order, whose acceptance and first wheel command would wait for it.
         self.planner = world_planner(world, ROBOT_RADIUS_M, CLEARANCE_M)
+        self.planner.regions()  # labelled now too: the route check looks legs up in them
 
     def locate(self, node_id: str, position: dict[str, Any] | None) -> Point:
         """``(x_m, y_m)`` of a node; :class:`OrderRejected` says why it cannot be placed."""
@@ -93,15 +94,24 @@ class WorldNodes:
                                 f"{width:g} x {depth:g} m floor of {self.world.name!r}")
         return (x, y)
 
-    def check_route(self, points: Sequence[tuple[str, Point]]) -> list[PlannedPath]:
-        """Plan each leg of the released base; ``noRouteError`` naming the node that no
-        path reaches. Returns the plans, one per leg: :class:`OrderExecution` hands each
-        to the drive of its leg (``Navigation(initial_path=...)``), which then need not
-        plan it again before its first command."""
-        plans = []
+    def check_route(self, points: Sequence[tuple[str, Point]]) -> list[PlannedPath | None]:
+        """Check that every leg of the released base can be driven; ``noRouteError`` names
+        the node that no path reaches. The first leg that moves the AGV is planned now and
+        its plan returned in its place (:class:`OrderExecution` hands it to that leg's
+        ``Navigation(initial_path=...)``, so the first wheel command does not wait for a
+        second plan of it); the later legs are only checked for a path (one look-up, see
+        :meth:`~beehave.planning.GridPlanner.check_reachable`) and planned when driven."""
+        plans: list[PlannedPath | None] = []
+        moving = False
         for (from_id, a), (to_id, b) in zip(points, points[1:], strict=False):
             try:
-                plans.append(self.planner.plan(a, b, goal_tolerance_m=GOAL_TOLERANCE_M))
+                if moving:
+                    self.planner.check_reachable(a, b, goal_tolerance_m=GOAL_TOLERANCE_M)
+                    plans.append(None)
+                else:
+                    plan = self.planner.plan(a, b, goal_tolerance_m=GOAL_TOLERANCE_M)
+                    plans.append(plan)
+                    moving = plan.length_m > GOAL_TOLERANCE_M
             except NoPath as exc:
                 raise OrderRejected("noRouteError", f"no path from {from_id!r} to node "
                                     f"{to_id!r} on map {self.world.name!r}: {exc}",

@@ -4,6 +4,7 @@ obstacle, exact costs, clear errors, and the warehouse's README example around i
 from __future__ import annotations
 
 import math
+import random
 
 import pytest
 
@@ -203,3 +204,43 @@ def test_with_obstacles_rasterises_like_the_map(shape: Disc | Rect) -> None:
                         robot_radius_m=0.55)
     assert (added.blocked == built.blocked).all()
     assert added.blocked.sum() > GridPlanner(EMPTY, robot_radius_m=0.55).blocked.sum()
+
+
+def test_check_reachable_refuses_exactly_what_plan_refuses() -> None:
+    """The route check's look-up agrees with A* on maps with pockets, slits one robot too
+    narrow, diagonal corners and goals inside obstacles (every pair of probe points)."""
+    rng = random.Random(7)
+    for _ in range(12):
+        shapes: list[Disc | Rect] = [Rect((rng.uniform(1, 9), rng.uniform(1, 5)),
+                                          (rng.uniform(0.2, 4.0), rng.uniform(0.2, 4.0)),
+                                          rng.uniform(0, math.pi)) for _ in range(6)]
+        planner = GridPlanner(OccupancyMap(size_m=(10.0, 6.0), obstacles=tuple(shapes)),
+                              robot_radius_m=0.3)
+        probes = [(rng.uniform(0, 10), rng.uniform(0, 6)) for _ in range(8)]
+        for a in probes:
+            for b in probes:
+                try:
+                    planner.plan(a, b, goal_tolerance_m=0.2)
+                    planned: str | None = None
+                except NoPath as exc:
+                    planned = str(exc)
+                try:
+                    planner.check_reachable(a, b, goal_tolerance_m=0.2)
+                    checked: str | None = None
+                except NoPath as exc:
+                    checked = str(exc)
+                assert checked == planned, (shapes, a, b)
+
+
+def test_check_reachable_follows_added_obstacles_and_leaves_the_original() -> None:
+    wall = Rect((5.0, 3.0), (0.2, 6.0))
+    walled = GridPlanner(EMPTY, robot_radius_m=0.3).with_obstacles([wall])
+    open_floor = GridPlanner(EMPTY, robot_radius_m=0.3)
+    open_floor.check_reachable((1.0, 3.0), (9.0, 3.0))  # labelled before the copy
+    cut = open_floor.with_obstacles([wall])
+    with pytest.raises(NoPath, match="cut the goal off"):
+        cut.check_reachable((1.0, 3.0), (9.0, 3.0))
+    with pytest.raises(NoPath, match="cut the goal off"):
+        walled.check_reachable((1.0, 3.0), (9.0, 3.0))
+    open_floor.check_reachable((1.0, 3.0), (9.0, 3.0))
+    assert max(cut.regions()) == 2 and max(open_floor.regions()) == 1
