@@ -60,7 +60,7 @@ def test_a_slow_client_gets_the_newest_update_with_every_event_and_its_count() -
 
 def test_a_stalled_client_keeps_the_newest_events_and_counts_the_others() -> None:
     client = Client(["emili1"], events_kept=3)
-    client.offer_events("emili1", [{"seq": i} for i in range(1, 6)])
+    client.offer_events("emili1", [{"seq": i} for i in range(1, 6)], upto=5)
     for seq in range(6, 9):
         client.offer(update(seq, [{"seq": seq}]))
     [sent] = drain(client)
@@ -114,3 +114,15 @@ def test_keys_declared_but_never_written_appear_at_the_resync() -> None:
     assert decoded(cache)["lift/height_m"] == {"value": None, "stamp": None, "stale": True,
                                                "writer": None, "age_s": None}
     same_as_snapshot(cache, board)
+
+
+def test_a_new_client_gets_each_event_once_backlog_and_updates_overlapping() -> None:
+    client = Client(["emili1"], events_kept=10)
+    # The backlog holds the events up to seq 5; the pump's next update took 4–6.
+    client.offer_events("emili1", [{"seq": i} for i in range(1, 6)], upto=5)
+    client.offer(update(1, [{"seq": 4}, {"seq": 5}, {"seq": 6}]))
+    [sent] = drain(client)
+    assert [e["seq"] for e in json.loads(sent)["events"]] == [1, 2, 3, 4, 5, 6]
+    shared = update(2, [{"seq": 7}])
+    client.offer(shared)
+    assert drain(client) == [shared.text]

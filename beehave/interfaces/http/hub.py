@@ -65,13 +65,16 @@ def _message(robot: str, body: bytes, events: list[dict[str, Any]],
 @dataclass
 class _Pending:
     update: Update | None = None
+    #: Whether the update's own events go out with it (not when a new client has them
+    #: in its backlog already: then those it lacks are in ``events``).
+    own: bool = True
     #: Events the update does not carry: those of replaced updates, a new client's backlog.
     events: list[dict[str, Any]] = field(default_factory=list)
 
 
 class Client:
     """One WebSocket client: which robots it watches, what waits to be sent, what was
-    dropped. The pump (in the server's loop) offers; the client's sender task sends."""
+    dropped. The hub offers (in the server's loop); the client's sender task sends."""
 
     def __init__(self, robots: list[str], *, events_kept: int) -> None:
         self.robots = robots
@@ -84,22 +87,35 @@ class Client:
         self._events_kept = events_kept
         self._pending: dict[str, _Pending] = {}
         self._told: tuple[int, int] | None = None  # the counts last sent to the client
+        #: robot → the last event seq of the backlog it was given: not to be sent twice.
+        self._since: dict[str, int] = {}
         self._wake = asyncio.Event()
 
     def offer(self, update: Update) -> None:
         """Queue ``update`` in place of an unsent one of its robot (in the server loop)."""
-        pending = self._pending.get(update.robot)
+        robot, own, extra = update.robot, True, None
+        since = self._since.get(robot)
+        if since is not None and update.events:
+            if update.events[0]["seq"] > since:
+                del self._since[robot]  # past the backlog: events go as they come
+            else:
+                own, extra = False, [e for e in update.events if e["seq"] > since]
+        pending = self._pending.get(robot)
         if pending is None:
-            self._pending[update.robot] = _Pending(update)
-        else:
-            if pending.update is not None:
-                self.dropped += 1
+            pending = self._pending[robot] = _Pending()
+        elif pending.update is not None:
+            self.dropped += 1
+            if pending.own:
                 self._keep(pending, pending.update.events)
-            pending.update = update
+        pending.update, pending.own = update, own
+        if extra:
+            self._keep(pending, extra)
         self._wake.set()
 
-    def offer_events(self, robot: str, events: list[dict[str, Any]]) -> None:
-        """Queue events without an update (a new client's backlog)."""
+    def offer_events(self, robot: str, events: list[dict[str, Any]], *, upto: int) -> None:
+        """Queue a new client's backlog: the events up to seq ``upto``; later updates
+        bring the events after it."""
+        self._since[robot] = upto
         if events:
             self._keep(self._pending.setdefault(robot, _Pending()), events)
             self._wake.set()
@@ -120,11 +136,11 @@ class Client:
         for robot, item in pending.items():
             update = item.update
             counts = (self.dropped, self.events_dropped)
-            if update is not None and not item.events and counts == self._told:
+            if update is not None and item.own and not item.events and counts == self._told:
                 out.append(update.text)  # the shared message: nothing of this client's own
                 continue
             events = item.events
-            if update is not None:
+            if update is not None and item.own:
                 self._keep(item, update.events)
                 counts = (self.dropped, self.events_dropped)
             self._told = counts
@@ -205,7 +221,12 @@ class _BoardCache:
 
 
 class Hub:
-    """The pump and the clients of one server (see the module docstring)."""
+    """The pump and the clients of one server (see the module docstring).
+
+    The pump is a thread of its own: it sleeps out each period on its own timer, builds
+    the updates (a snapshot reads the managers, and the low level's part crosses into its
+    loop: the server's loop never waits for a robot), and hands them to the server's loop
+    in one call, which offers them to the clients."""
 
     def __init__(self, planes: Mapping[str, ControlPlane], *, rate_hz: float = 20.0,
                  refresh_s: float = 1.0, events_kept: int = 500) -> None:
@@ -224,37 +245,36 @@ class Hub:
         self._dirty = {name: threading.Event() for name in self.planes}
         self._last_seq = dict.fromkeys(self.planes, 0)
         self._last_built = dict.fromkeys(self.planes, -math.inf)
-        self._watched: set[str] = set()
+        #: The robots some client watches (replaced, never changed in place: the pump
+        #: thread reads it).
+        self._watched: frozenset[str] = frozenset()
         self._seq = 0
+        self._build_lock = threading.Lock()
         #: Whether a change must wake the pump (it waits) or only set its robot's flag
         #: (the pump sleeps out a period and looks at the flags anyway).
         self._armed = True
-        self._last_turn = -math.inf
+        self._kick = threading.Event()
+        self._stopping = False
         self._unsubscribe: list[Callable[[], None]] = []
-        self._task: asyncio.Task[None] | None = None
-        self._wake: asyncio.Event | None = None
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
 
     def start(self) -> None:
         """Subscribe to the robots and start the pump (in the server's running loop)."""
-        loop = asyncio.get_running_loop()
-        self._wake = wake = asyncio.Event()
+        self._loop = asyncio.get_running_loop()
+        kick = self._kick
         for name, plane in self.planes.items():
             flag, board = self._dirty[name], self._boards[name]
 
             def mark(_: object, flag: threading.Event = flag) -> None:
                 # Called in the robot's threads: set a flag and, on the first change since
-                # the last turn only and only when the pump waits for one, wake it (one
-                # non-blocking write to the loop's self-pipe): the rest costs the robot a
-                # flag test each.
+                # the last turn only and only when the pump waits for one, wake it: the
+                # rest costs the robot a flag test each.
                 if flag.is_set():
                     return
                 flag.set()
-                if not self._armed:
-                    return
-                try:
-                    loop.call_soon_threadsafe(wake.set)
-                except RuntimeError:  # the server's loop is closed: nobody to tell
-                    pass
+                if self._armed:
+                    kick.set()
 
             def written(change: Any, board: _BoardCache = board,
                         mark: Callable[[object], None] = mark) -> None:
@@ -264,103 +284,116 @@ class Hub:
             self._unsubscribe.append(plane.subscribe(mark))
             sub = plane.board.subscribe("**", written)
             self._unsubscribe.append(sub.close)
-        self._task = loop.create_task(self._pump(), name="beehave:http-pump")
+        self._thread = threading.Thread(target=self._pump, name="beehave:http-pump",
+                                        daemon=True)
+        self._thread.start()
 
     async def stop(self) -> None:
+        """Unsubscribe and end the pump (in the server's loop)."""
         for fn in self._unsubscribe:
             with contextlib.suppress(Exception):
                 fn()
         self._unsubscribe.clear()
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
-            self._task = None
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            self._stopping = True
+            self._kick.set()
+            await asyncio.to_thread(thread.join, 5.0)  # at most a build and a period
+            if thread.is_alive():
+                log.warning("web view: the update pump did not end within 5 s")
 
     def add(self, robots: list[str]) -> Client:
         """A new client (in the server loop): it gets the events kept so far, then the
         current picture at the pump's next turn."""
         client = Client(robots, events_kept=self.events_kept)
         self.clients.add(client)
-        self._watched.update(robots)
+        self._watched = self._watched | set(robots)
         for name in robots:
+            # The events up to what the pump took last: the later ones come with updates.
             upto = self._last_seq[name]
             kept = self.planes[name].events(limit=self.events_kept)
-            client.offer_events(name, [e for e in kept if e["seq"] <= upto])
+            client.offer_events(name, [e for e in kept if e["seq"] <= upto], upto=upto)
             self._dirty[name].set()
-        if self._wake is not None:
-            self._wake.set()
+        self._kick.set()
         return client
 
     def remove(self, client: Client) -> None:
         self.clients.discard(client)
-        self._watched = {name for c in self.clients for name in c.robots}
+        self._watched = frozenset(name for c in self.clients for name in c.robots)
         self.dropped_total += client.dropped
 
     def build(self, name: str) -> bytes:
         """One robot's update (``{"seq", "stamp", "snapshot", "blackboard"}``), serialised
-        once for every client (any thread; one build at a time per robot)."""
-        started = time.perf_counter()
-        plane = self.planes[name]
-        self._seq += 1
-        head = to_json({"seq": self._seq, "stamp": time.time(),
-                        "snapshot": plane.snapshot()})
-        out = b"".join([head[:-1], b',"blackboard":', self._boards[name].encode(), b"}"])
-        self.build_s += time.perf_counter() - started
-        self.updates_built += 1
-        return out
+        once for every client (any thread)."""
+        with self._build_lock:
+            started = time.perf_counter()
+            plane = self.planes[name]
+            self._seq += 1
+            head = to_json({"seq": self._seq, "stamp": time.time(),
+                            "snapshot": plane.snapshot()})
+            out = b"".join([head[:-1], b',"blackboard":', self._boards[name].encode(),
+                            b"}"])
+            self.build_s += time.perf_counter() - started
+            self.updates_built += 1
+            return out
 
     def _due(self, now: float) -> bool:
         """Whether a watched robot changed or waits for its refresh."""
         return any(self._dirty[name].is_set() or now - self._last_built[name] >= self.refresh_s
                    for name in self._watched)
 
-    async def _pump(self) -> None:
-        assert self._wake is not None
-        wake = self._wake
-        while True:
+    def _pump(self) -> None:
+        last_turn = -math.inf
+        while not self._stopping:
             # The coalescing: at most one turn every period_s. While it sleeps out the
             # period, a change only sets its robot's flag; only the latest state is sent.
             self._armed = False
-            delay_s = self._last_turn + self.period_s - time.monotonic()
+            delay_s = last_turn + self.period_s - time.monotonic()
             if delay_s > 0:
-                await asyncio.sleep(delay_s)
-            while not self._due(time.monotonic()):
+                time.sleep(delay_s)
+            while not self._stopping and not self._due(time.monotonic()):
                 # Nothing to send: wait for a change (the leading edge: a quiet robot's
                 # change is on its way within a build) or the next refresh (ages move on).
-                wake.clear()
+                self._kick.clear()
                 self._armed = True
                 if self._due(time.monotonic()):  # a change came before it was armed
                     break
-                timeout_s = None if not self._watched else self.refresh_s
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(wake.wait(), timeout_s)
+                self._kick.wait(self.refresh_s if self._watched else None)
             self._armed = False
-            self._last_turn = time.monotonic()
+            if self._stopping:
+                return
+            last_turn = time.monotonic()
             try:
-                await self._turn()
+                self._turn()
             except Exception:  # a robot's snapshot failed: report, keep serving
                 log.exception("web view: building an update failed")
 
-    async def _turn(self) -> None:
+    def _turn(self) -> None:
         now = time.monotonic()
-        for name, plane in self.planes.items():
-            if name not in self._watched:
-                continue
+        updates = []
+        for name in self._watched:
             due = now - self._last_built[name] >= self.refresh_s
             if not (self._dirty[name].is_set() or due):
                 continue
             self._dirty[name].clear()
             self._last_built[name] = now
-            # Built off the loop: a snapshot reads the managers (the low level's call
-            # crosses into its loop) and must not stall the other clients' sends.
-            body = await asyncio.to_thread(self.build, name)
+            body = self.build(name)[1:-1]
+            plane = self.planes[name]
             events = plane.events(after_seq=self._last_seq[name], limit=self.events_kept)
             if events:
                 self._last_seq[name] = events[-1]["seq"]
-            update = Update(name, body[1:-1], events, _message(name, body[1:-1], events))
-            for client in list(self.clients):
-                if name in client.robots:
+            updates.append(Update(name, body, events, _message(name, body, events)))
+        if updates and self._loop is not None:
+            try:
+                self._loop.call_soon_threadsafe(self._deliver, updates)
+            except RuntimeError:  # the server's loop has closed: nobody to send to
+                self._stopping = True
+
+    def _deliver(self, updates: list[Update]) -> None:
+        """Offer this turn's updates to the clients watching their robots (server loop)."""
+        for update in updates:
+            for client in self.clients:
+                if update.robot in client.robots:
                     client.offer(update)
 
     def stats(self) -> dict[str, Any]:
