@@ -196,6 +196,18 @@ function drawWorld(world) {
     const [cx, cy] = hole.center_m, [sx, sy] = hole.size_m;
     layer.append(svg("rect", {class: "hole", x: cx - sx / 2, y: Y(cy + sy / 2), width: sx, height: sy}));
   }
+  for (const zone of world.zones || []) {
+    // A speed zone: a polygon drawn under everything else, with its limit.
+    const points = zone.points_m || [];
+    if (points.length < 3) continue;
+    const shape = svg("polygon", {class: "zone", "data-zone": zone.name,
+      points: points.map(([x, y]) => `${x},${Y(y)}`).join(" ")});
+    const top = Math.max(...points.map(([, y]) => y));
+    const left = Math.min(...points.map(([x]) => x));
+    const label = svg("text", {class: "zone-label", x: left + 0.05, y: Y(top) + 0.3});
+    label.textContent = zone.max_speed_mps ? `${zone.name} ≤ ${zone.max_speed_mps} m/s` : zone.name;
+    layer.append(shape, label);
+  }
   for (const lane of world.lanes || []) {
     layer.append(svg("polyline", {class: "lane", "stroke-width": lane.width_m || 0.05,
       points: lane.points_m.map(([x, y]) => `${x},${Y(y)}`).join(" ")}));
