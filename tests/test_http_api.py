@@ -21,11 +21,11 @@ from config_fixtures import Drive, Explodes  # noqa: E402
 from websockets.exceptions import InvalidStatus  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
-from beehave import HighLevelBehaviorManager  # noqa: E402
+from beehave import Behavior, HighLevelBehaviorManager  # noqa: E402
 from beehave.errors import ConfigError  # noqa: E402
 from beehave.interfaces import ControlPlane  # noqa: E402
-from beehave.interfaces.http import TOKEN_ENV, HttpServer, parse_address  # noqa: E402
-from beehave.testing import wait_until  # noqa: E402
+from beehave.interfaces.http import TOKEN_ENV, HttpServer, parse_address, serve  # noqa: E402
+from beehave.testing import ScriptedAction, wait_until  # noqa: E402
 
 WORLD = {"name": "tiny", "floor": {"size_m": [6, 4]},
          "stations": [{"name": "dock", "kind": "charging", "center_m": [1, 1]}]}
@@ -112,6 +112,56 @@ def test_switch_and_stop_reach_the_manager(server: HttpServer,
     assert wait_until(lambda: hl.current == "idle")
 
 
+class Stubborn(Behavior):
+    """Raises the lift with an action that ignores its interrupt for a while."""
+
+    def run(self) -> None:
+        self.start_action(ScriptedAction("lift", duration_s=60.0, ignore_interrupt_s=1.5,
+                                         name="raise"))
+        while self.sleep(0.05):
+            pass
+
+
+def test_status_shows_type_locks_and_stuck_actions_and_behaviours_list_their_parameters(
+        server: HttpServer, hl: HighLevelBehaviorManager) -> None:
+    hl.register("stubborn", Stubborn)
+    api = f"{base(server)}/api"
+    assert httpx.post(f"{api}/robots/emili1/switch",
+                      json={"behavior": "stubborn"}).status_code == 202
+    assert wait_until(lambda: "lift" in httpx.get(f"{api}/robots/emili1/status"
+                                                  ).json()["locks"])
+    status = httpx.get(f"{api}/robots/emili1/status").json()
+    assert status["locks"] == {"lift": "stubborn/raise"} and status["stuck"] == []
+    assert {"path": "stubborn/raise", "kind": "action", "class": "ScriptedAction",
+            "status": "RUNNING", "action_type": "lift"} in status["running"]
+    # Stop: the action ignores its interrupt past stop_timeout_s, so it is STUCK, and its
+    # type lock stays held until its thread really ends.
+    assert httpx.post(f"{api}/robots/emili1/stop").status_code == 202
+    assert wait_until(lambda: httpx.get(f"{api}/robots/emili1/status").json()["stuck"])
+    status = httpx.get(f"{api}/robots/emili1/status").json()
+    assert status["behavior"] == "idle" and "stubborn/raise" in str(status["stuck"])
+    assert status["locks"] == {"lift": "stubborn/raise"}
+    assert wait_until(lambda: not httpx.get(f"{api}/robots/emili1/status").json()["stuck"],
+                      10)
+    drive = next(b for b in httpx.get(f"{api}/robots/emili1/behaviors").json()
+                 if b["name"] == "drive")
+    assert [(p["name"], p["default"], p["required"]) for p in drive["parameters"]] == [
+        ("station", "dock", False), ("speed_mps", 0.5, False)]
+    stats = httpx.get(f"{api}/stats").json()
+    assert stats["rate_hz"] == 50.0 and stats["clients"] == []
+
+
+def test_the_blackboard_endpoint_marks_stale_entries(server: HttpServer,
+                                                     hl: HighLevelBehaviorManager) -> None:
+    hl.blackboard.set("odom/x_m", 1.5, writer="hal:odometry", stale=True)
+    entry = httpx.get(f"{base(server)}/api/robots/emili1/blackboard",
+                      params={"key": "odom/x_m"}).json()["odom/x_m"]
+    assert entry["stale"] is True and entry["value"] == 1.5 and entry["age_s"] >= 0
+    assert httpx.get(f"{base(server)}/api/robots/emili1/blackboard",
+                     params={"key": "battery/percentage"}).json()[
+        "battery/percentage"]["stale"] is False
+
+
 @pytest.mark.parametrize(("method", "path", "body", "status", "message"), [
     ("post", "/api/robots/emili1/switch", {"behavior": "patrol"}, 404,
      "unknown behavior 'patrol'; registered: 'broken', 'drive', 'idle'"),
@@ -178,6 +228,35 @@ def test_websocket_streams_snapshots_blackboard_and_events(
     with pytest.raises(InvalidStatus) as refused:
         connect(f"{url}?robots=emili9")
     assert refused.value.response.status_code == 404
+
+
+def test_a_burst_of_writes_is_coalesced_into_few_updates_with_the_last_value(
+        server: HttpServer, hl: HighLevelBehaviorManager) -> None:
+    with connect(f"ws://127.0.0.1:{server.port}/api/ws") as ws:
+        _read_updates(ws, 1)
+        for i in range(1, 501):  # a few milliseconds of writes: a handful of 50 Hz turns
+            hl.blackboard.set("odom/x_m", float(i), writer="hal:odometry")
+        updates = [_read_updates(ws, 1)[0]]
+        while updates[-1]["blackboard"]["odom/x_m"]["value"] != 500.0:
+            updates += _read_updates(ws, 1)
+    assert len(updates) < 50  # not one per write: the intermediate values were skipped
+
+
+def test_serve_passes_the_refresh_on(plane: ControlPlane, hl: HighLevelBehaviorManager,
+                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    server = serve(plane, rate_hz=50.0, refresh_s=0.05)
+    try:
+        assert server.hub.refresh_s == 0.05
+        with connect(f"ws://127.0.0.1:{server.port}/api/ws") as ws:
+            # The robot does not change, yet updates keep coming: ages move on.
+            ages = [u["blackboard"]["battery/percentage"]["age_s"]
+                    for u in _read_updates(ws, 3)]
+        assert ages == sorted(ages) and ages[-1] > ages[0]
+    finally:
+        server.stop()
+    with pytest.raises(ConfigError, match="refresh_s"):
+        HttpServer(plane, refresh_s=0)
 
 
 class StalledClient:

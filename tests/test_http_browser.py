@@ -255,11 +255,22 @@ def test_a_behaviour_tree_is_drawn_with_py_trees_status_colours_that_follow_its_
         plane = ControlPlane(hl, name="kobuki1")
         messages: list[dict[str, Any]] = []
         fleet = {"agents": [{"name": "kobuki1", "services": "transport"}], "messages": messages}
-        with HttpServer(plane, fleet=lambda: fleet) as server:
+        world = {"name": "hall", "floor": {"size_m": [8, 6]},
+                 "walls": [{"from_m": [0, 0], "to_m": [8, 0]}],
+                 "stations": [{"name": "dock", "kind": "charging", "center_m": [1, 1]}],
+                 "lanes": [{"name": "loop", "points_m": [[1, 3], [7, 3]]}],
+                 "zones": [{"name": "walkway", "max_speed_mps": 0.15,
+                            "points_m": [[3, 0.2], [4, 0.2], [4, 5.8], [3, 5.8]]}]}
+        with HttpServer(plane, fleet=lambda: fleet, world=world) as server:
             tab = browser.new_page(viewport={"width": 1200, "height": 900})
             try:
                 tab.goto(server.url)
                 tab.wait_for_selector("#conn.up", timeout=10_000)
+                # The map: a speed zone (with its limit) and a lane, beside the station.
+                tab.wait_for_selector('#map polygon.zone[data-zone="walkway"]', timeout=10_000)
+                assert "walkway ≤ 0.15 m/s" in tab.locator("#map .zone-label").text_content()
+                assert tab.locator("#map polyline.lane").count() == 1
+                assert tab.locator('[data-station="dock"]').count() == 1
                 tab.select_option("#behavior-choice", "patrol")
                 tab.click("#switch-btn")
                 running = '.bt-node[data-node="{}"][data-status="{}"]'

@@ -43,3 +43,35 @@ def test_help_names_the_http_option() -> None:
     for command in ("run", "demo"):
         done = beehave(command, "-h")
         assert done.returncode == 0 and "--http [HOST:]PORT" in done.stdout
+
+
+def test_the_demo_serves_both_robots_and_prints_the_url(tmp_path: Path) -> None:
+    """``beehave demo --http``: the URL is printed, and while the demo runs the API
+    serves both simulated robots and the warehouse map."""
+    import re
+
+    import httpx
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "beehave.cli", "demo", "--fast", "--http", "127.0.0.1:0",
+         "--out", str(tmp_path)], cwd=ROOT, env=dict(os.environ), stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, text=True)
+    try:
+        assert proc.stdout is not None
+        lines = []
+        for line in proc.stdout:
+            lines.append(line)
+            match = re.search(r"web view: (http://127\.0\.0\.1:\d+/)", line)
+            if match:
+                break
+        assert match, "".join(lines)
+        robots = httpx.get(match.group(1) + "api/robots", timeout=10).json()
+        assert [r["name"] for r in robots["robots"]] == ["emili1", "kobuki1"]
+        assert robots["world"] is True
+        assert "walls" in httpx.get(match.group(1) + "api/world", timeout=10).json()
+        rest = proc.communicate(timeout=180)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert proc.returncode == 0 and "demo OK" in rest, "".join(lines) + rest

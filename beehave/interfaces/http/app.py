@@ -258,8 +258,9 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
                      token: str | None = None) -> None:
         """Updates of the robots (comma-separated names, default all): one JSON message
         per robot and turn, ``{"type": "update", "robot", "seq", "stamp", "snapshot",
-        "blackboard", "events", "dropped", "events_dropped"}`` (``snapshot`` and
-        ``blackboard`` may be missing from a message that only carries events)."""
+        "blackboard", "events"}`` (``snapshot`` and ``blackboard`` may be missing from a
+        message that only carries events), plus this connection's ``dropped`` and
+        ``events_dropped`` counts in its first message and whenever they change."""
         offered = list(websocket.scope.get("subprotocols", []))
         presented = token or next((p[len(BEARER_PREFIX):] for p in offered
                                    if p.startswith(BEARER_PREFIX)), None)
@@ -312,7 +313,7 @@ async def _send_loop(websocket: WebSocket, client: Client) -> None:
             # Awaits the socket's flow control: only this client waits, and the pump
             # meanwhile replaces what it has not sent yet. Text frames: what a browser's
             # JSON.parse takes without a Blob round trip.
-            await websocket.send_text(message.decode())
+            await websocket.send_text(message)
             client.sent += 1
 
 

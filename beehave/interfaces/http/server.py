@@ -74,7 +74,8 @@ class HttpServer:
     protects the commands (switch, stop). ``port`` 0 picks a free port (:attr:`port`).
     ``world`` / ``fleet``: what the web view draws (see
     :func:`~beehave.interfaces.http.create_app`). ``rate_hz``: WebSocket updates per robot
-    and second at most.
+    and second at most. ``refresh_s``: the longest time between two updates of a robot
+    that did not change (its blackboard's ages and staleness move on).
 
     :meth:`start` returns once the server accepts connections; :meth:`stop` ends it and
     its thread (the robots keep running). Use it as a context manager.
@@ -91,6 +92,9 @@ class HttpServer:
         if not (isinstance(rate_hz, (int, float)) and 0 < rate_hz <= 1000):
             raise ConfigError(f"HttpServer: rate_hz must be a number in (0, 1000], got "
                               f"{rate_hz!r}")
+        if not (isinstance(refresh_s, (int, float)) and 0 < refresh_s <= 3600):
+            raise ConfigError(f"HttpServer: refresh_s must be a number of seconds in "
+                              f"(0, 3600], got {refresh_s!r}")
         self.host = host
         self.loopback = is_loopback(host)
         #: Where the token came from: "given", "environment", "generated" or None.
@@ -250,7 +254,8 @@ def hold_hals(low: LowLevelBehaviorManager, names: Iterable[str], *,
 
 def serve(planes: ControlPlane | Mapping[str, ControlPlane], *, host: str = DEFAULT_HOST,
           port: int = 0, token: str | None = None, world: Provider = None,
-          fleet: Provider = None, rate_hz: float = 20.0) -> HttpServer:
+          fleet: Provider = None, rate_hz: float = 20.0, refresh_s: float = 1.0
+          ) -> HttpServer:
     """Start an :class:`HttpServer` for ``planes`` and return it (call ``stop()`` on it).
 
     A fleet process serves all its robots with one server::
@@ -259,6 +264,6 @@ def serve(planes: ControlPlane | Mapping[str, ControlPlane], *, host: str = DEFA
                        world=world.model_dump(mode="json"), fleet=fleet_view)
     """
     server = HttpServer(planes, host=host, port=port, token=token, world=world, fleet=fleet,
-                        rate_hz=rate_hz)
+                        rate_hz=rate_hz, refresh_s=refresh_s)
     server.start()
     return server

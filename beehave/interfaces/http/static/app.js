@@ -12,9 +12,9 @@ const KEYS = {x: "odom/x_m", y: "odom/y_m", yaw: "odom/yaw_rad", battery: "batte
 
 const view = {
   token: null, robots: [], selected: null, world: null, ws: null, retryMs: 500,
-  state: {},        // robot -> {snapshot, blackboard, events[], trail[], seq, dropped}
+  state: {},        // robot -> {snapshot, blackboard, events[], trail[], seq}
   behaviors: {},    // robot -> list from /behaviors
-  renderQueued: false, updates: 0,
+  renderQueued: false, updates: 0, dropped: 0, eventsDropped: 0,
 };
 window.beehave = view;  // for debugging from the console (and tests)
 
@@ -107,8 +107,7 @@ function connect() {
 
 function robotState(name) {
   if (!view.state[name]) {
-    view.state[name] = {snapshot: null, blackboard: {}, events: [], trail: [], seq: 0,
-                        dropped: 0, eventsDropped: 0};
+    view.state[name] = {snapshot: null, blackboard: {}, events: [], trail: [], seq: 0};
   }
   return view.state[name];
 }
@@ -119,8 +118,10 @@ function receive(message) {
   if (message.snapshot) state.snapshot = message.snapshot;
   if (message.blackboard) state.blackboard = message.blackboard;
   if (message.seq) state.seq = message.seq;
-  state.dropped = message.dropped;
-  state.eventsDropped = message.events_dropped;
+  // This connection's counts: sent when they change (a client that keeps up gets the
+  // one message the server built for every client).
+  if (message.dropped !== undefined) view.dropped = message.dropped;
+  if (message.events_dropped !== undefined) view.eventsDropped = message.events_dropped;
   for (const event of message.events || []) state.events.push(event);
   if (state.events.length > EVENTS_SHOWN) state.events.splice(0, state.events.length - EVENTS_SHOWN);
   const pose = poseOf(state.blackboard);
@@ -194,6 +195,18 @@ function drawWorld(world) {
   for (const hole of world.holes || []) {
     const [cx, cy] = hole.center_m, [sx, sy] = hole.size_m;
     layer.append(svg("rect", {class: "hole", x: cx - sx / 2, y: Y(cy + sy / 2), width: sx, height: sy}));
+  }
+  for (const zone of world.zones || []) {
+    // A speed zone: a polygon drawn under everything else, with its limit.
+    const points = zone.points_m || [];
+    if (points.length < 3) continue;
+    const shape = svg("polygon", {class: "zone", "data-zone": zone.name,
+      points: points.map(([x, y]) => `${x},${Y(y)}`).join(" ")});
+    const top = Math.max(...points.map(([, y]) => y));
+    const left = Math.min(...points.map(([x]) => x));
+    const label = svg("text", {class: "zone-label", x: left + 0.05, y: Y(top) + 0.3});
+    label.textContent = zone.max_speed_mps ? `${zone.name} ≤ ${zone.max_speed_mps} m/s` : zone.name;
+    layer.append(shape, label);
   }
   for (const lane of world.lanes || []) {
     layer.append(svg("polyline", {class: "lane", "stroke-width": lane.width_m || 0.05,
@@ -492,7 +505,7 @@ function renderEvents(state) {
     return el("li", {class: warn ? "warn" : "", "data-seq": e.seq, "data-kind": e.kind},
       `${time} ${e.source} ${e.kind} ${e.subject}${e.status ? " " + e.status : ""}${e.error ? " " + e.error : ""}`);
   }));
-  $("#dropped").textContent = state.dropped ? `${state.dropped} updates skipped (slow link)` : "";
+  $("#dropped").textContent = view.dropped ? `${view.dropped} updates skipped (slow link)` : "";
 }
 
 function render() {
