@@ -699,3 +699,36 @@ def test_a_stalled_observer_does_not_expire_the_leases_of_live_agents(
         clock[0] += d.EXPIRY_CHECK_S
         view._expire()
     assert view.get("peer") is None and departed == ["peer: lease expired"]
+
+
+def test_every_sent_message_is_copied_to_the_messages_topic_for_listeners(
+        ros: RosContext) -> None:
+    """The sniffer topic: a listener gets each message as sent (same JSON), and its reader
+    does not make an absent agent's inbox look present."""
+    from std_msgs.msg import String
+
+    from beehave.agents.agent import MESSAGES_QOS, MESSAGES_TOPIC
+    from beehave.errors import AgentUnreachable
+
+    heard: list[Message] = []
+    cond = threading.Condition()
+
+    def on_copy(msg: String) -> None:
+        with cond:
+            heard.append(Message.from_json(msg.data))
+            cond.notify_all()
+
+    listener = ros.create_node("messages_listener")
+    listener.create_subscription(String, MESSAGES_TOPIC, on_copy, MESSAGES_QOS)
+    with Agent("sniffed_a", ros=ros, probe_s=PROBE_S) as a, \
+            Agent("sniffed_b", ros=ros, probe_s=PROBE_S) as b:
+        _wait(lambda: a._copies.get_subscription_count() > 0, "the listener to match")
+        sent = a.send(Message(performative=Performative.REQUEST, sender="sniffed_a",
+                              receivers=["sniffed_b"], conversation_id="c1", content={"n": 1}))
+        got = b.receive(timeout_s=WAIT_S)
+        with cond:
+            assert cond.wait_for(lambda: len(heard) >= 1, WAIT_S)
+        assert heard[0] == sent == got
+        with pytest.raises(AgentUnreachable, match="nobody_here"):
+            a.send(Message(performative=Performative.INFORM, sender="sniffed_a",
+                           receivers=["nobody_here"], conversation_id="c2"), timeout_s=0.3)

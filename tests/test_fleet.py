@@ -287,6 +287,10 @@ def test_the_fleet_web_view_serves_the_live_tables_without_a_robot_in_process() 
                                "stamp": 1.0}))
     watch.on_directory(json.dumps({"agent": "atv2", "state": "alive",
                                    "services": {"transport": {"kind": "kobuki"}}}))
+    watch.on_message(json.dumps({"performative": "propose", "sender": "atv2",
+                                 "receivers": ["press1"], "conversation_id": "press1/7",
+                                 "protocol": "fipa-contract-net", "content": {"cost": 4.2}}))
+    watch.on_message("{not json")  # counted as unreadable, never raised
     watch.on_state(json.dumps({"time_s": 12.0, "robots": {"atv2": {
         "battery_fraction": 0.5, "load": 40.0, "zone": "walkway", "speed_mps": 0.13,
         "x_m": 12.0, "y_m": 8.0, "charging_at": None}}, "machines": {}}))
@@ -296,6 +300,8 @@ def test_the_fleet_web_view_serves_the_live_tables_without_a_robot_in_process() 
         base = server.url.split("#")[0].rstrip("/")
         fleet = httpx.get(f"{base}/api/fleet").json()
         assert fleet["contracts"][0]["awards"] == "atv2" and fleet["agents"][0]["agent"] == "atv2"
+        assert fleet["messages"][0]["performative"] == "propose"
+        assert watch.malformed == {"/beehave/agents/messages": 1}
         errors: list[str] = []
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path="/usr/bin/chromium", headless=True)
@@ -311,6 +317,7 @@ def test_the_fleet_web_view_serves_the_live_tables_without_a_robot_in_process() 
             label = marker.text_content()
             browser.close()
         assert "press1-1" in text and "transport" in text, text
+        assert "propose" in text and "press1/7" in text and '{"cost":4.2}' in text, text
         assert where == ("12.000", "8.000") and label == "atv2 50%", (where, label)
         assert errors == []
     finally:

@@ -86,6 +86,16 @@ log = logging.getLogger(__name__)
 
 INBOX_PREFIX = "/beehave/agents/inbox/"
 
+MESSAGES_TOPIC = "/beehave/agents/messages"
+"""Every agent publishes a copy of each message it sends here (the same JSON as on the
+inboxes), while anyone listens — the role of JADE's Sniffer: ``beehave fleet --http`` lists
+them live. Best effort and volatile: a slow or absent listener never delays a sender, and
+no inbox gains a reader (an inbox's readers are how a sender knows its receiver is there)."""
+
+MESSAGES_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                          reliability=ReliabilityPolicy.BEST_EFFORT,
+                          durability=DurabilityPolicy.VOLATILE)
+
 DIRECTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                            reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -408,7 +418,9 @@ class Agent:
         self._outbox_thread.start()
         self._news = threading.Event()
         self._dir_pub = node.create_publisher(String, DIRECTORY_TOPIC, DIRECTORY_QOS)
-        self._entities: list[tuple[str, Any]] = [("publisher", self._dir_pub)]
+        self._copies = node.create_publisher(String, MESSAGES_TOPIC, MESSAGES_QOS)
+        self._entities: list[tuple[str, Any]] = [("publisher", self._dir_pub),
+                                                 ("publisher", self._copies)]
         self._entities.append(("subscription", node.create_subscription(
             String, DIRECTORY_TOPIC, self._on_directory, DIRECTORY_READER_QOS)))
         self._entities.append(("subscription", node.create_subscription(
@@ -541,6 +553,8 @@ class Agent:
         message = message.model_copy(update={"sender": self.name, "sent_at": time.time()})
         text = String(data=message.to_json())
         limit = self.send_timeout_s if timeout_s is None else timeout_s
+        if self._copies.get_subscription_count() > 0:  # nothing to do while nobody listens
+            self._copies.publish(text)
         pending = {receiver: self._publisher(receiver) for receiver in message.receivers}
         ready = [r for r, p in pending.items() if p.get_subscription_count() > 0]
         for receiver in ready:  # the common case: no waiting at all

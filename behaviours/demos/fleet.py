@@ -28,6 +28,7 @@ import os
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -76,6 +77,8 @@ class Watch:
     orders: dict[str, dict[str, Any]] = field(default_factory=dict)
     violations: list[str] = field(default_factory=list)
     agents: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: The latest agent messages (copies from ``MESSAGES_TOPIC``), newest last.
+    messages: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=100))
     #: Messages that could not be read, by topic (shown in the summary, never silent).
     malformed: dict[str, int] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -119,15 +122,35 @@ class Watch:
         with self.lock:
             self.agents[name] = entry
 
+    def on_message(self, data: str) -> None:
+        """A copy of an agent message (see :data:`beehave.agents.agent.MESSAGES_TOPIC`)."""
+        from beehave.agents.message import Message
+
+        try:
+            message = Message.from_json(data)
+        except ValueError:
+            self._bad("/beehave/agents/messages")
+            return
+        content = json.dumps(message.content, separators=(",", ":"))
+        row = {"sent": time.strftime("%H:%M:%S", time.localtime(message.sent_at)),
+               "performative": message.performative.value, "from": message.sender,
+               "to": ", ".join(message.receivers), "protocol": message.protocol or "",
+               "conversation": message.conversation_id,
+               "content": content if len(content) <= 80 else content[:79] + "…"}
+        with self.lock:
+            self.messages.append(row)
+
 
 def fleet_view(watch: Watch) -> dict[str, list[dict[str, Any]]]:
     """What ``beehave fleet --http`` serves at ``GET /api/fleet`` (the web view draws each
-    section as a live table): the ATVs in the physics, the orders and their contracts, and
-    every agent of the directory with what it offers."""
+    section as a live table): the ATVs in the physics, the orders and their contracts,
+    every agent of the directory with what it offers, and the latest messages between
+    them, newest first."""
     with watch.lock:
         state = dict(watch.state)
         orders = list(watch.orders.values())
         agents = dict(watch.agents)
+        messages = list(watch.messages)[::-1][:50]
     robots = [{"atv": ns, "battery_pct": round(100 * r["battery_fraction"], 1),
                "load": r["load"], "zone": r["zone"], "speed_mps": round(r["speed_mps"], 2),
                "x_m": round(r["x_m"], 2), "y_m": round(r["y_m"], 2),
@@ -143,7 +166,7 @@ def fleet_view(watch: Watch) -> dict[str, list[dict[str, Any]]]:
     machines = [{"machine": n, "level": round(m["level"], 1), "capacity": m["capacity"]}
                 for n, m in sorted(state.get("machines", {}).items())]
     return {"robots": robots, "machines": machines, "contracts": contracts,
-            "agents": directory}
+            "agents": directory, "messages": messages}
 
 
 def _table(watch: Watch, started: float) -> Group:
@@ -192,7 +215,7 @@ def _table(watch: Watch, started: float) -> Group:
 def _watch(ros: Any, watch: Watch) -> None:
     from std_msgs.msg import String
 
-    from beehave.agents.agent import DIRECTORY_READER_QOS
+    from beehave.agents.agent import DIRECTORY_READER_QOS, MESSAGES_QOS, MESSAGES_TOPIC
     from beehave.agents.directory import DIRECTORY_TOPIC
     from hal.factory import STATE_QOS
 
@@ -203,6 +226,8 @@ def _watch(ros: Any, watch: Watch) -> None:
                              ORDERS_QOS)
     node.create_subscription(String, DIRECTORY_TOPIC, lambda m: watch.on_directory(m.data),
                              DIRECTORY_READER_QOS)
+    node.create_subscription(String, MESSAGES_TOPIC, lambda m: watch.on_message(m.data),
+                             MESSAGES_QOS)
 
 
 def checks(report: dict[str, Any], watch: Watch) -> list[tuple[str, bool, str]]:
