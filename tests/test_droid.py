@@ -140,6 +140,16 @@ class Follow(Behavior):
         action.wait()
 
 
+def _held_still(robot: Any) -> Any:
+    """After braking, ``robot`` stays within 0.1 m for a second; its pose then."""
+    time.sleep(0.5)  # braking
+    here = robot.pose()
+    time.sleep(1.0)
+    there = robot.pose()
+    assert math.hypot(there.x_m - here.x_m, there.y_m - here.y_m) < 0.1
+    return there
+
+
 def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_goes_stale(
         ros: RosContext) -> None:
     sim = Simulation(world_from_dict(FOLLOW_WORLD), real_time_factor=1.0)
@@ -195,22 +205,14 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
             fake.append((f.x_m + 0.6, f.y_m))
             wait_until(lambda: action.holding is not None and "safety" in action.holding,
                        3.0, "the follower to stop below the safety distance")
-            time.sleep(0.5)  # braking
-            here = flyer.pose()
-            time.sleep(1.0)
-            there = flyer.pose()
-            assert math.hypot(there.x_m - here.x_m, there.y_m - here.y_m) < 0.1
+            there = _held_still(flyer)
             assert math.hypot(there.x_m - f.x_m, there.y_m - f.y_m) < 0.5
             fake.clear()
             # The leader's state stops: the follower holds where it is.
             leader_fleet.close()
             wait_until(lambda: action.holding is not None and "stale" in action.holding,
                        3.0, "the follower to notice")
-            time.sleep(0.5)  # braking
-            here = flyer.pose()
-            time.sleep(1.0)
-            there = flyer.pose()
-            assert math.hypot(there.x_m - here.x_m, there.y_m - here.y_m) < 0.1
+            _held_still(flyer)
             assert action.status is Status.RUNNING
             hl.switch("idle")
             assert action.status is Status.INTERRUPTED
