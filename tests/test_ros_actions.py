@@ -258,3 +258,45 @@ def test_non_finite_or_negative_timeouts_are_refused_at_once(
             io.send_goal(Fibonacci, "fibonacci", Fibonacci.Goal(), server_timeout_s=bad)
     finally:
         io.destroy_all()
+
+
+def test_an_action_client_made_while_the_executor_spins_is_never_seen_half_built(
+        server: FibonacciServer, caplog: pytest.LogCaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """rclpy 9.1.2's ActionClient adds itself to the node before it makes its lock; an
+    executor thread that looked at the node in between raised AttributeError ('_lock') and
+    lost the client's goal answer (a flaky WaitTimeout in CI). Fault injection: the window
+    is held open for 0.3 s, long enough for the executor to look."""
+    from rclpy.action.client import ActionClient
+
+    from beehave.ros.io import RosIO
+
+    ros = RosContext()
+    node = ros.create_node("half_built", namespace=NS)
+    ros.start()
+    real_get_logger = node.get_logger
+    original_init = ActionClient.__init__
+
+    def slow_init(self: Any, *args: Any, **kwargs: Any) -> None:
+        def slow_logger() -> Any:  # runs between add_waitable and the lock
+            threading.Event().wait(0.3)
+            return real_get_logger()
+
+        monkeypatch.setattr(node, "get_logger", slow_logger)
+        try:
+            original_init(self, *args, **kwargs)
+        finally:
+            monkeypatch.setattr(node, "get_logger", real_get_logger)
+
+    monkeypatch.setattr(ActionClient, "__init__", slow_init)
+    try:
+        with caplog.at_level("ERROR", logger="beehave.ros.context"):
+            io = RosIO(node, owner="test")
+            goal = io.send_goal(Fibonacci, "fibonacci", Fibonacci.Goal(order=3),
+                                server_timeout_s=10.0)
+            result = goal.wait(timeout_s=10.0)
+            io.destroy_all()
+        assert list(result.sequence) == [0, 1, 1, 2, 3]
+        assert "a ROS callback raised" not in caplog.text, caplog.text
+    finally:
+        ros.shutdown()

@@ -26,6 +26,7 @@ Topic names are relative to the robot's namespace (the manager's node).
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import threading
@@ -301,6 +302,35 @@ def watch_subscriptions(node: Any, callback: Callable[[type, str], None]) -> Cal
     return unwatch
 
 
+@functools.cache
+def _whole_action_client() -> type:
+    """``rclpy.action.ActionClient`` whose lock exists before the node can see it.
+
+    rclpy 9.1.2's constructor adds the client to the node (``add_waitable``) and only then
+    makes ``self._lock``: an executor spinning in another thread that counts the node's
+    entities in between raises ``AttributeError: ... '_lock'`` and misses the client's
+    entities, so a goal answer is lost (a 5 s ``WaitTimeout``). Here the lock is made
+    first, and the constructor's own later assignment keeps it (one lock for the client's
+    whole life, never swapped while someone holds it)."""
+    from rclpy.action.client import ActionClient
+
+    class WholeActionClient(ActionClient[Any, Any, Any]):
+        @property
+        def _lock(self) -> threading.Lock:
+            lock: threading.Lock = self.__dict__["_whole_lock"]
+            return lock
+
+        @_lock.setter
+        def _lock(self, value: threading.Lock) -> None:
+            self.__dict__.setdefault("_whole_lock", value)
+
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            self._lock = threading.Lock()
+            super().__init__(*args, **kwargs)
+
+    return WholeActionClient
+
+
 class RosIO:
     """ROS entities owned by one behaviour, action or HAL; :meth:`destroy_all` ends them.
 
@@ -360,9 +390,8 @@ class RosIO:
         make = getattr(self.node, "create_action_client", None)
         if make is not None:  # a stand-in node (a replay's) makes its own, or refuses
             return self._track("action_client", make(action_type, name))
-        from rclpy.action.client import ActionClient
-
-        return self._track("action_client", ActionClient(self.node, action_type, name))
+        return self._track("action_client", _whole_action_client()(self.node, action_type,
+                                                                   name))
 
     def send_goal(self, action_type: type, name: str, goal: Any, *,
                   feedback: Callable[[Any], None] | None = None,
