@@ -157,6 +157,16 @@ def test_the_page_draws_the_world_and_the_robot_where_the_physics_has_it(
     assert abs(x - board["odom/x_m"]["value"]) < 0.3 and abs(y - 2.0) < 0.3
     assert page.locator("#current-behavior").text_content() == "idle"
     assert page.locator('#blackboard tr[data-key="battery/percentage"]').count() == 1
+    # Heading and battery as the robot's blackboard has them (idle: neither moves much).
+    marker = page.locator("#robot-emili1")
+    board = {**robot.api("api/robots/emili1/blackboard", params={"pattern": "odom/*"}),
+             **robot.api("api/robots/emili1/blackboard", params={"pattern": "battery/*"})}
+    yaw = float(marker.get_attribute("data-yaw"))
+    assert abs(yaw - board["odom/yaw_rad"]["value"]) < 0.1, (yaw, board["odom/yaw_rad"])
+    battery = float(marker.get_attribute("data-battery"))
+    assert abs(battery - board["battery/percentage"]["value"]) < 1.0
+    assert marker.locator(".label").text_content() == f"emili1 {battery:.0f}%"
+    assert "selected" in (marker.get_attribute("class") or "")  # the only robot: selected
 
 
 def test_switching_on_the_page_drives_the_robot_and_the_view_follows(
