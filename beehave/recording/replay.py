@@ -616,28 +616,42 @@ class _HighSide:
             if held is not None and time.monotonic() - held[1] <= HOLD_S:
                 self._late.append((sub, held[0]))
 
-    async def advance(self, t_s: float) -> None:
+    async def advance(self, t_s: float, *, until: Callable[[], bool] | None = None) -> None:
         """Move the clock to ``t_s`` (seconds since the recording's start), stopping at every
         lockstep hold on the way until the high level has settled (as a simulator holds
-        for its controllers): a control loop sees every one of its periods."""
+        for its controllers): a control loop sees every one of its periods.
+
+        With ``until``, also stop at every timed wait's deadline on the way, and stop for
+        good (short of ``t_s``) as soon as ``until()`` holds once the high level settled: an
+        input then comes exactly when the replay has done what the recording had done
+        before it, not after a timed step the recording shows after it."""
         target = self.sim0 + t_s
         clock, node = self.clock, self.node
         gone: set[str] = set()
         while not self.abort.is_set():
+            if until is not None:
+                await self.settle()
+                if until():
+                    return
             holds = node.holds()
             early = [h for w, h in holds.items()
                      if w not in gone and h < target - ReplayClock.SLACK_S]
-            if not early:
+            timed = clock.next_deadline() if until is not None else None
+            if timed is not None and not timed < target - ReplayClock.SLACK_S:
+                timed = None
+            if not early and timed is None:
                 break
-            at = min(early)
-            if at > clock.now():
-                clock.set_time(at)
+            at = min([*early, *([timed] if timed is not None else [])])
+            if at > clock.now() or at == timed:
+                clock.set_time(max(at, clock.now()))
                 node.fire_timers(at)
             await self.settle()
-            if node.holds() == holds:
+            if at != timed and node.holds() == holds:
                 # Its holder waits for something else than time (a first message): the
                 # clock goes on without it, as the simulator's lockstep timeout lets it.
                 gone.update(w for w, h in holds.items() if h <= at)
+        if until is not None and until():
+            return
         if target > clock.now():
             clock.set_time(target)
             node.fire_timers(target)
@@ -729,10 +743,15 @@ class _HighSide:
         # then: before the clock moves on when it has. A timed step due between the last
         # input and this one (a chime) then comes after the request, as it did live -- or
         # the recording shows it before the request, and the clock moves first.
-        if item.kind != "request" or self._events < item.logged_before:
+        if item.kind == "request" and self._events < item.logged_before:
+            # Behind the recording (a loaded host, or steps due before the request): move
+            # only as far as needed to catch up, so a step the recording shows after the
+            # request (a chime due at the same instant) still comes after it.
+            await self.advance(item.t_s, until=lambda: self._events >= item.logged_before)
+            await self.catch_up(item.logged_before)
+        elif item.kind != "request":
             await self.advance(item.t_s)
-            await self.catch_up(item.logged_before if item.kind == "request"
-                                else item.before)
+            await self.catch_up(item.before)
         self._deliver_late()
         if item.kind == "request":
             params = item.value if isinstance(item.value, dict) else {}

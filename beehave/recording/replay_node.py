@@ -276,6 +276,11 @@ class ReplayClock(SimClock):
                         self._waiters.remove(entry)
                         heapq.heapify(self._waiters)
 
+    def next_deadline(self) -> float | None:
+        """The earliest deadline of a timed wait on this clock (None when nobody waits)."""
+        with self._lock:
+            return self._waiters[0][0] if self._waiters else None
+
     def parked(self) -> set[int]:
         """The threads waiting here for something that has not happened yet."""
         return set(self._parked)
