@@ -539,6 +539,24 @@ def tls_files(tmp_path_factory: pytest.TempPathFactory) -> TlsFiles:
     return make_tls_files(tmp_path_factory.mktemp("tls"))
 
 
+def _start_unconnected(port: int, broker_options: dict[str, Any],
+                       caplog: pytest.LogCaptureFixture) -> None:
+    """Start an AGV with ``broker_options``; it must not connect within 1.5 s (its
+    warnings land in ``caplog``). Closed again either way."""
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    interface = Vda5050Interface(options(port, broker=broker_options), high=hl,
+                                 executor=FakeDrive)
+    plane = ControlPlane(hl, name="t")
+    try:
+        with caplog.at_level("WARNING", logger="beehave.interfaces.vda5050.agv"):
+            interface.start(control=plane)
+            assert not interface.connected.wait(1.5)
+    finally:
+        interface.close()
+        plane.close()
+        hl.shutdown()
+
+
 def test_username_password_from_the_environment_over_tls(
         tls_files: TlsFiles, monkeypatch: pytest.MonkeyPatch,
         caplog: pytest.LogCaptureFixture) -> None:
@@ -573,19 +591,8 @@ def test_username_password_from_the_environment_over_tls(
         assert not master.invalid, master.invalid
 
         monkeypatch.setenv("BEEHAVE_TEST_VDA_PASSWORD", "wrong")
-        hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
-        intruder = Vda5050Interface(options(secure.port, broker=broker_options), high=hl,
-                                    executor=FakeDrive)
-        plane = ControlPlane(hl, name="t")
-        try:
-            with caplog.at_level("WARNING", logger="beehave.interfaces.vda5050.agv"):
-                intruder.start(control=plane)
-                assert not intruder.connected.wait(1.5)
-            assert f"broker 127.0.0.1:{secure.port} refused the connection" in caplog.text
-        finally:
-            intruder.close()
-            plane.close()
-            hl.shutdown()
+        _start_unconnected(secure.port, broker_options, caplog)
+        assert f"broker 127.0.0.1:{secure.port} refused the connection" in caplog.text
 
 
 def test_tls_without_the_brokers_ca_does_not_connect(
@@ -593,20 +600,9 @@ def test_tls_without_the_brokers_ca_does_not_connect(
     """The broker's certificate is checked: without its CA (the system CAs by default)
     the AGV does not talk to it, and says so."""
     with Broker(tls=tls_files) as secure:
-        hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
-        interface = Vda5050Interface(options(secure.port, broker={
-            "port": secure.port, "tls": True, "reconnect_max_s": 1.0}), high=hl,
-            executor=FakeDrive)
-        plane = ControlPlane(hl, name="t")
-        try:
-            with caplog.at_level("WARNING", logger="beehave.interfaces.vda5050.agv"):
-                interface.start(control=plane)
-                assert not interface.connected.wait(1.5)
-            assert f"no MQTT broker reachable at 127.0.0.1:{secure.port}" in caplog.text
-        finally:
-            interface.close()
-            plane.close()
-            hl.shutdown()
+        _start_unconnected(secure.port, {"port": secure.port, "tls": True,
+                                         "reconnect_max_s": 1.0}, caplog)
+        assert f"no MQTT broker reachable at 127.0.0.1:{secure.port}" in caplog.text
 
 
 def test_no_broker_is_reported_and_retried_until_one_appears(
