@@ -58,7 +58,7 @@ def test_the_demo_serves_both_robots_and_prints_the_url(tmp_path: Path) -> None:
         stderr=subprocess.STDOUT, text=True)
     try:
         assert proc.stdout is not None
-        lines = []
+        lines, match = [], None
         for line in proc.stdout:
             lines.append(line)
             match = re.search(r"web view: (http://127\.0\.0\.1:\d+/)", line)

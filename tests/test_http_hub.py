@@ -126,3 +126,38 @@ def test_a_new_client_gets_each_event_once_backlog_and_updates_overlapping() -> 
     shared = update(2, [{"seq": 7}])
     client.offer(shared)
     assert drain(client) == [shared.text]
+
+
+class _Plane:
+    """What the hub subscribes to, counting subscriptions still open."""
+
+    def __init__(self) -> None:
+        self.board = Blackboard()
+        self.open = 0
+
+    def subscribe(self, _: Any) -> Any:
+        self.open += 1
+
+        def unsubscribe() -> None:
+            self.open -= 1
+        return unsubscribe
+
+
+def test_close_ends_the_pump_and_its_subscriptions_when_the_loop_has_gone() -> None:
+    # A forced exit skips the lifespan's stop: the server's thread then calls close().
+    from beehave.interfaces.http.hub import Hub
+
+    plane = _Plane()
+    hub = Hub({"emili1": plane}, rate_hz=50, refresh_s=0.05)  # type: ignore[dict-item]
+
+    async def started() -> None:
+        hub.start()
+    asyncio.run(started())
+    pump = hub._thread
+    assert pump is not None and pump.is_alive()
+    assert plane.open == 1
+    hub.close()
+    assert not pump.is_alive()
+    assert plane.open == 0
+    assert hub._thread is None
+    hub.close()  # idempotent

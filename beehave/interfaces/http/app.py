@@ -121,10 +121,10 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
 
     @contextlib.asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
-        hub.start()
-        if on_started is not None:
-            on_started()
-        try:
+        try:  # the hub stops even when its start or on_started fails halfway
+            hub.start()
+            if on_started is not None:
+                on_started()
             yield
         finally:
             await hub.stop()

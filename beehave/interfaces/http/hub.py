@@ -290,6 +290,21 @@ class Hub:
 
     async def stop(self) -> None:
         """Unsubscribe and end the pump (in the server's loop)."""
+        thread = self._release()
+        if thread is not None:
+            await asyncio.to_thread(thread.join, 5.0)  # at most a build and a period
+            self._check_ended(thread)
+
+    def close(self) -> None:
+        """:meth:`stop` for any thread, once the server's loop has gone (a forced exit
+        skips the lifespan's shutdown). Idempotent: nothing left to do after a stop."""
+        thread = self._release()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(5.0)
+            self._check_ended(thread)
+
+    def _release(self) -> threading.Thread | None:
+        """Unsubscribe and tell the pump to end; the thread to join (None: none runs)."""
         for fn in self._unsubscribe:
             with contextlib.suppress(Exception):
                 fn()
@@ -298,9 +313,12 @@ class Hub:
         if thread is not None:
             self._stopping = True
             self._kick.set()
-            await asyncio.to_thread(thread.join, 5.0)  # at most a build and a period
-            if thread.is_alive():
-                log.warning("web view: the update pump did not end within 5 s")
+        return thread
+
+    @staticmethod
+    def _check_ended(thread: threading.Thread) -> None:
+        if thread.is_alive():
+            log.warning("web view: the update pump did not end within 5 s")
 
     def add(self, robots: list[str]) -> Client:
         """A new client (in the server loop): it gets the events kept so far, then the

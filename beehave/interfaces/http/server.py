@@ -197,6 +197,9 @@ class HttpServer:
             loop.run_until_complete(loop.shutdown_asyncgens())
             loop.run_until_complete(loop.shutdown_default_executor())  # to_thread's workers
             loop.close()
+            # A forced exit (stop's timeout) or a failed start skips the lifespan's
+            # shutdown: the hub's pump thread and robot subscriptions end here then.
+            self.hub.close()
 
     def stop(self, *, timeout_s: float = 5.0) -> None:
         """Close every connection and end the thread (at most ``timeout_s``). Idempotent."""
