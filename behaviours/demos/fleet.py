@@ -113,23 +113,26 @@ class Watch:
             self.orders[order] = report
 
     def on_directory(self, data: str) -> None:
+        from beehave.agents.directory import DIRECTORY_TOPIC
+
         try:
             entry = json.loads(data)
             name = entry["agent"]
         except (ValueError, KeyError, TypeError):
-            self._bad("/beehave/agents/directory")
+            self._bad(DIRECTORY_TOPIC)
             return
         with self.lock:
             self.agents[name] = entry
 
     def on_message(self, data: str) -> None:
         """A copy of an agent message (see :data:`beehave.agents.agent.MESSAGES_TOPIC`)."""
+        from beehave.agents.agent import MESSAGES_TOPIC
         from beehave.agents.message import Message
 
         try:
             message = Message.from_json(data)
         except ValueError:
-            self._bad("/beehave/agents/messages")
+            self._bad(MESSAGES_TOPIC)
             return
         content = json.dumps(message.content, separators=(",", ":"))
         row = {"sent": time.strftime("%H:%M:%S", time.localtime(message.sent_at)),
