@@ -35,6 +35,17 @@ def free_port() -> int:
         return port
 
 
+def started_vehicle(world: dict[str, Any], namespace: str,
+                    ) -> tuple[Simulation, str, MavlinkEndpoint]:
+    """A real-time simulation of ``world``, started, with ``namespace`` as MAVLink system 1
+    on a free UDP port: the simulation, the URL to connect to and the endpoint."""
+    sim = Simulation(world_from_dict(world), real_time_factor=1.0)
+    port = free_port()
+    endpoint = MavlinkEndpoint(sim, namespace, url=f"udpout:127.0.0.1:{port}", system_id=1)
+    sim.start()
+    return sim, f"udp:127.0.0.1:{port}", endpoint
+
+
 def wait_until(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while not predicate():
@@ -297,11 +308,7 @@ def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosConte
     world = {"name": "pad", "floor": {"size_m": [6, 6]},
              "robots": [{"namespace": "quad", "kind": "quad", "start": {"x_m": 2, "y_m": 2},
                          "battery": {"initial_fraction": 0.3}}]}
-    sim = Simulation(world_from_dict(world), real_time_factor=1.0)
-    port = free_port()
-    url = f"udp:127.0.0.1:{port}"
-    endpoint = MavlinkEndpoint(sim, "quad", url=f"udpout:127.0.0.1:{port}", system_id=1)
-    sim.start()
+    sim, url, endpoint = started_vehicle(world, "quad")
     try:
         link = open_link(url)
         link.wait_heartbeat(timeout_s=5.0)
@@ -370,11 +377,7 @@ def test_a_mission_sent_to_another_agent_is_run_by_its_vehicle(ros: RosContext) 
 
     world = {"name": "send", "floor": {"size_m": [6, 4]},
              "robots": [{"namespace": "rover", "kind": "kobuki", "start": {"x_m": 1, "y_m": 2}}]}
-    sim = Simulation(world_from_dict(world), real_time_factor=1.0)
-    port = free_port()
-    url = f"udp:127.0.0.1:{port}"
-    rover = MavlinkEndpoint(sim, "rover", url=f"udpout:127.0.0.1:{port}", system_id=1)
-    sim.start()
+    sim, url, rover = started_vehicle(world, "rover")
     try:
         with Agent("mission_runner", ros=ros, probe_s=PROBE_S) as taker, \
                 Agent("mission_sender", ros=ros, probe_s=PROBE_S) as giver, \

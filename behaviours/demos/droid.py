@@ -65,6 +65,9 @@ FOLLOW_WORLD = ROOT / "robots" / "worlds" / "follow.yaml"
 TOUR_CONFIG = ROOT / "robots" / "config" / "tour.yaml"
 FOLLOWER_CONFIG = ROOT / "robots" / "config" / "follower.yaml"
 
+#: How often the physics samples the gaps and paths the checks measure.
+SAMPLE_HZ = 20.0
+
 SCENARIOS = ("follow", "handover", "droid")
 """``follow``: rover1 leads a tour, rover2 follows it at 2 m; ``handover``: rover1 meets
 a wall, the quadrotor finishes its mission; ``droid``: both at once (the copter follows the
@@ -175,10 +178,10 @@ def _gap_checks(gaps: list[tuple[float, float]], *, start_s: float, band_end_s: 
     return [
         Check(f"following, {who} never came closer than {safety_m} m (safety)",
               bool(following) and min_gap >= safety_m,
-              f"closest {min_gap:.2f} m over {len(following) / 20:.1f} s"),
+              f"closest {min_gap:.2f} m over {len(following) / SAMPLE_HZ:.1f} s"),
         Check(f"while following, the gap stayed in [{low:.1f}, {high:.1f}] m after settling",
               bool(after) and min(after) >= low and max(after) <= high,
-              f"{min(after):.2f}–{max(after):.2f} m over {len(after) / 20:.1f} s"
+              f"{min(after):.2f}–{max(after):.2f} m over {len(after) / SAMPLE_HZ:.1f} s"
               if after else "never settled"),
     ], min_gap
 
@@ -222,7 +225,7 @@ def run(*, scenario: str = "droid", timeout_s: float = 150.0, picture: Path | No
         if trace.tour_at_s == math.inf and endpoints["rover1"].mode == "AUTO":
             trace.tour_at_s = time_s
 
-    sim.on_step(sample, rate_hz=20.0)
+    sim.on_step(sample, rate_hz=SAMPLE_HZ)
     sim.start()
     procs: list[_Process] = []
     measured: dict[str, Any] = {"scenario": scenario}

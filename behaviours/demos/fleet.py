@@ -77,8 +77,9 @@ class Watch:
     orders: dict[str, dict[str, Any]] = field(default_factory=dict)
     violations: list[str] = field(default_factory=list)
     agents: dict[str, dict[str, Any]] = field(default_factory=dict)
-    #: The latest agent messages (copies from ``MESSAGES_TOPIC``), newest last.
-    messages: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=100))
+    #: The latest agent messages (copies from ``MESSAGES_TOPIC``), newest last: as many as
+    #: the web view lists.
+    messages: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=50))
     #: Messages that could not be read, by topic (shown in the summary, never silent).
     malformed: dict[str, int] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -113,23 +114,26 @@ class Watch:
             self.orders[order] = report
 
     def on_directory(self, data: str) -> None:
+        from beehave.agents.directory import DIRECTORY_TOPIC
+
         try:
             entry = json.loads(data)
             name = entry["agent"]
         except (ValueError, KeyError, TypeError):
-            self._bad("/beehave/agents/directory")
+            self._bad(DIRECTORY_TOPIC)
             return
         with self.lock:
             self.agents[name] = entry
 
     def on_message(self, data: str) -> None:
         """A copy of an agent message (see :data:`beehave.agents.agent.MESSAGES_TOPIC`)."""
+        from beehave.agents.agent import MESSAGES_TOPIC
         from beehave.agents.message import Message
 
         try:
             message = Message.from_json(data)
         except ValueError:
-            self._bad("/beehave/agents/messages")
+            self._bad(MESSAGES_TOPIC)
             return
         content = json.dumps(message.content, separators=(",", ":"))
         row = {"sent": time.strftime("%H:%M:%S", time.localtime(message.sent_at)),
@@ -150,7 +154,7 @@ def fleet_view(watch: Watch) -> dict[str, list[dict[str, Any]]]:
         state = dict(watch.state)
         orders = list(watch.orders.values())
         agents = dict(watch.agents)
-        messages = list(watch.messages)[::-1][:50]
+        messages = list(reversed(watch.messages))
     robots = [{"atv": ns, "battery_pct": round(100 * r["battery_fraction"], 1),
                "load": r["load"], "zone": r["zone"], "speed_mps": round(r["speed_mps"], 2),
                "x_m": round(r["x_m"], 2), "y_m": round(r["y_m"], 2),
