@@ -234,29 +234,27 @@ def quality() -> list[dict[str, Any]]:
     def add(name: str, ratio: float) -> None:
         table.setdefault(name, []).append(ratio)
 
+    def compare(kind: str, bases: list[Point], tasks: list[list[Point]], best: float) -> None:
+        """Sequential and batch insertion bids, and sequential append bids, vs ``best``."""
+        for mode in ("sequential", "batch"):
+            add(f"market_quality_{kind}_{mode}",
+                _market(bases, tasks, batch=mode == "batch", bid=_insert) / best)
+        add(f"market_quality_{kind}_sequential_append",
+            _market(bases, tasks, batch=False, bid=_append) / best)
+
     for seed in range(SEEDS):
         rng = random.Random(seed)
         bases = [_place(rng) for _ in range(10)]
         spots = [_place(rng) for _ in range(20)]
         tasks = [[p] for p in spots]
-        best = _optimum_single(bases, spots)
-        for mode in ("sequential", "batch"):
-            add(f"market_quality_single_{mode}",
-                _market(bases, tasks, batch=mode == "batch", bid=_insert) / best)
-        add("market_quality_single_sequential_append",
-            _market(bases, tasks, batch=False, bid=_append) / best)
+        compare("single", bases, tasks, _optimum_single(bases, spots))
         cap_best = _capacity_optimum(bases, spots, 2)
         for mode in ("sequential", "batch"):
             add(f"market_quality_single_capacity_{mode}",
                 _capacity_market(bases, spots, 2, batch=mode == "batch") / cap_best)
         bases5 = [_place(rng) for _ in range(5)]
         duo = [[_place(rng), _place(rng)] for _ in range(10)]
-        best2 = _optimum_coalition(bases5, duo)
-        for mode in ("sequential", "batch"):
-            add(f"market_quality_coalition_{mode}",
-                _market(bases5, duo, batch=mode == "batch", bid=_insert) / best2)
-        add("market_quality_coalition_sequential_append",
-            _market(bases5, duo, batch=False, bid=_append) / best2)
+        compare("coalition", bases5, duo, _optimum_coalition(bases5, duo))
     rows = []
     for name, ratios in table.items():
         m = median(ratios)

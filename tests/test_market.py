@@ -233,7 +233,6 @@ def test_the_assignment_is_optimal_and_never_gives_one_broker_two_roles() -> Non
         assert len(set(got[1].values())) == len(roles)  # distinct brokers
 
 
-
 def _batch(bids: dict[str, dict[str, float]]) -> dict[str, str]:
     """One batch round of single-role tasks: task → broker awarded."""
     chosen = choose({t: {"p": ["a"]} for t in bids},

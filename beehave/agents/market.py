@@ -684,9 +684,6 @@ class Broker(Responder):
         return self._running() + [jobs[t.request.conversation_id] for t in self.waiting
                                   if t.request.conversation_id in jobs]
 
-    def _bid(self, job: Job) -> float | str:
-        return self._price(job)[0]
-
     def _price(self, job: Job) -> tuple[float | str, int | None]:
         """The bid for ``job`` and, for an inserting broker, its place among the waiting
         roles."""
@@ -750,7 +747,7 @@ class Broker(Responder):
                     job = Job(task, plan, role, conversation_id=cfp.conversation_id,
                               initiator=cfp.sender, done=entry.get("done"),
                               reached=entry.get("reached", ()))
-                    offer = self._bid(job)
+                    offer = self._price(job)[0]
                     row = {"task": task.id, "plan": plan, "role": role}
                     if isinstance(offer, str):
                         refused.append({**row, "reason": offer})

@@ -52,9 +52,8 @@ class TravelBroker(Broker):
         value = self.blackboard.get(self.battery_key)
         return float(value) if isinstance(value, (int, float)) else None
 
-    @staticmethod
-    def stops(job: Job) -> list[Point]:
-        """The points a role drives to, in order."""
+    def stops(self, job: Job) -> list[Point]:
+        """The points a role drives to, in order (a subclass may ask its own state)."""
         params: dict[str, Any] = job.role.params
         at = params.get("at", params.get("meeting_point"))
         if at is not None:

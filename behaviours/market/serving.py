@@ -255,7 +255,7 @@ class ServeBroker(TravelBroker):
             return False, None
         return held_item(self._state.get(), self.manager.node.get_namespace().strip("/"))
 
-    def stops(self, job: Job) -> list[tuple[float, float]]:  # type: ignore[override]
+    def stops(self, job: Job) -> list[tuple[float, float]]:
         # The robot that carries the order's item already skips its pick / take.
         carried = self.hold.get()[1] == job.task.id
         return [xy for op, _, xy in parse_steps(job.role.params)
