@@ -99,7 +99,7 @@ class EmiliLedsHAL(RosHAL):
     name = "emili_leds"
     inputs = [TopicInput(topics.LEDS_STATE, ColorRGBA, lambda m: (m.r, m.g, m.b),
                          key="leds/color", qos=STATE_INPUT_QOS)]
-    outputs = {"leds": TopicOutput(topics.LEDS, ColorRGBA)}
+    outputs = {"leds": TopicOutput(topics.LEDS, ColorRGBA, state=True)}
 
     def set_color(self, r: float, g: float, b: float) -> None:
         """Colour the whole strip; each channel 0–1."""
@@ -119,7 +119,7 @@ class DisplayHAL(RosHAL):
     name = "display"
     inputs = [TopicInput(topics.DISPLAY_STATE, String, lambda m: m.data, key="display/text",
                          qos=STATE_INPUT_QOS)]
-    outputs = {"display": TopicOutput(topics.DISPLAY, String)}
+    outputs = {"display": TopicOutput(topics.DISPLAY, String, state=True)}
 
     def show(self, text: str) -> None:
         """Show ``text`` (``""`` blanks the display)."""

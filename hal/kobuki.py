@@ -95,8 +95,8 @@ class KobukiLedsHAL(RosHAL):
     """The Kobuki's two LEDs: :meth:`set`. Its safe state turns both off."""
 
     name = "kobuki_leds"
-    outputs = {"led1": TopicOutput(topics.KOBUKI_LED1, String),
-               "led2": TopicOutput(topics.KOBUKI_LED2, String)}
+    outputs = {"led1": TopicOutput(topics.KOBUKI_LED1, String, state=True),
+               "led2": TopicOutput(topics.KOBUKI_LED2, String, state=True)}
 
     def set(self, led1: str, led2: str) -> None:
         """Set LED1 and LED2, each to ``off``, ``green``, ``orange`` or ``red``. Both names

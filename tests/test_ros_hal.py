@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -150,3 +151,46 @@ def test_service_calls_reuse_one_client_and_fail_clearly(
     assert answers == [True] * 20 and len(served) == 20
     assert clients == 1  # one per service, not one per call
     assert "'/halbot/nobody' is not available within 0.3 s" in missing
+
+
+class Indicator(RosHAL):
+    """A state output (the strip's colour) beside an output that acts (a beep)."""
+
+    name = "indicator"
+    outputs = {"strip": TopicOutput("strip", ColorRGBA, state=True),
+               "beep": TopicOutput("beep", Float64)}
+
+
+def test_a_state_output_reaches_a_subscriber_that_matches_later() -> None:
+    """An LED colour set before DDS matched the robot's node must not be lost: logics
+    publish state on change only, so the strip would stay wrong until the next change.
+    The last state is re-sent on a new match, newest last; an output that acts is not."""
+    ros = RosContext()
+    node = ros.create_node("beehave_low_level", namespace="latebot")
+    ros.start()
+    ll = LowLevelBehaviorManager(stop_timeout_s=1.0)
+    ll.hals.register(Indicator)
+    ll.hals.node = node
+    probe = Probe()
+    try:
+        with ll:
+            hal = ll.call(ll.hals.load("indicator"), timeout_s=5)
+            assert isinstance(hal, Indicator)
+            hal.publish("strip", ColorRGBA(r=1.0, a=1.0))
+            hal.publish("strip", ColorRGBA(b=1.0, a=1.0))  # the state: blue
+            hal.publish("beep", Float64(data=1.0))
+            assert hal._publishers["strip"].get_subscription_count() == 0  # nobody yet
+            strip = probe.record(ColorRGBA, "/latebot/strip")
+            beeps = probe.record(Float64, "/latebot/beep")
+            assert probe.wait(lambda: bool(strip))
+            assert [(m.r, m.b) for m in strip] == [(0.0, 1.0)]  # only the last state
+            second = probe.record(ColorRGBA, "/latebot/strip")  # another late joiner
+            assert probe.wait(lambda: bool(second))
+            assert second[-1].b == 1.0
+            hal.publish("strip", ColorRGBA(g=1.0, a=1.0))
+            assert probe.wait(lambda: strip[-1].g == 1.0 and second[-1].g == 1.0)
+            time.sleep(0.3)
+            assert beeps == []  # a command that acts is never repeated
+    finally:
+        probe.close()
+        ros.shutdown()

@@ -22,11 +22,14 @@ skipped; the entries keep their last values and become stale after ``max_age_s``
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.qos import QoSProfile
 
 from beehave.errors import HALError
@@ -57,9 +60,19 @@ class TopicInput:
 
 @dataclass(frozen=True)
 class TopicOutput:
+    """An output on ``topic`` (relative to the robot namespace) of ``msg_type``.
+
+    ``state=True``: each message is the device's whole state (an LED colour, a display
+    text), so its last one is sent again whenever a subscriber matches later. A command
+    published before DDS discovery matched the robot's node is otherwise lost, and a
+    logic that publishes only on change would leave the device wrong until the next
+    change. Never for commands that act (velocities, sounds): repeating those moves the
+    robot or plays the sound again."""
+
     topic: str
     msg_type: type
     qos: QoSProfile | int = 10
+    state: bool = False
 
 
 class RosHAL(HAL):
@@ -83,8 +96,12 @@ class RosHAL(HAL):
             sub = self.node.create_subscription(spec.msg_type, spec.topic,
                                                 self._input_callback(spec), spec.qos)
             self._entities.append(("subscription", sub))
+        self._last: dict[str, Any] = {}  # the state outputs' last messages
+        self._publish_lock = threading.Lock()  # orders a publish and a re-send
         for name, out in self.outputs.items():
-            pub = self.node.create_publisher(out.msg_type, out.topic, out.qos)
+            events = PublisherEventCallbacks(matched=self._resend(name)) if out.state else None
+            pub = self.node.create_publisher(out.msg_type, out.topic, out.qos,
+                                             event_callbacks=events)
             self._publishers[name] = pub
             self._entities.append(("publisher", pub))
 
@@ -116,6 +133,18 @@ class RosHAL(HAL):
 
         return on_message
 
+    def _resend(self, output: str) -> Callable[[Any], None]:
+        def on_matched(info: Any) -> None:  # in the ROS executor thread
+            if info.current_count_change <= 0:
+                return
+            with self._publish_lock:
+                msg = self._last.get(output)
+                pub = self._publishers.get(output)
+                if msg is not None and pub is not None and not self._closed:
+                    pub.publish(msg)
+
+        return on_matched
+
     def _report(self, exc: BaseException, topic: str) -> None:
         # Events are delivered in the loop's thread, like every other low-level event.
         self._loop.call_soon_threadsafe(self.events.emit, Event(
@@ -128,7 +157,12 @@ class RosHAL(HAL):
         except (KeyError, AttributeError):
             raise HALError(f"HAL {self.name!r} has no output {output!r}; declared: "
                            f"{', '.join(sorted(self.outputs)) or 'none'}") from None
-        pub.publish(msg)
+        if not self.outputs[output].state:
+            pub.publish(msg)
+            return
+        with self._publish_lock:  # a re-send never overtakes a newer state
+            self._last[output] = msg
+            pub.publish(msg)
 
     async def call(self, srv_type: type, service: str, request: Any, *,
                    timeout_s: float = 5.0) -> Any:
@@ -181,7 +215,8 @@ class RosHAL(HAL):
             raise
 
     def on_unload(self) -> None:
-        self._closed = True
+        with getattr(self, "_publish_lock", contextlib.nullcontext()):
+            self._closed = True  # no re-send starts once the publishers may be destroyed
         for kind, entity in reversed(getattr(self, "_entities", [])):
             if kind == "publisher":
                 flush(entity)  # what safe_state() just sent must reach the robot
