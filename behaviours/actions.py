@@ -301,7 +301,7 @@ class _Drive(Action):
     def _open(self) -> None:
         node = self.manager.node
         self._limit = SpeedLimit.of(node) if node is not None else None
-        self._cmd = self.ros.publisher(Twist, topics.CMD_VEL)
+        self._cmd = self.ros.publisher(Twist, topics.CMD_VEL, shared=True)
         if self.uses_odometry:
             self.odom = self.ros.latest(Odometry, topics.ODOM)
         clock = self.manager.clock
@@ -655,7 +655,7 @@ class Lift(Action):
         self._state: Any = None
 
     def run(self) -> float:
-        self._cmd = self.ros.publisher(Float64, topics.LIFT_COMMAND)
+        self._cmd = self.ros.publisher(Float64, topics.LIFT_COMMAND, shared=True)
         self._state = self.ros.latest(Float64, topics.LIFT_STATE)
         first_message(self._state)
         if not wait_subscribed(self._cmd, topics.LIFT_COMMAND,
@@ -688,7 +688,7 @@ class PlaySound(Action):
         self.name = f"PlaySound:{name}"
 
     def run(self) -> int:
-        pub = self.ros.publisher(String, topics.SOUND)
+        pub = self.ros.publisher(String, topics.SOUND, shared=True)
         if not wait_subscribed(pub, topics.SOUND, interrupted=lambda: self.interrupted):
             return 0
         played = 0

@@ -31,6 +31,7 @@ import logging
 import math
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
@@ -77,6 +78,62 @@ def check_duration(owner: str, label: str, value: object, *, optional: bool = Fa
             and math.isfinite(value) and value >= 0):
         raise ConfigError(f"{owner}: {label} must be a finite number of seconds >= 0"
                           f"{' or None' if optional else ''}, got {value!r}")
+
+
+_node_publishers: weakref.WeakKeyDictionary[Node, dict[tuple[Any, ...], Any]] = \
+    weakref.WeakKeyDictionary()
+_node_publishers_lock = threading.Lock()
+
+
+def _qos_key(qos: QoSProfile | int) -> tuple[Any, ...]:
+    if isinstance(qos, int):
+        qos = QoSProfile(depth=qos)
+    return (qos.history, qos.depth, qos.reliability, qos.durability, qos.liveliness,
+            qos.deadline.nanoseconds, qos.lifespan.nanoseconds)
+
+
+def node_publisher(node: Node, msg_type: type, topic: str,
+                   qos: QoSProfile | int = 10) -> Any:
+    """The publisher of ``msg_type`` on ``topic`` that ``node`` keeps for its whole life,
+    made on first use (``destroy_node`` destroys it with the node's other entities)."""
+    key = (msg_type, node.resolve_topic_name(topic), _qos_key(qos))
+    with _node_publishers_lock:
+        publishers = _node_publishers.setdefault(node, {})
+        publisher = publishers.get(key)
+        if publisher is None:
+            publisher = publishers[key] = node.create_publisher(msg_type, topic, qos)
+        return publisher
+
+
+class SharedPublisher:
+    """One owner's use of a publisher its node keeps (:meth:`RosIO.publisher` with
+    ``shared=True``): :meth:`publish` works until the owner ends, then raises — as a
+    destroyed publisher would, so an action that went STUCK cannot command the robot —
+    while the publisher itself stays matched for the next owner."""
+
+    def __init__(self, publisher: Any, owner: str) -> None:
+        self._publisher, self._owner = publisher, owner
+        self._lock = threading.Lock()
+        self._closed = False
+
+    @property
+    def topic_name(self) -> str:
+        return str(self._publisher.topic_name)
+
+    def publish(self, msg: Any) -> None:
+        with self._lock:  # a publish never follows close()
+            if self._closed:
+                raise BeehaveError(f"{self._owner}: has ended; cannot publish on "
+                                   f"{self.topic_name}")
+            self._publisher.publish(msg)
+
+    def get_subscription_count(self) -> int:
+        return int(self._publisher.get_subscription_count())
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+        flush(self._publisher)
 
 
 class WaitTimeout(BeehaveError, TimeoutError):
@@ -362,8 +419,17 @@ class RosIO:
             self._entities.append((kind, entity))
         return entity
 
-    def publisher(self, msg_type: type, topic: str, *, qos: QoSProfile | int = 10) -> Any:
-        return self._track("publisher", self.node.create_publisher(msg_type, topic, qos))
+    def publisher(self, msg_type: type, topic: str, *, qos: QoSProfile | int = 10,
+                  shared: bool = False) -> Any:
+        """A publisher destroyed when the owner ends. ``shared=True``: a
+        :class:`SharedPublisher` on the one publisher the node keeps for ``topic``, so
+        the robot hears the first message at once — a new publisher is new to DDS, and
+        what it sends before discovery matched it is lost. For the topics every action of
+        a kind commands (``cmd_vel``, the lift)."""
+        if not shared:
+            return self._track("publisher", self.node.create_publisher(msg_type, topic, qos))
+        return self._track("shared_publisher", SharedPublisher(
+            node_publisher(self.node, msg_type, topic, qos), self.owner))
 
     def subscription(self, msg_type: type, topic: str, callback: Callable[[Any], None], *,
                      qos: QoSProfile | int = 10) -> Any:
@@ -563,6 +629,8 @@ class RosIO:
             entity.cancel(timeout_s=0.0)
         elif kind == "action_client":
             self._destroy_action_client(entity)
+        elif kind == "shared_publisher":
+            entity.close()
         else:
             if kind == "publisher":
                 flush(entity)
