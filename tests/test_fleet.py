@@ -78,6 +78,39 @@ class Fleet:
         self.procs[name].send_signal(signal.SIGKILL)
         self.procs[name].wait(10)
 
+    def both_would_bid(self, atvs: tuple[str, ...], timeout_s: float = 60.0) -> None:
+        """Call for proposals from ``atvs`` (as a machine would, then reject them all)
+        until every one proposes: an ATV without odometry or a battery reading yet
+        refuses, and with a single bidder there is nobody to re-award an order to."""
+        from beehave.agents import Agent, Performative
+        from beehave.agents.protocols import CONTRACT_NET
+        from beehave.errors import NoReply
+
+        deadline = time.monotonic() + timeout_s
+        answers: dict[str, Any] = {}
+        with Agent("fleet_test_probe", ros=self.ros) as probe:
+            while time.monotonic() < deadline:
+                with probe.conversation(protocol=CONTRACT_NET) as conv:
+                    conv.send(Performative.CFP, atvs, {"order": "probe", "machine": "lathe1",
+                                                       "depot": "depot"}, reply_by_s=10)
+                    answers = {}
+                    while len(answers) < len(atvs):
+                        try:
+                            reply = conv.receive(timeout_s=10)
+                        except NoReply:
+                            break  # ask again
+                        answers[reply.sender] = reply
+                    proposed = [n for n, m in answers.items()
+                                if m.performative is Performative.PROPOSE]
+                    if proposed:
+                        conv.send(Performative.REJECT_PROPOSAL, proposed, {"reason": "probe"})
+                    if len(proposed) == len(atvs):
+                        return
+                time.sleep(0.5)
+        seen = {n: (m.performative.value, m.content) for n, m in answers.items()}
+        raise AssertionError(f"not every ATV of {atvs} bids within {timeout_s} s: {seen}; "
+                             f"logs:\n{self.logs()}")
+
     def wait(self, predicate: Callable[[], Any], what: str, timeout_s: float) -> Any:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
@@ -123,17 +156,18 @@ def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_serve
     # Twice real time, not --fast: at full speed a loaded ATV can reach the machine before
     # a busy test host gets to kill it, and there would be no mid-delivery left to test.
     fleet.start("sim", "-m", "beehave.cli", "sim", world, "--robots", "2",
-                "--real-time-factor", "2")
+                "--real-time-factor", "4")
     fleet.atv("atv1", world)
     fleet.atv("atv2", world)
     # Both must be able to bid on the first order (an ATV without odometry yet refuses):
     # else there is nobody to re-award it to, and the machine rightly orders anew instead.
     fleet.wait(lambda: all("transport" in fleet.watch.agents.get(n, {}).get("services", {})
                            for n in ("atv1", "atv2")), "both ATVs offering transport", 60)
-    time.sleep(2.0)  # their odometry reaches their blackboards
-    # lathe1 starts at 60 %: below 0.9 it orders at once.
+    fleet.both_would_bid(("atv1", "atv2"))
+    # lathe1 starts at 60 %: below 0.9 it orders as soon as it knows both ATVs. Bids have
+    # 5 s, not 1: a loaded test host can delay an ATV's answer past a second.
     fleet.start("lathe1", "-m", "behaviours.fleet.machine", "lathe1", "--world", world,
-                "--below", "0.9")
+                "--below", "0.9", "--reply-by-s", "5", "--bidders", "2")
     first = fleet.wait(lambda: next((o for o in fleet.watch.orders.values()
                                      if o["state"] == "awarded"), None),
                        "an award", 90)

@@ -26,6 +26,7 @@ from beehave.config import RobotConfig, load_config, parse_config  # noqa: E402
 from beehave.errors import RecordingError  # noqa: E402
 from beehave.recording import Recording, read_recording  # noqa: E402
 from beehave.recording.replay import HIGH_SWITCH, replay  # noqa: E402
+from beehave.testing import beehave_threads, wait_until  # noqa: E402
 from behaviours.demos.warehouse import CONFIG_DIR, run_sim_demo  # noqa: E402
 from behaviours.emili import Commanded  # noqa: E402
 from behaviours.logics import LIGHT_BLUE  # noqa: E402
@@ -36,17 +37,31 @@ DEMO_SWITCHES = ["idle", "tour", "commanded", "maintenance"]
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest
          ) -> Iterator[Path]:
-    """One recorded demo run (about 20 s) shared by the tests of this file."""
+    """One recorded demo run (about 20 s) shared by the tests of this file. It is also the
+    test of the demo itself, run as ``beehave demo --fast`` does (as fast as possible, as
+    the README advertises): every goal is checked in the physics, the picture is drawn,
+    and no thread is left. Lockstep keeps fast mode correct: the controllers hold the
+    physics at each of their steps, so a reaction time measured in sim time does not grow
+    with the speed-up."""
     folder = tmp_path_factory.mktemp("demo")
     path = folder / "demo.mcap"
     out = io.StringIO()
+    before = set(beehave_threads())
     capture = request.config.pluginmanager.getplugin("capturemanager")
     with capture.global_and_fixture_disabled():  # rclpy's executor wants the real stdout
         problems = run_sim_demo(Console(file=out, width=120), real_time_factor=None,
                                 out_dir=folder, live_display=False, record=path)
     assert problems == [], out.getvalue()
     assert f"into {path}" in out.getvalue()
+    picture = folder / "demo.png"
+    assert picture.exists() and picture.stat().st_size > 5000
+    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before], 5)
     yield path
+
+
+def test_the_fast_demo_reaches_every_goal_in_the_physics(demo: Path) -> None:
+    """The checks are the fixture's (see :func:`demo`); here the recording is complete."""
+    assert demo.stat().st_size > 0
 
 
 def _emili(commanded: str | None = None) -> RobotConfig:

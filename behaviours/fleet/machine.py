@@ -1,6 +1,7 @@
 """A machine agent: watches its material level and orders replenishment by contract net.
 
     python -m behaviours.fleet.machine NAME [--world factory] [--below 0.5]
+        [--reply-by-s 1] [--bidders 1]
 
 Its level comes from the simulation (``/factory/state``). When it falls below ``--below``
 of the capacity and no order of its own is open, it announces a transport order to the
@@ -16,6 +17,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
+import time
 from typing import Any
 
 from std_msgs.msg import String
@@ -38,7 +41,8 @@ class Replenish(AgentBehavior):
 
     def __init__(self, machine: str, *, world: str = "factory", below: float = 0.5,
                  depot: str | None = None, reply_by_s: float = 1.0,
-                 done_timeout_s: float = 240.0, retry_s: float = 3.0) -> None:
+                 done_timeout_s: float = 240.0, retry_s: float = 3.0,
+                 bidders: int = 1, bidders_wait_s: float = 10.0) -> None:
         places = site(world)
         if machine not in places.machines:
             raise BeehaveError(f"no machine {machine!r} in world {world!r}; it has "
@@ -47,6 +51,7 @@ class Replenish(AgentBehavior):
         self.depot = depot or min(places.depots)
         self.reply_by_s, self.done_timeout_s, self.retry_s = (reply_by_s, done_timeout_s,
                                                               retry_s)
+        self.bidders, self.bidders_wait_s = bidders, bidders_wait_s
         self.orders = 0
 
     def _level(self, latest: Any) -> tuple[float, float] | None:
@@ -60,6 +65,23 @@ class Replenish(AgentBehavior):
             log.warning("%s: unreadable %s: %s", self.machine, FACTORY_STATE, exc)
             return None
 
+    def _await_bidders(self) -> bool:
+        """Wait, at most ``bidders_wait_s``, until the directory knows ``bidders`` agents
+        offering transport: a machine that has just joined learns of the fleet one
+        announcement at a time, and a call sent meanwhile reaches only part of it. Then
+        it orders with whoever it knows (one ATV may be gone for good). False when
+        interrupted. Wall time: discovery runs in wall time."""
+        deadline = time.monotonic() + self.bidders_wait_s
+        while len(self.agent.directory.search("transport")) < self.bidders:
+            if time.monotonic() >= deadline:
+                known = [a.name for a in self.agent.directory.search("transport")]
+                log.warning("%s: ordering with %d of the %d bidders expected: %s",
+                            self.machine, len(known), self.bidders, known)
+                return True
+            if not self.sleep(0.1):
+                return False
+        return True
+
     def run(self) -> None:
         latest = self.ros.latest(String, FACTORY_STATE, qos=STATE_QOS)
         controller = MissionController(self.ros.publisher(String, ORDERS_TOPIC,
@@ -68,6 +90,8 @@ class Replenish(AgentBehavior):
             level = self._level(latest)
             if level is None or level[0] >= self.below * level[1]:
                 continue
+            if not self._await_bidders():
+                return
             self.orders += 1
             order = f"{self.machine}-{self.orders}"
             mission = controller.new(order, self.machine, self.depot)
@@ -98,6 +122,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--below", type=float, default=0.5,
                         help="order when the level falls below this fraction of capacity")
     parser.add_argument("--lease-s", type=float, default=2.0, help="its directory lease")
+    parser.add_argument("--reply-by-s", type=float, default=1.0,
+                        help="how long it waits for the ATVs' bids (seconds)")
+    parser.add_argument("--bidders", type=int, default=1,
+                        help="how many ATVs it waits (10 s at most) to know of before it "
+                             "orders")
     args = parser.parse_args(argv)
     machines = site(args.world).machines
     if args.name not in machines:
@@ -105,8 +134,13 @@ def main(argv: list[str] | None = None) -> int:
                      f"{sorted(machines)}")
     if not 0 < args.below < 1:
         parser.error(f"--below must be a fraction in (0, 1), got {args.below}")
+    if not 0 < args.reply_by_s < math.inf:
+        parser.error(f"--reply-by-s must be a number of seconds > 0, got {args.reply_by_s}")
+    if args.bidders < 1:
+        parser.error(f"--bidders must be at least 1, got {args.bidders}")
     return serve(args.name, Replenish, {"machine": args.name, "world": args.world,
-                                        "below": args.below}, lease_s=args.lease_s)
+                                        "below": args.below, "reply_by_s": args.reply_by_s,
+                                        "bidders": args.bidders}, lease_s=args.lease_s)
 
 
 if __name__ == "__main__":
