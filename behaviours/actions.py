@@ -123,23 +123,6 @@ def first_message(latest: Latest[Any], *, timeout_s: float = 10.0) -> Any:
                 raise
 
 
-def wait_subscribed(publisher: Any, topic: str, *, interrupted: Callable[[], bool],
-                    timeout_s: float = 10.0) -> bool:
-    """Wait until a publisher just made has a subscriber: the robot does not hear a
-    one-off command (a lift height, a sound) sent before DDS discovery matched it. Wall
-    time, as discovery runs in wall time. False when interrupted first; raises
-    :class:`~beehave.ros.io.WaitTimeout` naming ``topic`` when nothing subscribes."""
-    deadline = time.monotonic() + timeout_s
-    while publisher.get_subscription_count() < 1:
-        if interrupted():
-            return False
-        if time.monotonic() >= deadline:
-            raise WaitTimeout(f"nothing subscribes to {topic!r} (waited {timeout_s} s): "
-                              "is the robot's node running in this ROS domain?")
-        time.sleep(0.005)
-    return True
-
-
 class _LockstepLine:
     """One node's ``/lockstep`` publisher, shared by all the driving actions of that node.
 
@@ -658,9 +641,6 @@ class Lift(Action):
         self._cmd = self.ros.publisher(Float64, topics.LIFT_COMMAND, shared=True)
         self._state = self.ros.latest(Float64, topics.LIFT_STATE)
         first_message(self._state)
-        if not wait_subscribed(self._cmd, topics.LIFT_COMMAND,
-                               interrupted=lambda: self.interrupted):
-            return float(self._state.get().data)
         self._cmd.publish(Float64(data=float(self.height_m)))
         try:
             reached = self._state.wait_for(
@@ -689,8 +669,6 @@ class PlaySound(Action):
 
     def run(self) -> int:
         pub = self.ros.publisher(String, topics.SOUND, shared=True)
-        if not wait_subscribed(pub, topics.SOUND, interrupted=lambda: self.interrupted):
-            return 0
         played = 0
         for i in range(self.times):
             if i and not self.sleep(self.interval_s):

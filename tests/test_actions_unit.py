@@ -85,29 +85,3 @@ def test_a_failing_stop_after_success_fails_the_drive() -> None:
     assert action.status is Status.FAILED
     assert "publisher destroyed" in str(action.error)
 
-
-class _LatePublisher:
-    """A publisher whose subscriber appears after ``late`` polls (fault injection: DDS
-    discovery is slow)."""
-
-    def __init__(self, late: int | None) -> None:
-        self.late, self.polls = late, 0
-
-    def get_subscription_count(self) -> int:
-        self.polls += 1
-        return int(self.late is not None and self.polls > self.late)
-
-
-def test_a_one_off_command_waits_until_the_robot_subscribes() -> None:
-    """Lift and PlaySound send one message on a new publisher; sent before discovery
-    matched the robot it is lost, so they wait for a subscriber, and say when none comes."""
-    from beehave.ros.io import WaitTimeout
-    from behaviours.actions import wait_subscribed
-
-    late = _LatePublisher(late=5)
-    assert wait_subscribed(late, "lift/command", interrupted=lambda: False) is True
-    assert late.polls == 6
-    assert wait_subscribed(_LatePublisher(None), "sound", interrupted=lambda: True) is False
-    with pytest.raises(WaitTimeout, match=r"nothing subscribes to 'sound' \(waited 0.05 s\)"):
-        wait_subscribed(_LatePublisher(None), "sound", interrupted=lambda: False,
-                        timeout_s=0.05)

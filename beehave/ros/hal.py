@@ -29,7 +29,6 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.qos import QoSProfile
 
 from beehave.errors import HALError
@@ -38,6 +37,10 @@ from beehave.hal import HAL, check_duration_s
 from beehave.ros.io import flush
 
 log = logging.getLogger(__name__)
+
+STATE_RESEND_S = 0.2
+"""How often (wall seconds) a HAL with state outputs looks for subscribers that matched
+since its last look, to send them the last state."""
 
 
 @dataclass(frozen=True)
@@ -63,7 +66,8 @@ class TopicOutput:
     """An output on ``topic`` (relative to the robot namespace) of ``msg_type``.
 
     ``state=True``: each message is the device's whole state (an LED colour, a display
-    text), so its last one is sent again whenever a subscriber matches later. A command
+    text), so its last one is sent again to a subscriber that matches later (within
+    :data:`STATE_RESEND_S`). A command
     published before DDS discovery matched the robot's node is otherwise lost, and a
     logic that publishes only on change would leave the device wrong until the next
     change. Never for commands that act (velocities, sounds): repeating those moves the
@@ -97,13 +101,17 @@ class RosHAL(HAL):
                                                 self._input_callback(spec), spec.qos)
             self._entities.append(("subscription", sub))
         self._last: dict[str, Any] = {}  # the state outputs' last messages
+        self._matched: dict[str, int] = {}  # their subscriber counts at the last look
         self._publish_lock = threading.Lock()  # orders a publish and a re-send
         for name, out in self.outputs.items():
-            events = PublisherEventCallbacks(matched=self._resend(name)) if out.state else None
-            pub = self.node.create_publisher(out.msg_type, out.topic, out.qos,
-                                             event_callbacks=events)
+            pub = self.node.create_publisher(out.msg_type, out.topic, out.qos)
             self._publishers[name] = pub
             self._entities.append(("publisher", pub))
+        if any(out.state for out in self.outputs.values()):
+            # Polled, not rclpy's "matched" event: a publisher with event callbacks that is
+            # destroyed under the EventsExecutor can crash the process (ros2/rclpy#1644).
+            self._entities.append(("timer", self.node.create_timer(
+                STATE_RESEND_S, self._resend_to_new_subscribers)))
 
     def _input_callback(self, spec: TopicInput) -> Callable[[Any], None]:
         declared: set[str] = set()
@@ -133,17 +141,18 @@ class RosHAL(HAL):
 
         return on_message
 
-    def _resend(self, output: str) -> Callable[[Any], None]:
-        def on_matched(info: Any) -> None:  # in the ROS executor thread
-            if info.current_count_change <= 0:
+    def _resend_to_new_subscribers(self) -> None:  # in the ROS executor thread
+        with self._publish_lock:
+            if self._closed:
                 return
-            with self._publish_lock:
-                msg = self._last.get(output)
-                pub = self._publishers.get(output)
-                if msg is not None and pub is not None and not self._closed:
-                    pub.publish(msg)
-
-        return on_matched
+            for name, out in self.outputs.items():
+                pub = self._publishers.get(name)
+                if not out.state or pub is None:
+                    continue
+                count = pub.get_subscription_count()
+                if count > self._matched.get(name, 0) and name in self._last:
+                    pub.publish(self._last[name])
+                self._matched[name] = count
 
     def _report(self, exc: BaseException, topic: str) -> None:
         # Events are delivered in the loop's thread, like every other low-level event.
@@ -162,6 +171,7 @@ class RosHAL(HAL):
             return
         with self._publish_lock:  # a re-send never overtakes a newer state
             self._last[output] = msg
+            self._matched[output] = pub.get_subscription_count()  # those have it now
             pub.publish(msg)
 
     async def call(self, srv_type: type, service: str, request: Any, *,

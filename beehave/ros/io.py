@@ -131,9 +131,10 @@ class SharedPublisher:
         return int(self._publisher.get_subscription_count())
 
     def close(self) -> None:
+        """No flush, unlike a publisher about to be destroyed: this one lives on and
+        still delivers what it was given."""
         with self._lock:
             self._closed = True
-        flush(self._publisher)
 
 
 class WaitTimeout(BeehaveError, TimeoutError):
