@@ -44,7 +44,7 @@ from beehave.planning import (
     SeenObstacles,
     path_length_m,
 )
-from beehave.ros.io import Latest, WaitTimeout
+from beehave.ros.io import Latest, WaitTimeout, node_publisher
 from robots import topics
 
 log = logging.getLogger(__name__)
@@ -141,7 +141,7 @@ class _LockstepLine:
     _lines_lock = threading.Lock()
 
     def __init__(self, node: Any) -> None:
-        self.publisher = node.create_publisher(String, topics.LOCKSTEP, 10)
+        self.publisher = node_publisher(node, String, topics.LOCKSTEP)  # the node's own
         self.made_s = time.monotonic()
 
     @classmethod

@@ -84,4 +84,3 @@ def test_a_failing_stop_after_success_fails_the_drive() -> None:
     action: Any = _drive_with_a_dead_publisher(3)
     assert action.status is Status.FAILED
     assert "publisher destroyed" in str(action.error)
-

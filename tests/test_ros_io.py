@@ -47,11 +47,10 @@ def test_a_shared_publisher_outlives_its_owner_and_refuses_it_afterwards() -> No
         assert seen[-1].linear.x == 0.5
         # Another QoS or type is another publisher; a private one is the owner's own.
         other = second.publisher(Twist, "cmd_vel", qos=1, shared=True)
-        private = second.publisher(Twist, "cmd_vel")
+        second.publisher(Twist, "cmd_vel")
         assert other._publisher is not again._publisher  # type: ignore[attr-defined]
         second.destroy_all()
         assert probe.wait(lambda: probe.publishers(f"/{NS}/cmd_vel") == 2)  # 2 kept by node
-        del private
     finally:
         probe.close()
         ros.shutdown()
