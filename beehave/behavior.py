@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import Counter
 from typing import TYPE_CHECKING, Any, ClassVar, Self, TypeVar
@@ -140,6 +141,7 @@ class Behavior(Runnable):
             count = self._names[child.name]
         if count > 1:
             child._suffix = f"#{count}"
+        manager.substitutes.apply(child, path=child.path)
         return manager
 
     def _adopt(self, child: Runnable) -> None:
@@ -257,5 +259,5 @@ class Idle(Behavior):
     else does, and after a top-level behaviour ended."""
 
     def run(self) -> None:
-        while self.sleep(3600.0):
-            pass
+        # No deadline: nothing for a virtual clock to jump to while the robot idles.
+        self.sleep(math.inf)

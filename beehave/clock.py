@@ -16,12 +16,20 @@ so that it can ask the simulator to hold there until it has answered (see
 
 from __future__ import annotations
 
+import asyncio
 import heapq
 import itertools
+import math
+import selectors
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import AbstractContextManager, contextmanager, nullcontext
+from typing import Any
+
+from beehave.errors import ClockNotSettled
+
+Job = Callable[[], None]
 
 
 class WallClock:
@@ -35,6 +43,22 @@ class WallClock:
         """With ``cond`` held: wait until ``predicate()`` or ``timeout_s`` passed (whoever
         changes what the predicate reads notifies ``cond``). Returns ``predicate()``."""
         return cond.wait_for(predicate, timeout_s)
+
+    # The managers tell their clock what their workers do; only a virtual clock listens
+    # (it jumps when none of them can run). Here they cost nothing.
+    def track_job(self, job: Job) -> Job:
+        """A pool is about to run ``job`` in a worker thread: the returned callable runs it
+        as one of the managers' workers."""
+        return job
+
+    def busy(self) -> AbstractContextManager[None]:
+        """Inside the block the calling thread does the managers' work (a switch)."""
+        return nullcontext()
+
+    def blocked(self, predicate: Callable[[], bool]) -> AbstractContextManager[None]:
+        """Inside the block the calling thread waits for something the managers deliver;
+        ``predicate()`` turns true when it may go on (an event set, a child ended)."""
+        return nullcontext()
 
 
 
@@ -106,3 +130,437 @@ class SimClock(WallClock):
                 if entry in self._waiters:
                     self._waiters.remove(entry)
                     heapq.heapify(self._waiters)
+
+
+class _Worker:
+    """What a virtual clock knows of one thread of the managers."""
+
+    __slots__ = ("busy", "ready", "name")
+
+    def __init__(self, name: str) -> None:
+        self.busy = 0
+        #: While the thread waits: a callable that tells whether it may go on (it is then
+        #: runnable, about to wake). None while it runs.
+        self.ready: Callable[[], bool] | None = None
+        self.name = name
+
+
+class VirtualClock(WallClock):
+    """Time that moves only when a test moves it: the test kit's clock.
+
+    Give it to the managers (``HighLevelBehaviorManager(clock=…)``,
+    ``LowLevelBehaviorManager(clock=…)``); every ``sleep``, timeout, rate and deadline of
+    behaviours, actions, engines, logics and HALs then follows it. Two ways to move it:
+
+    * **by hand**: :meth:`advance` (``clock.advance(5.0)``) steps from one deadline to the
+      next up to the target, and before each step waits until every worker of the managers
+      is at rest (waiting): a loop that sleeps 1 s runs 600 times in ``advance(600)``, the
+      same on an idle or a loaded machine. :meth:`run_until` steps until a condition holds.
+    * **autojump** (``VirtualClock(autojump=True)``): whenever every worker is at rest, a
+      thread of the clock jumps to the earliest deadline, so a 10-minute mission runs in
+      milliseconds while the test simply waits for its outcome.
+
+    At rest means: every thread the managers run (the worker pool's, a switch in progress,
+    the low level's event loop) waits on this clock or on another worker, and none of those
+    waits is already satisfied. What the managers wait for from outside (a ROS message from
+    another process) is not known to the clock: for those, drive a simulation in lockstep
+    with :class:`SimClock` instead. ``stop_timeout_s`` stays wall time, as everywhere.
+    """
+
+    #: Deadlines are exact here (no ``/clock`` rounding to whole nanoseconds).
+    SLACK_S = 0.0
+    #: How long (wall time) :meth:`advance` waits for the workers to come to rest before it
+    #: raises :class:`ClockNotSettled`.
+    SETTLE_TIMEOUT_S = 10.0
+
+    def __init__(self, start_s: float = 0.0, *, autojump: bool = False) -> None:
+        self._now = float(start_s)
+        self._changed = threading.Condition(threading.Lock())
+        self._timed: list[tuple[float, int, threading.Condition]] = []
+        self._ids = itertools.count()
+        self._workers: dict[int, _Worker] = {}
+        self._queued = 0  # jobs handed to a pool whose thread has not yet taken them
+        self._loops: list[_VirtualLoop] = []
+        self._jumper: threading.Thread | None = None
+        self._autojump = False
+        #: How many deadlines the clock has stepped to (by hand or by autojump).
+        self.jumps = 0
+        if autojump:
+            self.autojump = True
+
+    # -------------------------------------------------------------------- reading
+    def now(self) -> float:
+        return self._now
+
+    def __call__(self) -> float:
+        """The clock as a plain time function (``Blackboard(clock=virtual_clock)``)."""
+        return self._now
+
+    def __repr__(self) -> str:
+        return (f"<VirtualClock t={self._now:.6f} s{' autojump' if self._autojump else ''} "
+                f"workers={len(self._workers)}>")
+
+    # -------------------------------------------------------------------- waiting
+    def wait(self, cond: threading.Condition, predicate: Callable[[], bool],
+             timeout_s: float | None) -> bool:
+        deadline = None if timeout_s is None else self._now + timeout_s
+        if timeout_s is not None and timeout_s > 0 and deadline is not None \
+                and deadline <= self._now:
+            # Too small to add to `now` (1e-17 s left of a tick): the next representable
+            # time, or the caller would wait again and again at the same instant.
+            deadline = math.nextafter(self._now, math.inf)
+        entry = None if deadline is None else (deadline, next(self._ids), cond)
+
+        def ready() -> bool:
+            return predicate() or (deadline is not None and self._now + self.SLACK_S >= deadline)
+
+        with self._changed:
+            if entry is not None:
+                heapq.heappush(self._timed, entry)
+            worker = self._workers.get(threading.get_ident())
+            previous = None
+            if worker is not None:
+                previous, worker.ready = worker.ready, ready
+            self._changed.notify_all()
+        try:
+            while not predicate():
+                if deadline is not None and self._now + self.SLACK_S >= deadline:
+                    return predicate()
+                cond.wait()  # woken by _set past the deadline, or by whoever notifies cond
+            return True
+        finally:
+            with self._changed:
+                if entry is not None and entry in self._timed:
+                    self._timed.remove(entry)
+                    heapq.heapify(self._timed)
+                if worker is not None:
+                    worker.ready = previous
+                self._changed.notify_all()
+
+    def sleep(self, seconds: float) -> None:
+        """Block the calling thread for ``seconds`` of virtual time (a test thread: with
+        autojump, the clock moves there by itself; by hand, another thread must advance)."""
+        cond = threading.Condition()
+        with cond:
+            self.wait(cond, lambda: False, seconds)
+
+    # -------------------------------------------------------------------- who runs
+    def track_job(self, job: Job) -> Job:
+        with self._changed:
+            self._queued += 1
+
+        def tracked() -> None:
+            me = threading.get_ident()
+            with self._changed:
+                self._queued -= 1
+                worker = self._workers.setdefault(me, _Worker(threading.current_thread().name))
+                worker.busy += 1
+            try:
+                job()
+            finally:
+                self._leave(me)
+        return tracked
+
+    @contextmanager
+    def busy(self) -> Iterator[None]:
+        me = threading.get_ident()
+        with self._changed:
+            worker = self._workers.setdefault(me, _Worker(threading.current_thread().name))
+            worker.busy += 1
+        try:
+            yield
+        finally:
+            self._leave(me)
+
+    def _leave(self, ident: int) -> None:
+        with self._changed:
+            worker = self._workers[ident]
+            worker.busy -= 1
+            if worker.busy == 0:
+                del self._workers[ident]
+            self._changed.notify_all()
+
+    @contextmanager
+    def blocked(self, predicate: Callable[[], bool]) -> Iterator[None]:
+        with self._changed:
+            worker = self._workers.get(threading.get_ident())
+            previous = None
+            if worker is not None:
+                previous, worker.ready = worker.ready, predicate
+                self._changed.notify_all()
+        try:
+            yield
+        finally:
+            if worker is not None:
+                with self._changed:
+                    worker.ready = previous
+                    self._changed.notify_all()
+
+    def _running_locked(self) -> list[str]:
+        """The workers that can run now (empty: at rest). Called with ``_changed`` held."""
+        running = [f"{self._queued} job(s) not yet taken by a worker"] if self._queued else []
+        for worker in self._workers.values():
+            ready = worker.ready
+            try:
+                if ready is None or ready():
+                    running.append(worker.name)
+            except Exception:  # a predicate that cannot be read yet: assume it may run
+                running.append(worker.name)
+        for loop in self._loops:
+            if not loop._at_rest(self._now + self.SLACK_S):
+                running.append(f"event loop {loop.name}")
+        return running
+
+    def _next_deadline_locked(self) -> float | None:
+        after = self._now + self.SLACK_S
+        deadlines = [d for d, _, _ in self._timed if d > after]
+        deadlines += [d for loop in self._loops
+                      if (d := loop._deadline) is not None and d > after]
+        return min(deadlines, default=None)
+
+    @property
+    def at_rest(self) -> bool:
+        """True when no worker of the managers can run until time moves."""
+        with self._changed:
+            return not self._running_locked()
+
+    @property
+    def next_deadline(self) -> float | None:
+        """The earliest time something waits for (None: nothing waits for time)."""
+        with self._changed:
+            return self._next_deadline_locked()
+
+    # -------------------------------------------------------------------- moving time
+    def _set(self, t_s: float) -> None:
+        with self._changed:
+            if t_s <= self._now:
+                return
+            self._now = t_s
+            self.jumps += 1
+            due: list[threading.Condition] = []
+            while self._timed and self._timed[0][0] <= self._now + self.SLACK_S:
+                due.append(heapq.heappop(self._timed)[2])
+            loops = [loop for loop in self._loops
+                     if loop._deadline is not None and loop._deadline <= self._now + self.SLACK_S]
+            self._changed.notify_all()
+        for cond in due:
+            with cond:
+                cond.notify_all()
+        for loop in loops:
+            loop._wake()
+
+    def settle(self, *, timeout_s: float | None = None) -> None:
+        """Wait (wall time) until every worker is at rest; :class:`ClockNotSettled` naming
+        the ones still running after ``timeout_s`` (default :attr:`SETTLE_TIMEOUT_S`)."""
+        limit = self.SETTLE_TIMEOUT_S if timeout_s is None else timeout_s
+        give_up = time.monotonic() + limit
+        with self._changed:
+            while running := self._running_locked():
+                remaining = give_up - time.monotonic()
+                if remaining <= 0:
+                    raise ClockNotSettled(
+                        f"virtual clock at t={self._now:.3f} s: after {limit:.1f} s (wall) "
+                        f"these still run instead of waiting: {', '.join(running)} — a loop "
+                        f"that never sleeps, or a wait that does not go through the clock")
+                # Predicates change without telling the clock (an interrupt flag, an event
+                # set by another worker): look again soon.
+                self._changed.wait(min(remaining, 0.0005))
+
+    def advance(self, seconds: float) -> float:
+        """Move time ``seconds`` forward, deadline by deadline, letting every worker run
+        until it waits again before each step; returns the new time. With autojump on,
+        the calling thread sleeps ``seconds`` of virtual time instead."""
+        if not (seconds >= 0 and seconds != float("inf")):
+            raise ValueError(f"advance(seconds) takes a finite number >= 0, got {seconds!r}")
+        if self._autojump:
+            self.sleep(seconds)
+            return self._now
+        target = self._now + seconds
+        while True:
+            self.settle()
+            step = self.next_deadline
+            if step is None or step > target:
+                break
+            self._set(step)
+        self._set(target)
+        self.settle()
+        return self._now
+
+    def run_until(self, predicate: Callable[[], bool], *, timeout_s: float) -> bool:
+        """Move time deadline by deadline until ``predicate()`` holds (checked whenever the
+        workers are at rest) or ``timeout_s`` of virtual time passed; returns
+        ``predicate()``. The deterministic way to wait for an outcome::
+
+            assert clock.run_until(lambda: hl.current == "idle", timeout_s=600)
+        """
+        end = self._now + timeout_s
+        if self._autojump:
+            give_up = time.monotonic() + self.SETTLE_TIMEOUT_S
+            cond = threading.Condition()
+            with cond:
+                # Registered as a timed waiter at `end`, polled for the predicate.
+                entry = (end, next(self._ids), cond)
+                with self._changed:
+                    heapq.heappush(self._timed, entry)
+                try:
+                    while not predicate() and self._now < end:
+                        last = self.jumps
+                        cond.wait(0.001)
+                        if self.jumps != last:
+                            give_up = time.monotonic() + self.SETTLE_TIMEOUT_S
+                        elif time.monotonic() > give_up:
+                            self.settle(timeout_s=0.0)  # names who keeps time from moving
+                finally:
+                    with self._changed:
+                        if entry in self._timed:
+                            self._timed.remove(entry)
+                            heapq.heapify(self._timed)
+            return predicate()
+        while True:
+            self.settle()
+            if predicate():
+                return True
+            step = self.next_deadline
+            if step is None or step > end:
+                self._set(end)
+                self.settle()
+                return predicate()
+            self._set(step)
+
+    # -------------------------------------------------------------------- autojump
+    @property
+    def autojump(self) -> bool:
+        """Jump to the next deadline by itself whenever every worker is at rest."""
+        return self._autojump
+
+    @autojump.setter
+    def autojump(self, on: bool) -> None:
+        with self._changed:
+            self._autojump = bool(on)
+            jumper = self._jumper
+            if on and jumper is None:
+                self._jumper = threading.Thread(target=self._jump_loop, daemon=True,
+                                                name="beehave-clock-autojump")
+                self._jumper.start()
+            self._changed.notify_all()
+        if not on and jumper is not None and jumper is not threading.current_thread():
+            jumper.join()
+            self._jumper = None
+
+    def close(self) -> None:
+        """Stop autojumping (joins the clock's thread)."""
+        self.autojump = False
+
+    def _jump_loop(self) -> None:
+        while True:
+            with self._changed:
+                if not self._autojump:
+                    return
+                step = None if self._running_locked() else self._next_deadline_locked()
+                if step is None:
+                    self._changed.wait(0.0005)
+                    continue
+            self._set(step)
+
+    # -------------------------------------------------------------------- asyncio
+    def new_event_loop(self) -> asyncio.AbstractEventLoop:
+        """An asyncio loop whose time is this clock: ``asyncio.sleep``, ``wait_for`` and
+        ``call_later`` follow it, and the clock knows when the loop is at rest."""
+        return _VirtualLoop(self)
+
+    def _add_loop(self, loop: _VirtualLoop) -> None:
+        with self._changed:
+            self._loops.append(loop)
+            self._changed.notify_all()
+
+    def _remove_loop(self, loop: _VirtualLoop) -> None:
+        with self._changed:
+            if loop in self._loops:
+                self._loops.remove(loop)
+            self._changed.notify_all()
+
+    def _loop_state(self, loop: _VirtualLoop, idle: bool, deadline: float | None) -> None:
+        with self._changed:
+            loop._idle = idle
+            loop._deadline = deadline if idle else None
+            self._changed.notify_all()
+
+
+_FileObject = int | Any  # what selectors accept: a file descriptor or an object with fileno()
+
+
+class _ClockedSelector(selectors.BaseSelector):
+    """The loop's selector, telling the clock when the loop waits and for which deadline."""
+
+    def __init__(self, clock: VirtualClock) -> None:
+        self._inner = selectors.DefaultSelector()
+        self._clock = clock
+        self.loop: _VirtualLoop | None = None
+
+    def register(self, fileobj: _FileObject, events: int,
+                 data: object = None) -> selectors.SelectorKey:
+        return self._inner.register(fileobj, events, data)
+
+    def unregister(self, fileobj: _FileObject) -> selectors.SelectorKey:
+        return self._inner.unregister(fileobj)
+
+    def modify(self, fileobj: _FileObject, events: int,
+               data: object = None) -> selectors.SelectorKey:
+        return self._inner.modify(fileobj, events, data)
+
+    def get_map(self) -> Mapping[_FileObject, selectors.SelectorKey]:
+        return self._inner.get_map()
+
+    def close(self) -> None:
+        self._inner.close()
+
+    def select(self, timeout: float | None = None
+               ) -> list[tuple[selectors.SelectorKey, int]]:
+        loop = self.loop
+        if loop is None or (timeout is not None and timeout <= 0):
+            return self._inner.select(timeout)
+        # asyncio asks to sleep until its earliest timer (virtual seconds from now): it is
+        # at rest until that deadline or an I/O event; the clock wakes it past the deadline.
+        deadline = None if timeout is None else self._clock.now() + timeout
+        self._clock._loop_state(loop, True, deadline)
+        try:
+            while True:
+                events = self._inner.select(0.25)
+                if events or (deadline is not None
+                              and self._clock.now() + VirtualClock.SLACK_S >= deadline):
+                    return events
+                if loop._ready:  # type: ignore[attr-defined]
+                    return events
+        finally:
+            self._clock._loop_state(loop, False, None)
+
+
+class _VirtualLoop(asyncio.SelectorEventLoop):
+    """asyncio's loop with a virtual time (uvloop keeps its own time in C)."""
+
+    def __init__(self, clock: VirtualClock) -> None:
+        selector = _ClockedSelector(clock)
+        super().__init__(selector)
+        selector.loop = self
+        self._clock = clock
+        self._idle = False
+        self._deadline: float | None = None
+        self.name = f"loop@{id(self):x}"
+        clock._add_loop(self)
+
+    def time(self) -> float:
+        return self._clock.now()
+
+    def _at_rest(self, now: float) -> bool:
+        return (self._idle and not self._ready  # type: ignore[attr-defined]
+                and (self._deadline is None or self._deadline > now))
+
+    def _wake(self) -> None:
+        try:
+            self.call_soon_threadsafe(lambda: None)
+        except RuntimeError:  # closed
+            pass
+
+    def close(self) -> None:
+        self._clock._remove_loop(self)
+        super().close()

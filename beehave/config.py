@@ -47,6 +47,8 @@
       topics: [odom, scan, cmd_vel, battery_state, {name: lift/state, type: std_msgs/msg/Float64}]
       queue_size: 100000                 # per channel; beyond it, drops are counted
       max_file_mb: null                  # roll over into run_001.mcap … at this size
+    substitutes:                         # tests: scripted stand-ins by name (docs/testing.md)
+      "tour/Navigate*": {duration_s: 30.0, result: true}
 
 Errors name the file, the key path and what was expected.
 """
@@ -223,6 +225,15 @@ class FusionOptions(_Strict):
         return params
 
 
+class SubstituteOptions(_Strict):
+    """A scripted stand-in (:class:`beehave.testing.Scripted`) for the actions, behaviours
+    and logics whose path, name or class matches the key."""
+
+    duration_s: Annotated[float, Field(ge=0)] = 0.0
+    result: Any = None
+    fail: str | None = Field(None, description="fail with RuntimeError(fail) instead")
+
+
 class RobotConfig(_Strict):
     namespace: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
     stop_timeout_s: Seconds = 2.0
@@ -238,6 +249,7 @@ class RobotConfig(_Strict):
     sim: SimOptions | None = None
     vda5050: Vda5050Options | None = None
     recording: RecordingOptions = Field(default_factory=lambda: RecordingOptions())
+    substitutes: dict[str, SubstituteOptions] = Field(default_factory=dict)
     source: str = Field("<dict>", exclude=True)
 
 

@@ -134,6 +134,12 @@ class LoopBlocked(BeehaveError, TimeoutError):
         self.blocked_s = blocked_s
 
 
+class ClockNotSettled(BeehaveError, TimeoutError):
+    """A :class:`~beehave.clock.VirtualClock` could not move time: the managers' workers did
+    not come to rest (every one waiting) within its wall-time bound — a loop that never
+    sleeps, or a wait that does not go through the clock. The message names them."""
+
+
 class AlreadyStarted(BeehaveError):
     """A behaviour, action or logic object was started twice; create a new one."""
 

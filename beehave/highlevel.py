@@ -16,7 +16,7 @@ from typing import Any, Self
 
 from beehave.behavior import Behavior, Idle
 from beehave.blackboard import Blackboard, BlackboardView
-from beehave.clock import WallClock
+from beehave.clock import VirtualClock, WallClock
 from beehave.errors import (
     BeehaveError,
     ConfigError,
@@ -32,6 +32,7 @@ from beehave.hal import check_duration_s
 from beehave.locks import TypeLocks
 from beehave.runnable import Runnable, current
 from beehave.status import Status
+from beehave.substitutes import Substitute, Substitutions
 from beehave.threads import WorkerPool
 
 log = logging.getLogger(__name__)
@@ -94,12 +95,15 @@ class HighLevelBehaviorManager:
         self.node = node
         #: What behaviours and actions read as ``self.blackboard``: the low level's
         #: blackboard when both run in one process, or a read-only mirror fed over ROS 2.
-        self.blackboard = blackboard if blackboard is not None else Blackboard()
+        #: What ``sleep`` and the ROS helpers' timeouts follow (sim time with ``SimClock``).
+        self.clock = clock if clock is not None else WallClock()
+        if blackboard is None:
+            blackboard = (Blackboard(clock=self.clock.now) if isinstance(self.clock, VirtualClock)
+                          else Blackboard())
+        self.blackboard = blackboard
         self.blackboard_view = BlackboardView(
             self.blackboard, why="behaviours and actions read the low level's blackboard; "
                                  "they change the robot through actions")
-        #: What ``sleep`` and the ROS helpers' timeouts follow (sim time with ``SimClock``).
-        self.clock = clock if clock is not None else WallClock()
         self.events = EventBus(log)
         self._gil_switch_interval_s = gil_switch_interval_s
         self._locks = TypeLocks(self.events)
@@ -116,8 +120,11 @@ class HighLevelBehaviorManager:
         self._top: Behavior | None = None
         self._top_name: str | None = None
         self._stuck: set[Runnable] = set()
-        self._pool = WorkerPool()
+        self._pool = WorkerPool(track_job=self.clock.track_job)
         self._history: deque[dict[str, Any]] = deque(maxlen=history_len)
+        #: Substitution rules for the actions and sub-behaviours started from now on
+        #: (:meth:`substitute`).
+        self.substitutes = Substitutions()
 
     # ------------------------------------------------------------------ registry
     def register(self, name: str, behavior_cls: type[Behavior], **params: Any) -> None:
@@ -138,6 +145,13 @@ class HighLevelBehaviorManager:
         _check_params(name, behavior_cls, params, partial=True)
         with self._cond:
             self._registry[name] = (behavior_cls, dict(params))
+
+    def substitute(self, pattern: str, substitute: Substitute) -> Callable[[], None]:
+        """From now on, run ``substitute`` instead of every action or sub-behaviour whose
+        path, name or class name matches ``pattern`` (``fnmatch``: ``"tour/Navigate*"``,
+        ``"Lift"``); the behaviour that starts it gets its own object back. For tests: see
+        :class:`beehave.testing.Scripted`. Returns a function that removes the rule."""
+        return self.substitutes.add(pattern, substitute)
 
     @property
     def names(self) -> list[str]:
@@ -262,10 +276,12 @@ class HighLevelBehaviorManager:
             if become:
                 self._spawn_processor()
             return behavior
-        if become:
-            # Nobody is switching: execute it in this thread (saves two thread hand-offs).
-            self._run_processor(request)
-        request.done.wait()  # bounded: the processor is, and it finishes every request
+        with self.clock.busy():  # a virtual clock waits while a switch is under way
+            if become:
+                # Nobody is switching: execute it in this thread (saves two thread hand-offs).
+                self._run_processor(request)
+            with self.clock.blocked(request.done.is_set):
+                request.done.wait()  # bounded: the processor is, and it finishes every request
         if request.error is not None:
             raise request.error
         return behavior

@@ -42,6 +42,7 @@ from beehave.errors import AlreadyStarted, BeehaveError, ChildFailed, HALError
 from beehave.events import Event, EventBus, EventKind
 from beehave.hal import HAL, HALManager, _wait_bounded_all
 from beehave.status import Status
+from beehave.substitutes import Substitutions
 
 if TYPE_CHECKING:
     from beehave.agents.fleet import Fleet
@@ -71,6 +72,8 @@ class Runtime:
     on_handover: Callable[[object], None] | None = None
     """Called with ``handover`` after each reference handed to it: the manager (re)starts
     the grace period then, also for a sub-logic that ends late."""
+    substitutes: Substitutions = field(default_factory=Substitutions)
+    """Substitution rules for the logics started from now on (tests)."""
 
 
 class Logic(abc.ABC):
@@ -235,6 +238,7 @@ class Logic(abc.ABC):
         self._client = runtime.blackboard.client(f"logic:{self.path}")
         if parent is not None:
             parent._children.append(self)
+        runtime.substitutes.apply(self, path=self.path)
         self._status = Status.RUNNING
         self.started_at = time.monotonic()
         self._task = asyncio.get_running_loop().create_task(self._drive(),

@@ -41,6 +41,7 @@ from collections.abc import Callable, Coroutine
 from typing import Any, Self, TypeVar
 
 from beehave.blackboard import Blackboard, Subscription, Watcher
+from beehave.clock import VirtualClock, WallClock
 from beehave.errors import (
     AlreadyStarted,
     BeehaveError,
@@ -54,6 +55,7 @@ from beehave.events import Event, EventBus, EventCallback, EventKind
 from beehave.hal import HALManager, _wait_ignoring_cancel, check_duration_s, check_params
 from beehave.logic import Logic, Runtime, stop_logics
 from beehave.status import Status
+from beehave.substitutes import Substitute
 from beehave.watchdog import LoopWatchdog
 
 log = logging.getLogger(__name__)
@@ -106,14 +108,17 @@ class LowLevelBehaviorManager:
     ``hal_handover_s``: after the top-level logic changed, how long the HALs the old one
     used stay loaded for the new one to take over; those it did not ask for by then are
     unloaded (0: unload at once). ``use_uvloop``: run the context manager's loop on uvloop
-    if installed. Every duration must be finite and positive
-    (:class:`~beehave.errors.ConfigError`).
+    if installed. ``clock``: a :class:`~beehave.clock.VirtualClock` makes the context
+    manager's loop follow virtual time (``asyncio.sleep``, timeouts, HAL periods, the
+    blackboard's ages) — the test kit's; the default is wall time. Every duration must be
+    finite and positive (:class:`~beehave.errors.ConfigError`).
     """
 
     def __init__(self, *, default: str | None = None, blackboard: Blackboard | None = None,
                  stop_timeout_s: float = 2.0, hal_backoff_initial_s: float = 0.1,
                  hal_backoff_max_s: float = 5.0, loop_lag_warn_s: float = 0.2,
-                 hal_handover_s: float = 0.5, use_uvloop: bool = True) -> None:
+                 hal_handover_s: float = 0.5, use_uvloop: bool = True,
+                 clock: WallClock | None = None) -> None:
         # Checked first: nothing is built from a duration that cannot be waited for.
         stop_timeout_s = check_duration_s("stop_timeout_s", stop_timeout_s)
         hal_backoff_initial_s = check_duration_s("hal_backoff_initial_s", hal_backoff_initial_s)
@@ -121,7 +126,12 @@ class LowLevelBehaviorManager:
         self.loop_lag_warn_s = check_duration_s("loop_lag_warn_s", loop_lag_warn_s)
         self.hal_handover_s = check_duration_s("hal_handover_s", hal_handover_s, allow_zero=True)
         self.events = EventBus(log)
-        self.blackboard = blackboard if blackboard is not None else Blackboard()
+        #: What the loop's time follows (its ``time()``): wall time, or a virtual clock.
+        self.clock = clock if clock is not None else WallClock()
+        if blackboard is None:
+            blackboard = (Blackboard(clock=self.clock.now) if isinstance(self.clock, VirtualClock)
+                          else Blackboard())
+        self.blackboard = blackboard
         if self.blackboard.on_error is None:
             self.blackboard.on_error = self._subscriber_failed
         self.hals = HALManager(self.blackboard, events=self.events,
@@ -169,6 +179,14 @@ class LowLevelBehaviorManager:
             raise NotASubclass(f"register({name!r}, …) needs a Logic subclass, got {logic_cls!r}")
         check_params(logic_cls, name, params)
         self._registry[name] = (logic_cls, dict(params))
+
+    def substitute(self, pattern: str, substitute: Substitute) -> Callable[[], None]:
+        """From now on, run ``substitute`` instead of every logic (top-level or sub-logic)
+        whose path, name or class name matches ``pattern`` (``fnmatch``). For tests: see
+        :class:`beehave.testing.Scripted`; a HAL is substituted by registering another
+        class under its name (``ll.hals.register(ScriptedHAL, name="lift")``). Returns a
+        function that removes the rule."""
+        return self._runtime.substitutes.add(pattern, substitute)
 
     @property
     def registered(self) -> list[str]:
@@ -666,7 +684,10 @@ class LowLevelBehaviorManager:
         self.shutdown()
 
     def _thread_main(self) -> None:  # the loop's thread
-        loop = new_event_loop() if self.use_uvloop else asyncio.new_event_loop()
+        if isinstance(self.clock, VirtualClock):
+            loop = self.clock.new_event_loop()
+        else:
+            loop = new_event_loop() if self.use_uvloop else asyncio.new_event_loop()
         asyncio.set_event_loop(loop)
         try:
             loop.run_until_complete(self.run())

@@ -15,7 +15,7 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any, Literal, Self
 
 from beehave.behavior import Behavior
-from beehave.clock import SimClock
+from beehave.clock import SimClock, WallClock
 from beehave.config import RobotConfig, import_class
 from beehave.errors import (
     BeehaveError,
@@ -58,11 +58,14 @@ class Robot:
     """
 
     def __init__(self, config: RobotConfig, *, only: Only = None,
-                 ros: RosContext | None = None) -> None:
+                 ros: RosContext | None = None, clock: WallClock | None = None) -> None:
         if only not in (None, "high", "low"):
             raise ConfigError(f"only must be 'high', 'low' or None, got {only!r}")
         self.config = config
         self.only = only
+        # A test's virtual clock (beehave.testing): both levels follow it and share one
+        # blackboard, as they do in one process without ROS.
+        self._clock = clock
         self.high: HighLevelBehaviorManager | None = None
         self.low: LowLevelBehaviorManager | None = None
         #: The VDA 5050 interface (``vda5050:`` in the configuration; needs the high level).
@@ -89,9 +92,11 @@ class Robot:
         cfg = self.config
         src = cfg.source
         if self.only in (None, "high"):
+            clock = self._clock
+            if clock is None and cfg.use_sim_time:
+                clock = SimClock()
             hl = HighLevelBehaviorManager(default=cfg.default_behavior,
-                                          stop_timeout_s=cfg.stop_timeout_s,
-                                          clock=SimClock() if cfg.use_sim_time else None)
+                                          stop_timeout_s=cfg.stop_timeout_s, clock=clock)
             for name, spec in cfg.behaviors.items():
                 cls = import_class(spec.class_, base=Behavior,
                                    where=f"{src}: behaviors.{name}.class")
@@ -105,8 +110,10 @@ class Robot:
                                                   import_class=import_class, source=src)
             self.high = hl
         if self.only in (None, "low"):
-            ll = LowLevelBehaviorManager(default=cfg.default_logic,
-                                         stop_timeout_s=cfg.stop_timeout_s)
+            ll = LowLevelBehaviorManager(
+                default=cfg.default_logic, stop_timeout_s=cfg.stop_timeout_s, clock=self._clock,
+                blackboard=self.high.blackboard if self._clock is not None and self.high
+                else None)
             for name, spec in cfg.logics.items():
                 logic_cls = import_class(spec.class_, base=Logic,
                                          where=f"{src}: logics.{name}.class")
@@ -131,6 +138,22 @@ class Robot:
                 seen[hal_name] = i
             _register_arbiters(ll, cfg, seen)
             self.low = ll
+        self._substitute()
+
+    def _substitute(self) -> None:
+        """The configuration's ``substitutes:`` (tests): scripted stand-ins by name."""
+        subs = self.config.substitutes
+        if not subs:
+            return
+        from beehave.testing.fakes import Scripted
+
+        for pattern, spec in subs.items():
+            stand_in = Scripted(duration_s=spec.duration_s, result=spec.result,
+                                raises=None if spec.fail is None else RuntimeError(spec.fail))
+            if self.high is not None:
+                self.high.substitute(pattern, stand_in)
+            if self.low is not None:
+                self.low.substitute(pattern, stand_in)
 
     def start(self) -> None:
         from beehave.ros.bridge import HighLevelBridge, LowLevelBridge

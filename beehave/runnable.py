@@ -266,7 +266,7 @@ class Runnable(abc.ABC):
         for its own child this way has seen the outcome, so a failure of that child is not
         raised again as ChildFailed.
         """
-        done = self._decided.wait(_timeout(timeout, f"{self.path}: wait(timeout)"))
+        done = self._block_on(self._decided, _timeout(timeout, f"{self.path}: wait(timeout)"))
         if done and self.parent is not None:
             self.parent._observed(self)
         return done
@@ -325,7 +325,16 @@ class Runnable(abc.ABC):
 
     def _join(self, timeout: float | None = None) -> bool:
         """Wait until its ``run`` and clean-up are over (the thread goes back to the pool)."""
-        return self._ended.wait(timeout)
+        return self._block_on(self._ended, timeout)
+
+    def _block_on(self, event: threading.Event, timeout_s: float | None) -> bool:
+        """``event.wait(timeout_s)`` (wall time), telling the manager's clock that this
+        thread waits for another worker (a virtual clock may then move time)."""
+        manager = self._manager
+        if manager is None:
+            return event.wait(timeout_s)
+        with manager.clock.blocked(event.is_set):
+            return event.wait(timeout_s)
 
     def _after_run(self, error: BaseException | None) -> BaseException | None:
         """Behavior ends its children here; returns the error that decides the status."""
@@ -474,7 +483,7 @@ class Runnable(abc.ABC):
         """Wait until a safe state under way (if any) returned, at most until ``deadline``;
         report it (once) when it is overdue. True when none is pending."""
         done = self._safe_done
-        if done is None or done.wait(max(0.0, deadline - time.monotonic())):
+        if done is None or self._block_on(done, max(0.0, deadline - time.monotonic())):
             return True
         with self._cond:
             report = not self._overdue_reported
@@ -558,7 +567,7 @@ class Runnable(abc.ABC):
         """Behavior raises ChildFailed here; called with ``_cond`` held."""
 
     def _wait_decided(self, deadline: float) -> bool:
-        return self._decided.wait(max(0.0, deadline - time.monotonic()))
+        return self._block_on(self._decided, max(0.0, deadline - time.monotonic()))
 
     @property
     def elapsed_s(self) -> float | None:

@@ -54,8 +54,12 @@ class WorkerPool:
     """Threads for behaviours and actions. ``submit(name, fn)`` runs ``fn`` at once in a
     thread named ``name`` (an idle one if any, else a new one)."""
 
-    def __init__(self, *, idle_timeout_s: float = 30.0) -> None:
+    def __init__(self, *, idle_timeout_s: float = 30.0,
+                 track_job: Callable[[Job], Job] | None = None) -> None:
         self.idle_timeout_s = idle_timeout_s
+        # The manager's clock counts the jobs in flight (a virtual clock jumps when all of
+        # them wait): the count lives here, where the workers are made.
+        self._track_job = track_job
         self._lock = threading.Lock()
         self._idle: list[_Worker] = []
         self._all: set[_Worker] = set()
@@ -66,6 +70,8 @@ class WorkerPool:
         with self._lock:
             if self._closed:
                 raise RuntimeError("worker pool is shut down")
+            if self._track_job is not None:
+                fn = self._track_job(fn)
             worker = self._idle.pop() if self._idle else None
             if worker is None:
                 self._count += 1

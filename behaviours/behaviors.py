@@ -261,12 +261,17 @@ class _Wakeful(Behavior):
 
     def wake(self) -> None:
         self._event().set()
+        with self._cond:  # the runnable's condition: a clock wait in _wait_wake sleeps on it
+            self._cond.notify_all()
 
     def _wait_wake(self, timeout_s: float | None) -> bool:
-        """Wait for a wake-up or ``timeout_s``; False once interrupted."""
+        """Wait for a wake-up or ``timeout_s`` (the manager's clock); False once
+        interrupted."""
         event = self._event()
-        if not self.interrupted:
-            event.wait(timeout_s)
+        with self._cond:
+            self.manager.clock.wait(self._cond,
+                                    lambda: event.is_set() or self._interrupt_requested,
+                                    timeout_s)
         event.clear()
         return not self.interrupted
 

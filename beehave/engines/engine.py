@@ -214,7 +214,10 @@ class EngineContext:
     def __init__(self, behavior: Behavior, *, poll_s: float) -> None:
         self.behavior = behavior
         self.poll_s = poll_s
-        self._event = threading.Event()
+        # Set by wake(); waited on through the manager's clock, so that poll_s and a tree's
+        # rate follow sim time or a test's virtual time.
+        self._cond = threading.Condition(threading.Lock())
+        self._woken = False
         self._handles: list[Runnable] = []
         self._subscription: Subscription | None = None
 
@@ -233,12 +236,14 @@ class EngineContext:
         re-evaluated at once rather than at the next poll)."""
         if self._subscription is None:
             self._subscription = self.behavior.blackboard.subscribe(
-                pattern, lambda _change: self._event.set())
+                pattern, lambda _change: self.wake())
 
     # -- waiting -------------------------------------------------------------------------
     def wake(self) -> None:
         """Make the current or next :meth:`wait` return. Safe from any thread."""
-        self._event.set()
+        with self._cond:
+            self._woken = True
+            self._cond.notify_all()
 
     def wait(self, timeout_s: float | None = None) -> bool:
         """Wait until something may have changed — a child ended, the blackboard changed,
@@ -251,9 +256,16 @@ class EngineContext:
         if self.behavior.interrupted:
             return False
         limit = self.poll_s if timeout_s is None else min(timeout_s, self.poll_s)
-        self._event.wait(limit)
-        self._event.clear()
-        return not self.behavior.interrupted
+        behavior = self.behavior
+        with self._cond:
+            behavior.manager.clock.wait(self._cond,
+                                        lambda: self._woken or behavior.interrupted, limit)
+            self._woken = False
+        return not behavior.interrupted
+
+    def now(self) -> float:
+        """The manager's clock time (sim or virtual time where the manager has one)."""
+        return self.behavior.manager.clock.now()
 
     # -- starting and stopping -----------------------------------------------------------
     def start(self, starter: Starter) -> Runnable:

@@ -27,7 +27,6 @@ the behaviour (result: the ``result`` of the last leaf that succeeded); FAILURE 
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -222,7 +221,7 @@ class TreeEngine(DecisionEngine):
 
     def run(self, context: EngineContext) -> Any:
         period_s = 1.0 / self.rate_hz
-        next_tick = time.monotonic()
+        next_tick = context.now()
         layout = self._layout()
         while not context.interrupted:
             status = self.tick()
@@ -235,10 +234,10 @@ class TreeEngine(DecisionEngine):
             if status == TreeStatus.FAILURE:
                 self._fail()
             next_tick += period_s
-            now = time.monotonic()
+            now = context.now()
             if next_tick < now:  # overran: do not try to catch up with a burst of ticks
                 next_tick = now
-            while (remaining := next_tick - time.monotonic()) > 0:
+            while (remaining := next_tick - context.now()) > 0:
                 if not context.wait(remaining):
                     return None
         return None
