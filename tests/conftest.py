@@ -14,10 +14,19 @@ import pytest
 from beehave import Event, HighLevelBehaviorManager
 from beehave.testing import beehave_threads
 
-# ROS 2 isolation: only this machine, and a domain of our own for this test run (child
-# processes inherit both).
+# ROS 2 isolation: only this machine, and a domain of our own for this test run and this
+# pytest-xdist worker (child processes inherit both). The workers of one run share a seed
+# (PYTEST_XDIST_TESTRUNUID), so they take consecutive domains and never the same one; the
+# benchmarks use 101-200.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random(os.getpid()).randint(1, 100)))
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+_SEED = os.environ.get("PYTEST_XDIST_TESTRUNUID", str(os.getpid()))
+_DOMAIN = str(random.Random(_SEED).randint(1, 100 - 16) + int(_WORKER.removeprefix("gw")) % 16)
+if "PYTEST_XDIST_WORKER" in os.environ:
+    # A worker inherits the controller's environment: its own domain replaces that one.
+    os.environ["ROS_DOMAIN_ID"] = _DOMAIN
+else:
+    os.environ.setdefault("ROS_DOMAIN_ID", _DOMAIN)
 
 if os.environ.get("BEEHAVE_REQUIRE_EXTRAS") == "1":
     # `make test` installs every extra: a missing rclpy or pybullet there is a broken

@@ -488,7 +488,7 @@ def test_stuck_report_says_what_was_ignored_for_how_long_and_where(
         detail = stuck[stubborn.path].detail
         assert detail["ignored"] == "its interrupt"
         assert detail["for_s"] >= 0.3 * 0.9 and detail["stop_timeout_s"] == 0.3
-        assert "testing.py" in detail["at"], detail  # blocked in ScriptedAction.run
+        assert "fakes.py" in detail["at"], detail  # blocked in ScriptedAction.run
         assert "test_core_promises.py" in stuck["top"].detail["at"]
         assert "its interrupt" in describe(stuck[stubborn.path])
         assert [h["status"] for h in hl.history if h["name"] == "top"] == ["STUCK"]

@@ -31,6 +31,9 @@ from robots.robot import SimRobot  # noqa: E402
 from robots.sim import Simulation  # noqa: E402
 from robots.world import World, load_world, occupancy_map, world_from_dict  # noqa: E402
 
+# One pytest-xdist worker runs this module: its module-scoped rig is built once.
+pytestmark = pytest.mark.xdist_group("test_factory")
+
 ROOT = Path(__file__).resolve().parent.parent
 
 

@@ -21,6 +21,14 @@ from typing import Any
 
 import pytest
 
+from beehave.testing import WALL_TIMEOUT_S
+
+# One pytest-xdist worker runs this module: its module-scoped rig is built once.
+pytestmark = pytest.mark.xdist_group("test_http_browser")
+
+# Every page wait is bounded by the suite's one wall-time bound (beehave.testing), in ms.
+WAIT_MS = WALL_TIMEOUT_S * 1000
+
 pytest.importorskip("pybullet")
 pytest.importorskip("rclpy")
 pytest.importorskip("fastapi")
@@ -147,10 +155,10 @@ def marker_pose(page: Any) -> tuple[float, float]:
 
 def test_the_page_draws_the_world_and_the_robot_where_the_physics_has_it(
         robot: RobotProcess, page: Any) -> None:
-    page.wait_for_selector("#conn.up", timeout=20_000)
+    page.wait_for_selector("#conn.up", timeout=WAIT_MS)
     assert page.locator('[data-station="emili_dropoff"]').count() == 1
     assert page.locator("#map .wall").count() >= 4
-    page.wait_for_selector("#robot-emili1", timeout=20_000)
+    page.wait_for_selector("#robot-emili1", timeout=WAIT_MS)
     x, y = marker_pose(page)
     board = robot.api("api/robots/emili1/blackboard", params={"pattern": "odom/*"})
     # Where the robot's own odometry has it (it starts at (3, 2) in the warehouse).
@@ -171,30 +179,30 @@ def test_the_page_draws_the_world_and_the_robot_where_the_physics_has_it(
 
 def test_switching_on_the_page_drives_the_robot_and_the_view_follows(
         robot: RobotProcess, page: Any) -> None:
-    page.wait_for_selector("#robot-emili1", timeout=20_000)
+    page.wait_for_selector("#robot-emili1", timeout=WAIT_MS)
     start_x, _ = marker_pose(page)
     odom_cell = page.locator('#blackboard tr[data-key="odom/x_m"] td.value')
     start_cell = odom_cell.text_content()
     page.select_option("#behavior-choice", "shuttle")
     page.click("#switch-btn")
     # The manager (in the robot process) switched: asked through the API, not the page.
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + WALL_TIMEOUT_S
     while robot.api("api/robots/emili1/status")["behavior"] != "shuttle":
         assert time.monotonic() < deadline, "the switch clicked on the page did not happen"
         time.sleep(0.1)
     page.wait_for_function(
         "document.querySelector('#current-behavior').textContent === 'shuttle'",
-        timeout=10_000)
+        timeout=WAIT_MS)
     # The state machine is drawn with its running state highlighted.
     page.wait_for_selector('.engine.state_machine .sm-state.active[data-state="to_drop"]',
-                           timeout=10_000)
+                           timeout=WAIT_MS)
     assert page.locator('.sm-state[data-state="to_charge"]:not(.active)').count() == 1
     # The state's Navigation holds the driving lock (it starts just after the state).
-    page.wait_for_selector('#locks tr[data-lock="driving"]', timeout=10_000)
+    page.wait_for_selector('#locks tr[data-lock="driving"]', timeout=WAIT_MS)
     # The marker follows the physics toward the drop-off (x = 10).
     page.wait_for_function(
         f"Number(document.querySelector('#robot-emili1').dataset.x) > {start_x + 0.5}",
-        timeout=40_000)
+        timeout=WAIT_MS)
     assert odom_cell.text_content() != start_cell  # the blackboard table follows too
     assert page.locator("#trail-layer polyline").get_attribute("points").count(",") > 5
     OUT.mkdir(exist_ok=True)
@@ -202,7 +210,7 @@ def test_switching_on_the_page_drives_the_robot_and_the_view_follows(
     # Stop: the page's button puts the robot in its safe state.
     page.click("#stop-btn")
     page.wait_for_function(
-        "document.querySelector('#current-behavior').textContent === 'idle'", timeout=10_000)
+        "document.querySelector('#current-behavior').textContent === 'idle'", timeout=WAIT_MS)
     assert robot.api("api/robots/emili1/status")["behavior"] == "idle"
 
 
@@ -225,17 +233,19 @@ def test_off_loopback_the_page_needs_the_token_and_a_wrong_one_is_refused(
                    else None)
             try:
                 tab.goto(origin)
-                tab.wait_for_selector("#token-form:not([hidden])", timeout=10_000)
+                tab.wait_for_selector("#token-form:not([hidden])", timeout=WAIT_MS)
                 assert "token needed" in tab.locator("#conn").text_content()
                 tab.fill("#token-input", "not-the-token")
                 tab.click("#token-form button")
                 tab.wait_for_function("document.querySelector('#conn').textContent"
-                                      ".includes('token needed')", timeout=10_000)
+                                      ".includes('token needed')", timeout=WAIT_MS)
                 assert 401 in statuses and 200 not in statuses
                 tab.goto(f"{origin}#token={server.token}")  # what `beehave run` prints
                 tab.reload()
-                tab.wait_for_selector("#conn.up", timeout=10_000)
-                assert tab.locator("#current-behavior").text_content() == "idle"
+                tab.wait_for_selector("#conn.up", timeout=WAIT_MS)
+                # Connected first, then the first snapshot is drawn.
+                tab.wait_for_function("document.querySelector('#current-behavior')"
+                                      ".textContent === 'idle'", timeout=WAIT_MS)
                 assert "token" not in tab.url  # taken off the address bar
             finally:
                 tab.close()
@@ -275,39 +285,39 @@ def test_a_behaviour_tree_is_drawn_with_py_trees_status_colours_that_follow_its_
             tab = browser.new_page(viewport={"width": 1200, "height": 900})
             try:
                 tab.goto(server.url)
-                tab.wait_for_selector("#conn.up", timeout=10_000)
+                tab.wait_for_selector("#conn.up", timeout=WAIT_MS)
                 # The map: a speed zone (with its limit) and a lane, beside the station.
-                tab.wait_for_selector('#map polygon.zone[data-zone="walkway"]', timeout=10_000)
+                tab.wait_for_selector('#map polygon.zone[data-zone="walkway"]', timeout=WAIT_MS)
                 assert "walkway ≤ 0.15 m/s" in tab.locator("#map .zone-label").text_content()
                 assert tab.locator("#map polyline.lane").count() == 1
                 assert tab.locator('[data-station="dock"]').count() == 1
                 tab.select_option("#behavior-choice", "patrol")
                 tab.click("#switch-btn")
                 running = '.bt-node[data-node="{}"][data-status="{}"]'
-                tab.wait_for_selector(running.format("root/patrol", "RUNNING"), timeout=10_000)
+                tab.wait_for_selector(running.format("root/patrol", "RUNNING"), timeout=WAIT_MS)
                 assert hl.current == "patrol"
                 assert tab.locator(running.format("root/charge?/low", "FAILURE")).count() == 1
                 # The battery runs low: the tree takes the charging branch, and the page
                 # follows tick by tick.
                 hl.blackboard.set("battery/percentage", 10.0, writer="hal:battery")
                 tab.wait_for_selector(running.format("root/charge?/charge", "RUNNING"),
-                                      timeout=10_000)
+                                      timeout=WAIT_MS)
                 tab.wait_for_selector(running.format("root/patrol", "INVALID"),
-                                      timeout=10_000)
-                tab.wait_for_selector('#locks tr[data-lock="lift"]', timeout=10_000)
+                                      timeout=WAIT_MS)
+                tab.wait_for_selector('#locks tr[data-lock="lift"]', timeout=WAIT_MS)
                 # A stale entry is marked as such in the blackboard table.
                 hl.blackboard.set("battery/percentage", 10.0, writer="hal:battery",
                                   stale=True)
                 tab.wait_for_selector(
                     '#blackboard tr[data-key="battery/percentage"][data-stale="true"]',
-                    timeout=10_000)
+                    timeout=WAIT_MS)
                 assert tab.locator('#events li[data-kind="switch_completed"]').count() >= 1
                 # A fleet process's view: its sections as live tables.
                 tab.wait_for_selector('#fleet table[data-section="agents"] tbody tr',
-                                      timeout=10_000)
+                                      timeout=WAIT_MS)
                 messages.append({"performative": "cfp", "sender": "orders", "receiver": "*"})
                 tab.wait_for_selector('#fleet table[data-section="messages"] tbody tr',
-                                      timeout=10_000)
+                                      timeout=WAIT_MS)
             finally:
                 tab.close()
         plane.close()

@@ -15,6 +15,9 @@ from robots.mavlink_endpoint import MavlinkEndpoint
 from robots.sim import Simulation
 from robots.world import world_from_dict
 
+# One pytest-xdist worker runs this module: its module-scoped rig is built once.
+pytestmark = pytest.mark.xdist_group("test_mavlink_hal_contract")
+
 _PORT: list[int] = []
 
 

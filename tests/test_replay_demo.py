@@ -31,6 +31,9 @@ from behaviours.demos.warehouse import CONFIG_DIR, run_sim_demo  # noqa: E402
 from behaviours.emili import Commanded  # noqa: E402
 from behaviours.logics import LIGHT_BLUE  # noqa: E402
 
+# One pytest-xdist worker runs this module: its module-scoped rig is built once.
+pytestmark = pytest.mark.xdist_group("test_replay_demo")
+
 DEMO_SWITCHES = ["idle", "tour", "commanded", "maintenance"]
 
 

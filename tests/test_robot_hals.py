@@ -37,6 +37,9 @@ from robots.node import SimNode  # noqa: E402
 from robots.sim import Simulation  # noqa: E402
 from robots.world import world_from_dict  # noqa: E402
 
+# One pytest-xdist worker runs this module: its module-scoped rig is built once.
+pytestmark = pytest.mark.xdist_group("test_robot_hals")
+
 T = TypeVar("T")
 EMILI = f"hal_emili_{os.getpid()}"
 KOBUKI = f"hal_kobuki_{os.getpid()}"
