@@ -3,7 +3,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.setup-done
 
-.PHONY: setup test demo bench lint clean
+.PHONY: setup test test-stress demo bench lint clean
 setup: $(STAMP)
 
 $(STAMP): pyproject.toml Makefile
@@ -11,8 +11,15 @@ $(STAMP): pyproject.toml Makefile
 	touch $(STAMP)
 
 # Every extra is installed here, so a test that would skip for a missing one fails instead.
+# Four pytest-xdist workers on two cores: most tests wait on processes, DDS and sim time.
+# (scripts/test_stress.py runs the same command.)
 test: $(STAMP)
-	BEEHAVE_REQUIRE_EXTRAS=1 $(PY) -m pytest -q
+	BEEHAVE_REQUIRE_EXTRAS=1 $(PY) -m pytest -q -n 4 --dist loadgroup
+
+# The suite ten times on a clean clone of HEAD beside a busy loop per core; reports every
+# test that failed in any run.
+test-stress: $(STAMP)
+	$(PY) scripts/test_stress.py --runs 10
 
 demo: $(STAMP)
 	$(VENV)/bin/beehave demo

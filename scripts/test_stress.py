@@ -1,0 +1,120 @@
+"""`make test-stress`: the suite, N times, on a clean clone of HEAD, beside a CPU hog.
+
+A busy loop per core (a process each, killed by PID at the end) competes with the suite
+for the whole run, as other work does on a shared CI machine. Each run is the exact command
+`make test` runs. The report gives each run's wall time and counts, and every test that
+failed or errored in any run, with how often. Exit status 0 only when every run passed.
+
+    python scripts/test_stress.py [--runs 10] [--hogs N] [--no-clone] [-- PYTEST ARGS]
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+# The same as the Makefile's `test` target (keep the two in step).
+PYTEST = ["-m", "pytest", "-q", "-n", "4", "--dist", "loadgroup"]
+
+
+def start_hogs(count: int) -> list[subprocess.Popen[bytes]]:
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"],
+                             stdin=subprocess.DEVNULL) for _ in range(count)]
+
+
+def stop_hogs(hogs: list[subprocess.Popen[bytes]]) -> None:
+    for hog in hogs:
+        if hog.poll() is None:
+            os.kill(hog.pid, signal.SIGKILL)
+        hog.wait()
+
+
+def failures(junit: Path) -> tuple[int, list[str]]:
+    """(tests run, ids of those that failed or errored) from a JUnit XML report."""
+    if not junit.exists():
+        return 0, ["<no report: pytest did not finish>"]
+    root = ET.parse(junit).getroot()
+    ran, bad = 0, []
+    for case in root.iter("testcase"):
+        ran += 1
+        if case.find("failure") is not None or case.find("error") is not None:
+            bad.append(f"{case.get('classname')}::{case.get('name')}")
+    return ran, bad
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=10)
+    parser.add_argument("--hogs", type=int, default=os.cpu_count() or 2,
+                        help="busy-loop processes beside the suite (default: one per core)")
+    parser.add_argument("--no-clone", dest="clone", action="store_false",
+                        help="run in this checkout instead of a clean clone of HEAD")
+    parser.add_argument("pytest_args", nargs="*")
+    args = parser.parse_args()
+
+    work = Path(tempfile.mkdtemp(prefix="beehave-stress-"))
+    where = ROOT
+    if args.clone:
+        where = work / "clone"
+        subprocess.run(["git", "clone", "-q", "--no-hardlinks", str(ROOT), str(where)],
+                       check=True)
+        head = subprocess.check_output(["git", "-C", str(where), "rev-parse", "--short",
+                                        "HEAD"], text=True).strip()
+        print(f"clean clone of {head} in {where}")
+    env = dict(os.environ, BEEHAVE_REQUIRE_EXTRAS="1")
+    env.pop("ROS_DOMAIN_ID", None)
+    # The clone's packages first (python -m puts the working directory on sys.path).
+    env["PYTHONPATH"] = str(where)
+    counts: collections.Counter[str] = collections.Counter()
+    rows = []
+    hogs = start_hogs(args.hogs)
+    print(f"{len(hogs)} busy-loop processes running beside the suite: "
+          f"{[h.pid for h in hogs]}")
+    try:
+        for run in range(1, args.runs + 1):
+            junit = work / f"run{run}.xml"
+            start = time.monotonic()
+            done = subprocess.run([sys.executable, *PYTEST, "-p", "no:cacheprovider",
+                                   f"--junitxml={junit}", *args.pytest_args],
+                                  cwd=where, env=env, stdin=subprocess.DEVNULL,
+                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            wall = time.monotonic() - start
+            ran, bad = failures(junit)
+            counts.update(bad)
+            summary = next((line for line in reversed(done.stdout.splitlines())
+                            if " in " in line and ("passed" in line or "failed" in line)),
+                           f"exit {done.returncode}")
+            rows.append((run, wall, ran, len(bad), done.returncode))
+            print(f"run {run:2d}: {wall:6.1f} s  exit {done.returncode}  {summary}", flush=True)
+            if bad:
+                (work / f"run{run}.log").write_text(done.stdout)
+                for test in bad:
+                    print(f"         failed: {test}")
+    finally:
+        stop_hogs(hogs)
+    walls = sorted(r[1] for r in rows)
+    green = sum(1 for r in rows if r[4] == 0)
+    print(f"\n{green} of {len(rows)} runs green beside {len(hogs)} busy loops; wall time "
+          f"median {walls[len(walls) // 2]:.1f} s, max {walls[-1]:.1f} s")
+    if counts:
+        print("tests that failed (times):")
+        for test, n in counts.most_common():
+            print(f"  {n}x  {test}")
+        print(f"logs of the failed runs: {work}")
+    else:
+        shutil.rmtree(work, ignore_errors=True)
+    return 0 if green == len(rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
