@@ -250,6 +250,7 @@ class _Drive(Action):
     uses_odometry = True
     _cmd: Any = None
     _lockstep: Any = None
+    _cmd_topic: str = ""
     _limit: SpeedLimit | None = None
 
     def run(self) -> Any:
@@ -292,6 +293,7 @@ class _Drive(Action):
         if isinstance(clock, SimClock) and node is not None:
             line = _LockstepLine.of(node)
             self._participant = f"{node.get_fully_qualified_name()}/{self.path}#{id(self):x}"
+            self._cmd_topic = node.resolve_topic_name(topics.CMD_VEL)
             self._lockstep = line.publisher
             # Held before the first command: the sim may not run past the first period
             # until this action has spoken again.
@@ -314,8 +316,14 @@ class _Drive(Action):
             # ignores its interrupt must not keep holding the simulation.
             until_s = None
         if self._lockstep is not None:
-            self._lockstep.publish(String(data=json.dumps(
-                {"participant": self._participant, "until_s": until_s})))
+            announcement: dict[str, Any] = {"participant": self._participant,
+                                            "until_s": until_s}
+            if until_s is None:
+                # Released at the end of a drive: the simulator stops the wheels as it lets
+                # go. The zero command went out first, but on cmd_vel, and nothing orders
+                # two topics: a release that overtook it let the sim run on the old command.
+                announcement["stop"] = self._cmd_topic
+            self._lockstep.publish(String(data=json.dumps(announcement)))
 
     def _let_go(self) -> None:
         try:

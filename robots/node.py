@@ -371,13 +371,16 @@ class SimNode:
             if factory is not None:
                 self._factory_pub = clock_node.create_publisher(String, topics.FACTORY_STATE,
                                                                 STATE_QOS)
+            # A release may stop a robot (see _on_lockstep): its cmd_vel topic names it.
+            self._cmd_vel_topics: dict[str, _RobotPorts] = {}
             if lockstep:
                 clock_node.create_subscription(String, topics.LOCKSTEP, self._on_lockstep,
                                                LOCKSTEP_QOS)
             self.ports: dict[str, _RobotPorts] = {}
             for ns, robot in sim.robots.items():
                 ports = _PORTS[type(robot)]
-                self.ports[ns] = ports(self, robot, self._node(ns))
+                self.ports[ns] = port = ports(self, robot, self._node(ns))
+                self._cmd_vel_topics[port.node.resolve_topic_name(topics.CMD_VEL)] = port
             self._removers = [
                 sim.on_step(self._on_clock_step),
                 sim.on_step(self._on_fast_step, rate_hz=topics.ODOM_RATE_HZ),
@@ -483,10 +486,18 @@ class SimNode:
             if until is not None and not (isinstance(until, int | float)
                                           and math.isfinite(until)):
                 raise ValueError("until_s must be a finite number or null")
+            stop = data.get("stop")
+            if stop is not None and (until is not None or stop not in self._cmd_vel_topics):
+                raise ValueError(f"stop names the cmd_vel topic of a robot here, with until_s "
+                                 f"null: one of {sorted(self._cmd_vel_topics)}")
         except (ValueError, KeyError, TypeError) as exc:
             self._reject("/", topics.LOCKSTEP, f"{msg.data!r:.120} ({exc})",
-                         '{"participant": "<id>", "until_s": <sim time s> | null}')
+                         '{"participant": "<id>", "until_s": <sim time s> | null, '
+                         '"stop": "<cmd_vel topic>" (optional, with null)}')
             return
+        if stop is not None:
+            # Before the release: the sim must not step on with the robot's old command.
+            self._cmd_vel_topics[stop].robot.set_cmd_vel(0.0, 0.0)
         with self._lock:
             if until is None:
                 self._participants.pop(participant, None)

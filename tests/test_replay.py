@@ -83,6 +83,18 @@ def test_a_changed_logic_is_reported_at_its_first_divergence(tmp_path: Path) -> 
     assert "debug.set_leds" in str(div) and f"t={div.t_s:.3f} s" in str(div)
 
 
+def test_the_replay_check_fixture_passes_the_same_logic_and_fails_a_changed_one(
+        tmp_path: Path, replay_check: Any) -> None:
+    """The test kit's regression check (docs/testing.md): a reference recording, the same
+    configuration passes, a changed threshold fails naming the first divergence."""
+    path = tmp_path / "bot.mcap"
+    _record_live(path)
+    result = replay_check(path, _config())
+    assert result.divergence is None and result.fed > 10
+    with pytest.raises(pytest.fail.Exception, match=r"diverged .*debug\.set_leds"):
+        replay_check(path, _config(threshold=33.0))
+
+
 def test_paced_replay_follows_the_recorded_times(tmp_path: Path) -> None:
     path = tmp_path / "bot.mcap"
     _record_live(path)

@@ -430,6 +430,28 @@ def test_lockstep_refuses_a_malformed_announcement(rig: Rig) -> None:
     assert not rig.node.participants
 
 
+def test_a_release_with_stop_zeroes_the_wheels_before_the_sim_runs_on(rig: Rig) -> None:
+    """The release names the robot's cmd_vel: the sim stops that robot as it lets go, so a
+    release that overtakes the zero command on cmd_vel (no order between two topics) cannot
+    let the robot drive on with its old one."""
+    me = unique("driver")
+    lock = rig.publisher(String, topics.LOCKSTEP)
+    robot = rig.sim.robot(rig.emili)
+    hold_s = rig.sim.time_s + 0.2
+    lock.publish(lockstep(me, hold_s))
+    assert rig.probe.wait(lambda: me in rig.node.participants)
+    robot.set_cmd_vel(0.4, 0.0)  # the command the robot drove on, not yet overtaken
+    lock.publish(String(data=json.dumps({"participant": me, "until_s": None,
+                                         "stop": rig.topic(rig.emili, "cmd_vel")})))
+    assert rig.probe.wait(lambda: me not in rig.node.participants)
+    assert robot.cmd_vel() == (0.0, 0.0)
+    # A stop that names no robot of this simulation is refused, naming the valid ones.
+    before = rig.node.rejected[topics.LOCKSTEP]
+    lock.publish(String(data=json.dumps({"participant": me, "until_s": None,
+                                         "stop": "/nobody/cmd_vel"})))
+    assert rig.probe.wait(lambda: rig.node.rejected[topics.LOCKSTEP] == before + 1)
+
+
 def stamp_s(msg: Clock) -> float:
     return float(msg.clock.sec + msg.clock.nanosec * 1e-9)
 
