@@ -60,6 +60,10 @@ class WallClock:
         ``predicate()`` turns true when it may go on (an event set, a child ended)."""
         return nullcontext()
 
+    def free_running(self) -> AbstractContextManager[None]:
+        """Inside the block time runs by itself (a virtual clock jumps): for shutdowns."""
+        return nullcontext()
+
 
 
 class SimClock(WallClock):
@@ -183,6 +187,7 @@ class VirtualClock(WallClock):
         self._loops: list[_VirtualLoop] = []
         self._jumper: threading.Thread | None = None
         self._autojump = False
+        self._free_running = 0
         #: How many deadlines the clock has stepped to (by hand or by autojump).
         self.jumps = 0
         if autojump:
@@ -437,15 +442,38 @@ class VirtualClock(WallClock):
     def autojump(self, on: bool) -> None:
         with self._changed:
             self._autojump = bool(on)
+        self._run_jumper()
+
+    def _run_jumper(self) -> None:
+        """Start the jumping thread when someone wants jumps, join it when nobody does."""
+        with self._changed:
+            wanted = self._autojump or self._free_running > 0
             jumper = self._jumper
-            if on and jumper is None:
-                self._jumper = threading.Thread(target=self._jump_loop, daemon=True,
-                                                name="beehave-clock-autojump")
-                self._jumper.start()
+            if wanted and jumper is None:
+                jumper = self._jumper = threading.Thread(
+                    target=self._jump_loop, daemon=True, name="beehave-clock-autojump")
+                jumper.start()
+                return
+            if not wanted:
+                self._jumper = None
             self._changed.notify_all()
-        if not on and jumper is not None and jumper is not threading.current_thread():
+        if not wanted and jumper is not None and jumper is not threading.current_thread():
             jumper.join()
-            self._jumper = None
+
+    @contextmanager
+    def free_running(self) -> Iterator[None]:
+        """Autojump inside the block, whatever :attr:`autojump` says. The managers'
+        ``shutdown`` uses it: safe states and unloads that sleep or time out on this clock
+        must end, even when the test moves time by hand."""
+        with self._changed:
+            self._free_running += 1
+        self._run_jumper()
+        try:
+            yield
+        finally:
+            with self._changed:
+                self._free_running -= 1
+            self._run_jumper()
 
     def close(self) -> None:
         """Stop autojumping (joins the clock's thread)."""
@@ -454,7 +482,7 @@ class VirtualClock(WallClock):
     def _jump_loop(self) -> None:
         while True:
             with self._changed:
-                if not self._autojump:
+                if self._jumper is not threading.current_thread():
                     return
                 step = None if self._running_locked() else self._next_deadline_locked()
                 if step is None:

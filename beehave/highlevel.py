@@ -212,6 +212,12 @@ class HighLevelBehaviorManager:
             thread.join(1.0)
 
     def _shutdown_now(self) -> None:
+        # On a virtual clock, time runs by itself meanwhile: safe states that sleep must
+        # end although the test moves time by hand.
+        with self.clock.free_running():
+            self._stop_all()
+
+    def _stop_all(self) -> None:
         deadline = time.monotonic() + self.stop_timeout_s
         try:
             with self._cond:

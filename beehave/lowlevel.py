@@ -517,6 +517,12 @@ class LowLevelBehaviorManager:
         culprit. The loop's thread is then abandoned to the code that blocks it; should it
         ever return, the teardown finishes there (safe states are not repeated).
         """
+        # On a virtual clock, time runs by itself meanwhile: a HAL's safe state or a
+        # logic's cleanup that sleeps must end although the test moves time by hand.
+        with self.clock.free_running():
+            self._shutdown()
+
+    def _shutdown(self) -> None:
         with self._phase_lock:
             if self._phase is _Phase.NEW:
                 self._phase = _Phase.STOPPED

@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 
 from beehave.blackboard import Blackboard
+from beehave.clock import VirtualClock
 from beehave.errors import HALError, InvalidParameters, UnknownHAL
 from beehave.events import Event, EventBus, EventKind
 from beehave.hal import HAL, HALManager
@@ -587,10 +588,12 @@ def test_a_sub_logic_that_ends_late_does_not_leak_its_hal_reference_to_the_hando
     assert safe == [1]
 
 
-def test_a_second_switch_keeps_the_grace_period_of_the_hals_it_hands_over() -> None:
+def test_a_second_switch_keeps_the_grace_period_of_the_hals_it_hands_over(
+        clock: VirtualClock) -> None:
     """a → b → c: the first handover is still being released (another HAL's slow safe
     state) when b hands over "y"; c asks for "y" well within hal_handover_s of its switch,
-    so "y" is never unloaded and loaded again."""
+    so "y" is never unloaded and loaded again. On the test kit's virtual clock: the
+    periods below are exact, on a loaded machine too."""
     loads: list[str] = []
 
     class X(HAL):
@@ -624,15 +627,21 @@ def test_a_second_switch_keeps_the_grace_period_of_the_hals_it_hands_over() -> N
             await self.hal("y")
             await asyncio.Event().wait()
 
-    ll = LowLevelBehaviorManager(default="a", hal_handover_s=1.5, stop_timeout_s=1.0)
+    ll = LowLevelBehaviorManager(default="a", hal_handover_s=1.5, stop_timeout_s=1.0,
+                                 clock=clock)
     for name, cls in (("a", A), ("b", B), ("c", C)):
         ll.register(name, cls)
     ll.hals.register(X)
     ll.hals.register(Y)
     with ll:
-        assert wait_until(lambda: ll.hals.refs("y") == 1)
+        assert clock.run_until(lambda: ll.hals.refs("y") == 1, timeout_s=1.0)
         ll.switch("b")
-        assert wait_until(lambda: "x" not in ll.hals.loaded)  # a's grace is over: x unloads
+        # a's grace is over at 1.5 s: x unloads (its safe state takes 0.5 s more).
+        assert clock.run_until(lambda: "x" not in ll.hals.loaded, timeout_s=10.0)
+        assert clock.now() == 1.5
         ll.switch("c")
-        assert wait_until(lambda: ll.hals.refs("y") == 1 and ll.hals.holds("y", ll.logic))
+        assert clock.run_until(lambda: ll.hals.refs("y") == 1 and ll.hals.holds("y", ll.logic),
+                               timeout_s=10.0)
+        # c took y at 2.4 s (0.9 s after its switch); b's handover let go of it at 3.0 s.
+        assert clock.now() == 3.0
         assert loads == ["y"], "y was unloaded and loaded again within its grace period"
