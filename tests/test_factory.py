@@ -460,6 +460,11 @@ class TestFactoryHAL:
             await manager.load("factory")
             await contract.settle()
             board = manager.blackboard
+            # The first state this HAL hears may predate the pick-up the first test saw (a
+            # loaded machine delivers the latched one late): wait for the current one.
+            deadline = time.monotonic() + 10.0
+            while not board.get("factory/loaded") and time.monotonic() < deadline:
+                await asyncio.sleep(0.01)
             return {k: board.get(k) for k in ("factory/load", "factory/loaded",
                                               "factory/zone", "factory/zone_max_speed_mps",
                                               "factory/charging_at")}
