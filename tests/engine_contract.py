@@ -115,7 +115,7 @@ class EngineContract(abc.ABC):
                 return False
             return True
 
-        if not wait_until(shows_it, 5):
+        if not wait_until(shows_it):
             self.check_description_while_running(hl.snapshot()["top"]["engine"])
         hl.switch("idle")
         assert behavior.status is Status.INTERRUPTED

@@ -55,14 +55,14 @@ def test_a_robot_with_an_agent_section_is_found_and_reaches_its_behaviours() -> 
     with RosContext() as ros, Agent("cfg_seeker", ros=ros) as seeker:
         with Robot(config) as robot:
             assert wait_until(lambda: bool(seeker.directory.search("transport",
-                                                                   zone="north")), 30.0), \
+                                                                   zone="north"))), \
                 "the robot's agent never appeared"
             assert robot.high is not None
             who = robot.high.switch("who")
             assert who.wait(30.0)
             assert who.result == "cfg_atv"
         # It said goodbye when the robot stopped.
-        assert wait_until(lambda: not seeker.directory.alive("cfg_atv"), 30.0), \
+        assert wait_until(lambda: not seeker.directory.alive("cfg_atv")), \
             "the robot's agent stayed in the directory"
 
 

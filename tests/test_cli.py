@@ -160,7 +160,7 @@ def test_an_error_while_leaving_the_robot_is_reported_and_everything_stops(
     assert "raised while shutting the robot down" in err, err
     # Everything the robot started has ended (ROS executor, low-level loop, workers).
     assert wait_until(lambda: not [t for t in threading.enumerate()
-                                   if t not in before and t.is_alive()], 5), \
+                                   if t not in before and t.is_alive()]), \
         [t.name for t in threading.enumerate() if t not in before]
     assert signal.getsignal(signal.SIGINT) is handler  # restored
 
@@ -179,7 +179,7 @@ def test_a_failed_start_leaves_nothing_running(monkeypatch: pytest.MonkeyPatch,
     assert ("behaviors.boom: behavior 'boom': Explodes.__init__ raised RuntimeError"
             in capfd.readouterr().err)
     assert wait_until(lambda: not [t for t in threading.enumerate()
-                                   if t not in before and t.is_alive()], 5), \
+                                   if t not in before and t.is_alive()]), \
         [t.name for t in threading.enumerate() if t not in before]
 
 

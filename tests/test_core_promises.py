@@ -145,7 +145,7 @@ def test_concurrent_storm_leaves_exactly_one_behaviour_running() -> None:
         assert hl.top is not None and hl.top.status is Status.RUNNING
         assert hl.current in ("counted", "idle")
         assert most == 1  # never two top-level behaviours at once
-    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before], 5)
+    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before])
 
 
 # ---- 2. the type lock covers the forced safe state --------------------------------------
@@ -183,12 +183,12 @@ def test_stuck_action_keeps_its_type_until_its_forced_safe_state_returned() -> N
             assert preempt_failed.wait(3.0)
             assert stubborn.status is Status.STUCK and stubborn.safe_state_pending
             stubborn.release.set()  # run() returns; the safe state still runs
-            assert wait_until(lambda: len(busy_seen) >= 3, 3.0)
+            assert wait_until(lambda: len(busy_seen) >= 3)
             assert not started_after
             assert "safe_state() has not returned" in str(busy_seen[-1])
             assert hl.snapshot()["locks"]["driving"]["safe_state_pending"] is True
             stubborn.safe_release.set()
-            assert wait_until(lambda: bool(started_after), 3.0)
+            assert wait_until(lambda: bool(started_after))
     finally:
         stubborn.release.set()
         stubborn.safe_release.set()
@@ -349,7 +349,7 @@ def test_shutdown_from_inside_a_behaviour_is_deferred(hl: HighLevelBehaviorManag
 
     hl.register("quitter", Quitter)
     hl.switch("quitter")
-    assert wait_until(lambda: hl.snapshot()["state"] == "stopped", 3.0), hl.snapshot()["state"]
+    assert wait_until(lambda: hl.snapshot()["state"] == "stopped"), hl.snapshot()["state"]
     assert outcome == ["returned"]
     hl.shutdown()  # waits for the deferred one; the fixture checks no thread is left
 
@@ -585,7 +585,7 @@ def test_stuck_items_are_forgotten_once_their_threads_end() -> None:
             hl.switch("top", eps_s=rng.uniform(-0.0002, 0.0012))
             time.sleep(0.003)
             hl.switch("idle")
-        assert wait_until(lambda: not hl.snapshot()["stuck"], 3.0), hl.snapshot()["stuck"]
+        assert wait_until(lambda: not hl.snapshot()["stuck"]), hl.snapshot()["stuck"]
 
 
 def test_huge_timeouts_are_refused_or_mean_forever(hl: HighLevelBehaviorManager) -> None:

@@ -393,7 +393,7 @@ def test_stress_proposers_in_threads_never_break_the_cycle() -> None:
     Holder.seen = None
     stop = threading.Event()
     with ll:
-        assert wait_until(lambda: Holder.seen is not None, 5)
+        assert wait_until(lambda: Holder.seen is not None)
         arb = Holder.seen
         assert arb is not None
 
@@ -408,7 +408,7 @@ def test_stress_proposers_in_threads_never_break_the_cycle() -> None:
         threads = [threading.Thread(target=proposer, args=(i,)) for i in range(len(names))]
         for th in threads:
             th.start()
-        assert wait_until(lambda: arb.cycles > 300, 20)
+        assert wait_until(lambda: arb.cycles > 300)
         stop.set()
         for th in threads:
             th.join()
@@ -458,14 +458,14 @@ class _Idle(Logic):
 
 def test_the_arbiter_cycles_at_its_rate_and_stops_the_actuator_at_unload(
         low_level: LowLevelBehaviorManager) -> None:
-    assert wait_until(lambda: Recorder.sent_by_all.count((0.2, 0.0)) >= 5, 5)
+    assert wait_until(lambda: Recorder.sent_by_all.count((0.2, 0.0)) >= 5)
     assert low_level.blackboard.get("fusion/cmd_vel/winner") == {"source": "wander",
                                                                   "value": (0.2, 0.0)}
     low_level.switch("none")  # nobody holds the arbiter any more: unloaded, safe state
-    assert wait_until(lambda: arbiter_name("cmd_vel") not in low_level.hals.loaded, 5)
+    assert wait_until(lambda: arbiter_name("cmd_vel") not in low_level.hals.loaded)
     # The manager lists it as gone before its safe state has run (the unload finishes in
     # a task of its own): wait for the stop, then check nothing is sent after it.
-    assert wait_until(lambda: Recorder.sent_by_all[-1] == STOP, 5)
+    assert wait_until(lambda: Recorder.sent_by_all[-1] == STOP)
     sent = len(Recorder.sent_by_all)
     time.sleep(0.1)  # ten of its cycles
     assert len(Recorder.sent_by_all) == sent and Recorder.sent_by_all[-1] == STOP
@@ -477,11 +477,11 @@ def test_a_garbage_proposal_does_not_crash_the_running_arbiter(
         low_level: LowLevelBehaviorManager) -> None:
     events: list[Event] = []
     low_level.events.subscribe(events.append)
-    assert wait_until(lambda: Recorder.sent_by_all.count((0.2, 0.0)) >= 2, 5)
+    assert wait_until(lambda: Recorder.sent_by_all.count((0.2, 0.0)) >= 2)
     low_level.blackboard.set("fusion/cmd_vel/joystick", {"v": 1}, writer="teleop")
-    assert wait_until(lambda: any(e.subject == "fusion:cmd_vel:joystick" for e in events), 5)
+    assert wait_until(lambda: any(e.subject == "fusion:cmd_vel:joystick" for e in events))
     count = len(Recorder.sent_by_all)
-    assert wait_until(lambda: len(Recorder.sent_by_all) > count + 3, 5)
+    assert wait_until(lambda: len(Recorder.sent_by_all) > count + 3)
     assert set(Recorder.sent_by_all[count:]) == {(0.2, 0.0)}
     hal = low_level.hals.loaded[arbiter_name("cmd_vel")]
     assert hal.restarts == 0 and hal.status.name == "RUNNING"

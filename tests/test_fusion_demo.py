@@ -54,36 +54,36 @@ def winner(ll: LowLevelBehaviorManager) -> dict[str, Any]:
 
 def test_blind_sensors_hold_the_robot_then_wander_drives(ll: LowLevelBehaviorManager) -> None:
     # No bumper data yet: the safety source proposes to stand still, wander is overruled.
-    assert wait_until(lambda: winner(ll) == {"source": "bumper", "value": (0.0, 0.0)}, 5)
+    assert wait_until(lambda: winner(ll) == {"source": "bumper", "value": (0.0, 0.0)})
     assert ll.blackboard.get("fusion/cmd_vel/wander") == (0.3, 0.0)
     for key, value in CLEAR.items():
         ll.blackboard.set(key, value)
-    assert wait_until(lambda: winner(ll) == {"source": "wander", "value": (0.3, 0.0)}, 5)
+    assert wait_until(lambda: winner(ll) == {"source": "wander", "value": (0.3, 0.0)})
 
 
 def test_a_left_bump_backs_off_turns_right_then_hands_back(ll: LowLevelBehaviorManager) -> None:
     for key, value in CLEAR.items():
         ll.blackboard.set(key, value)
-    assert wait_until(lambda: winner(ll).get("source") == "wander", 5)
+    assert wait_until(lambda: winner(ll).get("source") == "wander")
     ll.blackboard.set("bumper/left", True)
-    assert wait_until(lambda: winner(ll) == {"source": "bumper", "value": (-0.1, 0.0)}, 5)
+    assert wait_until(lambda: winner(ll) == {"source": "bumper", "value": (-0.1, 0.0)})
     ll.blackboard.set("bumper/left", False)
-    assert wait_until(lambda: winner(ll) == {"source": "bumper", "value": (0.0, -1.0)}, 5)
-    assert wait_until(lambda: winner(ll).get("source") == "wander", 5)
+    assert wait_until(lambda: winner(ll) == {"source": "bumper", "value": (0.0, -1.0)})
+    assert wait_until(lambda: winner(ll).get("source") == "wander")
 
 
 def test_the_joystick_beats_wander_but_not_the_bumper(ll: LowLevelBehaviorManager) -> None:
     for key, value in CLEAR.items():
         ll.blackboard.set(key, value)
     ll.blackboard.set("joystick/cmd_vel", [0.1, 0.5])
-    assert wait_until(lambda: winner(ll) == {"source": "joystick", "value": (0.1, 0.5)}, 5)
+    assert wait_until(lambda: winner(ll) == {"source": "joystick", "value": (0.1, 0.5)})
     ll.blackboard.set("cliff/center", True)
-    assert wait_until(lambda: winner(ll) == {"source": "bumper", "value": (-0.1, 0.0)}, 5)
+    assert wait_until(lambda: winner(ll) == {"source": "bumper", "value": (-0.1, 0.0)})
     ll.blackboard.set("cliff/center", False)
     ll.blackboard.set("joystick/cmd_vel", [0.2, 0.0])
-    assert wait_until(lambda: winner(ll) == {"source": "joystick", "value": (0.2, 0.0)}, 5)
+    assert wait_until(lambda: winner(ll) == {"source": "joystick", "value": (0.2, 0.0)})
     # The teleop falls silent: after its max age, wander drives again.
-    assert wait_until(lambda: winner(ll).get("source") == "wander", 5)
+    assert wait_until(lambda: winner(ll).get("source") == "wander")
 
 
 def test_a_bad_joystick_value_is_refused_and_wander_goes_on(
@@ -91,6 +91,6 @@ def test_a_bad_joystick_value_is_refused_and_wander_goes_on(
     for key, value in CLEAR.items():
         ll.blackboard.set(key, value)
     ll.blackboard.set("joystick/cmd_vel", "forward!")
-    assert wait_until(lambda: "'forward!' is not a pair of numbers" in caplog.text, 5)
-    assert wait_until(lambda: winner(ll).get("source") == "wander", 5)
+    assert wait_until(lambda: "'forward!' is not a pair of numbers" in caplog.text)
+    assert wait_until(lambda: winner(ll).get("source") == "wander")
     assert ll.current == "demo"

@@ -79,24 +79,24 @@ def test_the_bumper_reflex_stops_and_backs_off_the_kobuki_while_wander_pushes_on
         low = robot.low
         assert low is not None
         # Wander drives it forward until the bumper hits the wall.
-        assert wait_until(lambda: kobuki.pose().x_m > start_x + 0.2, 10)
-        assert wait_until(lambda: kobuki.bumpers().center, 10)
+        assert wait_until(lambda: kobuki.pose().x_m > start_x + 0.2)
+        assert wait_until(lambda: kobuki.bumpers().center)
         hit_x = kobuki.pose().x_m
         assert hit_x < WALL_FACE_X_M - Kobuki.radius_m + 0.02  # the wall held, no tunnelling
         # The safety proposal wins: the robot backs off although wander still proposes
         # full speed ahead (fresh, on the blackboard).
-        assert wait_until(lambda: kobuki.pose().x_m < hit_x - 0.05, 5)
+        assert wait_until(lambda: kobuki.pose().x_m < hit_x - 0.05)
         wander = low.blackboard.entry("fusion/cmd_vel/wander")
         assert wander is not None and not wander.stale and list(wander.value) == [0.3, 0.0]
         assert kobuki.cmd_vel()[0] < 0
         assert not kobuki.bumpers().center
         # Then it turns away and hands back to wander, which drives again.
         yaw0 = kobuki.pose().yaw_rad
-        assert wait_until(lambda: abs(kobuki.pose().yaw_rad - yaw0) > 0.3, 5)
+        assert wait_until(lambda: abs(kobuki.pose().yaw_rad - yaw0) > 0.3)
         assert wait_until(lambda: low.blackboard.get("fusion/cmd_vel/winner", {}).get("source")
-                          == "wander", 5)
-        assert wait_until(lambda: kobuki.cmd_vel()[0] > 0.2, 5)
+                          == "wander")
+        assert wait_until(lambda: kobuki.cmd_vel()[0] > 0.2)
         assert heard[-1] == (0.3, 0.0)
     # Unloaded at shutdown, the arbiter's safe state sends zero: the last word on the bus.
-    assert wait_until(lambda: heard[-1] == (0.0, 0.0), 5)
+    assert wait_until(lambda: heard[-1] == (0.0, 0.0))
     assert (-0.1, 0.0) in heard and any(w != 0.0 for _, w in heard)  # backed off, turned

@@ -101,7 +101,7 @@ def test_a_top_level_behaviour_interrupted_from_outside_falls_back_to_idle(
     hl.register("patrol", Patrol)
     patrol = hl.switch("patrol")
     patrol.interrupt()  # not a switch: somebody stopped it directly
-    assert wait_until(lambda: hl.current == "idle", 5)
+    assert wait_until(lambda: hl.current == "idle")
     assert patrol.status is Status.INTERRUPTED
 
 

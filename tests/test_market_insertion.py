@@ -167,4 +167,4 @@ def test_a_rejected_bid_is_not_kept(ros: RosContext) -> None:
         assert outcome.state is TaskState.COMPLETED
         loser = hl_b.top if outcome.members["carry"] == "rej_a" else hl_a.top
         assert isinstance(loser, Inserting)
-        assert wait_until(lambda: not loser.proposals, 5.0), loser.proposals
+        assert wait_until(lambda: not loser.proposals), loser.proposals

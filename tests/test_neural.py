@@ -87,7 +87,7 @@ def test_background_training_learns_and_its_thread_is_joined() -> None:
     try:
         for _ in range(1500):
             policy.add_example(*toy_point(rng))
-        assert wait_until(lambda: policy.steps >= 1000, timeout_s=20)
+        assert wait_until(lambda: policy.steps >= 1000)
     finally:
         trainer.stop()
     assert not trainer.thread.is_alive()

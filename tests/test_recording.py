@@ -53,11 +53,11 @@ def test_every_beehave_channel_round_trips(tmp_path: Path) -> None:
         high.emit(Event(EventKind.ENDED, "tour/drive", "FAILED", RuntimeError("wheel"),
                         {"took_s": 1.5, "why": object()}))
         with low:
-            assert wait_until(lambda: hardware.led_color == "green", 2)
+            assert wait_until(lambda: hardware.led_color == "green")
             hardware.set_battery(10.0)
-            assert wait_until(lambda: hardware.led_color == "red", 2)
+            assert wait_until(lambda: hardware.led_color == "red")
         # The writer samples the sim clock while it runs.
-        assert wait_until(lambda: recorder.stats.written > 20, 2)
+        assert wait_until(lambda: recorder.stats.written > 20)
     rec = read_recording(path)
     assert not rec.truncated and rec.dropped() == 0
     assert rec.prefixes == ["r1", "r2"]
@@ -112,7 +112,7 @@ def test_ros_channels_read_back_with_the_ros2_decoder(tmp_path: Path) -> None:
             recorder.attach_topic(node, "odom", Odometry, prefix="rosbot")
             recorder.attach_topic(node, "scan", LaserScan, prefix="rosbot")
             assert wait_until(lambda: odom_pub.get_subscription_count() >= 1
-                              and scan_pub.get_subscription_count() >= 1, 5)
+                              and scan_pub.get_subscription_count() >= 1)
             for i in range(5):
                 msg = Odometry()
                 msg.header.frame_id = "map"
@@ -122,7 +122,7 @@ def test_ros_channels_read_back_with_the_ros2_decoder(tmp_path: Path) -> None:
             scan = LaserScan(angle_min=-1.0, ranges=[1.0, math.inf, 2.5])
             scan_pub.publish(scan)
             assert wait_until(lambda: recorder.stats.written >= 6
-                              or _queued(recorder) >= 6, 5)
+                              or _queued(recorder) >= 6)
             time.sleep(0.1)
     finally:
         ros.shutdown()
@@ -241,7 +241,7 @@ def test_a_slow_disk_drops_and_counts_instead_of_stalling(tmp_path: Path) -> Non
             for i in range(total):
                 board.set("count", i)
             hardware.set_battery(10.0)
-            assert wait_until(lambda: hardware.led_color == "red", 2)
+            assert wait_until(lambda: hardware.led_color == "red")
             assert not release.is_set()
             stats = rec.stats
             assert stats.dropped >= total - 200 - 1

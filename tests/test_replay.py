@@ -36,18 +36,18 @@ def _record_live(path: Path) -> DebugRobot:
     is switched once, as `beehave run --record` records it (without ROS)."""
     hardware = DebugRobot(battery_percentage=40.0)
     with recorded_low(path, _config(), hardware) as low:
-        assert wait_until(lambda: "debug" in low.hals.loaded, 2)
+        assert wait_until(lambda: "debug" in low.hals.loaded)
         # Each step waits for the logic's answer: a watcher coalesces changes it has
         # not taken yet, and this test is about replaying what happened, not a race.
         for pct, colour in ((35.0, "green"), (25.0, "green"), (15.0, "red"),
                             (10.0, "red"), (30.0, "green"), (12.0, "red")):
             hardware.set_battery(pct)
-            assert wait_until(lambda c=colour: hardware.led_color == c, 2)  # type: ignore[misc]
+            assert wait_until(lambda c=colour: hardware.led_color == c)  # type: ignore[misc]
             time.sleep(0.01)
         low.switch("display")
         for pct, text in ((50.0, "50%"), (18.0, "battery-low"), (60.0, "60%")):
             hardware.set_battery(pct)
-            assert wait_until(lambda t=text: hardware.display == t, 2)  # type: ignore[misc]
+            assert wait_until(lambda t=text: hardware.display == t)  # type: ignore[misc]
             time.sleep(0.01)
     return hardware
 

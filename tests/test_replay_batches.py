@@ -52,7 +52,7 @@ def _config() -> RobotConfig:
 def _record(path: Path) -> DebugRobot:
     hardware = DebugRobot(battery_percentage=40.0)
     with recorded_low(path, _config(), hardware) as low:
-        assert wait_until(lambda: hardware.display == "40%", 2)
+        assert wait_until(lambda: hardware.display == "40%")
         board = low.blackboard
 
         async def apart() -> None:  # seen apart, stamped close
@@ -139,7 +139,7 @@ def test_a_recording_without_batches_replays_by_wall_time(tmp_path: Path,
     with recorded_low(path, _config(), hardware):
         for pct, text in ((40.0, "40%"), (15.0, "battery-low"), (30.0, "30%")):
             hardware.set_battery(pct)
-            assert wait_until(lambda t=text: hardware.display == t, 2)  # type: ignore[misc]
+            assert wait_until(lambda t=text: hardware.display == t)  # type: ignore[misc]
             time.sleep(0.01)
     assert all("batch" not in w for w in _battery_writes(path))
     result = replay(path, _config(), speed=None)
@@ -179,7 +179,7 @@ def test_a_write_stored_before_the_step_counts_in_its_batch(tmp_path: Path) -> N
     path = tmp_path / "bot.mcap"
     hardware = DebugRobot()
     with recorded_low(path, _pair_config(), hardware) as low:
-        assert wait_until(lambda: "debug" in low.hals.loaded, 2)
+        assert wait_until(lambda: "debug" in low.hals.loaded)
 
         async def settled() -> None:
             for _ in range(10):
@@ -198,7 +198,7 @@ def test_a_write_stored_before_the_step_counts_in_its_batch(tmp_path: Path) -> N
         loop = low.loop
         assert loop is not None
         loop.call_soon_threadsafe(woken_then_written)
-        assert wait_until(lambda: hardware.display == "1/1", 2)
+        assert wait_until(lambda: hardware.display == "1/1")
     writes = {m.data["key"]: m.data["batch"] for m in read_recording(path).of(
         "/bot/beehave/blackboard") if m.data["key"].startswith("in/")}
     assert writes["in/x"] == writes["in/y"]

@@ -58,7 +58,7 @@ def demo(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureReques
     assert f"into {path}" in out.getvalue()
     picture = folder / "demo.png"
     assert picture.exists() and picture.stat().st_size > 5000
-    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before], 5)
+    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before])
     yield path
 
 

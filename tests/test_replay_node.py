@@ -100,7 +100,7 @@ def test_the_clock_knows_who_is_due_to_run() -> None:
 
     thread = threading.Thread(target=sleeper)
     thread.start()
-    assert wait_until(lambda: bool(clock.parked()), 2)
+    assert wait_until(lambda: bool(clock.parked()))
     assert not clock.ready()
     clock._now = 1.0  # moved without notifying: the sleeper is due, not yet running
     assert clock.ready()
@@ -144,6 +144,6 @@ def test_switch_requests_say_who_asked() -> None:
         hl.subscribe(lambda e: events.append(e) if e.kind.value == "switch_requested"
                      else None)
         hl.switch("asker")
-        assert wait_until(lambda: hl.current == "other", 2)
+        assert wait_until(lambda: hl.current == "other")
     sources = [(e.subject, e.detail["source"]) for e in events]
     assert sources == [("asker", "external"), ("other", "asker")]

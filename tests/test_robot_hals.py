@@ -323,9 +323,9 @@ def test_emili_leds_display_and_sound_reach_the_sim(
     leds.set_color(0.0, 0.5, 1.0)
     display.show("to dock")
     sound.play("chime")
-    assert wait_until(lambda: emili.leds() == (0.0, 0.5, 1.0), 5)
-    assert wait_until(lambda: emili.display() == "to dock", 5)
-    assert wait_until(lambda: any(s.name == "chime" for s in emili.sounds()), 5)
+    assert wait_until(lambda: emili.leds() == (0.0, 0.5, 1.0))
+    assert wait_until(lambda: emili.display() == "to dock")
+    assert wait_until(lambda: any(s.name == "chime" for s in emili.sounds()))
     # The state comes back from the robot onto the blackboard.
     assert fresh(ll, "leds/color", lambda v: v == (0.0, 0.5, 1.0))
     assert fresh(ll, "display/text", lambda v: v == "to dock")
@@ -333,7 +333,7 @@ def test_emili_leds_display_and_sound_reach_the_sim(
         leds.set_color(1.5, 0.0, 0.0)
     # Unloading the LED HAL runs its safe state: the strip goes dark.
     ll.call(ll.hals.release("emili_leds"))
-    assert wait_until(lambda: emili.leds() == (0.0, 0.0, 0.0), 5)
+    assert wait_until(lambda: emili.leds() == (0.0, 0.0, 0.0))
     display.show("")
 
 
@@ -343,11 +343,11 @@ def test_kobuki_leds_and_sound_reach_the_sim_and_bad_names_raise(
     kobuki = rig.sim.kobuki(KOBUKI)
     leds = load(ll, "kobuki_leds", kobuki_hals.KobukiLedsHAL)
     sound = load(ll, "kobuki_sound", kobuki_hals.KobukiSoundHAL)
-    assert wait_until(lambda: leds.node.count_subscribers(f"/{KOBUKI}/leds/led2") == 1, 5)
+    assert wait_until(lambda: leds.node.count_subscribers(f"/{KOBUKI}/leds/led2") == 1)
     leds.set("orange", "green")
     sound.play("cleaning_end")
-    assert wait_until(lambda: kobuki.leds() == ("orange", "green"), 5)
-    assert wait_until(lambda: any(s.name == "cleaning_end" for s in kobuki.sounds()), 5)
+    assert wait_until(lambda: kobuki.leds() == ("orange", "green"))
+    assert wait_until(lambda: any(s.name == "cleaning_end" for s in kobuki.sounds()))
     with pytest.raises(CommandOutOfRange) as err:
         leds.set("green", "purple")
     assert str(err.value) == ("HAL 'kobuki_leds': unknown LED2 colour 'purple'; valid: off, "
@@ -357,7 +357,7 @@ def test_kobuki_leds_and_sound_reach_the_sim_and_bad_names_raise(
     assert kobuki.leds() == ("orange", "green")  # nothing was sent
     assert kobuki_hals.LED_COLORS == LED_COLORS and kobuki_hals.SOUNDS == Kobuki.sound_names
     ll.call(ll.hals.release("kobuki_leds"))  # safe state: both off
-    assert wait_until(lambda: kobuki.leds() == ("off", "off"), 5)
+    assert wait_until(lambda: kobuki.leds() == ("off", "off"))
 
 
 class BumpLeds(Logic):
@@ -379,21 +379,21 @@ def test_a_logic_reacts_to_the_bumper_of_the_simulated_kobuki(rig: Rig) -> None:
         ll.hals.register(cls)
     ll.register("bump_leds", BumpLeds)
     with ll:
-        assert wait_until(lambda: kobuki.leds()[0] == "green", 5)
+        assert wait_until(lambda: kobuki.leds()[0] == "green")
         deadline = time.monotonic() + 10
         while not kobuki.bumpers().center and time.monotonic() < deadline:
             kobuki.set_cmd_vel(0.3, 0.0)
             time.sleep(0.02)
         assert fresh(ll, "bumper/center", lambda v: v is True)
-        assert wait_until(lambda: kobuki.leds()[0] == "red", 5)
+        assert wait_until(lambda: kobuki.leds()[0] == "red")
         # Back off: the bumper releases, the LED turns green again.
         deadline = time.monotonic() + 10
         while kobuki.bumpers().center and time.monotonic() < deadline:
             kobuki.set_cmd_vel(-0.2, 0.0)
             time.sleep(0.02)
         kobuki.stop()
-        assert wait_until(lambda: kobuki.leds()[0] == "green", 5)
-    assert wait_until(lambda: kobuki.leds() == ("off", "off"), 5)  # the HAL's safe state
+        assert wait_until(lambda: kobuki.leds()[0] == "green")
+    assert wait_until(lambda: kobuki.leds() == ("off", "off"))  # the HAL's safe state
 
 
 def test_unload_destroys_the_hals_ros_entities(
@@ -406,9 +406,9 @@ def test_unload_destroys_the_hals_ros_entities(
     assert len(list(node.subscriptions)) == subs + 4
     assert len(list(node.publishers)) == pubs + 3
     sim_side = rig.sim_node.ports[EMILI].node
-    assert wait_until(lambda: sim_side.count_subscribers(f"/{EMILI}/scan") == 1, 5)
+    assert wait_until(lambda: sim_side.count_subscribers(f"/{EMILI}/scan") == 1)
     for name in ("lift", "emili_leds", "display", "laser"):
         ll.call(ll.hals.release(name))
     assert len(list(node.subscriptions)) == subs
     assert len(list(node.publishers)) == pubs
-    assert wait_until(lambda: sim_side.count_subscribers(f"/{EMILI}/scan") == 0, 5)
+    assert wait_until(lambda: sim_side.count_subscribers(f"/{EMILI}/scan") == 0)

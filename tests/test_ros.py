@@ -48,7 +48,7 @@ def robot() -> Iterator[Robot]:
     before = set(beehave_threads())
     with Robot(load_config(CONFIG)) as r:
         yield r
-    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before], 3), \
+    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before]), \
         [t.name for t in beehave_threads() if t not in before]
 
 
@@ -346,7 +346,7 @@ def test_repeated_service_calls_reuse_one_client_destroyed_with_the_owner(
     caller = robot.high.switch("caller")
     assert wait_until(lambda: hasattr(caller, "action"))
     action = caller.action  # type: ignore[attr-defined]
-    assert wait_until(lambda: action.status.name == "SUCCEEDED", 30), action.error
+    assert wait_until(lambda: action.status.name == "SUCCEEDED"), action.error
     assert len(served) == 100
     assert action.result == 1
     assert len(list(node.clients)) == before  # destroyed when the action ended
@@ -385,7 +385,7 @@ def test_behavior_parameter_back_to_the_running_name_overrides_a_queued_switch(
         # (the bug: the second request was skipped and parked stayed).
         assert wait_until(lambda: any(e.kind is EventKind.SWITCH_COMPLETED
                                       for e in list(seen)[released_at:])
-                          and hl.current == "patrol", 5), hl.current
+                          and hl.current == "patrol"), hl.current
     finally:
         unsubscribe()
     assert wait_until(lambda: probe.get_param(HIGH, "behavior") == "patrol")
@@ -476,7 +476,7 @@ def test_logic_parameter_fails_with_a_reason_when_the_loop_is_blocked(
     assert not result.successful
     assert "'driving'" in result.reason and "block" in result.reason, result.reason
     # Nothing was switched behind the caller's back once the loop is free again.
-    assert wait_until(lambda: not ll.snapshot()["loop_blocked"], 5)
+    assert wait_until(lambda: not ll.snapshot()["loop_blocked"])
     assert ll.call(_noop()) is None
     assert ll.current == "hog"
     assert probe.get_param(LLP, "logic") == "hog"
@@ -577,7 +577,7 @@ def test_the_mirror_receives_every_change_message_in_order() -> None:
             low = LowLevelBridge(ll, low_node)
             try:
                 ll.blackboard.set("count", -1)
-                assert wait_until(lambda: hl.blackboard.get("count") == -1, 10)
+                assert wait_until(lambda: hl.blackboard.get("count") == -1)
                 seen.clear()
 
                 async def count() -> None:
@@ -586,7 +586,7 @@ def test_the_mirror_receives_every_change_message_in_order() -> None:
                         await asyncio.sleep(0.001)
 
                 ll.call(count())
-                assert wait_until(lambda: hl.blackboard.get("count") == 499, 10)
+                assert wait_until(lambda: hl.blackboard.get("count") == 499)
             finally:
                 low.destroy()
         assert seen == list(range(500)), f"{500 - len(seen)} changes lost"
@@ -748,7 +748,7 @@ def test_behavior_parameter_latest_request_wins_after_a_rejected_one() -> None:
         assert set_behavior("patrol").successful
         assert hl.requested == "patrol"
         gate.set()
-        assert wait_until(lambda: hl.requested is None, 5)
+        assert wait_until(lambda: hl.requested is None)
         assert hl.current == "patrol", (hl.current, ended)
     finally:
         gate.set()
@@ -793,7 +793,7 @@ def test_destroyed_bridges_leave_no_parameter_behind_and_a_new_bridge_fits() -> 
             try:
                 assert high_node.set_parameters(
                     [Parameter("behavior", value="patrol")])[0].successful
-                assert wait_until(lambda: hl.current == "patrol", 5)
+                assert wait_until(lambda: hl.current == "patrol")
             finally:
                 again.destroy()
     finally:
@@ -899,7 +899,7 @@ def test_logic_parameter_switch_whose_stop_needs_a_ros_callback(probe: Probe) ->
                 ll.switch("drive")
                 result = probe.set_param("/llsvc/beehave_low_level", "logic", "parked")
                 assert result.successful, result.reason
-                assert wait_until(lambda: ll.current == "parked", 5)
+                assert wait_until(lambda: ll.current == "parked")
                 assert _StopsMotors.stop_acked is True
                 assert stuck == []
                 assert wait_until(lambda: probe.get_param("/llsvc/beehave_low_level",

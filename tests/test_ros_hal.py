@@ -82,11 +82,11 @@ def test_inputs_outputs_staleness_and_unload(setup: tuple[LowLevelBehaviorManage
     charge.publish(Float64(data=0.1))
     assert probe.wait(lambda: leds[-1].r == 1.0)
     # Silence makes the entry stale after max_age_s.
-    assert wait_until(lambda: ll.blackboard.is_stale("battery/percentage"), 3)
+    assert wait_until(lambda: ll.blackboard.is_stale("battery/percentage"))
     # A message the conversion rejects is reported, not dropped silently.
     charge.publish(Float64(data=-1.0))
     assert wait_until(lambda: any(e.error is not None and "negative charge" in str(e.error)
-                                  for e in events), 3)
+                                  for e in events))
     # Unloading (switching to no logic) runs safe_state (lights off) and destroys the
     # subscription and publisher.
     ll.default = None

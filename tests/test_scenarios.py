@@ -79,7 +79,7 @@ def stack_with_node(world: Any, *configs: str, real_time_factor: float | None = 
         node.destroy()
         ros.shutdown()
         sim.close()
-    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before], 5)
+    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before])
 
 
 class Do(Behavior):
@@ -118,9 +118,9 @@ def test_navigation_stops_for_an_obstacle_and_waits() -> None:
         emili.high.register("do", Do, action=nav)
         emili.high.switch("do")
         robot = sim.robot("emili1")
-        assert wait_until(lambda: nav.blocked, 60)
+        assert wait_until(lambda: nav.blocked)
         start = sim.time_s
-        assert wait_until(lambda: sim.time_s > start + 3.0, 60)  # 3 s of sim time blocked
+        assert wait_until(lambda: sim.time_s > start + 3.0)  # 3 s of sim time blocked
         pose = robot.pose()
         gap = math.hypot(5.0 - pose.x_m, 2.0 - pose.y_m) - 0.3
         assert 0.3 < gap < 0.9, gap  # stopped in front of it, did not touch it
@@ -149,8 +149,8 @@ def test_lift_reaches_its_height_and_leds_show_navigation() -> None:
         emili.high.register("go", Do, action=Navigation((9.0, 6.0)))
         emili.high.switch("go")
         # The LED logic turns light blue on the blackboard and on the simulated strip.
-        assert wait_until(lambda: emili.low.blackboard.get("leds/pattern") == "navigation", 30)
-        assert wait_until(lambda: sim.emili("emili1").leds() == pytest.approx(LIGHT_BLUE), 30)
+        assert wait_until(lambda: emili.low.blackboard.get("leds/pattern") == "navigation")
+        assert wait_until(lambda: sim.emili("emili1").leds() == pytest.approx(LIGHT_BLUE))
 
 
 def test_switch_during_navigation_stops_the_wheels_within_0_2_s() -> None:
@@ -161,13 +161,13 @@ def test_switch_during_navigation_stops_the_wheels_within_0_2_s() -> None:
         robot = sim.robot("emili1")
         emili.high.register("go", Do, action=Navigation((10.0, 6.0), speed_mps=0.6))
         emili.high.switch("go")
-        assert wait_until(lambda: robot.odometry().linear_mps > 0.4, 60)
+        assert wait_until(lambda: robot.odometry().linear_mps > 0.4)
         t0 = sim.time_s
         emili.high.switch("maintenance")
-        assert wait_until(lambda: robot.cmd_vel() == (0.0, 0.0), 10)
+        assert wait_until(lambda: robot.cmd_vel() == (0.0, 0.0))
         assert sim.time_s - t0 <= 0.2
         assert emili.high.current == "maintenance"
-        assert wait_until(lambda: abs(robot.odometry().linear_mps) < 0.02, 30)
+        assert wait_until(lambda: abs(robot.odometry().linear_mps) < 0.02)
 
 
 def test_kobuki_bumper_stops_it() -> None:
@@ -179,12 +179,12 @@ def test_kobuki_bumper_stops_it() -> None:
         assert k.high is not None
         robot = sim.kobuki("kobuki1")
         k.high.switch("wander")
-        assert wait_until(lambda: robot.bumpers().any(), 60), "never reached the wall"
+        assert wait_until(lambda: robot.bumpers().any()), "never reached the wall"
         hit_at = sim.time_s
         # It stops pushing at once, then backs off.
-        assert wait_until(lambda: robot.cmd_vel()[0] <= 0.0, 10)
+        assert wait_until(lambda: robot.cmd_vel()[0] <= 0.0)
         assert sim.time_s - hit_at <= 0.2
-        assert wait_until(lambda: not robot.bumpers().any(), 30)
+        assert wait_until(lambda: not robot.bumpers().any())
         top = k.high.top
         assert top is not None and top.children and top.children[0].bumps >= 1
 
@@ -194,10 +194,10 @@ def test_low_battery_turns_the_leds_red_and_shows_the_symbol() -> None:
     with stack(hall(robots=[weak]), "emili") as (sim, robots):
         emili = robots["emili"]
         assert emili.low is not None
-        assert wait_until(lambda: emili.low.blackboard.get("leds/pattern") == "battery_low", 30)
-        assert wait_until(lambda: sim.emili("emili1").leds() == pytest.approx(RED), 30)
+        assert wait_until(lambda: emili.low.blackboard.get("leds/pattern") == "battery_low")
+        assert wait_until(lambda: sim.emili("emili1").leds() == pytest.approx(RED))
         assert wait_until(
-            lambda: sim.emili("emili1").display() == EmiliDisplayLogic.BATTERY_LOW, 30)
+            lambda: sim.emili("emili1").display() == EmiliDisplayLogic.BATTERY_LOW)
 
 
 def test_beehave_run_can_start_the_simulation_itself() -> None:
@@ -218,7 +218,7 @@ def test_beehave_run_can_start_the_simulation_itself() -> None:
         pose = robot.sim.robot("emili1").pose()
         assert math.hypot(pose.x_m - 10.0, pose.y_m - 2.0) <= 0.3
     assert robot.sim is None
-    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before], 5)
+    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before])
 
 
 def test_navigation_replans_around_an_obstacle_missing_from_its_map() -> None:

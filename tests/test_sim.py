@@ -354,7 +354,7 @@ def test_the_thread_steps_at_the_real_time_factor_and_is_joined_at_stop(
     time.sleep(0.5)
     emili = sim.emili("emili1")
     emili.set_cmd_vel(0.5, 0.0)  # from this thread while the sim thread steps
-    assert wait_until(lambda: emili.odometry().linear_mps > 0.3, timeout_s=5)
+    assert wait_until(lambda: emili.odometry().linear_mps > 0.3)
     sim.stop()
     assert sim.state is SimState.IDLE
     assert not [t for t in threading.enumerate() if t.name == "beehave-sim"]
@@ -368,7 +368,7 @@ def test_the_thread_steps_at_the_real_time_factor_and_is_joined_at_stop(
 def test_as_fast_as_possible_outruns_real_time(make_sim: Any) -> None:
     with Simulation(arena(emili_at(2, 5)), real_time_factor=None) as sim:
         assert sim.state is SimState.RUNNING
-        assert wait_until(lambda: sim.time_s >= 2.0, timeout_s=5)
+        assert wait_until(lambda: sim.time_s >= 2.0)
         assert sim.measured_real_time_factor() > 1.0
         height = sim.call(lambda c: c.getNumBodies())
         assert height > 1
@@ -386,7 +386,7 @@ def test_a_failing_callback_stops_the_thread_and_surfaces_at_stop(make_sim: Any)
 
     sim.on_step(explode)
     sim.start()
-    assert wait_until(lambda: sim.state is SimState.FAILED, timeout_s=5)
+    assert wait_until(lambda: sim.state is SimState.FAILED)
     with pytest.raises(SimulationError, match="publisher gone") as caught:
         sim.stop()
     assert isinstance(caught.value.__cause__, RuntimeError)
@@ -416,14 +416,14 @@ def test_a_gate_holds_the_thread_serves_calls_meanwhile_and_stop_ends_it(
     hold_at.set()
     sim.set_gate(gate)
     sim.start()
-    assert wait_until(lambda: sim.time_s >= 0.5, 10)
+    assert wait_until(lambda: sim.time_s >= 0.5)
     held = sim.steps
     assert sim.call(lambda client: sim.steps) == held  # served while holding
-    assert wait_until(lambda: len(asked) > 3, 5)  # the gate is asked again
+    assert wait_until(lambda: len(asked) > 3)  # the gate is asked again
     assert sim.steps == held and sim.time_s < 0.5 + 2 * sim.step_s
     hold_at.clear()
     sim.wake()
-    assert wait_until(lambda: sim.time_s > 1.0, 10)
+    assert wait_until(lambda: sim.time_s > 1.0)
     hold_at.set()
     sim.set_gate(lambda time_s: True)  # hold for good: stop() must still end the thread
     sim.stop()

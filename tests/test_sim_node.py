@@ -247,9 +247,9 @@ def test_emili_leds_display_and_sound_over_ros(rig: Rig) -> None:
         ColorRGBA(r=0.0, g=1.0, b=0.5, a=1.0))
     rig.publisher(String, rig.topic(rig.emili, "display")).publish(String(data="loading"))
     rig.publisher(String, rig.topic(rig.emili, "sound")).publish(String(data="horn"))
-    assert wait_until(lambda: emili.leds() == (0.0, 1.0, 0.5), 5)
-    assert wait_until(lambda: emili.display() == "loading", 5)
-    assert wait_until(lambda: [s.name for s in emili.sounds()] == ["horn"], 5)
+    assert wait_until(lambda: emili.leds() == (0.0, 1.0, 0.5))
+    assert wait_until(lambda: emili.display() == "loading")
+    assert wait_until(lambda: [s.name for s in emili.sounds()] == ["horn"])
     # The state echoes follow on change (long before their 1 Hz repeat).
     assert rig.probe.wait(lambda: bool(led_state) and (led_state[-1].g, led_state[-1].b)
                           == (1.0, 0.5))
@@ -259,11 +259,11 @@ def test_emili_leds_display_and_sound_over_ros(rig: Rig) -> None:
 def test_kobuki_leds_and_sound_over_ros(rig: Rig) -> None:
     kobuki = rig.sim.kobuki(rig.kobuki)
     rig.publisher(String, rig.topic(rig.kobuki, "leds/led1")).publish(String(data="green"))
-    assert wait_until(lambda: kobuki.leds() == ("green", "off"), 5)
+    assert wait_until(lambda: kobuki.leds() == ("green", "off"))
     rig.publisher(String, rig.topic(rig.kobuki, "leds/led2")).publish(String(data="red"))
-    assert wait_until(lambda: kobuki.leds() == ("green", "red"), 5)
+    assert wait_until(lambda: kobuki.leds() == ("green", "red"))
     rig.publisher(String, rig.topic(rig.kobuki, "sound")).publish(String(data="recharge"))
-    assert wait_until(lambda: [s.name for s in kobuki.sounds()] == ["recharge"], 5)
+    assert wait_until(lambda: [s.name for s in kobuki.sounds()] == ["recharge"])
 
 
 def test_invalid_commands_are_refused_counted_and_logged(
@@ -286,7 +286,7 @@ def test_invalid_commands_are_refused_counted_and_logged(
     expected = {f"/{rig.emili}/lift/command": 2, f"/{rig.emili}/leds": 1,
                 f"/{rig.emili}/cmd_vel": 1, f"/{rig.emili}/sound": 1,
                 f"/{rig.kobuki}/leds/led1": 1, f"/{rig.kobuki}/sound": 1}
-    assert wait_until(lambda: dict(rig.node.rejected) == expected, 5), rig.node.rejected
+    assert wait_until(lambda: dict(rig.node.rejected) == expected), rig.node.rejected
     # The robots kept their state.
     assert emili.lift_target() == 0.0 and emili.leds() == (0.0, 0.0, 0.0)
     assert emili.cmd_vel() == (0.0, 0.0) and emili.sounds() == []
@@ -302,7 +302,7 @@ def test_invalid_commands_are_refused_counted_and_logged(
     assert "sound 'beep'" in text and "cleaning_start" in text
     # The node goes on: a valid command after the bad ones still works.
     lift.publish(Float64(data=0.1))
-    assert wait_until(lambda: emili.lift_target() == 0.1, 5)
+    assert wait_until(lambda: emili.lift_target() == 0.1)
 
 
 def test_kobuki_bumper_bit_set_when_driving_into_a_wall(rig: Rig) -> None:

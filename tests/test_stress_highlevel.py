@@ -126,7 +126,7 @@ def test_random_operations_keep_every_invariant() -> None:
         assert hl.current == "w2" and final.status is Status.RUNNING
     assert not errors, errors
     # STUCK actions end by themselves a little later; then nothing may be left.
-    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before], 5)
+    assert wait_until(lambda: not [t for t in beehave_threads() if t not in before])
 
     assert len(world.actions) > 800
     assert max(world.timeline.max_concurrent.values()) == 1, world.timeline.max_concurrent
