@@ -24,7 +24,7 @@ from beehave.engines import (
 )
 from beehave.engines.engine import StartLike
 from beehave.runnable import Runnable
-from beehave.testing import ScriptedAction, wait_until
+from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, wait_until
 
 
 class Recorder:
@@ -70,7 +70,7 @@ class EngineContract(abc.ABC):
             self, hl: HighLevelBehaviorManager) -> None:
         act = Recorder("act", duration_s=0.01, result=42)
         behavior = run(hl, self.single(act))
-        assert behavior.wait(5)
+        assert behavior.wait(WALL_TIMEOUT_S)
         assert behavior.status is Status.SUCCEEDED, behavior.error
         (action,) = act.built
         assert action.status is Status.SUCCEEDED and action.parent is behavior
@@ -80,7 +80,7 @@ class EngineContract(abc.ABC):
             yes, no = Recorder("yes", duration_s=0.01), Recorder("no", duration_s=0.01)
             hl.blackboard.set("go", flag)
             behavior = run(hl, self.choice("go", yes, no))
-            assert behavior.wait(5)
+            assert behavior.wait(WALL_TIMEOUT_S)
             assert behavior.status is Status.SUCCEEDED, behavior.error
             assert (len(yes.built), len(no.built)) == ((1, 0) if flag else (0, 1))
 
@@ -144,7 +144,7 @@ class EngineContract(abc.ABC):
         boom = RuntimeError("lift overload")
         act = Recorder("lift", raises=boom)
         behavior = run(hl, self.single(act))
-        assert behavior.wait(5)
+        assert behavior.wait(WALL_TIMEOUT_S)
         assert behavior.status is Status.FAILED
         assert isinstance(behavior.error, EngineError), behavior.error
         assert behavior.error.__cause__ is boom
@@ -156,7 +156,7 @@ class EngineContract(abc.ABC):
         engine = self.single(act)
         for _ in range(2):
             behavior = run(hl, engine)
-            assert behavior.wait(5)
+            assert behavior.wait(WALL_TIMEOUT_S)
             assert behavior.status is Status.SUCCEEDED, behavior.error
         assert len(act.built) == 2
 
@@ -174,7 +174,7 @@ class EngineContract(abc.ABC):
             return behavior
 
         behavior = run(hl, self.single(sub_behavior))
-        assert behavior.wait(5)
+        assert behavior.wait(WALL_TIMEOUT_S)
         assert behavior.status is Status.SUCCEEDED, behavior.error
         (sub,) = subs
         assert sub.status is Status.SUCCEEDED and sub.result == "done"

@@ -8,7 +8,7 @@ import time
 import pytest
 
 from beehave import Action, AlreadyStarted, Behavior, HighLevelBehaviorManager, Status
-from beehave.testing import ScriptedAction
+from beehave.testing import WALL_TIMEOUT_S, ScriptedAction
 
 
 class Host(Behavior):
@@ -30,14 +30,14 @@ def host(hl: HighLevelBehaviorManager, *actions: Action) -> Behavior:
     started = threading.Event()
     hl.register("host", Host)
     top = hl.switch("host", todo=list(actions), started=started)
-    assert started.wait(2)
+    assert started.wait(WALL_TIMEOUT_S)
     return top
 
 
 def test_success_sets_result_and_skips_safe_state(hl: HighLevelBehaviorManager) -> None:
     action = ScriptedAction(result=42)
     host(hl, action)
-    assert action.wait(2)
+    assert action.wait(WALL_TIMEOUT_S)
     assert action.status is Status.SUCCEEDED
     assert action.result == 42 and action.error is None
     assert action.safe_state_calls == 0
@@ -47,7 +47,7 @@ def test_exception_fails_with_error_and_traceback(hl: HighLevelBehaviorManager) 
     boom = RuntimeError("motor driver offline")
     action = ScriptedAction(raises=boom)
     top = host(hl, action)
-    assert action.wait(2)
+    assert action.wait(WALL_TIMEOUT_S)
     assert action.status is Status.FAILED
     assert action.error is boom and boom.__traceback__ is not None
     assert "motor driver offline" in action._traceback
@@ -62,7 +62,7 @@ def test_interrupt_wakes_sleep_at_once_and_calls_safe_state_once(
     t0 = time.monotonic()
     action.interrupt()
     action.interrupt()  # idempotent
-    assert action.wait(5)
+    assert action.wait(WALL_TIMEOUT_S)
     assert time.monotonic() - t0 < 5  # far below the 30 s sleep: woken, not timed out
     assert action.status is Status.INTERRUPTED
     assert action.safe_state_calls == 1
@@ -77,7 +77,7 @@ def test_sleep_returns_true_when_not_interrupted(hl: HighLevelBehaviorManager) -
 
     action = Nap()
     host(hl, action)
-    assert action.wait(2)
+    assert action.wait(WALL_TIMEOUT_S)
     assert seen == [True]
 
 
@@ -129,13 +129,14 @@ def test_subclass_need_not_call_super_init(hl: HighLevelBehaviorManager) -> None
 
     action = Lift(0.2)
     host(hl, action)
-    assert action.wait(2) and action.result == 0.2 and action.status is Status.SUCCEEDED
+    assert action.wait(WALL_TIMEOUT_S)
+    assert action.result == 0.2 and action.status is Status.SUCCEEDED
 
 
 def test_an_action_object_runs_once(hl: HighLevelBehaviorManager) -> None:
     action = ScriptedAction()
     top = host(hl, action)
-    assert action.wait(2)
+    assert action.wait(WALL_TIMEOUT_S)
     with pytest.raises(AlreadyStarted, match="create a new object"):
         top.start_action(action)
 
@@ -148,7 +149,7 @@ def test_safe_state_error_is_recorded_not_dropped(hl: HighLevelBehaviorManager, 
     action = Clumsy(duration_s=30)
     host(hl, action)
     action.interrupt()
-    assert action.wait(2)
+    assert action.wait(WALL_TIMEOUT_S)
     assert isinstance(action.safe_state_error, OSError)
     assert any(e.kind.value == "safe_state_failed" and e.error is action.safe_state_error
                for e in events)

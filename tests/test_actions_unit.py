@@ -7,6 +7,8 @@ from typing import Any
 
 import pytest
 
+from beehave.testing import WALL_TIMEOUT_S
+
 pytest.importorskip("rclpy")
 
 from beehave.errors import BeehaveError  # noqa: E402
@@ -64,8 +66,8 @@ def _drive_with_a_dead_publisher(outcome: object) -> object:
     action = Broken()
     with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
         hl.register("do", Do, action=action)
-        assert hl.switch("do").wait(5)
-        assert action.wait(5)
+        assert hl.switch("do").wait(WALL_TIMEOUT_S)
+        assert action.wait(WALL_TIMEOUT_S)
     return action
 
 

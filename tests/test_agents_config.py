@@ -9,7 +9,7 @@ import pytest
 
 from beehave.config import parse_config
 from beehave.errors import ConfigError
-from beehave.testing import wait_until
+from beehave.testing import WALL_TIMEOUT_S, wait_until
 
 
 def _config(agent: Any) -> dict[str, Any]:
@@ -59,7 +59,7 @@ def test_a_robot_with_an_agent_section_is_found_and_reaches_its_behaviours() -> 
                 "the robot's agent never appeared"
             assert robot.high is not None
             who = robot.high.switch("who")
-            assert who.wait(30.0)
+            assert who.wait(WALL_TIMEOUT_S)
             assert who.result == "cfg_atv"
         # It said goodbye when the robot stopped.
         assert wait_until(lambda: not seeker.directory.alive("cfg_atv")), \

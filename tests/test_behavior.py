@@ -13,7 +13,7 @@ from beehave import (
     NotASubclass,
     Status,
 )
-from beehave.testing import ScriptedAction, Timeline
+from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, Timeline
 
 
 class Scripted(Behavior):
@@ -42,7 +42,7 @@ def test_run_returning_interrupts_and_waits_for_running_children(
         return "done"
 
     top = run_top(hl, body)
-    assert top.wait(2)
+    assert top.wait(WALL_TIMEOUT_S)
     assert top.status is Status.SUCCEEDED and top.result == "done"
     for action in started:
         assert action.status is Status.INTERRUPTED and not action.alive
@@ -73,7 +73,7 @@ def test_interrupting_a_behaviour_interrupts_its_children_first(
         # The child may still be winding down; the parent's end waits for it.
 
     top = run_top(hl, body)
-    assert ready.wait(2)
+    assert ready.wait(WALL_TIMEOUT_S)
     hl.switch("idle")
     assert top.status is Status.INTERRUPTED
     (child,) = top.children
@@ -98,7 +98,7 @@ def test_child_failure_is_raised_at_the_next_framework_call(
         return "recovered"
 
     top = run_top(hl, body)
-    assert top.wait(2)
+    assert top.wait(WALL_TIMEOUT_S)
     assert top.status is Status.SUCCEEDED
     (exc,) = caught
     assert exc.__cause__ is boom and "lift overload" in str(exc)
@@ -112,7 +112,7 @@ def test_waiting_for_a_child_observes_its_failure(hl: HighLevelBehaviorManager) 
         return action.status
 
     top = run_top(hl, body)
-    assert top.wait(2)
+    assert top.wait(WALL_TIMEOUT_S)
     assert top.status is Status.SUCCEEDED and top.result is Status.FAILED
 
 
@@ -123,7 +123,7 @@ def test_uncaught_child_failure_fails_the_behaviour(hl: HighLevelBehaviorManager
             pass
 
     top = run_top(hl, body)
-    assert top.wait(2)
+    assert top.wait(WALL_TIMEOUT_S)
     assert top.status is Status.FAILED and isinstance(top.error, ChildFailed)
 
 
@@ -133,7 +133,7 @@ def test_failure_after_run_returned_fails_the_behaviour(hl: HighLevelBehaviorMan
         threading.Event().wait(0.05)  # a plain wait: no framework call sees the failure
 
     top = run_top(hl, body)
-    assert top.wait(2)
+    assert top.wait(WALL_TIMEOUT_S)
     assert top.status is Status.FAILED
     assert isinstance(top.error, ChildFailed) and "late" in str(top.error)
 
@@ -158,7 +158,7 @@ def test_nested_sub_behaviours_end_with_their_parent(hl: HighLevelBehaviorManage
 
     hl.register("nest", Nest, depth=4)
     hl.switch("nest")
-    assert depth_reached.wait(2)
+    assert depth_reached.wait(WALL_TIMEOUT_S)
     assert nodes[-1].path == "nest/Nest/Nest/Nest/Nest"
     hl.switch("idle")
     assert all(n.status is Status.INTERRUPTED and not n.alive for n in nodes)
@@ -194,7 +194,7 @@ def test_start_action_type_checks(hl: HighLevelBehaviorManager) -> None:
                 errors.append(exc)
 
     top = run_top(hl, body)
-    assert top.wait(2)
+    assert top.wait(WALL_TIMEOUT_S)
     assert len(errors) == 2
     assert "start_behavior()" in str(errors[0]) and "start_action()" in str(errors[1])
 
@@ -206,7 +206,7 @@ def test_many_finished_actions_do_not_accumulate(hl: HighLevelBehaviorManager) -
         return len(b.children)
 
     top = run_top(hl, body)
-    assert top.wait(5)
+    assert top.wait(WALL_TIMEOUT_S)
     assert top.result is not None and top.result <= 2
 
 
@@ -222,7 +222,7 @@ def test_snapshot_shows_the_tree(hl: HighLevelBehaviorManager) -> None:
             pass
 
     run_top(hl, body)
-    assert ready.wait(2)
+    assert ready.wait(WALL_TIMEOUT_S)
     snap = json.loads(json.dumps(hl.snapshot()))
     assert snap["current"] == "scripted"
     assert snap["top"]["status"] == "RUNNING"
@@ -247,7 +247,7 @@ def test_behaviours_and_actions_read_the_managers_blackboard(
         b.start_action(Reads()).wait()
 
     top = run_top(hl, body)
-    assert top.wait(2)
+    assert top.wait(WALL_TIMEOUT_S)
     assert seen == [55.0, 55.0]
 
 
@@ -263,6 +263,6 @@ def test_behaviours_cannot_write_the_blackboard(hl: HighLevelBehaviorManager) ->
             errors.append(exc)
 
     top = run_top(hl, body)
-    assert top.wait(2)
+    assert top.wait(WALL_TIMEOUT_S)
     assert errors and "'leds/color'" in str(errors[0]) and "actions" in str(errors[0])
     assert hl.blackboard.get("leds/color") is None

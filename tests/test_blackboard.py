@@ -12,7 +12,7 @@ import pytest
 
 from beehave.blackboard import Blackboard, Change, Subscription, matches
 from beehave.errors import BlackboardError
-from beehave.testing import wait_until
+from beehave.testing import WALL_TIMEOUT_S, wait_until
 
 
 class FakeClock:
@@ -475,7 +475,7 @@ def test_a_slow_callback_blocks_no_other_thread_subscribing_closing_or_writing()
     writer = threading.Thread(target=bb.set, args=("battery/low", True))
     writer.start()
     try:
-        assert entered.wait(5)
+        assert entered.wait(WALL_TIMEOUT_S)
         done = threading.Event()
         others: list[Any] = []
 
@@ -488,7 +488,7 @@ def test_a_slow_callback_blocks_no_other_thread_subscribing_closing_or_writing()
         threading.Thread(target=other_thread, daemon=True).start()
         # A deadlock detector, not a speed check: the other thread must finish while the
         # slow callback still holds on.
-        assert done.wait(5), "another thread blocked behind a running callback"
+        assert done.wait(WALL_TIMEOUT_S), "another thread blocked behind a running callback"
         assert not release.is_set()
     finally:
         release.set()
@@ -611,7 +611,7 @@ def test_a_subscription_closed_during_a_delivery_is_not_called_after_close_retur
                        lambda c: after_close.append(c.value) if closed.is_set() else None)
     writer = threading.Thread(target=bb.set, args=("battery/low", True))
     writer.start()
-    assert entered.wait(5)
+    assert entered.wait(WALL_TIMEOUT_S)
     sub.close()  # while slow_first runs: sub is next in line for this change
     closed.set()
     release.set()
@@ -665,7 +665,7 @@ def test_changes_queued_when_an_on_error_hook_raised_keep_their_order() -> None:
     def breaks_on_first(change: Change) -> None:
         if change.value == 1:
             entered.set()
-            assert queued.wait(5)
+            assert queued.wait(WALL_TIMEOUT_S)
             raise ValueError("subscriber bug")
 
     bb.subscribe("k", lambda c: seen.append(c.value))
@@ -680,7 +680,7 @@ def test_changes_queued_when_an_on_error_hook_raised_keep_their_order() -> None:
 
     writer = threading.Thread(target=first_writer)
     writer.start()
-    assert entered.wait(5)
+    assert entered.wait(WALL_TIMEOUT_S)
     bb.set("k", 2)  # delivery of k is under way in the writer: queued behind it
     queued.set()
     writer.join(5)

@@ -7,6 +7,7 @@ import time
 
 from beehave import Behavior, HighLevelBehaviorManager, Status
 from beehave.clock import SimClock
+from beehave.testing import WALL_TIMEOUT_S
 
 
 def test_sleep_follows_sim_time() -> None:
@@ -24,12 +25,12 @@ def test_sleep_follows_sim_time() -> None:
     with HighLevelBehaviorManager(clock=clock, stop_timeout_s=0.5) as hl:
         hl.register("nap", Nap)
         nap = hl.switch("nap")
-        assert entered.wait(2)
+        assert entered.wait(WALL_TIMEOUT_S)
         clock.set_time(5.0)
         assert not woke.wait(0.05)  # half-way in sim time: still asleep
         clock.set_time(10.5)
-        assert woke.wait(2)
-        assert nap.wait(2) and nap.result is True and nap.status is Status.SUCCEEDED
+        assert woke.wait(WALL_TIMEOUT_S)
+        assert nap.wait(WALL_TIMEOUT_S) and nap.result is True and nap.status is Status.SUCCEEDED
 
 
 def test_interrupt_wakes_a_sim_time_sleep_when_the_clock_stands_still() -> None:
@@ -44,7 +45,7 @@ def test_interrupt_wakes_a_sim_time_sleep_when_the_clock_stands_still() -> None:
     with HighLevelBehaviorManager(clock=clock, stop_timeout_s=0.5) as hl:
         hl.register("nap", Nap)
         nap = hl.switch("nap")
-        assert entered.wait(2)
+        assert entered.wait(WALL_TIMEOUT_S)
         t0 = time.monotonic()
         hl.switch("idle")  # stop_timeout_s is wall time: a paused sim cannot block it
         assert time.monotonic() - t0 < 0.5

@@ -32,7 +32,7 @@ from beehave import (
     SwitchSuperseded,
 )
 from beehave.events import describe
-from beehave.testing import ScriptedAction, Timeline, beehave_threads, wait_until
+from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, Timeline, beehave_threads, wait_until
 
 
 class Forever(Behavior):
@@ -180,7 +180,7 @@ def test_stuck_action_keeps_its_type_until_its_forced_safe_state_returned() -> N
         with hl:
             hl.switch("driver")
             # Before the fix the forced safe state ran in the preempting thread: blocked.
-            assert preempt_failed.wait(3.0)
+            assert preempt_failed.wait(WALL_TIMEOUT_S)
             assert stubborn.status is Status.STUCK and stubborn.safe_state_pending
             stubborn.release.set()  # run() returns; the safe state still runs
             assert wait_until(lambda: len(busy_seen) >= 3)

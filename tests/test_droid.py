@@ -19,6 +19,7 @@ from beehave.agents import Agent
 from beehave.agents.fleet import FLEET_QOS, FLEET_TOPIC, Fleet
 from beehave.errors import ConfigError, ProtocolFailed
 from beehave.ros.context import RosContext
+from beehave.testing import WALL_TIMEOUT_S
 from behaviours.droid import FollowLeader, RoverDroid, check_mission
 from hal.mavlink import close_all_links
 from robots.mavlink_endpoint import DEFAULT_ORIGIN, MavlinkEndpoint
@@ -258,7 +259,7 @@ def test_a_blocked_rover_without_any_helper_reports_failure_and_goes_home(
             hl.register("droid", RoverDroid, connection=f"udp:127.0.0.1:{port}",
                         waypoints=[[2.0, 9.0]], stall_s=1.0, reply_by_s=0.5)
             droid = hl.switch("droid")
-            assert droid.wait(40.0)
+            assert droid.wait(WALL_TIMEOUT_S)
             assert droid.status is Status.FAILED
             assert isinstance(droid.error, ProtocolFailed)
             assert "no vehicle took them" in str(droid.error)
@@ -329,7 +330,7 @@ def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosConte
             wait_until(lambda: me.directory.get("copter_peer") is not None, 5.0, "the peer")
             hl.register("droid", CopterDroid, connection=url, battery_low_pct=31.0)
             droid = hl.switch("droid")
-            assert droid.wait(30.0), hl.snapshot()
+            assert droid.wait(WALL_TIMEOUT_S), hl.snapshot()
             assert droid.status is Status.SUCCEEDED, droid.error
             assert droid.result["status"] == "battery-low" and droid.result["landed"]
             assert droid.result["told"] == ["copter_peer"]
@@ -393,7 +394,7 @@ def test_a_mission_sent_to_another_agent_is_run_by_its_vehicle(ros: RosContext) 
             hl_giver.register("send", SendMission, receiver="mission_runner",
                               waypoints=[[2.0, 2.5]], connection=url, timeout_s=30.0)
             send = hl_giver.switch("send")
-            assert send.wait(40.0), hl_giver.snapshot()
+            assert send.wait(WALL_TIMEOUT_S), hl_giver.snapshot()
             assert send.status is Status.SUCCEEDED, send.error
         pose = sim.robot("rover").pose()
         assert math.hypot(pose.x_m - 2.5, pose.y_m - 2.0) <= 0.5  # WP_RADIUS 0.3

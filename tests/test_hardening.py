@@ -19,7 +19,7 @@ from beehave import (
     HighLevelBehaviorManager,
     Status,
 )
-from beehave.testing import ScriptedAction, wait_until
+from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, wait_until
 
 
 class Body(Behavior):
@@ -50,7 +50,7 @@ def test_waiting_for_a_failed_child_never_raises_it_later(hl: HighLevelBehaviorM
         return "ok"
 
     top = run_top(hl, body)
-    assert top.wait(5)
+    assert top.wait(WALL_TIMEOUT_S)
     assert top.status is Status.SUCCEEDED, top.error
 
 
@@ -86,7 +86,7 @@ def test_a_raising_on_child_ended_is_surfaced_in_the_behaviour(
 
     hl.register("picky", Picky)
     picky = hl.switch("picky")
-    assert picky.wait(5)
+    assert picky.wait(WALL_TIMEOUT_S)
     assert picky.status is Status.FAILED and isinstance(picky.error, KeyError)
     assert hl.snapshot()["stuck"] == []
 
@@ -154,7 +154,7 @@ def test_an_action_refused_for_a_busy_type_can_be_started_again(
         return again.status
 
     top = run_top(hl, body)
-    assert top.wait(5) and top.result is Status.SUCCEEDED
+    assert top.wait(WALL_TIMEOUT_S) and top.result is Status.SUCCEEDED
 
 
 def test_a_free_type_promised_to_an_earlier_preemptor_is_refused_cleanly(

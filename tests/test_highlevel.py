@@ -19,7 +19,7 @@ from beehave import (
     UnknownBehavior,
 )
 from beehave.errors import ConfigError, NotASubclass
-from beehave.testing import ScriptedAction, beehave_threads, wait_until
+from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, beehave_threads, wait_until
 
 
 class Busy(Behavior):
@@ -65,7 +65,7 @@ class NeedsSpeed(Behavior):
 def switch_ready(hl: HighLevelBehaviorManager, name: str, **params: Any) -> Busy:
     ready = threading.Event()
     top = hl.switch(name, ready=ready, **params)
-    assert ready.wait(2)
+    assert ready.wait(WALL_TIMEOUT_S)
     return top  # type: ignore[return-value]
 
 
@@ -140,7 +140,7 @@ def test_stuck_action_does_not_block_the_switch(hl: HighLevelBehaviorManager) ->
     # The next behaviour cannot drive until the stuck thread is really gone: its
     # start_action raises ActionTypeBusy, it fails and the manager falls back to idle.
     blocked = hl.switch("busy")
-    assert blocked.wait(2) and blocked.status is Status.FAILED
+    assert blocked.wait(WALL_TIMEOUT_S) and blocked.status is Status.FAILED
     assert "driving" in str(blocked.error) and "STUCK" in str(blocked.error)
     assert wait_until(lambda: hl.current == "idle")
     stubborn.release.set()
@@ -155,7 +155,7 @@ def test_failing_top_level_behaviour_falls_back_to_idle(hl: HighLevelBehaviorMan
                                                         events) -> None:  # type: ignore[no-untyped-def]
     hl.register("crashes", Crashes)
     top = hl.switch("crashes")
-    assert top.wait(2)
+    assert top.wait(WALL_TIMEOUT_S)
     assert wait_until(lambda: hl.current == "idle")
     assert top.status is Status.FAILED and "planner exploded" in str(top.error)
     record = hl.history[-1]
@@ -168,7 +168,7 @@ def test_failing_top_level_behaviour_falls_back_to_idle(hl: HighLevelBehaviorMan
 def test_finished_top_level_behaviour_leaves_idle_running(hl: HighLevelBehaviorManager) -> None:
     hl.register("finishes", Finishes)
     top = hl.switch("finishes")
-    assert top.wait(2) and top.result == "delivered"
+    assert top.wait(WALL_TIMEOUT_S) and top.result == "delivered"
     assert wait_until(lambda: hl.current == "idle")
 
 

@@ -8,7 +8,7 @@ import time
 import pytest
 
 from beehave import Action, ActionTypeBusy, Behavior, HighLevelBehaviorManager, Status
-from beehave.testing import ScriptedAction, Timeline
+from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, Timeline
 
 
 class Parallel(Behavior):
@@ -36,7 +36,7 @@ def two(hl: HighLevelBehaviorManager) -> Parallel:
     ready = threading.Event()
     hl.register("parallel", Parallel)
     top = hl.switch("parallel", ready=ready)
-    assert ready.wait(2)
+    assert ready.wait(WALL_TIMEOUT_S)
     return top  # type: ignore[return-value]
 
 
@@ -56,7 +56,7 @@ def test_busy_type_is_rejected_across_behaviours(two: Parallel) -> None:
 
 def test_lock_is_free_after_the_holder_ends(two: Parallel) -> None:
     first = two.left.start_action(ScriptedAction("lifting"))
-    assert first.wait(2)
+    assert first.wait(WALL_TIMEOUT_S)
     second = two.right.start_action(ScriptedAction("lifting", duration_s=30))
     assert second.status is Status.RUNNING
 

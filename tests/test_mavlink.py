@@ -25,6 +25,7 @@ from beehave.errors import (
     VehicleLost,
 )
 from beehave.hal import HALManager
+from beehave.testing import WALL_TIMEOUT_S
 from behaviours.mavlink import GotoPosition, RunMission, SetMode
 from hal.mavlink import (
     MavlinkBatteryHAL,
@@ -300,7 +301,7 @@ def test_a_lost_heartbeat_stops_the_running_action_and_holds_the_vehicle(
         time.sleep(0.02)
     action = Run.started[0]
     vehicles.rover.faults.silent = True
-    assert action.wait(3.0)
+    assert action.wait(WALL_TIMEOUT_S)
     assert action.status is Status.FAILED
     assert isinstance(action.error, VehicleLost)
     vehicles.rover.faults.silent = False

@@ -20,7 +20,7 @@ from beehave.engines import (
 )
 from beehave.engines.engine import StartLike
 from beehave.engines.neural import NeuralEngine, NeuralPolicy
-from beehave.testing import beehave_threads, wait_until
+from beehave.testing import WALL_TIMEOUT_S, beehave_threads, wait_until
 from tests.engine_contract import EngineContract, Recorder, run
 
 
@@ -106,7 +106,7 @@ def test_a_decision_never_waits_for_training() -> None:
 
         worker = threading.Thread(target=decide)
         worker.start()
-        assert decided.wait(5)
+        assert decided.wait(WALL_TIMEOUT_S)
     worker.join()
 
 
@@ -155,7 +155,7 @@ def test_a_network_decision_guards_a_state_machine(hl: HighLevelBehaviorManager)
         [State("patrol"), State("charge", final=True)],
         [Transition("patrol", "charge", when=policy.condition("yes"))], initial="patrol")
     behavior = run(hl, machine)
-    assert behavior.wait(5) and behavior.result == "charge"
+    assert behavior.wait(WALL_TIMEOUT_S) and behavior.result == "charge"
 
 
 def test_unknown_decisions_are_named() -> None:

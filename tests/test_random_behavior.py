@@ -5,7 +5,7 @@ from __future__ import annotations
 import random
 
 from beehave import HighLevelBehaviorManager, Status
-from beehave.testing import ScriptedAction, Timeline, wait_until
+from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, Timeline, wait_until
 from behaviours.behaviors import RandomBehavior
 
 TIMELINE = Timeline()
@@ -30,7 +30,7 @@ def test_the_same_seed_makes_the_same_decisions(hl: HighLevelBehaviorManager) ->
         hl.register("random", RandomBehavior, choices=choices, seed=7, steps=12,
                     hold_s=(0.0, 0.01))
         behavior = hl.switch("random")
-        assert behavior.wait(10) and behavior.status is Status.SUCCEEDED
+        assert behavior.wait(WALL_TIMEOUT_S) and behavior.status is Status.SUCCEEDED
         assert isinstance(behavior, RandomBehavior)
         histories.append([step.choice for step in behavior.history])
     assert histories[0] == histories[1] == RandomBehavior(choices, seed=7).plan(12)
@@ -41,7 +41,7 @@ def test_failures_are_recorded_not_raised(hl: HighLevelBehaviorManager) -> None:
     hl.register("random", RandomBehavior, choices={"broken": broken, "beep": beep}, seed=1,
                 steps=10, hold_s=(1.0, 2.0))
     behavior = hl.switch("random")
-    assert behavior.wait(10) and behavior.status is Status.SUCCEEDED
+    assert behavior.wait(WALL_TIMEOUT_S) and behavior.status is Status.SUCCEEDED
     assert isinstance(behavior, RandomBehavior)
     statuses = {step.choice: step.status for step in behavior.history}
     assert statuses == {"broken": "FAILED", "beep": "SUCCEEDED"}

@@ -21,7 +21,7 @@ from beehave.clock import SimClock
 from beehave.events import Event, EventBus, EventKind
 from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.recording import Recorder, RecordingError, read_recording, recording_files
-from beehave.testing import wait_until
+from beehave.testing import WALL_TIMEOUT_S, wait_until
 from behaviours.logics import LedLogic
 from hal.debug import DebugHAL, DebugRobot
 
@@ -234,7 +234,7 @@ def test_a_slow_disk_drops_and_counts_instead_of_stalling(tmp_path: Path) -> Non
         time.sleep(0.1)
         release.clear()  # … then the disk stalls
         board.set("first", 0)
-        assert disks[0].blocked.wait(5)
+        assert disks[0].blocked.wait(WALL_TIMEOUT_S)
         with low:
             # Every write returns while the writer is stuck on the disk, and the low
             # level goes on reacting: nothing waits for the recorder.

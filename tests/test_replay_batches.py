@@ -33,7 +33,7 @@ from beehave.recording import read_recording
 from beehave.recording import recorder as recorder_module
 from beehave.recording import writer as writer_module
 from beehave.recording.replay import replay
-from beehave.testing import wait_until
+from beehave.testing import WALL_TIMEOUT_S, wait_until
 from hal.debug import DebugHAL, DebugRobot
 
 KEY = "battery/percentage"
@@ -76,7 +76,7 @@ def _record(path: Path) -> DebugRobot:
         loop = low.loop
         assert loop is not None
         loop.call_soon_threadsafe(busy)
-        assert entered.wait(5)
+        assert entered.wait(WALL_TIMEOUT_S)
         hardware.set_battery(12.0)
         time.sleep(0.005)
         hardware.set_battery(35.0)

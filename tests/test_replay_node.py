@@ -22,7 +22,7 @@ from beehave.errors import RecordingError  # noqa: E402
 from beehave.recording.inputs import input_channel  # noqa: E402
 from beehave.recording.replay_node import ReplayClock, ReplayNode  # noqa: E402
 from beehave.ros.io import RosIO, watch_subscriptions  # noqa: E402
-from beehave.testing import wait_until  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
 
 
 def _node(now: list[float] | None = None) -> ReplayNode:
@@ -105,7 +105,7 @@ def test_the_clock_knows_who_is_due_to_run() -> None:
     clock._now = 1.0  # moved without notifying: the sleeper is due, not yet running
     assert clock.ready()
     clock.set_time(1.0)
-    assert woke.wait(2)
+    assert woke.wait(WALL_TIMEOUT_S)
     thread.join(2)
     assert clock.parked() == set() and not clock.ready()
 

@@ -28,7 +28,7 @@ from beehave import Action, Behavior, Logic  # noqa: E402
 from beehave.config import load_config, parse_config  # noqa: E402
 from beehave.errors import ConfigError, Interrupted  # noqa: E402
 from beehave.robot import Robot  # noqa: E402
-from beehave.testing import beehave_threads, wait_until  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, beehave_threads, wait_until  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 CONFIG = HERE / "data" / "rosbot.yaml"
@@ -151,7 +151,7 @@ def test_action_io_helpers_and_interrupted_wait(robot: Robot, probe: Probe) -> N
 
     robot.high.register("listener", Listener)
     robot.high.switch("listener")
-    assert waiting.wait(5)
+    assert waiting.wait(WALL_TIMEOUT_S)
     pub = probe.node.create_publisher(String, "/rosbot/go", 10)
     assert probe.wait(lambda: pub.get_subscription_count() >= 1)
     pub.publish(String(data="wait"))
@@ -260,7 +260,7 @@ def test_service_call_from_an_action_is_interruptible(robot: Robot, probe: Probe
 
     robot.high.register("caller", Caller)
     caller = robot.high.switch("caller")
-    assert calling.wait(5)
+    assert calling.wait(WALL_TIMEOUT_S)
     robot.high.switch("parked")  # well before the 30 s timeout
     action = caller.action  # type: ignore[attr-defined]
     assert action.status.name == "INTERRUPTED", (action.status, action.error)
@@ -374,7 +374,7 @@ def test_behavior_parameter_back_to_the_running_name_overrides_a_queued_switch(
     unsubscribe = hl.subscribe(hold_the_switch)
     try:
         assert probe.set_param(HIGH, "behavior", "patrol").successful
-        assert held.wait(10) and hl.current == "patrol"
+        assert held.wait(WALL_TIMEOUT_S) and hl.current == "patrol"
         assert probe.set_param(HIGH, "behavior", "parked").successful  # queued
         assert probe.set_param(HIGH, "behavior", "patrol").successful  # the latest
         released_at = len(seen)
@@ -469,7 +469,7 @@ def test_logic_parameter_fails_with_a_reason_when_the_loop_is_blocked(
     _HoldsTheLoop.release.clear()
     try:
         assert probe.set_param(LLP, "logic", "hog").successful
-        assert _HoldsTheLoop.blocking.wait(10.0)
+        assert _HoldsTheLoop.blocking.wait(WALL_TIMEOUT_S)
         result = probe.set_param(LLP, "logic", "driving")  # the hog holds the loop
     finally:
         _HoldsTheLoop.release.set()
@@ -742,7 +742,7 @@ def test_behavior_parameter_latest_request_wins_after_a_rejected_one() -> None:
 
     try:
         assert set_behavior("patrol").successful
-        assert held.wait(10)
+        assert held.wait(WALL_TIMEOUT_S)
         assert set_behavior("parked").successful
         set_behavior("broken")  # refused: now or when processed
         assert set_behavior("patrol").successful

@@ -22,7 +22,7 @@ from beehave.errors import ConfigError, GoalFailed  # noqa: E402
 from beehave.ros.actions import RosActionGoal, ServiceCall  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
 from beehave.ros.io import WaitTimeout  # noqa: E402
-from beehave.testing import wait_until  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
 
 NS = "rosacts"
 
@@ -76,8 +76,8 @@ class Runs(Behavior):
 def run_action(hl: HighLevelBehaviorManager, action: Any) -> Any:
     hl.register("runs", Runs, action=action)
     behavior = hl.switch("runs")
-    assert behavior.ready.wait(10)  # type: ignore[attr-defined]
-    assert action.wait(30), action.status
+    assert behavior.ready.wait(WALL_TIMEOUT_S)  # type: ignore[attr-defined]
+    assert action.wait(WALL_TIMEOUT_S), action.status
     return action
 
 
@@ -110,8 +110,8 @@ def test_interrupt_cancels_the_goal_as_the_safe_state(hl: HighLevelBehaviorManag
     action = Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=1000))  # ~50 s
     hl.register("runs", Runs, action=action)
     behavior = hl.switch("runs")
-    assert behavior.ready.wait(10)  # type: ignore[attr-defined]
-    assert server.executing.wait(10)
+    assert behavior.ready.wait(WALL_TIMEOUT_S)  # type: ignore[attr-defined]
+    assert server.executing.wait(WALL_TIMEOUT_S)
     assert wait_until(lambda: action.feedback is not None)
     hl.switch("idle")  # bounded by stop_timeout_s = 0.5 s
     assert action.status.name == "INTERRUPTED", (action.status, action.error)
@@ -182,7 +182,7 @@ def test_service_call_is_interrupted_at_once(hl: HighLevelBehaviorManager) -> No
     action = ServiceCall(BasicTypes, "nobody_serves_this", BasicTypes.Request(), timeout_s=60)
     hl.register("runs", Runs, action=action)
     behavior = hl.switch("runs")
-    assert behavior.ready.wait(10)  # type: ignore[attr-defined]
+    assert behavior.ready.wait(WALL_TIMEOUT_S)  # type: ignore[attr-defined]
     hl.switch("idle")
     assert action.status.name == "INTERRUPTED", (action.status, action.error)
 
@@ -197,7 +197,7 @@ def test_an_interrupt_waits_cancel_timeout_s_once_not_twice(server: FibonacciSer
         server.stop_delay_s = 3.0  # it ends a goal 3 s after being asked to cancel
         action = Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=1000), cancel_timeout_s=0.6)
         hl.register("runs", Runs, action=action)
-        assert hl.switch("runs").ready.wait(10)  # type: ignore[attr-defined]
+        assert hl.switch("runs").ready.wait(WALL_TIMEOUT_S)  # type: ignore[attr-defined]
         assert wait_until(lambda: action.feedback is not None)
         hl.switch("idle")
         assert action.status.name == "INTERRUPTED", (action.status, action.error)
@@ -225,7 +225,7 @@ def test_finished_goals_are_not_kept_by_their_owner(hl: HighLevelBehaviorManager
                                                     server: FibonacciServer) -> None:
     hl.register("sends", Sends, count=5)
     behavior = hl.switch("sends")
-    assert behavior.done.wait(20)  # type: ignore[attr-defined]
+    assert behavior.done.wait(WALL_TIMEOUT_S)  # type: ignore[attr-defined]
     assert wait_until(lambda: not [k for k, _ in behavior.ros.entities if k == "goal"])
     # ... while the one action client they shared stays until the owner ends.
     assert [k for k, _ in behavior.ros.entities].count("action_client") == 1

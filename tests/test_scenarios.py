@@ -22,7 +22,7 @@ from beehave import Behavior, Status  # noqa: E402
 from beehave.config import load_config  # noqa: E402
 from beehave.robot import Robot  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
-from beehave.testing import beehave_threads, wait_until  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, beehave_threads, wait_until  # noqa: E402
 from behaviours.actions import LaneFollowing, Lift, Navigation  # noqa: E402
 from behaviours.logics import LIGHT_BLUE, RED, EmiliDisplayLogic  # noqa: E402
 from robots.node import SimNode  # noqa: E402
@@ -214,7 +214,7 @@ def test_beehave_run_can_start_the_simulation_itself() -> None:
     with Robot(config) as robot:
         assert robot.sim is not None and robot.high is not None
         tour = robot.high.switch("tour")
-        assert tour.wait(120) and tour.status is Status.SUCCEEDED, tour.error
+        assert tour.wait(WALL_TIMEOUT_S) and tour.status is Status.SUCCEEDED, tour.error
         pose = robot.sim.robot("emili1").pose()
         assert math.hypot(pose.x_m - 10.0, pose.y_m - 2.0) <= 0.3
     assert robot.sim is None
@@ -296,12 +296,12 @@ def test_navigation_to_a_goal_that_hugs_an_obstacle_ends_within_tolerance_of_it(
         assert emili.high is not None
         unreachable = Navigation(far, occupancy=occupancy_map(world), tolerance_m=0.15)
         emili.high.register("far", Do, action=unreachable)
-        assert emili.high.switch("far").wait(60)
+        assert emili.high.switch("far").wait(WALL_TIMEOUT_S)
         assert unreachable.status is Status.FAILED
         assert "goal_tolerance_m" in str(unreachable.error), unreachable.error
         nav = Navigation(near, occupancy=occupancy_map(world), tolerance_m=0.15)
         emili.high.register("near", Do, action=nav)
-        assert emili.high.switch("near").wait(120)
+        assert emili.high.switch("near").wait(WALL_TIMEOUT_S)
         assert nav.status is Status.SUCCEEDED, nav.error
         pose = sim.robot("emili1").pose()
         assert math.hypot(pose.x_m - near[0], pose.y_m - near[1]) <= 0.15
@@ -327,7 +327,7 @@ def test_driving_actions_are_held_by_lockstep_from_their_first_command() -> None
         for k, goal in enumerate([(3.0, 2.0), (2.0, 2.5), (3.0, 3.0)]):
             nav = Navigation(goal)
             emili.high.register(f"go{k}", Do, action=nav)
-            assert emili.high.switch(f"go{k}").wait(60)
+            assert emili.high.switch(f"go{k}").wait(WALL_TIMEOUT_S)
             assert nav.status is Status.SUCCEEDED, nav.error
             # The line stays with the node between actions.
             assert emili.high.node.count_publishers("/lockstep") == 1

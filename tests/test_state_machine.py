@@ -17,7 +17,7 @@ from beehave.engines import (
     UnknownEvent,
 )
 from beehave.engines.engine import Starter, StartLike, as_starter
-from beehave.testing import ScriptedAction, wait_until
+from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, wait_until
 from tests.engine_contract import EngineContract, Recorder, run
 
 
@@ -55,7 +55,7 @@ def test_outcomes_drive_the_machine_through_its_states(hl: HighLevelBehaviorMana
         on_step=lambda m: seen.append(m.state) if m.state not in seen else None)
     hl.blackboard.set("ok", True)
     behavior = run(hl, machine)
-    assert behavior.wait(5)
+    assert behavior.wait(WALL_TIMEOUT_S)
     assert behavior.status is Status.SUCCEEDED and behavior.result == "end"
     assert seen == ["second", "recover", "end"] or seen == ["first", "second", "recover", "end"]
     assert b.built[0].status is Status.FAILED  # handled by the 'failed' transition
@@ -89,7 +89,7 @@ def test_posted_events_fire_from_any_thread(hl: HighLevelBehaviorManager) -> Non
     poster = threading.Thread(target=machine.post, args=("shutdown",))
     poster.start()
     poster.join()
-    assert behavior.wait(5)
+    assert behavior.wait(WALL_TIMEOUT_S)
     assert behavior.result == "stopped"
 
 
@@ -99,7 +99,7 @@ def test_unhandled_failure_names_the_state_and_outcome(hl: HighLevelBehaviorMana
          State("done", final=True)],
         [Transition("lift", "done", on="succeeded")], initial="lift")
     behavior = run(hl, machine)
-    assert behavior.wait(5)
+    assert behavior.wait(WALL_TIMEOUT_S)
     error = behavior.error
     assert isinstance(error, UnhandledOutcome)
     assert (error.state, error.outcome) == ("lift", "failed")
@@ -117,7 +117,7 @@ def test_a_loop_the_load_check_cannot_decide_is_stopped_while_running(
     hl.blackboard.set("x", True)
     # …and the running machine reports the loop.
     behavior = run(hl, machine)
-    assert behavior.wait(5)
+    assert behavior.wait(WALL_TIMEOUT_S)
     assert isinstance(behavior.error, EngineConfigError) and "loop" in str(behavior.error)
 
 
@@ -234,7 +234,7 @@ def test_events_posted_while_not_running_are_dropped(hl: HighLevelBehaviorManage
     assert wait_until(lambda: machine.state == "wait")
     assert behavior.status is Status.RUNNING
     assert machine.post("shutdown") is True
-    assert behavior.wait(5) and behavior.result == "stopped"
+    assert behavior.wait(WALL_TIMEOUT_S) and behavior.result == "stopped"
 
 
 def test_posting_an_unknown_event_or_an_outcome_raises() -> None:
@@ -309,7 +309,7 @@ def test_from_dict_builds_the_same_machine(hl: HighLevelBehaviorManager) -> None
          "transitions": [{"source": "go", "dest": "end", "on": "succeeded"}]},
         resolve_start=resolve)
     behavior = run(hl, machine)
-    assert behavior.wait(5) and behavior.result == "end"
+    assert behavior.wait(WALL_TIMEOUT_S) and behavior.result == "end"
     assert beep.built[0].status is Status.SUCCEEDED
 
 

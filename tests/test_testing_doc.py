@@ -30,6 +30,6 @@ def test_the_docs_tests_pass_under_plain_pytest(tmp_path: Path) -> None:
     done = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist",
          "--rootdir", str(tmp_path), str(tmp_path)],
-        capture_output=True, text=True, timeout=WALL_TIMEOUT_S * 4, cwd=tmp_path)
+        capture_output=True, text=True, timeout=WALL_TIMEOUT_S, cwd=tmp_path)
     assert done.returncode == 0, done.stdout + done.stderr
     assert re.search(r"\b4 passed\b", done.stdout), done.stdout

@@ -17,6 +17,7 @@ from beehave import Action, Behavior, HighLevelBehaviorManager, Logic, Status
 from beehave.clock import VirtualClock
 from beehave.errors import ClockNotSettled, ConfigError
 from beehave.testing import (
+    WALL_TIMEOUT_S,
     EventLog,
     Scripted,
     ScriptedHAL,
@@ -164,7 +165,7 @@ def test_autojump_reproduces_the_same_interleaving_every_time() -> None:
             with HighLevelBehaviorManager(clock=clock, stop_timeout_s=1.0) as hl:
                 hl.register("three", Three)
                 three = hl.switch("three")
-                assert three.wait(30.0) and three.status is Status.SUCCEEDED
+                assert three.wait(WALL_TIMEOUT_S) and three.status is Status.SUCCEEDED
         finally:
             clock.close()
         return sorted(order)
@@ -186,7 +187,7 @@ def test_autojump_moves_only_while_everyone_rests(high_level: HighLevelBehaviorM
 
     high_level.register("long", Long)
     long = high_level.switch("long")
-    assert long.wait(10.0)  # wall: an hour of virtual time is one jump
+    assert long.wait(WALL_TIMEOUT_S)  # wall: an hour of virtual time is one jump
     assert long.result == 3600.0
 
 

@@ -17,7 +17,7 @@ from beehave.engines import (
 )
 from beehave.engines.engine import Starter, StartLike, as_starter
 from beehave.engines.tree import BlackboardCheck, StartLeaf, TreeEngine
-from beehave.testing import wait_until
+from beehave.testing import WALL_TIMEOUT_S, wait_until
 from tests.engine_contract import EngineContract, Recorder, run
 
 Sequence = py_trees.composites.Sequence
@@ -79,7 +79,7 @@ def test_a_busy_action_type_can_fail_the_leaf(hl: HighLevelBehaviorManager) -> N
         "both", policy=py_trees.common.ParallelPolicy.SuccessOnAll(), children=[
             StartLeaf("first", first), StartLeaf("second", second, on_busy="failure")])
     behavior = run(hl, TreeEngine(root, rate_hz=200))
-    assert behavior.wait(5)
+    assert behavior.wait(WALL_TIMEOUT_S)
     assert isinstance(behavior.error, TreeFailed)
     assert behavior.error.node == "second" and "'driving'" in str(behavior.error)
 
@@ -90,7 +90,7 @@ def test_failure_names_the_leaf_and_keeps_the_cause(hl: HighLevelBehaviorManager
         StartLeaf("approach", Recorder("approach", duration_s=0.01)),
         StartLeaf("latch", Recorder("latch", raises=boom))])
     behavior = run(hl, TreeEngine(root, rate_hz=200))
-    assert behavior.wait(5)
+    assert behavior.wait(WALL_TIMEOUT_S)
     assert isinstance(behavior.error, TreeFailed)
     assert "'latch'" in str(behavior.error) and behavior.error.__cause__ is boom
 
@@ -106,7 +106,7 @@ def test_a_state_machine_can_run_a_tree_driven_sub_behaviour(
          State("done", final=True)],
         [Transition("tree", "done", on="succeeded")], initial="tree")
     behavior = run(hl, machine)
-    assert behavior.wait(5) and behavior.result == "done"
+    assert behavior.wait(WALL_TIMEOUT_S) and behavior.result == "done"
     assert leaf_act.built[0].status is Status.SUCCEEDED
 
 
@@ -121,7 +121,7 @@ def test_from_dict_builds_a_tree_and_reports_key_paths(hl: HighLevelBehaviorMana
         resolve_start=resolve, rate_hz=200)
     hl.blackboard.set("ready", True)
     behavior = run(hl, engine)
-    assert behavior.wait(5) and behavior.result == "beeped"
+    assert behavior.wait(WALL_TIMEOUT_S) and behavior.result == "beeped"
     with pytest.raises(EngineConfigError, match=r"tree\.selector\.children\[1\]: unknown node "
                                                 r"kind 'sequense'"):
         TreeEngine.from_dict({"selector": {"children": [{"action": "a"}, {"sequense": {}}]}},

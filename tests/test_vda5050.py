@@ -31,6 +31,7 @@ from beehave.interfaces.vda5050 import (
 )
 from beehave.interfaces.vda5050.order import ActionState, Drive, Point
 from beehave.interfaces.vda5050.validation import TOPICS, validator
+from beehave.testing import WALL_TIMEOUT_S
 from behaviours.vda5050 import OrderLoop
 
 __all__ = ["broker"]  # the fixture, imported for pytest
@@ -618,7 +619,8 @@ def test_no_broker_is_reported_and_retried_until_one_appears(
             assert not interface.connected.wait(1.5)
         assert f"no MQTT broker reachable at 127.0.0.1:{late.port}" in caplog.text
         with late:
-            assert interface.connected.wait(10), "did not connect once the broker was up"
+            assert interface.connected.wait(WALL_TIMEOUT_S), \
+                "did not connect once the broker was up"
     finally:
         made_hl.shutdown()
         interface.close()

@@ -15,6 +15,8 @@ from typing import Any
 
 import pytest
 
+from beehave.testing import WALL_TIMEOUT_S
+
 pytest.importorskip("rclpy")
 
 from nav_msgs.msg import Odometry  # noqa: E402
@@ -168,8 +170,8 @@ def _navigate(at: tuple[float, float], goal: tuple[float, float],
     nav.planner = spy  # type: ignore[assignment]
     with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
         hl.register("go", Go, action=nav)
-        assert hl.switch("go").wait(5)
-        assert nav.wait(5)
+        assert hl.switch("go").wait(WALL_TIMEOUT_S)
+        assert nav.wait(WALL_TIMEOUT_S)
     assert nav.status is Status.SUCCEEDED, nav.error
     return nav, spy
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from beehave import HighLevelBehaviorManager, InvalidParameters, Status
-from beehave.testing import wait_until
+from beehave.testing import WALL_TIMEOUT_S, wait_until
 from behaviours.behaviors import YamlBehavior, YamlBehaviorError
 from behaviours.demos.console import Beep, Drive, PointRobot
 from behaviours.yaml_schema import load_engine
@@ -21,7 +21,7 @@ def test_a_state_machine_file_runs_its_actions(hl: HighLevelBehaviorManager) -> 
     hl.register("patrol", YamlBehavior, file=DATA / "patrol_sm.yaml", registry=REGISTRY,
                 inject={"robot": robot})
     behavior = hl.switch("patrol")
-    assert behavior.wait(10)
+    assert behavior.wait(WALL_TIMEOUT_S)
     assert behavior.status is Status.SUCCEEDED and behavior.result == "done"
     assert behavior.name == "patrol"
     assert robot.sounds == ["hi"] and abs(robot.x_m) < 0.03
@@ -34,7 +34,7 @@ def test_a_tree_file_runs_an_inline_state_machine_sub_behaviour(
     hl.register("tree", YamlBehavior, file=DATA / "charge_tree.yaml", registry=REGISTRY,
                 inject={"robot": robot})
     behavior = hl.switch("tree")
-    assert behavior.wait(10)
+    assert behavior.wait(WALL_TIMEOUT_S)
     assert behavior.status is Status.SUCCEEDED, behavior.error
     assert 0.02 < robot.x_m < 0.08 and robot.lift_m == 0.0
 

@@ -43,7 +43,7 @@ SLOWDOWN = _slowdown()
 """How much slower than an idle 2-core machine this one may be (environment variable
 ``BEEHAVE_TEST_SLOWDOWN``, default 1; ``make test-stress`` sets it)."""
 
-WALL_TIMEOUT_S = 30.0 * SLOWDOWN
+WALL_TIMEOUT_S = 60.0 * SLOWDOWN
 """The one bound of every wall-clock wait in tests (``wait_until``, processes coming up,
 messages arriving over DDS or MQTT). A safety net, never a timing: a test that passes
 waits only as long as its condition takes; a generous bound only makes a real failure
