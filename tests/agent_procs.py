@@ -15,11 +15,13 @@ from typing import Any
 
 from agents_events import read_events
 
+from beehave.testing import WALL_TIMEOUT_S
+
 
 class AgentProc:
     """``args`` run as a process; its stdout events land in :attr:`events`."""
 
-    def __init__(self, name: str, args: Sequence[str], *, wait_s: float = 30.0) -> None:
+    def __init__(self, name: str, args: Sequence[str], *, wait_s: float = WALL_TIMEOUT_S) -> None:
         self.name = name
         self.wait_s = wait_s
         self.popen = subprocess.Popen(list(args), stdout=subprocess.PIPE, text=True,

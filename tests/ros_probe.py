@@ -16,6 +16,7 @@ from std_srvs.srv import Trigger
 
 from beehave.ros.bridge import LATCHED
 from beehave.ros.context import RosContext
+from beehave.testing import WALL_TIMEOUT_S
 
 
 class Probe:
@@ -34,7 +35,7 @@ class Probe:
         self.node.create_subscription(msg_type, topic, box.append, LATCHED if latched else 10)
         return box
 
-    def wait(self, predicate: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    def wait(self, predicate: Callable[[], bool], timeout_s: float = WALL_TIMEOUT_S) -> bool:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if predicate():
