@@ -12,7 +12,6 @@ import logging
 import math
 import random
 import threading
-import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -29,6 +28,7 @@ from beehave import (
     LowLevelBehaviorManager,
     UnknownFusionSource,
 )
+from beehave.clock import VirtualClock
 from beehave.events import Event, EventBus, EventKind
 from beehave.fusion import arbiter_name, check_twist, lock_key, make_inputs, proposal_key
 from beehave.testing import wait_until
@@ -440,9 +440,12 @@ class Wander(Logic):
 
 
 @pytest.fixture
-def low_level() -> Iterator[LowLevelBehaviorManager]:
+def low_level(clock: VirtualClock) -> Iterator[LowLevelBehaviorManager]:
+    """On the test kit's virtual clock: the arbiter's cycles and the proposals' ages are
+    exact, on a loaded machine too."""
     Recorder.sent_by_all = []
-    ll = LowLevelBehaviorManager(default="wander", stop_timeout_s=0.5, hal_handover_s=0.05)
+    ll = LowLevelBehaviorManager(default="wander", stop_timeout_s=0.5, hal_handover_s=0.05,
+                                 clock=clock)
     ll.hals.register(Recorder, actuator="cmd_vel", inputs=INPUTS, rate_hz=100.0)
     ll.register("wander", Wander)
     ll.register("other", Holder)
@@ -457,31 +460,37 @@ class _Idle(Logic):
 
 
 def test_the_arbiter_cycles_at_its_rate_and_stops_the_actuator_at_unload(
-        low_level: LowLevelBehaviorManager) -> None:
-    assert wait_until(lambda: Recorder.sent_by_all.count((0.2, 0.0)) >= 5)
+        low_level: LowLevelBehaviorManager, clock: VirtualClock) -> None:
+    clock.advance(1.0)
+    # 100 Hz for one second, exactly: the first cycle comes before wander's first proposal
+    # (the safe value), then wander wins every cycle.
+    assert Recorder.sent_by_all == [STOP] + [(0.2, 0.0)] * 99
     assert low_level.blackboard.get("fusion/cmd_vel/winner") == {"source": "wander",
                                                                   "value": (0.2, 0.0)}
     low_level.switch("none")  # nobody holds the arbiter any more: unloaded, safe state
-    assert wait_until(lambda: arbiter_name("cmd_vel") not in low_level.hals.loaded)
+    assert clock.run_until(lambda: arbiter_name("cmd_vel") not in low_level.hals.loaded,
+                           timeout_s=1.0)
     # The manager lists it as gone before its safe state has run (the unload finishes in
     # a task of its own): wait for the stop, then check nothing is sent after it.
-    assert wait_until(lambda: Recorder.sent_by_all[-1] == STOP)
+    assert clock.run_until(lambda: Recorder.sent_by_all[-1] == STOP, timeout_s=1.0)
     sent = len(Recorder.sent_by_all)
-    time.sleep(0.1)  # ten of its cycles
+    clock.advance(0.1)  # ten of its cycles
     assert len(Recorder.sent_by_all) == sent and Recorder.sent_by_all[-1] == STOP
     # Its blackboard subscription ended with it.
     assert not [s for s in low_level.blackboard._subs if s.pattern == "fusion/cmd_vel/*"]
 
 
 def test_a_garbage_proposal_does_not_crash_the_running_arbiter(
-        low_level: LowLevelBehaviorManager) -> None:
+        low_level: LowLevelBehaviorManager, clock: VirtualClock) -> None:
     events: list[Event] = []
     low_level.events.subscribe(events.append)
-    assert wait_until(lambda: Recorder.sent_by_all.count((0.2, 0.0)) >= 2)
+    assert clock.run_until(lambda: Recorder.sent_by_all.count((0.2, 0.0)) >= 2, timeout_s=1.0)
     low_level.blackboard.set("fusion/cmd_vel/joystick", {"v": 1}, writer="teleop")
-    assert wait_until(lambda: any(e.subject == "fusion:cmd_vel:joystick" for e in events))
+    assert clock.run_until(lambda: any(e.subject == "fusion:cmd_vel:joystick"
+                                       for e in events), timeout_s=1.0)
     count = len(Recorder.sent_by_all)
-    assert wait_until(lambda: len(Recorder.sent_by_all) > count + 3)
+    clock.advance(0.05)
+    assert len(Recorder.sent_by_all) == count + 5
     assert set(Recorder.sent_by_all[count:]) == {(0.2, 0.0)}
     hal = low_level.hals.loaded[arbiter_name("cmd_vel")]
     assert hal.restarts == 0 and hal.status.name == "RUNNING"
