@@ -395,7 +395,7 @@ def test_factory_state_goes_out_latched_periodically_and_on_every_load(rig: Rig)
         assert first["robots"][rig.ns]["load"] is None
         assert not any(s["facts"]["pickups"] for s in ours())
         rig.sim.start()  # the robot stands in the depot: it loads after load_s (1 s)
-        assert probe.wait(lambda: any(s["facts"]["pickups"] for s in ours()), 15.0)
+        assert probe.wait(lambda: any(s["facts"]["pickups"] for s in ours()))
         pickup = next(s for s in ours() if s["facts"]["pickups"])
         # Published by the pick-up itself, not by the next 5 Hz tick (a 0.2 s multiple).
         assert pickup["time_s"] == pickup["facts"]["pickups"][0]["time_s"]

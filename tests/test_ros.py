@@ -121,7 +121,7 @@ def test_late_joiner_gets_the_blackboard(robot: Robot, probe: Probe) -> None:
     # snapshot_period_s (0.5 s here) even while the debug HAL keeps changing entries.
     snapshots = lambda: [json.loads(m.data) for m in list(late)  # noqa: E731
                          if json.loads(m.data)["kind"] == "snapshot"]
-    assert probe.wait(lambda: bool(snapshots()), timeout_s=2.0)
+    assert probe.wait(lambda: bool(snapshots()))
     assert snapshots()[0]["entries"]["mode"]["value"] == "parked"
 
 
@@ -634,7 +634,7 @@ def test_an_engine_state_change_is_published_without_a_lifecycle_event(probe: Pr
 
         assert probe.wait(lambda: engine_state() == "approach")
         machine.state = "dock"  # type: ignore[attr-defined]
-        assert probe.wait(lambda: engine_state() == "dock", timeout_s=5.0)
+        assert probe.wait(lambda: engine_state() == "dock")
     finally:
         bridge.destroy()
         hl.shutdown()
@@ -836,8 +836,8 @@ def test_an_engine_that_appears_after_the_start_is_published() -> None:
         assert (last_json(state) or {}).get("engines") == []
         ready.set()
         assert probe.wait(lambda: [e.get("state") for e in
-                                   (last_json(state) or {}).get("engines", [])] == ["approach"],
-                          timeout_s=5.0), last_json(state)
+                                   (last_json(state) or {}).get("engines", [])] == ["approach"]
+                          ), last_json(state)
     finally:
         probe.close()
         bridge.destroy()

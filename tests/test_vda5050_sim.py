@@ -63,7 +63,7 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             master.wait_state(lambda s: "agvPosition" in s, timeout_s=60)
             # The probe must hear the lift before it moves (discovery is slow on a loaded
             # machine): else the pick's rise is missed and the check reads only its end.
-            assert probe.wait(lambda: bool(lift) and bool(odom), 60), "no lift/odom probe"
+            assert probe.wait(lambda: bool(lift) and bool(odom)), "no lift/odom probe"
             # The base: EMILI's start, then 3 m on, where it picks; the drop-off station
             # is the horizon, released by an update.
             n0 = node("n0", 0, x=3.0, y=2.0)
@@ -83,18 +83,23 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             assert done["errors"] == [] and done["loads"] == []
             # The physics: ground-truth pose in the drop-off station, the lift went up to
             # the pick height and is down again.
-            p = odom[-1].pose.pose.position
-            assert math.hypot(p.x - dropoff.center_m[0], p.y - dropoff.center_m[1]) <= \
-                TOLERANCE_M + 0.05, (p.x, p.y)
-            heights = [m.data for m in lift]
-            assert max(heights) >= 0.195 and heights[-1] <= 0.005, heights[-5:]
+            # (The probe hears the sim over DDS: on a loaded machine its streams lag the
+            # state the master got, so it waits until they have caught up.)
+            def at_dropoff() -> bool:
+                p = odom[-1].pose.pose.position
+                return math.hypot(p.x - dropoff.center_m[0],
+                                  p.y - dropoff.center_m[1]) <= TOLERANCE_M + 0.05
+
+            assert probe.wait(at_dropoff), odom[-1].pose.pose.position
+            assert probe.wait(lambda: lift[-1].data <= 0.005), [m.data for m in lift][-5:]
+            assert max(m.data for m in lift) >= 0.195
 
             # A second order, cancelled mid-edge: EMILI stops and the rest FAILS.
             back = node("back", 6, x=4.0, y=2.0, actions=[action("pick", "pick2")])
             here = node("emili_dropoff", 4)
             master.order("o2", 0, [here, back], [edge(here, back)])
             master.wait_state(lambda s: s["orderId"] == "o2" and s["driving"], timeout_s=30)
-            assert probe.wait(lambda: abs(odom[-1].twist.twist.linear.x) > 0.05, 10)
+            assert probe.wait(lambda: abs(odom[-1].twist.twist.linear.x) > 0.05)
             t_cancel = _stamp_s(odom[-1])  # sim time, the sim's own odometry stamp
             master.instant(action("cancelOrder", "cancel1"))
             cancelled = master.wait_state(
@@ -102,7 +107,7 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             assert _status(cancelled)["pick2"] == "FAILED"
             assert cancelled["nodeStates"] == [] and cancelled["edgeStates"] == []
             count = len(odom)
-            assert probe.wait(lambda: len(odom) > count + 30, 10)
+            assert probe.wait(lambda: len(odom) > count + 30)
             still = odom[-1]
             assert abs(still.twist.twist.linear.x) < 0.01, still.twist.twist
             # The bound: the wheels stand within 0.5 s of sim time of the cancel.
