@@ -175,6 +175,22 @@ def test_autojump_reproduces_the_same_interleaving_every_time() -> None:
     assert all(abs(t - round(t / p) * p) < 1e-9 for t, who in first
                for p in [float(who[4:])])
     assert one_run() == first
+    # The same beside a CPU hog in this very process (it competes for the GIL too).
+    stop = threading.Event()
+
+    def hog() -> None:
+        while not stop.is_set():
+            sum(range(1000))
+
+    hogs = [threading.Thread(target=hog, daemon=True) for _ in range(2)]
+    for thread in hogs:
+        thread.start()
+    try:
+        assert one_run() == first
+    finally:
+        stop.set()
+        for thread in hogs:
+            thread.join()
 
 
 @pytest.mark.beehave_clock(autojump=True)
