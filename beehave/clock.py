@@ -19,7 +19,6 @@ from __future__ import annotations
 import asyncio
 import heapq
 import itertools
-import math
 import selectors
 import threading
 import time
@@ -149,6 +148,10 @@ class _Worker:
         self.name = name
 
 
+def _to_ns(seconds: float) -> int:
+    return round(seconds * 1e9)
+
+
 class VirtualClock(WallClock):
     """Time that moves only when a test moves it: the test kit's clock.
 
@@ -171,16 +174,18 @@ class VirtualClock(WallClock):
     with :class:`SimClock` instead. ``stop_timeout_s`` stays wall time, as everywhere.
     """
 
-    #: Deadlines are exact here (no ``/clock`` rounding to whole nanoseconds).
+    #: Time and deadlines are whole nanoseconds here, exactly (as ``/clock`` is), so that
+    #: ``sleep(0.01)`` two hundred times ends at 2.0 s, not at 2.0000000000000013 s.
     SLACK_S = 0.0
     #: How long (wall time) :meth:`advance` waits for the workers to come to rest before it
     #: raises :class:`ClockNotSettled`.
     SETTLE_TIMEOUT_S = 10.0
 
     def __init__(self, start_s: float = 0.0, *, autojump: bool = False) -> None:
-        self._now = float(start_s)
+        self._ns = _to_ns(start_s)
+        self._now = self._ns / 1e9
         self._changed = threading.Condition(threading.Lock())
-        self._timed: list[tuple[float, int, threading.Condition]] = []
+        self._timed: list[tuple[int, int, threading.Condition]] = []  # (deadline ns, …)
         self._ids = itertools.count()
         self._workers: dict[int, _Worker] = {}
         self._queued = 0  # jobs handed to a pool whose thread has not yet taken them
@@ -208,16 +213,15 @@ class VirtualClock(WallClock):
     # -------------------------------------------------------------------- waiting
     def wait(self, cond: threading.Condition, predicate: Callable[[], bool],
              timeout_s: float | None) -> bool:
-        deadline = None if timeout_s is None else self._now + timeout_s
-        if timeout_s is not None and timeout_s > 0 and deadline is not None \
-                and deadline <= self._now:
-            # Too small to add to `now` (1e-17 s left of a tick): the next representable
-            # time, or the caller would wait again and again at the same instant.
-            deadline = math.nextafter(self._now, math.inf)
+        deadline: int | None = None
+        if timeout_s is not None:
+            # A positive wait lasts at least a nanosecond: one of 1e-17 s (the float rest of
+            # a tick) would otherwise end at once, and its caller wait again at that instant.
+            deadline = self._ns + max(_to_ns(timeout_s), 1 if timeout_s > 0 else 0)
         entry = None if deadline is None else (deadline, next(self._ids), cond)
 
         def ready() -> bool:
-            return predicate() or (deadline is not None and self._now + self.SLACK_S >= deadline)
+            return predicate() or (deadline is not None and self._ns >= deadline)
 
         with self._changed:
             if entry is not None:
@@ -229,7 +233,7 @@ class VirtualClock(WallClock):
             self._changed.notify_all()
         try:
             while not predicate():
-                if deadline is not None and self._now + self.SLACK_S >= deadline:
+                if deadline is not None and self._ns >= deadline:
                     return predicate()
                 cond.wait()  # woken by _set past the deadline, or by whoever notifies cond
             return True
@@ -312,15 +316,16 @@ class VirtualClock(WallClock):
             except Exception:  # a predicate that cannot be read yet: assume it may run
                 running.append(worker.name)
         for loop in self._loops:
-            if not loop._at_rest(self._now + self.SLACK_S):
+            if not loop._at_rest(self._ns):
                 running.append(f"event loop {loop.name}")
         return running
 
-    def _next_deadline_locked(self) -> float | None:
-        after = self._now + self.SLACK_S
-        deadlines = [d for d, _, _ in self._timed if d > after]
+    def _next_deadline_locked(self) -> int | None:
+        """The earliest deadline after now (ns)."""
+        now = self._ns
+        deadlines = [d for d, _, _ in self._timed if d > now]
         deadlines += [d for loop in self._loops
-                      if (d := loop._deadline) is not None and d > after]
+                      if (d := loop._deadline) is not None and d > now]
         return min(deadlines, default=None)
 
     @property
@@ -333,20 +338,22 @@ class VirtualClock(WallClock):
     def next_deadline(self) -> float | None:
         """The earliest time something waits for (None: nothing waits for time)."""
         with self._changed:
-            return self._next_deadline_locked()
+            step = self._next_deadline_locked()
+        return None if step is None else step / 1e9
 
     # -------------------------------------------------------------------- moving time
-    def _set(self, t_s: float) -> None:
+    def _set(self, t_ns: int) -> None:
         with self._changed:
-            if t_s <= self._now:
+            if t_ns <= self._ns:
                 return
-            self._now = t_s
+            self._ns = t_ns
+            self._now = t_ns / 1e9
             self.jumps += 1
             due: list[threading.Condition] = []
-            while self._timed and self._timed[0][0] <= self._now + self.SLACK_S:
+            while self._timed and self._timed[0][0] <= t_ns:
                 due.append(heapq.heappop(self._timed)[2])
             loops = [loop for loop in self._loops
-                     if loop._deadline is not None and loop._deadline <= self._now + self.SLACK_S]
+                     if loop._deadline is not None and loop._deadline <= t_ns]
             self._changed.notify_all()
         for cond in due:
             with cond:
@@ -380,10 +387,11 @@ class VirtualClock(WallClock):
         if self._autojump:
             self.sleep(seconds)
             return self._now
-        target = self._now + seconds
+        target = self._ns + _to_ns(seconds)
         while True:
             self.settle()
-            step = self.next_deadline
+            with self._changed:
+                step = self._next_deadline_locked()
             if step is None or step > target:
                 break
             self._set(step)
@@ -398,7 +406,7 @@ class VirtualClock(WallClock):
 
             assert clock.run_until(lambda: hl.current == "idle", timeout_s=600)
         """
-        end = self._now + timeout_s
+        end = self._ns + _to_ns(timeout_s)
         if self._autojump:
             give_up = time.monotonic() + self.SETTLE_TIMEOUT_S
             cond = threading.Condition()
@@ -408,7 +416,7 @@ class VirtualClock(WallClock):
                 with self._changed:
                     heapq.heappush(self._timed, entry)
                 try:
-                    while not predicate() and self._now < end:
+                    while not predicate() and self._ns < end:
                         last = self.jumps
                         cond.wait(0.001)
                         if self.jumps != last:
@@ -425,7 +433,8 @@ class VirtualClock(WallClock):
             self.settle()
             if predicate():
                 return True
-            step = self.next_deadline
+            with self._changed:
+                step = self._next_deadline_locked()
             if step is None or step > end:
                 self._set(end)
                 self.settle()
@@ -507,10 +516,12 @@ class VirtualClock(WallClock):
                 self._loops.remove(loop)
             self._changed.notify_all()
 
-    def _loop_state(self, loop: _VirtualLoop, idle: bool, deadline: float | None) -> None:
+    def _loop_state(self, loop: _VirtualLoop, idle: bool, deadline_s: float | None) -> None:
         with self._changed:
             loop._idle = idle
-            loop._deadline = deadline if idle else None
+            # asyncio's timers are floats: the step lands on the nearest nanosecond, within
+            # the loop's clock resolution (1 ns), so the timer is due there.
+            loop._deadline = None if deadline_s is None or not idle else _to_ns(deadline_s)
             self._changed.notify_all()
 
 
@@ -551,11 +562,11 @@ class _ClockedSelector(selectors.BaseSelector):
         # at rest until that deadline or an I/O event; the clock wakes it past the deadline.
         deadline = None if timeout is None else self._clock.now() + timeout
         self._clock._loop_state(loop, True, deadline)
+        due = loop._deadline
         try:
             while True:
                 events = self._inner.select(0.25)
-                if events or (deadline is not None
-                              and self._clock.now() + VirtualClock.SLACK_S >= deadline):
+                if events or (due is not None and self._clock._ns >= due):
                     return events
                 if loop._ready:  # type: ignore[attr-defined]
                     return events
@@ -572,14 +583,14 @@ class _VirtualLoop(asyncio.SelectorEventLoop):
         selector.loop = self
         self._clock = clock
         self._idle = False
-        self._deadline: float | None = None
+        self._deadline: int | None = None  # ns, while idle
         self.name = f"loop@{id(self):x}"
         clock._add_loop(self)
 
     def time(self) -> float:
         return self._clock.now()
 
-    def _at_rest(self, now: float) -> bool:
+    def _at_rest(self, now: int) -> bool:
         return (self._idle and not self._ready  # type: ignore[attr-defined]
                 and (self._deadline is None or self._deadline > now))
 

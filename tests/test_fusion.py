@@ -462,9 +462,9 @@ class _Idle(Logic):
 def test_the_arbiter_cycles_at_its_rate_and_stops_the_actuator_at_unload(
         low_level: LowLevelBehaviorManager, clock: VirtualClock) -> None:
     clock.advance(1.0)
-    # 100 Hz for one second, exactly: the first cycle comes before wander's first proposal
-    # (the safe value), then wander wins every cycle.
-    assert Recorder.sent_by_all == [STOP] + [(0.2, 0.0)] * 99
+    # 100 Hz for one second, exactly: cycles at 0.00, 0.01, …, 1.00 s; the first comes
+    # before wander's first proposal (the safe value), then wander wins every cycle.
+    assert Recorder.sent_by_all == [STOP] + [(0.2, 0.0)] * 100
     assert low_level.blackboard.get("fusion/cmd_vel/winner") == {"source": "wander",
                                                                   "value": (0.2, 0.0)}
     low_level.switch("none")  # nobody holds the arbiter any more: unloaded, safe state

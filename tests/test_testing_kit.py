@@ -46,6 +46,24 @@ def test_advance_runs_a_sleeping_loop_once_per_second(high_level: HighLevelBehav
     assert clock.now() == 600.0
 
 
+def test_decimal_periods_add_up_exactly(high_level: HighLevelBehaviorManager,
+                                        clock: VirtualClock) -> None:
+    """Time is whole nanoseconds: two hundred sleeps of 0.01 s end at 2.0 s, not at
+    2.0000000000000013 s (a float sum), so ``advance(2.0)`` sees the last one."""
+    done: list[float] = []
+
+    class Fine(Behavior):
+        def run(self) -> None:
+            for _ in range(200):
+                self.sleep(0.01)
+            done.append(clock.now())
+
+    high_level.register("fine", Fine)
+    high_level.switch("fine")
+    clock.advance(2.0)
+    assert done == [2.0]
+
+
 def test_time_stands_still_until_advanced(high_level: HighLevelBehaviorManager,
                                           clock: VirtualClock) -> None:
     woke = threading.Event()
@@ -314,7 +332,7 @@ def test_a_tree_ticks_at_its_rate_in_virtual_time(high_level: HighLevelBehaviorM
 
     high_level.register("ticking", Ticking)
     high_level.switch("ticking")
-    clock.advance(60.05)  # not 60.0: six hundred float steps of 0.1 s end just past it
+    clock.advance(60.05)  # the tree's own float sum of 0.1 s steps ends 1 ns past 60.0
     assert engine.ticks == 601  # at 0, 0.1, …, 60.0 s
 
 
