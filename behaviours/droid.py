@@ -307,10 +307,16 @@ class FollowLeader(MavlinkAction):
     ``safety_m``, the vehicle holds where it is (``holding`` says why); while the leader
     stands and the gap is within the tolerance it holds too; otherwise it heads for the
     point ``distance_m`` from the leader on the line towards itself, shifted by the
-    leader's velocity × ``lead_s`` (where the leader will be). A Copter takes
-    off to ``alt_m`` first and follows at that altitude. Runs until interrupted; with
+    leader's velocity × ``lead_s`` (where the leader will be). The leader's position is
+    carried forward by its velocity over the state's age (at most ``MAX_EXTRAPOLATION_S``):
+    a state that arrives late on a loaded host or network still says where the leader is.
+    A Copter takes off to ``alt_m`` first and follows at that altitude. Runs until
+    interrupted; with
     ``give_up_s`` it fails once the leader has been stale that long. Its attributes
     ``min_gap_m`` and ``holding`` are for tests and pictures."""
+
+    MAX_EXTRAPOLATION_S = 1.0
+    """The longest a leader's state is carried forward by its velocity."""
 
     def __init__(self, leader: str, *, distance_m: float = 2.0, tolerance_m: float = 0.2,
                  safety_m: float = 1.0, alt_m: float = 2.5, rate_hz: float = 10.0,
@@ -359,11 +365,13 @@ class FollowLeader(MavlinkAction):
                                   f"{self.give_up_s} s")
             else:
                 stale_since = None
-                gap = math.hypot(here[0] - where[0], here[1] - where[1])
-                self.min_gap_m = min(self.min_gap_m, gap)
                 velocity = peer.state.get("velocity") or {} if peer is not None else {}
                 vn = _num(velocity.get("vn_mps")) or 0.0
                 ve = _num(velocity.get("ve_mps")) or 0.0
+                age = min(peer.age_s, self.MAX_EXTRAPOLATION_S) if peer is not None else 0.0
+                where = (where[0] + vn * age, where[1] + ve * age, where[2])
+                gap = math.hypot(here[0] - where[0], here[1] - where[1])
+                self.min_gap_m = min(self.min_gap_m, gap)
                 if gap < self.safety_m:
                     self._hold(link, here, alt, f"gap {gap:.2f} m below the safety distance "
                                                 f"{self.safety_m} m")
