@@ -124,6 +124,7 @@ class Broker:
                     return
             except OSError:
                 time.sleep(0.02)
+        self.kill()  # whoever started it cannot stop it once this raised
         raise RuntimeError(f"mosquitto did not listen on port {self.port}")
 
     def kill(self) -> None:
