@@ -539,3 +539,30 @@ def test_the_simulation_steps_in_lockstep_with_the_clock(sim, clock, high_level)
     assert abs(world.time_s - clock.now()) <= world.step_s
     assert 0.75 < moved < 1.0
     assert all(not t.name.startswith("sim-lockstep") for t in beehave_threads())
+
+
+# ------------------------------------------------------------------ found in review
+
+
+def test_an_interrupt_reaches_an_engine_driven_from_a_plain_behaviour(
+        high_level: HighLevelBehaviorManager, clock: VirtualClock) -> None:
+    """``return engine.drive(self)`` in a plain behaviour: the engine's waits sleep on the
+    behaviour's own condition, which the interrupt notifies; the virtual clock stands still
+    during the switch, so a poll would never come."""
+    from beehave.engines.engine import DecisionEngine
+
+    class Waiter(DecisionEngine):
+        def run(self, context: object) -> str:
+            while context.wait():  # type: ignore[attr-defined]
+                pass
+            return "stopped"
+
+    class Custom(Behavior):
+        def run(self) -> object:
+            return Waiter().drive(self)
+
+    high_level.register("custom", Custom)
+    custom = high_level.switch("custom")
+    clock.advance(1.0)
+    high_level.switch("idle")
+    assert custom.status is Status.INTERRUPTED

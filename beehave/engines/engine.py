@@ -215,8 +215,10 @@ class EngineContext:
         self.behavior = behavior
         self.poll_s = poll_s
         # Set by wake(); waited on through the manager's clock, so that poll_s and a tree's
-        # rate follow sim time or a test's virtual time.
-        self._cond = threading.Condition(threading.Lock())
+        # rate follow sim time or a test's virtual time. The behaviour's own condition:
+        # an interrupt notifies it, so a paused simulation or a virtual clock that stands
+        # still cannot keep a plain behaviour that drives an engine from stopping.
+        self._cond = behavior._cond
         self._woken = False
         self._handles: list[Runnable] = []
         self._subscription: Subscription | None = None
