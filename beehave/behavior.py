@@ -76,6 +76,8 @@ class Behavior(Runnable):
         except BaseException:
             action._detach()  # not started: the caller may try the same object again
             raise
+        # Only what really starts is substituted (a refused action stood in for nothing).
+        manager.substitutes.apply(action, path=action.path)
         try:
             self._adopt(action)
         except BaseException:
@@ -97,7 +99,8 @@ class Behavior(Runnable):
         if not isinstance(behavior, Behavior):
             raise NotASubclass(f"{self.path}: start_behavior() takes a Behavior instance, "
                                f"got {behavior!r}; use start_action() for actions")
-        self._before_start(behavior)
+        manager = self._before_start(behavior)
+        manager.substitutes.apply(behavior, path=behavior.path)
         self._adopt(behavior)
         behavior._start_thread()
         return behavior
@@ -141,7 +144,6 @@ class Behavior(Runnable):
             count = self._names[child.name]
         if count > 1:
             child._suffix = f"#{count}"
-        manager.substitutes.apply(child, path=child.path)
         return manager
 
     def _adopt(self, child: Runnable) -> None:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import heapq
 import itertools
+import math
 import selectors
 import threading
 import time
@@ -152,6 +153,12 @@ def _to_ns(seconds: float) -> int:
     return round(seconds * 1e9)
 
 
+def _check_span(what: str, seconds: float) -> None:
+    if isinstance(seconds, bool) or not isinstance(seconds, int | float) \
+            or not (0 <= seconds < math.inf):
+        raise ValueError(f"{what} takes a finite number of seconds >= 0, got {seconds!r}")
+
+
 class VirtualClock(WallClock):
     """Time that moves only when a test moves it: the test kit's clock.
 
@@ -249,6 +256,7 @@ class VirtualClock(WallClock):
     def sleep(self, seconds: float) -> None:
         """Block the calling thread for ``seconds`` of virtual time (a test thread: with
         autojump, the clock moves there by itself; by hand, another thread must advance)."""
+        _check_span("sleep(seconds)", seconds)
         cond = threading.Condition()
         with cond:
             self.wait(cond, lambda: False, seconds)
@@ -382,8 +390,7 @@ class VirtualClock(WallClock):
         """Move time ``seconds`` forward, deadline by deadline, letting every worker run
         until it waits again before each step; returns the new time. With autojump on,
         the calling thread sleeps ``seconds`` of virtual time instead."""
-        if not (seconds >= 0 and seconds != float("inf")):
-            raise ValueError(f"advance(seconds) takes a finite number >= 0, got {seconds!r}")
+        _check_span("advance(seconds)", seconds)
         if self._autojump:
             self.sleep(seconds)
             return self._now
@@ -406,6 +413,7 @@ class VirtualClock(WallClock):
 
             assert clock.run_until(lambda: hl.current == "idle", timeout_s=600)
         """
+        _check_span("run_until(timeout_s=…)", timeout_s)
         end = self._ns + _to_ns(timeout_s)
         if self._autojump:
             give_up = time.monotonic() + self.SETTLE_TIMEOUT_S

@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 
 from beehave import Event, HighLevelBehaviorManager
-from beehave.testing import beehave_threads
+from beehave.testing import no_thread_left
 
 # ROS 2 isolation: only this machine, and a domain of our own for this test run and this
 # pytest-xdist worker (child processes inherit both). The workers of one run share a seed
@@ -45,15 +45,13 @@ if os.environ.get("BEEHAVE_REQUIRE_EXTRAS") == "1":
 @pytest.fixture
 def hl() -> Iterator[HighLevelBehaviorManager]:
     """A started manager with a short stop timeout; checks that nothing leaks."""
-    before = set(beehave_threads())
-    manager = HighLevelBehaviorManager(stop_timeout_s=0.3)
-    manager.start()
-    try:
-        yield manager
-    finally:
-        manager.shutdown()
-    leaked = [t for t in beehave_threads() if t not in before]
-    assert not leaked, f"threads left after shutdown: {leaked}"
+    with no_thread_left("shutdown"):
+        manager = HighLevelBehaviorManager(stop_timeout_s=0.3)
+        manager.start()
+        try:
+            yield manager
+        finally:
+            manager.shutdown()
 
 
 @pytest.fixture

@@ -24,7 +24,6 @@ from beehave.testing import (
     Timeline,
     assert_lock_held_by,
     assert_safe_state_ran,
-    beehave_threads,
 )
 
 # ------------------------------------------------------------------ the clock's contract
@@ -146,11 +145,15 @@ def test_a_wait_the_clock_cannot_see_is_named(high_level: HighLevelBehaviorManag
     release.set()
 
 
-def test_advance_refuses_nonsense() -> None:
+def test_advance_run_until_and_sleep_refuse_nonsense() -> None:
     clock = VirtualClock()
-    for bad in (-1.0, math.inf, math.nan):
+    for bad in (-1.0, math.inf, math.nan, "1"):
         with pytest.raises(ValueError, match="finite number"):
-            clock.advance(bad)
+            clock.advance(bad)  # type: ignore[arg-type]
+        with pytest.raises(ValueError, match="finite number"):
+            clock.run_until(lambda: False, timeout_s=bad)  # type: ignore[arg-type]
+        with pytest.raises(ValueError, match="finite number"):
+            clock.sleep(bad)  # type: ignore[arg-type]
 
 
 def test_autojump_reproduces_the_same_interleaving_every_time() -> None:
@@ -403,6 +406,29 @@ def test_substitution_by_path_name_or_class_and_first_rule_wins(
     assert high_level.substitutes.patterns == ["delivery/Navigate", "Navigate*"]
 
 
+def test_a_refused_action_was_stood_in_for_by_nobody(high_level, clock) -> None:
+    from beehave.errors import ActionTypeBusy
+
+    stand_in = Scripted(duration_s=math.inf)
+    high_level.substitute("Navigate", stand_in)
+    refused: list[str] = []
+
+    class Twice(Behavior):
+        def run(self) -> None:
+            self.start_action(Navigate("a"))
+            try:
+                self.start_action(Navigate("b"))  # the type is taken: refused
+            except ActionTypeBusy:
+                refused.append("b")
+            self.sleep(math.inf)
+
+    high_level.register("twice", Twice)
+    high_level.switch("twice")
+    clock.advance(1.0)
+    assert refused == ["b"]
+    assert [n.goal for n in stand_in.replaced] == ["a"]
+
+
 def test_bad_substitutes_are_refused_with_the_reason(high_level) -> None:
     with pytest.raises(ConfigError, match="callable"):
         high_level.substitute("Navigate", "not a substitute")
@@ -538,7 +564,6 @@ def test_the_simulation_steps_in_lockstep_with_the_clock(sim, clock, high_level)
           f"{moved:.3f} |")
     assert abs(world.time_s - clock.now()) <= world.step_s
     assert 0.75 < moved < 1.0
-    assert all(not t.name.startswith("sim-lockstep") for t in beehave_threads())
 
 
 # ------------------------------------------------------------------ found in review

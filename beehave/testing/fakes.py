@@ -17,7 +17,8 @@ import os
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -258,6 +259,16 @@ class ScriptedAction(Action):
             self.safe_state_calls += 1
             if self.timeline:
                 self.timeline.record("safe", self)
+
+
+@contextmanager
+def no_thread_left(what: str = "the managers") -> Iterator[None]:
+    """Fail (AssertionError naming them) when the block leaves a beehave thread running:
+    wrap a manager's whole life, its shutdown included."""
+    before = set(beehave_threads())
+    yield
+    leaked = [t for t in beehave_threads() if t not in before]
+    assert not leaked, f"threads left after {what}: {leaked}"
 
 
 def beehave_threads() -> list[threading.Thread]:

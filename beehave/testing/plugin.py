@@ -37,7 +37,7 @@ from beehave.clock import VirtualClock
 from beehave.highlevel import HighLevelBehaviorManager
 from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.testing.assertions import EventLog
-from beehave.testing.fakes import beehave_threads
+from beehave.testing.fakes import no_thread_left
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -76,16 +76,14 @@ def blackboard(clock: VirtualClock) -> Blackboard:
 @pytest.fixture
 def high_level(request: pytest.FixtureRequest, clock: VirtualClock,
                blackboard: Blackboard) -> Iterator[HighLevelBehaviorManager]:
-    before = set(beehave_threads())
-    manager = HighLevelBehaviorManager(clock=clock, blackboard=blackboard,
-                                       stop_timeout_s=_stop_timeout_s(request))
-    manager.start()
-    try:
-        yield manager
-    finally:
-        manager.shutdown()
-    leaked = [t for t in beehave_threads() if t not in before]
-    assert not leaked, f"threads left after the high level's shutdown: {leaked}"
+    with no_thread_left("the high level's shutdown"):
+        manager = HighLevelBehaviorManager(clock=clock, blackboard=blackboard,
+                                           stop_timeout_s=_stop_timeout_s(request))
+        manager.start()
+        try:
+            yield manager
+        finally:
+            manager.shutdown()
 
 
 @pytest.fixture
