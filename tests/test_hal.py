@@ -287,22 +287,24 @@ def test_a_hal_both_logics_use_stays_loaded_across_the_switch_and_the_rest_unloa
     assert (CountsLoads.loads, CountsLoads.safe) == (1, 1)
 
 
-def test_a_fallback_hands_the_hals_over_to_the_default_too() -> None:
+def test_a_fallback_hands_the_hals_over_to_the_default_too(clock: VirtualClock) -> None:
+    """On the virtual clock: the 0.2 s handover is not eaten by a loaded machine."""
     class Brief(Logic):
         async def run(self) -> None:
             await self.hal("counted")
 
     CountsLoads.loads = CountsLoads.safe = 0
-    ll = LowLevelBehaviorManager(default="b", stop_timeout_s=0.5, hal_handover_s=0.2)
+    ll = LowLevelBehaviorManager(default="b", stop_timeout_s=0.5, hal_handover_s=0.2,
+                                 clock=clock)
     ll.register("b", UsesCounted)
     ll.register("brief", Brief)
     ll.hals.register(CountsLoads)
     with ll:
-        assert wait_until(lambda: ll.hals.refs("counted") == 1)
+        assert clock.run_until(lambda: ll.hals.refs("counted") == 1, timeout_s=1.0)
         ll.switch("brief")                              # ends on its own: "b" comes back
-        assert wait_until(lambda: ll.current == "b" and isinstance(ll.logic, UsesCounted)
-                          and ll.logic.ready.is_set())
-        assert wait_until(lambda: ll.hals.refs("counted") == 1)
+        assert clock.run_until(lambda: ll.current == "b" and isinstance(ll.logic, UsesCounted)
+                               and ll.logic.ready.is_set(), timeout_s=0.1)
+        assert clock.run_until(lambda: ll.hals.refs("counted") == 1, timeout_s=1.0)
         assert CountsLoads.loads == 1
 def test_wrong_hal_kind_raises_hal_error_naming_both_classes() -> None:
     class WantsOther(Logic):
