@@ -68,8 +68,13 @@ class WallClock:
 
 class SimClock(WallClock):
     """Time from a simulation: :meth:`set_time` moves it (the ROS bridge calls it for every
-    ``/clock`` message) and wakes the waits whose deadline passed. Before the first
-    ``set_time`` it reads 0."""
+    ``/clock`` message) and wakes the waits whose deadline passed.
+
+    Before the first ``set_time`` the clock has not *started*: it reads 0, which is no
+    time of the simulation. Nothing should run on it then -- a behaviour started at 0 sees
+    time jump to wherever the simulation already is, and a recording would carry a false
+    time. :attr:`started` tells, :meth:`wait_started` waits for it (the robot does, before
+    it starts its behaviours)."""
 
     SLACK_S = 1e-6
     """A deadline this close counts as reached: ``/clock`` carries integer nanoseconds, so
@@ -81,13 +86,24 @@ class SimClock(WallClock):
         self._waiters: list[tuple[float, int, threading.Condition]] = []
         self._ids = itertools.count()
         self._local = threading.local()
+        self._started = threading.Event()
 
     def now(self) -> float:
         return self._now
 
+    @property
+    def started(self) -> bool:
+        """Whether the simulation's time has reached this clock (a first ``set_time``)."""
+        return self._started.is_set()
+
+    def wait_started(self, timeout_s: float) -> bool:
+        """Wait (wall time) up to ``timeout_s`` for the first ``set_time``; whether it came."""
+        return self._started.wait(timeout_s)
+
     def set_time(self, t_s: float) -> None:
         with self._lock:
             self._now = max(self._now, t_s)
+            self._started.set()
             due: list[threading.Condition] = []
             while self._waiters and self._waiters[0][0] <= self._now + self.SLACK_S:
                 due.append(heapq.heappop(self._waiters)[2])

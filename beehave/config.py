@@ -5,6 +5,7 @@
     namespace: emili                     # the robot's ROS namespace
     stop_timeout_s: 2.0
     use_sim_time: false                  # sleep/timeouts follow /clock when true
+    sim_clock_timeout_s: 30.0            # with use_sim_time: how long to wait for /clock
     behaviors:                           # top-level behaviours, by import path
       tour:
         class: behaviours.demos.console:Delivery
@@ -238,6 +239,8 @@ class RobotConfig(_Strict):
     namespace: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
     stop_timeout_s: Seconds = 2.0
     use_sim_time: bool = False
+    sim_clock_timeout_s: Seconds = Field(
+        30.0, description="with use_sim_time, how long start() waits for the first /clock")
     behaviors: dict[str, ClassSpec] = Field(default_factory=dict)
     default_behavior: str = "idle"
     logics: dict[str, ClassSpec] = Field(default_factory=dict)

@@ -140,6 +140,11 @@ class ClockNotSettled(BeehaveError, TimeoutError):
     sleeps, or a wait that does not go through the clock. The message names them."""
 
 
+class SimClockNotStarted(BeehaveError, TimeoutError):
+    """A robot on ``use_sim_time`` got no ``/clock`` within ``sim_clock_timeout_s``: its
+    behaviours never started."""
+
+
 class AlreadyStarted(BeehaveError):
     """A behaviour, action or logic object was started twice; create a new one."""
 

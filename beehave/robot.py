@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import TracebackType
@@ -22,6 +24,7 @@ from beehave.errors import (
     ConfigError,
     ConstructorFailed,
     InvalidParameters,
+    SimClockNotStarted,
     UnknownNameError,
 )
 from beehave.hal import HAL
@@ -193,6 +196,8 @@ class Robot:
                     self.agent = Agent(cfg.agent.name, node=node, services=cfg.agent.services,
                                        lease_s=cfg.agent.lease_s)
                     self.agent.attach(self.high)
+                if isinstance(self.high.clock, SimClock):
+                    self._wait_for_sim_clock(self.high.clock)
                 # The default behaviour is constructed now: name its entry when it fails.
                 default = cfg.default_behavior
                 with _located(f"{cfg.source}: behaviors.{default}" if default != "idle"
@@ -208,6 +213,27 @@ class Robot:
                 exc.add_note(f"and while shutting down after it: {late}")
             raise
         self._started = True
+
+    def _wait_for_sim_clock(self, clock: SimClock) -> None:
+        """On sim time, behaviours start once the simulation's time has reached the robot
+        (its first ``/clock``): started before, they would run at a time of 0 that the
+        simulation never had, then see time jump to where it already is -- a loop of
+        sleeps would skip steps, and a recording would carry the false time."""
+        cfg = self.config
+        if clock.started:
+            return
+        log.info("robot %r: waiting for the simulation's time (/clock), up to %.0f s",
+                 cfg.namespace, cfg.sim_clock_timeout_s)
+        t0 = time.monotonic()
+        if not clock.wait_started(cfg.sim_clock_timeout_s):
+            raise SimClockNotStarted(
+                f"{cfg.source}: use_sim_time is true, but no /clock message arrived within "
+                f"sim_clock_timeout_s={cfg.sim_clock_timeout_s:g} s: start the simulation "
+                f"(beehave sim, or a sim: section) on ROS_DOMAIN_ID="
+                f"{os.environ.get('ROS_DOMAIN_ID', '0')}, raise sim_clock_timeout_s, or set "
+                f"use_sim_time: false")
+        log.info("robot %r: the simulation's time reached it after %.2f s (sim time %.3f s)",
+                 cfg.namespace, time.monotonic() - t0, clock.now())
 
     def _start_sim(self, ros: RosContext) -> None:
         from beehave.simulation import load_simulator

@@ -409,6 +409,8 @@ class Recorder:
 
     def _sample_clocks(self) -> None:  # in the writer thread
         for channel, clock in self._clocks:
+            if not getattr(clock, "started", True):
+                continue  # no /clock yet: its 0 is no time of the simulation
             stamp = time.time()
             channel.put((int(stamp * 1e9), _dumps({"sim_time_s": clock.now(),
                                                    "stamp": stamp})))
