@@ -532,9 +532,11 @@ replayed behaviours to have done what the recorded ones had done by then. Bounde
 replay that diverged never catches up; the feed then goes on without waiting (and says
 so in a warning)."""
 HOLD_S = 0.5
-"""How long (wall time) a message of a topic nobody subscribes to yet is kept for the
-next subscription: a behaviour that has started but not yet subscribed must not miss the
-order that the recorded one received."""
+"""How long a message of a topic nobody subscribes to yet is kept for the next
+subscription, in wall time and in the recording's time (both must hold): a behaviour that
+has started but not yet subscribed must not miss the order that the recorded one
+received. A message older than that, or one a subscription has had since, is not what a
+subscription made now would receive live."""
 
 
 def _runnable(native_id: int | None) -> bool:
@@ -587,7 +589,7 @@ class _HighSide:
         self._events = 0
         self._misses = 0  # catch-ups that timed out
         self._given_up = 0  # the event count the last one waited for in vain
-        self._pending: dict[str, tuple[Any, float]] = {}
+        self._pending: dict[str, tuple[Any, float, float]] = {}
         self._late: list[Any] = []  # subscriptions made while a message was held for them
         self._decoded: dict[tuple[int, type], Any] = {}
         self._settled_at = 0  # the event count when the high level last settled
@@ -613,7 +615,8 @@ class _HighSide:
             return
         with self._cond:
             held = self._pending.get(channel)
-            if held is not None and time.monotonic() - held[1] <= HOLD_S:
+            if (held is not None and time.monotonic() - held[1] <= HOLD_S
+                    and self.clock.now() - held[2] <= HOLD_S):
                 self._late.append((sub, held[0]))
 
     async def advance(self, t_s: float, *, until: Callable[[], bool] | None = None) -> None:
@@ -763,10 +766,13 @@ class _HighSide:
             await self.settle()
             return
         subs = self.node.subscriptions(item.key)
-        if not subs:
-            with self._cond:
-                self._pending[item.channel] = (item.value, time.monotonic())
-            return
+        with self._cond:
+            if not subs:
+                self._pending[item.channel] = (item.value, time.monotonic(),
+                                               self.clock.now())
+                return
+            # Delivered: a subscription made later hears the next message, not this one.
+            self._pending.pop(item.channel, None)
         for sub in subs:
             self._call(sub, item.value)
         await self.settle()
