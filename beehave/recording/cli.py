@@ -2,7 +2,9 @@
 
 Exit status as for every ``beehave`` command: 0 ok, 1 a failure while running (for
 ``replay``: the replay diverged from the recording), 2 bad arguments, configuration or
-recording (missing, not MCAP, lacking the channels a replay needs).
+recording (missing, not MCAP, lacking the channels a replay needs) -- also a damaged
+recording: each tool does what it can with the intact part, names the damaged parts and
+exits 2.
 """
 
 from __future__ import annotations
@@ -137,7 +139,9 @@ def replay_main(argv: list[str]) -> int:
     except BeehaveError as exc:
         return _fail("replay", exc)
     print(describe_replay(result), flush=True)
-    return 0 if result.divergence is None else 1
+    if result.divergence is not None:
+        return 1
+    return 2 if result.damaged else 0
 
 
 def describe_replay(result: ReplayResult) -> str:
@@ -154,7 +158,12 @@ def describe_replay(result: ReplayResult) -> str:
     if result.divergence is None:
         what = ("logic outputs, logic and behaviour switches, behaviours and actions"
                 if result.high else "logic outputs and switches")
-        lines.append(f"deterministic: the same {what} as recorded")
+        upto = f" up to t={result.cut_s:.3f} s" if result.cut_s is not None else ""
+        if result.damaged:
+            lines.append(f"INCOMPLETE: the same {what} as recorded{upto}, but the "
+                         "recording is damaged after it (exit 2)")
+        else:
+            lines.append(f"deterministic: the same {what} as recorded{upto}")
     else:
         lines.append(f"DIVERGED: {result.divergence}")
     return "\n".join(lines)
@@ -207,6 +216,8 @@ def inspect_main(argv: list[str]) -> int:
     if rec.truncated:
         console.print("[yellow]truncated[/]: the recording process died; read up to its "
                       "last complete chunk")
+    for damage in rec.describe_damage():
+        console.print(f"[red]DAMAGED[/]: {damage}", highlight=False)
     if rec.dropped():
         console.print(f"[red]{rec.dropped()} message(s) dropped[/] while recording (disk "
                       "slower than the robot)")
@@ -217,8 +228,9 @@ def inspect_main(argv: list[str]) -> int:
         rate = info.count / rec.duration_s if rec.duration_s > 0 else 0.0
         table.add_row(topic, info.encoding, info.schema_name, str(info.count), f"{rate:.1f}")
     console.print(table)
+    status = 2 if rec.damaged else 0  # what is shown is all there is, but not all there was
     if args.limit <= 0:
-        return 0
+        return status
     robots = args.robot or rec.prefixes
     topics = {schema.topic(p, c): p for p in robots
               for c in (schema.EVENTS_HIGH, schema.EVENTS_LOW)}
@@ -234,14 +246,14 @@ def inspect_main(argv: list[str]) -> int:
             break
         level = "high" if m.topic.endswith("high") else "low "
         t = (m.log_time_ns - rec.start_ns) / 1e9
-        status = f" {data['status']}" if data["status"] else ""
+        state = f" {data['status']}" if data["status"] else ""
         error = f"  [red]{data['error']}[/]" if data["error"] else ""
         source = data["detail"].get("source") if data["kind"] == "switch_requested" else None
         asked = f" (asked by {source})" if source not in (None, "external") else ""
         console.print(f"{t:9.3f}  {topics[m.topic]:<10} {level} {data['kind']:<17} "
-                      f"{data['subject']}{status}{error}{asked}", highlight=False)
+                      f"{data['subject']}{state}{error}{asked}", highlight=False)
         shown += 1
-    return 0
+    return status
 
 
 # ---- beehave plot -----------------------------------------------------------------------
@@ -264,9 +276,14 @@ def plot_main(argv: list[str]) -> int:
     from beehave.recording.reader import read_recording
 
     try:
-        out = plot(read_recording(args.recording), args.out, robots=args.robot,
-                   keys=args.series)
+        rec = read_recording(args.recording)
+        out = plot(rec, args.out, robots=args.robot, keys=args.series)
     except BeehaveError as exc:
         return _fail("plot", exc)
     print(f"wrote {out}", flush=True)
-    return 0
+    if rec.truncated:
+        print("truncated: the recording process died; drawn up to its last complete chunk",
+              flush=True)
+    for damage in rec.describe_damage():
+        print(f"DAMAGED: {damage}", flush=True)
+    return 2 if rec.damaged else 0

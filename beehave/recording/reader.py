@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import bisect
 import json
+import os
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mcap.records import Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 
 from beehave.errors import RecordingError
 from beehave.recording import schema
@@ -60,6 +61,21 @@ class Recording:
     last complete chunk is here."""
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     schemas: dict[str, bytes] = field(default_factory=dict)
+    damaged: list[Damage] = field(default_factory=list)
+    """Parts of the files that cannot be read (overwritten bytes, a failed CRC), in file
+    order; what lies before and after them is here."""
+
+    @property
+    def intact_until_ns(self) -> int:
+        """The recording time up to which nothing is missing: the last message before the
+        first damage (the end when there is none)."""
+        if not self.damaged:
+            return self.end_ns
+        first = self.damaged[0].after_ns
+        return self.start_ns if first is None else first
+
+    def describe_damage(self) -> list[str]:
+        return [d.describe(self.start_ns) for d in self.damaged]
 
     @property
     def start_ns(self) -> int:
@@ -122,25 +138,77 @@ class Recording:
         return sim_at
 
 
-def _records(path: Path) -> tuple[Iterable[Any], list[bool]]:
-    broken = [False]
+@dataclass(frozen=True)
+class Damage:
+    """A part of a file that cannot be read although the file goes on after it (bytes
+    overwritten, not a crash): its byte range, why, and the recording times of the last
+    message read before it and the first one after it (None: none there)."""
+
+    file: Path
+    start_byte: int
+    end_byte: int
+    reason: str
+    after_ns: int | None = None
+    before_ns: int | None = None
+
+    def describe(self, start_ns: int) -> str:
+        def at(t_ns: int | None, none: str) -> str:
+            return none if t_ns is None else f"{(t_ns - start_ns) / 1e9:.3f} s"
+
+        return (f"{self.file}: bytes {self.start_byte}-{self.end_byte} ({self.reason}); the "
+                f"messages between {at(self.after_ns, 'the start')} and "
+                f"{at(self.before_ns, 'the end')} (wall time since the start) are lost")
+
+
+@dataclass
+class _Scan:
+    truncated: bool = False
+    damaged: list[Damage] = field(default_factory=list)
+
+
+_MAGIC = b"\x89MCAP0\r\n"
+
+
+def _records(path: Path) -> tuple[Iterable[Any], _Scan]:
+    """The records of ``path``, each chunk checked (size and CRC) and skipped when damaged.
+    A file that ends inside a record is *truncated* (the recording process died); one that
+    cannot be read on although it ends in the MCAP magic (as only a finished file does) is
+    *damaged* from there to its end."""
+    scan = _Scan()
 
     def gen() -> Iterable[Any]:
         with open(path, "rb") as f:
-            reader = StreamReader(f, record_size_limit=1 << 30)
-            it = iter(reader.records)
+            size = os.fstat(f.fileno()).st_size
+            f.seek(max(size - len(_MAGIC), 0))
+            finished = size >= 2 * len(_MAGIC) and f.read() == _MAGIC
+            f.seek(0)
+            it = iter(StreamReader(f, emit_chunks=True, record_size_limit=1 << 30).records)
             while True:
+                start = f.tell()
                 try:
                     record = next(it)
                 except StopIteration:
                     return
-                except Exception:
-                    # The file ends inside a record: the process died while writing.
-                    broken[0] = True
+                except Exception as exc:
+                    if finished:
+                        scan.damaged.append(Damage(path, start, size,
+                                                   f"unreadable: {type(exc).__name__}"))
+                    else:  # the file ends inside a record: the process died while writing
+                        scan.truncated = True
                     return
-                yield record
+                if not isinstance(record, Chunk):
+                    yield record
+                    continue
+                try:
+                    records = breakup_chunk(record, validate_crc=True)  # decompressed
+                except Exception as exc:
+                    # Its place among the messages: the reader names what is around it.
+                    yield Damage(path, start, f.tell(),
+                                 f"damaged chunk: {type(exc).__name__} {exc}".strip())
+                    continue
+                yield from records
 
-    return gen(), broken
+    return gen(), scan
 
 
 def read_recording(path: str | Path) -> Recording:
@@ -155,6 +223,7 @@ def read_recording(path: str | Path) -> Recording:
     metadata: dict[str, dict[str, str]] = {}
     schemas_by_name: dict[str, bytes] = {}
     truncated = False
+    damaged: list[Damage] = []
     counts: Counter[str] = Counter()
     for file in files:
         with open(file, "rb") as f:
@@ -162,8 +231,13 @@ def read_recording(path: str | Path) -> Recording:
                 raise RecordingError(f"{str(file)!r} is not an MCAP file (no MCAP magic)")
         schemas: dict[int, Schema] = {}
         by_id: dict[int, ChannelInfo] = {}
-        records, broken = _records(file)
+        records, scan = _records(file)
+        last_ns: int | None = None
+        waiting: list[Damage] = []  # damage seen, the next message's time not yet
         for record in records:
+            if isinstance(record, Damage):
+                waiting.append(record)
+                continue
             if isinstance(record, Schema):
                 schemas[record.id] = record
                 schemas_by_name[record.name] = record.data
@@ -187,13 +261,22 @@ def read_recording(path: str | Path) -> Recording:
                 counts[info.topic] += 1
                 messages.append(Recorded(info.topic, record.log_time, data, info.encoding,
                                          info.schema_name))
+                for d in waiting:
+                    damaged.append(Damage(d.file, d.start_byte, d.end_byte, d.reason,
+                                          last_ns, record.log_time))
+                waiting.clear()
+                last_ns = record.log_time if last_ns is None else max(last_ns,
+                                                                      record.log_time)
             elif isinstance(record, Metadata):
                 metadata[record.name] = dict(record.metadata)
-        truncated = truncated or broken[0]
+        damaged += [Damage(d.file, d.start_byte, d.end_byte, d.reason, last_ns, None)
+                    for d in [*waiting, *scan.damaged]]
+        truncated = truncated or scan.truncated
     for topic, info in channels.items():
         info.count = counts[topic]
     messages.sort(key=lambda m: m.log_time_ns)  # stable: one channel keeps its order
-    return Recording(files, messages, channels, truncated, metadata, schemas_by_name)
+    return Recording(files, messages, channels, truncated, metadata, schemas_by_name,
+                     damaged)
 
 
 def decode_ros(recording: Recording, message: Recorded) -> Any:

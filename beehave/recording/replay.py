@@ -137,6 +137,12 @@ class ReplayResult:
     high: bool = False
     """Whether the high level ran too (the configuration has one and the recording its
     events)."""
+    cut_s: float | None = None
+    """Where the comparison stopped short of the replayed window because the recording
+    does (it was cut off, or damaged from there): seconds since its start."""
+    damaged: list[str] = field(default_factory=list)
+    """The damaged parts of the recording (:meth:`Recording.describe_damage`): only what
+    came before the first was compared, and the verdict is incomplete."""
 
     @property
     def speedup(self) -> float:
@@ -884,6 +890,28 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
     with_high = _check_high(rec, prefix, config, high)
     timeline = _Timeline(rec, prefix)
     inputs: list[_Input | _HighInput] = list(_inputs(rec, prefix))
+    warnings: list[str] = []
+    # Compare only what the recording has: a run cut off (its process died) or damaged
+    # has no shutdown at the end of its data, and nothing after a damaged part can be
+    # trusted -- the replay's own shutdown there would be an invented divergence.
+    cut_s: float | None = None
+    end_s = timeline(rec.end_ns)
+    if rec.damaged:
+        cut_s = timeline(rec.intact_until_ns)
+        warnings.append(f"the recording is DAMAGED: compared only up to t={cut_s:.3f} s, "
+                        "before its first damaged part: " + "; ".join(rec.describe_damage()))
+    elif rec.truncated:
+        cut_s = end_s
+        warnings.append(f"the recording was cut off at t={cut_s:.3f} s (its process died "
+                        "before closing it): compared up to there")
+    if to_s is not None and cut_s is None and to_s >= end_s:
+        warnings.append(f"--to {to_s:g} s is beyond the recording's end ({end_s:.3f} s): "
+                        "replayed to its end")
+        to_s = None
+    if cut_s is not None and (to_s is None or to_s > cut_s):
+        to_s = cut_s
+    else:
+        cut_s = None  # the window the caller asked for ends before it
     lo = from_s if from_s is not None else float("-inf")
     hi = to_s if to_s is not None else float("inf")
     recorded = recorded_outputs(rec, prefix)
@@ -896,7 +924,6 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
     if low is None:
         raise RecordingError(f"{config.source}: the configuration has no low level to replay")
     state = _ReplayState()
-    warnings: list[str] = []
     side: _HighSide | None = None
     if with_high:
         side = _high_side(config, rec, prefix, low, state, warnings, timeline)
@@ -966,7 +993,8 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
     return ReplayResult(got, expected, compare(expected, got), fed, max(span, 0.0), wall,
                         timeline.sim is not None, warnings,
                         commands=list(side.node.captured) if side is not None else [],
-                        high=side is not None)
+                        high=side is not None, cut_s=cut_s,
+                        damaged=rec.describe_damage())
 
 
 def _check_high(recording: Recording, prefix: str, config: RobotConfig,
