@@ -75,8 +75,10 @@ def test_inputs_outputs_staleness_and_unload(setup: tuple[LowLevelBehaviorManage
     leds = probe.record(ColorRGBA, "/halbot/leds")
     charge = probe.node.create_publisher(Float64, "/halbot/charge", 10)
     assert probe.wait(lambda: charge.get_subscription_count() == 1)
-    charge.publish(Float64(data=0.5))
-    assert probe.wait(lambda: bool(leds) and leds[-1].g == 1.0)
+    # A colour sent before the probe's subscription met the HAL's publisher is lost
+    # (volatile): the charge is sent again until the colour arrives.
+    assert probe.wait(lambda: charge.publish(Float64(data=0.5)) is None
+                      and bool(leds) and leds[-1].g == 1.0)
     assert ll.blackboard.get("battery/percentage") == 50.0
     assert ll.blackboard.entry("battery/percentage").writer == "hal:battery_leds"  # type: ignore[union-attr]
     charge.publish(Float64(data=0.1))
