@@ -6,6 +6,7 @@ lock); :meth:`Behavior.start_action` takes it and the action gives it back when 
 
 from __future__ import annotations
 
+import time
 from typing import Any, ClassVar, Self
 
 from beehave.events import Event, EventKind
@@ -70,13 +71,20 @@ class Action(Runnable):
     def _enter_safe_state(self) -> None:
         # Called exactly once: the status transition to STUCK or to a final status (one
         # place, under the object's lock) decides who calls it.
+        assert self._manager is not None
+        began = time.monotonic()
         try:
             self.safe_state()
         except Exception as exc:  # recorded on the handle and reported as an event
             object.__setattr__(self, "safe_state_error", exc)
-            assert self._manager is not None
             self._manager.events.emit(
                 Event(EventKind.SAFE_STATE_FAILED, self.path, self.status.name, exc))
+        else:
+            self._manager.events.emit(Event(
+                EventKind.SAFE_STATE_RAN, self.path, self.status.name,
+                detail={"took_s": round(time.monotonic() - began, 6),
+                        "action_type": self.action_type,
+                        **({"forced": True} if self.status.name == "STUCK" else {})}))
 
     def _has_safe_state(self) -> bool:
         return True

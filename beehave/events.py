@@ -28,6 +28,11 @@ class EventKind(Enum):
     """The forced ``safe_state()`` of a STUCK action had not returned when the switch (or
     shutdown) had to go on; it keeps running in a thread of its own, and the action's type
     stays locked until it returns."""
+    SAFE_STATE_RAN = "safe_state_ran"
+    """An action's (or a HAL's) ``safe_state()`` returned: the proof, in events and
+    recordings, that the hardware was left predictable. ``status`` is how the action ended
+    (INTERRUPTED, FAILED, STUCK), ``detail`` has ``took_s`` (and ``forced`` when a STUCK
+    action's or a blocked loop's safe state was forced from another thread)."""
     SAFE_STATE_FAILED = "safe_state_failed"
     """``safe_state()`` raised; the error is attached."""
     HOOK_FAILED = "hook_failed"

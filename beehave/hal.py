@@ -462,6 +462,7 @@ class HALManager:
         hal = entry.hal
         writer = f"hal:{name}"
         if entry.load_began and claim_safe_state(hal):
+            began = time.monotonic()
             try:
                 result = hal.safe_state()
                 if inspect.isawaitable(result):
@@ -472,6 +473,9 @@ class HALManager:
                 hal.error = exc
                 self.events.emit(Event(EventKind.SAFE_STATE_FAILED, writer, hal.status.name,
                                        exc))
+            else:
+                self.events.emit(Event(EventKind.SAFE_STATE_RAN, writer, hal.status.name,
+                                       detail={"took_s": round(time.monotonic() - began, 6)}))
             finally:
                 _set_done(hal)
         elif entry.load_began:
@@ -555,6 +559,7 @@ class HALManager:
             hal = entry.hal
             if not entry.load_began or not claim_safe_state(hal):
                 continue
+            began = time.monotonic()
             try:
                 result = hal.safe_state()
                 if inspect.isawaitable(result):
@@ -566,6 +571,10 @@ class HALManager:
                 log.error("HAL %r: forced safe_state() raised %r", name, exc)
                 self.events.emit(Event(EventKind.SAFE_STATE_FAILED, f"hal:{name}",
                                        hal.status.name, exc, {"forced": True}))
+            else:
+                self.events.emit(Event(
+                    EventKind.SAFE_STATE_RAN, f"hal:{name}", hal.status.name,
+                    detail={"took_s": round(time.monotonic() - began, 6), "forced": True}))
             finally:
                 _set_done(hal)
             done.append(name)

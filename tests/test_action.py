@@ -153,3 +153,21 @@ def test_safe_state_error_is_recorded_not_dropped(hl: HighLevelBehaviorManager, 
     assert isinstance(action.safe_state_error, OSError)
     assert any(e.kind.value == "safe_state_failed" and e.error is action.safe_state_error
                for e in events)
+
+
+def test_a_safe_state_that_ran_is_an_event_and_success_has_none(
+        hl: HighLevelBehaviorManager, events) -> None:  # type: ignore[no-untyped-def]
+    done = ScriptedAction("first", result=1)
+    stopped = ScriptedAction("other", duration_s=30)
+    failed = ScriptedAction("third", raises=RuntimeError("wheel"))
+    host(hl, done, stopped, failed)
+    assert done.wait(WALL_TIMEOUT_S) and failed.wait(WALL_TIMEOUT_S)
+    stopped.interrupt()
+    assert stopped.wait(WALL_TIMEOUT_S)
+    ran = [e for e in list(events) if e.kind.value == "safe_state_ran"]
+    assert sorted((e.subject, e.status) for e in ran) == sorted(
+        [(stopped.path, "INTERRUPTED"), (failed.path, "FAILED")])
+    assert all(e.detail["took_s"] >= 0 and "action_type" in e.detail for e in ran)
+    # Before the action's end, in the order it happened: the safe state, then "ended".
+    kinds = [e.kind.value for e in list(events) if e.subject == stopped.path]
+    assert kinds.index("safe_state_ran") < kinds.index("ended"), kinds

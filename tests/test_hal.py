@@ -87,7 +87,9 @@ def test_hal_whose_on_load_raises_fails_the_load_with_hal_error_and_stays_unload
     with pytest.raises(HALError, match="'broken' failed to load.*no such device"):
         asyncio.run(main())
     assert manager.loaded == {}
-    assert [(e.kind, e.status) for e in events] == [(EventKind.ENDED, "FAILED")]
+    # Its safe state ran (the load had begun: the device may be half set up), then it ended.
+    assert [(e.kind, e.status) for e in events] == [(EventKind.SAFE_STATE_RAN, "FAILED"),
+                                                    (EventKind.ENDED, "FAILED")]
 
 
 def test_concurrent_loads_create_one_instance() -> None:

@@ -98,6 +98,11 @@ def test_demo_recording_replays_to_the_same_decisions(demo: Path,
                  if m.data["kind"] == "switch_requested"]
     assert [r["subject"] for r in requested] == DEMO_SWITCHES
     assert {r["detail"]["source"] for r in requested} == {"external"}
+    # The proof that the interrupted drive left the robot stopped: its safe state ran.
+    ran = [m.data for m in rec.of("/emili1/beehave/events/high")
+           if m.data["kind"] == "safe_state_ran"]
+    assert {"subject": "tour/Navigation→emili_pickup", "status": "INTERRUPTED"}.items() \
+        <= next(r for r in ran if r["subject"] == "tour/Navigation→emili_pickup").items()
 
     capsys.readouterr()
     for config in ("emili.yaml", "kobuki.yaml"):

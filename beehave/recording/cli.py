@@ -183,7 +183,7 @@ def _recording_parser(prog: str, description: str, *,
 
 _TIMELINE_KINDS = {"started", "ended", "stuck", "switch_requested", "switch_completed",
                    "switch_rejected", "fallback", "lock_rejected", "lock_preempted",
-                   "safe_state_failed", "restarted", "loop_blocked"}
+                   "safe_state_ran", "safe_state_failed", "restarted", "loop_blocked"}
 
 
 def inspect_main(argv: list[str]) -> int:

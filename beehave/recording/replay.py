@@ -257,7 +257,9 @@ def _high_output(kind: str, subject: str, status: str | None,
         return HIGH_SWITCH, [_SWITCH_KINDS[kind], subject]
     if kind == "fallback":
         return HIGH_SWITCH, ["fallback", subject, status]
-    if kind in _NOT_COMPARED:
+    if kind in _NOT_COMPARED or (kind == "safe_state_ran" and status == "STUCK"):
+        # A STUCK action's safe state is forced from another thread: when it returns,
+        # relative to the action's other events, is the host's timing.
         return None
     return f"high:{subject}", [kind, status, error_type]
 
