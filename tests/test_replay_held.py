@@ -1,4 +1,4 @@
-"""A message nobody was subscribed to is held for a subscription made a moment later -- and
+"""Replay timing: what a new subscription hears, and a clock that passes every deadline.
 only then (issue 23: a Lift of the demo's replay heard the lift state of long before,
 ended at once, and the replay showed a false chime divergence 2 s later). Live, a
 subscription hears the messages published after it exists; the replay must hand a new
@@ -7,6 +7,7 @@ subscription neither an old message nor one an earlier subscription already had.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -105,3 +106,57 @@ def test_a_new_subscription_hears_the_next_message_not_an_old_one() -> None:
         # hand one that came up to HOLD_S before (the recording's times are when the
         # recorder heard it), never an older one.
         assert started - HOLD_S <= value <= started + 0.25, (name, started, value, seen)
+
+
+class Pacer(Behavior):
+    """Only sleeps in a loop, with a short action each step: no input ever moves the
+    replay's clock."""
+
+    def run(self) -> None:
+        while not self.interrupted:
+            self.start_action(_Step()).wait()
+            self.sleep(0.2)
+
+
+class _Step(Action):
+    action_type = "step"
+
+    def run(self) -> None:
+        self.sleep(0.05)
+
+
+def test_a_behaviour_that_only_sleeps_replays_every_step_without_warnings(
+        tmp_path: Path) -> None:
+    """Issue 23, defect 2: the replay's clock moved only at inputs, so a loop of sleeps
+    was woken once by a jump over several of its deadlines (steps lost) and the replay
+    warned that it "did not catch up with the recording"."""
+    import time
+
+    from beehave.recording.cli import finish_recording, robots_started, start_recording
+    from beehave.robot import Robot
+    from beehave.ros.context import RosContext
+
+    config = parse_config({"namespace": "pacer", "hals": ["debug"],
+                           "behaviors": {"pace": {"class": "tests.test_replay_held:Pacer"}},
+                           "default_behavior": "pace"}, source="pacer.yaml")
+    path = tmp_path / "pacer.mcap"
+    with RosContext() as ros:
+        robot = Robot(config, ros=ros)
+        recorder = start_recording(path, [robot])
+        try:
+            robot.start()
+            robots_started(recorder, [robot])
+            time.sleep(2.0)  # a live run of about ten steps, recorded
+        finally:
+            robot.shutdown()
+            finish_recording(recorder)
+    result = replay(path, config, speed=None)
+    def ended_steps(outputs: list[Any]) -> list[str]:
+        return [o.key for o in outputs
+                if o.key.startswith("high:pace/_Step") and o.value[0] == "ended"]
+
+    steps = ended_steps(result.expected)
+    assert len(steps) >= 5, result.expected
+    assert result.warnings == [], result.warnings
+    assert result.divergence is None, result.divergence
+    assert ended_steps(result.outputs) == steps
