@@ -1,8 +1,8 @@
-"""Replay timing: what a new subscription hears, and a clock that passes every deadline.
-only then (issue 23: a Lift of the demo's replay heard the lift state of long before,
-ended at once, and the replay showed a false chime divergence 2 s later). Live, a
-subscription hears the messages published after it exists; the replay must hand a new
-subscription neither an old message nor one an earlier subscription already had."""
+"""Replay timing (issue 23). A message nobody was subscribed to is held for a subscription
+made a moment later -- and only then: a Lift of the demo's replay heard the lift state of
+long before, ended at once, and the replay showed a false chime divergence 2 s later. And
+the replay's clock passes every deadline, as the live one did: a loop of sleeps must not
+lose steps to a jump."""
 
 from __future__ import annotations
 
