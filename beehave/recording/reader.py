@@ -11,6 +11,7 @@ from __future__ import annotations
 import bisect
 import json
 import os
+import struct
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -65,14 +66,31 @@ class Recording:
     """Parts of the files that cannot be read (overwritten bytes, a failed CRC), in file
     order; what lies before and after them is here."""
 
+    truncated_from_ns: int | None = None
+    """For a truncated recording: the earliest message time of the chunk being written
+    when the process died (None: its header did not reach the disk either)."""
+
     @property
     def intact_until_ns(self) -> int:
-        """The recording time up to which nothing is missing: the last message before the
-        first damage (the end when there is none)."""
-        if not self.damaged:
+        """The recording time before which nothing is missing. A chunk holds what every
+        channel queued since the last one, so a lost chunk (damaged, or cut off) may hold
+        messages older than the last one read before it: the lost chunk's own first
+        message time when its header says it, else :data:`LOST_MARGIN_S` before the last
+        message read. The end when nothing is lost."""
+        if self.damaged:
+            first = self.damaged[0]
+            known, read = first.lost_from_ns, first.after_ns
+            upper = first.before_ns if first.before_ns is not None else self.end_ns
+        elif self.truncated:
+            known, read = self.truncated_from_ns, self.end_ns
+            upper = self.end_ns + int(60e9)
+        else:
             return self.end_ns
-        first = self.damaged[0].after_ns
-        return self.start_ns if first is None else first
+        if read is None:
+            return self.start_ns
+        if known is not None and self.start_ns <= known <= upper:  # a sane header
+            return min(known, read)
+        return max(self.start_ns, read - int(LOST_MARGIN_S * 1e9))
 
     def describe_damage(self) -> list[str]:
         return [d.describe(self.start_ns) for d in self.damaged]
@@ -150,6 +168,9 @@ class Damage:
     reason: str
     after_ns: int | None = None
     before_ns: int | None = None
+    lost_from_ns: int | None = None
+    """The earliest message time the lost part held (its chunk header says; None when the
+    header itself is unreadable)."""
 
     def describe(self, start_ns: int) -> str:
         def at(t_ns: int | None, none: str) -> str:
@@ -160,10 +181,26 @@ class Damage:
                 f"{at(self.before_ns, 'the end')} (wall time since the start) are lost")
 
 
+LOST_MARGIN_S = 2.0
+"""How far before the last message read a lost chunk may reach when its header does not
+say (the recorder writes a chunk at least every second)."""
+
+
 @dataclass
 class _Scan:
     truncated: bool = False
+    truncated_from_ns: int | None = None
     damaged: list[Damage] = field(default_factory=list)
+
+
+def _chunk_start_ns(f: Any, offset: int) -> int | None:
+    """The first message time in the header of the chunk at ``offset`` (None: no chunk
+    header there)."""
+    f.seek(offset)
+    head = f.read(17)
+    if len(head) < 17 or head[0] != 0x06:  # opcode, record length, message_start_time
+        return None
+    return int(struct.unpack_from("<Q", head, 9)[0])
 
 
 _MAGIC = b"\x89MCAP0\r\n"
@@ -195,6 +232,7 @@ def _records(path: Path) -> tuple[Iterable[Any], _Scan]:
                                                    f"unreadable: {type(exc).__name__}"))
                     else:  # the file ends inside a record: the process died while writing
                         scan.truncated = True
+                        scan.truncated_from_ns = _chunk_start_ns(f, start)
                     return
                 if not isinstance(record, Chunk):
                     yield record
@@ -204,7 +242,8 @@ def _records(path: Path) -> tuple[Iterable[Any], _Scan]:
                 except Exception as exc:
                     # Its place among the messages: the reader names what is around it.
                     yield Damage(path, start, f.tell(),
-                                 f"damaged chunk: {type(exc).__name__} {exc}".strip())
+                                 f"damaged chunk: {type(exc).__name__} {exc}".strip(),
+                                 lost_from_ns=record.message_start_time)
                     continue
                 yield from records
 
@@ -223,6 +262,7 @@ def read_recording(path: str | Path) -> Recording:
     metadata: dict[str, dict[str, str]] = {}
     schemas_by_name: dict[str, bytes] = {}
     truncated = False
+    truncated_from: int | None = None
     damaged: list[Damage] = []
     counts: Counter[str] = Counter()
     for file in files:
@@ -263,20 +303,22 @@ def read_recording(path: str | Path) -> Recording:
                                          info.schema_name))
                 for d in waiting:
                     damaged.append(Damage(d.file, d.start_byte, d.end_byte, d.reason,
-                                          last_ns, record.log_time))
+                                          last_ns, record.log_time, d.lost_from_ns))
                 waiting.clear()
                 last_ns = record.log_time if last_ns is None else max(last_ns,
                                                                       record.log_time)
             elif isinstance(record, Metadata):
                 metadata[record.name] = dict(record.metadata)
-        damaged += [Damage(d.file, d.start_byte, d.end_byte, d.reason, last_ns, None)
-                    for d in [*waiting, *scan.damaged]]
+        damaged += [Damage(d.file, d.start_byte, d.end_byte, d.reason, last_ns, None,
+                           d.lost_from_ns) for d in [*waiting, *scan.damaged]]
         truncated = truncated or scan.truncated
+        if scan.truncated_from_ns is not None:
+            truncated_from = scan.truncated_from_ns
     for topic, info in channels.items():
         info.count = counts[topic]
     messages.sort(key=lambda m: m.log_time_ns)  # stable: one channel keeps its order
     return Recording(files, messages, channels, truncated, metadata, schemas_by_name,
-                     damaged)
+                     damaged, truncated_from)
 
 
 def decode_ros(recording: Recording, message: Recorded) -> Any:
