@@ -52,6 +52,7 @@ from typing import IO, Any
 
 import yaml
 
+from beehave.procs import dies_with_parent
 from robots.mavlink_endpoint import MavlinkEndpoint
 from robots.quad import Quad
 from robots.sim import Simulation
@@ -115,7 +116,8 @@ class _Process:
         self.proc = subprocess.Popen([sys.executable, "-m", "behaviours.droid", *args],
                                      cwd=ROOT, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, text=True,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                     env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                                     preexec_fn=dies_with_parent)
         self._reader = threading.Thread(target=self._read, args=(self.proc.stdout,),
                                         daemon=True)
         self._reader.start()

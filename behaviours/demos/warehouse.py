@@ -34,6 +34,7 @@ from rich.table import Table
 from rich.text import Text
 
 from beehave.config import load_config
+from beehave.procs import dies_with_parent
 from beehave.robot import Robot
 from beehave.ros.context import RosContext
 from behaviours.demos.checks import checks_table
@@ -235,7 +236,8 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
             agent = subprocess.Popen(
                 [sys.executable, "-m", "behaviours.demos.order_agent", "emili1", "--station",
                  "emili_charging", "--id", "demo-1", "--timeout-s", "600"],
-                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                preexec_fn=dies_with_parent)  # kill -9 of the demo must not leave it
             # The agent starts in wall time (a Python process, DDS discovery), which at
             # full speed would be minutes of sim time: wait for its order in wall time,
             # then give the drive its budget in sim time.
