@@ -324,3 +324,16 @@ def _replayed_end(demo: Path) -> float:
 
     rec = read_recording(demo)
     return _Timeline(rec, "emili1")(rec.end_ns)
+
+
+def test_plot_names_what_it_cannot_draw(demo: Path, capsys: pytest.CaptureFixture[str]
+                                        ) -> None:
+    out = str(demo.parent / "refused.png")
+    capsys.readouterr()
+    assert main(["plot", str(demo), "--series", "leds/color", "-o", out]) == 2
+    err = capsys.readouterr().err
+    assert "'leds/color' has no numbers to plot" in err and "[0.35" in err, err
+    assert "keys with numbers:" in err and "odom/linear_mps" in err, err
+    assert main(["plot", str(demo), "--robot", "nobody", "-o", out]) == 2
+    err = capsys.readouterr().err
+    assert "no robot 'nobody'" in err and "'emili1', 'kobuki1'" in err, err

@@ -235,7 +235,7 @@ def inspect_main(argv: list[str]) -> int:
     topics = {schema.topic(p, c): p for p in robots
               for c in (schema.EVENTS_HIGH, schema.EVENTS_LOW)}
     shown = 0
-    console.rule("event timeline (s since start)")
+    console.rule("event timeline (wall seconds since the start of the recording)")
     events = [m for m in rec.messages if m.topic in topics]
     for m in events:
         data = m.data

@@ -151,6 +151,34 @@ def series(recording: Recording, prefix: str, key: str) -> tuple[list[float], li
     return ts, vs
 
 
+def _short(value: Any) -> Any:
+    """``value`` with its floats to 4 significant digits (float32 colours print long)."""
+    if isinstance(value, float):
+        return float(f"{value:.4g}")
+    if isinstance(value, (list, tuple)):
+        return [_short(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _short(v) for k, v in value.items()}
+    return value
+
+
+def _values_of(recording: Recording, prefix: str, key: str, limit: int = 5) -> str:
+    seen: list[str] = []
+    for m in recording.of(schema.topic(prefix, schema.BLACKBOARD)):
+        if m.data["key"] == key:
+            text = repr(_short(from_json(m.data["value"])))
+            if text not in seen:
+                seen.append(text)
+            if len(seen) > limit:
+                break
+    more = ", …" if len(seen) > limit else ""
+    return ", ".join(seen[:limit]) + more if seen else "none recorded"
+
+
+def _numeric(recording: Recording, prefix: str) -> list[str]:
+    return sorted(k for k in available(recording, prefix) if series(recording, prefix, k)[0])
+
+
 def plot(recording: Recording, out: str | Path, *, robots: Sequence[str] | None = None,
          keys: Sequence[str] | None = None, title: str | None = None) -> Path:
     """Draw ``recording`` into the picture ``out`` (PNG, SVG or PDF by its suffix) and
@@ -165,7 +193,9 @@ def plot(recording: Recording, out: str | Path, *, robots: Sequence[str] | None 
     shown = list(robots) if robots else recording.prefixes
     unknown = [r for r in shown if r not in recording.prefixes]
     if unknown or not shown:
-        raise RecordingError(f"{recording.files[0]}: no robot {unknown or ''} to plot; robots "
+        what = (f"no robot {', '.join(map(repr, unknown))} in it" if unknown
+                else "no robot recorded in it")
+        raise RecordingError(f"{recording.files[0]}: nothing to plot: {what}; robots "
                              f"recorded: {', '.join(map(repr, recording.prefixes)) or 'none'}")
     panels: list[tuple[str, str, Any]] = []  # (robot, "gantt" | key, data)
     for prefix in shown:
@@ -179,7 +209,13 @@ def plot(recording: Recording, out: str | Path, *, robots: Sequence[str] | None 
                                  f"{', '.join(sorted(present)[:20])}")
         for key in wanted:
             if key in present:
-                panels.append((prefix, key, series(recording, prefix, key)))
+                data = series(recording, prefix, key)
+                if keys and not data[0]:
+                    raise RecordingError(
+                        f"{recording.files[0]}: robot {prefix!r}: blackboard key {key!r} has "
+                        f"no numbers to plot; its values: {_values_of(recording, prefix, key)}"
+                        f"; keys with numbers: {', '.join(_numeric(recording, prefix)[:20])}")
+                panels.append((prefix, key, data))
     heights = []
     for _, kind, data in panels:
         heights.append(max(1.5, 0.35 * len({b.row for b in data[0]}) + 0.8)
@@ -192,9 +228,13 @@ def plot(recording: Recording, out: str | Path, *, robots: Sequence[str] | None 
             rows = list(dict.fromkeys(b.row for b in sorted(found, key=lambda b: b.start_s)))
             for b in found:
                 y = rows.index(b.row)
+                colour = COLOURS.get(b.status, "#1f77b4")
                 ax.broken_barh([(b.start_s, max(b.end_s - b.start_s, 1e-3))], (y - 0.38, 0.76),
-                               facecolors=COLOURS.get(b.status, "#1f77b4"), edgecolor="black",
-                               linewidth=0.3)
+                               facecolors=colour, edgecolor="black", linewidth=0.3)
+                if b.end_s - b.start_s < 0.05 and b.status != "RUNNING":
+                    # Too short for a bar: a mark in its colour, not a blank running row.
+                    ax.plot([b.start_s], [y], marker="D", markersize=4, color=colour,
+                            markeredgecolor="black", markeredgewidth=0.3)
             for t, name in switches:
                 ax.axvline(t, color="black", linestyle=":", linewidth=0.8)
                 ax.text(t, len(rows) - 0.4, f" → {name}", fontsize=7, va="bottom")
@@ -214,7 +254,13 @@ def plot(recording: Recording, out: str | Path, *, robots: Sequence[str] | None 
                            + (", sim time" if recording.sim_time(shown[0]) else ""))
     fig.legend(handles=[Patch(color=c, label=s.lower()) for s, c in COLOURS.items()],
                loc="upper right", ncol=len(COLOURS), fontsize=7, frameon=False)
-    fig.suptitle(title or f"{recording.files[0].name}: {recording.duration_s:.1f} s",
+    # The title's span on the same axis as the plot (sim time when the robot ran on it).
+    at = _timeline(recording, shown[0])
+    span = at(recording.end_ns) - at(recording.start_ns)
+    clock = ", sim time" if recording.sim_time(shown[0]) else ""
+    notes = (" (truncated)" if recording.truncated else "") + \
+        (" (DAMAGED)" if recording.damaged else "")
+    fig.suptitle(title or f"{recording.files[0].name}: {span:.1f} s{clock}{notes}",
                  fontsize=10, x=0.01, ha="left")
     fig.tight_layout(rect=(0, 0, 1, 0.97))
     out = Path(out)
