@@ -337,3 +337,24 @@ def test_plot_names_what_it_cannot_draw(demo: Path, capsys: pytest.CaptureFixtur
     assert main(["plot", str(demo), "--robot", "nobody", "-o", out]) == 2
     err = capsys.readouterr().err
     assert "no robot 'nobody'" in err and "'emili1', 'kobuki1'" in err, err
+
+
+def test_the_declared_mcap_profile_holds(demo: Path) -> None:
+    """Read with the plain `mcap` reader (issue 23, item 6): a file that declares the
+    `ros2` profile must have only CDR channels with `offered_qos_profiles` metadata (the
+    MCAP spec); the demo's has JSON channels too, so it must declare none."""
+    from mcap.reader import make_reader
+
+    with open(demo, "rb") as f:
+        reader = make_reader(f)
+        profile = reader.get_header().profile
+        summary = reader.get_summary()
+    assert summary is not None
+    channels = list(summary.channels.values())
+    encodings = {c.message_encoding for c in channels}
+    assert encodings == {"json", "cdr"}
+    if profile == "ros2":
+        assert encodings == {"cdr"} and all("offered_qos_profiles" in c.metadata
+                                            for c in channels)
+    else:
+        assert profile == ""

@@ -32,8 +32,10 @@ OUTPUTS = "beehave/outputs"
 CLOCK = "beehave/clock"
 RECORDER = "/beehave/recorder"
 
-PROFILE = "ros2"
-"""The MCAP profile: ROS 2 tools and Foxglove read the ``ros2msg`` channels as ROS data."""
+PROFILE = ""
+"""The MCAP profile: none. The ``ros2`` profile requires every channel to be CDR with
+``offered_qos_profiles`` metadata, and beehave's own channels are JSON; readers (Foxglove,
+``mcap-ros2-support``) decode each channel by its schema's encoding, profile or not."""
 
 _TIME = {"type": "number", "description": "time.time() when it happened (s)"}
 
