@@ -229,6 +229,9 @@ def replay_check() -> Callable[..., Any]:
         if result.divergence is not None:
             pytest.fail(f"replay of {recording} diverged from the reference: "
                         f"{result.divergence}", pytrace=False)
+        if result.damaged:  # a reference that is not whole proves nothing past the damage
+            pytest.fail(f"the reference {recording} is damaged: "
+                        + "; ".join(result.damaged), pytrace=False)
         return result
 
     return check
