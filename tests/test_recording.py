@@ -416,11 +416,13 @@ def test_the_file_is_indexed_mcap_that_the_standard_readers_trust(tmp_path: Path
         assert summary is not None and summary.statistics is not None
         by_topic = {c.topic: c.id for c in summary.channels.values()}
         assert set(by_topic) == {"/r/beehave/blackboard", "/r/beehave/events/high",
-                                 "/silent/beehave/blackboard", "/beehave/recorder"}
+                                 "/r/beehave/log", "/silent/beehave/blackboard",
+                                 "/beehave/recorder"}
         assert summary.statistics.message_count == stats.written
         counts = summary.statistics.channel_message_counts
         assert counts[by_topic["/r/beehave/blackboard"]] == total
         assert counts[by_topic["/r/beehave/events/high"]] == 4
+        assert counts[by_topic["/r/beehave/log"]] == 4  # the same events, for Foxglove
         assert len(summary.chunk_indexes) == summary.statistics.chunk_count >= 4
         values = [json.loads(m.data)["value"] for _, c, m in reader.iter_messages(
             topics=["/r/beehave/blackboard"], log_time_order=True)]

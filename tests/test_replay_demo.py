@@ -358,3 +358,26 @@ def test_the_declared_mcap_profile_holds(demo: Path) -> None:
                                             for c in channels)
     else:
         assert profile == ""
+
+
+def test_events_are_written_for_foxglove_log_panel(demo: Path) -> None:
+    """Read with the plain `mcap` reader: each robot's events also go out as `foxglove.Log`
+    (JSON), the schema Foxglove's Log panel shows (issue 23, item 6)."""
+    import json as _json
+
+    from mcap.reader import make_reader
+
+    with open(demo, "rb") as f:
+        logs = [(schema, channel, _json.loads(message.data)) for schema, channel, message
+                in make_reader(f).iter_messages(topics=["/emili1/beehave/log"])]
+    assert logs
+    schema, channel, _ = logs[0]
+    assert schema is not None and schema.name == "foxglove.Log"
+    assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+    for _, _, log in logs:
+        assert set(log) == {"timestamp", "level", "message", "name", "file", "line"}
+        assert set(log["timestamp"]) == {"sec", "nsec"} and 0 <= log["timestamp"]["nsec"] < 1e9
+        assert log["level"] in (1, 2, 3, 4, 5) and log["name"] in ("emili1/high", "emili1/low")
+    messages = [log["message"] for _, _, log in logs]
+    assert "safe_state_ran tour/Navigation→emili_pickup INTERRUPTED" in messages
+    assert "switch_completed commanded" in messages

@@ -229,6 +229,30 @@ def _encode_event(event: Event) -> tuple[int, bytes]:
     return int(event.stamp * 1e9), _dumps(body)
 
 
+def _encode_log(item: tuple[str, Event]) -> tuple[int, bytes]:
+    name, event = item
+    t_ns = int(event.stamp * 1e9)
+    if event.status == "FAILED" or event.kind is EventKind.SAFE_STATE_FAILED:
+        level = 4  # ERROR
+    elif event.kind in _WARN_KINDS or event.error is not None:
+        level = 3  # WARNING
+    else:
+        level = 2  # INFO
+    words = [event.kind.value, event.subject, event.status or ""]
+    message = " ".join(w for w in words if w)
+    if event.error is not None:
+        message += f": {event.error}"
+    return t_ns, _dumps({"timestamp": {"sec": t_ns // 1_000_000_000,
+                                       "nsec": t_ns % 1_000_000_000},
+                         "level": level, "message": message, "name": name, "file": "",
+                         "line": 0})
+
+
+_WARN_KINDS = {EventKind.STUCK, EventKind.SAFE_STATE_OVERDUE, EventKind.HOOK_FAILED,
+               EventKind.LOCK_PREEMPTED, EventKind.LOOP_BLOCKED, EventKind.FALLBACK,
+               EventKind.SWITCH_REJECTED}
+
+
 def _encode_command(item: tuple[float, str, str, tuple[Any, ...], dict[str, Any]]
                     ) -> tuple[int, bytes]:
     stamp, hal, method, args, kwargs = item
@@ -368,6 +392,12 @@ class Recorder:
         channel = self._channel(prefix, schema.EVENTS_HIGH if level == "high"
                                 else schema.EVENTS_LOW, _encode_event)
         self._detach.append(events.subscribe(channel.put))
+        # The same events for Foxglove's Log panel: one log channel per robot.
+        log = self._topics.get(schema.topic(prefix, schema.LOG))
+        if log is None:
+            log = self._channel(prefix, schema.LOG, _encode_log)
+        name = f"{prefix.strip('/') or 'robot'}/{level}"
+        self._detach.append(events.subscribe(lambda e: log.put((name, e))))
 
     def attach_hal_outputs(self, low: LowLevelBehaviorManager, *, prefix: str = "") -> None:
         """Record the commands given to the low level's HALs (:func:`command_methods`:

@@ -502,10 +502,19 @@ def _settled_count(recording: Recording, prefix: str) -> int:
     kinds = [(m.data["kind"], m.data["status"])
              for m in recording.of(schema.topic(prefix, schema.EVENTS_HIGH))]
     n = len(kinds)
-    while n and (kinds[n - 1] == ("ended", "INTERRUPTED")
-                 or kinds[n - 1][0] in ("stuck", "stuck_released", "safe_state_overdue")):
+    while n and (kinds[n - 1] in (("ended", "INTERRUPTED"), ("safe_state_ran", "INTERRUPTED"))
+                 or kinds[n - 1][0] in ("stuck", "stuck_released", "safe_state_overdue")
+                 or kinds[n - 1] == ("safe_state_ran", "STUCK")):
         n -= 1
     return n
+
+
+def _shutdown_ns(recording: Recording, prefix: str) -> int:
+    """When the recorded shutdown began: its first event (the recording's end when the
+    high level shows none)."""
+    logged = recording.of(schema.topic(prefix, schema.EVENTS_HIGH))
+    n = _settled_count(recording, prefix)
+    return logged[n].log_time_ns if n < len(logged) else recording.end_ns
 
 
 def _batch_ends(inputs: list[Any]) -> list[bool]:
@@ -1020,7 +1029,7 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
                                      hal_wait_s=hal_wait_s, warnings=warnings, high=side))
                 if side is not None and not side.abort.is_set() and to_s is None:
                     low.call(side.finish(_settled_count(rec, prefix),
-                                         timeline(rec.end_ns)))
+                                         timeline(_shutdown_ns(rec, prefix))))
                 if to_s is not None:
                     state.comparing = False  # the shutdown's safe states lie outside it
             finally:

@@ -30,6 +30,7 @@ EVENTS_HIGH = "beehave/events/high"
 EVENTS_LOW = "beehave/events/low"
 OUTPUTS = "beehave/outputs"
 CLOCK = "beehave/clock"
+LOG = "beehave/log"
 RECORDER = "/beehave/recorder"
 
 PROFILE = ""
@@ -75,6 +76,17 @@ SCHEMAS: dict[str, dict[str, Any]] = {s["title"]: s for s in (
             {"hal": {"type": "string"}, "method": {"type": "string"},
              "args": {"type": "array"}, "kwargs": {"type": "object"}, "stamp": _TIME},
             ["hal", "method", "args", "kwargs", "stamp"]),
+    _object("foxglove.Log",
+            "Each event of both levels once more, as Foxglove's Log panel reads it (the "
+            "schema foxglove.Log): level 2 INFO, 3 WARNING (STUCK, a safe state that "
+            "failed …), 4 ERROR (something that FAILED); name: <robot>/high or /low.",
+            {"timestamp": {"type": "object", "title": "time",
+                           "properties": {"sec": {"type": "integer", "minimum": 0},
+                                          "nsec": {"type": "integer", "minimum": 0}}},
+             "level": {"type": "integer", "enum": [0, 1, 2, 3, 4, 5]},
+             "message": {"type": "string"}, "name": {"type": "string"},
+             "file": {"type": "string"}, "line": {"type": "integer", "minimum": 0}},
+            ["timestamp", "level", "message", "name", "file", "line"]),
     _object("beehave.ClockSample", "The robot's sim time at a wall time: replay paces by it.",
             {"sim_time_s": {"type": "number"}, "stamp": _TIME},
             ["sim_time_s", "stamp"]),
@@ -88,7 +100,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {s["title"]: s for s in (
 
 CHANNEL_SCHEMA = {BLACKBOARD: "beehave.BlackboardChange", EVENTS_HIGH: "beehave.Event",
                   EVENTS_LOW: "beehave.Event", OUTPUTS: "beehave.HalCommand",
-                  CLOCK: "beehave.ClockSample"}
+                  CLOCK: "beehave.ClockSample", LOG: "foxglove.Log"}
 
 
 def schema_bytes(name: str) -> bytes:
