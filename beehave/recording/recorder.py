@@ -511,7 +511,32 @@ class Recorder:
                     "pkg/msg/Type}")
             self.attach_topic(node, name, message_type(type_name, where=where),
                               prefix=prefix)
+            if name == "odom" and type_name == STANDARD_TOPICS["odom"]:
+                self.attach_transforms(node, name, prefix=prefix)
         attach_behavior_inputs(self, robot, prefix=prefix)
+
+    def attach_transforms(self, node: Any, odom_topic: str = "odom", *,
+                          prefix: str = "") -> None:
+        """Record the robot's pose from its odometry as ``foxglove.FrameTransform`` (JSON)
+        on ``/<robot>/beehave/tf``: the odometry's frame (``map``) to its child frame
+        (``<robot>/base_link``, the laser scans' frame), so Foxglove's 3D panel places the
+        scans on the map. (There is no ``tf2_msgs`` on PyPI for a ``/tf`` topic.)"""
+        from nav_msgs.msg import Odometry
+
+        channel = self._channel(prefix, schema.TF, _identity)
+
+        def on_odom(msg: Any) -> None:  # in the ROS executor thread
+            p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            channel.put((time.time_ns(), _dumps({
+                "timestamp": {"sec": int(msg.header.stamp.sec),
+                              "nsec": int(msg.header.stamp.nanosec)},
+                "parent_frame_id": msg.header.frame_id,
+                "child_frame_id": msg.child_frame_id,
+                "translation": {"x": p.x, "y": p.y, "z": p.z},
+                "rotation": {"x": q.x, "y": q.y, "z": q.z, "w": q.w}})))
+
+        subscription = node.create_subscription(Odometry, odom_topic, on_odom, 10)
+        self._detach.append(functools.partial(node.destroy_subscription, subscription))
 
 
 def _recording_call(original: Callable[..., Any], hal: str, method: str,

@@ -31,6 +31,7 @@ EVENTS_LOW = "beehave/events/low"
 OUTPUTS = "beehave/outputs"
 CLOCK = "beehave/clock"
 LOG = "beehave/log"
+TF = "beehave/tf"
 RECORDER = "/beehave/recorder"
 
 PROFILE = ""
@@ -87,6 +88,20 @@ SCHEMAS: dict[str, dict[str, Any]] = {s["title"]: s for s in (
              "message": {"type": "string"}, "name": {"type": "string"},
              "file": {"type": "string"}, "line": {"type": "integer", "minimum": 0}},
             ["timestamp", "level", "message", "name", "file", "line"]),
+    _object("foxglove.FrameTransform",
+            "The robot's pose from its odometry, as Foxglove's 3D panel reads frames: "
+            "parent_frame_id (map) to child_frame_id (<robot>/base_link, the frame of "
+            "the laser scans).",
+            {"timestamp": {"type": "object", "title": "time",
+                           "properties": {"sec": {"type": "integer", "minimum": 0},
+                                          "nsec": {"type": "integer", "minimum": 0}}},
+             "parent_frame_id": {"type": "string"}, "child_frame_id": {"type": "string"},
+             "translation": {"type": "object", "properties": {
+                 "x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"}}},
+             "rotation": {"type": "object", "properties": {
+                 "x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"},
+                 "w": {"type": "number"}}}},
+            ["timestamp", "parent_frame_id", "child_frame_id", "translation", "rotation"]),
     _object("beehave.ClockSample", "The robot's sim time at a wall time: replay paces by it.",
             {"sim_time_s": {"type": "number"}, "stamp": _TIME},
             ["sim_time_s", "stamp"]),
@@ -100,7 +115,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {s["title"]: s for s in (
 
 CHANNEL_SCHEMA = {BLACKBOARD: "beehave.BlackboardChange", EVENTS_HIGH: "beehave.Event",
                   EVENTS_LOW: "beehave.Event", OUTPUTS: "beehave.HalCommand",
-                  CLOCK: "beehave.ClockSample", LOG: "foxglove.Log"}
+                  CLOCK: "beehave.ClockSample", LOG: "foxglove.Log",
+                  TF: "foxglove.FrameTransform"}
 
 
 def schema_bytes(name: str) -> bytes:
