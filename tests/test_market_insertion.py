@@ -134,6 +134,10 @@ def test_a_short_role_is_bid_and_queued_before_a_long_one(ros: RosContext) -> No
         top = boss_hl.top
         assert top is not None
         assert wait_until(lambda: all(len(o.rounds) for o in top.outcomes.values()), WAIT_S)
+        # The gate opens once the broker holds all three awards: an award still on its way
+        # when "hold" ends would find "long" started (seen beside a CPU hog).
+        broker = robot_hl.top
+        assert wait_until(lambda: len(broker._jobs) == 3, WAIT_S)  # type: ignore[union-attr]
         gate.set()
         assert top.wait(WAIT_S) and top.status is Status.SUCCEEDED, top.error
         outcomes: dict[str, Outcome] = top.result
