@@ -114,6 +114,13 @@ def test_behaviours_start_on_the_first_clock_and_the_recording_has_no_false_time
     started = [m for m in rec.of("/late_robot/beehave/events/high")
                if m.data["kind"] == "started" and m.data["subject"] == "ticker"]
     assert started and sim_at(started[0].log_time_ns) >= SIM_START_S
+    # And it replays: the ticker's steps, each 0.1 s of sim time, the same as recorded.
+    from beehave.recording.replay import replay
+
+    result = replay(path, _config(), speed=None)
+    assert result.sim_time and result.divergence is None, result.divergence
+    # The recorder was closed before the robot: the replay compares up to its end.
+    assert [w for w in result.warnings if "still ran" not in w] == [], result.warnings
 
 
 def test_a_robot_without_clock_refuses_to_start_naming_the_cause() -> None:

@@ -509,6 +509,21 @@ def _settled_count(recording: Recording, prefix: str) -> int:
     return n
 
 
+def _running_at_end(recording: Recording, prefix: str) -> list[str]:
+    """The top-level behaviours the recording shows started and never ended: it stops
+    while the robot still ran (recorded for a while, not to the robot's shutdown)."""
+    running: dict[str, None] = {}
+    for m in recording.of(schema.topic(prefix, schema.EVENTS_HIGH)):
+        kind, subject = m.data["kind"], m.data["subject"]
+        if "/" in subject:
+            continue
+        if kind == "started":
+            running[subject] = None
+        elif kind in ("ended", "stuck_released"):
+            running.pop(subject, None)
+    return list(running)
+
+
 def _shutdown_ns(recording: Recording, prefix: str) -> int:
     """When the recorded shutdown began: its first event (the recording's end when the
     high level shows none)."""
@@ -956,6 +971,13 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
         cut_s = timeline(rec.intact_until_ns)
         warnings.append(f"the recording was cut off at t={cut_s:.3f} s (its process died "
                         "before closing it): compared up to there")
+    running = _running_at_end(rec, prefix)
+    if cut_s is None and running and (to_s is None or to_s >= end_s):
+        # Recorded up to here while the robot ran on (no shutdown in it): the replay's own
+        # shutdown would be an invented ending.
+        cut_s = end_s
+        warnings.append(f"the recording stops while {', '.join(running[:3])} still "
+                        f"ran: compared up to its end (t={end_s:.3f} s)")
     if to_s is not None and cut_s is None and to_s >= end_s:
         warnings.append(f"--to {to_s:g} s is beyond the recording's end ({end_s:.3f} s): "
                         "replayed to its end")
