@@ -27,9 +27,28 @@ What it implements (ArduPilot 4.x behaviour, simplified):
 - **Frames.** The local NED frame's origin is the world origin: north = world y, east =
   world x, down = −altitude. Its geodetic position is ``origin`` (default: ArduPilot
   SITL's CMAC field); global positions are flat-earth around it.
-- **Commands** (COMMAND_LONG → COMMAND_ACK): ARM_DISARM, DO_SET_MODE (and SET_MODE),
-  NAV_TAKEOFF (Copter, armed, GUIDED), REQUEST_MESSAGE (GPS_GLOBAL_ORIGIN); others are
-  answered UNSUPPORTED. SET_POSITION_TARGET_LOCAL_NED / _GLOBAL_INT steer in GUIDED.
+- **Input is validated where it enters**: every field of every handled message must be a
+  finite number in range (latitudes within ±90°, longitudes within ±180°, positions inside
+  the fence). A bad one is refused with the protocol's answer — a COMMAND_ACK with
+  DENIED (a parameter is invalid), FAILED (valid, but not now) or UNSUPPORTED, a MISSION_ACK
+  with MAV_MISSION_INVALID_PARAMn — or, for messages without an answer, ignored with a log
+  line and a count in :attr:`MavlinkEndpoint.ignored`. Nothing a ground station sends
+  can stop the simulation.
+- **Commands** (COMMAND_LONG and COMMAND_INT → always a COMMAND_ACK, addressed to the
+  sender): ARM_DISARM (param1 exactly 1 or 0, else UNSUPPORTED; a flying Copter disarms
+  only when forced with 21196 — and then falls), DO_SET_MODE (and SET_MODE, acknowledged
+  with command 11 as ArduPilot does), NAV_TAKEOFF (Copter, armed, GUIDED, on the ground,
+  upwards), REQUEST_MESSAGE (GPS_GLOBAL_ORIGIN); others are answered UNSUPPORTED.
+- **GUIDED targets.** SET_POSITION_TARGET_LOCAL_NED (frames LOCAL_NED, LOCAL_OFFSET_NED,
+  BODY_NED, BODY_OFFSET_NED) and _GLOBAL_INT honour ``type_mask`` as ArduPilot does: a
+  group (position, velocity, acceleration) is ignored when any of its bits is set;
+  position, velocity (renewed within :data:`GUIDED_TIMEOUT_S`, else the vehicle holds),
+  position + velocity (flown as the position), yaw and yaw rate. A Copter given nothing
+  usable (or a bad value) stops and holds — ArduCopter's "input is not valid so stop"; a
+  Rover keeps its previous target and also takes heading-only and turn-rate-only targets.
+- **Fence.** The world's floor (:class:`Fence`, :data:`FENCE_MARGIN_M` inside its edges, up
+  to the quad's 30 m ceiling) is an inclusion fence: targets and mission items outside are
+  refused, and velocity towards an edge is slowed so that the vehicle stops at it.
 - **Modes.** GUIDED (go to the position target), AUTO (fly the mission from the current
   item; MISSION_ITEM_REACHED on arrival; at the end it stays put), RTL (home; a Copter
   climbs to ``RTL_ALT``, returns, lands and disarms), LAND (Copter), HOLD / LOITER / BRAKE
@@ -40,9 +59,14 @@ What it implements (ArduPilot 4.x behaviour, simplified):
   duplicate of the previous item is answered by re-requesting the expected one; other
   out-of-order items are ignored. Frames other than GLOBAL(_RELATIVE_ALT)(_INT) are refused
   with MAV_MISSION_UNSUPPORTED_FRAME, commands other than NAV_WAYPOINT / TAKEOFF / LAND /
-  RETURN_TO_LAUNCH with MAV_MISSION_UNSUPPORTED. Item 0 is home (not flown).
+  RETURN_TO_LAUNCH with MAV_MISSION_UNSUPPORTED, bad coordinates with
+  MAV_MISSION_INVALID_PARAM5_X / 6_Y / 7 (more than :data:`MAX_MISSION_ITEMS`:
+  MAV_MISSION_NO_SPACE). Item 0 is home (not flown). Latitude and longitude 0, 0 mean
+  "where the vehicle is when the item starts"; a TAKEOFF item climbs straight up
+  wherever it is (both as ArduPilot).
 - **Parameters**: PARAM_REQUEST_READ / PARAM_REQUEST_LIST / PARAM_SET → PARAM_VALUE for
-  the parameters in :data:`DEFAULT_PARAMS`; unknown names get no answer (as ArduPilot).
+  the parameters in :data:`DEFAULT_PARAMS`; unknown names get no answer (as ArduPilot);
+  values outside :data:`PARAM_RANGES` are refused (the unchanged PARAM_VALUE is sent).
 
 **Faults** (:class:`Faults`, for tests): drop the next n outgoing or incoming messages of
 a type, or go silent (a lost radio link).
@@ -98,7 +122,108 @@ _SUPPORTED_FRAMES = {mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_RELATIVE
                      mavlink.MAV_FRAME_GLOBAL_INT, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT}
 _SUPPORTED_ITEMS = {mavlink.MAV_CMD_NAV_WAYPOINT, mavlink.MAV_CMD_NAV_TAKEOFF,
                     mavlink.MAV_CMD_NAV_LAND, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH}
+_HERE_ITEMS = {mavlink.MAV_CMD_NAV_WAYPOINT, mavlink.MAV_CMD_NAV_TAKEOFF,
+               mavlink.MAV_CMD_NAV_LAND}
+"""Mission items whose latitude and longitude 0, 0 mean "where the vehicle is" (ArduPilot)."""
 _REREQUESTS = 5
+MAX_MISSION_ITEMS = 500
+"""The largest mission an endpoint stores (home included); a bigger MISSION_COUNT is
+refused with MAV_MISSION_NO_SPACE, as a flight controller with full storage does."""
+
+# SET_POSITION_TARGET_* type_mask bits (MAVLink POSITION_TARGET_TYPEMASK). ArduPilot reads a
+# group as ignored when any of its bits is set.
+_POS_IGNORE = 0b111
+_VEL_IGNORE = 0b111 << 3
+_ACC_IGNORE = 0b111 << 6
+_FORCE_SET = 1 << 9
+_YAW_IGNORE = 1 << 10
+_YAW_RATE_IGNORE = 1 << 11
+_LOCAL_FRAMES = {mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED,
+                 mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED}
+_BODY_FRAMES = {mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED}
+_GLOBAL_TARGET_FRAMES = {mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_INT,
+                         mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                         mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                         mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT,
+                         mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT}
+_TAKEOFF_FRAMES = {mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                   mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT}
+GUIDED_TIMEOUT_S = 3.0
+"""A velocity, heading or turn-rate target not renewed for this long (sim time) is dropped
+and the vehicle holds where it is (ArduPilot's GUID_TIMEOUT, 3 s)."""
+FENCE_MARGIN_M = 0.3
+"""How far inside the floor's edge the fence is."""
+_ACCEPTED: int = mavlink.MAV_RESULT_ACCEPTED
+_DENIED: int = mavlink.MAV_RESULT_DENIED  # MAVLink: supported, but a parameter is invalid
+_FAILED: int = mavlink.MAV_RESULT_FAILED  # valid, but it cannot be done now
+_UNSUPPORTED: int = mavlink.MAV_RESULT_UNSUPPORTED
+_FORCE_DISARM = 21196.0
+_MAX_UINT32 = 2**32 - 1
+
+PARAM_RANGES: dict[str, tuple[float, float]] = {
+    "WP_RADIUS": (0.05, 100.0), "WP_SPEED": (0.05, 100.0),
+    "WPNAV_RADIUS": (5.0, 1000.0), "WPNAV_SPEED": (10.0, 2000.0),
+    "RTL_ALT": (30.0, 300000.0), "LAND_SPEED": (30.0, 200.0),
+    "BATT_LOW_PCT": (0.0, 100.0), "SYSID_THISMAV": (1.0, 255.0),
+}
+"""The values PARAM_SET accepts (ArduPilot's documented ranges, in its units; a zero speed or
+radius, which would freeze the vehicle, is not allowed). Others are refused: the endpoint
+answers with the unchanged PARAM_VALUE."""
+
+
+def _finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+def _whole(value: float, low: float, high: float) -> bool:
+    """``value`` is an integer (as a float may carry one) in [low, high]."""
+    return math.isfinite(value) and value == int(value) and low <= value <= high
+
+
+def _valid_lat_lon(lat_e7: int, lon_e7: int) -> bool:
+    return -900_000_000 <= lat_e7 <= 900_000_000 and -1_800_000_000 <= lon_e7 <= 1_800_000_000
+
+
+@dataclass(frozen=True)
+class Fence:
+    """An inclusion fence: the world's floor, ``FENCE_MARGIN_M`` inside its edges, up to the
+    quad's ceiling — ArduPilot's polygon fence with FENCE_ALT_MAX, as AC_Avoid uses it:
+    targets outside are refused and motion towards the edge slows down so the vehicle stops
+    at it (world frame, metres)."""
+
+    x_min: float
+    y_min: float
+    x_max: float
+    y_max: float
+    alt_max_m: float
+
+    @classmethod
+    def of_world(cls, width_m: float, depth_m: float, alt_max_m: float) -> Fence:
+        margin = min(FENCE_MARGIN_M, width_m / 4, depth_m / 4)
+        return cls(margin, margin, width_m - margin, depth_m - margin, alt_max_m)
+
+    def contains(self, x: float, y: float) -> bool:
+        return self.x_min <= x <= self.x_max and self.y_min <= y <= self.y_max
+
+    def limit(self, x: float, y: float, vx: float, vy: float, accel_mps2: float
+              ) -> tuple[float, float]:
+        """The velocity (vx, vy) with each component towards an edge no faster than the
+        vehicle can brake before it (AC_Avoid's rule: v ≤ √(2·a·d), with d shortened by
+        one control period's travel)."""
+
+        def cap(v: float, low_gap: float, high_gap: float) -> float:
+            gap = high_gap if v > 0 else low_gap
+            allowed = math.sqrt(2 * accel_mps2 * max(0.0, gap - 0.05 * abs(v)))
+            return max(-allowed, min(allowed, v))
+
+        return (cap(vx, x - self.x_min, self.x_max - x), cap(vy, y - self.y_min, self.y_max - y))
+
+    def scale(self, x: float, y: float, vx: float, vy: float, accel_mps2: float) -> float:
+        """How much of the velocity (vx, vy) may be kept (0–1) without crossing the fence,
+        for a vehicle that can only move along that velocity (a Rover)."""
+        lx, ly = self.limit(x, y, vx, vy, accel_mps2)
+        ratios = [lim / v for lim, v in ((lx, vx), (ly, vy)) if abs(v) > 1e-9]
+        return max(0.0, min([1.0, *ratios]))
 
 
 @dataclass
@@ -117,20 +242,44 @@ class Faults:
 
 @dataclass
 class _Item:
+    """A stored mission item: what the ground station sent (for download) and where it
+    leads in the world (``x_m``/``y_m`` None: where the vehicle is when the item starts)."""
+
     seq: int
     command: int
-    x_m: float
-    y_m: float
+    x_m: float | None
+    y_m: float | None
     alt_m: float
+    frame: int = mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+    params: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    lat_e7: int = 0
+    lon_e7: int = 0
+    autocontinue: int = 1
 
 
 @dataclass
 class _Upload:
     count: int
     items: list[_Item]
+    peer: tuple[int, int] = (GCS_SYSTEM_ID, GCS_COMPONENT_ID)
     expected: int = 0
     asked_at: float = 0.0
     asks: int = 0
+
+
+@dataclass
+class _Velocity:
+    """A GUIDED velocity target (world frame: x east, y north, z up, m/s) with an optional
+    heading (world yaw, rad) or turn rate (rad/s, counter-clockwise); a Rover drives
+    ``speed`` (signed, m/s) along the heading. Dropped at ``until_s`` (sim time)."""
+
+    vx: float
+    vy: float
+    vz: float
+    speed: float
+    heading: float | None
+    yaw_rate: float | None
+    until_s: float
 
 
 class MavlinkEndpoint:
@@ -159,15 +308,24 @@ class MavlinkEndpoint:
         self.params = dict(DEFAULT_PARAMS[self.kind])
         self.params["SYSID_THISMAV"] = float(system_id)
         self.modes = mode_names(self.kind)
+        width, depth = sim.world.floor.size_m
+        self.fence = Fence.of_world(width, depth, Quad.max_alt_m)
         #: What the endpoint refused to take, by reason (for tests and logs).
         self.ignored: Counter[str] = Counter()
+        #: Exceptions caught in the control or telemetry step (each logged; the vehicle
+        #: then holds). Always 0 unless there is a bug: no input may get that far.
+        self.errors = 0
         self._lock = threading.RLock()
         self._send_lock = threading.Lock()
         self.armed = False
+        self._was_armed = False
         self.mode = _START_MODE[self.kind]
         start = self.robot.spec.start
         self.home = (start.x_m, start.y_m)
         self._target: tuple[float, float, float | None] | None = None
+        self._velocity: _Velocity | None = None
+        self._yaw_target: float | None = None  # world yaw (rad) while holding a position
+        self._yaw_rate_target: float | None = None
         self._mission: list[_Item] = []
         self.current_seq = 0
         self.reached: list[int] = []
@@ -199,8 +357,12 @@ class MavlinkEndpoint:
             except OSError as exc:  # nobody listens yet (ICMP port unreachable)
                 log.debug("endpoint %s: %s not sent: %s", self.namespace, kind, exc)
 
-    def _ack(self, command: int, result: int) -> None:
-        self._send("COMMAND_ACK", lambda mav: mav.command_ack_send(command, result))
+    def _ack(self, command: int, result: int, msg: Any = None) -> None:
+        """COMMAND_ACK addressed to the sender of ``msg`` (0/0: everyone, when unknown)."""
+        system, component = (msg.get_srcSystem(), msg.get_srcComponent()) if msg is not None \
+            else (0, 0)
+        self._send("COMMAND_ACK", lambda mav: mav.command_ack_send(
+            command, result, 0, 0, system, component))
 
     # ---- where the robot is -----------------------------------------------------------
 
@@ -218,9 +380,20 @@ class MavlinkEndpoint:
         north, east = self.origin.to_local(lat_deg, lon_deg)
         return east, north
 
+    def _airborne(self) -> bool:
+        robot = self.robot
+        return isinstance(robot, Quad) and not robot.landed
+
     # ---- telemetry (sim thread) -------------------------------------------------------
 
     def _stream(self, time_s: float) -> None:
+        try:
+            self._stream_step(time_s)
+        except Exception:  # a telemetry bug must not stop the simulation
+            self.errors += 1
+            log.exception("endpoint %s: telemetry step failed", self.namespace)
+
+    def _stream_step(self, time_s: float) -> None:
         x, y, alt, yaw, vx, vy, vz = self._where()
         boot_ms = int(time_s * 1000) & 0xFFFFFFFF
         lat, lon = self.origin.to_global(y, x)
@@ -242,7 +415,7 @@ class MavlinkEndpoint:
                 if upload.asks >= _REREQUESTS:
                     self._upload = None
                     self._send("MISSION_ACK", lambda mav: mav.mission_ack_send(
-                        0, 0, mavlink.MAV_MISSION_OPERATION_CANCELLED))
+                        *upload.peer, mavlink.MAV_MISSION_OPERATION_CANCELLED))
                 else:
                     self._request(upload)
 
@@ -267,14 +440,54 @@ class MavlinkEndpoint:
     # ---- control (sim thread) ---------------------------------------------------------
 
     def _control(self, time_s: float) -> None:
-        with self._lock:
-            goal = self._goal()
+        try:
+            self._control_step(time_s)
+        except Exception:  # never reached by any input (validated on arrival): a bug
+            self.errors += 1
+            log.exception("endpoint %s: control step failed; holding", self.namespace)
+            with self._lock:
+                self._hold()
+            if isinstance(self.robot, Quad):
+                self.robot.set_velocity(0.0, 0.0, 0.0)
+            else:
+                self.robot.stop()
+
+    def _control_step(self, time_s: float) -> None:
         robot = self.robot
+        with self._lock:
+            velocity = self._velocity
+            if velocity is not None and (self.mode != "GUIDED" or time_s > velocity.until_s):
+                self._hold()  # the target timed out (or the mode changed): stay here
+                velocity = None
+            goal = None if velocity is not None else self._goal()
         x, y, alt, yaw, *_ = self._where()
+        armed = self.armed
+        if armed != self._was_armed:  # on arming and disarming only: ROS may drive it else
+            self._was_armed = armed
+            if isinstance(robot, Quad):
+                robot.set_motors(armed)  # disarmed motors stop: in the air it falls
+            if not armed:
+                robot.stop()
         if isinstance(robot, Quad):
-            self._fly(robot, goal, x, y, alt)
-        elif self.armed:
-            self._drive(goal, x, y, yaw)
+            if not armed:
+                return
+            if velocity is not None:
+                self._fly_velocity(robot, velocity, x, y, alt, yaw)
+            else:
+                self._fly(robot, goal, x, y, alt, yaw)
+        elif armed:
+            if velocity is not None:
+                self._drive_velocity(velocity, x, y, yaw)
+            else:
+                self._drive(goal, x, y, yaw)
+
+    def _hold(self) -> None:
+        """Drop velocity targets and hold the current position (GUIDED's "stop")."""
+        self._velocity = None
+        self._yaw_rate_target = None
+        if self.mode == "GUIDED":
+            x, y, alt, *_ = self._where()
+            self._target = (x, y, alt if self.kind == COPTER else None)
 
     def _goal(self) -> tuple[float, float, float | None] | None:
         """Where the current mode wants the vehicle (x, y, alt or None: keep it)."""
@@ -286,6 +499,9 @@ class MavlinkEndpoint:
             item = self._mission_item()
             if item is None:
                 return None
+            if item.x_m is None or item.y_m is None:  # 0, 0: here (ArduPilot)
+                x, y, *_ = self._where()
+                item.x_m, item.y_m = x, y
             return (item.x_m, item.y_m, item.alt_m)
         if self.mode in ("RTL", "SMART_RTL"):
             return (*self.home, None)
@@ -300,6 +516,11 @@ class MavlinkEndpoint:
             if item.command == mavlink.MAV_CMD_NAV_LAND:
                 self._set_mode("LAND")
                 return None
+            if item.command == mavlink.MAV_CMD_NAV_TAKEOFF:
+                # A Copter takes off straight up, wherever the item says (ArduPilot).
+                if item.x_m is None:
+                    x, y, *_ = self._where()
+                    item.x_m, item.y_m = x, y
             return item
         return None
 
@@ -325,6 +546,9 @@ class MavlinkEndpoint:
         elif self.mode == "GUIDED":
             pass  # stays at the target until a new one comes
 
+    def _turn_rate(self, yaw: float, heading: float) -> float:
+        return max(-1.5, min(1.5, 2.5 * math.remainder(heading - yaw, 2 * math.pi)))
+
     def _drive(self, goal: tuple[float, float, float | None] | None, x: float, y: float,
                yaw: float) -> None:
         if goal is None:
@@ -343,10 +567,47 @@ class MavlinkEndpoint:
         v = min(speed, 0.8 * dist) * max(0.0, math.cos(err)) ** 2
         self.robot.set_cmd_vel(v, max(-1.5, min(1.5, 2.5 * err)))
 
+    def _drive_velocity(self, target: _Velocity, x: float, y: float, yaw: float) -> None:
+        """GUIDED heading and speed, or turn rate and speed (ArduRover's
+        set_desired_heading_and_speed / set_desired_turn_rate_and_speed)."""
+        speed = max(-self.params["WP_SPEED"], min(self.params["WP_SPEED"], target.speed))
+        if target.yaw_rate is not None:
+            turn = target.yaw_rate
+        elif target.heading is not None:
+            err = math.remainder(target.heading - yaw, 2 * math.pi)
+            turn = self._turn_rate(yaw, target.heading)
+            speed *= max(0.0, math.cos(err)) ** 2  # turn towards it first
+        else:
+            turn = 0.0
+        # The fence: slow down along the heading so the rover stops at the edge.
+        speed *= self.fence.scale(x, y, speed * math.cos(yaw), speed * math.sin(yaw), 0.5)
+        self.robot.set_cmd_vel(speed, turn)
+
+    def _yaw_command(self, yaw: float) -> float:
+        """The yaw rate (world, rad/s) for the current yaw target or rate, if any."""
+        if self._yaw_rate_target is not None:
+            return self._yaw_rate_target
+        if self._yaw_target is not None:
+            return self._turn_rate(yaw, self._yaw_target)
+        return 0.0
+
+    def _fly_velocity(self, quad: Quad, target: _Velocity, x: float, y: float, alt: float,
+                      yaw: float) -> None:
+        vx, vy = self.fence.limit(x, y, target.vx, target.vy, 0.5 * quad.max_accel_mps2)
+        vz = target.vz
+        if vz > 0:  # the fence's ceiling
+            vz = min(vz, math.sqrt(2 * 0.5 * quad.max_accel_mps2
+                                   * max(0.0, self.fence.alt_max_m - alt)))
+        if target.yaw_rate is not None:
+            rate = target.yaw_rate
+        elif target.heading is not None:
+            rate = self._turn_rate(yaw, target.heading)
+        else:
+            rate = 0.0
+        quad.set_velocity(vx, vy, vz, rate)
+
     def _fly(self, quad: Quad, goal: tuple[float, float, float | None] | None, x: float,
-             y: float, alt: float) -> None:
-        if not self.armed:
-            return
+             y: float, alt: float, yaw: float) -> None:
         if self.mode == "LAND" or self._landing:
             quad.set_velocity(0.0, 0.0, -self.params["LAND_SPEED"] / 100.0)
             if quad.landed:
@@ -354,8 +615,9 @@ class MavlinkEndpoint:
                     self._landing = False
                     self.armed = False  # ArduCopter disarms itself after landing
             return
+        rate = self._yaw_command(yaw) if self.mode == "GUIDED" else 0.0
         if goal is None:
-            quad.set_velocity(0.0, 0.0, 0.0)
+            quad.set_velocity(0.0, 0.0, 0.0, rate)
             return
         gx, gy, galt = goal
         if galt is None:  # RTL: at least RTL_ALT_M on the way home
@@ -373,11 +635,12 @@ class MavlinkEndpoint:
             return
         climb = max(-1.0, min(1.0, 1.5 * dz))
         if alt < 0.8 * galt and galt > 0.5 and dist > 1.0:
-            quad.set_velocity(0.0, 0.0, climb)  # climb first: never drag across the floor
+            quad.set_velocity(0.0, 0.0, climb, rate)  # climb first: never drag across the floor
             return
         speed = min(self.params["WPNAV_SPEED"] / 100.0, 1.5 * dist)
         scale = speed / dist if dist > 1e-6 else 0.0
-        quad.set_velocity(dx * scale, dy * scale, climb)
+        vx, vy = self.fence.limit(x, y, dx * scale, dy * scale, 0.5 * quad.max_accel_mps2)
+        quad.set_velocity(vx, vy, climb, rate)
 
     # ---- receiving (reader thread) ------------------------------------------------------
 
@@ -387,11 +650,20 @@ class MavlinkEndpoint:
             # down by a loaded host must not look like a lost link.
             if time.monotonic() >= self._next_beat_s:
                 self._next_beat_s = time.monotonic() + 1.0
-                self._beat()
+                try:
+                    self._beat()
+                except Exception:
+                    self.errors += 1
+                    log.exception("endpoint %s: heartbeat failed", self.namespace)
             try:
                 msg = self.conn.recv_match(blocking=True, timeout=0.05)
             except OSError:
                 self._stop.wait(0.05)  # not bound yet, or the peer went away
+                continue
+            except Exception:  # pymavlink choked on the bytes: drop them, keep reading
+                self.ignored["undecodable input"] += 1
+                log.info("endpoint %s: ignored undecodable input", self.namespace,
+                         exc_info=True)
                 continue
             if msg is None:
                 continue
@@ -410,6 +682,7 @@ class MavlinkEndpoint:
                 with self._lock:
                     handler(msg)
             except Exception:  # a bad message must never end the vehicle
+                self.errors += 1
                 log.exception("endpoint %s: handling %s failed", self.namespace, kind)
 
     def _ignore(self, reason: str) -> None:
@@ -421,6 +694,8 @@ class MavlinkEndpoint:
             log.debug("endpoint %s: mode %s -> %s", self.namespace, self.mode, name)
         self.mode = name
         self._landing = False
+        self._velocity = None
+        self._yaw_target = self._yaw_rate_target = None
         if name == "GUIDED":
             x, y, alt, *_ = self._where()
             self._target = (x, y, alt if self.kind == COPTER else None)
@@ -430,74 +705,305 @@ class MavlinkEndpoint:
             return len(self._mission) > 1  # ArduPilot refuses AUTO without a mission
         return True
 
+    def _set_mode_common(self, base_mode: float, custom_mode: float) -> int:
+        """ArduPilot's _set_mode_common: the custom mode, when the base mode's
+        CUSTOM_MODE_ENABLED flag is set. A malformed number is DENIED (invalid parameter),
+        a mode the vehicle lacks or cannot enter now FAILED, as ArduPilot answers."""
+        if not (_whole(base_mode, 0, 255) and _whole(custom_mode, 0, _MAX_UINT32)):
+            self._ignore(f"mode change with base mode {base_mode}, custom mode {custom_mode}: "
+                         f"not integers in range")
+            return _DENIED
+        if not int(base_mode) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            self._ignore(f"mode change without MAV_MODE_FLAG_CUSTOM_MODE_ENABLED "
+                         f"(base mode {int(base_mode)})")
+            return _DENIED
+        name = mode_name(self.kind, int(custom_mode))
+        if name not in self.modes or not self._mode_allowed(name):
+            self._ignore(f"mode {name} for a {self.kind}" + (
+                "" if name in self.modes else f" (valid: {', '.join(sorted(self.modes))})"))
+            return _FAILED
+        self._set_mode(name)
+        return _ACCEPTED
+
+    # -- commands (COMMAND_LONG and COMMAND_INT: always answered with a COMMAND_ACK)
+
     def _on_command_long(self, msg: Any) -> None:
-        cmd = msg.command
+        params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6,
+                  msg.param7)
+        self._answer(msg, msg.command, params, frame=None)
+
+    def _on_command_int(self, msg: Any) -> None:
+        params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.x / 1e7, msg.y / 1e7,
+                  msg.z)
+        self._answer(msg, msg.command, params, frame=msg.frame, lat_lon_e7=(msg.x, msg.y))
+
+    def _answer(self, msg: Any, command: int, params: tuple[float, ...], *,
+                frame: int | None, lat_lon_e7: tuple[int, int] | None = None) -> None:
+        try:
+            result = self._command(command, params, frame, lat_lon_e7)
+        except Exception:  # answered even then: a ground station waits for it
+            self.errors += 1
+            log.exception("endpoint %s: command %d failed", self.namespace, command)
+            result = _FAILED
+        self._ack(command, result, msg)
+
+    def _command(self, cmd: int, p: tuple[float, ...], frame: int | None,
+                 lat_lon_e7: tuple[int, int] | None) -> int:
         if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-            if msg.param1 >= 0.5:
-                self.armed = True
-            elif self.kind == COPTER and isinstance(self.robot, Quad) \
-                    and not self.robot.landed and msg.param2 != 21196:
-                self._ack(cmd, mavlink.MAV_RESULT_DENIED)  # not in the air (unless forced)
-                return
-            else:
-                self.armed = False
-            self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED)
-        elif cmd == mavlink.MAV_CMD_DO_SET_MODE:
-            number = int(msg.param2)
-            name = mode_name(self.kind, number)
-            if name not in self.modes or not self._mode_allowed(name):
-                self._ack(cmd, mavlink.MAV_RESULT_DENIED
-                          if name in self.modes else mavlink.MAV_RESULT_UNSUPPORTED)
-                return
-            self._set_mode(name)
-            self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED)
-        elif cmd == mavlink.MAV_CMD_NAV_TAKEOFF:
-            if self.kind != COPTER:
-                self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED)
-            elif not self.armed or self.mode != "GUIDED":
-                self._ack(cmd, mavlink.MAV_RESULT_DENIED)
-            else:
-                x, y, *_ = self._where()
-                self._target = (x, y, float(msg.param7))
-                self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED)
-        elif cmd == mavlink.MAV_CMD_REQUEST_MESSAGE \
-                and int(msg.param1) == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
-            self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED)
-            self._send_origin()
-        else:
-            self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED)
+            return self._arm_disarm(p[0], p[1])
+        if cmd == mavlink.MAV_CMD_DO_SET_MODE:
+            return self._set_mode_common(p[0], p[1])
+        if cmd == mavlink.MAV_CMD_NAV_TAKEOFF:
+            return self._takeoff(p[6], frame)
+        if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            if not _whole(p[0], 0, 2**24 - 1):
+                self._ignore(f"REQUEST_MESSAGE of message id {p[0]}")
+                return _DENIED
+            if int(p[0]) == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+                self._send_origin()
+                return _ACCEPTED
+            return _UNSUPPORTED
+        self._ignore(f"command {cmd}: not supported")
+        return _UNSUPPORTED
+
+    def _arm_disarm(self, action: float, force: float) -> int:
+        """ArduPilot: param1 exactly 1 arms, exactly 0 disarms, anything else is
+        UNSUPPORTED; a flying Copter disarms only when forced (param2 = 21196)."""
+        if action == 1.0:
+            self.armed = True
+            return _ACCEPTED
+        if action != 0.0:  # NaN, 0.5, 2 …
+            self._ignore(f"ARM_DISARM with param1 = {action} (1 arms, 0 disarms)")
+            return _UNSUPPORTED
+        if not self.armed:
+            return _ACCEPTED
+        if self._airborne() and force != _FORCE_DISARM:
+            self._ignore("disarm in the air without force (param2 = 21196)")
+            return _FAILED
+        self.armed = False
+        self._velocity = None
+        return _ACCEPTED
+
+    def _takeoff(self, alt_m: float, frame: int | None) -> int:
+        """ArduCopter's user takeoff: armed, in GUIDED, on the ground, upwards; the
+        altitude must be a number under the fence's ceiling."""
+        if self.kind != COPTER:
+            return _UNSUPPORTED
+        if frame is not None and frame not in _TAKEOFF_FRAMES:
+            self._ignore(f"NAV_TAKEOFF in frame {frame} (GLOBAL_RELATIVE_ALT only)")
+            return _DENIED
+        if not math.isfinite(alt_m) or alt_m > self.fence.alt_max_m:
+            self._ignore(f"NAV_TAKEOFF to {alt_m} m (0 < altitude ≤ "
+                         f"{self.fence.alt_max_m:g} m)")
+            return _DENIED
+        if not self.armed or self.mode != "GUIDED" or self._airborne() or alt_m <= 0:
+            self._ignore(f"NAV_TAKEOFF to {alt_m} m: needs armed, GUIDED, on the ground, "
+                         f"upwards (armed={self.armed}, mode {self.mode}, "
+                         f"airborne={self._airborne()})")
+            return _FAILED
+        x, y, *_ = self._where()
+        self._velocity = None
+        self._target = (x, y, float(alt_m))
+        return _ACCEPTED
 
     def _on_set_mode(self, msg: Any) -> None:
-        name = mode_name(self.kind, msg.custom_mode)
-        if name in self.modes and self._mode_allowed(name):
-            self._set_mode(name)
+        # ArduPilot answers this (deprecated) message with a COMMAND_ACK whose command is
+        # the message id, 11.
+        result = self._set_mode_common(float(msg.base_mode), float(msg.custom_mode))
+        self._ack(mavlink.MAVLINK_MSG_ID_SET_MODE, result, msg)
+
+    # -- GUIDED targets
+
+    def _guided(self, what: str) -> bool:
+        if self.mode != "GUIDED" or not self.armed:
+            self._ignore(f"{what} outside GUIDED or disarmed")
+            return False
+        return True
+
+    def _refuse_target(self, what: str) -> None:
+        """ArduPilot's "input is not valid so stop": a Copter holds where it is; a Rover
+        keeps its previous target."""
+        self._ignore(what)
+        if self.kind == COPTER:
+            self._hold()
 
     def _on_set_position_target_local_ned(self, msg: Any) -> None:
-        if self.mode != "GUIDED" or not self.armed:
-            self._ignore("position target outside GUIDED or disarmed")
+        if not self._guided("position target"):
             return
-        alt = -msg.z if self.kind == COPTER else None
-        self._target = (msg.y, msg.x, alt)
+        if msg.coordinate_frame not in _LOCAL_FRAMES:
+            self._refuse_target(f"SET_POSITION_TARGET_LOCAL_NED in frame "
+                                f"{msg.coordinate_frame} (LOCAL_NED, LOCAL_OFFSET_NED, "
+                                f"BODY_NED, BODY_OFFSET_NED)")
+            return
+        x, y, alt, yaw, *_ = self._where()
+        ned_yaw = math.pi / 2 - yaw
+        body = msg.coordinate_frame in _BODY_FRAMES
+
+        def to_world(north: float, east: float) -> tuple[float, float]:
+            if body:  # forward, right → north, east
+                c, s = math.cos(ned_yaw), math.sin(ned_yaw)
+                north, east = north * c - east * s, north * s + east * c
+            return east, north
+
+        position = None
+        if not msg.type_mask & _POS_IGNORE:
+            if not _finite(msg.x, msg.y, msg.z):
+                self._refuse_target(f"position target ({msg.x}, {msg.y}, {msg.z}): not finite")
+                return
+            px, py = to_world(msg.x, msg.y)
+            up = -msg.z
+            if msg.coordinate_frame != mavlink.MAV_FRAME_LOCAL_NED:  # offsets from here
+                px, py, up = px + x, py + y, up + alt
+            position = (px, py, up)
+        self._guided_target(msg, position, to_world, yaw, body)
 
     def _on_set_position_target_global_int(self, msg: Any) -> None:
-        if self.mode != "GUIDED" or not self.armed:
-            self._ignore("position target outside GUIDED or disarmed")
+        if not self._guided("position target"):
             return
-        x, y = self._world(msg.lat_int / 1e7, msg.lon_int / 1e7)
-        self._target = (x, y, msg.alt if self.kind == COPTER else None)
+        x, y, alt, yaw, *_ = self._where()
+        position = None
+        if not msg.type_mask & _POS_IGNORE:
+            if not _valid_lat_lon(msg.lat_int, msg.lon_int):
+                self._refuse_target(f"position target at {msg.lat_int / 1e7}°, "
+                                    f"{msg.lon_int / 1e7}°: not a latitude and longitude")
+                return
+            if msg.coordinate_frame not in _GLOBAL_TARGET_FRAMES:
+                self._refuse_target(f"SET_POSITION_TARGET_GLOBAL_INT in frame "
+                                    f"{msg.coordinate_frame} (GLOBAL, GLOBAL_RELATIVE_ALT, "
+                                    f"GLOBAL_TERRAIN_ALT and their _INT forms)")
+                return
+            if not math.isfinite(msg.alt):
+                self._refuse_target(f"position target at altitude {msg.alt}: not finite")
+                return
+            px, py = self._world(msg.lat_int / 1e7, msg.lon_int / 1e7)
+            position = (px, py, float(msg.alt))  # the origin is at 0 m: every frame agrees
+
+        def to_world(north: float, east: float) -> tuple[float, float]:
+            return east, north
+
+        self._guided_target(msg, position, to_world, yaw, False)
+
+    def _guided_target(self, msg: Any, position: tuple[float, float, float] | None,
+                       to_world: Callable[[float, float], tuple[float, float]], yaw: float,
+                       body: bool) -> None:
+        """What ArduPilot does with a SET_POSITION_TARGET_* once it is decoded: the
+        type_mask picks position, velocity, both, or nothing (Copter: stop)."""
+        mask = msg.type_mask
+        kind = msg.get_type()
+        vel_ignore = bool(mask & _VEL_IGNORE)
+        acc_ignore = bool(mask & _ACC_IGNORE)
+        yaw_ignore = bool(mask & _YAW_IGNORE)
+        rate_ignore = bool(mask & _YAW_RATE_IGNORE)
+        if mask & _FORCE_SET and not acc_ignore:
+            self._refuse_target(f"{kind}: force targets are not supported")
+            return
+        heading = None
+        if not yaw_ignore:
+            if not math.isfinite(msg.yaw):
+                self._refuse_target(f"{kind}: yaw {msg.yaw} is not finite")
+                return
+            # NED yaw (0 north, clockwise) → world yaw (0 east, counter-clockwise)
+            heading = (yaw + -msg.yaw) if body else math.pi / 2 - msg.yaw
+        yaw_rate = None
+        if not rate_ignore:
+            if not math.isfinite(msg.yaw_rate):
+                self._refuse_target(f"{kind}: yaw rate {msg.yaw_rate} is not finite")
+                return
+            yaw_rate = -float(msg.yaw_rate)
+        velocity = None
+        if not vel_ignore:
+            if not _finite(msg.vx, msg.vy, msg.vz):
+                self._refuse_target(f"{kind}: velocity ({msg.vx}, {msg.vy}, {msg.vz}) is not "
+                                    f"finite")
+                return
+            vx, vy = to_world(msg.vx, msg.vy)
+            velocity = (vx, vy, -float(msg.vz))
+        if position is not None:
+            px, py, up = position
+            if not self.fence.contains(px, py) or (self.kind == COPTER and not
+                                                   0.0 <= up <= self.fence.alt_max_m):
+                # ArduPilot refuses a destination outside its fence and keeps the old one.
+                self._ignore(f"{kind}: target ({px:.2f}, {py:.2f}, {up:.2f}) outside the "
+                             f"fence x {self.fence.x_min:g}–{self.fence.x_max:g}, "
+                             f"y {self.fence.y_min:g}–{self.fence.y_max:g}, "
+                             f"altitude 0–{self.fence.alt_max_m:g} m")
+                return
+        if self.kind == COPTER:
+            self._copter_target(kind, position, velocity, heading, yaw_rate, acc_ignore)
+        else:
+            self._rover_target(kind, msg, position, velocity, heading, yaw_rate, yaw,
+                               acc_ignore)
+
+    def _copter_target(self, kind: str, position: tuple[float, float, float] | None,
+                       velocity: tuple[float, float, float] | None, heading: float | None,
+                       yaw_rate: float | None, acc_ignore: bool) -> None:
+        if position is not None:  # position, or position and velocity (as a position)
+            self._velocity = None
+            self._target = position
+            self._yaw_target, self._yaw_rate_target = heading, yaw_rate
+        elif velocity is not None:
+            self._velocity = _Velocity(*velocity, 0.0, heading, yaw_rate,
+                                       self.sim.time_s + GUIDED_TIMEOUT_S)
+        else:  # acceleration only (not simulated) or nothing: ArduPilot stops
+            self._refuse_target(f"{kind}: neither position nor velocity"
+                                + ("" if acc_ignore else " (acceleration is not simulated)"))
+
+    def _rover_target(self, kind: str, msg: Any, position: tuple[float, float, float] | None,
+                      velocity: tuple[float, float, float] | None, heading: float | None,
+                      yaw_rate: float | None, yaw: float, acc_ignore: bool) -> None:
+        until = self.sim.time_s + GUIDED_TIMEOUT_S
+        if position is not None and velocity is None and heading is None \
+                and yaw_rate is None and acc_ignore:
+            self._velocity = None
+            self._target = (position[0], position[1], None)
+            return
+        if position is not None or not acc_ignore:
+            self._ignore(f"{kind}: this combination of type_mask fields is not used by a "
+                         f"rover (type_mask {msg.type_mask:#06x})")
+            return
+        if velocity is not None:
+            vx, vy, _ = velocity
+            speed = math.hypot(vx, vy)
+            direction = math.atan2(vy, vx) if speed > 0 else yaw
+            if heading is not None or yaw_rate is not None:
+                # ArduRover: the sign of the velocity's x says forward or reverse
+                if msg.vx < 0:
+                    speed = -speed
+            self._velocity = _Velocity(0.0, 0.0, 0.0, speed,
+                                       heading if heading is not None else
+                                       (None if yaw_rate is not None else direction),
+                                       yaw_rate, until)
+        elif heading is not None:
+            self._velocity = _Velocity(0.0, 0.0, 0.0, 0.0, heading, None, until)
+        elif yaw_rate is not None:
+            self._velocity = _Velocity(0.0, 0.0, 0.0, 0.0, None, yaw_rate, until)
+        else:
+            self._ignore(f"{kind}: nothing to do (type_mask {msg.type_mask:#06x})")
 
     # -- mission protocol
 
+    def _mission_ack(self, peer: tuple[int, int], result: int) -> None:
+        self._send("MISSION_ACK", lambda mav: mav.mission_ack_send(*peer, result))
+
     def _on_mission_count(self, msg: Any) -> None:
+        peer = (msg.get_srcSystem(), msg.get_srcComponent())
+        if getattr(msg, "mission_type", 0) != mavlink.MAV_MISSION_TYPE_MISSION:
+            self._ignore(f"MISSION_COUNT of mission type {msg.mission_type} (fences and "
+                         f"rally points are not supported)")
+            self._mission_ack(peer, mavlink.MAV_MISSION_UNSUPPORTED)
+            return
         count = msg.count
+        if count > MAX_MISSION_ITEMS:
+            self._ignore(f"MISSION_COUNT {count} > {MAX_MISSION_ITEMS}")
+            self._mission_ack(peer, mavlink.MAV_MISSION_NO_SPACE)
+            return
         if count == 0:
             self._mission = []
             self.current_seq = 0
             self._upload = None
-            self._send("MISSION_ACK", lambda mav: mav.mission_ack_send(
-                msg.get_srcSystem(), msg.get_srcComponent(), mavlink.MAV_MISSION_ACCEPTED))
+            self._mission_ack(peer, mavlink.MAV_MISSION_ACCEPTED)
             return
-        self._upload = _Upload(count, [])
+        self._upload = _Upload(count, [], peer)
         self._request(self._upload)
 
     def _request(self, upload: _Upload) -> None:
@@ -505,7 +1011,36 @@ class MavlinkEndpoint:
         upload.asks += 1
         seq = upload.expected
         self._send("MISSION_REQUEST_INT", lambda mav: mav.mission_request_int_send(
-            mavlink_gcs[0], mavlink_gcs[1], seq))
+            *upload.peer, seq))
+
+    def _check_item(self, msg: Any) -> int | None:
+        """The MAV_MISSION_RESULT that refuses item ``msg``, or None when it is good."""
+        if msg.seq == 0:
+            return None  # home: ArduPilot replaces it
+        if msg.frame not in _SUPPORTED_FRAMES:
+            return int(mavlink.MAV_MISSION_UNSUPPORTED_FRAME)
+        if msg.command not in _SUPPORTED_ITEMS:
+            return int(mavlink.MAV_MISSION_UNSUPPORTED)
+        for index, value in enumerate((msg.param1, msg.param2, msg.param3, msg.param4)):
+            if math.isinf(value):  # NaN is MAVLink's "unset"; infinity is no value
+                return int(mavlink.MAV_MISSION_INVALID_PARAM1) + index
+        if not math.isfinite(msg.z) or (self.kind == COPTER and not
+                                        0.0 <= msg.z <= self.fence.alt_max_m):
+            return int(mavlink.MAV_MISSION_INVALID_PARAM7)
+        if msg.command == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            return None
+        if not -900_000_000 <= msg.x <= 900_000_000:
+            return int(mavlink.MAV_MISSION_INVALID_PARAM5_X)
+        if not -1_800_000_000 <= msg.y <= 1_800_000_000:
+            return int(mavlink.MAV_MISSION_INVALID_PARAM6_Y)
+        if msg.x == 0 and msg.y == 0 and msg.command in _HERE_ITEMS:
+            return None
+        x, y = self._world(msg.x / 1e7, msg.y / 1e7)
+        if not self.fence.y_min <= y <= self.fence.y_max:
+            return int(mavlink.MAV_MISSION_INVALID_PARAM5_X)
+        if not self.fence.x_min <= x <= self.fence.x_max:
+            return int(mavlink.MAV_MISSION_INVALID_PARAM6_Y)
+        return None
 
     def _on_mission_item_int(self, msg: Any) -> None:
         upload = self._upload
@@ -519,30 +1054,39 @@ class MavlinkEndpoint:
                 self._ignore(f"MISSION_ITEM_INT {msg.seq} out of order (expected "
                              f"{upload.expected})")
             return
-        result = None
-        if msg.frame not in _SUPPORTED_FRAMES and msg.seq != 0:
-            result = mavlink.MAV_MISSION_UNSUPPORTED_FRAME
-        elif msg.command not in _SUPPORTED_ITEMS:
-            result = mavlink.MAV_MISSION_UNSUPPORTED
+        result = self._check_item(msg)
         if result is not None:
+            self._ignore(f"mission item {msg.seq} (command {msg.command}, frame {msg.frame}, "
+                         f"x {msg.x}, y {msg.y}, z {msg.z}): "
+                         f"{mavlink.enums['MAV_MISSION_RESULT'][result].name}")
             self._upload = None
-            self._send("MISSION_ACK", lambda mav: mav.mission_ack_send(
-                msg.get_srcSystem(), msg.get_srcComponent(), result))
+            self._mission_ack(upload.peer, result)
             return
-        x, y = self._world(msg.x / 1e7, msg.y / 1e7)
-        upload.items.append(_Item(msg.seq, msg.command, x, y, float(msg.z)))
+        here = msg.x == 0 and msg.y == 0 and msg.command in _HERE_ITEMS
+        if msg.command == mavlink.MAV_CMD_NAV_TAKEOFF or here or msg.seq == 0:
+            x, y = None, None  # straight up / where the vehicle is when the item starts
+        else:
+            x, y = self._world(msg.x / 1e7, msg.y / 1e7)
+        upload.items.append(_Item(
+            msg.seq, msg.command, x, y, float(msg.z), msg.frame,
+            (msg.param1, msg.param2, msg.param3, msg.param4), msg.x, msg.y, msg.autocontinue))
         upload.expected += 1
         upload.asks = 0
         if upload.expected < upload.count:
             self._request(upload)
             return
         self._mission = upload.items
-        self._mission[0] = _Item(0, mavlink.MAV_CMD_NAV_WAYPOINT, *self.home, 0.0)
+        self._mission[0] = self._home_item()
         self.current_seq = 1 if len(self._mission) > 1 else 0
         self.reached = []
         self._upload = None
-        self._send("MISSION_ACK", lambda mav: mav.mission_ack_send(
-            msg.get_srcSystem(), msg.get_srcComponent(), mavlink.MAV_MISSION_ACCEPTED))
+        self._mission_ack(upload.peer, mavlink.MAV_MISSION_ACCEPTED)
+
+    def _home_item(self) -> _Item:
+        lat, lon = self.origin.to_global(self.home[1], self.home[0])
+        return _Item(0, mavlink.MAV_CMD_NAV_WAYPOINT, *self.home, 0.0,
+                     mavlink.MAV_FRAME_GLOBAL_INT, (0.0, 0.0, 0.0, 0.0), round(lat * 1e7),
+                     round(lon * 1e7))
 
     def _on_mission_set_current(self, msg: Any) -> None:
         if 0 <= msg.seq < len(self._mission):
@@ -576,19 +1120,27 @@ class MavlinkEndpoint:
 
     def _on_param_set(self, msg: Any) -> None:
         name = param_name(msg)
-        if name not in self.params or not math.isfinite(msg.param_value):
-            self._ignore(f"PARAM_SET of unknown {name!r} or a non-finite value")
+        if name not in self.params:
+            self._ignore(f"PARAM_SET of unknown {name!r}")
             return
-        self.params[name] = float(msg.param_value)
+        low, high = PARAM_RANGES[name]
+        value = msg.param_value
+        if not (math.isfinite(value) and low <= value <= high):
+            self._ignore(f"PARAM_SET {name} = {value}: outside {low:g}–{high:g}")
+            self._param_value(name)  # the unchanged value: the set did not take
+            return
+        self.params[name] = float(value)
         self._param_value(name)
 
     # ---- state for tests and checks ------------------------------------------------------
 
     @property
     def mission(self) -> list[tuple[float, float, float]]:
-        """The stored mission as world (x, y, alt) per item (item 0 is home)."""
+        """The stored mission as world (x, y, alt) per item (item 0 is home; an item that
+        means "where the vehicle is" has x, y NaN until it starts)."""
         with self._lock:
-            return [(i.x_m, i.y_m, i.alt_m) for i in self._mission]
+            return [(math.nan if i.x_m is None else i.x_m,
+                     math.nan if i.y_m is None else i.y_m, i.alt_m) for i in self._mission]
 
     # ---- lifecycle ---------------------------------------------------------------------
 
