@@ -158,6 +158,23 @@ _DENIED: int = mavlink.MAV_RESULT_DENIED  # MAVLink: supported, but a parameter 
 _FAILED: int = mavlink.MAV_RESULT_FAILED  # valid, but it cannot be done now
 _UNSUPPORTED: int = mavlink.MAV_RESULT_UNSUPPORTED
 _FORCE_DISARM = 21196.0
+FIRMWARE_VERSION = (4, 5, 0)
+"""The ArduPilot version the endpoint claims in AUTOPILOT_VERSION (the behaviour it copies)."""
+_CAPABILITIES = (mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+                 | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+                 | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+                 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+                 | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2)
+# HEARTBEAT base_mode as ArduPilot 4.x computes it (GCS_MAVLINK_Copter/_Rover::base_mode):
+# Copter: always STABILIZE_ENABLED and MANUAL_INPUT_ENABLED, GUIDED_ENABLED in the modes
+# that navigate; Rover: MANUAL_INPUT_ENABLED in the manual modes, GUIDED_ENABLED in the
+# autopilot modes. Both: CUSTOM_MODE_ENABLED, and SAFETY_ARMED when armed.
+_COPTER_GUIDED_MODES = {"AUTO", "RTL", "LOITER", "AVOID_ADSB", "FOLLOW", "GUIDED", "CIRCLE",
+                        "POSHOLD", "BRAKE", "SMART_RTL"}
+_ROVER_MANUAL_MODES = {"MANUAL", "ACRO", "STEERING"}
+_ROVER_GUIDED_MODES = {"AUTO", "GUIDED", "RTL", "SMART_RTL", "LOITER", "FOLLOW", "SIMPLE",
+                       "DOCK", "CIRCLE"}
 _MAX_UINT32 = 2**32 - 1
 
 PARAM_RANGES: dict[str, tuple[float, float]] = {
@@ -168,7 +185,7 @@ PARAM_RANGES: dict[str, tuple[float, float]] = {
 }
 """The values PARAM_SET accepts (ArduPilot's documented ranges, in its units; a zero speed or
 radius, which would freeze the vehicle, is not allowed). Others are refused: the endpoint
-answers with the unchanged PARAM_VALUE."""
+answers with the unchanged PARAM_VALUE and a STATUSTEXT."""
 
 
 def _finite(*values: float) -> bool:
@@ -332,12 +349,21 @@ class MavlinkEndpoint:
         self._upload: _Upload | None = None
         self._landing = False
         self._next_beat_s = 0.0
+        self._reason: str | None = None
         self._stop = threading.Event()
         self.conn = mavutil.mavlink_connection(url, source_system=system_id,
                                                source_component=1)
         self._thread = threading.Thread(target=self._read, name=f"beehave:mav-endpoint:"
                                         f"{namespace}", daemon=True)
         self._thread.start()
+        #: REQUEST_MESSAGE: message id → how to send it now.
+        self._on_request: dict[int, Callable[[], None]] = {
+            mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: self._send_origin,
+            mavlink.MAVLINK_MSG_ID_HOME_POSITION: self._send_home,
+            mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._send_version,
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._beat,
+            mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: self._send_mission_current,
+        }
         self._removers = [sim.on_step(self._control, rate_hz=control_rate_hz),
                           sim.on_step(self._stream, rate_hz=stream_rate_hz)]
 
@@ -409,6 +435,13 @@ class MavlinkEndpoint:
         self._send("SYS_STATUS", lambda mav: mav.sys_status_send(
             0, 0, 0, 0, round(battery.voltage_v * 1000), round(-battery.current_a * 100),
             round(battery.percentage), 0, 0, 0, 0, 0, 0))
+        ground = math.hypot(vx, vy)
+        cog = round(math.degrees(math.atan2(vx, vy)) % 360 * 100) if ground > 0.05 else 65535
+        self._send("GPS_RAW_INT", lambda mav: mav.gps_raw_int_send(
+            int(time_s * 1e6), mavlink.GPS_FIX_TYPE_3D_FIX, round(lat * 1e7), round(lon * 1e7),
+            round(alt * 1000), 121, 200, round(ground * 100), cog, 10))
+        self._send("VFR_HUD", lambda mav: mav.vfr_hud_send(
+            ground, ground, round(hdg / 100) % 360, self._throttle(), alt, vz))
         with self._lock:
             upload = self._upload
             if upload is not None and time.monotonic() - upload.asked_at > self.rerequest_s:
@@ -419,19 +452,87 @@ class MavlinkEndpoint:
                 else:
                     self._request(upload)
 
+    def _base_mode(self) -> int:
+        mode = self.mode
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if self.kind == COPTER:
+            base |= (mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
+                     | mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED)
+            if mode in _COPTER_GUIDED_MODES:
+                base |= mavlink.MAV_MODE_FLAG_GUIDED_ENABLED
+        else:
+            if mode in _ROVER_MANUAL_MODES:
+                base |= mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+            if mode in _ROVER_GUIDED_MODES:
+                base |= mavlink.MAV_MODE_FLAG_GUIDED_ENABLED
+        if self.armed:
+            base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        return int(base)
+
+    def _system_status(self) -> int:
+        """ArduCopter: STANDBY while landed, ACTIVE in the air; ArduRover: ACTIVE while
+        armed. CRITICAL below BATT_LOW_PCT (a battery failsafe)."""
+        if self.robot.battery().percentage < self.params["BATT_LOW_PCT"]:
+            return int(mavlink.MAV_STATE_CRITICAL)
+        active = self._airborne() if self.kind == COPTER else self.armed
+        return int(mavlink.MAV_STATE_ACTIVE if active else mavlink.MAV_STATE_STANDBY)
+
+    def _throttle(self) -> int:
+        if not self.armed:
+            return 0
+        if isinstance(self.robot, Quad):
+            return 50 if self._airborne() else 10
+        return min(100, round(100 * abs(self.robot.cmd_vel()[0])
+                              / max(1e-6, self.robot.limits.max_linear_mps)))
+
     def _beat(self) -> None:
-        percentage = self.robot.battery().percentage
-        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (
-            mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
-        state = mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY
-        number = self.modes[self.mode]
+        battery = self.robot.battery()
+        base, number, state = self._base_mode(), self.modes[self.mode], self._system_status()
         self._send("HEARTBEAT", lambda mav: mav.heartbeat_send(
             self.mav_type, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base, number, state))
+        # One pack voltage in cell 0, the other cells "not present" (UINT16_MAX), as
+        # ArduPilot does when it does not know the cells.
+        voltages = [min(65534, round(battery.voltage_v * 1000))] + [65535] * 9
         self._send("BATTERY_STATUS", lambda mav: mav.battery_status_send(
             0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO, 32767,
-            [65535] * 10, -1, -1, -1, round(percentage)))
-        self._send("MISSION_CURRENT", lambda mav: mav.mission_current_send(self.current_seq))
+            voltages, round(-battery.current_a * 100), -1, -1, round(battery.percentage)))
+        self._send_mission_current()
         self._send_origin()
+        self._send_home()
+
+    def _send_mission_current(self) -> None:
+        """MISSION_CURRENT with its total and state, the one builder of it (ArduPilot sends
+        one stream of it)."""
+        seq, total = self.current_seq, len(self._mission)
+        if total <= 1:
+            state = mavlink.MISSION_STATE_NO_MISSION
+        elif seq >= total:
+            state = mavlink.MISSION_STATE_COMPLETE
+        elif self.mode == "AUTO":
+            state = mavlink.MISSION_STATE_ACTIVE
+        else:
+            state = mavlink.MISSION_STATE_NOT_STARTED if not self.reached \
+                else mavlink.MISSION_STATE_PAUSED
+        shown = min(seq, max(0, total - 1))  # ArduPilot shows the last item when complete
+        self._send("MISSION_CURRENT", lambda mav: mav.mission_current_send(
+            shown, total, state))
+
+    def _send_home(self) -> None:
+        lat, lon = self.origin.to_global(self.home[1], self.home[0])
+        self._send("HOME_POSITION", lambda mav: mav.home_position_send(
+            round(lat * 1e7), round(lon * 1e7), 0, self.home[1], self.home[0], 0.0,
+            [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0))
+
+    def _send_version(self) -> None:
+        major, minor, patch = FIRMWARE_VERSION
+        version = major << 24 | minor << 16 | patch << 8 | mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL
+        self._send("AUTOPILOT_VERSION", lambda mav: mav.autopilot_version_send(
+            _CAPABILITIES, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
+            self.system_id))
+
+    def _statustext(self, severity: int, text: str) -> None:
+        data = text.encode("utf-8", errors="replace")[:50]
+        self._send("STATUSTEXT", lambda mav: mav.statustext_send(severity, data))
 
     def _send_origin(self) -> None:
         self._send("GPS_GLOBAL_ORIGIN", lambda mav: mav.gps_global_origin_send(
@@ -530,14 +631,8 @@ class MavlinkEndpoint:
             seq = self.current_seq
             self.reached.append(seq)
             self._send("MISSION_ITEM_REACHED", lambda mav: mav.mission_item_reached_send(seq))
-            if seq + 1 < len(self._mission):
-                self.current_seq = seq + 1
-            self._send("MISSION_CURRENT", lambda mav: mav.mission_current_send(
-                self.current_seq, len(self._mission),
-                mavlink.MISSION_STATE_COMPLETE if seq + 1 >= len(self._mission)
-                else mavlink.MISSION_STATE_ACTIVE))
-            if seq + 1 >= len(self._mission):
-                self.current_seq = len(self._mission)  # done: nothing left to fly
+            self.current_seq = seq + 1  # past the end: done, nothing left to fly
+            self._send_mission_current()
         elif self.mode in ("RTL", "SMART_RTL"):
             if self.kind == COPTER:
                 self._set_mode("LAND")
@@ -687,7 +782,14 @@ class MavlinkEndpoint:
 
     def _ignore(self, reason: str) -> None:
         self.ignored[reason] += 1
+        self._reason = reason
         log.info("endpoint %s: ignored %s", self.namespace, reason)
+
+    def _tell(self, reason: str | None) -> None:
+        """A refusal, told to the ground station as a STATUSTEXT (ArduPilot explains its
+        refusals the same way: "Arm: …", "Mode change failed", "Param write denied")."""
+        if reason:
+            self._statustext(mavlink.MAV_SEVERITY_WARNING, reason)
 
     def _set_mode(self, name: str) -> None:
         if name != self.mode:
@@ -739,6 +841,7 @@ class MavlinkEndpoint:
 
     def _answer(self, msg: Any, command: int, params: tuple[float, ...], *,
                 frame: int | None, lat_lon_e7: tuple[int, int] | None = None) -> None:
+        self._reason = None
         try:
             result = self._command(command, params, frame, lat_lon_e7)
         except Exception:  # answered even then: a ground station waits for it
@@ -746,6 +849,8 @@ class MavlinkEndpoint:
             log.exception("endpoint %s: command %d failed", self.namespace, command)
             result = _FAILED
         self._ack(command, result, msg)
+        if result in (_DENIED, _FAILED):
+            self._tell(self._reason)
 
     def _command(self, cmd: int, p: tuple[float, ...], frame: int | None,
                  lat_lon_e7: tuple[int, int] | None) -> int:
@@ -759,10 +864,32 @@ class MavlinkEndpoint:
             if not _whole(p[0], 0, 2**24 - 1):
                 self._ignore(f"REQUEST_MESSAGE of message id {p[0]}")
                 return _DENIED
-            if int(p[0]) == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
-                self._send_origin()
+            send = self._on_request.get(int(p[0]))
+            if send is None:
+                self._ignore(f"REQUEST_MESSAGE of message id {int(p[0])}: not sent by "
+                             f"this vehicle")
+                return _UNSUPPORTED
+            send()
+            return _ACCEPTED
+        if cmd == mavlink.MAV_CMD_GET_HOME_POSITION:
+            self._send_home()
+            return _ACCEPTED
+        if cmd == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            if p[0] != 1.0:  # "1: request autopilot version"
                 return _ACCEPTED
-            return _UNSUPPORTED
+            self._send_version()
+            return _ACCEPTED
+        if cmd == mavlink.MAV_CMD_MISSION_START:
+            # ArduPilot: switch to AUTO and run the mission from its current item;
+            # param1/param2 (first/last item) are not honoured by ArduPilot either.
+            return self._set_mode_common(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                                         self.modes["AUTO"])
+        if cmd == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            return self._set_mode_common(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                                         self.modes["RTL"])
+        if cmd == mavlink.MAV_CMD_NAV_LAND and self.kind == COPTER:
+            return self._set_mode_common(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                                         self.modes["LAND"])
         self._ignore(f"command {cmd}: not supported")
         return _UNSUPPORTED
 
@@ -809,8 +936,11 @@ class MavlinkEndpoint:
     def _on_set_mode(self, msg: Any) -> None:
         # ArduPilot answers this (deprecated) message with a COMMAND_ACK whose command is
         # the message id, 11.
+        self._reason = None
         result = self._set_mode_common(float(msg.base_mode), float(msg.custom_mode))
         self._ack(mavlink.MAVLINK_MSG_ID_SET_MODE, result, msg)
+        if result != _ACCEPTED:
+            self._tell(self._reason)
 
     # -- GUIDED targets
 
@@ -982,8 +1112,8 @@ class MavlinkEndpoint:
 
     # -- mission protocol
 
-    def _mission_ack(self, peer: tuple[int, int], result: int) -> None:
-        self._send("MISSION_ACK", lambda mav: mav.mission_ack_send(*peer, result))
+    def _mission_ack(self, peer: tuple[int, int], result: int, kind: int = 0) -> None:
+        self._send("MISSION_ACK", lambda mav: mav.mission_ack_send(*peer, result, kind))
 
     def _on_mission_count(self, msg: Any) -> None:
         peer = (msg.get_srcSystem(), msg.get_srcComponent())
@@ -1061,6 +1191,8 @@ class MavlinkEndpoint:
                          f"{mavlink.enums['MAV_MISSION_RESULT'][result].name}")
             self._upload = None
             self._mission_ack(upload.peer, result)
+            self._tell(f"Mission item {msg.seq} refused: "
+                       f"{mavlink.enums['MAV_MISSION_RESULT'][result].name[12:]}")
             return
         here = msg.x == 0 and msg.y == 0 and msg.command in _HERE_ITEMS
         if msg.command == mavlink.MAV_CMD_NAV_TAKEOFF or here or msg.seq == 0:
@@ -1091,9 +1223,79 @@ class MavlinkEndpoint:
     def _on_mission_set_current(self, msg: Any) -> None:
         if 0 <= msg.seq < len(self._mission):
             self.current_seq = msg.seq
-            self._send("MISSION_CURRENT", lambda mav: mav.mission_current_send(msg.seq))
+            self._send_mission_current()
         else:
             self._ignore(f"MISSION_SET_CURRENT {msg.seq} of {len(self._mission)}")
+
+    def _on_mission_clear_all(self, msg: Any) -> None:
+        peer = (msg.get_srcSystem(), msg.get_srcComponent())
+        kind = getattr(msg, "mission_type", 0)
+        if kind == mavlink.MAV_MISSION_TYPE_MISSION:
+            self._mission = []
+            self.current_seq = 0
+            self.reached = []
+            self._upload = None
+            if self.mode == "AUTO":
+                self._set_mode("LOITER" if self.kind == COPTER else "HOLD")
+            self._mission_ack(peer, mavlink.MAV_MISSION_ACCEPTED, kind)
+        elif kind in (mavlink.MAV_MISSION_TYPE_FENCE, mavlink.MAV_MISSION_TYPE_RALLY):
+            self._mission_ack(peer, mavlink.MAV_MISSION_ACCEPTED, kind)  # there are none
+        else:
+            self._ignore(f"MISSION_CLEAR_ALL of mission type {kind}")
+            self._mission_ack(peer, mavlink.MAV_MISSION_UNSUPPORTED, kind)
+
+    # -- mission download: MISSION_REQUEST_LIST → MISSION_COUNT → (REQUEST_INT → ITEM_INT)*
+
+    def _on_mission_request_list(self, msg: Any) -> None:
+        peer = (msg.get_srcSystem(), msg.get_srcComponent())
+        kind = getattr(msg, "mission_type", 0)
+        if kind == mavlink.MAV_MISSION_TYPE_MISSION:
+            count = len(self._mission)
+        elif kind in (mavlink.MAV_MISSION_TYPE_FENCE, mavlink.MAV_MISSION_TYPE_RALLY):
+            count = 0  # no fence items or rally points (the floor's fence is implicit)
+        else:
+            self._ignore(f"MISSION_REQUEST_LIST of mission type {kind}")
+            self._mission_ack(peer, mavlink.MAV_MISSION_UNSUPPORTED, kind)
+            return
+        self._send("MISSION_COUNT", lambda mav: mav.mission_count_send(*peer, count, kind))
+
+    def _download_item(self, msg: Any) -> _Item | None:
+        peer = (msg.get_srcSystem(), msg.get_srcComponent())
+        kind = getattr(msg, "mission_type", 0)
+        if kind != mavlink.MAV_MISSION_TYPE_MISSION or not 0 <= msg.seq < len(self._mission):
+            self._ignore(f"{msg.get_type()} {msg.seq} of mission type {kind} "
+                         f"({len(self._mission)} items)")
+            self._mission_ack(peer, mavlink.MAV_MISSION_INVALID_SEQUENCE, kind)
+            return None
+        item: _Item = self._mission[int(msg.seq)]
+        return item
+
+    def _on_mission_request_int(self, msg: Any) -> None:
+        item = self._download_item(msg)
+        if item is None:
+            return
+        peer = (msg.get_srcSystem(), msg.get_srcComponent())
+        current = int(item.seq == self.current_seq)
+        self._send("MISSION_ITEM_INT", lambda mav: mav.mission_item_int_send(
+            *peer, item.seq, item.frame, item.command, current, item.autocontinue,
+            *item.params, item.lat_e7, item.lon_e7, item.alt_m))
+
+    def _on_mission_request(self, msg: Any) -> None:
+        """The deprecated float form (older ground stations): MISSION_ITEM in degrees."""
+        item = self._download_item(msg)
+        if item is None:
+            return
+        peer = (msg.get_srcSystem(), msg.get_srcComponent())
+        current = int(item.seq == self.current_seq)
+        frame = {mavlink.MAV_FRAME_GLOBAL_INT: mavlink.MAV_FRAME_GLOBAL,
+                 mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT:
+                     mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT}.get(item.frame, item.frame)
+        self._send("MISSION_ITEM", lambda mav: mav.mission_item_send(
+            *peer, item.seq, frame, item.command, current, item.autocontinue, *item.params,
+            item.lat_e7 / 1e7, item.lon_e7 / 1e7, item.alt_m))
+
+    def _on_mission_ack(self, msg: Any) -> None:
+        pass  # the end of a download (or a ground station's refusal): nothing to do
 
     # -- parameters
 
@@ -1127,6 +1329,7 @@ class MavlinkEndpoint:
         value = msg.param_value
         if not (math.isfinite(value) and low <= value <= high):
             self._ignore(f"PARAM_SET {name} = {value}: outside {low:g}–{high:g}")
+            self._tell(f"Param write denied: {name} {low:g}..{high:g}")
             self._param_value(name)  # the unchanged value: the set did not take
             return
         self.params[name] = float(value)
@@ -1157,10 +1360,6 @@ class MavlinkEndpoint:
     def __repr__(self) -> str:
         return (f"<MavlinkEndpoint {self.namespace} {self.kind} sys={self.system_id} "
                 f"{self.url} mode={self.mode} armed={self.armed}>")
-
-
-mavlink_gcs = (GCS_SYSTEM_ID, GCS_COMPONENT_ID)
-"""Where mission requests go (the ground station's ids, as ArduPilot replies to them)."""
 
 
 def open_endpoints(sim: Simulation, *, base_port: int, host: str = "127.0.0.1",

@@ -412,6 +412,133 @@ def test_a_copter_disarmed_in_the_air_only_by_force_and_then_it_falls(rig: Rig) 
     assert rig.quad_position().z_m == 0.0  # in the physics: on the floor
 
 
+# ---- 7. what a ground station relies on ---------------------------------------------------
+
+def test_the_vehicle_sends_what_a_ground_station_shows_and_flies_by(rig: Rig) -> None:
+    for gs, base in ((rig.rover, 1), (rig.quad, 81)):  # SITL: Rover HOLD 1, Copter 81
+        since = gs.mark()
+        beat = gs.wait("HEARTBEAT", since=since)
+        assert (beat.base_mode, beat.system_status) == (base, mav.MAV_STATE_STANDBY)
+        home = gs.wait("HOME_POSITION", since=since)
+        gps = gs.wait("GPS_RAW_INT", since=since)
+        assert gps.fix_type == mav.GPS_FIX_TYPE_3D_FIX and gps.satellites_visible > 5
+        assert abs(gps.lat - home.latitude) < 100 and abs(gps.lon - home.longitude) < 100
+        hud = gs.wait("VFR_HUD", since=since)
+        assert 0 <= hud.heading < 360 and hud.groundspeed < 0.01
+        battery = gs.wait("BATTERY_STATUS", since=since)
+        status = gs.latest("SYS_STATUS")
+        assert abs(battery.voltages[0] - status.voltage_battery) < 50  # mV, one pack
+        assert battery.voltages[1:] == [65535] * 9
+        since = gs.mark()
+        assert gs.command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION) \
+            == mav.MAV_RESULT_ACCEPTED
+        version = gs.wait("AUTOPILOT_VERSION", since=since)
+        assert version.capabilities & mav.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+        assert version.capabilities & mav.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    gs = rig.quad
+    # COMMAND_INT is answered like COMMAND_LONG (QGroundControl sends many commands so)
+    since = gs.mark()
+    gs.send(lambda m: m.command_int_send(gs.vehicle, 1, 0, mav.MAV_CMD_DO_SET_MODE, 0, 0,
+                                         1, 4, 0, 0, 0, 0, 0))  # GUIDED
+    ack = gs.wait("COMMAND_ACK", lambda a: a.command == mav.MAV_CMD_DO_SET_MODE, since=since)
+    assert ack.result == mav.MAV_RESULT_ACCEPTED
+    assert (ack.target_system, ack.target_component) == (255, 190)  # addressed to us
+    # SET_MODE (deprecated) is acknowledged with command 11, as ArduPilot does
+    since = gs.mark()
+    gs.send(lambda m: m.set_mode_send(gs.vehicle, 1, 5))  # LOITER
+    assert gs.wait("COMMAND_ACK", lambda a: a.command == 11, since=since).result == \
+        mav.MAV_RESULT_ACCEPTED
+    # A refusal is explained in a STATUSTEXT
+    assert gs.mode("GUIDED") == mav.MAV_RESULT_ACCEPTED
+    since = gs.mark()
+    assert gs.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, math.nan) == \
+        mav.MAV_RESULT_DENIED
+    assert "NAV_TAKEOFF" in gs.wait("STATUSTEXT", since=since).text
+    # Armed in GUIDED, on the ground: the heartbeat says so as SITL's does
+    assert gs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
+    since = gs.mark()
+    assert gs.wait("HEARTBEAT", lambda b: b.base_mode & 128, since=since).base_mode == 217
+
+
+def test_mission_start_clear_all_and_a_single_mission_current_stream(rig: Rig) -> None:
+    gs = rig.rover
+    lat, lon = to_global(3.0, 2.0)
+    assert gs.upload([(mav.MAV_CMD_NAV_WAYPOINT, mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, lat,
+                       lon, 0.0)]) == mav.MAV_MISSION_ACCEPTED
+    since = gs.mark()
+    assert gs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
+    assert gs.command(mav.MAV_CMD_MISSION_START) == mav.MAV_RESULT_ACCEPTED
+    assert gs.wait("HEARTBEAT", lambda b: b.custom_mode == 10, since=gs.mark())  # AUTO
+    gs.wait("MISSION_ITEM_REACHED", lambda m: m.seq == 1, since=since)
+    done = gs.wait("MISSION_CURRENT", lambda m: m.mission_state == mav.MISSION_STATE_COMPLETE,
+                   since=since)
+    assert (done.seq, done.total) == (1, 2)
+    currents = [m for m in gs.messages[since:] if m.get_type() == "MISSION_CURRENT"]
+    assert all(m.total == 2 for m in currents), currents  # one stream, never (seq, 0, 0)
+    since = gs.mark()
+    gs.send(lambda m: m.mission_clear_all_send(gs.vehicle, 1))
+    assert gs.wait("MISSION_ACK", since=since).type == mav.MAV_MISSION_ACCEPTED
+    gs.send(lambda m: m.mission_request_list_send(gs.vehicle, 1))
+    assert gs.wait("MISSION_COUNT", since=since).count == 0
+    assert gs.command(mav.MAV_CMD_MISSION_START) == mav.MAV_RESULT_FAILED  # nothing to fly
+
+
+def test_an_abandoned_upload_is_cancelled_towards_its_ground_station(rig: Rig) -> None:
+    gs = rig.rover
+    since = gs.mark()
+    gs.send(lambda m: m.mission_count_send(gs.vehicle, 1, 3))  # then never answer
+    ack = gs.wait("MISSION_ACK", since=since)
+    assert ack.type == mav.MAV_MISSION_OPERATION_CANCELLED
+    assert (ack.target_system, ack.target_component) == (255, 190)
+
+
+# ---- 5. mission download --------------------------------------------------------------------
+
+def download(gs: GroundStation, *, floats: bool = False) -> list[Any]:
+    """MISSION_REQUEST_LIST → MISSION_COUNT → MISSION_REQUEST_INT (or MISSION_REQUEST)
+    for each item → MISSION_ACK, as QGroundControl (or an older MAVProxy) does."""
+    since = gs.mark()
+    gs.send(lambda m: m.mission_request_list_send(gs.vehicle, 1))
+    count = gs.wait("MISSION_COUNT", since=since).count
+    items = []
+    for seq in range(count):
+        since = gs.mark()
+        if floats:
+            gs.send(lambda m, s=seq: m.mission_request_send(gs.vehicle, 1, s))
+        else:
+            gs.send(lambda m, s=seq: m.mission_request_int_send(gs.vehicle, 1, s))
+        kind = "MISSION_ITEM" if floats else "MISSION_ITEM_INT"
+        items.append(gs.wait(kind, lambda i, s=seq: i.seq == s, since=since))
+    gs.send(lambda m: m.mission_ack_send(gs.vehicle, 1, mav.MAV_MISSION_ACCEPTED))
+    return items
+
+
+def test_a_downloaded_mission_is_what_was_uploaded(rig: Rig) -> None:
+    gs = rig.quad
+    a, b = to_global(6.0, 7.0), to_global(2.0, 9.0)
+    sent = [(mav.MAV_CMD_NAV_TAKEOFF, mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0, 0, 2.0),
+            (mav.MAV_CMD_NAV_WAYPOINT, mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, *a, 2.5),
+            (mav.MAV_CMD_NAV_WAYPOINT, mav.MAV_FRAME_GLOBAL_INT, *b, 3.0),
+            (mav.MAV_CMD_NAV_RETURN_TO_LAUNCH, mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0, 0,
+             0.0)]
+    assert gs.upload(sent) == mav.MAV_MISSION_ACCEPTED
+    items = download(gs)
+    assert len(items) == len(sent) + 1
+    home = gs.wait("HOME_POSITION", since=gs.mark())
+    assert (items[0].seq, items[0].x, items[0].y) == (0, home.latitude, home.longitude)
+    for item, (command, frame, lat, lon, z) in zip(items[1:], sent, strict=True):
+        assert (item.command, item.frame, item.x, item.y, item.z) == (command, frame, lat,
+                                                                      lon, z)
+    assert [i.current for i in items] == [0, 1, 0, 0, 0]
+    floats = download(gs, floats=True)  # the float form: the same, to float32's precision
+    for f, i in zip(floats, items, strict=True):
+        assert (f.command, abs(f.x * 1e7 - i.x) < 200, abs(f.y * 1e7 - i.y) < 200) == \
+            (i.command, True, True)
+    since = gs.mark()
+    gs.send(lambda m: m.mission_request_int_send(gs.vehicle, 1, 9))  # no such item
+    assert gs.wait("MISSION_ACK", since=since).type == mav.MAV_MISSION_INVALID_SEQUENCE
+
+
 # ---- the fuzz: random and non-finite values in every handled message ---------------------
 
 FUZZ_SEED = 25
