@@ -582,7 +582,7 @@ def _fly_out(rng: random.Random, gs: GroundStation, noise: Callable[[], None]) -
 def _fuzz_one(rng: random.Random, gs: GroundStation) -> int | None:
     """Send one random message of a handled type; the command id when it wants an ACK."""
     f, t = (lambda: _float(rng)), gs.vehicle
-    kind = rng.randrange(13)
+    kind = rng.randrange(15)
     if kind == 0:
         cmd = rng.choice(_commands())
         # Mostly plausible: ARM 1, GUIDED, takeoff to a few metres — so the vehicles move.
@@ -642,8 +642,12 @@ def _fuzz_one(rng: random.Random, gs: GroundStation) -> int | None:
         name = rng.choice([b"WP_SPEED", b"WPNAV_SPEED", b"LAND_SPEED", b"RTL_ALT",
                            b"WP_RADIUS", b"NOPE", bytes(rng.randrange(256) for _ in range(16))])
         gs.send(lambda m: m.param_set_send(t, 1, name, f(), rng.choice([9, 0, 255])))
-    else:
+    elif kind == 12:
         gs.send(lambda m: m.param_request_read_send(t, 1, b"WP_SPEED", _int(rng, 16, True)))
+    elif kind == 13:
+        gs.send(lambda m: m.mission_request_send(t, 1, _int(rng, 16), rng.choice([0, 1, 9])))
+    else:
+        gs.send(lambda m: m.mission_ack_send(t, 1, _int(rng, 8), rng.choice([0, 1, 255])))
     return None
 
 
