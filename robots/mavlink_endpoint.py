@@ -22,8 +22,9 @@ What it implements (ArduPilot 4.x behaviour, simplified):
   modes of ``mavutil.mode_mapping_rover``, starts in HOLD); the ``quad`` is a Copter
   (``MAV_TYPE_QUADROTOR``, Copter modes, starts in STABILIZE on the floor).
 - **Telemetry** at ``stream_rate_hz`` of sim time: GLOBAL_POSITION_INT, LOCAL_POSITION_NED,
-  ATTITUDE, SYS_STATUS; once a second of wall time HEARTBEAT (autopilot ARDUPILOTMEGA, armed flag,
-  custom mode), BATTERY_STATUS, MISSION_CURRENT and GPS_GLOBAL_ORIGIN.
+  ATTITUDE, SYS_STATUS, GPS_RAW_INT, VFR_HUD; once a second of wall time HEARTBEAT
+  (autopilot ARDUPILOTMEGA, base mode and system status as ArduPilot computes them, custom
+  mode), BATTERY_STATUS, MISSION_CURRENT, GPS_GLOBAL_ORIGIN and HOME_POSITION.
 - **Frames.** The local NED frame's origin is the world origin: north = world y, east =
   world x, down = −altitude. Its geodetic position is ``origin`` (default: ArduPilot
   SITL's CMAC field); global positions are flat-earth around it.
@@ -38,7 +39,10 @@ What it implements (ArduPilot 4.x behaviour, simplified):
   sender): ARM_DISARM (param1 exactly 1 or 0, else UNSUPPORTED; a flying Copter disarms
   only when forced with 21196 — and then falls), DO_SET_MODE (and SET_MODE, acknowledged
   with command 11 as ArduPilot does), NAV_TAKEOFF (Copter, armed, GUIDED, on the ground,
-  upwards), REQUEST_MESSAGE (GPS_GLOBAL_ORIGIN); others are answered UNSUPPORTED.
+  upwards), DO_REPOSITION, MISSION_START, NAV_RETURN_TO_LAUNCH, NAV_LAND (Copter),
+  REQUEST_MESSAGE (GPS_GLOBAL_ORIGIN, HOME_POSITION, AUTOPILOT_VERSION, HEARTBEAT,
+  MISSION_CURRENT), GET_HOME_POSITION, REQUEST_AUTOPILOT_CAPABILITIES; others are
+  answered UNSUPPORTED. Refusals are explained in a STATUSTEXT.
 - **GUIDED targets.** SET_POSITION_TARGET_LOCAL_NED (frames LOCAL_NED, LOCAL_OFFSET_NED,
   BODY_NED, BODY_OFFSET_NED) and _GLOBAL_INT honour ``type_mask`` as ArduPilot does: a
   group (position, velocity, acceleration) is ignored when any of its bits is set;
@@ -53,7 +57,9 @@ What it implements (ArduPilot 4.x behaviour, simplified):
   item; MISSION_ITEM_REACHED on arrival; at the end it stays put), RTL (home; a Copter
   climbs to ``RTL_ALT``, returns, lands and disarms), LAND (Copter), HOLD / LOITER / BRAKE
   and every other mode (stand still). Disarmed vehicles do not move.
-- **Mission protocol** (upload): MISSION_COUNT → MISSION_REQUEST_INT(0..n−1) ↔
+- **Mission protocol** (download: MISSION_REQUEST_LIST → MISSION_COUNT →
+  MISSION_REQUEST_INT or MISSION_REQUEST → the items as uploaded; MISSION_CLEAR_ALL)
+  (upload): MISSION_COUNT → MISSION_REQUEST_INT(0..n−1) ↔
   MISSION_ITEM_INT → MISSION_ACK. A request unanswered for ``rerequest_s`` is sent again
   (at most 5 times, then the upload is cancelled); a repeated COUNT restarts the upload; a
   duplicate of the previous item is answered by re-requesting the expected one; other
@@ -887,6 +893,8 @@ class MavlinkEndpoint:
         if cmd == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
             return self._set_mode_common(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
                                          self.modes["RTL"])
+        if cmd == mavlink.MAV_CMD_DO_REPOSITION:
+            return self._reposition(p, frame, lat_lon_e7)
         if cmd == mavlink.MAV_CMD_NAV_LAND and self.kind == COPTER:
             return self._set_mode_common(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
                                          self.modes["LAND"])
@@ -931,6 +939,44 @@ class MavlinkEndpoint:
         x, y, *_ = self._where()
         self._velocity = None
         self._target = (x, y, float(alt_m))
+        return _ACCEPTED
+
+    def _reposition(self, p: tuple[float, ...], frame: int | None,
+                    lat_lon_e7: tuple[int, int] | None) -> int:
+        """DO_REPOSITION ("go to this point" on a ground station's map), as ArduPilot's
+        handle_command_int_do_reposition: in GUIDED, or with the CHANGE_MODE flag (param2
+        bit 0) from any mode; param5/6 latitude and longitude, param7 altitude."""
+        if lat_lon_e7 is None:  # COMMAND_LONG: degrees as floats
+            if not _finite(p[4], p[5]):
+                self._ignore(f"DO_REPOSITION to {p[4]}, {p[5]}: not a position")
+                return _DENIED
+            lat_lon_e7 = (round(p[4] * 1e7), round(p[5] * 1e7))
+        lat_e7, lon_e7 = lat_lon_e7
+        change_mode = _whole(p[1], 0, _MAX_UINT32) and int(p[1]) & 1
+        if self.mode != "GUIDED" and not change_mode:
+            self._ignore("DO_REPOSITION outside GUIDED without the CHANGE_MODE flag")
+            return _DENIED
+        if frame is not None and frame not in _GLOBAL_TARGET_FRAMES:
+            self._ignore(f"DO_REPOSITION in frame {frame}")
+            return _DENIED
+        if not _valid_lat_lon(lat_e7, lon_e7) or (lat_e7 == 0 and lon_e7 == 0) \
+                or not math.isfinite(p[6]):
+            self._ignore(f"DO_REPOSITION to {lat_e7 / 1e7}°, {lon_e7 / 1e7}°, {p[6]} m: not "
+                         f"a position")
+            return _DENIED
+        x, y = self._world(lat_e7 / 1e7, lon_e7 / 1e7)
+        alt = float(p[6])
+        if not self.fence.contains(x, y) or (self.kind == COPTER and not
+                                             0.0 <= alt <= self.fence.alt_max_m):
+            self._ignore(f"DO_REPOSITION to ({x:.2f}, {y:.2f}, {alt:.2f}): outside the fence")
+            return _FAILED
+        if not self.armed:
+            self._ignore("DO_REPOSITION while disarmed")
+            return _FAILED
+        if self.mode != "GUIDED":
+            self._set_mode("GUIDED")
+        self._velocity = None
+        self._target = (x, y, alt if self.kind == COPTER else None)
         return _ACCEPTED
 
     def _on_set_mode(self, msg: Any) -> None:

@@ -460,6 +460,32 @@ def test_the_vehicle_sends_what_a_ground_station_shows_and_flies_by(rig: Rig) ->
     assert gs.wait("HEARTBEAT", lambda b: b.base_mode & 128, since=since).base_mode == 217
 
 
+def test_reposition_from_the_map_flies_there_and_refuses_nonsense(rig: Rig) -> None:
+    """QGroundControl's "go to location": COMMAND_INT DO_REPOSITION with the CHANGE_MODE
+    flag switches to GUIDED and flies there."""
+    gs = rig.quad
+    take_off(gs, 2.0)
+    assert gs.mode("LOITER") == mav.MAV_RESULT_ACCEPTED
+    lat, lon = to_global(6.0, 7.0)
+
+    def reposition(flags: float, lat: int, lon: int, alt: float) -> int:
+        since = gs.mark()
+        gs.send(lambda m: m.command_int_send(
+            gs.vehicle, 1, mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, mav.MAV_CMD_DO_REPOSITION,
+            0, 0, -1, flags, 0, math.nan, lat, lon, alt))
+        return int(gs.wait("COMMAND_ACK", lambda a: a.command == mav.MAV_CMD_DO_REPOSITION,
+                           since=since).result)
+
+    assert reposition(0, lat, lon, 2.0) == mav.MAV_RESULT_DENIED  # not GUIDED, no flag
+    assert reposition(1, 0, 0, 2.0) == mav.MAV_RESULT_DENIED
+    assert reposition(1, 950_000_000, lon, 2.0) == mav.MAV_RESULT_DENIED
+    assert reposition(1, lat, lon, math.nan) == mav.MAV_RESULT_DENIED
+    assert reposition(1, *to_global(6.0, 70.0), 2.0) == mav.MAV_RESULT_FAILED  # off the floor
+    assert reposition(1, lat, lon, 2.5) == mav.MAV_RESULT_ACCEPTED
+    assert wait_until(lambda: math.dist(gs.local(), (6.0, 7.0, 2.5)) < 0.2), gs.local()
+    assert gs.latest("HEARTBEAT").custom_mode == 4  # GUIDED
+
+
 def test_mission_start_clear_all_and_a_single_mission_current_stream(rig: Rig) -> None:
     gs = rig.rover
     lat, lon = to_global(3.0, 2.0)
