@@ -205,6 +205,23 @@ def test_a_malformed_connection_names_the_supported_forms() -> None:
         open_link("udp:127.0.0.1:notaport")
 
 
+def test_the_link_refuses_non_finite_targets_before_sending_them() -> None:
+    """A NaN target, takeoff altitude or parameter is a mistake of the caller: ConfigError
+    at once, naming it (the vehicle would refuse it anyway)."""
+    link = open_link(f"udp:127.0.0.1:{free_port()}")
+    try:
+        with pytest.raises(ConfigError, match="position target must be finite"):
+            link.goto_local(math.nan, 1.0, 2.0)
+        with pytest.raises(ConfigError, match="takeoff altitude must be finite"):
+            link.takeoff(math.inf)
+        with pytest.raises(ConfigError, match="above 0 m"):
+            link.takeoff(0.0)
+        with pytest.raises(ConfigError, match="parameter WP_SPEED must be finite"):
+            link.set_param("WP_SPEED", math.nan)
+    finally:
+        link.close()
+
+
 def test_a_bad_waypoint_names_its_index() -> None:
     with pytest.raises(ConfigError, match=r"waypoints\[1\]"):
         RunMission([[1, 2], {"north": 3}], connection="udp:127.0.0.1:14550")
