@@ -22,9 +22,11 @@ What it implements (ArduPilot 4.x behaviour, simplified):
   modes of ``mavutil.mode_mapping_rover``, starts in HOLD); the ``quad`` is a Copter
   (``MAV_TYPE_QUADROTOR``, Copter modes, starts in STABILIZE on the floor).
 - **Telemetry** at ``stream_rate_hz`` of sim time: GLOBAL_POSITION_INT, LOCAL_POSITION_NED,
-  ATTITUDE, SYS_STATUS, GPS_RAW_INT, VFR_HUD; once a second of wall time HEARTBEAT
-  (autopilot ARDUPILOTMEGA, base mode and system status as ArduPilot computes them, custom
-  mode), BATTERY_STATUS, MISSION_CURRENT, GPS_GLOBAL_ORIGIN and HOME_POSITION.
+  ATTITUDE, SYS_STATUS, GPS_RAW_INT, VFR_HUD; at 1 Hz of sim time BATTERY_STATUS and
+  MISSION_CURRENT — each rate changeable with SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM
+  (:attr:`MavlinkEndpoint.intervals`); once a second of wall time HEARTBEAT (autopilot
+  ARDUPILOTMEGA, base mode and system status as ArduPilot computes them, custom mode),
+  GPS_GLOBAL_ORIGIN and HOME_POSITION.
 - **Frames.** The local NED frame's origin is the world origin: north = world y, east =
   world x, down = −altitude. Its geodetic position is ``origin`` (default: ArduPilot
   SITL's CMAC field); global positions are flat-earth around it.
@@ -154,6 +156,21 @@ _GLOBAL_TARGET_FRAMES = {mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_INT,
                          mavlink.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT}
 _TAKEOFF_FRAMES = {mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
                    mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT}
+MAX_STREAM_RATE_HZ = 50.0
+"""The fastest a message is streamed (ArduPilot's SRx_ rates stop at 50 Hz too); a shorter
+SET_MESSAGE_INTERVAL is accepted and served at this rate."""
+_FAST = ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "ATTITUDE", "SYS_STATUS", "GPS_RAW_INT",
+         "VFR_HUD")
+"""Streamed at ``stream_rate_hz`` by default; BATTERY_STATUS and MISSION_CURRENT at 1 Hz."""
+_DATA_STREAMS: dict[int, tuple[str, ...]] = {
+    mavlink.MAV_DATA_STREAM_EXTENDED_STATUS: ("SYS_STATUS", "GPS_RAW_INT", "MISSION_CURRENT"),
+    mavlink.MAV_DATA_STREAM_POSITION: ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED"),
+    mavlink.MAV_DATA_STREAM_EXTRA1: ("ATTITUDE",),
+    mavlink.MAV_DATA_STREAM_EXTRA2: ("VFR_HUD",),
+    mavlink.MAV_DATA_STREAM_EXTRA3: ("BATTERY_STATUS",),
+}
+"""REQUEST_DATA_STREAM's groups, as ArduPilot's SRx_EXT_STAT, _POSITION, _EXTRA1/2/3 (only
+the messages the simulated vehicles send); MAV_DATA_STREAM_ALL is all of them."""
 GUIDED_TIMEOUT_S = 3.0
 """A velocity, heading or turn-rate target not renewed for this long (sim time) is dropped
 and the vehicle holds where it is (ArduPilot's GUID_TIMEOUT, 3 s)."""
@@ -370,8 +387,16 @@ class MavlinkEndpoint:
             mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._beat,
             mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: self._send_mission_current,
         }
+        #: Streamed message → its interval (s of sim time; None: not sent). Changed by
+        #: SET_MESSAGE_INTERVAL and REQUEST_DATA_STREAM.
+        self._defaults: dict[str, float] = {
+            **{name: 1.0 / stream_rate_hz for name in _FAST},
+            "BATTERY_STATUS": 1.0, "MISSION_CURRENT": 1.0}
+        self.intervals: dict[str, float | None] = dict(self._defaults)
+        self._due: dict[str, float] = dict.fromkeys(self._defaults, 0.0)
         self._removers = [sim.on_step(self._control, rate_hz=control_rate_hz),
-                          sim.on_step(self._stream, rate_hz=stream_rate_hz)]
+                          sim.on_step(self._stream, rate_hz=max(stream_rate_hz,
+                                                                 MAX_STREAM_RATE_HZ))]
 
     # ---- sending --------------------------------------------------------------------
 
@@ -426,28 +451,52 @@ class MavlinkEndpoint:
             log.exception("endpoint %s: telemetry step failed", self.namespace)
 
     def _stream_step(self, time_s: float) -> None:
+        due = []
+        for name, interval in self.intervals.items():
+            if interval is not None and time_s >= self._due[name]:
+                due.append(name)
+                # Keep the average rate; after a gap (a new interval), start from now.
+                nxt = self._due[name] + interval
+                self._due[name] = nxt if nxt > time_s else time_s + interval
+        if due:
+            self._send_telemetry(time_s, due)
+        self._upload_watch()
+
+    def _send_telemetry(self, time_s: float, names: list[str]) -> None:
         x, y, alt, yaw, vx, vy, vz = self._where()
         boot_ms = int(time_s * 1000) & 0xFFFFFFFF
         lat, lon = self.origin.to_global(y, x)
         hdg = round(math.degrees(math.pi / 2 - yaw) % 360 * 100)  # compass: 0 north, cw
-        self._send("GLOBAL_POSITION_INT", lambda mav: mav.global_position_int_send(
-            boot_ms, round(lat * 1e7), round(lon * 1e7), round(alt * 1000),
-            round(alt * 1000), round(vy * 100), round(vx * 100), round(-vz * 100), hdg))
-        self._send("LOCAL_POSITION_NED", lambda mav: mav.local_position_ned_send(
-            boot_ms, y, x, -alt, vy, vx, -vz))
-        self._send("ATTITUDE", lambda mav: mav.attitude_send(
-            boot_ms, 0.0, 0.0, math.remainder(math.pi / 2 - yaw, 2 * math.pi), 0.0, 0.0, 0.0))
         battery = self.robot.battery()
-        self._send("SYS_STATUS", lambda mav: mav.sys_status_send(
-            0, 0, 0, 0, round(battery.voltage_v * 1000), round(-battery.current_a * 100),
-            round(battery.percentage), 0, 0, 0, 0, 0, 0))
         ground = math.hypot(vx, vy)
         cog = round(math.degrees(math.atan2(vx, vy)) % 360 * 100) if ground > 0.05 else 65535
-        self._send("GPS_RAW_INT", lambda mav: mav.gps_raw_int_send(
-            int(time_s * 1e6), mavlink.GPS_FIX_TYPE_3D_FIX, round(lat * 1e7), round(lon * 1e7),
-            round(alt * 1000), 121, 200, round(ground * 100), cog, 10))
-        self._send("VFR_HUD", lambda mav: mav.vfr_hud_send(
-            ground, ground, round(hdg / 100) % 360, self._throttle(), alt, vz))
+        senders: dict[str, Callable[[Any], Any]] = {
+            "GLOBAL_POSITION_INT": lambda mav: mav.global_position_int_send(
+                boot_ms, round(lat * 1e7), round(lon * 1e7), round(alt * 1000),
+                round(alt * 1000), round(vy * 100), round(vx * 100), round(-vz * 100), hdg),
+            "LOCAL_POSITION_NED": lambda mav: mav.local_position_ned_send(
+                boot_ms, y, x, -alt, vy, vx, -vz),
+            "ATTITUDE": lambda mav: mav.attitude_send(
+                boot_ms, 0.0, 0.0, math.remainder(math.pi / 2 - yaw, 2 * math.pi), 0.0, 0.0,
+                0.0),
+            "SYS_STATUS": lambda mav: mav.sys_status_send(
+                0, 0, 0, 0, round(battery.voltage_v * 1000), round(-battery.current_a * 100),
+                round(battery.percentage), 0, 0, 0, 0, 0, 0),
+            "GPS_RAW_INT": lambda mav: mav.gps_raw_int_send(
+                int(time_s * 1e6), mavlink.GPS_FIX_TYPE_3D_FIX, round(lat * 1e7),
+                round(lon * 1e7), round(alt * 1000), 121, 200, round(ground * 100), cog, 10),
+            "VFR_HUD": lambda mav: mav.vfr_hud_send(
+                ground, ground, round(hdg / 100) % 360, self._throttle(), alt, vz),
+        }
+        for name in names:
+            if name == "BATTERY_STATUS":
+                self._send_battery()
+            elif name == "MISSION_CURRENT":
+                self._send_mission_current()
+            else:
+                self._send(name, senders[name])
+
+    def _upload_watch(self) -> None:
         with self._lock:
             upload = self._upload
             if upload is not None and time.monotonic() - upload.asked_at > self.rerequest_s:
@@ -492,19 +541,20 @@ class MavlinkEndpoint:
                               / max(1e-6, self.robot.limits.max_linear_mps)))
 
     def _beat(self) -> None:
-        battery = self.robot.battery()
         base, number, state = self._base_mode(), self.modes[self.mode], self._system_status()
         self._send("HEARTBEAT", lambda mav: mav.heartbeat_send(
             self.mav_type, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base, number, state))
+        self._send_origin()
+        self._send_home()
+
+    def _send_battery(self) -> None:
+        battery = self.robot.battery()
         # One pack voltage in cell 0, the other cells "not present" (UINT16_MAX), as
         # ArduPilot does when it does not know the cells.
         voltages = [min(65534, round(battery.voltage_v * 1000))] + [65535] * 9
         self._send("BATTERY_STATUS", lambda mav: mav.battery_status_send(
             0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO, 32767,
             voltages, round(-battery.current_a * 100), -1, -1, round(battery.percentage)))
-        self._send_mission_current()
-        self._send_origin()
-        self._send_home()
 
     def _send_mission_current(self) -> None:
         """MISSION_CURRENT with its total and state, the one builder of it (ArduPilot sends
@@ -893,6 +943,18 @@ class MavlinkEndpoint:
         if cmd == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
             return self._set_mode_common(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
                                          self.modes["RTL"])
+        if cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return self._set_interval(p[0], p[1])
+        if cmd == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL:
+            name = self._streamed(p[0])
+            if name is None:
+                return _DENIED
+            interval = self.intervals[name]
+            micros = -1 if interval is None else round(interval * 1e6)
+            msg_id = int(p[0])
+            self._send("MESSAGE_INTERVAL", lambda mav: mav.message_interval_send(
+                msg_id, micros))
+            return _ACCEPTED
         if cmd == mavlink.MAV_CMD_DO_REPOSITION:
             return self._reposition(p, frame, lat_lon_e7)
         if cmd == mavlink.MAV_CMD_NAV_LAND and self.kind == COPTER:
@@ -940,6 +1002,57 @@ class MavlinkEndpoint:
         self._velocity = None
         self._target = (x, y, float(alt_m))
         return _ACCEPTED
+
+    def _streamed(self, msg_id: float) -> str | None:
+        """The name of a streamed message by id, or None (ignored with the reason)."""
+        if not _whole(msg_id, 0, 2**24 - 1):
+            self._ignore(f"message id {msg_id}: not an integer id")
+            return None
+        name = mavlink.mavlink_map[int(msg_id)].msgname \
+            if int(msg_id) in mavlink.mavlink_map else None
+        if name not in self.intervals:
+            self._ignore(f"message id {int(msg_id)} ({name or 'unknown'}) is not streamed; "
+                         f"streamed: {', '.join(sorted(self.intervals))}")
+            return None
+        return str(name)
+
+    def _set_interval(self, msg_id: float, interval_us: float) -> int:
+        """MAV_CMD_SET_MESSAGE_INTERVAL: param2 −1 stops the message, 0 restores its
+        default, > 0 is the interval in µs (at most :data:`MAX_STREAM_RATE_HZ`)."""
+        name = self._streamed(msg_id)
+        if name is None:
+            return _DENIED
+        if not math.isfinite(interval_us) or (interval_us < 0 and interval_us != -1):
+            self._ignore(f"SET_MESSAGE_INTERVAL of {name} to {interval_us} µs (−1 stops it, "
+                         f"0 is the default, > 0 an interval)")
+            return _DENIED
+        if interval_us == -1:
+            self.intervals[name] = None
+        elif interval_us == 0:
+            self.intervals[name] = self._defaults[name]
+        else:
+            self.intervals[name] = max(interval_us / 1e6, 1.0 / MAX_STREAM_RATE_HZ)
+        self._due[name] = 0.0  # from the next step on
+        return _ACCEPTED
+
+    def _on_request_data_stream(self, msg: Any) -> None:
+        """The older way (MAVProxy, Mission Planner): a group of messages at a rate in Hz,
+        started (start_stop 1) or stopped (0 or rate 0)."""
+        if msg.req_stream_id == mavlink.MAV_DATA_STREAM_ALL:
+            names = tuple(n for group in _DATA_STREAMS.values() for n in group)
+        elif msg.req_stream_id in _DATA_STREAMS:
+            names = _DATA_STREAMS[msg.req_stream_id]
+        else:
+            self._ignore(f"REQUEST_DATA_STREAM of stream {msg.req_stream_id} (known: "
+                         f"{sorted(_DATA_STREAMS)} and 0, all)")
+            return
+        for name in names:
+            if msg.start_stop == 0 or msg.req_message_rate == 0:
+                self.intervals[name] = None
+            else:
+                self.intervals[name] = 1.0 / min(float(msg.req_message_rate),
+                                                 MAX_STREAM_RATE_HZ)
+            self._due[name] = 0.0
 
     def _reposition(self, p: tuple[float, ...], frame: int | None,
                     lat_lon_e7: tuple[int, int] | None) -> int:

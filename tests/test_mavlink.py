@@ -53,6 +53,18 @@ def free_port() -> int:
         return port
 
 
+def free_ports(count: int) -> list[int]:
+    """Distinct free UDP ports (held open together while choosing: none repeats)."""
+    sockets = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
+    try:
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
+
+
 @pytest.fixture
 def cleanup(hl: HighLevelBehaviorManager) -> Iterator[Callable[[Callable[[], None]], None]]:
     """Clean-ups that run before the ``hl`` fixture checks for leaked threads."""
@@ -74,7 +86,7 @@ class Vehicles:
 @pytest.fixture
 def vehicles() -> Iterator[Vehicles]:
     sim = Simulation(world_from_dict(WORLD), real_time_factor=1.0)
-    ports = free_port(), free_port()
+    ports = free_ports(2)
     rover = MavlinkEndpoint(sim, "rover1", url=f"udpout:127.0.0.1:{ports[0]}", system_id=1,
                             rerequest_s=30.0)  # the client's retries must do the work
     quad = MavlinkEndpoint(sim, "quad1", url=f"udpout:127.0.0.1:{ports[1]}", system_id=2)

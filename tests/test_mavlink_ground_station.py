@@ -44,11 +44,31 @@ ORIGIN = (-35.363262, 149.165237)
 R_EARTH = 6378137.0
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
+def free_ports(count: int) -> list[int]:
+    """Distinct free UDP ports (all held open while choosing, so none repeats)."""
+    sockets = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
+    try:
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
+
+
+def free_port_pair() -> int:
+    """A free UDP port whose successor is free too (``beehave sim`` uses BASE and BASE+1)."""
+    for _ in range(100):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as first:
+            first.bind(("127.0.0.1", 0))
+            base: int = first.getsockname()[1]
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as second:
+                try:
+                    second.bind(("127.0.0.1", base + 1))
+                except OSError:
+                    continue
+                return base
+    raise AssertionError("no two consecutive free UDP ports")
 
 
 def to_global(north_m: float, east_m: float) -> tuple[int, int]:
@@ -188,7 +208,7 @@ def rig() -> Iterator[Rig]:
     from robots.world import world_from_dict
 
     sim = Simulation(world_from_dict(WORLD), real_time_factor=1.0)
-    ports = free_port(), free_port()
+    ports = free_ports(2)
     endpoints = [MavlinkEndpoint(sim, ns, url=f"udpout:127.0.0.1:{port}", system_id=i + 1)
                  for i, (ns, port) in enumerate(zip(("rover1", "quad1"), ports, strict=True))]
     sim.start()
@@ -527,6 +547,48 @@ def test_an_abandoned_upload_is_cancelled_towards_its_ground_station(rig: Rig) -
     assert (ack.target_system, ack.target_component) == (255, 190)
 
 
+# ---- 6. stream rates ------------------------------------------------------------------------
+
+def rate_hz(gs: GroundStation, kind: str, window_ms: int = 2000,
+            clock: str = "LOCAL_POSITION_NED") -> float:
+    """How often ``kind`` comes, by the vehicle's own clock: the messages of ``kind`` over
+    the next ``window_ms`` of its time_boot_ms (read from the ``clock`` messages)."""
+    since = gs.mark()
+    start = gs.wait(clock, since=since).time_boot_ms + 200  # messages already on the way
+    gs.wait(clock, lambda m: m.time_boot_ms >= start + window_ms + 200, since=since)
+    stamps = [m.time_boot_ms for m in gs.messages[since:] if m.get_type() == kind]
+    return sum(start <= t < start + window_ms for t in stamps) / (window_ms / 1000)
+
+
+def test_message_intervals_and_data_streams_set_the_rates(rig: Rig) -> None:
+    gs = rig.quad
+    assert 9 <= rate_hz(gs, "ATTITUDE") <= 11  # the default, 10 Hz
+    attitude = mav.MAVLINK_MSG_ID_ATTITUDE
+    assert gs.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, attitude, 40_000) == \
+        mav.MAV_RESULT_ACCEPTED  # 25 Hz
+    assert 22 <= rate_hz(gs, "ATTITUDE") <= 28
+    since = gs.mark()
+    assert gs.command(mav.MAV_CMD_GET_MESSAGE_INTERVAL, attitude) == mav.MAV_RESULT_ACCEPTED
+    assert gs.wait("MESSAGE_INTERVAL", since=since).interval_us == 40_000
+    assert gs.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, attitude, -1) == \
+        mav.MAV_RESULT_ACCEPTED  # stopped
+    assert rate_hz(gs, "ATTITUDE") == 0
+    for bad in ((attitude, math.nan), (attitude, -5), (math.nan, 1000), (99999, 1000)):
+        assert gs.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, *bad) == mav.MAV_RESULT_DENIED
+    gs.send(lambda m: m.request_data_stream_send(gs.vehicle, 1, mav.MAV_DATA_STREAM_EXTRA1,
+                                                 2, 1))  # ATTITUDE's group, 2 Hz
+    assert 1.5 <= rate_hz(gs, "ATTITUDE", 4000) <= 2.5
+    gs.send(lambda m: m.request_data_stream_send(gs.vehicle, 1, mav.MAV_DATA_STREAM_POSITION,
+                                                 0, 0))  # stopped
+    assert rate_hz(gs, "GLOBAL_POSITION_INT", clock="ATTITUDE") == 0
+    gs.send(lambda m: m.request_data_stream_send(gs.vehicle, 1, mav.MAV_DATA_STREAM_POSITION,
+                                                 5, 1))  # started again, 5 Hz
+    assert 4 <= rate_hz(gs, "GLOBAL_POSITION_INT", clock="ATTITUDE") <= 6
+    assert gs.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, attitude, 0) == \
+        mav.MAV_RESULT_ACCEPTED  # back to the default
+    assert 9 <= rate_hz(gs, "ATTITUDE") <= 11
+
+
 # ---- 5. mission download --------------------------------------------------------------------
 
 def download(gs: GroundStation, *, floats: bool = False) -> list[Any]:
@@ -593,12 +655,14 @@ def _commands() -> list[int]:
     return [mav.MAV_CMD_COMPONENT_ARM_DISARM, mav.MAV_CMD_DO_SET_MODE, mav.MAV_CMD_NAV_TAKEOFF,
             mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_MISSION_START, mav.MAV_CMD_NAV_LAND,
             mav.MAV_CMD_NAV_RETURN_TO_LAUNCH, mav.MAV_CMD_DO_REPOSITION,
-            mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 65535]
+            mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAV_CMD_GET_MESSAGE_INTERVAL, 0, 65535]
 
 
 def _fly_out(rng: random.Random, gs: GroundStation, noise: Callable[[], None]) -> None:
     """Valid flying among the noise, so that the vehicles do move — towards the edges:
-    GUIDED, arm, take off, then 3 m/s in a random direction for 2 s."""
+    GUIDED, arm, take off, then 3 m/s in a random direction for 2 s. The position stream
+    is set back to its default first (the noise may have stopped it)."""
+    gs.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 0)
     gs.mode("GUIDED")
     gs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
     gs.send(lambda m: m.param_set_send(gs.vehicle, 1, b"WP_SPEED", 2.0, 9))
@@ -617,7 +681,7 @@ def _fly_out(rng: random.Random, gs: GroundStation, noise: Callable[[], None]) -
 def _fuzz_one(rng: random.Random, gs: GroundStation) -> int | None:
     """Send one random message of a handled type; the command id when it wants an ACK."""
     f, t = (lambda: _float(rng)), gs.vehicle
-    kind = rng.randrange(15)
+    kind = rng.randrange(16)
     if kind == 0:
         cmd = rng.choice(_commands())
         # Mostly plausible: ARM 1, GUIDED, takeoff to a few metres — so the vehicles move.
@@ -681,11 +745,15 @@ def _fuzz_one(rng: random.Random, gs: GroundStation) -> int | None:
         gs.send(lambda m: m.param_request_read_send(t, 1, b"WP_SPEED", _int(rng, 16, True)))
     elif kind == 13:
         gs.send(lambda m: m.mission_request_send(t, 1, _int(rng, 16), rng.choice([0, 1, 9])))
-    else:
+    elif kind == 14:
         gs.send(lambda m: m.mission_ack_send(t, 1, _int(rng, 8), rng.choice([0, 1, 255])))
+    else:
+        gs.send(lambda m: m.request_data_stream_send(t, 1, _int(rng, 8), _int(rng, 16),
+                                                     _int(rng, 8)))
     return None
 
 
+@pytest.mark.timeout(300)  # about 45 s on an idle machine; a loaded one is slower
 def test_fuzzing_every_handled_message_never_stops_beehave_sim(tmp_path: Path) -> None:
     """``beehave sim --mavlink`` under random and non-finite values in every message type
     the vehicles handle: it keeps running (heartbeats and telemetry go on), nothing leaves
@@ -695,9 +763,7 @@ def test_fuzzing_every_handled_message_never_stops_beehave_sim(tmp_path: Path) -
 
     world = tmp_path / "gcs.yaml"
     world.write_text(yaml.safe_dump(WORLD))
-    base = free_port()
-    while free_port() == base + 1:
-        pass
+    base = free_port_pair()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "beehave.cli", "sim", str(world), "--mavlink-base-port",
@@ -714,7 +780,7 @@ def test_fuzzing_every_handled_message_never_stops_beehave_sim(tmp_path: Path) -
             if command is not None:  # every command is answered, with its own id
                 gs.wait("COMMAND_ACK", lambda a, c=command: a.command == c, since=since)
 
-        for episode in range(16):
+        for episode in range(10):
             gs = stations[episode % 2]
             for _ in range(80):
                 noise(gs)
@@ -722,6 +788,9 @@ def test_fuzzing_every_handled_message_never_stops_beehave_sim(tmp_path: Path) -
             _fly_out(rng, gs, lambda gs=gs: noise(gs))  # type: ignore[misc]
             assert proc.poll() is None, proc.communicate()[0]
         for gs in stations:  # the vehicles still live: a heartbeat and fresh telemetry
+            assert gs.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL,
+                              mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 0) == \
+                mav.MAV_RESULT_ACCEPTED  # the noise may have stopped it: the default again
             since = gs.mark()
             gs.wait("HEARTBEAT", since=since)
             boot = gs.latest("LOCAL_POSITION_NED").time_boot_ms
