@@ -620,12 +620,17 @@ class MavlinkLink:
 
     def takeoff(self, alt_m: float) -> None:
         """MAV_CMD_NAV_TAKEOFF to ``alt_m`` above home (Copter, armed, in GUIDED)."""
+        _require_finite("takeoff altitude", alt_m)
+        if alt_m <= 0:
+            raise ConfigError(f"takeoff altitude must be above 0 m, got {alt_m}")
         self.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, alt_m,
                      what=f"take off to {alt_m} m")
 
     def goto_local(self, north_m: float, east_m: float, alt_m: float | None = None) -> None:
         """SET_POSITION_TARGET_LOCAL_NED (position only) in GUIDED; no answer is expected
         (the vehicle's position tells). ``alt_m`` None keeps the altitude."""
+        _require_finite("position target", north_m, east_m,
+                        *(() if alt_m is None else (alt_m,)))
         self._require_alive("send a position target")
         down = -alt_m if alt_m is not None else self._down_now()
         mask = 0b0000_1101_1111_1000  # use x, y, z; ignore velocity, acceleration, yaw rate
@@ -755,7 +760,8 @@ class MavlinkLink:
 
     def set_param(self, name: str, value: float) -> float:
         """PARAM_SET, confirmed by the PARAM_VALUE echo; returns the value the vehicle
-        took."""
+        took (the one it had when it refused the new one)."""
+        _require_finite(f"parameter {name}", value)
         self._require_alive(f"set parameter {name}")
         with self.listen("PARAM_VALUE") as inbox:
             for _ in range(self.retries + 1):
@@ -797,6 +803,13 @@ class MavlinkLink:
     def __repr__(self) -> str:
         return (f"<MavlinkLink {self.url} system={self.system_id} kind={self.kind} "
                 f"{'alive' if self._alive else 'no heartbeat'} mode={self.mode}>")
+
+
+def _require_finite(what: str, *values: float) -> None:
+    """ConfigError unless every value is a finite number (a vehicle refuses the others:
+    better to say so here, where the mistake is)."""
+    if not all(isinstance(v, int | float) and math.isfinite(v) for v in values):
+        raise ConfigError(f"{what} must be finite numbers, got {values}")
 
 
 def param_name(msg: Any) -> str:

@@ -14,6 +14,9 @@ tracks velocity well. What matters for cooperation is what it can and cannot rea
 - **Battery.** Hovering draws ``hover_w``; moving adds ``drive_w_per_mps`` per m/s; on the
   floor only the idle draw. An empty battery makes it descend and stop.
 - **Watchdog.** Without a new command for ``cmd_timeout_s`` (sim time) it brakes to a hover.
+- **Motors.** :meth:`Quad.set_motors` (False) stops them, as disarming does: in the air it
+  falls (gravity, no lift) until it hits the floor; commands are ignored until they run again.
+- **The world.** It never leaves the floor's rectangle: at an edge it stops as at a wall.
 
 ``set_cmd_vel(linear, angular)`` (the ROS contract's Twist) flies forward along its heading
 at its altitude; :meth:`Quad.set_velocity` sets all three axes.
@@ -112,6 +115,9 @@ class Quad(SimRobot):
         self._next_path_s = 0.0
         self._extra_power_w = 0.0
         self._blocked = False
+        self._motors_on = True
+        width, depth = sim.world.floor.size_m
+        self._bounds = (0.0, 0.0, float(width), float(depth))
 
     # ---- commands (any thread) ------------------------------------------------------
 
@@ -138,6 +144,16 @@ class Quad(SimRobot):
             raise CommandOutOfRange(f"{self.namespace}: cmd_vel must be finite numbers, "
                                     f"got ({linear_mps}, {angular_rps})")
         self.set_velocity(v * math.cos(self._yaw), v * math.sin(self._yaw), 0.0, angular_rps)
+
+    def set_motors(self, on: bool) -> None:
+        """Run or stop the motors (stopped: no lift, velocity commands have no effect; in
+        the air the flyer falls)."""
+        self._motors_on = bool(on)
+
+    @property
+    def motors(self) -> bool:
+        """Whether the motors run (see :meth:`set_motors`)."""
+        return self._motors_on
 
     # ---- readings (any thread) ------------------------------------------------------
 
@@ -175,12 +191,19 @@ class Quad(SimRobot):
             rate = cmd.yaw_rate
         if self._charge_wh <= 0.0:
             target = np.array([0.0, 0.0, -0.5])  # empty: come down
-        if self._z <= 0.0 and target[2] <= 0.0:
-            target = np.zeros(3)  # on the floor it does not slide
-        dv = target - self._v
-        step = self.max_accel_mps2 * dt
-        norm = float(np.linalg.norm(dv))
-        self._v = self._v + (dv if norm <= step else dv * (step / norm))
+        if not self._motors_on:
+            if self._z > 0.0:  # no lift: a fall, keeping its horizontal speed
+                self._v = self._v + np.array([0.0, 0.0, -9.81 * dt])
+            else:
+                self._v = np.zeros(3)
+            rate = 0.0
+        else:
+            if self._z <= 0.0 and target[2] <= 0.0:
+                target = np.zeros(3)  # on the floor it does not slide
+            dv = target - self._v
+            step = self.max_accel_mps2 * dt
+            norm = float(np.linalg.norm(dv))
+            self._v = self._v + (dv if norm <= step else dv * (step / norm))
         nx = self._x + self._v[0] * dt
         ny = self._y + self._v[1] * dt
         self._blocked = False
@@ -195,9 +218,16 @@ class Quad(SimRobot):
                 self._blocked = True
                 self._v[0] = self._v[1] = 0.0
                 nx, ny = self._x, self._y
+        x0, y0, x1, y1 = self._bounds
+        if not (x0 <= nx <= x1 and y0 <= ny <= y1):  # the world's edge stops it
+            self._blocked = True
+            nx, ny = min(max(nx, x0), x1), min(max(ny, y0), y1)
+            self._v[0] = self._v[1] = 0.0
         self._x, self._y = float(nx), float(ny)
         self._z = float(min(self.max_alt_m, max(0.0, self._z + self._v[2] * dt)))
         if self._z <= 0.0:
+            if not self._motors_on:
+                self._v[:] = 0.0  # it hit the floor
             self._v[2] = 0.0
         self._yaw = math.remainder(self._yaw + rate * dt, 2 * math.pi)
         self._yaw_rate = rate
@@ -213,7 +243,7 @@ class Quad(SimRobot):
                               self._yaw_rate)
 
     def _sense(self, time_s: float, dt_s: float, *, scan: bool) -> None:
-        self._extra_power_w = self.hover_w if self._z > 0.01 else 0.0
+        self._extra_power_w = self.hover_w if self._z > 0.01 and self._motors_on else 0.0
         # The base class does battery and path; the flyer has no laser (scan=False).
         super()._sense(time_s, dt_s, scan=False)
 

@@ -53,6 +53,18 @@ def free_port() -> int:
         return port
 
 
+def free_ports(count: int) -> list[int]:
+    """Distinct free UDP ports (held open together while choosing: none repeats)."""
+    sockets = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
+    try:
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
+
+
 @pytest.fixture
 def cleanup(hl: HighLevelBehaviorManager) -> Iterator[Callable[[Callable[[], None]], None]]:
     """Clean-ups that run before the ``hl`` fixture checks for leaked threads."""
@@ -74,7 +86,7 @@ class Vehicles:
 @pytest.fixture
 def vehicles() -> Iterator[Vehicles]:
     sim = Simulation(world_from_dict(WORLD), real_time_factor=1.0)
-    ports = free_port(), free_port()
+    ports = free_ports(2)
     rover = MavlinkEndpoint(sim, "rover1", url=f"udpout:127.0.0.1:{ports[0]}", system_id=1,
                             rerequest_s=30.0)  # the client's retries must do the work
     quad = MavlinkEndpoint(sim, "quad1", url=f"udpout:127.0.0.1:{ports[1]}", system_id=2)
@@ -203,6 +215,23 @@ def test_a_malformed_connection_names_the_supported_forms() -> None:
         open_link("bluetooth:rover")
     with pytest.raises(ConfigError, match="port 1–65535"):
         open_link("udp:127.0.0.1:notaport")
+
+
+def test_the_link_refuses_non_finite_targets_before_sending_them() -> None:
+    """A NaN target, takeoff altitude or parameter is a mistake of the caller: ConfigError
+    at once, naming it (the vehicle would refuse it anyway)."""
+    link = open_link(f"udp:127.0.0.1:{free_port()}")
+    try:
+        with pytest.raises(ConfigError, match="position target must be finite"):
+            link.goto_local(math.nan, 1.0, 2.0)
+        with pytest.raises(ConfigError, match="takeoff altitude must be finite"):
+            link.takeoff(math.inf)
+        with pytest.raises(ConfigError, match="above 0 m"):
+            link.takeoff(0.0)
+        with pytest.raises(ConfigError, match="parameter WP_SPEED must be finite"):
+            link.set_param("WP_SPEED", math.nan)
+    finally:
+        link.close()
 
 
 def test_a_bad_waypoint_names_its_index() -> None:
