@@ -268,7 +268,11 @@ class ControlPlane:
 
     def _record(self, event: Event, source: str) -> None:
         data = event.as_dict()
-        data["detail"] = to_json(data["detail"])  # params, exceptions, paths … as JSON
+        # params, exceptions, paths … as JSON, bounded: a refused switch with a 5 MB
+        # parameter must not make every reader of the log (and every new WebSocket
+        # client) receive it again.
+        data["detail"] = to_json(data["detail"])
+        data = {key: bounded(value) for key, value in data.items()}  # the error's text too
         data["source"] = source
         with self._lock:
             if self._closed:
@@ -286,6 +290,43 @@ class ControlPlane:
 
 
 # ---- helpers ---------------------------------------------------------------------------------
+
+#: What an event keeps of a text (characters), a list or an object (items), and how deep.
+MAX_TEXT_CHARS = 1000
+MAX_ITEMS = 100
+MAX_DEPTH = 8
+
+
+def shorten(text: str, limit: int = MAX_TEXT_CHARS) -> str:
+    """``text``, cut to ``limit`` characters with a note of how long it was."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}… ({len(text)} characters, cut)"
+
+
+def bounded(value: Any, depth: int = 0) -> Any:
+    """A JSON value cut to a bounded size: texts to :data:`MAX_TEXT_CHARS` characters,
+    lists and objects to :data:`MAX_ITEMS` items (a ``"…"`` entry says how many were
+    left out), nesting to :data:`MAX_DEPTH` levels."""
+    if isinstance(value, str):
+        return shorten(value)
+    if isinstance(value, (list, tuple)):
+        if depth >= MAX_DEPTH:
+            return f"… (a list of {len(value)} items, cut)"
+        out = [bounded(v, depth + 1) for v in value[:MAX_ITEMS]]
+        if len(value) > MAX_ITEMS:
+            out.append(f"… ({len(value) - MAX_ITEMS} more items, cut)")
+        return out
+    if isinstance(value, dict):
+        if depth >= MAX_DEPTH:
+            return f"… (an object of {len(value)} keys, cut)"
+        items = list(value.items())
+        out_map = {shorten(str(k), 200): bounded(v, depth + 1) for k, v in items[:MAX_ITEMS]}
+        if len(items) > MAX_ITEMS:
+            out_map["…"] = f"{len(items) - MAX_ITEMS} more keys, cut"
+        return out_map
+    return value
+
 
 def _registry(manager: Any) -> list[tuple[str, tuple[type, dict[str, Any]]]]:
     """The manager's registry, sorted by name. Read from the framework's own managers

@@ -9,7 +9,7 @@
     ...
     server.stop()
 
-REST under ``/api`` (OpenAPI at ``/docs``), a coalesced WebSocket stream at ``/api/ws``,
+REST under ``/api`` (OpenAPI schema at ``/openapi.json``), a coalesced WebSocket stream at ``/api/ws``,
 the web view at ``/``. See ``docs/http.md``. Needs the ``http`` extra (fastapi, uvicorn).
 """
 

@@ -375,7 +375,7 @@ $("#switch-btn").addEventListener("click", async () => {
 
 $("#stop-btn").addEventListener("click", async () => {
   try {
-    await api(`/api/robots/${encodeURIComponent(view.selected)}/stop`, {method: "POST"});
+    await api(`/api/robots/${encodeURIComponent(view.selected)}/stop`, {method: "POST", body: "{}"});
     message(`${view.selected}: stopping (idle: every action to its safe state)`, false);
   } catch (err) {
     message(`${err.status || ""} ${err.message}`, true);
