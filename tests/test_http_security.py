@@ -11,9 +11,10 @@ import socket
 import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import pytest
+from annotated_types import Gt
 
 pytest.importorskip("fastapi")
 pytest.importorskip("uvicorn")
@@ -22,7 +23,8 @@ from config_fixtures import Drive  # noqa: E402
 from websockets.exceptions import InvalidStatus  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
-from beehave import HighLevelBehaviorManager  # noqa: E402
+from beehave import Behavior, HighLevelBehaviorManager  # noqa: E402
+from beehave.errors import InvalidParameters  # noqa: E402
 from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
@@ -380,3 +382,63 @@ def test_a_page_of_another_origin_cannot_command_the_robot(
     finally:
         page.close()
 
+
+
+# ---- 9: parameters are checked against the constructor's annotations before anything stops --
+
+class Rounds(Behavior):
+    def __init__(self, rounds: int, speed_mps: Annotated[float, Gt(0)] = 0.5,
+                 stations: tuple[str, ...] = ()) -> None:
+        self.rounds, self.speed_mps, self.stations = rounds, speed_mps, stations
+
+    def run(self) -> None:
+        while self.sleep(0.01):
+            pass
+
+
+@pytest.mark.parametrize("params,named,expected", [
+    ({"rounds": "many"}, "'rounds'", "int"),
+    ({"rounds": 2, "speed_mps": -5}, "'speed_mps'", "float"),
+    ({"rounds": 2, "stations": "dock"}, "'stations'", "tuple"),
+    ({"rounds": 2.5}, "'rounds'", "int"),
+])
+def test_a_parameter_of_the_wrong_type_is_refused_and_stops_nothing(
+        server: HttpServer, hl: HighLevelBehaviorManager, plane: ControlPlane,
+        driving: Any, params: dict[str, Any], named: str, expected: str) -> None:
+    hl.register("rounds", Rounds)
+    answer = httpx.post(f"{base(server)}/api/robots/emili1/switch",
+                        json={"behavior": "rounds", "params": params})
+    assert answer.status_code == 422, answer.text
+    detail = answer.json()["detail"]
+    value = next(v for k, v in params.items() if f"'{k}'" == named)
+    assert named in detail and expected in detail and repr(value) in detail, detail
+    kept_driving(hl, driving)
+    # The same refusal for every interface: they all switch through the control plane.
+    with pytest.raises(InvalidParameters, match=named):
+        plane.switch("rounds", params)
+    kept_driving(hl, driving)
+
+
+def test_parameters_of_the_right_type_switch_and_are_converted(
+        server: HttpServer, hl: HighLevelBehaviorManager, driving: Any) -> None:
+    hl.register("rounds", Rounds)
+    answer = httpx.post(f"{base(server)}/api/robots/emili1/switch", json={
+        "behavior": "rounds", "params": {"rounds": 3, "speed_mps": 1, "stations": ["a"]}})
+    assert answer.status_code == 202, answer.text
+    assert wait_until(lambda: hl.current == "rounds")
+    top = hl.top
+    assert (top.rounds, top.speed_mps, top.stations) == (3, 1.0, ("a",))
+
+
+# ---- 10: an undocumented behaviour is described with nothing, not the base class's text ------
+
+def test_an_undocumented_behaviour_has_no_description(server: HttpServer,
+                                                      hl: HighLevelBehaviorManager) -> None:
+    hl.register("rounds", Rounds)
+    listed = httpx.get(f"{base(server)}/api/robots/emili1/behaviors").json()
+    rounds = next(b for b in listed if b["name"] == "rounds")
+    assert rounds["doc"] == ""
+    drive = next(b for b in listed if b["name"] == "drive")
+    assert drive["doc"].startswith("Drives to a station")
+    types = {p["name"]: p["type"] for p in rounds["parameters"]}
+    assert types["rounds"] == "int" and types["speed_mps"].startswith("float")
