@@ -417,7 +417,7 @@ def _check_params(name: str, params: Mapping[str, Any] | None) -> dict[str, Any]
 def _annotations(cls: type) -> dict[str, Any]:
     """The constructor's parameter annotations, resolved (``from __future__ import
     annotations`` included) with their ``Annotated`` constraints; {} when there are none."""
-    init = cls.__init__
+    init = cls.__dict__.get("__init__") or getattr(cls, "__init__")  # noqa: B009
     try:
         return typing.get_type_hints(init, include_extras=True)
     except Exception:  # an unresolvable forward reference: what is a real object still counts

@@ -181,10 +181,13 @@ class HttpServer:
         self._port = sock.getsockname()[1]
         # No permessage-deflate: every client's copy of every update would be compressed
         # separately, in the robot's process (0.3–0.5 ms per 11 KB update and client).
+        base: type[asyncio.Protocol]
         try:  # what uvicorn's "auto" picks, with a timeout on a request's headers
-            from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol as base
+            from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+            base = HttpToolsProtocol
         except ImportError:  # pragma: no cover - httptools is a uvicorn[standard] extra
-            from uvicorn.protocols.http.h11_impl import H11Protocol as base
+            from uvicorn.protocols.http.h11_impl import H11Protocol
+            base = H11Protocol
         config = uvicorn.Config(self.app, log_level="warning", lifespan="on",
                                 http=header_timeout_protocol(base, self.header_timeout_s),
                                 ws="websockets-sansio", ws_per_message_deflate=False,
