@@ -79,3 +79,29 @@ def test_the_view_fits_a_phone_and_switch_and_stop_work_there(
     assert wait_until(lambda: hl.current == "drive")
     phone.locator("#stop-btn").tap()
     assert wait_until(lambda: hl.current == "idle")
+
+
+FLEET = {"robots": [{"name": "atv1", "x_m": 2.0, "y_m": 1.5, "battery_pct": 80.0}],
+         "messages": [{"topic": "fleet/atv1/order", "payload": "{" + '"k": 1, ' * 200 + "}"}
+                      for _ in range(3)]}
+
+
+def test_a_fleet_view_shows_no_empty_robot_panels_and_its_tables_fit(
+        monkeypatch: pytest.MonkeyPatch, phone: Any) -> None:
+    """Issue 22, item 13 (in part): a fleet process without robots of its own shows the
+    map and the fleet's tables, not empty robot panels whose Switch answers 404."""
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    phone.set_viewport_size({"width": 1280, "height": 800})
+    with HttpServer({}, world=WORLD, fleet=lambda: FLEET) as srv:
+        phone.goto(srv.url)
+        phone.wait_for_selector("#fleet-panel table[data-section=messages]", timeout=WAIT_MS)
+        phone.wait_for_selector('[data-fleet-robot="atv1"]', state="attached",
+                                timeout=WAIT_MS)
+        for panel in ("#behavior-panel", "#switch-btn", "#stop-btn", "#robot-select"):
+            assert not phone.locator(panel).is_visible(), f"{panel} is shown"
+        assert phone.locator(".robot-panel:visible").count() == 0
+        width = phone.evaluate("document.documentElement.scrollWidth")
+        assert width <= 1280, f"the page is {width} px wide in a 1280 px window"
+        overflow = phone.evaluate("(() => { const p = document.querySelector('#fleet-panel');"
+                                  " return p.scrollWidth - p.clientWidth; })()")
+        assert overflow <= 0, f"the fleet panel overflows by {overflow} px"

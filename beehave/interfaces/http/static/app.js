@@ -568,7 +568,7 @@ function renderFleet(fleet) {
       const table = el("table", {"data-section": section},
         el("thead", {}, el("tr", {}, ...cols.map((c) => el("th", {text: c})))),
         el("tbody", {}, ...items.slice(-100).map((i) => el("tr", {}, ...cols.map((c) => el("td", {text: show(i[c] === undefined ? "" : i[c])}))))));
-      parts.push(table);
+      parts.push(el("div", {class: "scroll"}, table));  // wide tables scroll, the page not
     } else {
       parts.push(el("pre", {class: "muted", text: JSON.stringify(items, null, 1)}));
     }
@@ -606,6 +606,10 @@ async function start() {
   select(view.selected || view.robots[0]);
   if (view.ws) { const old = view.ws; view.ws = null; old.close(); }
   // A fleet process whose robots run elsewhere serves the fleet and the map only.
+  // Without a robot of its own, the robot panels (and Switch, Stop) would only be empty
+  // or answer "unknown robot": they are hidden.
+  for (const panel of document.querySelectorAll(".robot-panel")) panel.hidden = !view.robots.length;
+  $("#robot-label").hidden = !view.robots.length;
   if (view.robots.length) connect(); else setConn(true, "fleet view");
 }
 
