@@ -81,7 +81,9 @@ def test_the_view_fits_a_phone_and_switch_and_stop_work_there(
     assert wait_until(lambda: hl.current == "idle")
 
 
+FACTORY = {**WORLD, "machines": [{"name": "press1", "center_m": [4.0, 3.0]}]}
 FLEET = {"robots": [{"name": "atv1", "x_m": 2.0, "y_m": 1.5, "battery_pct": 80.0}],
+         "machines": [{"machine": "press1", "level": 70.2, "capacity": 100}],
          "messages": [{"topic": "fleet/atv1/order", "payload": "{" + '"k": 1, ' * 200 + "}"}
                       for _ in range(3)]}
 
@@ -89,10 +91,11 @@ FLEET = {"robots": [{"name": "atv1", "x_m": 2.0, "y_m": 1.5, "battery_pct": 80.0
 def test_a_fleet_view_shows_no_empty_robot_panels_and_its_tables_fit(
         monkeypatch: pytest.MonkeyPatch, phone: Any) -> None:
     """Issue 22, item 13 (in part): a fleet process without robots of its own shows the
-    map and the fleet's tables, not empty robot panels whose Switch answers 404."""
+    map with its machines labelled and the fleet's tables, not empty robot panels whose
+    Switch answers 404."""
     monkeypatch.delenv(TOKEN_ENV, raising=False)
     phone.set_viewport_size({"width": 1280, "height": 800})
-    with HttpServer({}, world=WORLD, fleet=lambda: FLEET) as srv:
+    with HttpServer({}, world=FACTORY, fleet=lambda: FLEET) as srv:
         phone.goto(srv.url)
         phone.wait_for_selector("#fleet-panel table[data-section=messages]", timeout=WAIT_MS)
         phone.wait_for_selector('[data-fleet-robot="atv1"]', state="attached",
@@ -105,3 +108,8 @@ def test_a_fleet_view_shows_no_empty_robot_panels_and_its_tables_fit(
         overflow = phone.evaluate("(() => { const p = document.querySelector('#fleet-panel');"
                                   " return p.scrollWidth - p.clientWidth; })()")
         assert overflow <= 0, f"the fleet panel overflows by {overflow} px"
+        # The machines are drawn and labelled, with the level the fleet reports.
+        label = phone.locator('[data-machine-label="press1"]')
+        label.wait_for(state="attached", timeout=WAIT_MS)
+        phone.wait_for_function("document.querySelector('[data-machine-label=\"press1\"]')"
+                                ".textContent === 'press1 70/100'", timeout=WAIT_MS)

@@ -221,6 +221,17 @@ function drawWorld(world) {
     label.textContent = station.name;
     layer.append(rect, label);
   }
+  for (const machine of world.machines || []) {
+    // A machine of a factory world: its footprint and its name (a fleet view adds the level).
+    const [cx, cy] = machine.center_m, [sx, sy] = machine.size_m || [1.6, 1.2];
+    const rect = svg("rect", {class: "machine", x: cx - sx / 2, y: Y(cy) - sy / 2,
+      width: sx, height: sy, transform: `rotate(${-(machine.yaw_deg || 0)} ${cx} ${Y(cy)})`,
+      "data-machine": machine.name});
+    const label = svg("text", {class: "machine-label", x: cx - sx / 2 + 0.05, y: Y(cy) + 0.1,
+      "data-machine-label": machine.name});
+    label.textContent = machine.name;
+    layer.append(rect, label);
+  }
   for (const box of world.shelves || []) layer.append(boxShape(box, "shelf", Y));
   for (const ob of world.obstacles || []) {
     if (ob.radius_m !== undefined) {
@@ -557,8 +568,22 @@ function drawFleetRobots(rows) {
   }
 }
 
+function labelMachines(rows) {
+  // The fleet's "machines" rows ({machine, level, capacity}) label the map's machines.
+  for (const row of Array.isArray(rows) ? rows : []) {
+    const name = row && (row.machine || row.name);
+    if (!name) continue;
+    const label = document.querySelector(`[data-machine-label="${CSS.escape(String(name))}"]`);
+    if (!label) continue;
+    const level = typeof row.level === "number" ? ` ${row.level.toFixed(0)}` : "";
+    const capacity = typeof row.capacity === "number" ? `/${row.capacity}` : "";
+    label.textContent = `${name}${level}${level ? capacity : ""}`;
+  }
+}
+
 function renderFleet(fleet) {
   drawFleetRobots(fleet && fleet.robots);
+  labelMachines(fleet && fleet.machines);
   const box = $("#fleet");
   const parts = [];
   for (const [section, items] of Object.entries(fleet || {})) {
