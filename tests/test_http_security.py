@@ -115,6 +115,21 @@ def test_api_clients_with_json_still_switch_and_stop(
     assert wait_until(lambda: hl.current == "drive")
 
 
+def test_the_page_behind_a_tls_proxy_may_command_with_its_token(
+        plane: ControlPlane, hl: HighLevelBehaviorManager, driving: Any,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    with HttpServer(plane, host="0.0.0.0", token="t0ken") as srv:
+        api = f"http://127.0.0.1:{srv.port}/api/robots/emili1"
+        page = {"Host": "robot.example", "Origin": "https://robot.example",
+                "Sec-Fetch-Site": "same-origin", "Authorization": "Bearer t0ken"}
+        foreign = dict(page, Origin="https://evil.example", **{"Sec-Fetch-Site": "cross-site"})
+        assert httpx.post(f"{api}/stop", json={}, headers=foreign).status_code == 403
+        kept_driving(hl, driving)
+        assert httpx.post(f"{api}/stop", json={}, headers=page).status_code == 202
+        assert wait_until(lambda: hl.current == "idle")
+
+
 # ---- 2: DNS rebinding ----------------------------------------------------------------------
 
 @pytest.mark.parametrize("method,path", [("post", "switch"), ("post", "stop"),

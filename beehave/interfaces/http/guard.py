@@ -125,12 +125,16 @@ class Guard:
         what = "a WebSocket" if websocket else "a command"
         origin = headers.get("origin")
         if origin is not None:
-            own = {f"{scope.get('scheme', 'http').replace('ws', 'http')}://{host}".lower()}
-            if origin.rstrip("/").lower() not in own | self.origins:
+            # The page's own origin names the host the request was sent to (its scheme
+            # may differ behind a TLS proxy). A rebound name matches here too: that is
+            # what the Host rule above is for.
+            netloc = origin.partition("://")[2].rstrip("/").lower()
+            if (not netloc or netloc != host.strip().lower()) \
+                    and origin.rstrip("/").lower() not in self.origins:
                 return (403, "CrossOrigin",
                         f"{what} from origin {origin[:100]!r} is refused: only this "
-                        f"server's own page ({', '.join(sorted(own))}) and API clients "
-                        f"(which send no Origin) may send one")
+                        f"server's own page (an origin naming {host[:100]!r}) and API "
+                        f"clients (which send no Origin) may send one")
         site = headers.get("sec-fetch-site")
         if site is not None and site not in _SAME_SITE and (
                 origin is None or origin.rstrip("/").lower() not in self.origins):
