@@ -9,6 +9,7 @@ import http.server
 import json
 import socket
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any
@@ -232,6 +233,23 @@ def test_an_oversized_body_is_refused_before_it_is_read(
     assert sent < 100 * 2**20, "the whole 100 MB body was taken"
     kept_driving(hl, driving)
     assert httpx.get(f"{base(server)}/api/robots/emili1/status").status_code == 200
+
+
+def test_an_oversized_websocket_message_closes_that_stream_only(
+        server: HttpServer, hl: HighLevelBehaviorManager, driving: Any) -> None:
+    from websockets.exceptions import ConnectionClosed
+
+    url = f"ws://127.0.0.1:{server.port}/api/ws"
+    with connect(url, open_timeout=WALL_TIMEOUT_S, max_size=2**22) as ws:
+        ws.send("x" * 2**20)
+        deadline = time.monotonic() + WALL_TIMEOUT_S
+        with pytest.raises(ConnectionClosed) as closed:
+            while time.monotonic() < deadline:  # updates come until the server closes
+                ws.recv(WALL_TIMEOUT_S)
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 1009
+    kept_driving(hl, driving)
+    with connect(url, open_timeout=WALL_TIMEOUT_S) as ws:
+        assert json.loads(ws.recv(WALL_TIMEOUT_S))["type"] == "update"
 
 
 # ---- 6: what a refused switch leaves in the event log and echoes is bounded -------------------

@@ -109,6 +109,7 @@ class HttpServer:
             raise ConfigError(f"HttpServer: header_timeout_s must be a number of seconds in "
                               f"(0, 3600], got {header_timeout_s!r}")
         self.header_timeout_s = float(header_timeout_s)
+        self.max_body_bytes = max_body_bytes
         self.host = host
         self.loopback = is_loopback(host)
         #: Where the token came from: "given", "environment", "generated" or None.
@@ -191,6 +192,9 @@ class HttpServer:
         config = uvicorn.Config(self.app, log_level="warning", lifespan="on",
                                 http=header_timeout_protocol(base, self.header_timeout_s),
                                 ws="websockets-sansio", ws_per_message_deflate=False,
+                                # clients send nothing on the stream: a message beyond the
+                                # body limit closes it (1009) instead of being buffered
+                                ws_max_size=self.max_body_bytes,
                                 timeout_graceful_shutdown=1, access_log=False)
         self._server = uvicorn.Server(config)
         self._thread = threading.Thread(target=self._main, name="beehave:http", daemon=True)
