@@ -183,28 +183,46 @@ def check_key(key: object) -> str:
     return key
 
 
+#: The longest pattern accepted (characters): far above any real key, far below what a
+#: pathological pattern would need to cost anything.
+MAX_PATTERN_CHARS = 512
+
+
 def _compile(pattern: object) -> tuple[str, ...]:
     if not isinstance(pattern, str) or not pattern:
         raise BlackboardError(f"invalid blackboard pattern {pattern!r}: expected e.g. "
                               "'battery/percentage', 'leds/*' or 'battery/**'")
+    if len(pattern) > MAX_PATTERN_CHARS:
+        raise BlackboardError(f"invalid blackboard pattern {pattern[:40]!r}…: "
+                              f"{len(pattern)} characters, at most {MAX_PATTERN_CHARS}")
     segments = tuple(pattern.split("/"))
     for seg in segments:
         if seg not in ("*", "**") and _SEGMENT.fullmatch(seg) is None:
             raise BlackboardError(
-                f"invalid blackboard pattern {pattern!r}: segment {seg!r} must be a name, "
-                "'*' (one segment) or '**' (any number of segments)")
-    return segments
+                f"invalid blackboard pattern {pattern[:80]!r}: segment {seg[:40]!r} must be "
+                "a name, '*' (one segment) or '**' (any number of segments)")
+    # Consecutive '**' match what one does: fold them (the matcher's cost stays the same).
+    folded: list[str] = []
+    for seg in segments:
+        if not (seg == "**" and folded and folded[-1] == "**"):
+            folded.append(seg)
+    return tuple(folded)
 
 
 def _match(pat: tuple[str, ...], key: tuple[str, ...]) -> bool:
-    if not pat:
-        return not key
-    head = pat[0]
-    if head == "**":
-        return any(_match(pat[1:], key[i:]) for i in range(len(key) + 1))
-    if not key:
-        return False
-    return (head == "*" or head == key[0]) and _match(pat[1:], key[1:])
+    """Whether ``key`` matches ``pat``: one pass over the pattern, keeping the set of key
+    positions reachable so far (time O(len(pat) × len(key)), no recursion)."""
+    reach = {0}
+    for seg in pat:
+        if seg == "**":
+            start = min(reach)
+            reach = set(range(start, len(key) + 1))
+        else:
+            reach = {i + 1 for i in reach
+                     if i < len(key) and (seg == "*" or seg == key[i])}
+        if not reach:
+            return False
+    return len(key) in reach
 
 
 def matches(pattern: str, key: str) -> bool:

@@ -415,8 +415,8 @@ def _http_for_run(args: argparse.Namespace, robot: Robot) -> Iterator[None]:
 
 def _announce(server: object) -> None:
     url = getattr(server, "url", "")
-    print(f"beehave: web view and API at {url} (OpenAPI: {url.split('#')[0]}docs)",
-          flush=True)
+    print(f"beehave: web view and API at {url} (OpenAPI schema: "
+          f"{url.split('#')[0]}openapi.json)", flush=True)
     if getattr(server, "token_source", None) == "generated":
         print(f"beehave: token {getattr(server, 'token', '')} (send 'Authorization: Bearer "
               f"TOKEN'; set BEEHAVE_HTTP_TOKEN to choose one)", flush=True)

@@ -69,9 +69,38 @@ def test_the_demo_serves_both_robots_and_prints_the_url(tmp_path: Path) -> None:
         assert [r["name"] for r in robots["robots"]] == ["emili1", "kobuki1"]
         assert robots["world"] is True
         assert "walls" in httpx.get(match.group(1) + "api/world", timeout=10).json()
+        # Issue 22 item 11: the page draws both robots (the demo keeps the odometry and
+        # battery HALs loaded for the view, as `beehave run --http` does).
+        from beehave.testing import wait_until
+
+        for name in ("emili1", "kobuki1"):
+            assert wait_until(lambda name=name: httpx.get(
+                f"{match.group(1)}api/robots/{name}/blackboard", params={"key": "odom/x_m"},
+                timeout=10).status_code == 200), f"{name}: no odometry on the blackboard"
+        _page_draws(match.group(1), ["emili1", "kobuki1"])
         rest = proc.communicate(timeout=180)[0]
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait(10)
     assert proc.returncode == 0 and "demo OK" in rest, "".join(lines) + rest
+
+
+def _page_draws(url: str, robots: list[str]) -> None:
+    """A chromium page of ``url`` shows a marker for each of ``robots``."""
+    sync_api = pytest.importorskip("playwright.sync_api")
+    if not Path("/usr/bin/chromium").exists():  # pragma: no cover - `make setup` installs it
+        pytest.skip("/usr/bin/chromium is not installed")
+    from beehave.testing import WALL_TIMEOUT_S
+
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path="/usr/bin/chromium",
+                                             headless=True)
+        try:
+            page = browser.new_page()
+            page.goto(url)
+            for name in robots:
+                page.wait_for_selector(f"#robot-{name}", state="attached",
+                                       timeout=WALL_TIMEOUT_S * 1000)
+        finally:
+            browser.close()

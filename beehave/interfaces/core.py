@@ -29,9 +29,12 @@ import logging
 import math
 import threading
 import time
+import typing
 from collections import deque
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
+
+from pydantic import TypeAdapter, ValidationError
 
 from beehave.blackboard import Blackboard, check_key, to_json
 from beehave.errors import BadRequest, InvalidParameters, UnknownBehavior, UnknownKey
@@ -135,6 +138,8 @@ class ControlPlane:
         if name not in names:
             raise UnknownBehavior(name, names)
         checked = _check_params(name, params)
+        cls = dict(self.high._registry)[name][0]  # same package: the framework's manager
+        checked = _check_types(name, cls, checked)
         self.high.request_switch(name, **checked)
         return {"requested": name, "params": to_json(checked)}
 
@@ -268,7 +273,11 @@ class ControlPlane:
 
     def _record(self, event: Event, source: str) -> None:
         data = event.as_dict()
-        data["detail"] = to_json(data["detail"])  # params, exceptions, paths … as JSON
+        # params, exceptions, paths … as JSON, bounded: a refused switch with a 5 MB
+        # parameter must not make every reader of the log (and every new WebSocket
+        # client) receive it again.
+        data["detail"] = to_json(data["detail"])
+        data = {key: bounded(value) for key, value in data.items()}  # the error's text too
         data["source"] = source
         with self._lock:
             if self._closed:
@@ -287,6 +296,43 @@ class ControlPlane:
 
 # ---- helpers ---------------------------------------------------------------------------------
 
+#: What an event keeps of a text (characters), a list or an object (items), and how deep.
+MAX_TEXT_CHARS = 1000
+MAX_ITEMS = 100
+MAX_DEPTH = 8
+
+
+def shorten(text: str, limit: int = MAX_TEXT_CHARS) -> str:
+    """``text``, cut to ``limit`` characters with a note of how long it was."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}… ({len(text)} characters, cut)"
+
+
+def bounded(value: Any, depth: int = 0) -> Any:
+    """A JSON value cut to a bounded size: texts to :data:`MAX_TEXT_CHARS` characters,
+    lists and objects to :data:`MAX_ITEMS` items (a ``"…"`` entry says how many were
+    left out), nesting to :data:`MAX_DEPTH` levels."""
+    if isinstance(value, str):
+        return shorten(value)
+    if isinstance(value, (list, tuple)):
+        if depth >= MAX_DEPTH:
+            return f"… (a list of {len(value)} items, cut)"
+        out = [bounded(v, depth + 1) for v in value[:MAX_ITEMS]]
+        if len(value) > MAX_ITEMS:
+            out.append(f"… ({len(value) - MAX_ITEMS} more items, cut)")
+        return out
+    if isinstance(value, dict):
+        if depth >= MAX_DEPTH:
+            return f"… (an object of {len(value)} keys, cut)"
+        items = list(value.items())
+        out_map = {shorten(str(k), 200): bounded(v, depth + 1) for k, v in items[:MAX_ITEMS]}
+        if len(items) > MAX_ITEMS:
+            out_map["…"] = f"{len(items) - MAX_ITEMS} more keys, cut"
+        return out_map
+    return value
+
+
 def _registry(manager: Any) -> list[tuple[str, tuple[type, dict[str, Any]]]]:
     """The manager's registry, sorted by name. Read from the framework's own managers
     (same package); copied so a concurrent ``register`` cannot change it under us."""
@@ -298,7 +344,12 @@ def _type_name(annotation: Any) -> str | None:
         return None
     if isinstance(annotation, str):  # `from __future__ import annotations`
         return annotation
-    return getattr(annotation, "__name__", None) or repr(annotation)
+    if typing.get_origin(annotation) is typing.Annotated:  # float (Gt(gt=0))
+        base, *extras = typing.get_args(annotation)
+        return f"{_type_name(base)} ({', '.join(repr(e) for e in extras)})"
+    if isinstance(annotation, type):
+        return annotation.__name__
+    return repr(annotation).replace("typing.", "")
 
 
 def _describe(name: str, cls: type, registered: dict[str, Any], current: bool
@@ -309,6 +360,7 @@ def _describe(name: str, cls: type, registered: dict[str, Any], current: bool
     except (TypeError, ValueError):
         signature = None
     if signature is not None:
+        hints = _annotations(cls)
         for p in signature.parameters.values():
             if p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
                 continue
@@ -318,9 +370,13 @@ def _describe(name: str, cls: type, registered: dict[str, Any], current: bool
                 default, required = None, True
             else:
                 default, required = to_json(p.default), False
-            params.append({"name": p.name, "type": _type_name(p.annotation),
+            params.append({"name": p.name,
+                           "type": _type_name(hints.get(p.name, p.annotation)),
                            "default": default, "required": required})
-    doc = inspect.getdoc(cls) or ""
+    # The class's own docstring only: an undocumented behaviour would otherwise be
+    # described by the framework base class's ("Subclass it and write run…").
+    own = cls.__dict__.get("__doc__")
+    doc = inspect.cleandoc(own) if isinstance(own, str) else ""
     return {"name": name, "class": f"{cls.__module__}.{cls.__qualname__}",
             "doc": doc.split("\n\n")[0].strip(), "current": current, "parameters": params}
 
@@ -355,6 +411,56 @@ def _check_params(name: str, params: Mapping[str, Any] | None) -> dict[str, Any]
                                     f"value (string, number, bool, null, list, object), "
                                     f"got {type(value).__name__} {value!r}")
         out[key] = value
+    return out
+
+
+def _annotations(cls: type) -> dict[str, Any]:
+    """The constructor's parameter annotations, resolved (``from __future__ import
+    annotations`` included) with their ``Annotated`` constraints; {} when there are none."""
+    init = cls.__dict__.get("__init__") or getattr(cls, "__init__")  # noqa: B009
+    try:
+        return typing.get_type_hints(init, include_extras=True)
+    except Exception:  # an unresolvable forward reference: what is a real object still counts
+        raw = getattr(init, "__annotations__", {}) or {}
+        return {k: v for k, v in raw.items() if not isinstance(v, str)}
+
+
+def _adapter(annotation: Any) -> TypeAdapter[Any] | None:
+    try:
+        return TypeAdapter(annotation)
+    except Exception:  # a type pydantic cannot check (an arbitrary class): the constructor
+        return None    # decides, as before
+
+
+def _check_types(name: str, cls: type, params: dict[str, Any]) -> dict[str, Any]:
+    """``params`` validated against the constructor's annotations (pydantic, lax: a JSON
+    ``1`` is a fine ``float``, a list a fine ``tuple``; constraints declared with
+    ``Annotated[float, Gt(0)]`` hold), converted to the annotated types; else
+    :class:`InvalidParameters` naming the parameter, the expected type and the value.
+    Unannotated parameters, ``Any`` and types pydantic cannot check pass unchanged; names
+    the constructor does not take are left to the manager's own check."""
+    if not params:
+        return params
+    try:
+        accepted = inspect.signature(cls).parameters
+    except (TypeError, ValueError):
+        return params
+    hints = _annotations(cls)
+    out = dict(params)
+    for key, value in params.items():
+        annotation = hints.get(key)
+        if key not in accepted or annotation is None or annotation is Any:
+            continue
+        adapter = _adapter(annotation)
+        if adapter is None:
+            continue
+        try:
+            out[key] = adapter.validate_python(value)
+        except ValidationError as exc:
+            why = "; ".join(err.get("msg", "invalid") for err in exc.errors())
+            raise InvalidParameters(
+                f"behavior {name!r}: parameter {key!r} expects {_type_name(annotation)}, "
+                f"got {type(value).__name__} {shorten(repr(value), 200)}: {why}") from None
     return out
 
 

@@ -96,19 +96,25 @@ def _running_actions(node: dict[str, Any] | None) -> list[str]:
 def _serve_http(console: Console, address: tuple[str, int], world: Any, *robots: Robot
                 ) -> Iterator[None]:
     """Both robots' web view and API (``beehave demo --http PORT``), with the world map."""
+    from beehave.config import hal_names
     from beehave.interfaces.http import HttpServer
+    from beehave.interfaces.http.server import VIEW_HALS, hold_hals
 
     planes = {robot.config.namespace: robot.plane for robot in robots
               if robot.plane is not None}
     server = HttpServer(planes, host=address[0], port=address[1],
                         world=world.model_dump(mode="json"))
     server.start()
-    try:
-        console.print(f"web view: [bold]{server.url}[/]  (API docs: "
-                      f"{server.url.split('#')[0]}docs)")
+    with contextlib.ExitStack() as stack:
+        stack.callback(server.stop)
+        for robot in robots:  # the map draws pose and battery: keep their HALs loaded
+            if robot.low is not None:  # (as `beehave run --http` does)
+                configured = set(hal_names(robot.config))
+                stack.callback(hold_hals(robot.low,
+                                         [n for n in VIEW_HALS if n in configured]))
+        console.print(f"web view: [bold]{server.url}[/]  (OpenAPI schema: "
+                      f"{server.url.split('#')[0]}openapi.json)")
         yield
-    finally:
-        server.stop()
 
 
 def _wait(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase: str,

@@ -9,8 +9,9 @@
     ...
     server.stop()
 
-REST under ``/api`` (OpenAPI at ``/docs``), a coalesced WebSocket stream at ``/api/ws``,
-the web view at ``/``. See ``docs/http.md``. Needs the ``http`` extra (fastapi, uvicorn).
+REST under ``/api`` (OpenAPI schema at ``/openapi.json``), a coalesced WebSocket stream
+at ``/api/ws``, the web view at ``/``. See ``docs/http.md``. Needs the ``http`` extra
+(fastapi, uvicorn).
 """
 
 from beehave.interfaces.http.app import STATUS_OF, Auth, SwitchRequest, create_app

@@ -9,7 +9,7 @@ import asyncio
 import contextlib
 import logging
 import secrets
-from collections.abc import AsyncIterator, Callable, Mapping
+from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -30,7 +30,8 @@ from beehave.errors import (
     UnknownKey,
     UnknownNameError,
 )
-from beehave.interfaces.core import ControlPlane
+from beehave.interfaces.core import ControlPlane, shorten
+from beehave.interfaces.http.guard import MAX_BODY_BYTES, Guard
 from beehave.interfaces.http.hub import Client, Hub
 
 log = logging.getLogger(__name__)
@@ -99,7 +100,9 @@ def _bearer(request: Request) -> str | None:
 def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
                fleet: Provider = None, token: str | None = None, loopback: bool = True,
                rate_hz: float = 20.0, refresh_s: float = 1.0,
-               on_started: Callable[[], None] | None = None) -> FastAPI:
+               on_started: Callable[[], None] | None = None, hosts: Iterable[str] = (),
+               origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES
+               ) -> FastAPI:
     """The application serving ``planes`` (robot name → its control plane).
 
     ``world``: the map the web view draws (the world YAML as JSON: floor, walls, shelves,
@@ -107,7 +110,9 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
     contracts, messages); ``token`` and ``loopback``: see :class:`Auth`; ``rate_hz``:
     the most WebSocket updates per robot and second; ``refresh_s``: the longest time
     between two updates of a robot that did not change (ages move on); ``on_started``:
-    called once the server has started (its lifespan began).
+    called once the server has started (its lifespan began). ``hosts``, ``origins``,
+    ``max_body_bytes``: what :class:`~beehave.interfaces.http.guard.Guard` accepts besides
+    the loopback names and the server's own origin, and the largest request body.
     """
     if not planes and fleet is None:
         raise ConfigError("the HTTP interface needs at least one robot's ControlPlane, or a "
@@ -129,20 +134,28 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
         finally:
             await hub.stop()
 
+    # No /docs: Swagger UI would load its script from a CDN into the robot's origin (and
+    # stay blank offline). The schema is served below, behind the read rule.
     app = FastAPI(
-        title="beehave robot API", lifespan=lifespan,
+        title="beehave robot API", lifespan=lifespan, docs_url=None, redoc_url=None,
+        openapi_url=None,
         description="Switch behaviours, read what runs, the blackboard and the events of "
                     "beehave robots; `WS /api/ws` streams coalesced updates. The web view "
                     "is at `/`. With a token: `Authorization: Bearer TOKEN`.")
     app.state.hub = hub
     app.state.auth = auth
+    # Host (DNS rebinding) is checked whenever something is answered without a token.
+    app.add_middleware(Guard, check_host=token is None or loopback, hosts=hosts,
+                       origins=origins, max_body_bytes=max_body_bytes)
 
     @app.exception_handler(BeehaveError)
     async def beehave_error(_: Request, exc: BeehaveError) -> JSONResponse:
         status = next(code for kind, code in STATUS_OF if isinstance(exc, kind))
         if status >= 500:
             log.warning("HTTP %d: %s", status, exc)
-        return JSONResponse({"error": type(exc).__name__, "detail": str(exc)}, status)
+        # Bounded: an error naming a huge value must not echo it (issue 22).
+        return JSONResponse({"error": type(exc).__name__, "detail": shorten(str(exc))},
+                            status)
 
     @app.exception_handler(HttpError)
     async def http_error(_: Request, exc: HttpError) -> JSONResponse:
@@ -153,12 +166,13 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
         # One readable sentence per problem, naming where it is (body.behavior, query.limit).
         problems = ["{}: {}".format(".".join(str(p) for p in err.get("loc", ())),
                                     err.get("msg", "invalid")) for err in exc.errors()]
-        return JSONResponse({"error": "BadRequest", "detail": "; ".join(problems)}, 422)
+        return JSONResponse({"error": "BadRequest", "detail": shorten("; ".join(problems))},
+                            422)
 
     @app.exception_handler(Exception)
     async def unexpected(_: Request, exc: Exception) -> JSONResponse:
         log.exception("HTTP request failed")
-        return JSONResponse({"error": type(exc).__name__, "detail": str(exc)}, 500)
+        return JSONResponse({"error": type(exc).__name__, "detail": shorten(str(exc))}, 500)
 
     def read_access(request: Request) -> None:
         if not auth.allows(_bearer(request), command=False):
@@ -293,6 +307,10 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
             if error is not None and not isinstance(error, _CLIENT_GONE):
                 log.warning("web view: the stream to a WebSocket client failed: %r", error,
                             exc_info=error)
+
+    @app.get("/openapi.json", include_in_schema=False)
+    def openapi(_: Read) -> dict[str, Any]:
+        return app.openapi()
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:

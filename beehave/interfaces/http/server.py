@@ -16,6 +16,11 @@ from typing import TYPE_CHECKING, Any, Self
 from beehave.errors import BeehaveError, ConfigError
 from beehave.interfaces.core import ControlPlane
 from beehave.interfaces.http.app import Provider, create_app
+from beehave.interfaces.http.guard import (
+    HEADER_TIMEOUT_S,
+    MAX_BODY_BYTES,
+    header_timeout_protocol,
+)
 
 if TYPE_CHECKING:
     from beehave.lowlevel import LowLevelBehaviorManager
@@ -84,7 +89,9 @@ class HttpServer:
     def __init__(self, planes: ControlPlane | Mapping[str, ControlPlane], *,
                  host: str = DEFAULT_HOST, port: int = 0, token: str | None = None,
                  world: Provider = None, fleet: Provider = None, rate_hz: float = 20.0,
-                 refresh_s: float = 1.0) -> None:
+                 refresh_s: float = 1.0, hosts: Iterable[str] = (),
+                 origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES,
+                 header_timeout_s: float = HEADER_TIMEOUT_S) -> None:
         if isinstance(planes, ControlPlane):
             planes = {planes.name: planes}
         if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
@@ -95,6 +102,14 @@ class HttpServer:
         if not (isinstance(refresh_s, (int, float)) and 0 < refresh_s <= 3600):
             raise ConfigError(f"HttpServer: refresh_s must be a number of seconds in "
                               f"(0, 3600], got {refresh_s!r}")
+        if not (isinstance(max_body_bytes, int) and max_body_bytes > 0):
+            raise ConfigError(f"HttpServer: max_body_bytes must be a positive int, got "
+                              f"{max_body_bytes!r}")
+        if not (isinstance(header_timeout_s, (int, float)) and 0 < header_timeout_s <= 3600):
+            raise ConfigError(f"HttpServer: header_timeout_s must be a number of seconds in "
+                              f"(0, 3600], got {header_timeout_s!r}")
+        self.header_timeout_s = float(header_timeout_s)
+        self.max_body_bytes = max_body_bytes
         self.host = host
         self.loopback = is_loopback(host)
         #: Where the token came from: "given", "environment", "generated" or None.
@@ -115,7 +130,8 @@ class HttpServer:
         self._ready = threading.Event()
         self.app = create_app(self.planes, world=world, fleet=fleet, token=token,
                               loopback=self.loopback, rate_hz=rate_hz, refresh_s=refresh_s,
-                              on_started=self._ready.set)
+                              on_started=self._ready.set, hosts=[host, *hosts],
+                              origins=origins, max_body_bytes=max_body_bytes)
         self._port = port
         self._sock: socket.socket | None = None
         self._server: Any = None
@@ -166,8 +182,19 @@ class HttpServer:
         self._port = sock.getsockname()[1]
         # No permessage-deflate: every client's copy of every update would be compressed
         # separately, in the robot's process (0.3–0.5 ms per 11 KB update and client).
+        base: type[asyncio.Protocol]
+        try:  # what uvicorn's "auto" picks, with a timeout on a request's headers
+            from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+            base = HttpToolsProtocol
+        except ImportError:  # pragma: no cover - httptools is a uvicorn[standard] extra
+            from uvicorn.protocols.http.h11_impl import H11Protocol
+            base = H11Protocol
         config = uvicorn.Config(self.app, log_level="warning", lifespan="on",
+                                http=header_timeout_protocol(base, self.header_timeout_s),
                                 ws="websockets-sansio", ws_per_message_deflate=False,
+                                # clients send nothing on the stream: a message beyond the
+                                # body limit closes it (1009) instead of being buffered
+                                ws_max_size=self.max_body_bytes,
                                 timeout_graceful_shutdown=1, access_log=False)
         self._server = uvicorn.Server(config)
         self._thread = threading.Thread(target=self._main, name="beehave:http", daemon=True)
@@ -257,16 +284,19 @@ def hold_hals(low: LowLevelBehaviorManager, names: Iterable[str], *,
 
 def serve(planes: ControlPlane | Mapping[str, ControlPlane], *, host: str = DEFAULT_HOST,
           port: int = 0, token: str | None = None, world: Provider = None,
-          fleet: Provider = None, rate_hz: float = 20.0, refresh_s: float = 1.0
-          ) -> HttpServer:
+          fleet: Provider = None, rate_hz: float = 20.0, refresh_s: float = 1.0,
+          **options: Any) -> HttpServer:
     """Start an :class:`HttpServer` for ``planes`` and return it (call ``stop()`` on it).
 
     A fleet process serves all its robots with one server::
 
         server = serve({name: robot.plane for name, robot in robots.items()},
                        world=world.model_dump(mode="json"), fleet=fleet_view)
+
+    ``options``: the rest of :class:`HttpServer`'s settings (``hosts``, ``origins``,
+    ``max_body_bytes``, ``header_timeout_s``).
     """
     server = HttpServer(planes, host=host, port=port, token=token, world=world, fleet=fleet,
-                        rate_hz=rate_hz, refresh_s=refresh_s)
+                        rate_hz=rate_hz, refresh_s=refresh_s, **options)
     server.start()
     return server

@@ -221,6 +221,17 @@ function drawWorld(world) {
     label.textContent = station.name;
     layer.append(rect, label);
   }
+  for (const machine of world.machines || []) {
+    // A machine of a factory world: its footprint and its name (a fleet view adds the level).
+    const [cx, cy] = machine.center_m, [sx, sy] = machine.size_m || [1.6, 1.2];
+    const rect = svg("rect", {class: "machine", x: cx - sx / 2, y: Y(cy) - sy / 2,
+      width: sx, height: sy, transform: `rotate(${-(machine.yaw_deg || 0)} ${cx} ${Y(cy)})`,
+      "data-machine": machine.name});
+    const label = svg("text", {class: "machine-label", x: cx - sx / 2 + 0.05, y: Y(cy) + 0.1,
+      "data-machine-label": machine.name});
+    label.textContent = machine.name;
+    layer.append(rect, label);
+  }
   for (const box of world.shelves || []) layer.append(boxShape(box, "shelf", Y));
   for (const ob of world.obstacles || []) {
     if (ob.radius_m !== undefined) {
@@ -375,7 +386,7 @@ $("#switch-btn").addEventListener("click", async () => {
 
 $("#stop-btn").addEventListener("click", async () => {
   try {
-    await api(`/api/robots/${encodeURIComponent(view.selected)}/stop`, {method: "POST"});
+    await api(`/api/robots/${encodeURIComponent(view.selected)}/stop`, {method: "POST", body: "{}"});
     message(`${view.selected}: stopping (idle: every action to its safe state)`, false);
   } catch (err) {
     message(`${err.status || ""} ${err.message}`, true);
@@ -557,8 +568,22 @@ function drawFleetRobots(rows) {
   }
 }
 
+function labelMachines(rows) {
+  // The fleet's "machines" rows ({machine, level, capacity}) label the map's machines.
+  for (const row of Array.isArray(rows) ? rows : []) {
+    const name = row && (row.machine || row.name);
+    if (!name) continue;
+    const label = document.querySelector(`[data-machine-label="${CSS.escape(String(name))}"]`);
+    if (!label) continue;
+    const level = typeof row.level === "number" ? ` ${row.level.toFixed(0)}` : "";
+    const capacity = typeof row.capacity === "number" ? `/${row.capacity}` : "";
+    label.textContent = `${name}${level}${level ? capacity : ""}`;
+  }
+}
+
 function renderFleet(fleet) {
   drawFleetRobots(fleet && fleet.robots);
+  labelMachines(fleet && fleet.machines);
   const box = $("#fleet");
   const parts = [];
   for (const [section, items] of Object.entries(fleet || {})) {
@@ -568,7 +593,7 @@ function renderFleet(fleet) {
       const table = el("table", {"data-section": section},
         el("thead", {}, el("tr", {}, ...cols.map((c) => el("th", {text: c})))),
         el("tbody", {}, ...items.slice(-100).map((i) => el("tr", {}, ...cols.map((c) => el("td", {text: show(i[c] === undefined ? "" : i[c])}))))));
-      parts.push(table);
+      parts.push(el("div", {class: "scroll"}, table));  // wide tables scroll, the page not
     } else {
       parts.push(el("pre", {class: "muted", text: JSON.stringify(items, null, 1)}));
     }
@@ -606,6 +631,10 @@ async function start() {
   select(view.selected || view.robots[0]);
   if (view.ws) { const old = view.ws; view.ws = null; old.close(); }
   // A fleet process whose robots run elsewhere serves the fleet and the map only.
+  // Without a robot of its own, the robot panels (and Switch, Stop) would only be empty
+  // or answer "unknown robot": they are hidden.
+  for (const panel of document.querySelectorAll(".robot-panel")) panel.hidden = !view.robots.length;
+  $("#robot-label").hidden = !view.robots.length;
   if (view.robots.length) connect(); else setConn(true, "fleet view");
 }
 
