@@ -40,7 +40,9 @@ pytestmark = [pytest.mark.xdist_group("test_replay_demo"), pytest.mark.timeout(3
 DEMO_SWITCHES = ["idle", "tour", "commanded", "maintenance"]
 
 
-@pytest.fixture(scope="module")
+# Session scope, in the one worker of this module's group: with module scope pytest-xdist
+# interleaved other modules' tests and the demo was recorded four times per run (100 s).
+@pytest.fixture(scope="session")
 def demo(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest
          ) -> Iterator[Path]:
     """One recorded demo run (about 20 s) shared by the tests of this file. It is also the
