@@ -85,3 +85,50 @@ def check(topic: Topic, message: Any) -> None:
     if found:
         raise Vda5050ValidationError(f"{topic} message breaks the VDA 5050 2.1.0 schema: "
                                      + "; ".join(str(p) for p in found))
+
+
+_STATE_DEFAULTS: dict[str, Any] = {
+    "orderId": "", "orderUpdateId": 0, "lastNodeId": "", "lastNodeSequenceId": 0,
+    "nodeStates": [], "edgeStates": [], "driving": False, "actionStates": [],
+    "batteryState": {"batteryCharge": 0.0, "charging": False},
+    "operatingMode": "AUTOMATIC", "errors": [],
+    "safetyState": {"eStop": "NONE", "fieldViolation": False}}
+"""Schema-valid values for every required field of a state besides the header."""
+
+
+def repaired_state(message: dict[str, Any], why: str) -> dict[str, Any]:
+    """A schema-valid state made from an invalid one (beehave's bug): list items that
+    break the schema are left out, other broken fields fall back to a valid default (or
+    are dropped when optional), and an ``internalError`` says so — so the AGV still
+    reports instead of falling silent. The header is kept (it is made by beehave and is
+    valid); should the repair not be enough, only the header and defaults remain."""
+    fixed = dict(message)
+    drop_items: dict[str, set[int]] = {}
+    reset: set[str] = set()
+    for error in validator("state").iter_errors(message):
+        path = list(error.absolute_path)
+        if not path:
+            reset.update(k for k in _STATE_DEFAULTS if k not in fixed)
+            continue
+        key = str(path[0])
+        if len(path) >= 2 and isinstance(path[1], int) and isinstance(fixed.get(key), list):
+            drop_items.setdefault(key, set()).add(path[1])
+        else:
+            reset.add(key)
+    for key, gone in drop_items.items():
+        fixed[key] = [item for i, item in enumerate(fixed[key]) if i not in gone]
+    for key in reset:
+        if key in _STATE_DEFAULTS:
+            fixed[key] = _STATE_DEFAULTS[key]
+        else:
+            fixed.pop(key, None)
+    note = {"errorType": "internalError", "errorLevel": "WARNING",
+            "errorDescription": f"beehave made a state that breaks the schema; parts left "
+                                f"out: {why}"[:1000],
+            "errorReferences": []}
+    fixed["errors"] = [*fixed.get("errors", []), note]
+    if validator("state").is_valid(fixed):
+        return fixed
+    header: dict[str, Any] = {k: message[k] for k in ("headerId", "timestamp", "version", "manufacturer",
+                                      "serialNumber") if k in message}
+    return {**header, **_STATE_DEFAULTS, "errors": [note]}
