@@ -162,6 +162,8 @@ class Vda5050Interface:
                         "a state is sent every %g s", source, options.state_period_s,
                         STATE_PERIOD_MAX_S)
         self._wake = threading.Event()
+        self._announce = threading.Event()  # connected: publish ONLINE and the factsheet
+        self._state_checker = validation.StateChecker()
         self.orders = AgvOrders(locate=self.nodes.locate, check_route=self.nodes.check_route,
                                 position=self._position,
                                 standing_still=lambda: not _driving(self.telemetry),
@@ -335,9 +337,10 @@ class Vda5050Interface:
         self.connected.set()
         log.info("vda5050: connected to %s:%d as %s", self.options.broker.host,
                  self.options.broker.port, self.topics.prefix)
-        self._publish("connection", self._connection("ONLINE"), retain=True)
-        self._publish("factsheet", self.factsheet(), retain=True)
-        self._wake.set()  # a fresh state for the master
+        # ONLINE, the factsheet and a fresh state go out from the publisher thread: paho's
+        # loop never waits for building or validating a message.
+        self._announce.set()
+        self._wake.set()
 
     def _on_connect_fail(self, _client: mqtt.Client, _userdata: Any) -> None:
         log.warning("vda5050: no MQTT broker reachable at %s:%d; retrying (every %g s at "
@@ -611,7 +614,10 @@ class Vda5050Interface:
         logged as an ERROR; a state is replaced by a reduced, valid one (the AGV must
         never fall silent, 6.10), any other message is not sent."""
         try:
-            validation.check(topic, message)  # type: ignore[arg-type]
+            if topic == "state":
+                self._state_checker.check(message)
+            else:
+                validation.check(topic, message)  # type: ignore[arg-type]
         except Vda5050ValidationError as exc:
             if topic != "state":
                 log.exception("vda5050: not sending an invalid %s message", topic)
@@ -639,6 +645,10 @@ class Vda5050Interface:
                 return
             now = time.monotonic()
             woken = self._wake.is_set()
+            if self._announce.is_set() and self.connected.is_set():
+                self._announce.clear()
+                self._publish("connection", self._connection("ONLINE"), retain=True)
+                self._publish("factsheet", self.factsheet(), retain=True)
             if woken or now >= next_state:
                 self._wake.clear()
                 if self.connected.is_set():
