@@ -435,6 +435,8 @@ class Vda5050Interface:
             self._wake.set()
             return
         self.last_order_received_at = received_at
+        # Its node and edge states repeat what the order schema just checked.
+        self._state_checker.trust(self.orders.state_fields(), ("nodeStates", "edgeStates"))
         self._run_orders()
 
     def _run_orders(self) -> None:
