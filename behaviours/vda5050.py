@@ -22,12 +22,14 @@ import abc
 import functools
 import logging
 import math
+import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from beehave import Behavior, Status
 from beehave.errors import NoPath
 from beehave.interfaces.vda5050.order import (
+    STANDSTILL_TIMEOUT_S,
     ActionState,
     ActionStatus,
     AgvOrders,
@@ -144,10 +146,33 @@ class OrderLoop(Behavior):
                     self.orders.wait_change(timeout_s=self.idle_wait_s)
                 elif isinstance(task, Drive):
                     self.drive(task)
-                elif isinstance(task, RunAction):
+                elif isinstance(task, RunAction) and self.wait_standstill(task.action):
                     self.execute(task.action)
         finally:
             self.orders.set_executing(False)
+
+    def wait_standstill(self, action: ActionState) -> bool:
+        """A SOFT or HARD blocking action starts only once the AGV stands still (VDA 5050
+        2.1, 6.12): a node counts as reached while the AGV still brakes. A robot that does
+        not stop within ``STANDSTILL_TIMEOUT_S`` fails the action (with an error) instead
+        of running it while moving. False when the action must not run (now)."""
+        if action.blocking_type == "NONE":
+            return True
+        deadline = time.monotonic() + STANDSTILL_TIMEOUT_S
+        while not self.interrupted and time.monotonic() < deadline:
+            # In short steps, so a switch away (cancel, pause) is not held up.
+            if self.orders.wait_standstill(timeout_s=self.idle_wait_s):
+                return True
+        if self.interrupted:
+            return False
+        self.orders.set_action(action.action_id, ActionStatus.FAILED,
+                               "the AGV did not stand still")
+        self.orders.add_error(error_entry(
+            "actionError", f"action {action.action_id!r} ({action.action_type}, "
+            f"{action.blocking_type} blocking): the AGV still moves "
+            f"{STANDSTILL_TIMEOUT_S:g} s after reaching the node",
+            references={"actionId": action.action_id}))
+        return False
 
     @abc.abstractmethod
     def drive(self, task: Drive) -> None:

@@ -11,6 +11,12 @@
 - ``order_to_state``: from the order to the first ``state`` carrying it at the master;
 - ``state_rate_10_agvs``: ten AGVs on one broker, each asked for a state every 50 ms
   (``state_period_s``), the states the master receives per AGV and second (target ≥ 19);
+- ``large_order_accept_loaded``: a 1,000-node order (nodes 5 cm apart) from the master
+  publishing it to the first ``state`` carrying it, beside a CPU hog (one busy-loop
+  process per core, started and killed by the benchmark: the host is loaded), each order
+  cancelled before the next; target p99 ≤ 200 ms. ``state_gap_loaded``: meanwhile, the
+  longest gap between two states at the master with ``state_period_s`` 1 s (the held
+  order's 1,000 node states in each); target ≤ 1.5 s;
 - the physics (the demo's scenario, EMILI in pybullet at real time,
   ``BENCH_VDA5050_RTF`` to change): ``order_to_wheels_physics`` — the master publishing
   an order to the first physics step with a non-zero wheel command, through the real
@@ -47,6 +53,7 @@ from behaviours.vda5050 import OrderLoop
 from benchmarks._util import median, percentile, report
 
 N_ORDERS = int(os.environ.get("BENCH_VDA5050_N", 200))
+N_LARGE = int(os.environ.get("BENCH_VDA5050_LARGE_N", 20))
 N_ROUNDTRIP = int(os.environ.get("BENCH_VDA5050_RT", 500))
 PHYSICS_RTF = float(os.environ.get("BENCH_VDA5050_RTF", 1.0))
 
@@ -84,10 +91,18 @@ class _Instant(OrderLoop):
         self.orders.set_action(action.action_id, ActionStatus.FINISHED)
 
 
+class _Hold(_Instant):
+    """Holds each drive (interruptibly) so the order's 1,000 nodes stay in the state."""
+
+    def drive(self, task: Drive) -> None:
+        self.sleep(60.0)
+
+
 _Agv = tuple[HighLevelBehaviorManager, Vda5050Interface, ControlPlane]
 
 
-def _agv(port: int, serial: str, **more: Any) -> _Agv:
+def _agv(port: int, serial: str, *, executor: type[OrderLoop] = _Instant,
+         **more: Any) -> _Agv:
     """One AGV on the broker; whatever of it was started is closed again if a later part
     fails to start."""
     config = parse_config({"namespace": serial, "vda5050": {
@@ -96,7 +111,7 @@ def _agv(port: int, serial: str, **more: Any) -> _Agv:
     hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
     with contextlib.ExitStack() as undo:
         undo.callback(hl.shutdown)
-        interface = Vda5050Interface(config.vda5050, high=hl, executor=_Instant)
+        interface = Vda5050Interface(config.vda5050, high=hl, executor=executor)
         hl.start()
         plane = ControlPlane(hl, name=serial)
         undo.callback(plane.close)
@@ -232,7 +247,78 @@ def main() -> list[dict[str, Any]]:
         worst = min(per_agv)
         rows.append(report("state_rate_10_agvs_min", worst, "Hz", ">= 19 Hz per AGV",
                            worst >= 19.0, mean_hz=round(sum(per_agv) / 10, 2)))
+        rows += _large_orders_loaded(broker.port)
     rows += _physics()
+    return rows
+
+
+def _large_orders_loaded(port: int) -> list[dict[str, Any]]:
+    """1,000-node orders beside a CPU hog: acceptance and the state cadence."""
+    import subprocess
+    import sys
+
+    from behaviours.demos.vda5050_master import action
+
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            for _ in range(os.cpu_count() or 1)]
+    accept: list[float] = []
+    # The acceptance is timed by a bare listener (the master validates every state with
+    # jsonschema on its network thread, which would be timed too).
+    arrived: dict[bytes, float] = {}
+    stamps: list[float] = []
+
+    def on_state(_c: Any, _u: Any, message: mqtt.MQTTMessage) -> None:
+        now = time.perf_counter()
+        stamps.append(time.monotonic())
+        start = message.payload.find(b'"orderId": "')
+        if start >= 0:
+            end = message.payload.find(b'"', start + 12)
+            arrived.setdefault(message.payload[start + 12:end], now)
+
+    listener = mqtt.Client(CallbackAPIVersion.VERSION2)
+    listener.on_message = on_state
+    listener.connect("127.0.0.1", port)
+    listener.subscribe("uagv/v2/beehave/large1/state")
+    listener.loop_start()
+    try:
+        agv = _agv(port, "large1", executor=_Hold, state_period_s=1.0)
+        master: Master | None = None
+        try:
+            master = Master(port, serial_number="large1")
+            master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                            timeout_s=30)
+            nodes = [node(f"n{j}", 2 * j, x=1.0 + 0.05 * j, y=1.0, map_id="flat")
+                     for j in range(1000)]
+            for i in range(N_LARGE):
+                order_id = f"big{i}"
+                sent = time.perf_counter()
+                master.order(order_id, 0, nodes)
+                master.wait_state(lambda s, o=order_id: s["orderId"] == o, timeout_s=60)
+                accept.append(arrived[order_id.encode()] - sent)
+                master.instant(action("cancelOrder", f"c{i}"))
+                master.wait_state(lambda s, c=f"c{i}": any(
+                    a["actionId"] == c and a["actionStatus"] == "FINISHED"
+                    for a in s["actionStates"]), timeout_s=60)
+        finally:
+            if master is not None:
+                master.close()
+            _close(*agv)
+    finally:
+        listener.disconnect()
+        listener.loop_stop()
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+    gaps = [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
+    p99 = percentile(accept, 99) * 1e3
+    load = f"beside {len(hogs)} busy-loop processes (CPU hog)"
+    rows = [report("large_order_accept_loaded_p99", p99, "ms", "<= 200 ms", p99 <= 200.0,
+                   p50_ms=round(median(accept) * 1e3, 3), n=len(accept), nodes=1000,
+                   host=load)]
+    if gaps:
+        worst = max(gaps)
+        rows.append(report("state_gap_loaded_max", worst, "s", "<= 1.5 s (period 1 s)",
+                           worst <= 1.5, states=len(stamps), host=load))
     return rows
 
 

@@ -267,7 +267,7 @@ def test_a_new_order_waits_until_the_current_one_is_done() -> None:
     ([node("n0", 0, x=0, y=0, released=False)], [], "validationError", "nodes[0].released"),
     ([node("n0", 0, x=0, y=0), node("n1", 2, x=1, y=0, released=False),
       node("n2", 4, x=2, y=0)], None, "validationError", "nodes[2].released"),
-    ([node("n0", 0, x=0, y=0, actions=[action("dance", "x")])], [], "validationError",
+    ([node("n0", 0, x=0, y=0, actions=[action("dance", "x")])], [], "orderError",
      "nodes[0].actions[0].actionType"),
     ([node("n0", 0, x=0, y=0, map_id="moon")], [], "validationError",
      "nodes[0].nodePosition"),
@@ -371,7 +371,7 @@ def test_invalid_messages_become_validation_errors(agv: Agv, payload: Any,
     state = agv.master.wait_state(lambda s: bool(errors_of(s, "validationError")),
                                   timeout_s=5)
     error = errors_of(state, "validationError")[0]
-    assert refs(error)["topic"].endswith("/order")
+    assert refs(error)["topic"] == "order"  # the topic name (7.1), not the MQTT topic
     if field is None:
         assert "not valid JSON" in error["errorDescription"]
     else:
@@ -738,3 +738,38 @@ def test_malformed_messages_during_an_order_do_not_disturb_it(agv: Agv) -> None:
         a["actionStatus"] == "FINISHED" for a in s["actionStates"]), timeout_s=10)
     assert done["orderUpdateId"] == 0 and len(errors_of(done, "validationError")) == 3
     assert FakeDrive.done == ["n0", "n1", "p1", "n2", "d1"]
+
+
+def test_the_state_checker_finds_what_check_finds_and_checks_repeated_items_once(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from beehave.interfaces.vda5050 import validation as validation_module
+    from beehave.interfaces.vda5050.validation import StateChecker
+
+    state = {"headerId": 1, "timestamp": "2026-01-01T00:00:00.000Z", "version": "2.1.0",
+             "manufacturer": "b", "serialNumber": "s", "orderId": "o", "orderUpdateId": 0,
+             "lastNodeId": "", "lastNodeSequenceId": 0,
+             "nodeStates": [{"nodeId": f"n{i}", "sequenceId": 2 * i, "released": True}
+                            for i in range(1000)],
+             "edgeStates": [], "actionStates": [], "driving": False,
+             "operatingMode": "AUTOMATIC", "errors": [],
+             "batteryState": {"batteryCharge": 50.0, "charging": False},
+             "safetyState": {"eStop": "NONE", "fieldViolation": False}}
+    checker = StateChecker()
+    checker.check(state)
+    seen: list[int] = []
+    real = validator("state")
+
+    class Counting:
+        def is_valid(self, message: dict[str, Any]) -> bool:
+            seen.append(len(message["nodeStates"]))
+            return bool(real.is_valid(message))
+
+    monkeypatch.setattr(validation_module, "validator", lambda topic: Counting())
+    checker.check({**state, "headerId": 2})
+    assert seen == [0]  # the 1,000 node states were checked the first time only
+    monkeypatch.undo()
+    broken = {**state, "nodeStates": [*state["nodeStates"], {"nodeId": 7}]}
+    with pytest.raises(Vda5050ValidationError, match=r"nodeStates\[1000\]"):
+        checker.check(broken)
+    with pytest.raises(Vda5050ValidationError, match="driving"):
+        checker.check({**state, "driving": "yes"})

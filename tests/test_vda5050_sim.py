@@ -105,6 +105,11 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             cancelled = master.wait_state(
                 lambda s: _status(s).get("cancel1") == "FINISHED", timeout_s=10)
             assert _status(cancelled)["pick2"] == "FAILED"
+            # 6.6.3 / 6.12: FINISHED (cancel) and RUNNING (a HARD pick) at a standstill.
+            assert cancelled["driving"] is False, cancelled["velocity"]
+            picking = next(s for s in list(master.received["state"])
+                           if _status(s).get("pick1") == "RUNNING")
+            assert picking["driving"] is False, picking["velocity"]
             assert cancelled["nodeStates"] == [] and cancelled["edgeStates"] == []
             count = len(odom)
             assert probe.wait(lambda: len(odom) > count + 30)

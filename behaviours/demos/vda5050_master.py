@@ -458,7 +458,20 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
                 (stopped_wall[0] - wall_cancel) * 1e3 if stopped_wall else _math.inf)
             checks.append(("velocity 0 after cancelOrder", f"{stop_s:.3f} s sim",
                            "≤ 0.5 s sim", stop_s <= 0.5))
+            # VDA 5050 2.1 (6.6.3, 6.12): cancelOrder is FINISHED, and a HARD action
+            # RUNNING, only once the AGV stands still: the state that says so must not
+            # say driving.
+            running = next((st for st in list(master.received["state"]) if any(
+                a["actionId"] == "pick-1" and a["actionStatus"] == "RUNNING"
+                for a in st["actionStates"])), None)
+            if running is not None:
+                checks.append(("pick RUNNING: stands still",
+                               f"{abs(running['velocity']['vx']):.3f} m/s",
+                               "not driving", running["driving"] is False))
             if cancelled is not None:
+                checks.append(("cancel FINISHED: stands still",
+                               f"{abs(cancelled['velocity']['vx']):.3f} m/s",
+                               "not driving", cancelled["driving"] is False))
                 failed = {a["actionId"]: a["actionStatus"] for a in cancelled["actionStates"]}
                 checks.append(("order o2's action after the cancel",
                                failed.get("charge-1", "?"), "FAILED",

@@ -44,6 +44,7 @@ from beehave.interfaces.vda5050 import validation
 from beehave.interfaces.vda5050.order import (
     INSTANT_ACTIONS,
     NODE_ACTIONS,
+    STANDSTILL_TIMEOUT_S,
     ActionStatus,
     AgvOrders,
     OrderRejected,
@@ -161,8 +162,12 @@ class Vda5050Interface:
                         "a state is sent every %g s", source, options.state_period_s,
                         STATE_PERIOD_MAX_S)
         self._wake = threading.Event()
+        self._announce = threading.Event()  # connected: publish ONLINE and the factsheet
+        self._state_checker = validation.StateChecker()
         self.orders = AgvOrders(locate=self.nodes.locate, check_route=self.nodes.check_route,
-                                position=self._position, on_change=self._wake.set)
+                                position=self._position,
+                                standing_still=lambda: not _driving(self.telemetry),
+                                on_change=self._wake.set)
         high.register(options.behavior, executor, orders=self.orders, world=options.world,
                       speed_mps=options.speed_mps, lift_pick_m=options.lift_pick_m,
                       lift_drop_m=options.lift_drop_m)
@@ -289,11 +294,8 @@ class Vda5050Interface:
                 self._wake.set()  # the position is known now: the master wants it
             t.theta_rad = math.atan2(2.0 * (q.w * q.z + q.x * q.y),
                                      1.0 - 2.0 * (q.y * q.y + q.z * q.z))
-            t.vx_mps = float(msg.twist.twist.linear.x)
-            t.omega_rps = float(msg.twist.twist.angular.z)
-            if t.driving != (driving := _driving(t)):
-                t.driving = driving  # starting or stopping is a change the state reports
-                self._wake.set()
+            self.update_velocity(float(msg.twist.twist.linear.x),
+                                 float(msg.twist.twist.angular.z))
 
         def on_battery(msg: BatteryState) -> None:
             t.battery_percent = max(0.0, min(100.0, float(msg.percentage) * 100.0))
@@ -305,6 +307,17 @@ class Vda5050Interface:
         self._subscriptions = [node.create_subscription(Odometry, "odom", on_odom, 10),
                                node.create_subscription(BatteryState, "battery_state",
                                                         on_battery, 10)]
+
+    def update_velocity(self, vx_mps: float, omega_rps: float) -> None:
+        """The measured velocity (the odometry calls it; a test or benchmark without a
+        robot may too). Starting or stopping is a change the state reports, and what the
+        waits for a standstill (pause, cancel, HARD actions) are woken by."""
+        t = self.telemetry
+        t.vx_mps, t.omega_rps = vx_mps, omega_rps
+        if t.driving != (driving := _driving(t)):
+            t.driving = driving
+            self._wake.set()
+            self.orders.notify()
 
     def _position(self) -> Point | None:
         t = self.telemetry
@@ -324,9 +337,10 @@ class Vda5050Interface:
         self.connected.set()
         log.info("vda5050: connected to %s:%d as %s", self.options.broker.host,
                  self.options.broker.port, self.topics.prefix)
-        self._publish("connection", self._connection("ONLINE"), retain=True)
-        self._publish("factsheet", self.factsheet(), retain=True)
-        self._wake.set()  # a fresh state for the master
+        # ONLINE, the factsheet and a fresh state go out from the publisher thread: paho's
+        # loop never waits for building or validating a message.
+        self._announce.set()
+        self._wake.set()
 
     def _on_connect_fail(self, _client: mqtt.Client, _userdata: Any) -> None:
         log.warning("vda5050: no MQTT broker reachable at %s:%d; retrying (every %g s at "
@@ -369,13 +383,12 @@ class Vda5050Interface:
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
             self.orders.add_error(error_entry(
                 "validationError", f"{kind}: not valid JSON: {exc}",
-                references={"topic": topic}))
+                references={"topic": kind}))
             return
         found = validation.problems(kind, message)  # type: ignore[arg-type]
         if found:
-            refs = {"topic": topic, "field": found[0].field or "(message)"}
-            if isinstance(message, dict) and "headerId" in message:
-                refs["headerId"] = str(message["headerId"])
+            refs = {"topic": kind, "field": found[0].field or "(message)"}
+            refs.update(_message_references(message))
             self.orders.add_error(error_entry(
                 "validationError", f"{kind} breaks the VDA 5050 {VERSION} schema: "
                 + "; ".join(str(p) for p in found), references=refs))
@@ -386,8 +399,16 @@ class Vda5050Interface:
             if message[key] != ours:
                 self.orders.add_error(error_entry(
                     "validationError", f"{kind} is addressed to {key} {message[key]!r}, "
-                    f"this AGV is {ours!r}", references={"topic": topic, "field": key}))
+                    f"this AGV is {ours!r}", references={
+                        "topic": kind, "field": key, **_message_references(message)}))
                 return
+        major = str(message["version"]).split(".", 1)[0]
+        if major != VERSION.split(".", 1)[0]:
+            self.orders.add_error(error_entry(
+                "validationError", f"{kind} has version {message['version']!r}; this AGV "
+                f"speaks VDA 5050 {VERSION} (any 2.x.y is understood)", references={
+                    "topic": kind, "field": "version", **_message_references(message)}))
+            return
         if kind == "order":
             self._order(message, received_at)
         else:
@@ -397,8 +418,13 @@ class Vda5050Interface:
         try:
             accepted = self.orders.accept(message)
         except OrderRejected as exc:
-            exc.entry["errorReferences"].append(
-                {"referenceKey": "headerId", "referenceValue": str(message["headerId"])})
+            # Every rejection names the topic and the order it refuses (7.1), so a master
+            # can match it to what it sent.
+            have = {r["referenceKey"] for r in exc.entry["errorReferences"]}
+            exc.entry["errorReferences"].extend(
+                {"referenceKey": k, "referenceValue": v}
+                for k, v in {"topic": "order", **_message_references(message)}.items()
+                if k not in have)
             self.orders.add_error(exc.entry)
             return
         if not accepted:
@@ -409,6 +435,8 @@ class Vda5050Interface:
             self._wake.set()
             return
         self.last_order_received_at = received_at
+        # Its node and edge states repeat what the order schema just checked.
+        self._state_checker.trust(self.orders.state_fields(), ("nodeStates", "edgeStates"))
         self._run_orders()
 
     def _run_orders(self) -> None:
@@ -429,7 +457,8 @@ class Vda5050Interface:
                 self.orders.set_action(state.action_id, ActionStatus.FAILED, why)
                 self.orders.add_error(error_entry(
                     "validationError", f"instantActions: actions[{i}].actionType: {why}",
-                    references={"field": f"actions[{i}].actionType",
+                    references={"topic": "instantActions",
+                                "field": f"actions[{i}].actionType",
                                 "actionId": state.action_id}))
                 continue
             self.orders.set_action(state.action_id, ActionStatus.RUNNING)
@@ -442,6 +471,19 @@ class Vda5050Interface:
         self._control.stop()  # every action to its safe state
         return self.orders.wait_not_executing(timeout_s=self.high.stop_timeout_s + 2.0)
 
+    def _wait_standstill(self, action_id: str, kind: str) -> str:
+        """Wait until the AGV stands still (6.6.3, 6.8.2: the instant action is FINISHED
+        then), at most ``STANDSTILL_TIMEOUT_S``; a robot that keeps moving is reported as
+        an error rather than waited for forever. Returns a note for the result."""
+        if self.orders.wait_standstill(timeout_s=STANDSTILL_TIMEOUT_S):
+            return ""
+        t = self.telemetry
+        self.orders.add_error(error_entry(
+            "standstillError", f"{kind}: the AGV still moves ({t.vx_mps:.2f} m/s, "
+            f"{t.omega_rps:.2f} rad/s) {STANDSTILL_TIMEOUT_S:g} s after it was stopped",
+            references={"actionId": action_id}, level="FATAL"))
+        return " (the AGV did not stand still)"
+
     def _do_cancelOrder(self, action_id: str) -> tuple[bool, str]:  # noqa: N802
         if not self.orders.active():
             self.orders.add_error(error_entry(
@@ -450,13 +492,17 @@ class Vda5050Interface:
             return False, "no order to cancel"
         ended = self._stop_executor()
         self.orders.cancel(f"cancelled by cancelOrder {action_id!r}")
-        return True, "order cancelled" + ("" if ended else " (behaviour still stopping)")
+        note = self._wait_standstill(action_id, "cancelOrder")
+        return True, ("order cancelled" + ("" if ended else " (behaviour still stopping)")
+                      + note)
 
     def _do_startPause(self, action_id: str) -> tuple[bool, str]:  # noqa: N802
         self.orders.set_paused(True)
+        # The running actions stop through their safe state and run again after
+        # stopPause; they stay RUNNING in the state (the 2.1.0 schema has no PAUSED for
+        # actions: the state's ``paused`` flag says it).
         self._stop_executor()
-        self.orders.pause_running()
-        return True, "paused"
+        return True, "paused" + self._wait_standstill(action_id, "startPause")
 
     def _do_stopPause(self, action_id: str) -> tuple[bool, str]:  # noqa: N802
         self.orders.set_paused(False)
@@ -567,12 +613,20 @@ class Vda5050Interface:
     def _publish(self, topic: str, message: dict[str, Any], *, retain: bool = False
                  ) -> mqtt.MQTTMessageInfo | None:
         """Validate and send. A message that breaks the schema is beehave's bug: it is
-        logged and not sent (a fleet manager must never see one)."""
+        logged as an ERROR; a state is replaced by a reduced, valid one (the AGV must
+        never fall silent, 6.10), any other message is not sent."""
         try:
-            validation.check(topic, message)  # type: ignore[arg-type]
-        except Vda5050ValidationError:
-            log.exception("vda5050: not sending an invalid %s message", topic)
-            return None
+            if topic == "state":
+                self._state_checker.check(message)
+            else:
+                validation.check(topic, message)  # type: ignore[arg-type]
+        except Vda5050ValidationError as exc:
+            if topic != "state":
+                log.exception("vda5050: not sending an invalid %s message", topic)
+                return None
+            log.error("vda5050: BUG: the state breaks the VDA 5050 %s schema; sending a "
+                      "reduced valid state instead: %s", VERSION, exc)
+            message = validation.repaired_state(message, str(exc))
         client = self._client
         if client is None:
             return None
@@ -593,6 +647,10 @@ class Vda5050Interface:
                 return
             now = time.monotonic()
             woken = self._wake.is_set()
+            if self._announce.is_set() and self.connected.is_set():
+                self._announce.clear()
+                self._publish("connection", self._connection("ONLINE"), retain=True)
+                self._publish("factsheet", self.factsheet(), retain=True)
             if woken or now >= next_state:
                 self._wake.clear()
                 if self.connected.is_set():
@@ -605,6 +663,15 @@ class Vda5050Interface:
                 if self.connected.is_set():
                     self._publish("visualization", self.visualization())
                 next_vis = _next_tick(next_vis, vis_period, now, restart=False)
+
+
+def _message_references(message: Any) -> dict[str, str]:
+    """The references of a refused message that a master matches to what it sent."""
+    if not isinstance(message, dict):
+        return {}
+    return {k: str(message[k]) for k in ("headerId", "orderId", "orderUpdateId")
+            if k in message and isinstance(message[k], str | int) and
+            not isinstance(message[k], bool)}
 
 
 def _next_tick(scheduled: float, period_s: float, now: float, *, restart: bool) -> float:

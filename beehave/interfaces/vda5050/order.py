@@ -47,8 +47,19 @@ INSTANT_ACTIONS = ("cancelOrder", "startPause", "stopPause", "factsheetRequest",
                    "stateRequest", "startCharging", "stopCharging")
 """Action types of the ``instantActions`` topic."""
 
-ORDER_ERROR_TYPES = ("validationError", "orderError", "orderUpdateError", "noRouteError")
-"""Errors about orders; the next accepted order clears them."""
+ORDER_ERROR_TYPES = ("validationError", "orderError", "orderUpdateError", "noRouteError",
+                     "noOrderToCancel")
+"""Errors about orders (and a cancel that found none); the next accepted order clears
+them."""
+
+FIRST_NODE_TOLERANCE_M = 0.5
+"""How far (m) the first node of a new order may be from the AGV when the node gives no
+``allowedDeviationXY`` (or 0): the manufacturer's tolerance for "trivially reachable"
+(VDA 5050 2.1, 6.6.1)."""
+
+STANDSTILL_TIMEOUT_S = 5.0
+"""How long a ``startPause``, a ``cancelOrder`` or a HARD blocking action waits for the
+AGV to stand still (measured by the odometry) before it reports anyway, with an error."""
 
 MAX_ERRORS = 20
 """Errors kept in the state at most (the oldest go first), so a master that keeps
@@ -65,7 +76,8 @@ class ActionStatus(enum.Enum):
     RUNNING = "RUNNING"
     """Being executed."""
     PAUSED = "PAUSED"
-    """Interrupted by ``startPause``; runs again after ``stopPause``."""
+    """Not sent by beehave: the 2.1.0 state schema does not allow it (VDA5050/VDA5050#356).
+    A paused AGV says so with the state's ``paused`` flag; its action stays RUNNING."""
     FINISHED = "FINISHED"
     """Done."""
     FAILED = "FAILED"
@@ -135,6 +147,8 @@ class ActionState:
     status: ActionStatus = ActionStatus.WAITING
     result: str = ""
     description: str = ""
+    blocking_type: str = "HARD"
+    """``NONE`` (may run while driving), ``SOFT`` or ``HARD`` (only at a standstill)."""
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"actionId": self.action_id, "actionType": self.action_type,
@@ -188,10 +202,12 @@ class AgvOrders:
                  check_route: Callable[[Sequence[tuple[str, Point]]], Sequence[Any] | None]
                  | None = None,
                  position: Callable[[], Point | None] = lambda: None,
+                 standing_still: Callable[[], bool] = lambda: True,
                  on_change: Callable[[], None] = lambda: None) -> None:
         self._locate = locate
         self._check_route = check_route
         self._position = position
+        self._standing_still = standing_still
         self._on_change = on_change
         self._lock = threading.RLock()
         self._cond = threading.Condition(self._lock)
@@ -340,6 +356,7 @@ class AgvOrders:
                     hint="cancel the running order (instant action cancelOrder) or wait "
                          "until it is done")
             nodes, edges, actions = self._parse(order)
+            self._first_node_reachable(order_id, nodes[0], refs)
             self._route(nodes, from_robot=True)
             with self._changing():
                 self._order = _Order(order_id, update_id, nodes, edges)
@@ -349,6 +366,25 @@ class AgvOrders:
                 self._errors = [e for e in self._errors
                                 if e["errorType"] not in ORDER_ERROR_TYPES]
             return True
+
+    def _first_node_reachable(self, order_id: str, first: Node,
+                              refs: Mapping[str, str]) -> None:
+        """A new order starts where the AGV is: its first node within the node's
+        ``allowedDeviationXY`` (the manufacturer's tolerance when 0 or absent), else the
+        order is refused (VDA 5050 2.1, 6.6.1) — the AGV never drives off the graph."""
+        here = self._position()
+        if here is None:
+            return
+        allowed = float((first.raw_position or {}).get("allowedDeviationXY") or 0.0)
+        allowed = allowed or FIRST_NODE_TOLERANCE_M
+        away = distance_m(here, first.position)
+        if away > allowed:
+            raise OrderRejected(
+                "noRouteError",
+                f"order {order_id!r}: its first node {first.node_id!r} is {away:.2f} m from "
+                f"the AGV (allowed {allowed:.2f} m): a new order must start where the AGV "
+                "is", references={**refs, "nodeId": first.node_id},
+                hint="start the order at the AGV's last node or current position")
 
     def _stitch_node(self) -> tuple[str, int]:
         released = [n for n in self._order.nodes if n.released]
@@ -386,18 +422,23 @@ class AgvOrders:
             for j, a in enumerate(raw):
                 here = f"{where}.actions[{j}]"
                 if a["actionType"] not in NODE_ACTIONS:
-                    raise bad(f"{here}.actionType", f"action type {a['actionType']!r} is not "
-                              f"supported; supported: {', '.join(NODE_ACTIONS)}",
-                              actionId=str(a["actionId"]))
+                    # Valid VDA 5050, but not this AGV's: an orderError (6.6.4.2).
+                    raise OrderRejected(
+                        "orderError", f"order {order['orderId']!r}: {here}.actionType: action "
+                        f"type {a['actionType']!r} is not supported; supported: "
+                        f"{', '.join(NODE_ACTIONS)}",
+                        references={"field": f"{here}.actionType",
+                                    "actionId": str(a["actionId"])})
                 known = self._actions.get(a["actionId"])
                 if a["actionId"] in actions or known is not None and \
                         not known.status.ended and a["actionId"] not in horizon_ids:
                     raise bad(f"{here}.actionId", f"actionId {a['actionId']!r} is used "
                               "twice", actionId=str(a["actionId"]))
                 params = {p["key"]: p["value"] for p in a.get("actionParameters", [])}
-                actions[a["actionId"]] = ActionState(a["actionId"], a["actionType"], params,
-                                                     description=a.get("actionDescription",
-                                                                       ""))
+                actions[a["actionId"]] = ActionState(
+                    a["actionId"], a["actionType"], params,
+                    description=a.get("actionDescription", ""),
+                    blocking_type=str(a.get("blockingType", "HARD")))
                 ids.append(a["actionId"])
             return ids
 
@@ -495,14 +536,6 @@ class AgvOrders:
             order.todo.clear()
         return failed
 
-    def pause_running(self) -> None:
-        """Mark the running order actions PAUSED (the behaviour was stopped by
-        ``startPause``; they run again after ``stopPause``)."""
-        with self._changing():
-            for a in self._order.todo:
-                if self._actions[a].status is ActionStatus.RUNNING:
-                    self._actions[a].status = ActionStatus.PAUSED
-
     def position(self) -> Point | None:
         """Where the AGV is now (None before its first odometry)."""
         return self._position()
@@ -560,6 +593,13 @@ class AgvOrders:
             self.last_node_id = node.node_id
             self.last_node_sequence_id = node.sequence_id
             order.todo.extend(node.actions)
+
+    def wait_standstill(self, *, timeout_s: float) -> bool:
+        """Wait until the AGV stands still (measured: ``standing_still()``, re-checked
+        whenever :meth:`notify` is called, as the interface does when the odometry starts
+        or stops); False when it still moves after ``timeout_s``."""
+        with self._cond:
+            return self._cond.wait_for(self._standing_still, timeout=timeout_s)
 
     def wait_change(self, *, timeout_s: float) -> None:
         """Block until something changes (or ``timeout_s``)."""

@@ -85,3 +85,100 @@ def check(topic: Topic, message: Any) -> None:
     if found:
         raise Vda5050ValidationError(f"{topic} message breaks the VDA 5050 2.1.0 schema: "
                                      + "; ".join(str(p) for p in found))
+
+
+_STATE_DEFAULTS: dict[str, Any] = {
+    "orderId": "", "orderUpdateId": 0, "lastNodeId": "", "lastNodeSequenceId": 0,
+    "nodeStates": [], "edgeStates": [], "driving": False, "actionStates": [],
+    "batteryState": {"batteryCharge": 0.0, "charging": False},
+    "operatingMode": "AUTOMATIC", "errors": [],
+    "safetyState": {"eStop": "NONE", "fieldViolation": False}}
+"""Schema-valid values for every required field of a state besides the header."""
+
+
+def repaired_state(message: dict[str, Any], why: str) -> dict[str, Any]:
+    """A schema-valid state made from an invalid one (beehave's bug): list items that
+    break the schema are left out, other broken fields fall back to a valid default (or
+    are dropped when optional), and an ``internalError`` says so — so the AGV still
+    reports instead of falling silent. The header is kept (it is made by beehave and is
+    valid); should the repair not be enough, only the header and defaults remain."""
+    fixed = dict(message)
+    drop_items: dict[str, set[int]] = {}
+    reset: set[str] = set()
+    for error in validator("state").iter_errors(message):
+        path = list(error.absolute_path)
+        if not path:
+            reset.update(k for k in _STATE_DEFAULTS if k not in fixed)
+            continue
+        key = str(path[0])
+        if len(path) >= 2 and isinstance(path[1], int) and isinstance(fixed.get(key), list):
+            drop_items.setdefault(key, set()).add(path[1])
+        else:
+            reset.add(key)
+    for key, gone in drop_items.items():
+        fixed[key] = [item for i, item in enumerate(fixed[key]) if i not in gone]
+    for key in reset:
+        if key in _STATE_DEFAULTS:
+            fixed[key] = _STATE_DEFAULTS[key]
+        else:
+            fixed.pop(key, None)
+    note = {"errorType": "internalError", "errorLevel": "WARNING",
+            "errorDescription": f"beehave made a state that breaks the schema; parts left "
+                                f"out: {why}"[:1000],
+            "errorReferences": []}
+    fixed["errors"] = [*fixed.get("errors", []), note]
+    if validator("state").is_valid(fixed):
+        return fixed
+    header: dict[str, Any] = {
+        k: message[k] for k in ("headerId", "timestamp", "version", "manufacturer",
+                                "serialNumber") if k in message}
+    return {**header, **_STATE_DEFAULTS, "errors": [note]}
+
+
+class StateChecker:
+    """:func:`check` for the AGV's own states, fast enough for every state of a
+    1,000-node order: the long lists (``nodeStates``, ``edgeStates``, ``actionStates``,
+    whose items the 2.1.0 schema constrains one by one, never together) are checked item
+    by item, and an item already found valid is not checked again — a state usually
+    repeats the last one's items. The rest of the state is checked in full each time.
+    Not thread-safe: one per publishing thread."""
+
+    LISTS = ("nodeStates", "edgeStates", "actionStates")
+    MAX_KNOWN = 20_000
+    """Valid items remembered per list at most (then forgotten all at once)."""
+
+    def __init__(self) -> None:
+        self._known: dict[str, set[str]] = {key: set() for key in self.LISTS}
+
+    def trust(self, message: dict[str, Any], keys: tuple[str, ...]) -> None:
+        """Take the items of the lists ``keys`` of ``message`` as valid without checking
+        them: items built from an order that passed the order schema (a node state repeats
+        an order node's fields), so the first state of a 1,000-node order is not held up
+        checking what was checked on the way in. Safe from another thread than
+        :meth:`check`'s (set updates are atomic)."""
+        for key in keys:
+            items = message.get(key)
+            if isinstance(items, list):
+                self._known[key].update(json.dumps(item, sort_keys=True) for item in items)
+
+    def check(self, message: dict[str, Any]) -> None:
+        """Raise :class:`~beehave.errors.Vda5050ValidationError` when ``message`` breaks
+        the state schema (naming every problem, as :func:`check` does)."""
+        slim = dict(message)
+        fresh: dict[str, list[str]] = {}
+        for key in self.LISTS:
+            items = message.get(key)
+            if not isinstance(items, list):
+                continue
+            known = self._known[key]
+            keys = [json.dumps(item, sort_keys=True) for item in items]
+            slim[key] = [item for item, k in zip(items, keys, strict=True) if k not in known]
+            fresh[key] = [k for k in keys if k not in known]
+        if validator("state").is_valid(slim):
+            for key, keys in fresh.items():
+                known = self._known[key]
+                if len(known) + len(keys) > self.MAX_KNOWN:
+                    known.clear()
+                known.update(keys)
+            return
+        check("state", message)
