@@ -22,9 +22,9 @@ import asyncio
 import time
 from typing import Any
 
-from benchmarks._util import median, report
 from beehave import Action, Behavior, HighLevelBehaviorManager, Logic, LowLevelBehaviorManager
 from beehave.clock import VirtualClock
+from benchmarks._util import median, report
 
 MISSION_S = 600.0
 RUNS = 5
