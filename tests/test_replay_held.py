@@ -160,3 +160,21 @@ def test_a_behaviour_that_only_sleeps_replays_every_step_without_warnings(
     assert result.warnings == [], result.warnings
     assert result.divergence is None, result.divergence
     assert ended_steps(result.outputs) == steps
+
+
+def test_at_the_shutdown_an_extra_replayed_output_is_dropped_a_missing_one_is_not() -> None:
+    """The live logics raced the recorded shutdown: one that had no time to react to the
+    last input before its HAL's safe state is not a divergence of the replay, which was fed
+    that input. A safe state that commands something else still is."""
+    from beehave.recording.replay import Output, _drop_shutdown_extras, compare
+
+    expected = [Output("leds.set", ["green"], 1.0), Output("leds.set", ["off"], 10.05)]
+    got = [Output("leds.set", ["green"], 1.0), Output("leds.set", ["amber"], 10.01),
+           Output("leds.set", ["off"], 10.06), Output("high:tour", ["ended"], 10.02)]
+    kept = _drop_shutdown_extras(expected, got, shutdown_s=10.0)
+    assert [o.value for o in kept] == [["green"], ["off"], ["ended"]]
+    assert compare(expected, [o for o in kept if not o.key.startswith("high")]) is None
+    # A safe state that set something else: the recorded "off" is missing -> divergence.
+    wrong = [Output("leds.set", ["green"], 1.0), Output("leds.set", ["red"], 10.06)]
+    div = compare(expected, _drop_shutdown_extras(expected, wrong, shutdown_s=10.0))
+    assert div is not None and div.expected == ["off"] and div.got is None

@@ -180,6 +180,37 @@ def _trim_window_end(expected: list[Output], got: list[Output],
     return keep(expected, count_b), keep(got, count_a)
 
 
+def side_aborted(side: Any) -> bool:
+    return side is None or side.abort.is_set()
+
+
+def _drop_shutdown_extras(expected: list[Output], got: list[Output],
+                          shutdown_s: float) -> list[Output]:
+    """From the recorded shutdown's start on, the live logics raced the shutdown: an output
+    they had no time to give before their HALs' safe states, the replay (fed every input up
+    to there) may give. Drop, per stream, the replayed outputs after ``shutdown_s`` that
+    the recording's outputs after it do not contain, in order; the recorded ones are all
+    still compared."""
+    after: dict[str, list[Any]] = defaultdict(list)
+    for o in expected:
+        if o.t_s >= shutdown_s:
+            after[o.key].append(o.value)
+    kept: list[Output] = []
+    matched: dict[str, int] = defaultdict(int)
+    for o in got:
+        if o.t_s < shutdown_s or o.key.startswith("high"):
+            kept.append(o)
+            continue
+        want = after.get(o.key, [])
+        i = matched[o.key]
+        if i < len(want) and o.value == want[i]:
+            matched[o.key] += 1
+            kept.append(o)
+        # else: an extra, dropped. A recorded output the replay lacks stays missing from
+        # ``got``: a safe state that commands something else is still a divergence.
+    return kept
+
+
 def compare(expected: list[Output], got: list[Output]) -> Divergence | None:
     """The earliest place where ``got`` differs from ``expected``, stream by stream (a
     stream: one ``key``, in order), or None when every stream is the same."""
@@ -1070,6 +1101,8 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
         got = [o for o in got if not _is_safe_state_ran(o)]
     if hi < float("inf"):
         expected, got = _trim_window_end(expected, got, hi)
+    elif with_high and not side_aborted(side):
+        got = _drop_shutdown_extras(expected, got, timeline(_shutdown_ns(rec, prefix)))
     return ReplayResult(got, expected, compare(expected, got), fed, max(span, 0.0), wall,
                         timeline.sim is not None, warnings,
                         commands=list(side.node.captured) if side is not None else [],
