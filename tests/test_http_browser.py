@@ -22,6 +22,7 @@ from typing import Any
 import pytest
 
 from beehave.testing import WALL_TIMEOUT_S
+from tests.chromium import CHROMIUM, chromium
 
 # One pytest-xdist worker runs this module: its module-scoped rig is built once.
 pytestmark = pytest.mark.xdist_group("test_http_browser")
@@ -36,7 +37,6 @@ httpx = pytest.importorskip("httpx")
 sync_api = pytest.importorskip("playwright.sync_api")
 
 ROOT = Path(__file__).resolve().parent.parent
-CHROMIUM = "/usr/bin/chromium"
 OUT = ROOT / "out"
 
 if not Path(CHROMIUM).exists():  # pragma: no cover - `make setup` installs it
@@ -129,12 +129,8 @@ def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RobotProcess]:
 
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
-    with sync_api.sync_playwright() as playwright:
-        chromium = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
-        try:
-            yield chromium
-        finally:
-            chromium.close()
+    with chromium() as launched:
+        yield launched
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,6 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Annotated, Any
 
 import pytest
@@ -29,10 +28,10 @@ from beehave.errors import InvalidParameters  # noqa: E402
 from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
+from tests.chromium import chromium  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("test_http_security")
 
-CHROMIUM = "/usr/bin/chromium"
 
 
 @pytest.fixture
@@ -359,15 +358,8 @@ def attacker(server: HttpServer) -> Iterator[str]:
 
 @pytest.fixture
 def browser() -> Iterator[Any]:
-    sync_api = pytest.importorskip("playwright.sync_api")
-    if not Path(CHROMIUM).exists():  # pragma: no cover - `make setup` installs it
-        pytest.skip(f"{CHROMIUM} is not installed")
-    with sync_api.sync_playwright() as playwright:
-        chromium = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
-        try:
-            yield chromium
-        finally:
-            chromium.close()
+    with chromium() as launched:
+        yield launched
 
 
 def test_a_page_of_another_origin_cannot_command_the_robot(

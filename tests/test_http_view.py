@@ -19,10 +19,10 @@ from beehave import HighLevelBehaviorManager  # noqa: E402
 from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
+from tests.chromium import CHROMIUM, chromium  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("test_http_view")
 
-CHROMIUM = "/usr/bin/chromium"
 OUT = Path(__file__).resolve().parent.parent / "out"
 WAIT_MS = WALL_TIMEOUT_S * 1000
 WORLD = {"name": "tiny", "floor": {"size_m": [6, 4]},
@@ -51,14 +51,9 @@ def server(hl: HighLevelBehaviorManager, monkeypatch: pytest.MonkeyPatch
 
 @pytest.fixture
 def phone() -> Iterator[Any]:
-    with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
-        try:
-            page = browser.new_page(viewport={"width": 390, "height": 844},
-                                    device_scale_factor=2, is_mobile=True, has_touch=True)
-            yield page
-        finally:
-            browser.close()
+    with chromium() as browser:
+        yield browser.new_page(viewport={"width": 390, "height": 844},
+                               device_scale_factor=2, is_mobile=True, has_touch=True)
 
 
 def test_the_view_fits_a_phone_and_switch_and_stop_work_there(

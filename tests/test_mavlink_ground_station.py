@@ -28,6 +28,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # type: ignore[import-untyped]  # noqa: E402
 
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402  (timeouts only)
+from tests.test_mavlink import free_ports  # noqa: E402
 
 mav = mavutil.mavlink
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,18 +43,6 @@ USE_VELOCITY = 0b1101_1100_0111   # vx, vy, vz
 # ArduPilot's SITL home (CMAC), the origin of the simulated vehicles' local frame
 ORIGIN = (-35.363262, 149.165237)
 R_EARTH = 6378137.0
-
-
-def free_ports(count: int) -> list[int]:
-    """Distinct free UDP ports (all held open while choosing, so none repeats)."""
-    sockets = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
-    try:
-        for s in sockets:
-            s.bind(("127.0.0.1", 0))
-        return [s.getsockname()[1] for s in sockets]
-    finally:
-        for s in sockets:
-            s.close()
 
 
 def free_port_pair() -> int:

@@ -180,10 +180,6 @@ def _trim_window_end(expected: list[Output], got: list[Output],
     return keep(expected, count_b), keep(got, count_a)
 
 
-def side_aborted(side: Any) -> bool:
-    return side is None or side.abort.is_set()
-
-
 def _drop_shutdown_extras(expected: list[Output], got: list[Output],
                           shutdown_s: float) -> list[Output]:
     """From the recorded shutdown's start on, the live logics raced the shutdown: an output
@@ -1101,7 +1097,7 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
         got = [o for o in got if not _is_safe_state_ran(o)]
     if hi < float("inf"):
         expected, got = _trim_window_end(expected, got, hi)
-    elif with_high and not side_aborted(side):
+    elif side is not None and not side.abort.is_set():
         got = _drop_shutdown_extras(expected, got, timeline(_shutdown_ns(rec, prefix)))
     return ReplayResult(got, expected, compare(expected, got), fed, max(span, 0.0), wall,
                         timeline.sim is not None, warnings,

@@ -42,6 +42,12 @@ PROFILE = ""
 _TIME = {"type": "number", "description": "time.time() when it happened (s)"}
 
 
+_FOXGLOVE_TIME = {"type": "object", "title": "time",
+                  "properties": {"sec": {"type": "integer", "minimum": 0},
+                                 "nsec": {"type": "integer", "minimum": 0}}}
+"""Foxglove's time: seconds and nanoseconds (``foxglove.Log``, ``foxglove.FrameTransform``)."""
+
+
 def _object(title: str, description: str, properties: dict[str, Any],
             required: list[str]) -> dict[str, Any]:
     """The JSON Schema of a JSON object (each beehave channel's message is one)."""
@@ -81,9 +87,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {s["title"]: s for s in (
             "Each event of both levels once more, as Foxglove's Log panel reads it (the "
             "schema foxglove.Log): level 2 INFO, 3 WARNING (STUCK, a safe state that "
             "failed …), 4 ERROR (something that FAILED); name: <robot>/high or /low.",
-            {"timestamp": {"type": "object", "title": "time",
-                           "properties": {"sec": {"type": "integer", "minimum": 0},
-                                          "nsec": {"type": "integer", "minimum": 0}}},
+            {"timestamp": _FOXGLOVE_TIME,
              "level": {"type": "integer", "enum": [0, 1, 2, 3, 4, 5]},
              "message": {"type": "string"}, "name": {"type": "string"},
              "file": {"type": "string"}, "line": {"type": "integer", "minimum": 0}},
@@ -92,9 +96,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {s["title"]: s for s in (
             "The robot's pose from its odometry, as Foxglove's 3D panel reads frames: "
             "parent_frame_id (map) to child_frame_id (<robot>/base_link, the frame of "
             "the laser scans).",
-            {"timestamp": {"type": "object", "title": "time",
-                           "properties": {"sec": {"type": "integer", "minimum": 0},
-                                          "nsec": {"type": "integer", "minimum": 0}}},
+            {"timestamp": _FOXGLOVE_TIME,
              "parent_frame_id": {"type": "string"}, "child_frame_id": {"type": "string"},
              "translation": {"type": "object", "properties": {
                  "x": {"type": "number"}, "y": {"type": "number"}, "z": {"type": "number"}}},
