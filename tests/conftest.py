@@ -17,11 +17,15 @@ from beehave.testing import no_thread_left
 # ROS 2 isolation: only this machine, and a domain of our own for this test run and this
 # pytest-xdist worker (child processes inherit both). The workers of one run share a seed
 # (PYTEST_XDIST_TESTRUNUID), so they take consecutive domains and never the same one; the
-# benchmarks use 101-200.
+# benchmarks use 101-200. BEEHAVE_TEST_DOMAINS=LO-HI moves a run into another range, so
+# that two suites on one machine (e.g. `make test-stress` beside development) never meet.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 _WORKER = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
 _SEED = os.environ.get("PYTEST_XDIST_TESTRUNUID", str(os.getpid()))
-_DOMAIN = str(random.Random(_SEED).randint(1, 100 - 16) + int(_WORKER.removeprefix("gw")) % 16)
+_LO, _HI = (int(n) for n in os.environ.get("BEEHAVE_TEST_DOMAINS", "1-100").split("-"))
+_SPAN = min(16, _HI - _LO + 1)
+_DOMAIN = str(random.Random(_SEED).randint(_LO, _HI - _SPAN + 1)
+              + int(_WORKER.removeprefix("gw")) % _SPAN)
 if "PYTEST_XDIST_WORKER" in os.environ:
     # A worker inherits the controller's environment: its own domain replaces that one.
     os.environ["ROS_DOMAIN_ID"] = _DOMAIN
