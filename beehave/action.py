@@ -6,11 +6,14 @@ lock); :meth:`Behavior.start_action` takes it and the action gives it back when 
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any, ClassVar, Self
 
+from beehave.errors import Interrupted
 from beehave.events import Event, EventKind
 from beehave.runnable import Runnable
+from beehave.status import Status
 
 
 class Action(Runnable):
@@ -65,10 +68,90 @@ class Action(Runnable):
         or STUCK (then in a thread of its own, while ``run`` may still be executing; the
         action keeps its type lock until both have returned). Not called after success.
         Keep it short and make it not depend on ``run``'s state.
+
+        A pause (``hl.pause()``) of an action without an ``on_pause()`` hook calls it too,
+        once ``run`` has wound down; the action then ends later without a second call
+        unless it ran again after ``resume()``.
         """
 
+    def on_pause(self) -> None:
+        """Optional hook: the manager pauses (``hl.pause()``). Bring the hardware to a
+        safe stop and return (within ``stop_timeout_s``, or the action becomes STUCK);
+        ``run`` keeps its thread, and its ``sleep``s stand still until :meth:`on_resume`.
+        Make ``run`` command no motion meanwhile (e.g. a flag it checks).
+
+        Without this hook (the default), a pause interrupts the action: ``interrupted``
+        turns true, ``run`` returns, ``safe_state()`` runs, and after ``resume()`` ``run``
+        is called again from the start — in the same object, with its type lock kept all
+        along. Write actions whose ``run`` can start again (drive *to* a goal, lift *to*
+        a height), or write both hooks.
+        """
+
+    def on_resume(self) -> None:
+        """Optional hook: the pause ended (``hl.resume()``); ``run`` goes on where it was.
+        Called only when :meth:`on_pause` is overridden too."""
+
     # ------------------------------------------------------------------ driver
-    def _enter_safe_state(self) -> None:
+    @property
+    def _has_pause_hooks(self) -> bool:
+        return type(self).on_pause is not Action.on_pause
+
+    def _request_pause(self, *, hooked: bool) -> threading.Event:
+        """The manager pauses: ask this action to wind down (or mark it for its
+        ``on_pause`` hook, which the manager calls); returns what is set once paused."""
+        with self._cond:
+            done = self._paused_done = threading.Event()
+            if self._decided.is_set() or self._status not in (Status.PENDING, Status.RUNNING):
+                done.set()
+                return done
+            if hooked:
+                self._pause_hooked = True
+            else:
+                self._pausing = True
+                self._cond.notify_all()
+        if not hooked and self._manager is not None:
+            self._manager._locks.poke()
+        return done
+
+    def _request_resume(self) -> None:
+        """The pause ended: let ``run`` go again (it waits in ``_pause_point``)."""
+        with self._cond:
+            self._pausing = False
+            self._pause_hooked = False
+            self._cond.notify_all()
+
+    def _pause_point(self, error: BaseException | None, *, ran: bool) -> bool:
+        manager = self._manager
+        assert manager is not None
+        with self._cond:
+            if (not self._pausing or self._interrupt_requested
+                    or self._status is not Status.RUNNING):
+                return not ran
+            if ran and error is not None and not isinstance(error, Interrupted):
+                return False  # a real failure ends it, pause or not
+        if ran:
+            # run() wound down for the pause: the hardware to its safe state, once.
+            self._pause_safe = True
+            with manager.run_clock.unfrozen():
+                self._enter_safe_state(paused=True)
+        done = self._paused_done
+        if done is not None:
+            done.set()
+
+        def resumed() -> bool:
+            return (not self._pausing or self._interrupt_requested
+                    or self._status is not Status.RUNNING)
+
+        with manager.clock.blocked(resumed), self._cond:
+            self._cond.wait_for(resumed)  # a resume, a switch or a shutdown ends it
+            if self._interrupt_requested or self._status is not Status.RUNNING:
+                return False
+        self._pause_safe = False
+        manager.events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name,
+                                  detail={"resumed": True}))
+        return True
+
+    def _enter_safe_state(self, *, paused: bool = False) -> None:
         # Called exactly once: the status transition to STUCK or to a final status (one
         # place, under the object's lock) decides who calls it.
         assert self._manager is not None
@@ -84,7 +167,8 @@ class Action(Runnable):
                 EventKind.SAFE_STATE_RAN, self.path, self.status.name,
                 detail={"took_s": round(time.monotonic() - began, 6),
                         "action_type": self.action_type,
-                        **({"forced": True} if self.status.name == "STUCK" else {})}))
+                        **({"forced": True} if self.status.name == "STUCK" else {}),
+                        **({"paused": True} if paused else {})}))
 
     def _has_safe_state(self) -> bool:
         return True

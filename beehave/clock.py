@@ -152,6 +152,123 @@ class SimClock(WallClock):
                     heapq.heapify(self._waiters)
 
 
+class PausableClock:
+    """The clock behaviours and actions follow: the manager's clock with its pauses cut out.
+
+    While :meth:`freeze` holds (``hl.pause()``), time stands still for them: :meth:`now`
+    stays where it was, and every :meth:`wait` — a ``sleep``, an engine's tick, a ROS
+    helper's timeout — blocks whatever its predicate says, and goes on with the time it
+    had left after :meth:`thaw`. Safe states and the pause hooks run :meth:`unfrozen`
+    (the hardware must get safe while paused). Everything else (``busy``, ``blocked``,
+    ``announcing``, ``set_time`` …) is the manager's clock's own.
+    """
+
+    def __init__(self, base: WallClock) -> None:
+        self.base = base
+        self._lock = threading.Lock()
+        self._since: float | None = None  # base time of the freeze, while frozen
+        self._cut = 0.0  # base seconds spent frozen so far
+        self._waiting: dict[threading.Condition, int] = {}
+        self._local = threading.local()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.base, name)
+
+    @property
+    def frozen(self) -> bool:
+        return self._since is not None
+
+    def now(self) -> float:
+        with self._lock:
+            since, cut = self._since, self._cut
+        return (self.base.now() if since is None else since) - cut
+
+    def freeze(self) -> None:
+        with self._lock:
+            if self._since is not None:
+                return
+            self._since = self.base.now()
+            conds = list(self._waiting)
+        _notify(conds)
+
+    def thaw(self) -> float:
+        """End the freeze; returns how long it lasted (the base clock's seconds)."""
+        with self._lock:
+            if self._since is None:
+                return 0.0
+            lasted = max(0.0, self.base.now() - self._since)
+            self._cut += lasted
+            self._since = None
+            conds = list(self._waiting)
+        _notify(conds)
+        return lasted
+
+    @contextmanager
+    def unfrozen(self) -> Iterator[None]:
+        """Inside the block, the calling thread's waits run on the base clock, frozen or
+        not (a safe state, an ``on_pause`` hook)."""
+        self._local.depth = getattr(self._local, "depth", 0) + 1
+        try:
+            yield
+        finally:
+            self._local.depth -= 1
+
+    def _running(self) -> bool:
+        return self._since is None
+
+    def wait(self, cond: threading.Condition, predicate: Callable[[], bool],
+             timeout_s: float | None, *,
+             frozen_escape: Callable[[], bool] | None = None) -> bool:
+        """Like the base clock's ``wait``, in this clock's time. While frozen, time stands
+        still: the wait ends only when ``frozen_escape()`` turns true (default: the
+        predicate — an event still wakes a frozen sleep, only its time does not run; an
+        engine passes "interrupted" alone, so that it decides nothing while paused)."""
+        if getattr(self._local, "depth", 0):
+            return self.base.wait(cond, predicate, timeout_s)
+        escape = predicate if frozen_escape is None else frozen_escape
+        deadline = None if timeout_s is None else self.now() + timeout_s
+        remaining = timeout_s  # unchanged unless a freeze interrupts the wait (exact times)
+        with self._lock:
+            self._waiting[cond] = self._waiting.get(cond, 0) + 1
+        try:
+            while True:
+                if self._since is not None:
+                    if escape():
+                        return predicate()
+                    self.base.wait(cond, lambda: self._since is None or escape(), None)
+                    if self._since is None and deadline is not None:
+                        remaining = max(0.0, deadline - self.now())
+                    continue
+                if predicate():
+                    return True
+                if remaining is not None and remaining <= 0:
+                    return False
+                woke = self.base.wait(
+                    cond, lambda: self._since is not None or predicate(), remaining)
+                if self._since is not None:
+                    continue
+                if predicate():
+                    return True
+                if not woke:
+                    return False
+                # Woken by a freeze that has already ended: wait on for the time left.
+                if deadline is not None:
+                    remaining = max(0.0, deadline - self.now())
+        finally:
+            with self._lock:
+                left = self._waiting[cond] - 1
+                if left:
+                    self._waiting[cond] = left
+                else:
+                    del self._waiting[cond]
+
+
+def _notify(conds: list[threading.Condition]) -> None:
+    for cond in conds:
+        with cond:
+            cond.notify_all()
+
+
 class _Worker:
     """What a virtual clock knows of one thread of the managers."""
 

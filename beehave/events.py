@@ -38,6 +38,13 @@ class EventKind(Enum):
     HOOK_FAILED = "hook_failed"
     """An optional hook (``on_child_ended``, ``on_interrupt``) raised; the error is attached
     and raised again in the behaviour's own thread."""
+    PAUSED = "paused"
+    """``hl.pause()`` took effect: ``subject`` is the top-level behaviour, ``detail`` has
+    ``actions`` (the paths paused), ``stuck`` (those that ignored it and became STUCK) and
+    ``took_s``. Emitted once every action stands in its safe state."""
+    RESUMED = "resumed"
+    """The pause ended: ``detail`` has ``by`` (``resume``, or the ``switch``/``shutdown``
+    that ended it: then nothing restarts), ``paused_s`` and ``actions``."""
     SWITCH_REQUESTED = "switch_requested"
     SWITCH_COMPLETED = "switch_completed"
     SWITCH_SUPERSEDED = "switch_superseded"

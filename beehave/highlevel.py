@@ -12,11 +12,11 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Self
 
 from beehave.behavior import Behavior, Idle
 from beehave.blackboard import Blackboard, BlackboardView
-from beehave.clock import VirtualClock, WallClock
+from beehave.clock import PausableClock, VirtualClock, WallClock
 from beehave.errors import (
     BeehaveError,
     ConfigError,
@@ -34,6 +34,9 @@ from beehave.runnable import Runnable, current
 from beehave.status import Status
 from beehave.substitutes import Substitute, Substitutions
 from beehave.threads import WorkerPool
+
+if TYPE_CHECKING:
+    from beehave.action import Action
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +100,9 @@ class HighLevelBehaviorManager:
         #: blackboard when both run in one process, or a read-only mirror fed over ROS 2.
         #: What ``sleep`` and the ROS helpers' timeouts follow (sim time with ``SimClock``).
         self.clock = clock if clock is not None else WallClock()
+        #: What behaviours and actions follow (``sleep``, engines, the ROS helpers'
+        #: timeouts): ``clock`` with the pauses (:meth:`pause`) cut out.
+        self.run_clock = PausableClock(self.clock)
         if blackboard is None:
             blackboard = (Blackboard(clock=self.clock.now) if isinstance(self.clock, VirtualClock)
                           else Blackboard())
@@ -125,6 +131,15 @@ class HighLevelBehaviorManager:
         #: Substitution rules for the actions and sub-behaviours started from now on
         #: (:meth:`substitute`).
         self.substitutes = Substitutions()
+        # Pause: one pause() or resume() at a time; the flag and the list of paused actions
+        # change under the type-lock table's lock (an action that takes a lock meanwhile
+        # is paused before it runs).
+        self._pause_lock = threading.Lock()
+        self._paused = False
+        self._paused_actions: list[Action] = []
+        self._paused_at = 0.0
+        self._pause_round = 0
+        self._locks.on_take = self._lock_taken
 
     # ------------------------------------------------------------------ registry
     def register(self, name: str, behavior_cls: type[Behavior], **params: Any) -> None:
@@ -292,6 +307,143 @@ class HighLevelBehaviorManager:
             raise request.error
         return behavior
 
+    # ------------------------------------------------------------------ pause
+    @property
+    def paused(self) -> bool:
+        """True between :meth:`pause` and the end of the pause (``resume``, a switch, the
+        shutdown)."""
+        return self._paused
+
+    def pause(self) -> bool:
+        """Pause the robot where it is, keeping what runs.
+
+        Every running action is brought to a safe stop — an action with an ``on_pause()``
+        hook by that hook, any other is interrupted to its ``safe_state()`` and will run
+        again after :meth:`resume` — within ``stop_timeout_s``; one that ignores it becomes
+        STUCK (its safe state forced), as in a switch. The top-level behaviour, its
+        sub-behaviours, their type locks and their progress stay; time stands still for
+        them (``sleep``, engine timers and the ROS helpers' timeouts follow
+        :attr:`run_clock`), engines decide nothing, and an action started meanwhile waits
+        for the resume before it runs. The low level goes on (it sees
+        ``high_level/paused``). Returns True once paused, False when it already was.
+        A switch (or the shutdown) while paused ends the pause: nothing restarts, the
+        paused actions end INTERRUPTED. Called from a thread of this manager (a behaviour,
+        an action, an event callback) the pause is carried out in a thread of its own and
+        this returns True at once.
+        """
+        with self._cond:
+            if self._state is not ManagerState.RUNNING:
+                raise ManagerShutdown(f"cannot pause: the manager is {self._state.value}")
+        if self._own_thread():
+            self._pool.submit("beehave:pause", self._pause_now)
+            return True
+        with self.clock.busy():
+            return self._pause_now()
+
+    def resume(self) -> bool:
+        """End the pause: actions paused by their ``on_pause()`` hook get ``on_resume()``
+        and go on, the others run again from the start; time runs again for behaviours.
+        Returns True when it ended a pause, False when none was on."""
+        with self._pause_lock:
+            actions, lasted = self._end_pause()
+            if actions is None:
+                return False
+        for action in actions:
+            if action._pause_hooked and not action._decided.is_set():
+                try:
+                    with self.run_clock.unfrozen():
+                        action.on_resume()
+                except Exception as exc:  # it cannot go on as if nothing happened
+                    self.events.emit(Event(EventKind.HOOK_FAILED, action.path,
+                                           action.status.name, exc, {"hook": "on_resume"}))
+                    action.interrupt()
+            action._request_resume()
+        self.events.emit(Event(EventKind.RESUMED, self._top_name or "", detail={
+            "by": "resume", "paused_s": round(lasted, 6),
+            "actions": [a.path for a in actions]}))
+        return True
+
+    def _pause_now(self) -> bool:
+        with self._pause_lock:
+            began = time.monotonic()
+            with self._locks.table() as holders:
+                if self._paused:
+                    return False
+                self._paused = True
+                self._pause_round += 1
+                round_ = self._pause_round
+                self._paused_at = began
+                self.run_clock.freeze()
+                self._paused_actions = list(holders)
+                waits = [(a, a._request_pause(hooked=a._has_pause_hooks)) for a in holders]
+            deadline = began + self.stop_timeout_s
+            for action, done in waits:
+                if action._pause_hooked:
+                    self._pool.submit(f"beehave:on_pause:{action.path}",
+                                      lambda a=action, d=done: self._hook_pause(a, d))
+            stuck: list[Action] = []
+            for action, done in waits:
+                with self.clock.blocked(done.is_set):
+                    if not done.wait(max(0.0, deadline - time.monotonic())):
+                        action._mark_stuck()
+                        stuck.append(action)
+            grace = max(deadline, time.monotonic()) + _GRACE_S
+            for action in stuck:
+                action._wait_safe_state(grace)
+            with self._locks.table():
+                current = self._paused and self._pause_round == round_
+            if current:  # (a switch may have ended it meanwhile)
+                self.events.emit(Event(EventKind.PAUSED, self._top_name or "", detail={
+                    "actions": [a.path for a, _ in waits],
+                    "stuck": [a.path for a in stuck],
+                    "took_s": round(time.monotonic() - began, 6)}))
+            return True
+
+    def _hook_pause(self, action: Action, done: threading.Event) -> None:
+        """An action's ``on_pause()`` hook, in a pool thread (the pause waits for it)."""
+        try:
+            with self.run_clock.unfrozen():
+                action.on_pause()
+        except Exception as exc:
+            self.events.emit(Event(EventKind.HOOK_FAILED, action.path, action.status.name,
+                                   exc, {"hook": "on_pause"}))
+            # It could not pause itself: the default way (interrupt to its safe state).
+            with action._cond:
+                action._pause_hooked = False
+                action._pausing = True
+                action._cond.notify_all()
+            return
+        done.set()
+
+    def _lock_taken(self, action: Action) -> None:
+        """Under the lock table's lock: an action starts while the manager is paused; it
+        waits for the resume before it runs."""
+        if self._paused:
+            action._request_pause(hooked=False)
+            self._paused_actions.append(action)
+
+    def _end_pause(self) -> tuple[list[Action] | None, float]:
+        """Clear the pause (under the lock table's lock); the paused actions and how long
+        it lasted, or (None, 0) when no pause was on. Time runs again for behaviours."""
+        with self._locks.table():
+            if not self._paused:
+                return None, 0.0
+            self._paused = False
+            actions, self._paused_actions = self._paused_actions, []
+            lasted = self.run_clock.thaw()
+        return actions, lasted
+
+    def _end_pause_by(self, why: str, subject: str) -> None:
+        """A switch or the shutdown ends the pause (everything was interrupted first):
+        the paused actions end INTERRUPTED, nothing restarts."""
+        actions, lasted = self._end_pause()
+        if actions is None:
+            return
+        for action in actions:
+            action._request_resume()  # it sees its interrupt and ends
+        self.events.emit(Event(EventKind.RESUMED, subject, detail={
+            "by": why, "paused_s": round(lasted, 6), "actions": [a.path for a in actions]}))
+
     def request_switch(self, name: str, **params: Any) -> Behavior:
         """Like :meth:`switch`, but returns at once (after checking the name and the
         parameters); the switch happens in a manager thread. For callers that must not
@@ -385,6 +537,7 @@ class HighLevelBehaviorManager:
             "time": time.time(),
             "state": self._state.value,
             "current": self._top_name,
+            "paused": self._paused,
             "top": None if top is None else top._snapshot(),
             "locks": self._locks.snapshot(),
             "stuck": stuck,
@@ -568,6 +721,9 @@ class HighLevelBehaviorManager:
         stuck_before = set(self._stuck_nodes())
         deadline = time.monotonic() + self.stop_timeout_s
         top._interrupt(deadline)
+        # After the interrupt: what a pause froze wakes to find it, and nothing restarts.
+        self._end_pause_by("shutdown" if self._state is not ManagerState.RUNNING else "switch",
+                           top.name)
         # The behaviour itself gives up on its children at `deadline`; allow it a moment
         # to record that before declaring the behaviour itself STUCK.
         if not top._wait_decided(deadline + _MARGIN_S) or not top._join(_MARGIN_S):

@@ -5,7 +5,8 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -37,6 +38,9 @@ class TypeLocks:
         self._held: dict[str, _Hold] = {}
         self._queues: dict[str, deque[Action]] = {}
         self._events = events
+        #: Called under the table's lock with every action that takes a lock (the manager
+        #: pauses an action that starts while it is paused).
+        self.on_take: Callable[[Action], None] | None = None
 
     def acquire(self, action: Action, *, preempt: bool, timeout_s: float,
                 cancelled: Callable[[], bool]) -> None:
@@ -104,6 +108,14 @@ class TypeLocks:
 
     def _take(self, kind: str, action: Action) -> None:
         self._held[kind] = _Hold(action, time.monotonic())
+        if self.on_take is not None:
+            self.on_take(action)
+
+    @contextmanager
+    def table(self) -> Iterator[list[Action]]:
+        """Hold the table (no lock is taken or released meanwhile) and give its holders."""
+        with self._cond:
+            yield [hold.holder for hold in self._held.values()]
 
     def release(self, action: Action) -> None:
         with self._cond:

@@ -119,6 +119,10 @@ class Runnable(abc.ABC):
     _overdue_reported: bool
     _in_history: bool
     _suffix: str
+    _pausing: bool
+    _paused_done: threading.Event | None
+    _pause_safe: bool
+    _pause_hooked: bool
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         # Runtime state lives here so that subclasses need not call super().__init__().
@@ -153,6 +157,13 @@ class Runnable(abc.ABC):
         self._overdue_reported = False
         self._in_history = False
         self._suffix = ""  # "#2" for the second child of that name in its behaviour
+        # Pause (actions only, see Action): asked to wind down for a pause; set once it is
+        # paused (or ended); its hardware made safe by the pause and run() not yet
+        # restarted; paused through its own on_pause() hook.
+        self._pausing = False
+        self._paused_done = None
+        self._pause_safe = False
+        self._pause_hooked = False
         return self
 
     def __init__(self, name: str | None = None) -> None:
@@ -188,8 +199,9 @@ class Runnable(abc.ABC):
 
     @property
     def interrupted(self) -> bool:
-        """True once an interrupt was requested: wind down and return."""
-        return self._interrupt_requested
+        """True once an interrupt was requested — or, for an action without an
+        ``on_pause()`` hook, while the manager pauses it: wind down and return."""
+        return self._interrupt_requested or self._pausing
 
     @property
     def path(self) -> str:
@@ -232,8 +244,8 @@ class Runnable(abc.ABC):
                 from beehave.ros.io import RosIO
 
                 self._ros = RosIO(manager.node, owner=self.path, cond=self._cond,
-                                  interrupted=lambda: self._interrupt_requested,
-                                  clock=manager.clock)
+                                  interrupted=lambda: self.interrupted,
+                                  clock=manager.run_clock)
             return self._ros
 
     @property
@@ -251,13 +263,14 @@ class Runnable(abc.ABC):
 
     def sleep(self, seconds: float) -> bool:
         """Wait ``seconds`` (``math.inf``: until interrupted); return False at once when
-        interrupted, True otherwise."""
-        clock = self._manager.clock if self._manager is not None else _WALL
+        interrupted, True otherwise. While the manager is paused, time stands still: the
+        sleep goes on with what it had left after ``resume()``."""
+        clock: WallClock = self._manager.run_clock if self._manager is not None else _WALL
         timeout_s = _timeout(seconds, f"{self.path}: sleep(seconds)")
         with self._cond:
             clock.wait(self._cond, self._wake_reason, timeout_s)
             self._raise_pending()
-            return not self._interrupt_requested
+            return not self.interrupted
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until the outcome is decided (any final status, STUCK included).
@@ -311,10 +324,14 @@ class Runnable(abc.ABC):
             assert self._manager is not None
             self._manager.events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name))
             error: BaseException | None = None
-            try:
-                object.__setattr__(self, "result", self.run())
-            except BaseException as exc:  # recorded on the handle and surfaced to the parent
-                error = exc
+            again = self._pause_point(None, ran=False)
+            while again:
+                error = None
+                try:
+                    object.__setattr__(self, "result", self.run())
+                except BaseException as exc:  # recorded on the handle, surfaced to the parent
+                    error = exc
+                again = self._pause_point(error, ran=True)
             error = self._after_run(error)
             ended = self._finish(error)
         finally:
@@ -339,6 +356,11 @@ class Runnable(abc.ABC):
     def _after_run(self, error: BaseException | None) -> BaseException | None:
         """Behavior ends its children here; returns the error that decides the status."""
         return error
+
+    def _pause_point(self, error: BaseException | None, *, ran: bool) -> bool:
+        """Before the first ``run`` (``ran`` False) and after each: whether to call ``run``
+        (again). Action waits out a pause here; a behaviour runs once."""
+        return not ran
 
     def _finish(self, error: BaseException | None) -> bool:
         """Decide the status, apply the safe state, release what it holds, tell the parent
@@ -371,7 +393,8 @@ class Runnable(abc.ABC):
         assert manager is not None
         stuck_now = False
         try:
-            if status is not Status.SUCCEEDED:
+            if status is not Status.SUCCEEDED and not self._pause_safe:
+                # (A pause already made it safe and nothing ran since: not twice.)
                 self._run_safe_state()
             self._destroy_io()
             self._release()
@@ -379,6 +402,8 @@ class Runnable(abc.ABC):
                 # Before _decided: whoever wait()s for us must find the failure recorded.
                 self.parent._record_child_end(self)
             self._decided.set()
+            if self._paused_done is not None:
+                self._paused_done.set()  # a pause waiting for it: it has ended instead
             with self._cond:
                 # The owner may have given up on us while safe_state() hung; after
                 # _decided it no longer can (_mark_stuck checks it under this lock).
@@ -453,6 +478,8 @@ class Runnable(abc.ABC):
                 threading.Thread(target=self._forced_safe_state, daemon=True,
                                  name=f"beehave:safe_state:{self.path}").start()
         self._decided.set()
+        if self._paused_done is not None:
+            self._paused_done.set()
 
     def _forced_safe_state(self) -> None:
         try:
@@ -561,7 +588,7 @@ class Runnable(abc.ABC):
         """Action releases its type lock (after its safe state)."""
 
     def _wake_reason(self) -> bool:
-        return self._interrupt_requested
+        return self._interrupt_requested or self._pausing
 
     def _raise_pending(self) -> None:
         """Behavior raises ChildFailed here; called with ``_cond`` held."""

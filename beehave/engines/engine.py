@@ -260,14 +260,18 @@ class EngineContext:
         limit = self.poll_s if timeout_s is None else min(timeout_s, self.poll_s)
         behavior = self.behavior
         with self._cond:
-            behavior.manager.clock.wait(self._cond,
-                                        lambda: self._woken or behavior.interrupted, limit)
+            # While the manager is paused, only an interrupt ends the wait: the engine
+            # decides nothing (a child's end or a blackboard change waits for resume()).
+            behavior.manager.run_clock.wait(
+                self._cond, lambda: self._woken or behavior.interrupted, limit,
+                frozen_escape=lambda: behavior.interrupted)
             self._woken = False
         return not behavior.interrupted
 
     def now(self) -> float:
-        """The manager's clock time (sim or virtual time where the manager has one)."""
-        return self.behavior.manager.clock.now()
+        """The manager's clock time without its pauses (sim or virtual time where the
+        manager has one)."""
+        return self.behavior.manager.run_clock.now()
 
     # -- starting and stopping -----------------------------------------------------------
     def start(self, starter: Starter) -> Runnable:
