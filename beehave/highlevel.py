@@ -348,6 +348,10 @@ class HighLevelBehaviorManager:
             actions, lasted = self._end_pause()
             if actions is None:
                 return False
+        # Before anything moves again: observers see the resume before its first command.
+        self.events.emit(Event(EventKind.RESUMED, self._top_name or "", detail={
+            "by": "resume", "paused_s": round(lasted, 6),
+            "actions": [a.path for a in actions]}))
         for action in actions:
             if action._pause_hooked and not action._decided.is_set():
                 try:
@@ -358,9 +362,6 @@ class HighLevelBehaviorManager:
                                            action.status.name, exc, {"hook": "on_resume"}))
                     action.interrupt()
             action._request_resume()
-        self.events.emit(Event(EventKind.RESUMED, self._top_name or "", detail={
-            "by": "resume", "paused_s": round(lasted, 6),
-            "actions": [a.path for a in actions]}))
         return True
 
     def _pause_now(self) -> bool:

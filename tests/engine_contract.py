@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import abc
 import json
+import time
 from typing import Any
 
 from beehave import Behavior, HighLevelBehaviorManager, Status
@@ -94,6 +95,50 @@ class EngineContract(abc.ABC):
         assert behavior.status is Status.INTERRUPTED
         assert action.status is Status.INTERRUPTED and not action.alive
         assert action.safe_state_calls == 1
+
+    def test_a_pause_keeps_the_engine_where_it_is_and_resume_goes_on(
+            self, hl: HighLevelBehaviorManager) -> None:
+        act = Recorder("act", duration_s=0.3, result=7)
+        engine = self.single(act)
+        behavior = run(hl, engine)
+        assert wait_until(lambda: bool(act.built) and act.built[0].status is Status.RUNNING)
+        hl.pause()
+        (action,) = act.built
+        # The action is in its safe state, paused (still RUNNING, its type held); the
+        # engine decides nothing while paused, although the action's 0.3 s passed.
+        assert action.safe_state_calls == 1 and action.status is Status.RUNNING
+
+        def described() -> str:
+            return json.dumps(engine.describe(), sort_keys=True, default=str)
+
+        def settled() -> bool:
+            # A step under way when the pause came may finish; then nothing moves.
+            before = described()
+            time.sleep(0.1)
+            return described() == before
+
+        assert wait_until(settled)
+        frozen = described()
+        time.sleep(0.5)
+        assert described() == frozen
+        assert behavior.status is Status.RUNNING and len(act.built) == 1
+        hl.resume()
+        assert behavior.wait(WALL_TIMEOUT_S)
+        assert behavior.status is Status.SUCCEEDED, behavior.error
+        # The same action ran again to its end: not rebuilt, its safe state not repeated.
+        assert len(act.built) == 1 and action.status is Status.SUCCEEDED
+        assert action.result == 7 and action.safe_state_calls == 1
+
+    def test_a_switch_while_paused_stops_the_engine_and_its_action_once(
+            self, hl: HighLevelBehaviorManager) -> None:
+        act = Recorder("long", duration_s=30)
+        behavior = run(hl, self.single(act))
+        assert wait_until(lambda: bool(act.built) and act.built[0].status is Status.RUNNING)
+        hl.pause()
+        hl.switch("idle")
+        (action,) = act.built
+        assert not hl.paused and behavior.status is Status.INTERRUPTED
+        assert action.status is Status.INTERRUPTED and action.safe_state_calls == 1
 
     def test_the_snapshot_shows_where_the_running_engine_is(
             self, hl: HighLevelBehaviorManager) -> None:
