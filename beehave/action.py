@@ -189,4 +189,6 @@ class Action(Runnable):
             snap["safe_state_error"] = repr(self.safe_state_error)
         if self.safe_state_pending:
             snap["safe_state_pending"] = True
+        if self._pausing or self._pause_hooked:
+            snap["paused"] = True
         return snap

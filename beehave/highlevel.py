@@ -335,10 +335,19 @@ class HighLevelBehaviorManager:
             if self._state is not ManagerState.RUNNING:
                 raise ManagerShutdown(f"cannot pause: the manager is {self._state.value}")
         if self._own_thread():
-            self._pool.submit("beehave:pause", self._pause_now)
+            self.request_pause()
             return True
         with self.clock.busy():
             return self._pause_now()
+
+    def request_pause(self) -> None:
+        """Like :meth:`pause`, but returns at once; the pause is carried out in a manager
+        thread and announced by a ``paused`` event (for callers that must not block: a
+        ROS service, a web request)."""
+        with self._cond:
+            if self._state is not ManagerState.RUNNING:
+                raise ManagerShutdown(f"cannot pause: the manager is {self._state.value}")
+        self._pool.submit("beehave:pause", self._pause_now)
 
     def resume(self) -> bool:
         """End the pause: actions paused by their ``on_pause()`` hook get ``on_resume()``

@@ -89,6 +89,35 @@ def test_parameter_switch_state_blackboard_and_stop(robot: Robot, probe: Probe) 
     assert wait_until(lambda: robot.low.blackboard.get("high_level/behavior") == "idle")
 
 
+def test_pause_and_resume_services_stop_the_wheels_and_drive_on(robot: Robot,
+                                                                probe: Probe) -> None:
+    cmd = probe.record(Twist, "/rosbot/cmd_vel")
+    state = probe.record(String, "/rosbot/beehave/high_level/state", latched=True)
+    assert probe.set_param(HIGH, "behavior", "patrol").successful
+    assert probe.wait(lambda: any(m.linear.x == pytest.approx(0.3) for m in cmd))
+
+    paused = probe.trigger("/rosbot/beehave/pause")
+    assert paused.success and paused.message == "pausing", paused.message
+    assert probe.wait(lambda: (last_json(state) or {}).get("paused") is True)
+    assert last_json(state)["behavior"] == "patrol"  # the behaviour stays
+    assert probe.wait(lambda: cmd[-1].linear.x == 0.0), "no zero velocity on pause"
+    zero_at = len(cmd) - 1
+    assert probe.trigger("/rosbot/beehave/pause").message == "already paused"
+    # The low level sees it (a logic may show it) ...
+    assert robot.low is not None
+    assert wait_until(lambda: robot.low.blackboard.get("high_level/paused") is True)
+    # ... and nothing drives while paused: every command after the zero is a zero.
+    probe.wait(lambda: False, timeout_s=0.5)
+    assert all(m.linear.x == 0.0 for m in list(cmd)[zero_at:])
+
+    resumed = probe.trigger("/rosbot/beehave/resume")
+    assert resumed.success and resumed.message == "resumed", resumed.message
+    assert probe.wait(lambda: cmd[-1].linear.x == pytest.approx(0.3)), "did not drive on"
+    assert probe.wait(lambda: (last_json(state) or {}).get("paused") is False)
+    assert probe.trigger("/rosbot/beehave/resume").message == "was not paused"
+    assert wait_until(lambda: robot.low.blackboard.get("high_level/paused") is False)
+
+
 def test_unknown_or_mistyped_names_are_rejected_with_reasons(robot: Robot, probe: Probe) -> None:
     result = probe.set_param(HIGH, "behavior", "patroll")
     assert not result.successful

@@ -147,6 +147,20 @@ class ControlPlane:
         """Switch to ``idle``: every action is interrupted and ends in its safe state."""
         return self.switch(IDLE)
 
+    def pause(self) -> dict[str, Any]:
+        """Pause the robot in place (:meth:`HighLevelBehaviorManager.pause`) and return at
+        once: ``{"pausing": True}``, or ``{"pausing": False, "paused": True}`` when it is
+        paused already. The ``paused`` event says when every action stands safe."""
+        if self.high.paused:
+            return {"pausing": False, "paused": True}
+        self.high.request_pause()
+        return {"pausing": True}
+
+    def resume(self) -> dict[str, Any]:
+        """End the pause: ``{"resumed": True}``, or ``{"resumed": False}`` when none was on
+        (nothing is refused: a resume of a running robot changes nothing)."""
+        return {"resumed": self.high.resume()}
+
     # -- what runs --------------------------------------------------------------------------
 
     def status(self) -> dict[str, Any]:
@@ -155,7 +169,8 @@ class ControlPlane:
             {"schema", "stamp", "behavior", "logic",          # the top-level names
              "running": [{"path", "kind", "class", "status", "action_type"}],
              "engines": [{"path", "kind", ...the engine's own snapshot}],
-             "locks": {action_type: holder path}, "stuck": [paths]}
+             "locks": {action_type: holder path}, "stuck": [paths],
+             "paused": bool}                                  # hl.pause() is on
 
         ``logic`` is the logic the top-level behaviour asks the low level for (its class
         attribute ``logic``); ``engines`` has one entry per running behaviour driven by a
@@ -490,7 +505,7 @@ def _status(snap: dict[str, Any], top: Any) -> dict[str, Any]:
             "logic": None if top is None else getattr(type(top), "logic", None),
             "running": running, "engines": engines,
             "locks": {k: v["holder"] for k, v in snap["locks"].items()},
-            "stuck": snap["stuck"]}
+            "stuck": snap["stuck"], "paused": bool(snap.get("paused", False))}
 
 
 __all__ = ["SNAPSHOT_SCHEMA", "STATE_SCHEMA", "ControlPlane"]

@@ -37,7 +37,7 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
                   "action_type": "driving", "status": "RUNNING"}, ...],
      "engines": [{"path": "tour", "kind": "state_machine", "state": "to_shelf", ...},
                  {"path": "tour/pick", "kind": "behaviour_tree", "nodes": [...]}],
-     "locks": {"driving": "tour/Navigation"}, "stuck": []}
+     "locks": {"driving": "tour/Navigation"}, "stuck": [], "paused": false}
 
   ``engines`` holds, for every running behaviour driven by a decision engine, its path and
   the engine's own snapshot (the ``"engine"`` entry of the behaviour's snapshot: a state
@@ -50,8 +50,9 @@ Topics (relative to the robot's namespace; std_msgs/String carrying JSON):
 
   The low level writes it into its blackboard: ``high_level/behavior``,
   ``high_level/logic``, ``high_level/running`` (that list), ``high_level/engines`` (that
-  list), ``high_level/locks`` (that dict), and switches its top-level logic to ``logic``
-  when it is set.
+  list), ``high_level/locks`` (that dict), ``high_level/paused`` (true while the high
+  level is paused: a logic can show it), and switches its top-level logic to ``logic``
+  when it is set. (``paused`` is new in 2026-11; a state without it reads as false.)
 
 Parameters: the high-level node's ``behavior`` (string) switches the top-level behaviour
 (at once; the latest request wins, also when it names the running behaviour while another
@@ -61,7 +62,10 @@ for the old logic's stop, which may need that thread — at most ``switch_timeou
 blocked event loop gives a refusal that says so). Unknown names are refused
 (``SetParametersResult.successful`` false; the reason lists the registered names). Both
 always show what runs.
-Service ``beehave/stop`` (std_srvs/Trigger) on the high-level node switches to ``idle``.
+Service ``beehave/stop`` (std_srvs/Trigger) on the high-level node switches to ``idle``;
+``beehave/pause`` and ``beehave/resume`` (std_srvs/Trigger) pause the robot in place and
+resume it (:meth:`HighLevelBehaviorManager.pause`: the pause answers at once, the state's
+``paused`` turns true once every action stands in its safe state).
 
 The high-level side is an adapter of the control-plane core
 (:class:`beehave.interfaces.ControlPlane`): the state message is its ``status()``, the
@@ -106,6 +110,8 @@ log = logging.getLogger(__name__)
 BLACKBOARD_TOPIC = "beehave/blackboard"
 STATE_TOPIC = "beehave/high_level/state"
 STOP_SERVICE = "beehave/stop"
+PAUSE_SERVICE = "beehave/pause"
+RESUME_SERVICE = "beehave/resume"
 BLACKBOARD_SCHEMA = "beehave/blackboard/2"
 MIRROR_WRITER = "ros:low_level"
 
@@ -253,6 +259,8 @@ class HighLevelBridge:
         self._bb_sub = node.create_subscription(String, BLACKBOARD_TOPIC, self._on_blackboard,
                                                 BLACKBOARD_QOS)
         self._stop_srv = node.create_service(Trigger, STOP_SERVICE, self._on_stop)
+        self._pause_srv = node.create_service(Trigger, PAUSE_SERVICE, self._on_pause)
+        self._resume_srv = node.create_service(Trigger, RESUME_SERVICE, self._on_resume)
         # A state machine's transition or a tree's tick is no lifecycle event: while an
         # engine runs, its state is compared every 1/engine_rate_hz and published on change.
         self._engines: list[dict[str, Any]] = []
@@ -289,6 +297,28 @@ class HighLevelBridge:
             response.success, response.message = False, str(exc)
         else:
             response.success, response.message = True, "switching to idle"
+        return response
+
+    def _on_pause(self, _req: Trigger.Request, response: Trigger.Response
+                  ) -> Trigger.Response:
+        try:
+            answer = self.plane.pause()
+        except BeehaveError as exc:
+            response.success, response.message = False, str(exc)
+        else:
+            response.success = True
+            response.message = "pausing" if answer["pausing"] else "already paused"
+        return response
+
+    def _on_resume(self, _req: Trigger.Request, response: Trigger.Response
+                   ) -> Trigger.Response:
+        try:
+            resumed = self.plane.resume()["resumed"]
+        except BeehaveError as exc:
+            response.success, response.message = False, str(exc)
+        else:
+            response.success = True
+            response.message = "resumed" if resumed else "was not paused"
         return response
 
     def _on_event(self, event: Event) -> None:
@@ -358,6 +388,8 @@ class HighLevelBridge:
         if self._clock_sub is not None:
             self.node.destroy_subscription(self._clock_sub)
         self.node.destroy_service(self._stop_srv)
+        self.node.destroy_service(self._pause_srv)
+        self.node.destroy_service(self._resume_srv)
         _remove_param(self.node, "behavior", self._on_set_param)
         if self._own_plane:
             self.plane.close()
@@ -366,7 +398,8 @@ class HighLevelBridge:
 
 
 _STATE_EVENTS = {EventKind.STARTED, EventKind.ENDED, EventKind.STUCK,
-                 EventKind.STUCK_RELEASED, EventKind.SWITCH_COMPLETED, EventKind.FALLBACK}
+                 EventKind.STUCK_RELEASED, EventKind.SWITCH_COMPLETED, EventKind.FALLBACK,
+                 EventKind.PAUSED, EventKind.RESUMED}
 
 
 class LowLevelBridge:
@@ -517,6 +550,7 @@ class LowLevelBridge:
         board.set("high_level/engines", [from_json(item.model_dump())
                                           for item in state.engines], writer=writer)
         board.set("high_level/locks", state.locks, writer=writer)
+        board.set("high_level/paused", state.paused, writer=writer)
         logic = state.logic
         if logic and logic != self._requested_logic:
             self._requested_logic = logic
@@ -755,6 +789,7 @@ class StateMessage(_Message):
     engines: list[EngineItem] = []  # /2
     locks: dict[str, str] = {}
     stuck: list[str] = []
+    paused: bool = False
 
 
 M = TypeVar("M", bound=_Message)
