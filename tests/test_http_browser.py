@@ -9,6 +9,7 @@ page reaches the manager, the blackboard table follows the blackboard.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import subprocess
@@ -21,7 +22,7 @@ from typing import Any
 
 import pytest
 
-from beehave.testing import WALL_TIMEOUT_S
+from beehave.testing import WALL_TIMEOUT_S, wait_until
 from tests.chromium import CHROMIUM, chromium
 
 # One pytest-xdist worker runs this module: its module-scoped rig is built once.
@@ -215,6 +216,51 @@ def test_switching_on_the_page_drives_the_robot_and_the_view_follows(
     page.wait_for_function(
         "document.querySelector('#current-behavior').textContent === 'idle'", timeout=WAIT_MS)
     assert robot.api("api/robots/emili1/status")["behavior"] == "idle"
+
+
+def test_pause_on_the_page_holds_the_robot_still_and_resume_drives_on(
+        robot: RobotProcess, page: Any) -> None:
+    def pose() -> tuple[float, float]:
+        board = robot.api("api/robots/emili1/blackboard", params={"pattern": "odom/*"})
+        return board["odom/x_m"]["value"], board["odom/y_m"]["value"]
+
+    def moved_from(where: tuple[float, float]) -> float:
+        x, y = pose()
+        return math.hypot(x - where[0], y - where[1])
+
+    page.wait_for_selector("#robot-emili1", timeout=WAIT_MS)
+    page.select_option("#behavior-choice", "shuttle")
+    page.click("#switch-btn")
+    page.wait_for_function(
+        "document.querySelector('#current-behavior').textContent === 'shuttle'",
+        timeout=WAIT_MS)
+    start = pose()
+    assert wait_until(lambda: moved_from(start) > 0.3), "the shuttle did not drive"
+    page.click("#pause-btn")
+    assert wait_until(lambda: robot.api("api/robots/emili1/status")["paused"]), \
+        "the pause clicked on the page did not happen"
+    page.wait_for_function("document.querySelector('#pause-btn').textContent === 'Resume'",
+                           timeout=WAIT_MS)
+    assert robot.api("api/robots/emili1/status")["behavior"] == "shuttle"  # kept
+
+    # Braking ends; then the wheels stand still for as long as the pause lasts.
+    def settled() -> bool:
+        before = pose()
+        time.sleep(0.5)
+        return moved_from(before) < 0.005
+
+    assert wait_until(settled), "the robot did not come to a standstill while paused"
+    held = pose()
+    time.sleep(1.5)
+    assert moved_from(held) < 0.01, "the robot moved while paused"
+    page.click("#pause-btn")  # now "Resume"
+    page.wait_for_function("document.querySelector('#pause-btn').textContent === 'Pause'",
+                           timeout=WAIT_MS)
+    assert not robot.api("api/robots/emili1/status")["paused"]
+    assert wait_until(lambda: moved_from(held) > 0.2), "the robot did not drive on"
+    page.click("#stop-btn")
+    page.wait_for_function(
+        "document.querySelector('#current-behavior').textContent === 'idle'", timeout=WAIT_MS)
 
 
 def test_off_loopback_the_page_needs_the_token_and_a_wrong_one_is_refused(

@@ -249,6 +249,16 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
     def stop(_: Command, plane: Plane) -> dict[str, Any]:
         return plane.stop()
 
+    @app.post("/api/robots/{robot}/pause", status_code=202,
+              summary="Pause in place: every action to a safe stop, the behaviour kept")
+    def pause(_: Command, plane: Plane) -> dict[str, Any]:
+        return plane.pause()
+
+    @app.post("/api/robots/{robot}/resume", status_code=200,
+              summary="End the pause: the behaviour goes on where it was")
+    def resume(_: Command, plane: Plane) -> dict[str, Any]:
+        return plane.resume()
+
     @app.get("/api/robots/{robot}/blackboard",
              summary="Blackboard entries by key or pattern, with age and staleness")
     def blackboard(_: Read, plane: Plane,

@@ -393,6 +393,20 @@ $("#stop-btn").addEventListener("click", async () => {
   }
 });
 
+// One button: Pause while running, Resume while paused (the state's "paused" decides).
+$("#pause-btn").addEventListener("click", async () => {
+  const name = view.selected;
+  const state = name && view.state[name];
+  const paused = Boolean(state && state.snapshot && state.snapshot.paused);
+  const verb = paused ? "resume" : "pause";
+  try {
+    await api(`/api/robots/${encodeURIComponent(name)}/${verb}`, {method: "POST", body: "{}"});
+    message(paused ? `${name}: resumed` : `${name}: pausing (every action to a safe stop)`, false);
+  } catch (err) {
+    message(`${err.status || ""} ${err.message}`, true);
+  }
+});
+
 // ---- panels -------------------------------------------------------------------------------
 
 function renderEngines(snapshot) {
@@ -525,7 +539,13 @@ function render() {
   const state = name && view.state[name];
   if (!state) return;
   const snap = state.snapshot;
-  const current = snap ? (snap.behavior || "switching…") : "–";
+  const current = snap ? (snap.behavior || "switching…") + (snap.paused ? " (paused)" : "") : "–";
+  const pauseBtn = $("#pause-btn");
+  const paused = Boolean(snap && snap.paused);
+  if (pauseBtn.getAttribute("aria-pressed") !== String(paused)) {
+    pauseBtn.setAttribute("aria-pressed", String(paused));
+    pauseBtn.textContent = paused ? "Resume" : "Pause";
+  }
   const badge = $("#current-behavior");
   if (badge.textContent !== current) {
     badge.textContent = current;
