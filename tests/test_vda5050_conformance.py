@@ -29,7 +29,7 @@ from mqtt_broker import Broker, broker
 from paho.mqtt.enums import CallbackAPIVersion
 from test_vda5050 import EDGE_S, FakeDrive, options
 
-from beehave import HighLevelBehaviorManager
+from beehave import Action, HighLevelBehaviorManager, Status
 from beehave.interfaces import ControlPlane
 from beehave.interfaces.vda5050 import ActionStatus, Vda5050Interface
 from beehave.interfaces.vda5050.order import ActionState, Drive
@@ -143,6 +143,22 @@ def refs(error: dict[str, Any]) -> dict[str, str]:
 
 # ---- the AGV: a fake drive whose velocity is measured -----------------------------------
 
+class _Edge(Action):
+    """Drives one edge at 0.6 m/s for ``EDGE_S``; brakes when it ends, however."""
+
+    action_type = "driving"
+
+    def __init__(self, brake: Callable[[], None]) -> None:
+        self.brake = brake
+
+    def run(self) -> bool:
+        BrakingDrive.interface.update_velocity(0.6, 0.0)
+        try:
+            return self.sleep(EDGE_S)
+        finally:
+            self.brake()
+
+
 class BrakingDrive(FakeDrive):
     """FakeDrive that moves at 0.6 m/s while it drives and brakes for ``BRAKING_S`` after
     it reaches a node or is stopped (the velocity goes to the interface as odometry
@@ -161,14 +177,14 @@ class BrakingDrive(FakeDrive):
         if FakeDrive.where == task.node.position:
             self.orders.node_reached(task.node)
             return
-        BrakingDrive.interface.update_velocity(0.6, 0.0)
-        try:
-            if self.sleep(EDGE_S):
-                FakeDrive.where = task.node.position
-                FakeDrive.done.append(task.node.node_id)
-                self.orders.node_reached(task.node)
-        finally:
-            self._brake()
+        # The wheels are an action's, as in OrderExecution: a pause stops them (the edge
+        # then runs again from its start after the resume).
+        edge = self.start_action(_Edge(self._brake))
+        edge.wait()
+        if edge.status is Status.SUCCEEDED and edge.result:
+            FakeDrive.where = task.node.position
+            FakeDrive.done.append(task.node.node_id)
+            self.orders.node_reached(task.node)
 
     def execute(self, action: ActionState) -> None:
         self.orders.set_action(action.action_id, ActionStatus.RUNNING)

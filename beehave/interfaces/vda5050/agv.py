@@ -17,8 +17,9 @@ Everything it receives and sends is checked against the 2.1.0 schemas
 Orders run as a beehave behaviour (``executor``, by default
 :class:`behaviours.vda5050.OrderExecution`) that the interface switches to through the
 control plane (:class:`beehave.interfaces.core.ControlPlane`); ``cancelOrder`` and
-``startPause`` switch it away (``stop``: every action to its safe state), ``stopPause``
-switches back.
+``startPause``/``stopPause`` pause the robot in place and resume it (``hl.pause()``:
+every action to a safe stop, the order's behaviour keeps its place); a pause from
+elsewhere (ROS 2, HTTP) shows on the state's ``paused`` flag too.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
 from beehave.errors import ConfigError, Vda5050ValidationError
+from beehave.events import Event, EventKind
 from beehave.interfaces.vda5050 import validation
 from beehave.interfaces.vda5050.order import (
     INSTANT_ACTIONS,
@@ -84,6 +86,8 @@ class Control(Protocol):
 
     def switch(self, name: str, params: Any = None) -> dict[str, Any]: ...
     def stop(self) -> dict[str, Any]: ...
+    def pause(self) -> dict[str, Any]: ...
+    def resume(self) -> dict[str, Any]: ...
 
 
 @dataclass(frozen=True)
@@ -184,6 +188,7 @@ class Vda5050Interface:
         self._client: mqtt.Client | None = None
         self._control: Control | None = None
         self._own_control: Any = None
+        self._unsubscribe_high: Callable[[], None] | None = None
         #: ``time.perf_counter()`` when the last accepted order arrived (benchmarks).
         self.last_order_received_at: float | None = None
         #: How often the connection went up (1 after the first connect).
@@ -207,6 +212,8 @@ class Vda5050Interface:
 
             control = self._own_control = ControlPlane(self.high, low=low, name=name)
         self._control = control
+        # A pause from anywhere (startPause, ROS 2, HTTP) is the state's ``paused`` flag.
+        self._unsubscribe_high = self.high.subscribe(self._on_high_event)
         if node is not None:
             self._subscribe_ros(node)
             prepare = getattr(self._executor, "prepare", None)
@@ -247,6 +254,9 @@ class Vda5050Interface:
         """Publish the final state and ``OFFLINE`` (a clean stop, so the will is not sent),
         disconnect and end every thread this interface started."""
         self._closing.set()
+        unsubscribe, self._unsubscribe_high = self._unsubscribe_high, None
+        if unsubscribe is not None:
+            unsubscribe()
         self._inbox.put(None)
         self._wake.set()
         for thread in self._threads:
@@ -496,16 +506,28 @@ class Vda5050Interface:
         return True, ("order cancelled" + ("" if ended else " (behaviour still stopping)")
                       + note)
 
+    def _on_high_event(self, event: Event) -> None:
+        if event.kind is EventKind.PAUSED:
+            self.orders.set_paused(True)
+        elif event.kind is EventKind.RESUMED:
+            self.orders.set_paused(False)
+
     def _do_startPause(self, action_id: str) -> tuple[bool, str]:  # noqa: N802
+        assert self._control is not None
         self.orders.set_paused(True)
-        # The running actions stop through their safe state and run again after
-        # stopPause; they stay RUNNING in the state (the 2.1.0 schema has no PAUSED for
-        # actions: the state's ``paused`` flag says it).
-        self._stop_executor()
+        # The robot pauses in place (hl.pause): the running actions stop through their
+        # safe state and go on after stopPause; they stay RUNNING in the state (the 2.1.0
+        # schema has no PAUSED for actions: the state's ``paused`` flag says it).
+        self._control.pause()
+        deadline = time.monotonic() + self.high.stop_timeout_s + 2.0
+        while not self.high.paused and time.monotonic() < deadline:
+            time.sleep(0.005)
         return True, "paused" + self._wait_standstill(action_id, "startPause")
 
     def _do_stopPause(self, action_id: str) -> tuple[bool, str]:  # noqa: N802
+        assert self._control is not None
         self.orders.set_paused(False)
+        self._control.resume()
         self._run_orders()
         return True, "resumed"
 
