@@ -38,6 +38,8 @@ class EventKind(Enum):
     HOOK_FAILED = "hook_failed"
     """An optional hook (``on_child_ended``, ``on_interrupt``) raised; the error is attached
     and raised again in the behaviour's own thread."""
+    PAUSE_REQUESTED = "pause_requested"
+    """``hl.pause()`` (or ``request_pause()``) was called: recordings replay it from here."""
     PAUSED = "paused"
     """``hl.pause()`` took effect: ``subject`` is the top-level behaviour, ``detail`` has
     ``actions`` (the paths paused), ``stuck`` (those that ignored it and became STUCK) and

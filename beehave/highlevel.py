@@ -335,19 +335,27 @@ class HighLevelBehaviorManager:
             if self._state is not ManagerState.RUNNING:
                 raise ManagerShutdown(f"cannot pause: the manager is {self._state.value}")
         if self._own_thread():
-            self.request_pause()
+            self._request_pause(self._source())
             return True
         with self.clock.busy():
-            return self._pause_now()
+            return self._pause_now("external")
 
     def request_pause(self) -> None:
         """Like :meth:`pause`, but returns at once; the pause is carried out in a manager
         thread and announced by a ``paused`` event (for callers that must not block: a
         ROS service, a web request)."""
+        self._request_pause(self._source() if self._own_thread() else "external")
+
+    def _request_pause(self, source: str) -> None:
         with self._cond:
             if self._state is not ManagerState.RUNNING:
                 raise ManagerShutdown(f"cannot pause: the manager is {self._state.value}")
-        self._pool.submit("beehave:pause", self._pause_now)
+        self._pool.submit("beehave:pause", lambda: self._pause_now(source))
+
+    def _source(self) -> str:
+        """Who in this manager asks (recordings replay only what came from outside)."""
+        caller = current()
+        return caller.path if caller is not None else "manager"
 
     def resume(self) -> bool:
         """End the pause: actions paused by their ``on_pause()`` hook get ``on_resume()``
@@ -358,8 +366,9 @@ class HighLevelBehaviorManager:
             if actions is None:
                 return False
         # Before anything moves again: observers see the resume before its first command.
+        source = self._source() if self._own_thread() else "external"
         self.events.emit(Event(EventKind.RESUMED, self._top_name or "", detail={
-            "by": "resume", "paused_s": round(lasted, 6),
+            "by": "resume", "source": source, "paused_s": round(lasted, 6),
             "actions": [a.path for a in actions]}))
         for action in actions:
             if action._pause_hooked and not action._decided.is_set():
@@ -373,7 +382,9 @@ class HighLevelBehaviorManager:
             action._request_resume()
         return True
 
-    def _pause_now(self) -> bool:
+    def _pause_now(self, source: str) -> bool:
+        self.events.emit(Event(EventKind.PAUSE_REQUESTED, self._top_name or "",
+                               detail={"source": source}))
         with self._pause_lock:
             began = time.monotonic()
             with self._locks.table() as holders:

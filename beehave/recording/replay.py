@@ -444,11 +444,16 @@ def _inputs(recording: Recording, prefix: str) -> list[_Input]:
             for i in _in_batch_order(inputs)]
 
 
+_COMMANDS = ("request", "pause", "resume")
+"""The kinds of :class:`_HighInput` that a caller outside the high level gave it."""
+
+
 @dataclass(frozen=True)
 class _HighInput:
     """What the high level got from outside at ``t_s``: a message (``kind="msg"``: the
     CDR ``value`` of ``channel``, for the subscriptions to ``key``, a resolved topic) or
-    a switch request (``kind="request"``: behaviour ``key``, parameters ``value``).
+    a switch request (``kind="request"``: behaviour ``key``, parameters ``value``), a
+    pause (``kind="pause"``) or a resume (``kind="resume"``).
     ``before``: how many high-level events the recording had :data:`SYNC_MARGIN_S`
     before it; ``logged_before``: how many it had logged before it at all."""
 
@@ -473,9 +478,10 @@ def _topic_of(channel: str, prefix: str, namespace: str) -> str:
 
 
 def _high_inputs(recording: Recording, prefix: str, namespace: str) -> list[_HighInput]:
-    """The high level's inputs in the recording, in log order: the switch requests that
-    came from outside (the first -- the start of the default behaviour -- excepted; a
-    recording older than the ``source`` field counts every request as from outside) and
+    """The high level's inputs in the recording, in log order: the switch requests, pauses
+    and resumes that came from outside (the first switch -- the start of the default
+    behaviour -- excepted; a recording older than the ``source`` field counts every
+    request as from outside) and
     the messages of every ROS 2 channel of the robot (and the global ones): those nobody
     subscribes to in the replay are held a moment, then dropped."""
     timeline = _Timeline(recording, prefix)
@@ -514,6 +520,14 @@ def _high_inputs(recording: Recording, prefix: str, namespace: str) -> list[_Hig
                         before=before(t_s),
                         logged_before=bisect.bisect_left(walls, m.log_time_ns)))
                 first = False
+            elif (d["kind"] == "pause_requested"
+                  or (d["kind"] == "resumed" and d["detail"].get("by") == "resume")) \
+                    and d["detail"].get("source", "external") == "external":
+                t_s = timeline(m.log_time_ns)
+                inputs.append(_HighInput(
+                    t_s, m.log_time_ns, "pause" if d["kind"] == "pause_requested" else "resume",
+                    d["subject"], before=before(t_s),
+                    logged_before=bisect.bisect_left(walls, m.log_time_ns)))
         elif m.topic in ros:
             t_s = timeline(m.log_time_ns)
             inputs.append(_HighInput(t_s, m.log_time_ns, "msg",
@@ -843,16 +857,26 @@ class _HighSide:
         # then: before the clock moves on when it has. A timed step due between the last
         # input and this one (a chime) then comes after the request, as it did live -- or
         # the recording shows it before the request, and the clock moves first.
-        if item.kind == "request" and self._events < item.logged_before:
+        if item.kind in _COMMANDS and self._events < item.logged_before:
             # Behind the recording (a loaded host, or steps due before the request): move
             # only as far as needed to catch up, so a step the recording shows after the
             # request (a chime due at the same instant) still comes after it.
             await self.advance(item.t_s, until=lambda: self._events >= item.logged_before)
             await self.catch_up(item.logged_before)
-        elif item.kind != "request":
+        elif item.kind not in _COMMANDS:
             await self.advance(item.t_s)
             await self.catch_up(item.before)
         self._deliver_late()
+        if item.kind in ("pause", "resume"):
+            try:
+                if item.kind == "pause":
+                    self.high.request_pause()
+                else:
+                    self.high.resume()
+            except Exception as exc:  # the recording asked for it; say it did not work
+                self.warnings.append(f"t={item.t_s:.3f} s: {item.kind} failed: {exc!r}")
+            await self.settle()
+            return
         if item.kind == "request":
             params = item.value if isinstance(item.value, dict) else {}
             try:
