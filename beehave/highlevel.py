@@ -100,9 +100,6 @@ class HighLevelBehaviorManager:
         #: blackboard when both run in one process, or a read-only mirror fed over ROS 2.
         #: What ``sleep`` and the ROS helpers' timeouts follow (sim time with ``SimClock``).
         self.clock = clock if clock is not None else WallClock()
-        #: What behaviours and actions follow (``sleep``, engines, the ROS helpers'
-        #: timeouts): ``clock`` with the pauses (:meth:`pause`) cut out.
-        self.run_clock = PausableClock(self.clock)
         if blackboard is None:
             blackboard = (Blackboard(clock=self.clock.now) if isinstance(self.clock, VirtualClock)
                           else Blackboard())
@@ -140,6 +137,19 @@ class HighLevelBehaviorManager:
         self._paused_at = 0.0
         self._pause_round = 0
         self._locks.on_take = self._lock_taken
+
+    @property
+    def clock(self) -> WallClock:
+        """What ``sleep`` and timeouts follow (see the class docstring); set it before
+        :meth:`start`. :attr:`run_clock` follows it."""
+        return self._clock
+
+    @clock.setter
+    def clock(self, clock: WallClock) -> None:
+        self._clock = clock
+        #: What behaviours and actions follow (``sleep``, engines, the ROS helpers'
+        #: timeouts): ``clock`` with the pauses (:meth:`pause`) cut out.
+        self.run_clock = PausableClock(clock)
 
     # ------------------------------------------------------------------ registry
     def register(self, name: str, behavior_cls: type[Behavior], **params: Any) -> None:

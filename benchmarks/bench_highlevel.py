@@ -1,11 +1,14 @@
 """High-level manager: switch and start_action latency beside the thread floor.
 
 Targets (issue 2): switch p99 ≤ 2 ms and ≤ 10× the floor (bare thread start+join p50),
-with 10 cooperative actions running; start_action p99 ≤ 300 µs. A further floor: ten
-threads woken at once and joined, the least a switch that ends ten threads could cost
-without the worker pool. Also shows how much a
-CPU-bound thread delays a wake with Python's default switch interval and with the one the
-manager sets (``gil_switch_interval_s``).
+with 10 cooperative actions running; start_action p99 ≤ 300 µs. Pause (issue 27), with 10
+actions commanding motion: from ``pause()`` to the last of them commanding zero (its safe
+state), p99 ≤ 1.5 × the switch's stop p99 of the same run (a pause does what a stop does
+to the actions, and keeps them); from ``resume()`` to the first command again, p99 ≤ 2 ms.
+A further floor: ten threads woken at once and joined, the least a switch that ends ten
+threads could cost without the worker pool. Also shows how much a CPU-bound thread
+delays a wake with Python's default switch interval and with the one the manager sets
+(``gil_switch_interval_s``).
 """
 
 from __future__ import annotations
@@ -40,6 +43,88 @@ class Ten(Behavior):
             self.ready.set()
         while self.sleep(60):
             pass
+
+
+class Bus:
+    """The "motor controller": when every motor was last commanded zero, and when the
+    first non-zero command came after a mark."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.last: dict[int, float] = {}
+        self.all_zero_at: float | None = None
+        self.first_motion_at: float | None = None
+        self.moving = threading.Event()
+
+    def command(self, who: Action, value: float) -> None:
+        now = time.perf_counter()
+        with self.lock:
+            self.last[id(who)] = value
+            if value == 0.0 and all(v == 0.0 for v in self.last.values()):
+                self.all_zero_at = now
+            if value != 0.0:
+                if self.first_motion_at is None:
+                    self.first_motion_at = now
+                if len(self.last) == 10 and all(v != 0.0 for v in self.last.values()):
+                    self.moving.set()
+
+    def mark(self) -> None:
+        with self.lock:
+            self.all_zero_at = self.first_motion_at = None
+            self.moving.clear()
+
+
+class Motor(Action):
+    """Commands a velocity every 5 ms; zero in its safe state."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.bus = bus
+
+    def run(self) -> None:
+        while not self.interrupted:
+            self.bus.command(self, 1.0)
+            self.sleep(0.005)
+
+    def safe_state(self) -> None:
+        self.bus.command(self, 0.0)
+
+
+class Motors(Behavior):
+    """Ten motors of ten types."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.bus = bus
+
+    def run(self) -> None:
+        for i in range(10):
+            motor = Motor(self.bus)
+            motor.action_type = f"motor{i}"  # type: ignore[misc]
+            self.start_action(motor)
+        while self.sleep(60):
+            pass
+
+
+def pause_resume(hl: HighLevelBehaviorManager, n: int) -> tuple[list[float], list[float]]:
+    """(pause() → every motor zero, resume() → the first command again), n times each."""
+    bus = Bus()
+    hl.register("motors", Motors, bus=bus)
+    hl.switch("motors")
+    to_zero, to_motion = [], []
+    for _ in range(n):
+        bus.moving.wait(10)
+        bus.mark()
+        t0 = time.perf_counter()
+        hl.pause()
+        assert bus.all_zero_at is not None, "pause() returned before every motor was zero"
+        to_zero.append(bus.all_zero_at - t0)
+        bus.mark()
+        t0 = time.perf_counter()
+        hl.resume()
+        while bus.first_motion_at is None:
+            time.sleep(0)
+        to_motion.append(bus.first_motion_at - t0)
+    hl.switch("idle")
+    return to_zero, to_motion
 
 
 class Quick(Action):
@@ -163,6 +248,19 @@ def main() -> list[dict[str, Any]]:
                            None, p99_us=round(percentile(both10, 99) * 1e6, 1),
                            note="the caller also competes for the GIL with the new "
                                 "behaviour starting its 10 actions"))
+
+        to_zero, to_motion = pause_resume(hl, 300)
+        zero_p99, stop_p99 = percentile(to_zero, 99), p99
+        rows.append(report("pause_10_motors_to_zero_p50", median(to_zero) * 1e6, "us",
+                           None, None))
+        rows.append(report("pause_10_motors_to_zero_p99", zero_p99 * 1e6, "us",
+                           "<= 1.5 x switch stop p99", zero_p99 <= 1.5 * stop_p99,
+                           ratio_to_switch_stop_p99=round(zero_p99 / stop_p99, 2)))
+        motion_p99 = percentile(to_motion, 99)
+        rows.append(report("resume_to_first_command_p50", median(to_motion) * 1e6, "us",
+                           None, None))
+        rows.append(report("resume_to_first_command_p99", motion_p99 * 1e6, "us",
+                           "<= 2000 us", motion_p99 <= 2e-3))
 
         out: list[float] = []
         hl.register("starter", StartMany, n=2000, out=out)

@@ -869,10 +869,10 @@ class _HighSide:
         self._deliver_late()
         if item.kind in ("pause", "resume"):
             try:
-                if item.kind == "pause":
-                    self.high.request_pause()
-                else:
-                    self.high.resume()
+                # As live: the pause has taken effect before anything else is fed (a
+                # resume fed before it would find nothing to resume).
+                await asyncio.to_thread(
+                    self.high.pause if item.kind == "pause" else self.high.resume)
             except Exception as exc:  # the recording asked for it; say it did not work
                 self.warnings.append(f"t={item.t_s:.3f} s: {item.kind} failed: {exc!r}")
             await self.settle()

@@ -51,6 +51,10 @@ class Findings:
     lift_m: float | None = None
     led_while_navigating: tuple[float, float, float] | None = None
     stop_after_switch_s: float | None = None
+    stop_after_pause_s: float | None = None
+    paused_travel_m: float | None = None  # while paused, once the brakes had 0.5 s
+    paused_s: float | None = None
+    dropoff_after_resume: bool = False
     commanded_error_m: float | None = None
     agent_exit: int | None = None
     maintenance_lift_m: float | None = None
@@ -135,6 +139,41 @@ def _wait(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot, phase
     return bool(predicate())
 
 
+PAUSE_S = 3.0
+"""How long (sim time) the demo keeps EMILI paused mid-drive."""
+
+
+def _pause_and_resume(sim: Simulation, live: Live | None, emili: Robot, kobuki: Robot,
+                      e1: Any, found: Findings) -> None:
+    """Pause EMILI's high level mid-drive for :data:`PAUSE_S`, then resume it; measure in
+    the physics (every step) when the wheels stopped and how far the body moved while
+    paused once the brakes had 0.5 s."""
+    assert emili.high is not None
+    track: list[tuple[float, float, float, tuple[float, float]]] = []
+
+    def sample(time_s: float) -> None:
+        pose = e1.pose()
+        track.append((time_s, pose.x_m, pose.y_m, e1.cmd_vel()))
+
+    remove = sim.on_step(sample)
+    try:
+        t_pause = sim.time_s
+        emili.high.pause()
+        _wait(sim, live, emili, kobuki, "paused", lambda: False, PAUSE_S, min_wall_s=0.0)
+        t_resume = sim.time_s
+        emili.high.resume()
+    finally:
+        remove()
+    stopped = next((t for t, _, _, cmd in track if t >= t_pause and cmd == (0.0, 0.0)), None)
+    if stopped is not None:
+        found.stop_after_pause_s = stopped - t_pause
+    held = [(x, y) for t, x, y, _ in track if t_pause + 0.5 <= t <= t_resume]
+    if held:
+        found.paused_travel_m = sum(math.hypot(b[0] - a[0], b[1] - a[1])
+                                    for a, b in zip(held, held[1:], strict=False))
+    found.paused_s = t_resume - t_pause
+
+
 def _start_recording(record: Path | None, robots: list[Robot]) -> Any:
     if record is None:
         return None
@@ -207,6 +246,10 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
             _wait(sim, live, emili, kobuki, "tour: driving", lambda: e1.leds()[2] > 0.9, 5.0)
             r, g, b = e1.leds()
             found.led_while_navigating = (round(r, 2), round(g, 2), round(b, 2))
+        # 1b. midway to the drop-off: pause (hl.pause), hold, resume; the tour goes on
+        if _wait(sim, live, emili, kobuki, "tour: driving",
+                 lambda: e1.odometry().linear_mps > 0.3 and not at_dropoff_done(), 20.0):
+            _pause_and_resume(sim, live, emili, kobuki, e1, found)
         if not _wait(sim, live, emili, kobuki, "tour: to the drop-off", at_dropoff_done, 90.0):
             problems.append(f"EMILI did not complete the drop-off stop: {tour.status.name} "
                             f"{tour.error!r}")
@@ -216,6 +259,7 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
                                                pose.y_m - dropoff.center_m[1])
             heights = getattr(tour, "lift_heights", [])
             found.lift_m = heights[0] if heights else None
+            found.dropoff_after_resume = found.paused_s is not None
             # 2. midway to the pick-up: switch to commanded
             _wait(sim, live, emili, kobuki, "tour: to the pick-up",
                   lambda: e1.odometry().linear_mps > 0.3, 30.0)
@@ -301,6 +345,13 @@ def run_sim_demo(console: Console, *, real_time_factor: float | None = 1.0,
          and abs(found.lift_m - 0.2) <= 0.01, m(found.lift_m, "m")),
         ("LEDs light blue while navigating", found.led_while_navigating is not None
          and found.led_while_navigating[2] > 0.9, f"{found.led_while_navigating}"),
+        ("paused mid-drive: wheels stopped within 0.2 s (sim)", found.stop_after_pause_s
+         is not None and found.stop_after_pause_s <= 0.2, m(found.stop_after_pause_s, "s")),
+        ("stood still while paused (< 0.01 m)", found.paused_travel_m is not None
+         and found.paused_travel_m < 0.01,
+         f"{m(found.paused_travel_m, 'm')} in {m(found.paused_s, 's')} (sim)"),
+        ("after resume the tour reached the drop-off", found.dropoff_after_resume,
+         "yes" if found.dropoff_after_resume else "no"),
         ("wheels stopped within 0.2 s (sim) of the switch", found.stop_after_switch_s
          is not None and found.stop_after_switch_s <= 0.2, m(found.stop_after_switch_s, "s")),
         ("another process's order was reached", found.agent_exit == 0,
