@@ -17,6 +17,14 @@ action type ``"vehicle"``: one thing at a time commands the vehicle.
 vehicle was lost) sends the vehicle its hold mode once — HOLD for a Rover, BRAKE for a
 Copter (:data:`hal.mavlink.HOLD_MODE`) — without waiting for the answer.
 
+**Pause.** ``hl.pause()`` puts the vehicle in its hold mode and keeps the action's place
+(:meth:`MavlinkAction.on_pause`); ``hl.resume()`` gives it the mode it had back (AUTO: the
+mission goes on at its current waypoint, as ArduPilot does; GUIDED: the target is sent
+again). The other way round, a ground station that puts a vehicle in its hold mode while a
+mission or a GUIDED goal of beehave drives it pauses the robot (``hl.request_pause()``):
+beehave stops fighting the operator; resume it through beehave (ROS 2, the web page,
+``hl.resume()``), which sets the mode back.
+
 **Lost heartbeat.** Every wait ends with :class:`~beehave.errors.VehicleLost` when the
 heartbeat stops for the link's ``heartbeat_timeout_s``: the action FAILS (and tries its
 safe state, which reaches the vehicle if the link comes back).
@@ -26,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -80,6 +89,12 @@ class MavlinkAction(Action):
         self.heartbeat_timeout_s = heartbeat_timeout_s
         self.connect_timeout_s = connect_timeout_s
         self._link: MavlinkLink | None = None
+        self.holding = False  # paused: in the hold mode, run() keeps its place
+        self._mode_before_pause: str | None = None
+        #: The mode this action drives the vehicle in (what a resume gives back; the
+        #: heartbeat's mode may lag a change just made).
+        self.drive_mode: str | None = None
+        self._held = threading.Event()  # run() asked for the hold mode since the pause
 
     def perform(self, link: MavlinkLink) -> Any:
         """Do the action's work on ``link`` (alive); the return value is the result."""
@@ -108,7 +123,9 @@ class MavlinkAction(Action):
             self.pause(0.05)
 
     def pause(self, seconds: float) -> None:
-        """Sleep, raising Interrupted when interrupted (ends the action's wait loops)."""
+        """Sleep, raising Interrupted when interrupted (ends the action's wait loops).
+        While the robot is paused, it first holds the vehicle, then stands still."""
+        self._hold_if_paused()
         if not self.sleep(seconds):
             raise Interrupted(f"{self.path}: interrupted")
 
@@ -116,6 +133,53 @@ class MavlinkAction(Action):
         if not link.alive:
             raise VehicleLost(f"{self.path}: heartbeat of {link.describe()} lost while "
                               f"{what}")
+
+    def on_pause(self) -> None:
+        """``hl.pause()``: the vehicle to its hold mode (HOLD for a Rover, BRAKE for a
+        Copter); ``run`` keeps its place (its waits stand still) until :meth:`on_resume`
+        gives the vehicle back the mode this action drives it in.
+
+        A command ``run`` had under way (a mode change, the mission start) could undo
+        the hold when it completes: ``run`` asks for the hold mode once more at its next
+        wait while paused."""
+        if self._mode_before_pause is None:
+            self._mode_before_pause = self.drive_mode
+        self._held.clear()
+        self.holding = True
+        self._hold_now()
+
+    def _hold_if_paused(self) -> None:
+        if self.holding and not self._held.is_set():
+            self._held.set()
+            self._hold_now()
+
+    def _hold_now(self) -> None:
+        link = self._link
+        if link is not None and link.alive and link.kind is not None:
+            link.request_mode(HOLD_MODE[link.kind])
+
+    def on_resume(self) -> None:
+        """``hl.resume()``: the mode the vehicle had before the pause, back."""
+        link, mode = self._link, self._mode_before_pause
+        self._mode_before_pause = None
+        try:
+            if link is not None and link.alive and mode is not None:
+                link.set_mode(mode)
+        finally:
+            self.holding = False
+
+    def operator_held(self, link: MavlinkLink, *, resume_in: str) -> bool:
+        """Whether someone else (a ground station) put the vehicle in its hold mode; if so,
+        the robot is paused (see the module docstring), ``resume_in`` is the mode the
+        resume gives back, and True is returned."""
+        if self.holding or link.kind is None or link.mode != HOLD_MODE[link.kind]:
+            return False
+        if self._mode_before_pause is None:  # once: the pause takes effect in a moment
+            log.warning("%s: %s was put in %s from outside; pausing the robot (resume it "
+                        "through beehave to go on)", self.path, link.describe(), link.mode)
+            self._mode_before_pause = resume_in
+            self.manager.request_pause()
+        return True
 
     def safe_state(self) -> None:
         link, self._link = self._link, None
@@ -230,6 +294,7 @@ class GotoPosition(MavlinkAction):
         self.timeout_s = timeout_s
 
     def perform(self, link: MavlinkLink) -> float:
+        self.drive_mode = "GUIDED"  # (before the change: a pause may come while it waits)
         if link.mode != "GUIDED":
             link.set_mode("GUIDED")
         if not link.armed:
@@ -247,6 +312,9 @@ class GotoPosition(MavlinkAction):
                 raise MavlinkTimeout(f"{self.path}: {left:.2f} m from the target after "
                                      f"{self.timeout_s} s")
             self.check_alive(link, "going to a position")
+            if self.holding or self.operator_held(link, resume_in="GUIDED"):
+                self.pause(0.1)  # stands still while paused
+                continue
             link.goto_local(north, east, alt)
             self.pause(0.5)
 
@@ -306,8 +374,10 @@ class RunMission(MavlinkAction):
                 take_off(self, link, max(1.0, self.waypoints[0].alt_m), 30.0)
             if not link.armed:
                 link.arm(True)
+            self.drive_mode = "AUTO"  # (before the start: a pause may come while it waits)
             link.start_mission(1)
-            deadline = time.monotonic() + self.timeout_s
+            clock = self.manager.run_clock  # the mission's timeout does not run while paused
+            deadline = clock.now() + self.timeout_s
             anchor = link.local_position()
             anchor_at = _vehicle_time_s(link)
             while True:
@@ -319,10 +389,13 @@ class RunMission(MavlinkAction):
                     if msg.seq >= last:
                         return {"reached": list(self.reached), "resends": resends}
                     continue
-                now = time.monotonic()
-                if now > deadline:
+                if clock.now() > deadline:
                     raise MavlinkTimeout(f"{self.path}: mission not done after "
                                          f"{self.timeout_s} s (reached {self.reached})")
+                if self.holding or self.operator_held(link, resume_in="AUTO"):
+                    self.pause(0.1)  # stands still while paused
+                    anchor, anchor_at = link.local_position(), _vehicle_time_s(link)
+                    continue
                 if link.mode != "AUTO":
                     raise MissionStalled(
                         f"{self.path}: the vehicle left AUTO (now {link.mode}) before the "

@@ -25,7 +25,7 @@ from beehave.errors import (
     VehicleLost,
 )
 from beehave.hal import HALManager
-from beehave.testing import WALL_TIMEOUT_S
+from beehave.testing import WALL_TIMEOUT_S, wait_until
 from behaviours.mavlink import GotoPosition, RunMission, SetMode
 from hal.mavlink import (
     MavlinkBatteryHAL,
@@ -357,6 +357,79 @@ def test_a_rover_blocked_by_a_wall_stalls_with_its_remaining_waypoints(
     assert [(w.north_m, w.east_m) for w in action.error.remaining] == [(2.0, 9.0), (4.0, 9.0)]
     assert action.error.position[1] < 4.0  # in front of the wall (east = world x)
     assert vehicles.rover.mode == "HOLD"
+
+
+MISSION = [[2.0, 3.0], [4.0, 3.0], [3.5, 1.5]]
+
+
+def rover_xy(vehicles: Vehicles) -> tuple[float, float]:
+    """Where the physics has the rover (ground truth)."""
+    odom = vehicles.rover.robot.odometry()
+    return odom.x_m, odom.y_m
+
+
+def held_still(vehicles: Vehicles, for_s: float) -> float:
+    """Once braking is over, how far the rover moves in ``for_s`` (sim time)."""
+    def settled() -> bool:
+        before, t0 = rover_xy(vehicles), vehicles.sim.time_s
+        while vehicles.sim.time_s < t0 + 0.5:
+            time.sleep(0.02)
+        return math.dist(before, rover_xy(vehicles)) < 0.01
+
+    assert wait_until(settled), "the rover did not stop"
+    start, t0 = rover_xy(vehicles), vehicles.sim.time_s
+    while vehicles.sim.time_s < t0 + for_s:
+        time.sleep(0.02)
+    return math.dist(start, rover_xy(vehicles))
+
+
+def start_mission(vehicles: Vehicles, hl: HighLevelBehaviorManager) -> Any:
+    url = vehicles.rover_url
+    Run.started = []
+    hl.register("mission", Run, make=lambda: RunMission(MISSION, connection=url))
+    hl.switch("mission")
+    def driving() -> bool:
+        # The vehicle drives its mission, and the action has seen it start (its link's
+        # heartbeat says AUTO): from here on the mission loop watches the mode.
+        link = Run.started[0]._link if Run.started else None
+        return (link is not None and link.mode == "AUTO" and vehicles.rover.mode == "AUTO"
+                and vehicles.rover.robot.odometry().linear_mps > 0.2)
+
+    assert wait_until(driving)
+    return Run.started[0]
+
+
+def test_a_pause_holds_the_rover_and_the_resume_finishes_its_mission(
+        vehicles: Vehicles, hl: HighLevelBehaviorManager) -> None:
+    mission = start_mission(vehicles, hl)
+    events: list[Any] = []
+    hl.subscribe(events.append)
+    hl.pause()
+    assert wait_until(lambda: vehicles.rover.mode == "HOLD")
+    assert held_still(vehicles, 1.5) < 0.02
+    assert mission.status is Status.RUNNING and mission.holding  # kept its place
+    hl.resume()
+    assert wait_until(lambda: vehicles.rover.mode == "AUTO"), [e.as_dict() for e in events]
+    assert mission.wait(WALL_TIMEOUT_S)
+    assert mission.status is Status.SUCCEEDED, mission.error
+    assert mission.result["reached"] == [1, 2, 3]  # the mission went on, not again
+    assert math.dist(rover_xy(vehicles), (1.5, 3.5)) < 0.6  # the last waypoint (x=E, y=N)
+
+
+def test_a_ground_station_hold_pauses_the_robot_until_beehave_resumes_it(
+        vehicles: Vehicles, hl: HighLevelBehaviorManager,
+        cleanup: Callable[[Callable[[], None]], None]) -> None:
+    mission = start_mission(vehicles, hl)
+    gcs = open_link(vehicles.rover_url)  # MAV_CMD_DO_SET_MODE, as a ground station sends it
+    cleanup(gcs.close)
+    gcs.request_mode("HOLD")
+    assert wait_until(lambda: hl.paused and mission.holding)
+    assert mission.status is Status.RUNNING  # not a failed mission: the operator holds it
+    assert held_still(vehicles, 1.0) < 0.02
+    hl.resume()
+    assert wait_until(lambda: vehicles.rover.mode == "AUTO")
+    assert mission.wait(WALL_TIMEOUT_S)
+    assert mission.status is Status.SUCCEEDED, mission.error
 
 
 def test_the_worlds_mavlink_option_is_checked_and_numbers_the_vehicles() -> None:
