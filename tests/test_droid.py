@@ -88,6 +88,22 @@ def test_peers_see_each_others_state_with_its_age_and_it_goes_stale(ros: RosCont
             fb.close()
 
 
+def test_a_state_stamped_on_sim_time_ages_in_sim_time() -> None:
+    """On sim time (a simulation faster or slower than real time) a peer's age is the
+    difference of the two sim times; a state on the other kind of clock ages from its
+    receipt."""
+    from beehave.agents.fleet import PeerState
+
+    sim_now = [12.5]
+    long_ago = time.monotonic() - 30.0  # received 30 s of wall time ago
+    peer = PeerState("lead", {}, 12.0, long_ago, 1, 1.0, sim_now=lambda: sim_now[0])
+    assert peer.age_s == pytest.approx(0.5) and not peer.stale
+    sim_now[0] = 13.5
+    assert peer.stale
+    other = PeerState("lead", {}, 1e9, time.monotonic(), 1, 1.0, comparable=False)
+    assert other.age_s < 1.0  # a sim stamp is no Unix time: aged from receipt
+
+
 def test_self_fleet_names_the_fix_when_no_fleet_is_attached(
         hl: HighLevelBehaviorManager) -> None:
     class Look(Behavior):
@@ -281,19 +297,61 @@ def test_a_blocked_rover_without_any_helper_reports_failure_and_goes_home(
                 "the gap stayed in")),
     ("handover", ("handed its remaining mission over", "reached every remaining waypoint",
                   "the rover is home")),
+    ("droid", ("handed its remaining mission over", "reached every remaining waypoint",
+               "the rover is home", "never came closer than", "the gap stayed in")),
 ])
-def test_the_scenario_between_vehicle_processes_over_dds(
+def test_the_scenario_between_vehicle_processes_over_dds_runs_fast_on_sim_time(
         scenario: str, expected: tuple[str, ...]) -> None:
-    """``beehave fleet --scenario follow|handover`` (``python -m behaviours.demos.droid``):
-    every robot in its own process, MAVLink to the simulation, DDS between the agents;
-    checks in the physics. (``droid``, both at once, runs the same code paths.)"""
+    """``beehave fleet --scenario follow|handover|droid --fast``: every robot in its own
+    process on the simulation's time, MAVLink to the simulation, DDS between the agents;
+    the physics as fast as the robots keep up (the follower's control loop holds it in
+    lockstep), checked in the physics with the same checks as at real time."""
     from behaviours.demos.droid import run
 
-    checks, measured = run(scenario=scenario, timeout_s=80.0)
+    checks, measured = run(scenario=scenario, fast=True, timeout_s=WALL_TIMEOUT_S,
+                           start_timeout_s=WALL_TIMEOUT_S)
     for part in expected:  # each scenario checks what it promises
         assert any(part in c.name for c in checks), ([c.name for c in checks], part)
     failed = [f"{c.name}: {c.measured}" for c in checks if not c.passed]
     assert not failed, (failed, measured)
+    assert measured["fast"]
+
+
+@pytest.mark.parametrize("scenario", ["follow", "handover", "droid"])
+def test_beehave_fleet_takes_fast_for_the_mavlink_scenarios(
+        scenario: str, tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """README: ``beehave fleet … [--fast]`` -- for the MAVLink scenarios too."""
+    import behaviours.demos.droid as droid
+    from beehave.cli import main
+
+    seen: list[list[str]] = []
+    monkeypatch.setattr(droid, "main", lambda argv: seen.append(argv) or 0)
+    assert main(["fleet", "--scenario", scenario, "--fast", "--out", str(tmp_path)]) == 0
+    assert seen == [["--scenario", scenario, "--picture", str(tmp_path / f"{scenario}.png"),
+                     "--fast"]]
+
+
+def test_a_gap_check_shows_the_digits_that_make_it_fail() -> None:
+    """A minimum of 1.7996 m fails the band [1.8, 2.5]; printed with two decimals it read
+    "1.80", as if it passed."""
+    from behaviours.demos.droid import SAMPLE_HZ, _gap_checks
+
+    gaps = [(i / SAMPLE_HZ, g) for i, g in enumerate([2.0, 2.1, 1.7996, 2.19, 2.0])]
+    checks, min_gap = _gap_checks(gaps, start_s=0.0, band_end_s=math.inf,
+                                  safety_end_s=math.inf, distance_m=2.0, safety_m=1.0,
+                                  who="the copter")
+    safety, band = checks
+    assert safety.passed and min_gap == 1.7996
+    assert not band.passed
+    assert band.measured.startswith("1.7996–2.19 m"), band.measured
+    inside = [(i / SAMPLE_HZ, g) for i, g in enumerate([2.0, 1.8, 2.5, 2.004])]
+    checks, _ = _gap_checks(inside, start_s=0.0, band_end_s=math.inf, safety_end_s=math.inf,
+                            distance_m=2.0, safety_m=1.0, who="the copter")
+    assert checks[1].passed and checks[1].measured.startswith("1.80–2.50 m"), checks[1]
+    high = [(i / SAMPLE_HZ, g) for i, g in enumerate([2.0, 2.5001])]
+    checks, _ = _gap_checks(high, start_s=0.0, band_end_s=math.inf, safety_end_s=math.inf,
+                            distance_m=2.0, safety_m=1.0, who="the copter")
+    assert not checks[1].passed and "–2.5001 m" in checks[1].measured, checks[1]
 
 
 def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosContext) -> None:
