@@ -35,6 +35,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -56,6 +57,7 @@ from behaviours.actions import _LockstepLine  # one /lockstep line per node, sha
 from hal.mavlink import (
     COPTER,
     HOLD_MODE,
+    KEY_FILE_ENV,
     ROVER,
     MavlinkLink,
     Waypoint,
@@ -82,8 +84,10 @@ class MavlinkAction(Action):
     """Base of the MAVLink actions: opens the link, runs :meth:`perform`, holds the vehicle
     in the safe state. Parameters every action takes: ``connection`` (a pymavlink
     connection string), ``system_id`` (None: the first autopilot heard),
-    ``heartbeat_timeout_s``, and ``connect_timeout_s`` (how long to wait for the first
-    heartbeat)."""
+    ``heartbeat_timeout_s``, ``connect_timeout_s`` (how long to wait for the first
+    heartbeat) and ``signing_key_file`` (MAVLink 2 signing, see
+    :class:`hal.mavlink.MavlinkLink`; default ``BEEHAVE_MAVLINK_KEY_FILE``; None on a link
+    a HAL opened already: that link's signing)."""
 
     action_type = "vehicle"
     lockstep = False
@@ -92,8 +96,10 @@ class MavlinkAction(Action):
     _lockstep_pub: Any = None
 
     def __init__(self, *, connection: str, system_id: int | None = None,
-                 heartbeat_timeout_s: float = 3.0, connect_timeout_s: float = 5.0) -> None:
+                 heartbeat_timeout_s: float = 3.0, connect_timeout_s: float = 5.0,
+                 signing_key_file: str | None = None) -> None:
         self.connection = connection
+        self.signing_key_file = signing_key_file or os.environ.get(KEY_FILE_ENV) or None
         self.system_id = system_id
         self.heartbeat_timeout_s = heartbeat_timeout_s
         self.connect_timeout_s = connect_timeout_s
@@ -105,7 +111,8 @@ class MavlinkAction(Action):
 
     def run(self) -> Any:
         link = self._link = open_link(self.connection, system_id=self.system_id,
-                                      heartbeat_timeout_s=self.heartbeat_timeout_s)
+                                      heartbeat_timeout_s=self.heartbeat_timeout_s,
+                                      signing_key_file=self.signing_key_file)
         ok = False
         try:
             self._open_lockstep()
