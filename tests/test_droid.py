@@ -19,7 +19,7 @@ from beehave.agents import Agent
 from beehave.agents.fleet import FLEET_QOS, FLEET_TOPIC, Fleet
 from beehave.errors import ConfigError, ProtocolFailed
 from beehave.ros.context import RosContext
-from beehave.testing import WALL_TIMEOUT_S
+from beehave.testing import WALL_TIMEOUT_S, wait_until
 from behaviours.droid import FollowLeader, RoverDroid, check_mission
 from hal.mavlink import close_all_links
 from robots.mavlink_endpoint import DEFAULT_ORIGIN, MavlinkEndpoint
@@ -47,11 +47,9 @@ def started_vehicle(world: dict[str, Any], namespace: str,
     return sim, f"udp:127.0.0.1:{port}", endpoint
 
 
-def wait_until(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.02)
+def wait_for(predicate: Callable[[], bool], what: str) -> None:
+    """A positive wait, bounded by WALL_TIMEOUT_S only (a safety net, not a timing)."""
+    assert wait_until(predicate), f"timed out waiting for {what}"
 
 
 @pytest.fixture
@@ -69,8 +67,8 @@ def test_peers_see_each_others_state_with_its_age_and_it_goes_stale(ros: RosCont
         fb = Fleet(b, rate_hz=20.0, stale_after_s=0.5)
         fb.update(mode="HOLD")
         try:
-            wait_until(lambda: fb.get("fleet_a") is not None and fa.get("fleet_b") is not None,
-                       5.0, "both states")
+            wait_for(lambda: fb.get("fleet_a") is not None and fa.get("fleet_b") is not None,
+                     "both states")
             seen = fb.get("fleet_a")
             assert seen is not None and seen.state == {"battery_pct": 80.0}
             assert not seen.stale and seen.age_s < 0.5
@@ -80,9 +78,9 @@ def test_peers_see_each_others_state_with_its_age_and_it_goes_stale(ros: RosCont
             raw = b.node.create_publisher(String, FLEET_TOPIC, FLEET_QOS)
             raw.publish(String(data="not json"))
             raw.publish(String(data=json.dumps({"schema": "other/9", "agent": "x"})))
-            wait_until(lambda: sum(fa.rejected.values()) >= 2, 3.0, "rejections")
+            wait_for(lambda: sum(fa.rejected.values()) >= 2, "rejections")
             fa.close()
-            wait_until(lambda: fb.get("fleet_a").stale, 3.0, "the closed peer going stale")  # type: ignore[union-attr]
+            wait_for(lambda: fb.get("fleet_a").stale, "the closed peer going stale")  # type: ignore[union-attr]
         finally:
             fa.close()
             fb.close()
@@ -212,9 +210,8 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
             hl.register("follow", Follow, leader="lead", distance_m=2.0, safety_m=1.0,
                         alt_m=2.0, connection=f"udp:127.0.0.1:{port}")
             hl.switch("follow")
-            wait_until(lambda: bool(Follow.actions) and flyer.position().z_m > 1.8  # type: ignore[attr-defined]
-                       and abs(gaps[-1] - 2.0) < 0.4, 20.0,
-                       "the follower to take off and close in")
+            wait_for(lambda: bool(Follow.actions) and flyer.position().z_m > 1.8  # type: ignore[attr-defined]
+                     and abs(gaps[-1] - 2.0) < 0.4, "the follower to take off and close in")
             driver.start()
             time.sleep(4.0)  # following a leader at 0.4 m/s: catching up
             start = len(gaps)
@@ -231,15 +228,15 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
             time.sleep(0.5)
             f = flyer.pose()
             fake.append((f.x_m + 0.6, f.y_m))
-            wait_until(lambda: action.holding is not None and "safety" in action.holding,
-                       3.0, "the follower to stop below the safety distance")
+            wait_for(lambda: action.holding is not None and "safety" in action.holding,
+                     "the follower to stop below the safety distance")
             there = _held_still(flyer)
             assert math.hypot(there.x_m - f.x_m, there.y_m - f.y_m) < 0.5
             fake.clear()
             # The leader's state stops: the follower holds where it is.
             leader_fleet.close()
-            wait_until(lambda: action.holding is not None and "stale" in action.holding,
-                       3.0, "the follower to notice")
+            wait_for(lambda: action.holding is not None and "stale" in action.holding,
+                     "the follower to notice")
             _held_still(flyer)
             assert action.status is Status.RUNNING
             hl.switch("idle")
@@ -374,8 +371,8 @@ def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosConte
         link.set_mode("GUIDED")
         link.arm(True)
         link.takeoff(2.0)
-        wait_until(lambda: sim.robot("quad").position().z_m > 1.8, 10.0,  # type: ignore[attr-defined]
-                   "the take-off")
+        wait_for(lambda: sim.robot("quad").position().z_m > 1.8,  # type: ignore[attr-defined]
+                 "the take-off")
         ll = LowLevelBehaviorManager(default="telemetry")
         for cls in (MavlinkHeartbeatHAL, MavlinkPositionHAL, MavlinkBatteryHAL):
             ll.hals.register(cls, connection=url)
@@ -385,7 +382,7 @@ def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosConte
                 Agent("copter_peer", ros=ros, probe_s=PROBE_S) as peer, \
                 HighLevelBehaviorManager(blackboard=ll.blackboard, stop_timeout_s=1.0) as hl:
             me.attach(hl)
-            wait_until(lambda: me.directory.get("copter_peer") is not None, 5.0, "the peer")
+            wait_for(lambda: me.directory.get("copter_peer") is not None, "the peer")
             hl.register("droid", CopterDroid, connection=url, battery_low_pct=31.0)
             droid = hl.switch("droid")
             assert droid.wait(WALL_TIMEOUT_S), hl.snapshot()
@@ -417,9 +414,8 @@ def test_a_malformed_mission_request_is_refused_with_its_reason(ros: RosContext)
         responder = hl.switch("take")
         # Until its mailbox is open, nothing here serves the protocol: a request then gets
         # not-understood (by design), which a loaded machine makes likely.
-        deadline = time.monotonic() + 10.0
-        while getattr(responder, "_box", None) is None and time.monotonic() < deadline:
-            time.sleep(0.01)
+        wait_for(lambda: getattr(responder, "_box", None) is not None,
+                 "the responder's mailbox")
         for content, reason in (({"waypoints": []}, "the mission has no waypoints"),
                                 ({"go": "north"}, "content must be {\"waypoints\""),
                                 ({"waypoints": [{"lat_deg": 95, "lon_deg": 0, "alt_m": 3}]},
@@ -446,8 +442,8 @@ def test_a_mission_sent_to_another_agent_is_run_by_its_vehicle(ros: RosContext) 
             giver.attach(hl_giver)
             hl_taker.register("take", MissionRequestResponder, connection=url)
             responder = hl_taker.switch("take")
-            wait_until(lambda: getattr(responder, "_box", None) is not None, 10.0,
-                       "the responder's mailbox")
+            wait_for(lambda: getattr(responder, "_box", None) is not None,
+                     "the responder's mailbox")
             # The sender's frame is the same vehicle's here: [north, east] in metres.
             hl_giver.register("send", SendMission, receiver="mission_runner",
                               waypoints=[[2.0, 2.5]], connection=url, timeout_s=30.0)
