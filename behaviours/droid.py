@@ -358,13 +358,13 @@ class FollowLeader(MavlinkAction):
             peer = self._fresh_peer(fleet)
             where = None if peer is None or peer.stale else peer_position(peer, frame)
             if where is None:
-                stale_since = stale_since or time.monotonic()
+                now = self.manager.clock.now()  # sim time under use_sim_time
+                stale_since = stale_since if stale_since is not None else now
                 self._hold(link, here, alt,
                            f"no state of {self.leader!r} yet" if peer is None else
                            f"the state of {self.leader!r} is stale ({peer.age_s:.1f} s old)"
                            if peer.stale else f"{self.leader!r} has no position yet")
-                if self.give_up_s is not None \
-                        and time.monotonic() - stale_since > self.give_up_s:
+                if self.give_up_s is not None and now - stale_since > self.give_up_s:
                     raise NoReply(f"{self.path}: no fresh state of {self.leader!r} for "
                                   f"{self.give_up_s} s")
             else:

@@ -249,6 +249,35 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
         sim.close()
 
 
+def test_a_follower_gives_up_after_give_up_s_without_its_leaders_state(
+        ros: RosContext) -> None:
+    from beehave.errors import NoReply
+
+    world = {"name": "alone", "floor": {"size_m": [6, 4]},
+             "robots": [{"namespace": "rover", "kind": "kobuki", "start": {"x_m": 2, "y_m": 2}}]}
+    sim, url, rover = started_vehicle(world, "rover")
+    Follow.actions = []
+    try:
+        with Agent("forsaken", ros=ros, probe_s=PROBE_S) as me, \
+                HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
+            fleet = Fleet(me)
+            fleet.attach(hl)
+            hl.register("follow", Follow, leader="nobody", give_up_s=0.5, connection=url)
+            hl.switch("follow")
+            wait_for(lambda: bool(Follow.actions), "the follow action")
+            action = Follow.actions[0]
+            assert action.wait(WALL_TIMEOUT_S)
+            assert action.status is Status.FAILED
+            assert isinstance(action.error, NoReply) and "'nobody'" in str(action.error)
+            assert action.holding is not None and "no state" in action.holding
+            fleet.close()
+        wait_for(lambda: rover.mode == "HOLD", "the safe state (HOLD) after GUIDED")
+    finally:
+        close_all_links()
+        rover.close()
+        sim.close()
+
+
 # ---- handover ---------------------------------------------------------------------------------
 
 WALL_WORLD = {"name": "wall", "floor": {"size_m": [10, 6]},
