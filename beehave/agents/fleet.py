@@ -76,7 +76,8 @@ class PeerState:
     name: str
     state: dict[str, Any]
     sent_at: float
-    """The sender's wall time (Unix seconds) when it published."""
+    """The sender's wall time (Unix seconds) when it published; its sim time (s) when it
+    stamps on sim time (``"clock": "sim"``)."""
     received: float
     """This host's monotonic time when it arrived."""
     seq: int
