@@ -28,7 +28,7 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # type: ignore[import-untyped]  # noqa: E402
 
-from beehave.testing import WALL_TIMEOUT_S  # noqa: E402  (timeouts only)
+from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402  (timeouts only)
 from tests.test_mavlink_ground_station import GroundStation, free_port_pair  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("test_mavlink_signing")
@@ -76,6 +76,12 @@ class Rig:
             conn.setup_signing(key, sign_outgoing=True)
         return conn
 
+    def wait_logged(self, line: str) -> str:
+        """The vehicle's output once it holds ``line`` (the log goes through a pipe and a
+        reader thread: it may come after the vehicle's next answer on the link)."""
+        assert wait_until(lambda: line in "".join(self.output)), "".join(self.output)
+        return "".join(self.output)
+
     def arm_state(self) -> bool:
         beat = self.gcs.wait("HEARTBEAT", since=self.gcs.mark())
         return bool(beat.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
@@ -102,7 +108,12 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
         cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT, text=True)
     output: list[str] = []
-    reader = threading.Thread(target=lambda: output.extend(proc.stdout or ()), daemon=True)
+
+    def read() -> None:
+        for line in proc.stdout or ():
+            output.append(line)
+
+    reader = threading.Thread(target=read, daemon=True)
     reader.start()
     gcs: SignedStation | None = None
     try:
@@ -151,9 +162,8 @@ def test_commands_unsigned_or_signed_with_another_key_are_ignored_with_a_log(
         assert beat.custom_mode != GUIDED
     finally:
         intruder.close()
-    text = "".join(rig.output)
-    assert f"ignored {'an' if key is None else 'a'} {logged} COMMAND_LONG from system 254" \
-        in text, text
+    rig.wait_logged(f"ignored {'an' if key is None else 'a'} {logged} COMMAND_LONG from "
+                    f"system 254")
 
 
 def test_radio_status_is_taken_unsigned_as_ardupilot_does(rig: Rig) -> None:
@@ -164,8 +174,8 @@ def test_radio_status_is_taken_unsigned_as_ardupilot_does(rig: Rig) -> None:
         rig.ordered_after()
     finally:
         intruder.close()
-    text = "".join(rig.output)
-    assert "ignored an unsigned PARAM_REQUEST_READ from system 254" in text, text
+    # The vehicle logs in the order it reads: a refused RADIO_STATUS would come first.
+    text = rig.wait_logged("ignored an unsigned PARAM_REQUEST_READ from system 254")
     assert "RADIO_STATUS" not in text  # taken
 
 
@@ -189,7 +199,7 @@ def test_a_replayed_signed_command_is_ignored(rig: Rig) -> None:
     acks = [m for m in rig.gcs.messages[since:] if m.get_type() == "COMMAND_ACK"
             and m.command == mav.MAV_CMD_COMPONENT_ARM_DISARM]
     assert acks == [] and not rig.arm_state()
-    assert "ignored a wrongly signed COMMAND_LONG from system 255" in "".join(rig.output)
+    rig.wait_logged("ignored a wrongly signed COMMAND_LONG from system 255")
 
 
 def test_setup_signing_changes_the_key_but_not_while_armed(rig: Rig) -> None:
