@@ -45,7 +45,7 @@ from typing import Any
 
 from beehave.action import Action
 from beehave.agents.agent import AgentAction, AgentBehavior
-from beehave.agents.fleet import PeerState, fleet_of
+from beehave.agents.fleet import Fleet, PeerState, fleet_of
 from beehave.agents.message import Message, Performative
 from beehave.agents.protocols import ContractNetResponder, RequestResponder, contract_net
 from beehave.agents.protocols import request as fipa_request
@@ -317,6 +317,10 @@ class FollowLeader(MavlinkAction):
 
     MAX_EXTRAPOLATION_S = 1.0
     """The longest a leader's state is carried forward by its velocity."""
+    lockstep = True  # a control loop: under sim time the simulator waits for each period
+    FRESH_WAIT_S = 0.3
+    """In lockstep, how long (wall) a period waits for a leader's state that is late in sim
+    time (below the simulator's lockstep timeout, 1 s, which would let it go)."""
 
     def __init__(self, leader: str, *, distance_m: float = 2.0, tolerance_m: float = 0.2,
                  safety_m: float = 1.0, alt_m: float = 2.5, rate_hz: float = 10.0,
@@ -351,16 +355,16 @@ class FollowLeader(MavlinkAction):
         while True:
             self.check_alive(link, f"following {self.leader!r}")
             here = link.local_position()
-            peer = fleet.get(self.leader)
+            peer = self._fresh_peer(fleet)
             where = None if peer is None or peer.stale else peer_position(peer, frame)
             if where is None:
-                stale_since = stale_since or time.monotonic()
+                now = self.manager.clock.now()  # sim time under use_sim_time
+                stale_since = stale_since if stale_since is not None else now
                 self._hold(link, here, alt,
                            f"no state of {self.leader!r} yet" if peer is None else
                            f"the state of {self.leader!r} is stale ({peer.age_s:.1f} s old)"
                            if peer.stale else f"{self.leader!r} has no position yet")
-                if self.give_up_s is not None \
-                        and time.monotonic() - stale_since > self.give_up_s:
+                if self.give_up_s is not None and now - stale_since > self.give_up_s:
                     raise NoReply(f"{self.path}: no fresh state of {self.leader!r} for "
                                   f"{self.give_up_s} s")
             else:
@@ -387,6 +391,24 @@ class FollowLeader(MavlinkAction):
                     link.goto_local(where[0] + un * self.distance_m + vn * self.lead_s,
                                     where[1] + ue * self.distance_m + ve * self.lead_s, alt)
             self.pause(self.period_s)
+
+    def _fresh_peer(self, fleet: Fleet) -> PeerState | None:
+        """The leader's latest state. In lockstep (the simulation waits for this loop, not
+        for the leader's robot), a state older than two periods of sim time is waited for
+        — up to :attr:`FRESH_WAIT_S` of wall time, the simulation held meanwhile — so a
+        simulation faster than the leader's process does not make the leader look stale
+        or far behind where it is."""
+        peer = fleet.get(self.leader)
+        if self._lockstep_pub is None or peer is None \
+                or peer.age_s <= 2 * self.period_s:
+            return peer
+        deadline = time.monotonic() + self.FRESH_WAIT_S
+        while time.monotonic() < deadline and not self.interrupted:
+            time.sleep(0.002)
+            newer = fleet.get(self.leader)
+            if newer is not None and newer.seq != peer.seq:
+                return newer
+        return fleet.get(self.leader)
 
     def _hold(self, link: MavlinkLink, here: tuple[float, float, float], alt: float | None,
               why: str | None) -> None:
@@ -631,7 +653,6 @@ def main(argv: list[str] | None = None) -> int:
     succeeded (or still runs at the end), 1 when it failed, 2 for a bad configuration."""
     import yaml
 
-    from beehave.agents.fleet import Fleet
     from beehave.config import parse_config
     from beehave.robot import Robot
 

@@ -28,18 +28,31 @@ beehave stops fighting the operator; resume it through beehave (ROS 2, the web p
 **Lost heartbeat.** Every wait ends with :class:`~beehave.errors.VehicleLost` when the
 heartbeat stops for the link's ``heartbeat_timeout_s``: the action FAILS (and tries its
 safe state, which reaches the vehicle if the link comes back).
+
+**Sim time and lockstep.** Under ``use_sim_time`` every wait of these actions
+(:meth:`MavlinkAction.pause`) lasts simulated seconds. An action whose class sets
+``lockstep = True`` (:class:`~behaviours.droid.FollowLeader`, a control loop) also asks the
+simulator on ``/lockstep`` to hold where each pause ends until it has answered, as the
+driving actions do (``docs/simulation.md``): a simulation faster than real time, or a
+loaded host, never outruns its loop. The vehicle's own autopilot work (AUTO, RTL) runs in
+the simulation and needs no holding.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Sequence
 from typing import Any
 
+from std_msgs.msg import String
+
 from beehave.action import Action
+from beehave.clock import SimClock
 from beehave.errors import (
     ConfigError,
     Interrupted,
@@ -48,9 +61,12 @@ from beehave.errors import (
     UnknownMode,
     VehicleLost,
 )
+from beehave.status import Status
+from behaviours.actions import _LockstepLine  # one /lockstep line per node, shared
 from hal.mavlink import (
     COPTER,
     HOLD_MODE,
+    KEY_FILE_ENV,
     ROVER,
     MavlinkLink,
     Waypoint,
@@ -77,14 +93,22 @@ class MavlinkAction(Action):
     """Base of the MAVLink actions: opens the link, runs :meth:`perform`, holds the vehicle
     in the safe state. Parameters every action takes: ``connection`` (a pymavlink
     connection string), ``system_id`` (None: the first autopilot heard),
-    ``heartbeat_timeout_s``, and ``connect_timeout_s`` (how long to wait for the first
-    heartbeat)."""
+    ``heartbeat_timeout_s``, ``connect_timeout_s`` (how long to wait for the first
+    heartbeat) and ``signing_key_file`` (MAVLink 2 signing, see
+    :class:`hal.mavlink.MavlinkLink`; default ``BEEHAVE_MAVLINK_KEY_FILE``; None on a link
+    a HAL opened already: that link's signing)."""
 
     action_type = "vehicle"
+    lockstep = False
+    """True: under sim time, hold the simulation where each :meth:`pause` ends until this
+    action has answered (a control loop); see the module doc."""
+    _lockstep_pub: Any = None
 
     def __init__(self, *, connection: str, system_id: int | None = None,
-                 heartbeat_timeout_s: float = 3.0, connect_timeout_s: float = 5.0) -> None:
+                 heartbeat_timeout_s: float = 3.0, connect_timeout_s: float = 5.0,
+                 signing_key_file: str | None = None) -> None:
         self.connection = connection
+        self.signing_key_file = signing_key_file or os.environ.get(KEY_FILE_ENV) or None
         self.system_id = system_id
         self.heartbeat_timeout_s = heartbeat_timeout_s
         self.connect_timeout_s = connect_timeout_s
@@ -102,14 +126,17 @@ class MavlinkAction(Action):
 
     def run(self) -> Any:
         link = self._link = open_link(self.connection, system_id=self.system_id,
-                                      heartbeat_timeout_s=self.heartbeat_timeout_s)
+                                      heartbeat_timeout_s=self.heartbeat_timeout_s,
+                                      signing_key_file=self.signing_key_file)
         ok = False
         try:
+            self._open_lockstep()
             self._wait_alive(link)
             result = self.perform(link)
             ok = not self.interrupted
             return result
         finally:
+            self._let_go()
             if ok:  # safe_state (which still needs the link) is not called after success
                 self._link = None
                 link.close()
@@ -123,11 +150,48 @@ class MavlinkAction(Action):
             self.pause(0.05)
 
     def pause(self, seconds: float) -> None:
-        """Sleep, raising Interrupted when interrupted (ends the action's wait loops).
-        While the robot is paused, it first holds the vehicle, then stands still."""
+        """Sleep, raising Interrupted when interrupted (ends the action's wait loops). In
+        lockstep the simulator holds where the pause ends until the next pause or the
+        end of the action. While the robot is paused, it first holds the vehicle, then
+        stands still."""
         self._hold_if_paused()
-        if not self.sleep(seconds):
+        clock = self.manager.clock
+        if self._lockstep_pub is not None and isinstance(clock, SimClock):
+            with clock.announcing(self._hold_at):
+                awake = self.sleep(seconds)
+        else:
+            awake = self.sleep(seconds)
+        if not awake:
             raise Interrupted(f"{self.path}: interrupted")
+
+    def _open_lockstep(self) -> None:
+        node = self.manager.node
+        if not self.lockstep or node is None or not isinstance(self.manager.clock, SimClock):
+            return
+        line = _LockstepLine.of(node)
+        self._participant = f"{node.get_fully_qualified_name()}/{self.path}#{id(self):x}"
+        self._lockstep_pub = line.publisher
+        # No hold before the first pause: the set-up (mode, arming) waits for the vehicle's
+        # heartbeat, which a held simulation still sends, but on wall time.
+        line.wait_matched(lambda: self.interrupted)
+
+    def _hold_at(self, until_s: float | None) -> None:
+        pub = self._lockstep_pub
+        if pub is None:
+            return
+        if self.status is Status.STUCK:
+            until_s = None  # a loop that ignores its interrupt must not keep holding
+        pub.publish(String(data=json.dumps({"participant": self._participant,
+                                            "until_s": until_s})))
+
+    def _let_go(self) -> None:
+        if self._lockstep_pub is None:
+            return
+        try:
+            self._hold_at(None)
+        except Exception:  # the node is gone: the simulator's lockstep timeout lets go
+            log.debug("%s: could not let the simulation go", self.path, exc_info=True)
+        self._lockstep_pub = None
 
     def check_alive(self, link: MavlinkLink, what: str) -> None:
         if not link.alive:

@@ -5,7 +5,8 @@
 - ``mavlink_udp_round_trip`` (floor): a bare pymavlink COMMAND_LONG → COMMAND_ACK between
   two sockets of this process, answered by a thread that does nothing else;
 - ``mavlink_command_ack``: :meth:`hal.mavlink.MavlinkLink.command` against a simulated
-  vehicle (:mod:`robots.mavlink_endpoint`) — p50 and p99;
+  vehicle (:mod:`robots.mavlink_endpoint`) — p50 and p99; ``mavlink_command_ack_signed``
+  the same on a signed link (MAVLink 2 signing on both sides: what signing costs);
 - ``mavlink_hal_latency``: from a vehicle sending LOCAL_POSITION_NED (a bare pymavlink
   socket, so the send time is exact) to ``position/north_m`` changing on the blackboard,
   through :class:`hal.mavlink.MavlinkPositionHAL` in a HAL manager — median and p99;
@@ -22,6 +23,7 @@ import asyncio
 import socket
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from benchmarks._util import median, percentile, report
@@ -110,7 +112,11 @@ def _hal_latency(n: int) -> list[float]:
     return samples
 
 
-def _against_the_sim(commands: int, uploads: int) -> tuple[list[float], list[float]]:
+def _against_the_sim(commands: int, uploads: int, *, signed: bool = False
+                     ) -> tuple[list[float], list[float]]:
+    import hashlib
+    import tempfile
+
     from hal.mavlink import Waypoint, close_all_links, mavlink, open_link
     from robots.mavlink_endpoint import MavlinkEndpoint
     from robots.sim import Simulation
@@ -121,19 +127,27 @@ def _against_the_sim(commands: int, uploads: int) -> tuple[list[float], list[flo
                                          "start": {"x_m": 2, "y_m": 2}}]})
     sim = Simulation(world, real_time_factor=1.0)
     port = _port()
-    endpoint = MavlinkEndpoint(sim, "rover", url=f"udpout:127.0.0.1:{port}")
+    passphrase = "bench"
+    endpoint = MavlinkEndpoint(sim, "rover", url=f"udpout:127.0.0.1:{port}",
+                               signing_key=hashlib.sha256(passphrase.encode()).digest()
+                               if signed else None)
     sim.start()
     acks: list[float] = []
     upload_s: list[float] = []
+    key_file = tempfile.NamedTemporaryFile("w", suffix=".key", delete=False)  # noqa: SIM115
+    key_file.write(passphrase)
+    key_file.close()
     try:
-        link = open_link(f"udp:127.0.0.1:{port}")
+        link = open_link(f"udp:127.0.0.1:{port}",
+                         signing_key_file=key_file.name if signed else None)
         link.wait_heartbeat(timeout_s=5.0)
         for _ in range(commands):
             start = time.perf_counter()
             link.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
                          4, what="set mode HOLD")
             acks.append(time.perf_counter() - start)
-        items = link.mission_items([Waypoint(i * 0.1, 1.0) for i in range(20)])
+        # Inside the fence (the floor, 0.3 m in from its edges).
+        items = link.mission_items([Waypoint(1.0 + i * 0.1, 1.0) for i in range(20)])
         for _ in range(uploads):
             start = time.perf_counter()
             link.upload_mission(items)
@@ -142,6 +156,7 @@ def _against_the_sim(commands: int, uploads: int) -> tuple[list[float], list[flo
         close_all_links()
         endpoint.close()
         sim.close()
+        Path(key_file.name).unlink()
     return acks, upload_s
 
 
@@ -196,6 +211,11 @@ def main() -> list[dict[str, Any]]:
     rows.append(report("mavlink_command_ack_p50", p50, "ms", "<= 5 ms", p50 <= 5.0,
                        p99_ms=round(percentile(acks, 99) * 1e3, 3),
                        floor_ratio=round(p50 / (median(floor) * 1e3), 1)))
+    signed, _ = _against_the_sim(200, 0, signed=True)
+    signed_p50 = median(signed) * 1e3
+    rows.append(report("mavlink_command_ack_signed_p50", signed_p50, "ms", "<= 5 ms",
+                       signed_p50 <= 5.0, p99_ms=round(percentile(signed, 99) * 1e3, 3),
+                       unsigned_ratio=round(signed_p50 / p50, 2)))
     hal = _hal_latency(300)
     hal_ms = median(hal) * 1e3
     rows.append(report("mavlink_hal_latency_p50", hal_ms, "ms", "<= 2 ms", hal_ms <= 2.0,

@@ -81,7 +81,8 @@ log = logging.getLogger(__name__)
 mavlink = mavutil.mavlink
 
 __all__ = ["COPTER", "ROVER", "LocalFrame", "MavlinkHAL", "MavlinkLink", "MissionItem",
-           "Waypoint", "close_all_links", "mode_names", "open_link", "vehicle_kind"]
+           "Waypoint", "close_all_links", "load_signing_key", "mode_names", "open_link",
+           "vehicle_kind"]
 
 ROVER = "rover"
 COPTER = "copter"
@@ -103,6 +104,48 @@ MAV_TYPE_OF = {ROVER: mavlink.MAV_TYPE_GROUND_ROVER, COPTER: mavlink.MAV_TYPE_QU
 
 HOLD_MODE = {ROVER: "HOLD", COPTER: "BRAKE"}
 """The mode a vehicle is put in to stand still (an action's safe state)."""
+
+KEY_FILE_ENV = "BEEHAVE_MAVLINK_KEY_FILE"
+"""Where a MAVLink HAL loaded by name only finds its signing key file (if any)."""
+
+UNSIGNED_ACCEPTED = frozenset({mavlink.MAVLINK_MSG_ID_RADIO_STATUS,
+                               mavlink.MAVLINK_MSG_ID_RADIO})
+"""Messages a signing vehicle still takes unsigned, as ArduPilot does: what a telemetry
+radio injects into the link (it cannot sign)."""
+
+
+def load_signing_key(path: object) -> bytes:
+    """The 32-byte MAVLink 2 signing key in the file ``path``: 64 hexadecimal digits are
+    the key itself; any other text is a passphrase, hashed with SHA-256 as MAVProxy's
+    ``signing setup`` and QGroundControl do. Leading and trailing blanks are ignored.
+    A missing, unreadable or empty file raises :class:`ConfigError` naming it."""
+    import hashlib
+
+    if not isinstance(path, str | os.PathLike) or not str(path):
+        raise ConfigError(f"MAVLink signing key file must be a path, got {path!r}")
+    try:
+        text = open(path, encoding="utf-8").read().strip()  # noqa: SIM115
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"MAVLink signing key file {str(path)!r} cannot be read: {exc}") \
+            from None
+    if not text:
+        raise ConfigError(f"MAVLink signing key file {str(path)!r} is empty: write a "
+                          f"passphrase or 64 hexadecimal digits into it")
+    if len(text) == 64 and all(c in "0123456789abcdefABCDEF" for c in text):
+        return bytes.fromhex(text)
+    return hashlib.sha256(text.encode("utf-8")).digest()
+
+
+def signature_refusal(msg: Any) -> str | None:
+    """For a BAD_DATA that pymavlink made of a message that failed the signature check:
+    ``"unsigned"`` or ``"wrongly signed"`` (a replayed or stale signature counts as wrong);
+    None for any other bad data."""
+    if getattr(msg, "reason", "") != "Invalid signature":
+        return None
+    data = bytes(getattr(msg, "data", b"") or b"")
+    signed = len(data) > 2 and data[0] == mavlink.PROTOCOL_MARKER_V2 \
+        and bool(data[2] & mavlink.MAVLINK_IFLAG_SIGNED)
+    return "wrongly signed" if signed else "unsigned"
 
 
 def vehicle_kind(mav_type: int) -> str:
@@ -309,12 +352,19 @@ class MavlinkLink:
     ``system_id``: the vehicle's MAVLink system id (None: the first autopilot heartbeat
     decides). ``heartbeat_timeout_s``: see the module doc. ``retries`` / ``timeout_s``:
     how often and how long each protocol step waits for its answer before it resends.
+    ``signing_key_file``: MAVLink 2 signing with the key in that file
+    (:func:`load_signing_key`): everything sent is signed, and only messages signed with
+    the key are taken — unsigned or wrongly signed ones are dropped, counted in
+    :attr:`ignored` and logged (the first of each kind).
     """
 
     def __init__(self, url: str, *, system_id: int | None = None,
                  heartbeat_timeout_s: float = 3.0, timeout_s: float = 1.0, retries: int = 3,
-                 baud: int = 57600, source_system: int = GCS_SYSTEM_ID) -> None:
+                 baud: int = 57600, source_system: int = GCS_SYSTEM_ID,
+                 signing_key_file: str | None = None) -> None:
         self.url = _check_url(url)
+        self.signing_key_file = signing_key_file
+        key = None if signing_key_file is None else load_signing_key(signing_key_file)
         if system_id is not None and not (isinstance(system_id, int) and 1 <= system_id <= 255):
             raise ConfigError(f"MAVLink {url}: system_id must be 1–255, got {system_id!r}")
         self.heartbeat_timeout_s = check_duration_s(f"MAVLink {url}: heartbeat_timeout_s",
@@ -348,6 +398,8 @@ class MavlinkLink:
                 source_component=GCS_COMPONENT_ID, autoreconnect=True)
         except Exception as exc:
             raise MavlinkError(f"MAVLink {url}: cannot open the connection: {exc}") from exc
+        if key is not None:  # before the reader thread: nothing unsigned slips through
+            self.conn.setup_signing(key, sign_outgoing=True)
         self._thread = threading.Thread(target=self._read, name=f"beehave:mavlink:{url}",
                                         daemon=True)
         self._thread.start()
@@ -491,7 +543,17 @@ class MavlinkLink:
     def _dispatch(self, msg: Any) -> None:
         kind = msg.get_type()
         if kind == "BAD_DATA":
-            self._ignore("bad data (CRC or framing)")
+            refusal = signature_refusal(msg)
+            if refusal is None:
+                self._ignore("bad data (CRC or framing)")
+                return
+            reason = f"{refusal} message"
+            if not self.ignored[reason]:
+                log.warning("%s: ignored %s %s (signing is on: check that the vehicle has "
+                            "the key of %s)", self.describe(),
+                            "an" if refusal == "unsigned" else "a", reason,
+                            self.signing_key_file)
+            self._ignore(reason)
             return
         source = msg.get_srcSystem()
         if kind == "HEARTBEAT":
@@ -831,7 +893,9 @@ def open_link(url: str, **options: Any) -> MavlinkLink:
         if link is not None:
             for key, value in options.items():
                 current = getattr(link, key, value)
-                if current != value and not (key == "system_id" and value is None):
+                # None: no wish (the vehicle the link found; the link's signing, if any).
+                if current != value and not (key in ("system_id", "signing_key_file")
+                                             and value is None):
                     raise ConfigError(f"MAVLink {url}: opened already with {key}={current!r}; "
                                       f"a second user asks for {value!r} (one link per "
                                       f"connection: give every HAL and action the same "
@@ -860,14 +924,20 @@ class MavlinkHAL(HAL):
 
     Parameters: ``connection`` (see the module doc; default: the environment variable
     ``BEEHAVE_MAVLINK_CONNECTION``, so that ``hals: [mavlink_position]`` works),
-    ``system_id`` (None: the first autopilot heard), ``heartbeat_timeout_s`` (3 s). When
-    the heartbeat is lost every entry this HAL wrote is marked stale."""
+    ``system_id`` (None: the first autopilot heard), ``heartbeat_timeout_s`` (3 s),
+    ``signing_key_file`` (MAVLink 2 signing, see :class:`MavlinkLink`; default: the
+    environment variable ``BEEHAVE_MAVLINK_KEY_FILE``, else none). When the heartbeat is
+    lost every entry this HAL wrote is marked stale."""
 
     messages: ClassVar[tuple[str, ...]] = ()
     link: MavlinkLink
 
     def __init__(self, *, connection: str | None = None, system_id: int | None = None,
-                 heartbeat_timeout_s: float = 3.0) -> None:
+                 heartbeat_timeout_s: float = 3.0, signing_key_file: str | None = None
+                 ) -> None:
+        self.signing_key_file = signing_key_file or os.environ.get(KEY_FILE_ENV) or None
+        if self.signing_key_file is not None:
+            load_signing_key(self.signing_key_file)  # a bad file fails at load, named
         connection = connection or os.environ.get(CONNECTION_ENV)
         if not connection:
             raise ConfigError(f"HAL {self.name!r} needs a MAVLink connection: give it "
@@ -886,7 +956,8 @@ class MavlinkHAL(HAL):
     async def on_load(self) -> None:
         self.link = await asyncio.to_thread(
             open_link, self.connection, system_id=self.system_id,
-            heartbeat_timeout_s=self.heartbeat_timeout_s)
+            heartbeat_timeout_s=self.heartbeat_timeout_s,
+            signing_key_file=self.signing_key_file)
         self._removers = [self.link.on_message(self.messages, self._on_message),
                           self.link.on_link(self._on_link)]
 

@@ -52,6 +52,11 @@ What it implements (ArduPilot 4.x behaviour, simplified):
   position + velocity (flown as the position), yaw and yaw rate. A Copter given nothing
   usable (or a bad value) stops and holds — ArduCopter's "input is not valid so stop"; a
   Rover keeps its previous target and also takes heading-only and turn-rate-only targets.
+- **Signing** (``signing_key``; ``beehave sim --mavlink-key-file``): as ArduPilot's
+  GCS_Signing, the vehicle signs what it sends and takes only messages signed with its key
+  (RADIO and RADIO_STATUS also unsigned); the rest, a replay included, is dropped without
+  an answer, counted in :attr:`MavlinkEndpoint.ignored` and logged. SETUP_SIGNING sets a
+  new key (all zeros and timestamp 0: off), refused while armed.
 - **Fence.** The world's floor (:class:`Fence`, :data:`FENCE_MARGIN_M` inside its edges, up
   to the quad's 30 m ceiling) is an inclusion fence: targets and mission items outside are
   refused, and velocity towards an edge is slowed so that the vehicle stops at it.
@@ -97,10 +102,12 @@ from hal.mavlink import (
     GCS_COMPONENT_ID,
     GCS_SYSTEM_ID,
     ROVER,
+    UNSIGNED_ACCEPTED,
     LocalFrame,
     mode_name,
     mode_names,
     param_name,
+    signature_refusal,
 )
 from robots.quad import Quad
 from robots.robot import SimRobot
@@ -326,14 +333,21 @@ class MavlinkEndpoint:
     """One robot of ``sim`` as a MAVLink vehicle (see the module doc).
 
     ``url``: where it sends (``udpout:HOST:PORT``; any pymavlink connection string works).
-    ``system_id``: its MAVLink system id. Creating it opens the socket, starts its reader
-    thread and hooks the control and telemetry into ``sim.on_step``; :meth:`close` undoes
-    all of it (the robot stops)."""
+    ``system_id``: its MAVLink system id. ``signing_key``: a 32-byte MAVLink 2 signing key
+    (:func:`hal.mavlink.load_signing_key` reads one from a file): the vehicle then signs
+    what it sends and takes only messages signed with it (see the module doc). Creating
+    it opens the socket, starts its reader thread and hooks the control and telemetry into
+    ``sim.on_step``; :meth:`close` undoes all of it (the robot stops)."""
 
     def __init__(self, sim: Simulation, namespace: str, *, url: str, system_id: int = 1,
                  origin: LocalFrame = DEFAULT_ORIGIN, stream_rate_hz: float = 10.0,
                  control_rate_hz: float = 20.0, rerequest_s: float = 1.0,
-                 faults: Faults | None = None) -> None:
+                 faults: Faults | None = None, signing_key: bytes | None = None) -> None:
+        if signing_key is not None and (not isinstance(signing_key, bytes)
+                                        or len(signing_key) != 32):
+            raise ValueError(f"endpoint {namespace}: signing_key must be 32 bytes "
+                             f"(hal.mavlink.load_signing_key reads one from a file), got "
+                             f"{signing_key!r:.40}")
         self.sim = sim
         self.robot: SimRobot = sim.robot(namespace)
         self.namespace = namespace
@@ -373,9 +387,12 @@ class MavlinkEndpoint:
         self._landing = False
         self._next_beat_s = 0.0
         self._reason: str | None = None
+        self._refusals_told: set[tuple[str, Any]] = set()  # (reason, system) logged once
         self._stop = threading.Event()
         self.conn = mavutil.mavlink_connection(url, source_system=system_id,
                                                source_component=1)
+        if signing_key is not None:
+            self._sign_with(signing_key)
         self._thread = threading.Thread(target=self._read, name=f"beehave:mav-endpoint:"
                                         f"{namespace}", daemon=True)
         self._thread.start()
@@ -823,6 +840,11 @@ class MavlinkEndpoint:
                 self.faults.drop_incoming[kind] -= 1
                 self.faults.dropped[f"in:{kind}"] += 1
                 continue
+            if kind == "BAD_DATA":
+                refusal = signature_refusal(msg)
+                if refusal is not None:
+                    self._refuse_signature(refusal, msg)
+                continue
             target = getattr(msg, "target_system", 0)
             if target not in (0, self.system_id):
                 continue  # for another vehicle on the same link
@@ -835,6 +857,69 @@ class MavlinkEndpoint:
             except Exception:  # a bad message must never end the vehicle
                 self.errors += 1
                 log.exception("endpoint %s: handling %s failed", self.namespace, kind)
+
+    # ---- signing -------------------------------------------------------------------------
+
+    @property
+    def signing(self) -> bool:
+        """True while the vehicle signs what it sends and takes only signed messages."""
+        return self.conn.mav.signing.secret_key is not None
+
+    def _sign_with(self, key: bytes, initial_timestamp: int | None = None) -> None:
+        with self._send_lock:  # not while a message is being signed
+            self.conn.setup_signing(key, sign_outgoing=True,
+                                    allow_unsigned_callback=self._accept_unsigned,
+                                    initial_timestamp=initial_timestamp)
+
+    @staticmethod
+    def _accept_unsigned(mav: Any, msg_id: int) -> bool:
+        return msg_id in UNSIGNED_ACCEPTED
+
+    def _refuse_signature(self, refusal: str, msg: Any) -> None:
+        """A message that failed the signature check (pymavlink dropped it): counted, and
+        logged the first time per kind and sender and every 100th — a flood must not flood
+        the log."""
+        data = bytes(msg.data)
+        v2 = data[:1] == bytes([mavlink.PROTOCOL_MARKER_V2])
+        msg_id = (int.from_bytes(data[7:10], "little") if v2 and len(data) >= 10
+                  else data[5] if not v2 and len(data) > 5 else -1)
+        known = mavlink.mavlink_map.get(msg_id)
+        kind = known.msgname if known is not None else f"message id {msg_id}"
+        source = data[5 if v2 else 3] if len(data) > 6 else "?"
+        reason = f"{refusal} {kind}"
+        self.ignored[reason] += 1
+        count = self.ignored[reason]
+        first = (reason, source) not in self._refusals_told
+        if first and len(self._refusals_told) < 1000:  # bounded: system ids can be forged
+            self._refusals_told.add((reason, source))
+        if first or count % 100 == 0:
+            log.warning("endpoint %s: ignored %s %s from system %s (signing is on; %d so "
+                        "far)", self.namespace, "an" if refusal == "unsigned" else "a",
+                        reason, source, count)
+
+    def _on_setup_signing(self, msg: Any) -> None:
+        """SETUP_SIGNING: a new key (all zeros with timestamp 0: signing off). As
+        ArduPilot: refused while armed; on a signing link it only arrives signed with the
+        current key (anything else was dropped before it got here)."""
+        if self.armed:
+            self._ignore("SETUP_SIGNING while armed")
+            self._statustext(mavlink.MAV_SEVERITY_ERROR,
+                             "ERROR: Won't setup signing when armed")
+            return
+        key = bytes(msg.secret_key)
+        if len(key) != 32:
+            self._ignore("SETUP_SIGNING with a key that is not 32 bytes")
+            return
+        if not any(key) and msg.initial_timestamp == 0:
+            with self._send_lock:
+                self.conn.disable_signing()
+            log.warning("endpoint %s: signing turned off by system %d", self.namespace,
+                        msg.get_srcSystem())
+            return
+        self._sign_with(key, max(int(msg.initial_timestamp),
+                                 int(self.conn.mav.signing.timestamp or 0)) or None)
+        log.warning("endpoint %s: signing key set by system %d", self.namespace,
+                    msg.get_srcSystem())
 
     def _ignore(self, reason: str) -> None:
         self.ignored[reason] += 1
@@ -1524,7 +1609,8 @@ class MavlinkEndpoint:
 def open_endpoints(sim: Simulation, *, base_port: int, host: str = "127.0.0.1",
                    **options: Any) -> dict[str, MavlinkEndpoint]:
     """One endpoint per robot of ``sim``: robot i sends to ``udpout:host:base_port + i``
-    with system id i + 1 (by namespace). Close each when done."""
+    with system id i + 1 (by namespace), each with ``options`` (e.g. ``signing_key``).
+    Close each when done."""
     endpoints: dict[str, MavlinkEndpoint] = {}
     try:
         for i, namespace in enumerate(sim.robots):

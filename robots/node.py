@@ -591,22 +591,42 @@ def _parser() -> argparse.ArgumentParser:
                              "i+1 (default BASE: the world's mavlink.base_port, else 14560)")
     parser.add_argument("--mavlink-base-port", type=int, default=None, metavar="BASE",
                         help="the first robot's MAVLink port (implies --mavlink)")
+    parser.add_argument("--mavlink-key-file", default=None, metavar="FILE",
+                        help="MAVLink 2 signing: the vehicles sign what they send and take "
+                             "only messages signed with the key in FILE (a passphrase, "
+                             "hashed with SHA-256 as MAVProxy and QGroundControl do, or 64 "
+                             "hex digits); implies --mavlink (docs/mavlink.md)")
     return parser
 
 
-def _open_mavlink(args: argparse.Namespace, sim: Simulation) -> list[Any]:
+def _signing_key(args: argparse.Namespace, world: Any) -> bytes | None:
+    """The MAVLink signing key ``--mavlink-key-file`` or the world's ``mavlink.key_file``
+    names (ConfigError naming the file when it cannot be used)."""
+    options = world.mavlink
+    key_file = args.mavlink_key_file or (options.key_file if options is not None else None)
+    if key_file is None:
+        return None
+    from hal.mavlink import load_signing_key
+
+    return load_signing_key(key_file)
+
+
+def _open_mavlink(args: argparse.Namespace, sim: Simulation,
+                  signing_key: bytes | None = None) -> list[Any]:
     """The MAVLink endpoints ``--mavlink`` or the world's ``mavlink:`` asks for."""
     options = sim.world.mavlink
-    if not (args.mavlink or args.mavlink_base_port is not None or options is not None):
+    if not (args.mavlink or args.mavlink_base_port is not None or options is not None
+            or signing_key is not None):
         return []
     from robots.mavlink_endpoint import open_endpoints
 
     base = args.mavlink_base_port or (options.base_port if options is not None else 14560)
     host = options.host if options is not None else "127.0.0.1"
-    endpoints = open_endpoints(sim, base_port=base, host=host)
+    endpoints = open_endpoints(sim, base_port=base, host=host, signing_key=signing_key)
+    signed = ", signed (MAVLink 2 signing)" if signing_key is not None else ""
     for endpoint in endpoints.values():
         print(f"beehave sim: {endpoint.namespace} is MAVLink {endpoint.kind} system "
-              f"{endpoint.system_id} at {endpoint.url} (connect with "
+              f"{endpoint.system_id} at {endpoint.url}{signed} (connect with "
               f"udp:{endpoint.url.split(':', 1)[1]})", flush=True)
     return list(endpoints.values())
 
@@ -661,6 +681,7 @@ def sim_main(argv: list[str]) -> int:
         loaded = load_world(world)
         if args.robots is not None:
             loaded = loaded.with_robots(args.robots)
+        signing_key = _signing_key(args, loaded)
         sim = Simulation(loaded, real_time_factor=None if args.fast else args.real_time_factor)
     except BeehaveError as exc:
         print(f"beehave sim: {exc}", file=sys.stderr)
@@ -687,7 +708,7 @@ def sim_main(argv: list[str]) -> int:
         ros = RosContext()
         node = SimNode(sim, ros, lockstep=args.lockstep, factory=factory,
                        clock_rate_hz=args.clock_rate_hz)
-        endpoints = _open_mavlink(args, sim)
+        endpoints = _open_mavlink(args, sim, signing_key)
         ros.start()
         sim.start()
         speed = "as fast as possible" if args.fast else f"{args.real_time_factor:g}x real time"

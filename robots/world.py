@@ -288,6 +288,9 @@ class MavlinkOptions(_Model):
 
     base_port: int = Field(14560, ge=1024, le=65000)
     host: str = "127.0.0.1"
+    key_file: str | None = None
+    """MAVLink 2 signing: every vehicle signs with, and requires, the key in this file (a
+    passphrase or 64 hex digits; a relative path is taken from the current directory)."""
 
 
 class World(_Model):

@@ -19,7 +19,7 @@ from beehave.agents import Agent
 from beehave.agents.fleet import FLEET_QOS, FLEET_TOPIC, Fleet
 from beehave.errors import ConfigError, ProtocolFailed
 from beehave.ros.context import RosContext
-from beehave.testing import WALL_TIMEOUT_S
+from beehave.testing import WALL_TIMEOUT_S, wait_until
 from behaviours.droid import FollowLeader, RoverDroid, check_mission
 from hal.mavlink import close_all_links
 from robots.mavlink_endpoint import DEFAULT_ORIGIN, MavlinkEndpoint
@@ -47,11 +47,9 @@ def started_vehicle(world: dict[str, Any], namespace: str,
     return sim, f"udp:127.0.0.1:{port}", endpoint
 
 
-def wait_until(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.02)
+def wait_for(predicate: Callable[[], bool], what: str) -> None:
+    """A positive wait, bounded by WALL_TIMEOUT_S only (a safety net, not a timing)."""
+    assert wait_until(predicate), f"timed out waiting for {what}"
 
 
 @pytest.fixture
@@ -69,8 +67,8 @@ def test_peers_see_each_others_state_with_its_age_and_it_goes_stale(ros: RosCont
         fb = Fleet(b, rate_hz=20.0, stale_after_s=0.5)
         fb.update(mode="HOLD")
         try:
-            wait_until(lambda: fb.get("fleet_a") is not None and fa.get("fleet_b") is not None,
-                       5.0, "both states")
+            wait_for(lambda: fb.get("fleet_a") is not None and fa.get("fleet_b") is not None,
+                     "both states")
             seen = fb.get("fleet_a")
             assert seen is not None and seen.state == {"battery_pct": 80.0}
             assert not seen.stale and seen.age_s < 0.5
@@ -80,12 +78,28 @@ def test_peers_see_each_others_state_with_its_age_and_it_goes_stale(ros: RosCont
             raw = b.node.create_publisher(String, FLEET_TOPIC, FLEET_QOS)
             raw.publish(String(data="not json"))
             raw.publish(String(data=json.dumps({"schema": "other/9", "agent": "x"})))
-            wait_until(lambda: sum(fa.rejected.values()) >= 2, 3.0, "rejections")
+            wait_for(lambda: sum(fa.rejected.values()) >= 2, "rejections")
             fa.close()
-            wait_until(lambda: fb.get("fleet_a").stale, 3.0, "the closed peer going stale")  # type: ignore[union-attr]
+            wait_for(lambda: fb.get("fleet_a").stale, "the closed peer going stale")  # type: ignore[union-attr]
         finally:
             fa.close()
             fb.close()
+
+
+def test_a_state_stamped_on_sim_time_ages_in_sim_time() -> None:
+    """On sim time (a simulation faster or slower than real time) a peer's age is the
+    difference of the two sim times; a state on the other kind of clock ages from its
+    receipt."""
+    from beehave.agents.fleet import PeerState
+
+    sim_now = [12.5]
+    long_ago = time.monotonic() - 30.0  # received 30 s of wall time ago
+    peer = PeerState("lead", {}, 12.0, long_ago, 1, 1.0, sim_now=lambda: sim_now[0])
+    assert peer.age_s == pytest.approx(0.5) and not peer.stale
+    sim_now[0] = 13.5
+    assert peer.stale
+    other = PeerState("lead", {}, 1e9, time.monotonic(), 1, 1.0, comparable=False)
+    assert other.age_s < 1.0  # a sim stamp is no Unix time: aged from receipt
 
 
 def test_self_fleet_names_the_fix_when_no_fleet_is_attached(
@@ -196,9 +210,8 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
             hl.register("follow", Follow, leader="lead", distance_m=2.0, safety_m=1.0,
                         alt_m=2.0, connection=f"udp:127.0.0.1:{port}")
             hl.switch("follow")
-            wait_until(lambda: bool(Follow.actions) and flyer.position().z_m > 1.8  # type: ignore[attr-defined]
-                       and abs(gaps[-1] - 2.0) < 0.4, 20.0,
-                       "the follower to take off and close in")
+            wait_for(lambda: bool(Follow.actions) and flyer.position().z_m > 1.8  # type: ignore[attr-defined]
+                     and abs(gaps[-1] - 2.0) < 0.4, "the follower to take off and close in")
             driver.start()
             time.sleep(4.0)  # following a leader at 0.4 m/s: catching up
             start = len(gaps)
@@ -215,15 +228,15 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
             time.sleep(0.5)
             f = flyer.pose()
             fake.append((f.x_m + 0.6, f.y_m))
-            wait_until(lambda: action.holding is not None and "safety" in action.holding,
-                       3.0, "the follower to stop below the safety distance")
+            wait_for(lambda: action.holding is not None and "safety" in action.holding,
+                     "the follower to stop below the safety distance")
             there = _held_still(flyer)
             assert math.hypot(there.x_m - f.x_m, there.y_m - f.y_m) < 0.5
             fake.clear()
             # The leader's state stops: the follower holds where it is.
             leader_fleet.close()
-            wait_until(lambda: action.holding is not None and "stale" in action.holding,
-                       3.0, "the follower to notice")
+            wait_for(lambda: action.holding is not None and "stale" in action.holding,
+                     "the follower to notice")
             _held_still(flyer)
             assert action.status is Status.RUNNING
             hl.switch("idle")
@@ -233,6 +246,35 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
         stop_driving.set()
         close_all_links()
         quad.close()
+        sim.close()
+
+
+def test_a_follower_gives_up_after_give_up_s_without_its_leaders_state(
+        ros: RosContext) -> None:
+    from beehave.errors import NoReply
+
+    world = {"name": "alone", "floor": {"size_m": [6, 4]},
+             "robots": [{"namespace": "rover", "kind": "kobuki", "start": {"x_m": 2, "y_m": 2}}]}
+    sim, url, rover = started_vehicle(world, "rover")
+    Follow.actions = []
+    try:
+        with Agent("forsaken", ros=ros, probe_s=PROBE_S) as me, \
+                HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
+            fleet = Fleet(me)
+            fleet.attach(hl)
+            hl.register("follow", Follow, leader="nobody", give_up_s=0.5, connection=url)
+            hl.switch("follow")
+            wait_for(lambda: bool(Follow.actions), "the follow action")
+            action = Follow.actions[0]
+            assert action.wait(WALL_TIMEOUT_S)
+            assert action.status is Status.FAILED
+            assert isinstance(action.error, NoReply) and "'nobody'" in str(action.error)
+            assert action.holding is not None and "no state" in action.holding
+            fleet.close()
+        wait_for(lambda: rover.mode == "HOLD", "the safe state (HOLD) after GUIDED")
+    finally:
+        close_all_links()
+        rover.close()
         sim.close()
 
 
@@ -281,19 +323,61 @@ def test_a_blocked_rover_without_any_helper_reports_failure_and_goes_home(
                 "the gap stayed in")),
     ("handover", ("handed its remaining mission over", "reached every remaining waypoint",
                   "the rover is home")),
+    ("droid", ("handed its remaining mission over", "reached every remaining waypoint",
+               "the rover is home", "never came closer than", "the gap stayed in")),
 ])
-def test_the_scenario_between_vehicle_processes_over_dds(
+def test_the_scenario_between_vehicle_processes_over_dds_runs_fast_on_sim_time(
         scenario: str, expected: tuple[str, ...]) -> None:
-    """``beehave fleet --scenario follow|handover`` (``python -m behaviours.demos.droid``):
-    every robot in its own process, MAVLink to the simulation, DDS between the agents;
-    checks in the physics. (``droid``, both at once, runs the same code paths.)"""
+    """``beehave fleet --scenario follow|handover|droid --fast``: every robot in its own
+    process on the simulation's time, MAVLink to the simulation, DDS between the agents;
+    the physics as fast as the robots keep up (the follower's control loop holds it in
+    lockstep), checked in the physics with the same checks as at real time."""
     from behaviours.demos.droid import run
 
-    checks, measured = run(scenario=scenario, timeout_s=80.0)
+    checks, measured = run(scenario=scenario, fast=True, timeout_s=WALL_TIMEOUT_S,
+                           start_timeout_s=WALL_TIMEOUT_S)
     for part in expected:  # each scenario checks what it promises
         assert any(part in c.name for c in checks), ([c.name for c in checks], part)
     failed = [f"{c.name}: {c.measured}" for c in checks if not c.passed]
     assert not failed, (failed, measured)
+    assert measured["fast"]
+
+
+@pytest.mark.parametrize("scenario", ["follow", "handover", "droid"])
+def test_beehave_fleet_takes_fast_for_the_mavlink_scenarios(
+        scenario: str, tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """README: ``beehave fleet … [--fast]`` -- for the MAVLink scenarios too."""
+    import behaviours.demos.droid as droid
+    from beehave.cli import main
+
+    seen: list[list[str]] = []
+    monkeypatch.setattr(droid, "main", lambda argv: seen.append(argv) or 0)
+    assert main(["fleet", "--scenario", scenario, "--fast", "--out", str(tmp_path)]) == 0
+    assert seen == [["--scenario", scenario, "--picture", str(tmp_path / f"{scenario}.png"),
+                     "--fast"]]
+
+
+def test_a_gap_check_shows_the_digits_that_make_it_fail() -> None:
+    """A minimum of 1.7996 m fails the band [1.8, 2.5]; printed with two decimals it read
+    "1.80", as if it passed."""
+    from behaviours.demos.droid import SAMPLE_HZ, _gap_checks
+
+    gaps = [(i / SAMPLE_HZ, g) for i, g in enumerate([2.0, 2.1, 1.7996, 2.19, 2.0])]
+    checks, min_gap = _gap_checks(gaps, start_s=0.0, band_end_s=math.inf,
+                                  safety_end_s=math.inf, distance_m=2.0, safety_m=1.0,
+                                  who="the copter")
+    safety, band = checks
+    assert safety.passed and min_gap == 1.7996
+    assert not band.passed
+    assert band.measured.startswith("1.7996–2.19 m"), band.measured
+    inside = [(i / SAMPLE_HZ, g) for i, g in enumerate([2.0, 1.8, 2.5, 2.004])]
+    checks, _ = _gap_checks(inside, start_s=0.0, band_end_s=math.inf, safety_end_s=math.inf,
+                            distance_m=2.0, safety_m=1.0, who="the copter")
+    assert checks[1].passed and checks[1].measured.startswith("1.80–2.50 m"), checks[1]
+    high = [(i / SAMPLE_HZ, g) for i, g in enumerate([2.0, 2.5001])]
+    checks, _ = _gap_checks(high, start_s=0.0, band_end_s=math.inf, safety_end_s=math.inf,
+                            distance_m=2.0, safety_m=1.0, who="the copter")
+    assert not checks[1].passed and "–2.5001 m" in checks[1].measured, checks[1]
 
 
 def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosContext) -> None:
@@ -316,8 +400,8 @@ def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosConte
         link.set_mode("GUIDED")
         link.arm(True)
         link.takeoff(2.0)
-        wait_until(lambda: sim.robot("quad").position().z_m > 1.8, 10.0,  # type: ignore[attr-defined]
-                   "the take-off")
+        wait_for(lambda: sim.robot("quad").position().z_m > 1.8,  # type: ignore[attr-defined]
+                 "the take-off")
         ll = LowLevelBehaviorManager(default="telemetry")
         for cls in (MavlinkHeartbeatHAL, MavlinkPositionHAL, MavlinkBatteryHAL):
             ll.hals.register(cls, connection=url)
@@ -327,7 +411,7 @@ def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosConte
                 Agent("copter_peer", ros=ros, probe_s=PROBE_S) as peer, \
                 HighLevelBehaviorManager(blackboard=ll.blackboard, stop_timeout_s=1.0) as hl:
             me.attach(hl)
-            wait_until(lambda: me.directory.get("copter_peer") is not None, 5.0, "the peer")
+            wait_for(lambda: me.directory.get("copter_peer") is not None, "the peer")
             hl.register("droid", CopterDroid, connection=url, battery_low_pct=31.0)
             droid = hl.switch("droid")
             assert droid.wait(WALL_TIMEOUT_S), hl.snapshot()
@@ -359,9 +443,8 @@ def test_a_malformed_mission_request_is_refused_with_its_reason(ros: RosContext)
         responder = hl.switch("take")
         # Until its mailbox is open, nothing here serves the protocol: a request then gets
         # not-understood (by design), which a loaded machine makes likely.
-        deadline = time.monotonic() + 10.0
-        while getattr(responder, "_box", None) is None and time.monotonic() < deadline:
-            time.sleep(0.01)
+        wait_for(lambda: getattr(responder, "_box", None) is not None,
+                 "the responder's mailbox")
         for content, reason in (({"waypoints": []}, "the mission has no waypoints"),
                                 ({"go": "north"}, "content must be {\"waypoints\""),
                                 ({"waypoints": [{"lat_deg": 95, "lon_deg": 0, "alt_m": 3}]},
@@ -388,8 +471,8 @@ def test_a_mission_sent_to_another_agent_is_run_by_its_vehicle(ros: RosContext) 
             giver.attach(hl_giver)
             hl_taker.register("take", MissionRequestResponder, connection=url)
             responder = hl_taker.switch("take")
-            wait_until(lambda: getattr(responder, "_box", None) is not None, 10.0,
-                       "the responder's mailbox")
+            wait_for(lambda: getattr(responder, "_box", None) is not None,
+                     "the responder's mailbox")
             # The sender's frame is the same vehicle's here: [north, east] in metres.
             hl_giver.register("send", SendMission, receiver="mission_runner",
                               waypoints=[[2.0, 2.5]], connection=url, timeout_s=30.0)

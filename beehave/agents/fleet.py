@@ -24,6 +24,13 @@ travelled (its sender's timestamp against this host's clock, at least 0: hosts n
 synchronised clocks for that part, as for agent messages). It is stale past
 ``stale_after_s`` (default 1 s, ten periods at 10 Hz). Messages that fail the schema are
 counted in :attr:`Fleet.rejected` and logged, never raised.
+
+Sim time. An agent whose node follows ``/clock`` (``use_sim_time``) publishes at
+``rate_hz`` of simulated time and stamps its states with the simulation's time
+(``"clock": "sim"``); for a peer that does the same, ``age_s`` is the difference of the
+two sim times — what the state's age means to a controller of a simulation that may run
+faster or slower than real time. A state stamped on the other kind of clock is aged from
+its receipt only.
 """
 
 from __future__ import annotations
@@ -69,21 +76,36 @@ class PeerState:
     name: str
     state: dict[str, Any]
     sent_at: float
-    """The sender's wall time (Unix seconds) when it published."""
+    """The sender's wall time (Unix seconds) when it published; its sim time (s) when it
+    stamps on sim time (``"clock": "sim"``)."""
     received: float
     """This host's monotonic time when it arrived."""
     seq: int
     stale_after_s: float
+    sim_now: Callable[[], float] | None = None
+    """This agent's sim time, when both it and the peer stamp on sim time."""
+    comparable: bool = True
+    """False when the peer stamps on the other kind of clock: aged from receipt only."""
 
     @property
     def age_s(self) -> float:
         """Seconds since the state was true at its sender (see the module doc)."""
-        transit = max(0.0, (time.time() - self.sent_at) - (time.monotonic() - self.received))
-        return time.monotonic() - self.received + transit
+        if self.sim_now is not None:
+            return max(0.0, self.sim_now() - self.sent_at)
+        since = time.monotonic() - self.received
+        if not self.comparable:
+            return since
+        transit = max(0.0, (time.time() - self.sent_at) - since)
+        return since + transit
 
     @property
     def stale(self) -> bool:
         return self.age_s > self.stale_after_s
+
+
+def _uses_sim_time(node: Any) -> bool:
+    return bool(node.has_parameter("use_sim_time")
+                and node.get_parameter("use_sim_time").value)
 
 
 class Fleet:
@@ -114,6 +136,7 @@ class Fleet:
         self._seq = 0
         self._closed = False
         node = agent.node
+        self._sim_clock = node.get_clock() if _uses_sim_time(node) else None
         self._pub = node.create_publisher(String, FLEET_TOPIC, FLEET_QOS)
         self._sub = node.create_subscription(String, FLEET_TOPIC, self._on_state, FLEET_QOS)
         self._timer = node.create_timer(1.0 / self.rate_hz, self._publish)
@@ -144,7 +167,10 @@ class Fleet:
                 self._own.update(state)
             self._seq += 1
             payload = {"schema": SCHEMA, "agent": self.name, "seq": self._seq,
-                       "sent_at": time.time(), "state": self._own}
+                       "sent_at": time.time() if self._sim_clock is None else self._sim_s(),
+                       "state": self._own}
+            if self._sim_clock is not None:
+                payload["clock"] = "sim"
             try:
                 text = json.dumps(payload, allow_nan=False)
             except (TypeError, ValueError) as exc:
@@ -168,6 +194,7 @@ class Fleet:
             sent_at, seq = float(data["sent_at"]), int(data["seq"])
             if not isinstance(name, str) or not isinstance(state, dict):
                 raise ValueError("agent must be a string and state an object")
+            on_sim = data.get("clock") == "sim"
         except (ValueError, KeyError, TypeError) as exc:
             self.rejected[str(exc)[:80]] += 1
             log.debug("fleet of agent %r: rejected a state: %s", self.name, exc)
@@ -178,8 +205,14 @@ class Fleet:
             old = self._peers.get(name)
             if old is not None and seq <= old.seq and old.sent_at >= sent_at:
                 return  # reordered: an older state of a process we hear already
-            self._peers[name] = PeerState(name, state, sent_at, time.monotonic(), seq,
-                                          self.stale_after_s)
+            self._peers[name] = PeerState(
+                name, state, sent_at, time.monotonic(), seq, self.stale_after_s,
+                sim_now=self._sim_s if on_sim and self._sim_clock is not None else None,
+                comparable=on_sim == (self._sim_clock is not None))
+
+    def _sim_s(self) -> float:
+        assert self._sim_clock is not None
+        return float(self._sim_clock.now().nanoseconds) / 1e9
 
     def get(self, name: str) -> PeerState | None:
         """The latest state of peer ``name`` (check ``.stale``), None if never heard."""

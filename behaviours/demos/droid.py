@@ -3,16 +3,19 @@ meets a wall it cannot pass and the quadrotor finishes its mission over the wall
 rover returns home (``handover``); or both at once, the copter following the rover before
 it takes the mission over (``droid``).
 
-``python -m behaviours.demos.droid [--scenario follow|handover|droid]
+``python -m behaviours.demos.droid [--scenario follow|handover|droid] [--fast]
 [--picture docs/img/follow.png] [--timeout-s 150]`` (``beehave fleet --scenario …`` runs
 the same).
 
 What runs, each in its own process, as on a real fleet:
 
-1. this process: the physics (pybullet, real time) with ``robots/worlds/follow.yaml`` or
-   ``robots/worlds/droid.yaml``, each robot exposed as an ArduPilot-style MAVLink vehicle
-   (:mod:`robots.mavlink_endpoint`) on a free UDP port — a Kobuki as a Rover, the
-   ``quad`` as a Copter;
+1. this process: the physics (pybullet, real time; ``--fast``: as fast as the robots
+   keep up) with ``robots/worlds/follow.yaml`` or ``robots/worlds/droid.yaml``, each robot
+   exposed as an ArduPilot-style MAVLink vehicle (:mod:`robots.mavlink_endpoint`) on a
+   free UDP port — a Kobuki as a Rover, the ``quad`` as a Copter — and its time on
+   ``/clock``. The robots run on that sim time (``use_sim_time``): a follower's control
+   loop holds the simulation where each period ends until it has answered (lockstep), so
+   neither ``--fast`` nor a loaded host lets the physics outrun it;
 2. the other vehicle's robot (``python -m behaviours.droid CONFIG.yaml``): its MAVLink
    HALs, its agent and fleet state. ``follow``: ``robots/config/follower.yaml`` (rover2
    keeps 2 m from rover1's shared state); ``handover``: ``robots/config/copter.yaml``
@@ -53,9 +56,11 @@ from typing import IO, Any
 import yaml
 
 from beehave.procs import dies_with_parent
+from beehave.ros.context import RosContext
 from robots.mavlink_endpoint import MavlinkEndpoint
+from robots.node import SimNode
 from robots.quad import Quad
-from robots.sim import Simulation
+from robots.sim import SimState, Simulation
 from robots.world import load_world
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -68,6 +73,9 @@ FOLLOWER_CONFIG = ROOT / "robots" / "config" / "follower.yaml"
 
 #: How often the physics samples the gaps and paths the checks measure.
 SAMPLE_HZ = 20.0
+
+#: How long (sim time) a follower gets to close up behind a leader that stopped.
+SETTLE_S = 3.0
 
 SCENARIOS = ("follow", "handover", "droid")
 """``follow``: rover1 leads a tour, rover2 follows it at 2 m; ``handover``: rover1 meets
@@ -131,8 +139,10 @@ class _Process:
                 self.result = json.loads(line[len("RESULT "):])
             self.lines.put(line)
 
-    def wait_line(self, prefix: str, timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
+    def wait_line(self, prefix: str, timeout_s: float | None) -> bool:
+        """Wait for a line starting with ``prefix``; False when the process ended first
+        or ``timeout_s`` (None: no bound) passed."""
+        deadline = math.inf if timeout_s is None else time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             try:
                 line = self.lines.get(timeout=0.1)
@@ -157,12 +167,27 @@ class _Process:
 
 
 def _variant(config: Path, folder: Path, **params: Any) -> Path:
-    """A copy of a robot configuration with other ``droid`` behaviour parameters."""
+    """A copy of a robot configuration on the simulation's time, with other ``droid``
+    behaviour parameters."""
     data = yaml.safe_load(config.read_text(encoding="utf-8"))
+    data["use_sim_time"] = True
     data["behaviors"]["droid"]["params"].update(params)
     path = folder / config.name
     path.write_text(yaml.safe_dump(data), encoding="utf-8")
     return path
+
+
+def shown(value_m: float, *bounds_m: float) -> str:
+    """``value_m`` with two decimals, or as many more (up to six) as it takes for the
+    printed number to stand on the same side of every bound as the value itself: a minimum
+    of 1.7996 m against a band from 1.8 m reads "1.7996", not "1.80" beside a FAIL."""
+    for digits in range(2, 7):
+        text = f"{value_m:.{digits}f}"
+        printed = float(text)
+        if all((printed < b) == (value_m < b) and (printed > b) == (value_m > b)
+               for b in bounds_m):
+            return text
+    return repr(value_m)
 
 
 def _gap_checks(gaps: list[tuple[float, float]], *, start_s: float, band_end_s: float,
@@ -180,18 +205,22 @@ def _gap_checks(gaps: list[tuple[float, float]], *, start_s: float, band_end_s: 
     return [
         Check(f"following, {who} never came closer than {safety_m} m (safety)",
               bool(following) and min_gap >= safety_m,
-              f"closest {min_gap:.2f} m over {len(following) / SAMPLE_HZ:.1f} s"),
+              f"closest {shown(min_gap, safety_m)} m over {len(following) / SAMPLE_HZ:.1f} s"),
         Check(f"while following, the gap stayed in [{low:.1f}, {high:.1f}] m after settling",
               bool(after) and min(after) >= low and max(after) <= high,
-              f"{min(after):.2f}–{max(after):.2f} m over {len(after) / SAMPLE_HZ:.1f} s"
-              if after else "never settled"),
+              f"{shown(min(after), low, high)}–{shown(max(after), low, high)} m over "
+              f"{len(after) / SAMPLE_HZ:.1f} s" if after else "never settled"),
     ], min_gap
 
 
 def run(*, scenario: str = "droid", timeout_s: float = 150.0, picture: Path | None = None,
-        verbose: bool = False) -> tuple[list[Check], dict[str, Any]]:
+        verbose: bool = False, fast: bool = False, start_timeout_s: float = 60.0,
+        ) -> tuple[list[Check], dict[str, Any]]:
     """Run ``scenario`` (one of :data:`SCENARIOS`); returns the checks and what was
-    measured."""
+    measured. ``fast``: the physics as fast as the robots keep up (lockstep), not at real
+    time; the checks are the same, in sim time. ``timeout_s`` bounds (wall time) the
+    leading rover's run, ``start_timeout_s`` each robot process's start (its
+    ``running`` line; a process that ends first fails at once)."""
     if scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; there are {', '.join(SCENARIOS)}")
     tour = scenario == "follow"
@@ -204,6 +233,8 @@ def run(*, scenario: str = "droid", timeout_s: float = 150.0, picture: Path | No
     waypoints = rover_params["waypoints"]
     follow = other_cfg["behaviors"]["droid"]["params"]
     distance_m, safety_m = float(follow["distance_m"]), float(follow["safety_m"])
+    # Real time while the robots' processes start (nothing to simulate yet; with --fast
+    # the physics would run minutes ahead and take the CPU they start on), then --fast.
     sim = Simulation(world, real_time_factor=1.0)
     ports = {"rover1": free_udp_port(), other: free_udp_port()}
     endpoints = {name: MavlinkEndpoint(sim, name, url=f"udpout:127.0.0.1:{port}",
@@ -228,19 +259,31 @@ def run(*, scenario: str = "droid", timeout_s: float = 150.0, picture: Path | No
             trace.tour_at_s = time_s
 
     sim.on_step(sample, rate_hz=SAMPLE_HZ)
+    # /clock for the robots (they run on sim time) and the lockstep gate their control
+    # loops hold the physics with.
+    ros = RosContext()
+    try:
+        node = SimNode(sim, ros)
+    except BaseException:
+        ros.shutdown()
+        raise
+    ros.start()
     sim.start()
     procs: list[_Process] = []
-    measured: dict[str, Any] = {"scenario": scenario}
+    measured: dict[str, Any] = {"scenario": scenario, "fast": fast}
+    wall_start = time.monotonic()
     try:
         with tempfile.TemporaryDirectory(prefix="beehave-droid-") as folder:
-            if scenario == "handover":  # the copter waits on its pad: no following
-                other_config = _variant(other_config, Path(folder), follow=None)
+            rover_config = _variant(rover_config, Path(folder))
+            # handover: the copter waits on its pad, no following.
+            other_config = _variant(other_config, Path(folder),
+                                    **({"follow": None} if scenario == "handover" else {}))
 
             def launch(name: str, config: Path) -> _Process:
                 proc = _Process(name, [str(config), "--connection",
                                        f"udp:127.0.0.1:{ports[name]}"])
                 procs.append(proc)
-                if not proc.wait_line(f"droid {name}: running", 40.0):
+                if not proc.wait_line(f"droid {name}: running", start_timeout_s):
                     raise RuntimeError(f"the robot of {name} did not start:\n"
                                        + "\n".join(proc.log[-30:]))
                 return proc
@@ -248,19 +291,27 @@ def run(*, scenario: str = "droid", timeout_s: float = 150.0, picture: Path | No
             launch(other, other_config)
             # The rover's robot starts while the other one gets ready (the copter takes off).
             rover_proc = launch("rover1", rover_config)
+            if fast:
+                sim.real_time_factor = None
             rover_proc.wait_line("RESULT ", timeout_s)
             measured["rover_result"] = rover_proc.result
             # A helper informs the rover when it is done, so the rover's RESULT comes last;
-            # a follower gets a moment to close up behind the leader that stopped.
+            # a follower gets a moment (sim time) to close up behind the leader that stopped.
             if tour:
-                time.sleep(3.0)
+                settled_s, wall_limit = sim.time_s + SETTLE_S, time.monotonic() + 60.0
+                while sim.time_s < settled_s and sim.state is SimState.RUNNING \
+                        and time.monotonic() < wall_limit:
+                    time.sleep(0.02)
             end_s = sim.time_s
     finally:
         for proc in procs:
             proc.stop()
         sim.stop()
+        node.destroy()
+        ros.shutdown()
         for endpoint in endpoints.values():
             endpoint.close()
+    measured["wall_s"] = time.monotonic() - wall_start
     if verbose:
         for proc in procs:
             lines = [line for line in proc.log if "watchdog" not in line]
@@ -331,18 +382,21 @@ def main(argv: list[str] | None = None) -> int:
                              "rover meets a wall, the quadrotor finishes its mission; "
                              "droid (default): both at once")
     parser.add_argument("--picture", type=Path, default=None)
+    parser.add_argument("--fast", action="store_true",
+                        help="the physics as fast as the robots keep up (lockstep), not at "
+                             "real time; the same checks, in sim time")
     parser.add_argument("--timeout-s", type=float, default=150.0)
     parser.add_argument("--verbose", action="store_true")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     checks, measured = run(scenario=args.scenario, timeout_s=args.timeout_s,
-                           picture=args.picture,
-                           verbose=args.verbose)
+                           picture=args.picture, verbose=args.verbose, fast=args.fast)
     width = max(len(c.name) for c in checks)
     print(f"{'check'.ljust(width)}  result  measured")
     for c in checks:
         print(f"{c.name.ljust(width)}  {'PASS' if c.passed else 'FAIL':6}  {c.measured}")
-    print(f"(sim time {measured['sim_time_s']:.1f} s)")
+    print(f"(sim time {measured['sim_time_s']:.1f} s in {measured['wall_s']:.1f} s of wall "
+          f"time{', --fast' if args.fast else ''})")
     if args.picture is not None:
         print(f"picture: {args.picture}")
     return 0 if all(c.passed for c in checks) else 1

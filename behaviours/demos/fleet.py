@@ -393,10 +393,15 @@ def main(argv: list[str] | None = None) -> int:
                                                     "(docs/mavlink.md)")
         droid.add_argument("--out", default="out", metavar="FOLDER",
                            help=f"where {known.scenario}.png goes")
-        out = Path(droid.parse_args(rest).out)
+        droid.add_argument("--fast", action="store_true",
+                           help="as fast as the machine goes (lockstep with the robots' "
+                                "control loops), not at real time; the same checks")
+        droid_args = droid.parse_args(rest)
+        out = Path(droid_args.out)
         out.mkdir(parents=True, exist_ok=True)
         return droid_main(["--scenario", known.scenario,
-                           "--picture", str(out / f"{known.scenario}.png")])
+                           "--picture", str(out / f"{known.scenario}.png"),
+                           *(["--fast"] if droid_args.fast else [])])
     parser = argparse.ArgumentParser(prog="beehave fleet", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenario", choices=SCENARIOS, default="factory",
