@@ -26,7 +26,7 @@ from typing import Any
 
 from beehave.agents import Message
 from beehave.agents.protocols import RequestResponder
-from behaviours.fleet.process import say, serve
+from behaviours.fleet.process import add_trust_options, say, serve
 from behaviours.fleet.site import site
 
 PROTOCOL = "charging"
@@ -100,13 +100,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--station", default=None,
                         help="the world's charging station it runs (default: NAME)")
     parser.add_argument("--lease-s", type=float, default=2.0, help="its directory lease")
+    add_trust_options(parser)
     args = parser.parse_args(argv)
     station = args.station or args.name
     stations = site(args.world).stations
     if station not in stations:
         parser.error(f"no charging station {station!r} in world {args.world!r}; "
                      f"it has {sorted(stations)}")
-    return serve(args.name, Reservations, {"station": station}, lease_s=args.lease_s)
+    return serve(args.name, Reservations, {"station": station}, lease_s=args.lease_s, args=args)
 
 
 if __name__ == "__main__":
