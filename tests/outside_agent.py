@@ -88,6 +88,7 @@ class Outsider:
         self.started_at = time.time()
         self.inbox: list[dict[str, Any]] = []
         self.copies: list[dict[str, Any]] = []
+        self.entries: list[dict[str, Any]] = []  # directory entries heard
         self.cond = threading.Condition()
         self.context = Context()
         rclpy.init(context=self.context)
@@ -97,6 +98,9 @@ class Outsider:
         self.directory = self.node.create_publisher(String, DIRECTORY, DIRECTORY_QOS)
         self.node.create_subscription(String, INBOX + name, self._on_inbox, INBOX_QOS)
         self.node.create_subscription(String, MESSAGES, self._on_copy, MESSAGES_QOS)
+        self.node.create_subscription(String, DIRECTORY, self._on_entry, QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.publishers: dict[str, Any] = {}
         self.node.create_timer(lease_s / 4, self.announce)
         self.thread = threading.Thread(target=self._spin, daemon=True)
@@ -165,6 +169,11 @@ class Outsider:
     def _on_copy(self, msg: String) -> None:
         with self.cond:
             self.copies.append(json.loads(msg.data))
+            self.cond.notify_all()
+
+    def _on_entry(self, msg: String) -> None:
+        with self.cond:
+            self.entries.append(json.loads(msg.data))
             self.cond.notify_all()
 
     def wait(self, where: str, timeout_s: float, **match: Any) -> dict[str, Any]:

@@ -125,7 +125,9 @@ class Message(BaseModel):
         return value
 
     def to_json(self) -> str:
-        return self.model_dump_json(by_alias=True)
+        """The wire form (``auth`` only when there is one: the schema has no null for it)."""
+        return self.model_dump_json(by_alias=True,
+                                    exclude={"auth"} if self.auth is None else None)
 
     @classmethod
     def from_json(cls, text: str) -> Message:
