@@ -6,8 +6,9 @@ It registers ``charging`` with ``{"station": <the world's station>, "holder": <r
 null>}`` and answers FIPA requests of protocol ``charging`` whose content is
 ``{"op": "reserve" | "renew" | "release", "lease_s": L}``:
 
-- ``reserve``: granted (inform ``{"station", "lease_s"}``) when the place is free, when the
-  holder's lease ran out, when the holder left the directory, or to the holder itself;
+- ``reserve``: granted (inform ``{"result": {"station", "holder", "lease_s"}}``) when the
+  place is free, when the holder's lease ran out, when the holder left the directory, or
+  to the holder itself;
   otherwise refused naming the holder.
 - ``renew``: the holder extends its lease by ``lease_s``; anyone else is refused.
 - ``release``: the holder frees the place.
