@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import json
 import logging
+import os
 import subprocess
 import sys
 import threading
@@ -308,3 +309,35 @@ def test_a_robot_yaml_names_its_keys_and_runs_a_signed_agent(keys: Path,
                                           r".*tr_robot.key"):
         with Robot(config):
             pass
+
+
+# ---------------------------------------------------------------------- modes
+def test_open_mode_says_so_once_per_process_and_a_bad_mode_is_named(
+        monkeypatch: pytest.MonkeyPatch, keys: Path) -> None:
+    script = ("import logging\n"
+              "logging.basicConfig(format='%(levelname)s %(name)s %(message)s')\n"
+              "from beehave.agents import Agent\n"
+              "with Agent('tr_open_a', probe_s=0.2), Agent('tr_open_b', probe_s=0.2):\n"
+              "    pass\n")
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("BEEHAVE_AGENT_MODE", "BEEHAVE_AGENT_KEYS")}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          cwd=ROOT, env=env, timeout=WAIT_S)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.count("agents run in OPEN mode") == 1, done.stderr
+    assert "WARNING beehave.agents.agent agents run in OPEN mode" in done.stderr
+    from beehave.agents.trust import Trust
+    from beehave.errors import ConfigError
+
+    monkeypatch.setenv("BEEHAVE_AGENT_MODE", "paranoid")
+    with pytest.raises(ConfigError, match=r"BEEHAVE_AGENT_MODE='paranoid' is not one of "
+                                          r"\['open', 'signed'\]"):
+        Trust.from_env("tr_x")
+    monkeypatch.setenv("BEEHAVE_AGENT_MODE", "signed")
+    with pytest.raises(ConfigError, match="signed mode needs the fleet's public key"):
+        Trust.from_env("tr_x")
+    # A key that is not the certificate's is refused at start, naming the problem.
+    with pytest.raises(ConfigError, match="the key does not belong to the certificate"):
+        Trust.load("tr_boss", keys_dir=keys, key=keys / "tr_worker.key")
+    with pytest.raises(ConfigError, match="the certificate is for 'tr_worker'"):
+        Trust.load("tr_boss", keys_dir=keys, certificate=keys / "tr_worker.cert")
