@@ -62,7 +62,8 @@ def _cli(*args: str, code: int = 0) -> subprocess.CompletedProcess[str]:
 @pytest.fixture(scope="module")
 def keys(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _keys(tmp_path_factory.mktemp("keys"), "tr_boss", "tr_worker", "ext_a", "ext_c",
-                 "tr_holder", "tr_station", "tr_seeker", "tr_robot")
+                 "tr_holder", "tr_station", "tr_seeker", "tr_robot",
+                 "tr_mboss", "tr_broker")
 
 
 @pytest.fixture(scope="module")
@@ -341,3 +342,43 @@ def test_open_mode_says_so_once_per_process_and_a_bad_mode_is_named(
         Trust.load("tr_boss", keys_dir=keys, key=keys / "tr_worker.key")
     with pytest.raises(ConfigError, match="the certificate is for 'tr_worker'"):
         Trust.load("tr_boss", keys_dir=keys, certificate=keys / "tr_worker.cert")
+
+
+def test_a_signed_market_refuses_a_spoofed_and_a_replayed_award(
+        keys: Path, outsiders: list[Outsider], procs: list[AgentProc],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from beehave.agents.market import Role, Task, TaskState, auction
+
+    monkeypatch.setenv("BEEHAVE_AGENT_MODE", "signed")
+    monkeypatch.setenv("BEEHAVE_AGENT_KEYS", str(keys))
+    broker = AgentProc("tr_broker", [sys.executable, str(ROOT / "tests" / "market_node.py"),
+                                     "tr_broker", "--caps", "carry", "--cost", "1.0",
+                                     "--lease-s", "1.0"], wait_s=WAIT_S)
+    procs.append(broker)
+    broker.wait_event("ready")
+    sniffer = Outsider("ext_c", keys=keys)  # a fleet member, listening to every copy
+    outsiders.append(sniffer)
+    with _signed_agent("tr_mboss", keys) as boss:
+        assert wait_until(lambda: boss.directory.alive("tr_broker"), WAIT_S)
+        task = Task.make("deliver", id="t_signed", roles=[
+            Role("carry", "carry", params={"script": ["sleep:0.01"]})])
+        outcome = auction(boss, task, reply_by_s=WAIT_S)
+        assert outcome.state is TaskState.COMPLETED
+        assert outcome.members == {"carry": "tr_broker"}
+        award = sniffer.wait("copies", WAIT_S, performative="accept-proposal",
+                             sender="tr_mboss")
+        # Replayed as it was sent (its signature is good): refused as a replay.
+        sniffer.send_text("tr_broker", json.dumps(award))
+        replay = sniffer.wait("copies", WAIT_S, performative="not-understood",
+                              in_reply_to=award["message_id"])
+        assert "replayed" in replay["content"]["reason"]
+        # A new award forged as the auctioneer's, signed with the sniffer's own key.
+        forged = sniffer.message("accept-proposal", "tr_broker", award["content"],
+                                 protocol=award["protocol"], sender="tr_mboss")
+        sniffer.send(forged)
+        refusal = sniffer.wait("copies", WAIT_S, performative="not-understood",
+                               in_reply_to=forged["message_id"])
+        assert "signed with the key certified for 'ext_c'" in refusal["content"]["reason"]
+    with broker.cond:
+        performed = [e for e in broker.events if e["event"] == "perform"]
+    assert len(performed) == 1, broker.events

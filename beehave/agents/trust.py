@@ -222,6 +222,16 @@ def issue(keys_dir: str | Path, name: str, *, days: float = 365.0) -> tuple[Path
     return key_path, cert_path
 
 
+def signed_environment(keys_dir: str | Path, names: list[str]) -> dict[str, str]:
+    """A new fleet authority in ``keys_dir`` with a certificate for each of ``names``, and
+    the environment that puts every agent process started with it in signed mode: what
+    ``beehave fleet --signed`` does for the processes it launches."""
+    init_fleet(keys_dir, force=True)
+    for name in names:
+        issue(keys_dir, name)
+    return {MODE_ENV: Mode.SIGNED.value, KEYS_ENV: str(Path(keys_dir).resolve())}
+
+
 # ---------------------------------------------------------------------- trust
 class Refused(Exception):
     """Why a signed-mode receiver refused something (the text is the reason)."""
