@@ -63,7 +63,7 @@ def _cli(*args: str, code: int = 0) -> subprocess.CompletedProcess[str]:
 def keys(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _keys(tmp_path_factory.mktemp("keys"), "tr_boss", "tr_worker", "ext_a", "ext_c",
                  "tr_holder", "tr_station", "tr_seeker", "tr_robot",
-                 "tr_mboss", "tr_broker")
+                 "tr_mboss", "tr_broker", "keeper_shelf_aisle")
 
 
 @pytest.fixture(scope="module")
@@ -209,21 +209,31 @@ def test_an_outsider_without_the_fleets_key_is_refused_visibly(
 
 
 # ---------------------------------------------------------------------- spoofing and replay
-def test_a_signed_station_refuses_a_spoofed_release(
-        keys: Path, strangers: Path, outsiders: list[Outsider],
-        procs: list[AgentProc]) -> None:
+@pytest.mark.parametrize("place", ["station", "zone_keeper"])
+def test_a_signed_station_or_zone_keeper_refuses_a_spoofed_release(
+        place: str, keys: Path, strangers: Path, outsiders: list[Outsider],
+        procs: list[AgentProc], monkeypatch: pytest.MonkeyPatch) -> None:
+    """The factory's charging station (keys by --mode/--keys) and the serve scenario's
+    aisle keeper (keys by BEEHAVE_AGENT_MODE/KEYS): leased reservations by request."""
     from beehave.agents.protocols import request
 
-    station = AgentProc("tr_station", [
-        sys.executable, "-m", "behaviours.fleet.station", "tr_station", "--station",
-        "charger1", "--lease-s", "1.0", "--mode", "signed", "--keys", str(keys)],
-        wait_s=WAIT_S)
-    procs.append(station)
-    station.wait_event("ready")
+    if place == "station":
+        name, protocol = "tr_station", "charging"
+        args = ["-m", "behaviours.fleet.station", name, "--station", "charger1",
+                "--lease-s", "1.0", "--mode", "signed", "--keys", str(keys)]
+    else:
+        name, protocol = "keeper_shelf_aisle", "zone"
+        args = ["-m", "behaviours.market.serving", "shelf_aisle", "--world", "serve",
+                "--lease-s", "1.0"]
+        monkeypatch.setenv("BEEHAVE_AGENT_MODE", "signed")
+        monkeypatch.setenv("BEEHAVE_AGENT_KEYS", str(keys))
+    keeper = AgentProc(name, [sys.executable, *args], wait_s=WAIT_S)
+    procs.append(keeper)
+    keeper.wait_event("ready")
     with _signed_agent("tr_holder", keys) as holder:
-        assert wait_until(lambda: holder.directory.alive("tr_station"), WAIT_S)
-        granted = request(holder, "tr_station", {"op": "reserve", "lease_s": 30},
-                          protocol="charging", timeout_s=WAIT_S)
+        assert wait_until(lambda: holder.directory.alive(name), WAIT_S)
+        granted = request(holder, name, {"op": "reserve", "lease_s": 30},
+                          protocol=protocol, timeout_s=WAIT_S)
         assert granted["result"]["holder"] == "tr_holder"
         # A participant of the domain writes release as tr_holder: unsigned, and signed
         # with a key another fleet issued for that name.
@@ -231,17 +241,17 @@ def test_a_signed_station_refuses_a_spoofed_release(
             spoof = Outsider(f"ext_spoof{i}", keys=folder,
                              sign_as="tr_holder" if folder else None)
             outsiders.append(spoof)
-            forged = spoof.message("request", "tr_station", {"op": "release"},
-                                   protocol="charging", sender="tr_holder")
+            forged = spoof.message("request", name, {"op": "release"},
+                                   protocol=protocol, sender="tr_holder")
             spoof.send(forged)
             copy = spoof.wait("copies", WAIT_S, performative="not-understood",
                               in_reply_to=forged["message_id"])
             assert "refused" in copy["content"]["reason"]
             assert copy["receivers"] == ["tr_holder"]
-        assert not _saw(station, "released")
+        assert not _saw(keeper, "released")
         # The holder still holds: its renew is granted.
-        renewed = request(holder, "tr_station", {"op": "renew", "lease_s": 30},
-                          protocol="charging", timeout_s=WAIT_S)
+        renewed = request(holder, name, {"op": "renew", "lease_s": 30},
+                          protocol=protocol, timeout_s=WAIT_S)
         assert renewed["result"]["holder"] == "tr_holder"
 
 
