@@ -131,7 +131,8 @@ class Outsider:
     def message(self, performative: str, receiver: str, content: Any, *,
                 conversation_id: str | None = None, protocol: str | None = None,
                 in_reply_to: str | None = None, sender: str | None = None,
-                reply_by: float | None = None) -> dict[str, Any]:
+                reply_by: float | None = None,
+                sent_at: float | None = None) -> dict[str, Any]:
         """A message as the spec has it (signed when this outsider has keys)."""
         return self.signed({
             "schema": "beehave.acl/1", "performative": performative,
@@ -139,7 +140,7 @@ class Outsider:
             "receivers": [receiver],
             "conversation_id": conversation_id or f"{self.name}/{uuid.uuid4().hex[:12]}",
             "in_reply_to": in_reply_to, "reply_by": reply_by, "protocol": protocol,
-            "content": content, "sent_at": time.time()})
+            "content": content, "sent_at": time.time() if sent_at is None else sent_at})
 
     def send_text(self, receiver: str, text: str, timeout_s: float = 30.0) -> None:
         publisher = self.publishers.get(receiver)

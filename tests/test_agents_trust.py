@@ -18,6 +18,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -170,22 +171,28 @@ def test_a_signed_outsider_bids_in_a_signed_contract_net_and_is_awarded(
         assert result["accept"]["content"] == {"cost": 1.0, "to": "machine_3"}
 
 
-@pytest.mark.parametrize("how", ["unsigned", "stranger", "other_name", "altered"])
+@pytest.mark.parametrize("how", ["unsigned", "stranger", "other_name", "altered", "stale",
+                                 "expired"])
 def test_an_outsider_without_the_fleets_key_is_refused_visibly(
         how: str, keys: Path, strangers: Path, outsiders: list[Outsider],
         caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.WARNING, logger="beehave.agents")
-    folder = {"unsigned": None, "stranger": strangers, "other_name": keys,
-              "altered": keys}[how]
-    ext = Outsider("ext_a", keys=folder, sign_as="ext_c" if how == "other_name" else None,
-                   services={"transport": {}})
+    folder = {"unsigned": None, "stranger": strangers}.get(how, keys)
+    sign_as = {"other_name": "ext_c", "expired": "ext_old"}.get(how)
+    if how == "expired":  # a certificate that ran out a moment after it was issued
+        from beehave.agents.trust import issue
+
+        issue(keys, "ext_old", days=1e-6)
+    ext = Outsider("ext_a", keys=folder, sign_as=sign_as, services={"transport": {}})
     outsiders.append(ext)
     reasons = {"unsigned": "unsigned message", "stranger": "not by this fleet's authority",
                "other_name": "signed with the key certified for 'ext_c'",
-               "altered": "bad signature"}
+               "altered": "bad signature", "stale": "stale message from 'ext_a'",
+               "expired": "certificate of 'ext_old' expired"}
     with _signed_agent("tr_worker", keys) as worker:
         box = worker.mailbox(protocols=["fipa-request"])
-        message = ext.message("request", "tr_worker", {"do": "it"}, protocol="fipa-request")
+        message = ext.message("request", "tr_worker", {"do": "it"}, protocol="fipa-request",
+                              sent_at=time.time() - 120 if how == "stale" else None)
         if how == "altered":  # signed, then changed on the way
             message = {**message, "content": {"do": "something else"}}
         ext.send(message)
@@ -202,7 +209,7 @@ def test_an_outsider_without_the_fleets_key_is_refused_visibly(
                    r.getMessage() and reasons[how] in r.getMessage() for r in caplog.records)
         assert len(box) == 0  # nothing reached the responder side
         # Its directory entry is refused too (never found by search), with a WARNING.
-        if how != "altered":
+        if how in ("unsigned", "stranger", "other_name"):
             assert wait_until(lambda: any("refused the directory entry of 'ext_a'"
                                           in r.getMessage() for r in caplog.records), WAIT_S)
             assert not worker.directory.alive("ext_a")
