@@ -125,6 +125,11 @@ def _say_mode(trust: Trust) -> None:
         log.info("agents run in signed mode (fleet %s)", trust.fleet)
 
 
+REFUSALS_QUEUED = 100
+"""Signed mode: refusals (not-understood) waiting to be sent at most; more are not answered
+(they are still logged and reported as events)."""
+
+
 def inbox_qos(depth: int) -> QoSProfile:
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                       reliability=ReliabilityPolicy.RELIABLE,
@@ -441,9 +446,16 @@ class Agent:
         self._ros = ros
         self.node: Node = node
         self._outbox: queue.Queue[Message | None] = queue.Queue()
-        self._outbox_thread = threading.Thread(target=self._send_later,
+        self._outbox_thread = threading.Thread(target=self._send_later, args=(self._outbox,),
                                                name=f"beehave:agent-outbox:{name}", daemon=True)
         self._outbox_thread.start()
+        # Refusals of signed mode go out on their own, bounded: forged messages that claim
+        # absent senders (each waits up to 1 s for an inbox) never delay real replies.
+        self._refusal_box: queue.Queue[Message | None] = queue.Queue(maxsize=REFUSALS_QUEUED)
+        self._refusal_thread = threading.Thread(
+            target=self._send_later, args=(self._refusal_box, 1.0),
+            name=f"beehave:agent-refusals:{name}", daemon=True)
+        self._refusal_thread.start()
         self._news = threading.Event()
         self._dir_pub = node.create_publisher(String, DIRECTORY_TOPIC, DIRECTORY_QOS)
         self._copies = node.create_publisher(String, MESSAGES_TOPIC, MESSAGES_QOS)
@@ -676,14 +688,15 @@ class Agent:
             with cond:
                 cond.wait_for(interrupted, min(0.01, left))
 
-    def _send_later(self) -> None:
-        """The outbox thread: replies the executor thread must not wait for."""
+    def _send_later(self, box: queue.Queue[Message | None],
+                    timeout_s: float | None = None) -> None:
+        """An outbox thread: replies the executor thread must not wait for."""
         while True:
-            message = self._outbox.get()
+            message = box.get()
             if message is None:
                 return
             try:
-                self.send(message)
+                self.send(message, timeout_s=timeout_s)
             except AgentError as exc:
                 log.warning("agent %r: could not send %s to %s: %s", self.name,
                             message.performative.value, message.receivers, exc)
@@ -761,11 +774,19 @@ class Agent:
             # Its own conversation: a forged message must not end the conversation of the
             # agent it claims to be from (that one gets the refusal in its inbox).
             conversation_id = f"refused/{uuid.uuid4().hex[:16]}"
-        self._outbox.put(Message(
+        answer = Message(
             performative=Performative.NOT_UNDERSTOOD, sender=self.name, receivers=[sender],
             conversation_id=conversation_id, in_reply_to=in_reply_to,
             protocol=message.protocol if message is not None and not refused else None,
-            content={"reason": reason, "message": text[:500]}))
+            content={"reason": reason, "message": text[:500]})
+        if not refused:
+            self._outbox.put(answer)
+            return
+        try:
+            self._refusal_box.put_nowait(answer)
+        except queue.Full:
+            log.info("agent %r: %d refusals wait to be sent; not answering %r", self.name,
+                     REFUSALS_QUEUED, sender)
 
     # ------------------------------------------------------------------ consumers
     def conversation(self, *, protocol: str | None = None,
@@ -845,8 +866,15 @@ class Agent:
             for box in boxes:
                 box.close()
             self._outbox.put(None)
-            if self._outbox_thread is not threading.current_thread():
-                self._outbox_thread.join()
+            while True:  # the refusals thread ends with its queue, unsent ones dropped
+                try:
+                    self._refusal_box.get_nowait()
+                except queue.Empty:
+                    break
+            self._refusal_box.put(None)
+            for thread in (self._outbox_thread, self._refusal_thread):
+                if thread is not threading.current_thread():
+                    thread.join()
             for manager in managers:
                 if manager is not None and _ATTACHED.get(manager) is self:
                     del _ATTACHED[manager]
