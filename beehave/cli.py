@@ -1,5 +1,6 @@
 """The ``beehave`` command line: ``demo``, ``run``, ``broker``, ``sim``, ``graph``, ``fleet``,
-and for recordings ``replay``, ``inspect``, ``plot``.
+``keys`` (the fleet authority of signed agents), and for recordings ``replay``,
+``inspect``, ``plot``.
 
 Exit status: 0 when everything went as asked, 1 when something failed while running
 (a simulation, a robot, its shutdown), 2 for bad arguments or a bad configuration; the
@@ -161,6 +162,23 @@ def _is_config_error(exc: BaseException) -> bool:
     from beehave.errors import ConfigError, InvalidParameters, NotASubclass, UnknownNameError
 
     return isinstance(exc, ConfigError | UnknownNameError | InvalidParameters | NotASubclass)
+
+
+def _keys(args: argparse.Namespace) -> int:
+    from beehave.agents import trust
+    from beehave.errors import ConfigError
+
+    try:
+        if args.keys_command == "init":
+            paths = trust.init_fleet(args.dir, force=args.force)
+        else:
+            paths = trust.issue(args.dir, args.name, days=args.days)
+    except ConfigError as exc:
+        print(f"beehave keys: {exc}", file=sys.stderr)
+        return 2
+    for path in paths:
+        print(path)
+    return 0
 
 
 def _report(command: str, exc: BaseException, *, verbose: bool) -> None:
@@ -482,6 +500,25 @@ def _parser() -> argparse.ArgumentParser:
     broker.add_argument("--port", type=int, default=1883, metavar="N",
                         help="the port to listen on (default: 1883)")
     broker.set_defaults(func=_broker)
+    keys = sub.add_parser(
+        "keys", help="keys of signed agents: `keys init` makes the fleet authority, "
+                     "`keys issue NAME` an agent's key and certificate (docs/agents.md)",
+        description="The fleet authority of signed agents (docs/agents.md#trust-model): "
+                    "`init` writes DIR/fleet.key (keep it off the robots) and DIR/fleet.pub "
+                    "(every agent needs it); `issue NAME` writes DIR/NAME.key and "
+                    "DIR/NAME.cert, signed by DIR/fleet.key.")
+    keys_sub = keys.add_subparsers(dest="keys_command", required=True, metavar="init|issue")
+    init = keys_sub.add_parser("init", help="create the fleet authority key pair")
+    init.add_argument("--force", action="store_true",
+                      help="replace an existing fleet.key (voids every certificate it issued)")
+    issue = keys_sub.add_parser("issue", help="a key and certificate for agent NAME")
+    issue.add_argument("name", metavar="NAME", help="the agent name the certificate binds")
+    issue.add_argument("--days", type=seconds_arg, default=365.0, metavar="N",
+                       help="the certificate's validity in days (default: 365)")
+    for p in (init, issue):
+        p.add_argument("--dir", default="keys", metavar="DIR",
+                       help="the folder of the fleet's keys (default: keys)")
+    keys.set_defaults(func=_keys)
     # graph and sim parse their own arguments (see main); these entries are for -h.
     sub.add_parser("graph", add_help=False,
                    help="render a behaviour's state machine, tree or network to a picture "

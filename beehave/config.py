@@ -25,6 +25,8 @@
       name: atv_1                        # unique in the DDS domain
       services: {transport: {payload_kg: 50}}
       lease_s: 2.0
+      mode: signed                       # open (default) | signed: docs/agents.md#trust-model
+      keys: keys/                        # from `beehave keys`: fleet.pub, atv_1.key, .cert
     fusion:                              # optional: priority fusion (docs/fusion.md)
       cmd_vel:                           # the actuator; its arbiter is HAL fusion_cmd_vel
         class: "hal.drive:CmdVelArbiter"
@@ -58,7 +60,7 @@ from __future__ import annotations
 
 import importlib
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -122,6 +124,14 @@ class AgentOptions(_Strict):
     name: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
     services: dict[str, dict[str, Any]] = Field(default_factory=dict)
     lease_s: Seconds = 2.0
+    mode: Literal["open", "signed"] | None = Field(
+        None, description="open (nothing checked) or signed (docs/agents.md#trust-model); "
+                          "default: BEEHAVE_AGENT_MODE, else open")
+    keys: str | None = Field(None, description="the folder `beehave keys` wrote: fleet.pub, "
+                                                "NAME.key, NAME.cert (relative to this file)")
+    fleet_public_key: str | None = None
+    key: str | None = None
+    certificate: str | None = None
 
 
 # ---- vda5050: a VDA 5050 AGV over MQTT (beehave.interfaces.vda5050) ---------------------

@@ -13,6 +13,7 @@ import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Literal, Self
 
@@ -36,6 +37,7 @@ if TYPE_CHECKING:
     from rclpy.node import Node
 
     from beehave.agents import Agent
+    from beehave.agents.trust import Trust
     from beehave.interfaces import ControlPlane
     from beehave.interfaces.vda5050 import Vda5050Interface
     from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
@@ -194,7 +196,7 @@ class Robot:
                     from beehave.agents import Agent
 
                     self.agent = Agent(cfg.agent.name, node=node, services=cfg.agent.services,
-                                       lease_s=cfg.agent.lease_s)
+                                       lease_s=cfg.agent.lease_s, trust=_trust(cfg))
                     self.agent.attach(self.high)
                 if isinstance(self.high.clock, SimClock):
                     self._wait_for_sim_clock(self.high.clock)
@@ -339,3 +341,25 @@ def _located(where: str, *, only: tuple[type[BaseException], ...] = (BeehaveErro
         yield
     except only as exc:
         raise ConfigError(f"{where}: {exc}") from exc
+
+
+def _trust(cfg: RobotConfig) -> Trust | None:
+    """The agent's keys and mode from the YAML (paths relative to the file); None leaves
+    them to the environment (``BEEHAVE_AGENT_MODE``, ``BEEHAVE_AGENT_KEYS``)."""
+    from beehave.agents.trust import Trust
+
+    a = cfg.agent
+    assert a is not None
+    paths = {"keys_dir": a.keys, "fleet_public_key": a.fleet_public_key, "key": a.key,
+             "certificate": a.certificate}
+    if a.mode is None and not any(paths.values()):
+        return None
+    here = Path(cfg.source).parent if cfg.source != "<dict>" else Path.cwd()
+    given = {k: here / v for k, v in paths.items() if v}
+    mode = a.mode or "signed"
+    with _located(f"{cfg.source}: agent", only=(ConfigError,)):
+        if not given:
+            return Trust(mode, name=a.name)
+        return Trust.load(a.name, mode=mode, keys_dir=given.get("keys_dir"),
+                          fleet_public_key=given.get("fleet_public_key"),
+                          key=given.get("key"), certificate=given.get("certificate"))

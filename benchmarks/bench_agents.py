@@ -11,6 +11,13 @@
   responders, each in its own process (target at 5: p50 ≤ 5 ms, p99 ≤ 20 ms), also as a
   ratio to the floor. The 25 responders start in parallel (one by one, their imports and
   name probes alone would take about a minute on two cores).
+- signed mode (docs/agents.md, "Trust model") in the same run: ``agent_roundtrip_signed``
+  and ``contract_net_award_5_signed`` — every message signed with Ed25519 and checked
+  (certificate, signature, window, replay) by the receiver; keys from ``beehave keys`` in a
+  temporary folder; the children take them from ``BEEHAVE_AGENT_MODE``/``KEYS``
+  (target: signed 5-responder p99 ≤ 20 ms).
+
+``BENCH_AGENTS_RESPONDERS`` (default ``1,5,25``) picks the open contract-net sizes.
 
 Children: ``python -m benchmarks.bench_agents floor-echo | echo NAME | responder NAME COST``.
 """
@@ -21,6 +28,7 @@ import os
 import random
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from typing import Any
@@ -39,6 +47,7 @@ from benchmarks._util import median, percentile, report  # noqa: E402
 
 N_ROUNDTRIP = int(os.environ.get("BENCH_AGENTS_N", 500))
 N_ROUNDS = int(os.environ.get("BENCH_AGENTS_ROUNDS", 100))
+RESPONDERS = [int(n) for n in os.environ.get("BENCH_AGENTS_RESPONDERS", "1,5,25").split(",")]
 LEASE_S = 1.0
 
 
@@ -100,9 +109,10 @@ def _spawn_ready(*args: str) -> tuple[subprocess.Popen[str], str]:
     return proc, _await_ready(proc, args)
 
 
-def _start(*args: str) -> subprocess.Popen[str]:
+def _start(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, "-m", "benchmarks.bench_agents", *args],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, **(env or {})})
 
 
 def _await_ready(proc: subprocess.Popen[str], args: tuple[str, ...]) -> str:
@@ -158,18 +168,20 @@ def floor_roundtrip(n: int) -> list[float]:
     return samples
 
 
-def agent_roundtrip(agent: Agent, n: int) -> list[float]:
-    echo = _spawn("echo", "bench_echo")
+def agent_roundtrip(agent: Agent, n: int, *, name: str = "bench_echo",
+                    env: dict[str, str] | None = None) -> list[float]:
+    echo = _start("echo", name, env=env)
+    _await_ready(echo, ("echo", name))
     samples: list[float] = []
     try:
         with agent.conversation() as conv:
             for i in range(n + 20):
                 start = time.perf_counter()
-                conv.send(Performative.REQUEST, ["bench_echo"], i, timeout_s=10.0)
+                conv.send(Performative.REQUEST, [name], i, timeout_s=10.0)
                 conv.receive(timeout_s=5.0)
                 if i >= 20:
                     samples.append(time.perf_counter() - start)
-            conv.send(Performative.INFORM, ["bench_echo"], "stop")
+            conv.send(Performative.INFORM, [name], "stop")
     finally:
         echo.wait(10)
     return samples
@@ -203,10 +215,12 @@ def appear_disappear(agent: Agent) -> tuple[float, float]:
         proc.wait(10)
 
 
-def contract_rounds(agent: Agent, responders: int, rounds: int) -> list[float]:
-    names = [f"bench_bidder_{k}" for k in range(responders)]
+def contract_rounds(agent: Agent, responders: int, rounds: int, *,
+                    prefix: str = "bench_bidder_",
+                    env: dict[str, str] | None = None) -> list[float]:
+    names = [f"{prefix}{k}" for k in range(responders)]
     # All started at once, then awaited: the imports and name probes overlap.
-    procs = [_start("responder", name, str(1.0 + k)) for k, name in enumerate(names)]
+    procs = [_start("responder", name, str(1.0 + k), env=env) for k, name in enumerate(names)]
     try:
         for proc, name in zip(procs, names, strict=True):
             _await_ready(proc, ("responder", name))
@@ -253,7 +267,7 @@ def main() -> list[dict[str, Any]]:
             rows.append(report("agent_disappear_after_kill", disappear, "s",
                                f"<= {LEASE_S + 0.5} s (lease {LEASE_S} s + 0.5)",
                                disappear <= LEASE_S + 0.5))
-            for responders in (1, 5, 25):
+            for responders in RESPONDERS:
                 award = contract_rounds(agent, responders, N_ROUNDS)
                 p50, p99 = median(award), percentile(award, 99)
                 target = responders == 5
@@ -265,6 +279,35 @@ def main() -> list[dict[str, Any]]:
                                    "<= 20 ms" if target else None,
                                    p99 <= 0.020 if target else None,
                                    over_floor=round(p99 / floor_p50, 1)))
+        rows += _signed(ros, floor_p50, rt)
+    return rows
+
+
+def _signed(ros: RosContext, floor_p50: float, open_rt: list[float]) -> list[dict[str, Any]]:
+    """The same round trip and 5-responder contract net with every message signed and
+    checked (keys made as a user makes them, `beehave keys`)."""
+    from beehave.agents.trust import Trust, init_fleet, issue
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_keys_") as keys:
+        init_fleet(keys)
+        names = ["bench_initiator_s", "bench_echo_s", *(f"bench_sbidder_{k}" for k in range(5))]
+        for name in names:
+            issue(keys, name)
+        env = {"BEEHAVE_AGENT_MODE": "signed", "BEEHAVE_AGENT_KEYS": keys}
+        trust = Trust.load("bench_initiator_s", mode="signed", keys_dir=keys)
+        with Agent("bench_initiator_s", ros=ros, lease_s=LEASE_S, trust=trust) as agent:
+            rt = agent_roundtrip(agent, N_ROUNDTRIP, name="bench_echo_s", env=env)
+            rows.append(report("agent_roundtrip_signed_p50", median(rt) * 1e3, "ms", None,
+                               None, p99_ms=round(percentile(rt, 99) * 1e3, 3),
+                               over_open=round(median(rt) / median(open_rt), 2),
+                               over_floor=round(median(rt) / floor_p50, 2)))
+            award = contract_rounds(agent, 5, N_ROUNDS, prefix="bench_sbidder_", env=env)
+            p50, p99 = median(award), percentile(award, 99)
+            rows.append(report("contract_net_award_5_signed_p50", p50 * 1e3, "ms", None,
+                               None, over_floor=round(p50 / floor_p50, 1)))
+            rows.append(report("contract_net_award_5_signed_p99", p99 * 1e3, "ms",
+                               "<= 20 ms", p99 <= 0.020, over_floor=round(p99 / floor_p50, 1)))
     return rows
 
 

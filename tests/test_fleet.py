@@ -198,7 +198,14 @@ def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_serve
 
 @pytest.mark.timeout(300)  # real processes: slow on a loaded machine
 def test_a_killed_station_agent_frees_nothing_twice_and_the_atv_charges_elsewhere(
-        fleet: Fleet) -> None:
+        fleet: Fleet, monkeypatch: pytest.MonkeyPatch) -> None:
+    from beehave.agents.trust import signed_environment
+
+    # Signed agents (docs/agents.md#trust-model): the processes take their keys from the
+    # environment, as under `beehave fleet --signed`.
+    for key, value in signed_environment(fleet.tmp / "keys",
+                                         ["atv1", "charger1", "charger2"]).items():
+        monkeypatch.setenv(key, value)
     # Below the 35 % at which an ATV goes to charge, with enough left to drive anywhere.
     world = fleet.world(capacity_wh=5.0, atv1=0.30)
     fleet.start("sim", "-m", "beehave.cli", "sim", world, "--robots", "1", "--fast")
@@ -220,6 +227,8 @@ def test_a_killed_station_agent_frees_nothing_twice_and_the_atv_charges_elsewher
     stations = fleet.watch.state["facts"]["stations"]
     assert stations[holder]["max_charging"] == 0, stations
     assert stations[spare]["max_charging"] == 1, stations
+    assert not [n for n in ("atv1", "charger1", "charger2")
+                if "OPEN mode" in (fleet.tmp / f"{n}.log").read_text(errors="replace")]
 
 
 

@@ -403,8 +403,9 @@ def test_bad_serve_arguments_exit_2_naming_the_problem(
 def test_the_serve_scenario_completes_every_order_and_every_check_holds(
         tmp_path: Path) -> None:
     out = tmp_path / "out"
+    # --signed: every agent signs and takes only what the fleet signed (docs/agents.md).
     proc = subprocess.run([sys.executable, "-m", "beehave.cli", "fleet", "--scenario",
-                           "serve", "--fast", "--out", str(out)], cwd=ROOT,
+                           "serve", "--fast", "--signed", "--out", str(out)], cwd=ROOT,
                           env=dict(os.environ), capture_output=True, text=True, timeout=280)
     logs = "".join(f"--- {log.name}\n{log.read_text(errors='replace')[-1500:]}\n"
                    for log in sorted((out / "serve").glob("*.log")))
@@ -423,6 +424,9 @@ def test_the_serve_scenario_completes_every_order_and_every_check_holds(
     assert (hand_over["giver"], hand_over["taker"]) == (cake["members"]["fetch"], "emili1")
     assert facts["robots"]["emili1"]["in_aisle_s"] == 0.0
     assert len(facts["deliveries"]) == 3 and (out / "serve.png").stat().st_size > 10_000
+    assert (out / "keys" / "emili1.cert").exists()
+    assert not [log.name for log in (out / "serve").glob("*.log")
+                if "OPEN mode" in log.read_text(errors="replace")]
 
 
 def test_the_serve_watcher_counts_what_it_cannot_read() -> None:

@@ -25,6 +25,7 @@ from beehave.agents.market import (
     auction,
 )
 from beehave.agents.message import SCHEMA, Message, Performative
+from beehave.agents.trust import Mode, Trust
 from beehave.errors import (
     AgentError,
     AgentNameTaken,
@@ -42,6 +43,8 @@ __all__ = [
     "AgentNameTaken", "AgentUnreachable", "Change", "Conversation", "Directory",
     "DirectoryEvent", "Mailbox", "Message", "NoReply", "Performative", "ProtocolFailed",
     "agent_of",
+    # signed agents (beehave.agents.trust; docs/agents.md#trust-model)
+    "Mode", "Trust",
     # market-based allocation (beehave.agents.market)
     "Auctioneer", "Broker", "InvalidTask", "Job", "Outcome", "Plan", "RendezvousTimeout",
     "Role", "Task", "TaskFailed", "TaskState", "UnknownCapability", "auction",

@@ -64,6 +64,7 @@ from beehave.agents.directory import (
     EntryState,
 )
 from beehave.agents.message import Message, Performative, is_agent_name, sender_of
+from beehave.agents.trust import Mode, Refused, Trust
 from beehave.behavior import Behavior
 from beehave.errors import (
     AgentError,
@@ -104,6 +105,29 @@ DIRECTORY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 DIRECTORY_READER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                                   reliability=ReliabilityPolicy.RELIABLE,
                                   durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+_MODE_SAID: set[Mode] = set()
+_MODE_LOCK = threading.Lock()
+
+
+def _say_mode(trust: Trust) -> None:
+    """Once per process and mode: which trust mode the agents run in (open is loud)."""
+    with _MODE_LOCK:
+        if trust.mode in _MODE_SAID:
+            return
+        _MODE_SAID.add(trust.mode)
+    if trust.mode is Mode.OPEN:
+        log.warning("agents run in OPEN mode: any participant of this DDS domain can send "
+                    "messages and directory entries as any agent. Use signed mode for a "
+                    "real fleet (`beehave keys`, docs/agents.md#trust-model)")
+    else:
+        log.info("agents run in signed mode (fleet %s)", trust.fleet)
+
+
+REFUSALS_QUEUED = 100
+"""Signed mode: refusals (not-understood) waiting to be sent at most; more are not answered
+(they are still logged and reported as events)."""
 
 
 def inbox_qos(depth: int) -> QoSProfile:
@@ -360,7 +384,10 @@ class Agent:
     neither, the agent makes and owns a context of its own. ``services``: what it offers
     from the start (``{"transport": {"payload_kg": 50}}``). ``lease_s``: how long others
     keep its entry without news (it announces every ``lease_s / 4``). ``probe_s``: how
-    long it listens for a holder of its name before it takes it.
+    long it listens for a holder of its name before it takes it. ``trust``: its keys and
+    mode (:class:`~beehave.agents.trust.Trust`; default: from ``BEEHAVE_AGENT_MODE`` and
+    ``BEEHAVE_AGENT_KEYS``, else open mode without keys — said once per process in the
+    log, at WARNING).
 
     Raises :class:`~beehave.errors.AgentNameTaken` when an agent of this name is alive in
     the domain. :meth:`close` (or ``with``) removes it from every directory at once.
@@ -369,7 +396,7 @@ class Agent:
     def __init__(self, name: str, *, node: Node | None = None, ros: RosContext | None = None,
                  services: dict[str, dict[str, Any]] | None = None, lease_s: float = 2.0,
                  probe_s: float = 1.0, inbox_depth: int = 1000,
-                 send_timeout_s: float = 2.0) -> None:
+                 send_timeout_s: float = 2.0, trust: Trust | None = None) -> None:
         if not is_agent_name(name):
             raise ConfigError(f"agent name {name!r} is not valid: letters, digits and '_', "
                               f"starting with a letter, at most 63 characters (it names the "
@@ -380,6 +407,12 @@ class Agent:
         self.send_timeout_s = check_duration_s(f"agent {name!r}: send_timeout_s",
                                                send_timeout_s)
         self.events = EventBus(log)
+        self.trust = trust if trust is not None else Trust.from_env(name)
+        if not isinstance(self.trust, Trust):
+            raise ConfigError(f"agent {name!r}: trust must be a Trust, got "
+                              f"{type(self.trust).__name__}")
+        _say_mode(self.trust)
+        self._refusals: dict[str, float] = {}  # directory warnings: agent -> last logged
         self.directory = Directory(name)
         self._services: dict[str, dict[str, Any]] = {}
         for service, properties in (services or {}).items():
@@ -413,9 +446,16 @@ class Agent:
         self._ros = ros
         self.node: Node = node
         self._outbox: queue.Queue[Message | None] = queue.Queue()
-        self._outbox_thread = threading.Thread(target=self._send_later,
+        self._outbox_thread = threading.Thread(target=self._send_later, args=(self._outbox,),
                                                name=f"beehave:agent-outbox:{name}", daemon=True)
         self._outbox_thread.start()
+        # Refusals of signed mode go out on their own, bounded: forged messages that claim
+        # absent senders (each waits up to 1 s for an inbox) never delay real replies.
+        self._refusal_box: queue.Queue[Message | None] = queue.Queue(maxsize=REFUSALS_QUEUED)
+        self._refusal_thread = threading.Thread(
+            target=self._send_later, args=(self._refusal_box, 1.0),
+            name=f"beehave:agent-refusals:{name}", daemon=True)
+        self._refusal_thread.start()
         self._news = threading.Event()
         self._dir_pub = node.create_publisher(String, DIRECTORY_TOPIC, DIRECTORY_QOS)
         self._copies = node.create_publisher(String, MESSAGES_TOPIC, MESSAGES_QOS)
@@ -495,9 +535,15 @@ class Agent:
             announcement = Announcement(agent=self.name, incarnation=self._incarnation,
                                         started_at=self._started_at, state=self._state,
                                         lease_s=self.lease_s,
-                                        services={k: dict(v) for k, v in self._services.items()})
+                                        services={k: dict(v) for k, v in self._services.items()},
+                                        sent_at=time.time())
+        if self.trust.signing:
+            text = self.trust.dumps(announcement.model_dump(mode="json", by_alias=True,
+                                                            exclude={"auth"}))
+        else:
+            text = announcement.model_dump_json(by_alias=True, exclude={"auth"})
         try:
-            self._dir_pub.publish(String(data=announcement.model_dump_json(by_alias=True)))
+            self._dir_pub.publish(String(data=text))
         except InvalidHandle:
             if not self._closed:
                 raise
@@ -505,8 +551,34 @@ class Agent:
         self.directory._set_own(announcement)
 
     def _on_directory(self, msg: String) -> None:
+        if self.trust.verifying:
+            try:
+                data = json.loads(msg.data)
+                if not isinstance(data, dict):
+                    raise Refused("a directory entry is a JSON object")
+                self.trust.check_entry(data)
+            except (ValueError, RecursionError, Refused) as exc:
+                self._refused_entry(msg.data, str(exc))
+                return
         self.directory._receive(msg.data)
         self._news.set()
+
+    def _refused_entry(self, text: str, reason: str) -> None:
+        """A directory entry signed mode does not take: a WARNING, at most one per claimed
+        agent every 10 s (entries repeat every lease / 4)."""
+        try:
+            data = json.loads(text)
+            who = data.get("agent") if isinstance(data, dict) else None
+        except (ValueError, RecursionError):
+            who = None
+        who = who if isinstance(who, str) and is_agent_name(who) else "?"
+        now = time.monotonic()
+        if now - self._refusals.get(who, -math.inf) < 10.0:
+            return
+        if len(self._refusals) > 1000:
+            self._refusals.clear()
+        self._refusals[who] = now
+        log.warning("agent %r: refused the directory entry of %r: %s", self.name, who, reason)
 
     def register(self, service: str, **properties: Any) -> None:
         """Offer ``service`` with these properties (JSON values), replacing an earlier
@@ -550,8 +622,13 @@ class Agent:
             raise self.error
         if self._closed:
             raise AgentError(f"agent {self.name!r} is closed; it cannot send")
-        message = message.model_copy(update={"sender": self.name, "sent_at": time.time()})
-        text = String(data=message.to_json())
+        message = message.model_copy(update={"sender": self.name, "sent_at": time.time(),
+                                             "auth": None})
+        if self.trust.signing:
+            text = String(data=self.trust.dumps(message.model_dump(
+                mode="json", by_alias=True, exclude={"auth"})))
+        else:
+            text = String(data=message.to_json())
         limit = self.send_timeout_s if timeout_s is None else timeout_s
         if self._copies.get_subscription_count() > 0:  # nothing to do while nobody listens
             self._copies.publish(text)
@@ -611,14 +688,15 @@ class Agent:
             with cond:
                 cond.wait_for(interrupted, min(0.01, left))
 
-    def _send_later(self) -> None:
-        """The outbox thread: replies the executor thread must not wait for."""
+    def _send_later(self, box: queue.Queue[Message | None],
+                    timeout_s: float | None = None) -> None:
+        """An outbox thread: replies the executor thread must not wait for."""
         while True:
-            message = self._outbox.get()
+            message = box.get()
             if message is None:
                 return
             try:
-                self.send(message)
+                self.send(message, timeout_s=timeout_s)
             except AgentError as exc:
                 log.warning("agent %r: could not send %s to %s: %s", self.name,
                             message.performative.value, message.receivers, exc)
@@ -628,8 +706,9 @@ class Agent:
         """Executor thread: validate and sort; never raises."""
         text = msg.data
         try:
-            message = Message.from_json(text)
-        except ValueError as exc:
+            data = json.loads(text)
+            message = Message.from_wire(data)
+        except (ValueError, RecursionError) as exc:
             reason = str(exc).replace("\n", "; ")
             self._emit_rejected(f"invalid message: {reason}", sender_of(text), text,
                                 reply=True)
@@ -639,6 +718,15 @@ class Agent:
                                 f"message is for {message.receivers}", message.sender, text,
                                 reply=True, message=message)
             return
+        if self.trust.verifying:
+            try:
+                self.trust.check_message(data)
+            except Refused as exc:
+                log.warning("agent %r: refused %s from %r: %s", self.name,
+                            message.performative.value, message.sender, exc)
+                self._emit_rejected(f"refused: {exc}", message.sender, text, reply=True,
+                                    message=message, refused=True)
+                return
         self._route(message)
 
     def _route(self, message: Message) -> None:
@@ -671,7 +759,8 @@ class Agent:
             self.inbox._deliver(message)
 
     def _emit_rejected(self, reason: str, sender: str | None, text: str, *,
-                       reply: bool = False, message: Message | None = None) -> None:
+                       reply: bool = False, message: Message | None = None,
+                       refused: bool = False) -> None:
         detail = {"reason": reason, "sender": sender, "message": text[:300]}
         event = Event(EventKind.MESSAGE_REJECTED, f"agent:{self.name}", None, None, detail)
         for bus in list(self._buses):
@@ -681,11 +770,23 @@ class Agent:
         if message is not None and message.performative is Performative.NOT_UNDERSTOOD:
             return  # never answer a not-understood with one: two agents would ping-pong
         conversation_id, in_reply_to = _ids_of(text, message)
-        self._outbox.put(Message(
+        if refused:
+            # Its own conversation: a forged message must not end the conversation of the
+            # agent it claims to be from (that one gets the refusal in its inbox).
+            conversation_id = f"refused/{uuid.uuid4().hex[:16]}"
+        answer = Message(
             performative=Performative.NOT_UNDERSTOOD, sender=self.name, receivers=[sender],
             conversation_id=conversation_id, in_reply_to=in_reply_to,
-            protocol=message.protocol if message is not None else None,
-            content={"reason": reason, "message": text[:500]}))
+            protocol=message.protocol if message is not None and not refused else None,
+            content={"reason": reason, "message": text[:500]})
+        if not refused:
+            self._outbox.put(answer)
+            return
+        try:
+            self._refusal_box.put_nowait(answer)
+        except queue.Full:
+            log.info("agent %r: %d refusals wait to be sent; not answering %r", self.name,
+                     REFUSALS_QUEUED, sender)
 
     # ------------------------------------------------------------------ consumers
     def conversation(self, *, protocol: str | None = None,
@@ -765,8 +866,15 @@ class Agent:
             for box in boxes:
                 box.close()
             self._outbox.put(None)
-            if self._outbox_thread is not threading.current_thread():
-                self._outbox_thread.join()
+            while True:  # the refusals thread ends with its queue, unsent ones dropped
+                try:
+                    self._refusal_box.get_nowait()
+                except queue.Empty:
+                    break
+            self._refusal_box.put(None)
+            for thread in (self._outbox_thread, self._refusal_thread):
+                if thread is not threading.current_thread():
+                    thread.join()
             for manager in managers:
                 if manager is not None and _ATTACHED.get(manager) is self:
                     del _ATTACHED[manager]

@@ -15,7 +15,9 @@ An entry (schema ``beehave.directory/1``)::
      "started_at": 1767225590.5,      # Unix time of that start
      "state": "alive",                # "joining" while it checks its name, "leaving"
      "lease_s": 2.0,
-     "services": {"transport": {"payload_kg": 50, "zone": "north"}}}
+     "services": {"transport": {"payload_kg": 50, "zone": "north"}},
+     "sent_at": 1767225599.5,         # Unix time of this announcement
+     "auth": {"certificate": {…}, "signature": "…"}}   # signed agents (trust.py)
 """
 
 from __future__ import annotations
@@ -66,6 +68,8 @@ class Announcement(BaseModel):
     state: EntryState
     lease_s: float = Field(gt=0, allow_inf_nan=False)
     services: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    sent_at: float | None = Field(None, allow_inf_nan=False)
+    auth: dict[str, Any] | None = None
 
     @field_validator("schema_")
     @classmethod

@@ -12,10 +12,13 @@ One message is one JSON object (schema ``beehave.acl/1``)::
      "reply_by": 1767225600.25,             # Unix time (s) after which no reply counts
      "protocol": "fipa-contract-net",       # null for a message outside any protocol
      "content": {"task": "deliver", "to": "machine_3"},   # any JSON value
-     "sent_at": 1767225599.25}
+     "sent_at": 1767225599.25,
+     "auth": {"certificate": {…}, "signature": "…"}}   # signed agents (beehave.agents.trust)
 
-Every incoming message is validated with :class:`Message` (pydantic); what fails gets a
-``not-understood`` reply (see :mod:`beehave.agents.agent`).
+On the wire (:meth:`Message.from_wire`) every field but ``in_reply_to``, ``reply_by``,
+``protocol`` and ``auth`` must be present (``content`` may be null); the JSON Schema is
+``beehave/agents/schemas/acl.schema.json``. Every incoming message is validated; what
+fails gets a ``not-understood`` reply (see :mod:`beehave.agents.agent`).
 """
 
 from __future__ import annotations
@@ -36,6 +39,11 @@ NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]{0,62}$"
 """Agent names: they become ROS topic names (``/beehave/agents/inbox/<name>``)."""
 
 _NAME = re.compile(NAME_PATTERN)
+
+REQUIRED = ("schema", "performative", "message_id", "sender", "receivers", "conversation_id",
+            "content", "sent_at")
+"""The fields a message on the wire must have (a sender that leaves one out is answered
+with not-understood naming it, never guessed for)."""
 
 
 class Performative(Enum):
@@ -93,6 +101,9 @@ class Message(BaseModel):
     protocol: str | None = None
     content: Any = None
     sent_at: float = Field(default_factory=time.time, allow_inf_nan=False)
+    auth: dict[str, Any] | None = None
+    """The sender's certificate and signature (:mod:`beehave.agents.trust`); filled by the
+    sending agent when it has keys, checked by receivers in signed mode."""
 
     @field_validator("schema_")
     @classmethod
@@ -114,13 +125,27 @@ class Message(BaseModel):
         return value
 
     def to_json(self) -> str:
-        return self.model_dump_json(by_alias=True)
+        """The wire form (``auth`` only when there is one: the schema has no null for it)."""
+        return self.model_dump_json(by_alias=True,
+                                    exclude={"auth"} if self.auth is None else None)
 
     @classmethod
     def from_json(cls, text: str) -> Message:
         """Parse and validate; raises ``ValueError`` (pydantic's ``ValidationError`` is
         one) naming the field that is wrong."""
         return cls.model_validate_json(text)
+
+    @classmethod
+    def from_wire(cls, data: Any) -> Message:
+        """Validate a parsed message as it arrived: like :meth:`from_json`, and every
+        field of :data:`REQUIRED` must be there (defaults are for messages built here)."""
+        if not isinstance(data, dict):
+            raise ValueError(f"a message is a JSON object, got {type(data).__name__}")
+        missing = [name for name in REQUIRED if name not in data]
+        if missing:
+            raise ValueError(f"missing field{'s' if len(missing) > 1 else ''}: "
+                             f"{', '.join(missing)} (required: {', '.join(REQUIRED)})")
+        return cls.model_validate(data)
 
     def reply(self, performative: Performative, content: Any = None, *,
               reply_by: float | None = None) -> Message:

@@ -399,7 +399,8 @@ class Responder(AgentBehavior):
 
     def propose(self, cfp: Message) -> Any:
         """Optional hook (contract net): the proposal for ``cfp`` (a JSON value; the
-        default initiator ranks ``{"cost": …}``), or None to refuse. Default: refuse."""
+        default initiator ranks ``{"cost": …}``), or None to refuse. Default: refuse. Raising
+        refuses too, with the exception as the reason."""
         return None
 
     def service_properties(self) -> dict[str, Any]:
@@ -448,8 +449,10 @@ class Responder(AgentBehavior):
             try:
                 offer = self.propose(message)
             except Exception as exc:
-                log.exception("%s: propose() raised on %s", self.path, cid)
-                self._reply(message, Performative.FAILURE, {"reason": repr(exc)})
+                # A cfp is answered with propose, refuse or not-understood (FIPA): a
+                # task this agent cannot serve (an unknown machine) is a refusal, with why.
+                log.warning("%s: propose() raised on %s: %r", self.path, cid, exc)
+                self._reply(message, Performative.REFUSE, {"reason": repr(exc)})
                 return
             if offer is None:
                 self._reply(message, Performative.REFUSE, {"reason": "no proposal"})

@@ -431,6 +431,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--record", action="store_true",
                         help="record every ATV into FOLDER/fleet/atvK.mcap (one file per "
                              "robot; docs/recording.md: beehave inspect/plot/replay)")
+    parser.add_argument("--signed", action="store_true",
+                        help="every agent in signed mode, with a fleet authority and "
+                             "certificates made in FOLDER/keys (docs/agents.md#trust-model)")
     args = parser.parse_args(argv)
     if not 1 <= args.robots <= 10:
         parser.error(f"--robots must be 1..10 (the parking row), got {args.robots}")
@@ -447,6 +450,12 @@ def main(argv: list[str] | None = None) -> int:
                      f"(it has {len(places.machines)}, {len(places.depots)}, "
                      f"{len(places.stations)})")
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    if args.signed:  # the children take their keys from the environment
+        from beehave.agents.trust import signed_environment
+
+        os.environ.update(signed_environment(Path(args.out) / "keys", [
+            *places.stations, *places.machines,
+            *(f"atv{k}" for k in range(1, args.robots + 1))]))
     console = Console()
     console.rule(f"[bold]beehave fleet — {args.robots} ATVs in {args.world}")
     return run_fleet(console, world=args.world, robots=args.robots, minutes=args.minutes,

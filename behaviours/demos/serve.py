@@ -813,6 +813,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="as fast as the machine goes (lockstep), not at real time")
     parser.add_argument("--out", default="out", metavar="FOLDER",
                         help="where serve.png, serve_report.json and the logs go")
+    parser.add_argument("--signed", action="store_true",
+                        help="every agent in signed mode, with a fleet authority and "
+                             "certificates made in FOLDER/keys (docs/agents.md#trust-model)")
     args = parser.parse_args(argv)
     if not 1 <= args.robots <= MAX_KOBUKIS:
         parser.error(f"--robots (the number of Kobukis) must be 1..{MAX_KOBUKIS}, "
@@ -828,6 +831,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"world {args.world!r}: {exc}")
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if args.signed:  # the children take their keys from the environment
+        from beehave.agents.trust import signed_environment
+
+        os.environ.update(signed_environment(Path(args.out) / "keys", [
+            "emili1", *(f"kobuki{k}" for k in range(1, args.robots + 1)),
+            f"keeper_{AISLE}", "orders"]))
     from rich.console import Console
 
     console = Console()

@@ -27,7 +27,7 @@ from beehave.agents import AgentBehavior
 from beehave.agents.protocols import contract_net
 from beehave.errors import BeehaveError, Interrupted, ProtocolFailed
 from behaviours.fleet.mission import ORDERS_QOS, ORDERS_TOPIC, MissionController
-from behaviours.fleet.process import say, serve
+from behaviours.fleet.process import add_trust_options, say, serve
 from behaviours.fleet.site import site
 from hal.factory import STATE_QOS
 from robots.topics import FACTORY_STATE
@@ -127,6 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bidders", type=int, default=1,
                         help="how many ATVs it waits (10 s at most) to know of before it "
                              "orders")
+    add_trust_options(parser)
     args = parser.parse_args(argv)
     machines = site(args.world).machines
     if args.name not in machines:
@@ -140,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--bidders must be at least 1, got {args.bidders}")
     return serve(args.name, Replenish, {"machine": args.name, "world": args.world,
                                         "below": args.below, "reply_by_s": args.reply_by_s,
-                                        "bidders": args.bidders}, lease_s=args.lease_s)
+                                        "bidders": args.bidders}, lease_s=args.lease_s, args=args)
 
 
 if __name__ == "__main__":

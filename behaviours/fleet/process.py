@@ -4,6 +4,7 @@ top-level behaviour, until SIGINT or SIGTERM."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import signal
 import sys
@@ -13,6 +14,7 @@ from typing import Any
 from beehave import HighLevelBehaviorManager
 from beehave.agents import Agent, AgentNameTaken
 from beehave.behavior import Behavior
+from beehave.errors import ConfigError
 from beehave.events import Event, EventKind
 
 
@@ -21,10 +23,35 @@ def say(event: str, **detail: Any) -> None:
     print(json.dumps({"event": event, **detail}), flush=True)
 
 
+def add_trust_options(parser: argparse.ArgumentParser) -> None:
+    """``--mode`` and ``--keys``: how the agent signs and what it takes
+    (docs/agents.md#trust-model); without them, ``BEEHAVE_AGENT_MODE`` and
+    ``BEEHAVE_AGENT_KEYS`` decide."""
+    parser.add_argument("--mode", choices=["open", "signed"], default=None,
+                        help="open: nothing checked; signed: take only what the fleet's "
+                             "certified keys signed (default: $BEEHAVE_AGENT_MODE, else open)")
+    parser.add_argument("--keys", default=None, metavar="DIR",
+                        help="the folder `beehave keys` wrote (fleet.pub, NAME.key, "
+                             "NAME.cert; default: $BEEHAVE_AGENT_KEYS)")
+
+
+def trust_of(name: str, args: argparse.Namespace) -> Any:
+    """The :class:`~beehave.agents.trust.Trust` the options ask for (None: the environment
+    decides)."""
+    from beehave.agents.trust import Trust
+
+    mode, keys = getattr(args, "mode", None), getattr(args, "keys", None)
+    if mode is None and keys is None:
+        return None
+    if keys is None:
+        return Trust(str(mode), name=name)
+    return Trust.load(name, mode=mode or "signed", keys_dir=keys)
+
+
 def serve(name: str, behavior: type[Behavior], params: dict[str, Any], *,
-          lease_s: float = 2.0) -> int:
+          lease_s: float = 2.0, args: argparse.Namespace | None = None) -> int:
     """Run ``behavior`` as agent ``name``; exit status 0, 3 when the name is taken, 1 when
-    the behaviour failed."""
+    the behaviour failed, 2 for keys that cannot be used (``{"event": "config"}``)."""
     sys.setswitchinterval(0.001)  # a thread woken by a message runs within 1 ms
     from beehave.ros.context import RosContext
 
@@ -34,10 +61,14 @@ def serve(name: str, behavior: type[Behavior], params: dict[str, Any], *,
     failed: list[str] = []
     with RosContext() as ros:
         try:
-            agent = Agent(name, ros=ros, lease_s=lease_s)
+            agent = Agent(name, ros=ros, lease_s=lease_s,
+                          trust=trust_of(name, args) if args is not None else None)
         except AgentNameTaken as exc:
             say("taken", agent=name, error=str(exc))
             return 3
+        except ConfigError as exc:
+            say("config", agent=name, error=str(exc))
+            return 2
         with agent, HighLevelBehaviorManager(stop_timeout_s=2.0) as hl:
             hl.node = agent.node
             agent.attach(hl)

@@ -6,8 +6,9 @@ It registers ``charging`` with ``{"station": <the world's station>, "holder": <r
 null>}`` and answers FIPA requests of protocol ``charging`` whose content is
 ``{"op": "reserve" | "renew" | "release", "lease_s": L}``:
 
-- ``reserve``: granted (inform ``{"station", "lease_s"}``) when the place is free, when the
-  holder's lease ran out, when the holder left the directory, or to the holder itself;
+- ``reserve``: granted (inform ``{"result": {"station", "holder", "lease_s"}}``) when the
+  place is free, when the holder's lease ran out, when the holder left the directory, or
+  to the holder itself;
   otherwise refused naming the holder.
 - ``renew``: the holder extends its lease by ``lease_s``; anyone else is refused.
 - ``release``: the holder frees the place.
@@ -26,7 +27,7 @@ from typing import Any
 
 from beehave.agents import Message
 from beehave.agents.protocols import RequestResponder
-from behaviours.fleet.process import say, serve
+from behaviours.fleet.process import add_trust_options, say, serve
 from behaviours.fleet.site import site
 
 PROTOCOL = "charging"
@@ -100,13 +101,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--station", default=None,
                         help="the world's charging station it runs (default: NAME)")
     parser.add_argument("--lease-s", type=float, default=2.0, help="its directory lease")
+    add_trust_options(parser)
     args = parser.parse_args(argv)
     station = args.station or args.name
     stations = site(args.world).stations
     if station not in stations:
         parser.error(f"no charging station {station!r} in world {args.world!r}; "
                      f"it has {sorted(stations)}")
-    return serve(args.name, Reservations, {"station": station}, lease_s=args.lease_s)
+    return serve(args.name, Reservations, {"station": station}, lease_s=args.lease_s, args=args)
 
 
 if __name__ == "__main__":
