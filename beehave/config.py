@@ -21,6 +21,7 @@
       blackboard_rate_hz: 2000.0
       snapshot_period_s: 1.0
       state_period_s: 1.0
+      second_goal: reject                # beehave/execute_behavior: reject | preempt
     agent:                               # optional: the robot is an agent (docs/agents.md)
       name: atv_1                        # unique in the DDS domain
       services: {transport: {payload_kg: 50}}
@@ -58,7 +59,7 @@ from __future__ import annotations
 
 import importlib
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -104,6 +105,9 @@ class RosOptions(_Strict):
     blackboard_rate_hz: Hertz = 2000.0
     snapshot_period_s: Seconds = 1.0
     state_period_s: Seconds = 1.0
+    second_goal: Literal["reject", "preempt"] = Field(
+        "reject", description="beehave/execute_behavior: a goal that arrives while another "
+        "executes is rejected, or preempts it")
 
 
 class SimOptions(_Strict):
