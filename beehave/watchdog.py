@@ -188,6 +188,8 @@ class LoopWatchdog:
         self._watched: set[concurrent.futures.Future[Any]] = set()
         self._blocked: LoopBlocked | None = None
         self._warned: Culprit | None = None  # who held the loop when it was last warned about
+        # Orders _warned against the loop's answer (the loop thread and this one).
+        self._answer_lock = threading.Lock()
         self._thread = threading.Thread(target=self._main, name="beehave-lowlevel-watchdog",
                                         daemon=True)
         # Subscribers run here, not in _thread: see the module docstring.
@@ -285,6 +287,9 @@ class LoopWatchdog:
         """Who held the loop since ``sent`` (monotonic), seen by a watchdog that woke at
         ``woke`` from a wait of ``waited_s`` (default ``warn_s``) begun at ``sent``;
         ``cpu``: ``time.process_time()`` at ``sent``."""
+        # Not the loop thread's own CPU clock or scheduler state: a callback descheduled
+        # mid-step and one asleep in time.sleep both show little CPU, and while this
+        # thread reads them it holds the GIL, which a running loop thread then waits for.
         frame = sys._current_frames().get(self.thread_id)
         late_s = woke - (sent + (self.warn_s if waited_s is None else waited_s))
         idle = loop_is_idle(frame)
@@ -305,10 +310,18 @@ class LoopWatchdog:
         culprit = self.diagnose(sent, woke, cpu)
         lag = time.monotonic() - sent
         self.warnings += 1
-        self._warned = culprit
         log.warning("%s event loop %s", self.name, culprit.describe(lag))
         self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject,
                          detail=_detail(culprit, lag, ended=False)))
+        with self._answer_lock:
+            # Set after the "blocked" event, so the loop's "ended" one follows it; an
+            # answer that came while we looked found nothing to report: report it here.
+            answered = self._answered.is_set()
+            if not answered:
+                self._warned = culprit
+        if answered:
+            self._report_answer(culprit, lag)
+            return
         declared = False
         while True:
             waited = (self._period_s if declared
@@ -322,7 +335,9 @@ class LoopWatchdog:
                 # Read again: the first look may have caught the loop between two steps
                 # (and a process that was starved may since have run into a real block).
                 culprit = self.diagnose(began, time.monotonic(), began_cpu, waited_s=waited)
-                self._warned = culprit
+                with self._answer_lock:
+                    if not self._answered.is_set():  # else the answer reported the old one
+                        self._warned = culprit
                 if not declared:
                     log.error("%s", self._error(culprit, time.monotonic() - sent))
                 declared = True
@@ -348,21 +363,25 @@ class LoopWatchdog:
 
     def _answer(self, sent: float) -> None:
         # In the loop's thread: it runs again.
-        culprit = self._warned
-        self._warned = None
-        self._blocked = None
-        self._answered.set()
+        with self._answer_lock:
+            culprit = self._warned
+            self._warned = None
+            self._blocked = None
+            self._answered.set()
         if culprit is not None:
-            held = time.monotonic() - sent
-            if culprit.starved:
-                log.warning("%s event loop runs again after %.3f s (the process was starved "
-                            "of CPU)", self.name, held)
-            else:
-                log.warning("%s event loop answers again after %.3f s (held by %s at %s)",
-                            self.name, held, culprit.who, culprit.where)
-            # Through the notifier too: after the "blocked" event, never before it.
-            self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject,
-                             detail=_detail(culprit, held, ended=True)))
+            self._report_answer(culprit, time.monotonic() - sent)
+
+    def _report_answer(self, culprit: Culprit, held: float) -> None:
+        """The loop runs again after ``held`` seconds: say so, after the "blocked" event."""
+        if culprit.starved:
+            log.warning("%s event loop runs again after %.3f s (the process was starved of "
+                        "CPU)", self.name, held)
+        else:
+            log.warning("%s event loop answers again after %.3f s (held by %s at %s)",
+                        self.name, held, culprit.who, culprit.where)
+        # Through the notifier too: after the "blocked" event, never before it.
+        self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject,
+                         detail=_detail(culprit, held, ended=True)))
 
 
 def _detail(culprit: Culprit, lag: float, *, ended: bool) -> dict[str, Any]:
