@@ -328,3 +328,28 @@ def test_a_goal_overtaken_by_another_switch_is_aborted(reject: Any) -> None:
     end = client.wait_end(gid)
     assert end["status"] == "ABORTED", end
     assert "'parked'" in end["message"], end["message"]
+
+
+def test_second_goal_policy_is_checked_in_the_yaml() -> None:
+    from beehave.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"ros.second_goal: .*'reject' or 'preempt'"):
+        parse_config(_config("exec_bad", "sometimes"), source="r.yaml")
+
+
+def test_a_robot_that_shuts_down_aborts_its_goal() -> None:
+    robot = Robot(parse_config(_config("exec_down", None), source="exec_down.yaml"))
+    robot.start()
+    client = None
+    try:
+        client = GoalClient("exec_down")
+        gid = client.send("patrol")
+        client.wait_status(gid, "EXECUTING")
+        robot.shutdown()
+        end = client.wait_end(gid)
+        assert end["status"] == "ABORTED", end
+        assert "shuts down" in end["message"], end["message"]
+    finally:
+        if client is not None:
+            client.close()
+        robot.shutdown()
