@@ -203,9 +203,12 @@ class ExecuteBehaviorServer:
             return
         try:
             params = self.plane.check_switch(name, goal.params)
-        except BeehaveError as exc:
+        except Exception as exc:  # BeehaveError: the reason; anything else must not crash
+            if not isinstance(exc, BeehaveError):
+                log.exception("execute_behavior: checking goal %s failed", gid)
             self._publish_status(gid, name if isinstance(name, str) else None, "REJECTED",
-                                 shorten(str(exc)))
+                                 shorten(str(exc) if isinstance(exc, BeehaveError)
+                                         else f"goal refused: {exc!r}"))
             return
         if active is not None and self.second_goal == "reject":
             self._publish_status(gid, name, "REJECTED", (
@@ -218,11 +221,12 @@ class ExecuteBehaviorServer:
                 active.preempted_by = gid
         try:
             behavior = self.high.request_switch(name, **params)
-        except BeehaveError as exc:  # the constructor raised, or the manager shuts down
+        except Exception as exc:  # the constructor raised, or the manager shuts down
             if active is not None:
                 with active.lock:
                     active.preempted_by = None
-            self._publish_status(gid, name, "REJECTED", shorten(str(exc)))
+            self._publish_status(gid, name, "REJECTED", shorten(
+                str(exc) if isinstance(exc, BeehaveError) else f"goal refused: {exc!r}"))
             return
         new = _Goal(gid, name, behavior)
         with self._lock:
