@@ -222,8 +222,8 @@ def _run(args: argparse.Namespace) -> int:
     phase = "start"
     try:
         try:
-            _check_http_options(args)
             config = load_config(args.config)
+            _check_http_options(args, config.sim.simulator if config.sim else None)
             robot = Robot(config, only=args.only)
             recorder = _recording(args.record, robot)
         except BeehaveError as exc:  # nothing has started yet
@@ -353,14 +353,16 @@ def _add_http_options(parser: argparse.ArgumentParser, *, world: bool) -> None:
              "needs a token: BEEHAVE_HTTP_TOKEN, else one is generated and printed")
     if world:
         parser.add_argument(
-            "--world", default=None, metavar="WORLD.yaml",
-            help="the world YAML the web view draws (default: the simulation's, when "
-                 "`sim:` runs it in this process)")
+            "--world", default=None, metavar="WORLD",
+            help="the world the web view draws: a world name as `beehave sim` and `sim: "
+                 "world:` take it (warehouse), or a world YAML file (default: the "
+                 "simulation's, when `sim:` runs it in this process)")
 
 
-def _check_http_options(args: argparse.Namespace) -> None:
+def _check_http_options(args: argparse.Namespace, simulator: str | None = None) -> None:
     """Refuse ``--http``/``--world`` combinations that cannot work, before anything starts
-    (a :class:`~beehave.errors.ConfigError`: exit 2)."""
+    (a :class:`~beehave.errors.ConfigError`: exit 2). ``simulator``: the configuration's
+    (``sim: simulator:``), which knows the world names."""
     from beehave.errors import ConfigError
 
     if args.http is None:
@@ -372,15 +374,30 @@ def _check_http_options(args: argparse.Namespace) -> None:
                           "with --only low (serve it from the process that runs the high "
                           "level)")
     if args.world is not None:
-        args.world_data = _read_world(args.world)
+        args.world_data = _read_world(args.world, simulator)
 
 
-def _read_world(world_file: str) -> dict[str, Any]:
-    """A world YAML as plain data (the web view draws it; the simulator validates it)."""
+def _read_world(world_file: str, simulator: str | None = None) -> dict[str, Any]:
+    """A world as plain data (the web view draws it; the simulator validates it): a YAML
+    file, or a name that is no file (``warehouse``), which the simulator resolves as
+    ``beehave sim`` and ``sim: world:`` do."""
     import yaml
 
-    from beehave.errors import ConfigError
+    from beehave.errors import BeehaveError, ConfigError
+    from beehave.simulation import DEFAULT, load_simulator
 
+    path = Path(world_file)
+    if not path.is_file() and "/" not in world_file and path.suffix not in (".yaml", ".yml"):
+        name = simulator or DEFAULT
+        loader = getattr(load_simulator(name), "world_data", None)
+        if loader is None:
+            raise ConfigError(f"--world {world_file}: no such file, and simulator {name!r} "
+                              f"resolves no world names; give a world YAML file")
+        try:
+            data: dict[str, Any] = loader(world_file)
+        except BeehaveError as exc:
+            raise ConfigError(f"--world {world_file}: {exc}") from exc
+        return data
     try:
         data = yaml.safe_load(Path(world_file).read_text())
     except (OSError, yaml.YAMLError) as exc:

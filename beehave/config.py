@@ -21,6 +21,7 @@
       blackboard_rate_hz: 2000.0
       snapshot_period_s: 1.0
       state_period_s: 1.0
+      second_goal: reject                # beehave/execute_behavior: reject | preempt
     agent:                               # optional: the robot is an agent (docs/agents.md)
       name: atv_1                        # unique in the DDS domain
       services: {transport: {payload_kg: 50}}
@@ -59,6 +60,7 @@ Errors name the file, the key path and what was expected.
 from __future__ import annotations
 
 import importlib
+import sys
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -106,6 +108,9 @@ class RosOptions(_Strict):
     blackboard_rate_hz: Hertz = 2000.0
     snapshot_period_s: Seconds = 1.0
     state_period_s: Seconds = 1.0
+    second_goal: Literal["reject", "preempt"] = Field(
+        "reject", description="beehave/execute_behavior: a goal that arrives while another "
+        "executes is rejected, or preempts it")
 
 
 class SimOptions(_Strict):
@@ -267,7 +272,14 @@ class RobotConfig(_Strict):
 
 
 def load_config(path: str | Path) -> RobotConfig:
-    """Read and validate a robot configuration file."""
+    """Read and validate a robot configuration file.
+
+    Its directory becomes a place where its ``class:`` import paths are found: they are
+    looked up as any Python import (installed packages, and the current directory under
+    ``beehave``), then in the configuration file's directory — so a ``mybots`` package
+    beside ``robot.yaml`` imports from any working directory. The directory is appended to
+    ``sys.path`` (last: it never shadows an installed package) and stays there, since the
+    classes it provides may import more of their package later."""
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
@@ -275,7 +287,17 @@ def load_config(path: str | Path) -> RobotConfig:
         raise ConfigError(f"robot configuration {str(path)!r} does not exist") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
-    return parse_config(data, source=str(path))
+    config = parse_config(data, source=str(path))
+    add_import_dir(path.resolve().parent)
+    return config
+
+
+def add_import_dir(directory: Path) -> None:
+    """Let ``class:`` import paths be found in ``directory`` (after everything else)."""
+    entry = str(directory)
+    if entry not in sys.path:
+        sys.path.append(entry)
+        importlib.invalidate_caches()
 
 
 def parse_config(data: Any, *, source: str = "<dict>") -> RobotConfig:
@@ -370,7 +392,10 @@ def import_class(path: str, *, where: str, base: type[Any]) -> type[Any]:
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
-        raise ConfigError(f"{where}: cannot import module {module_name!r}: {exc}") from exc
+        raise ConfigError(f"{where}: cannot import module {module_name!r}: {exc} (import "
+                          f"paths are looked up in the installed packages, the current "
+                          f"directory under `beehave`, then the configuration file's "
+                          f"directory)") from exc
     try:
         obj = module
         for part in attr.split("."):

@@ -42,6 +42,7 @@ if TYPE_CHECKING:
     from beehave.interfaces.vda5050 import Vda5050Interface
     from beehave.ros.bridge import HighLevelBridge, LowLevelBridge
     from beehave.ros.context import RosContext
+    from beehave.ros.execute import ExecuteBehaviorServer
     from beehave.simulation import RunningSimulation
 
 log = logging.getLogger(__name__)
@@ -78,7 +79,7 @@ class Robot:
         self._build()
         self._ros: RosContext | None = None
         self._shared_ros = ros
-        self._bridges: list[HighLevelBridge | LowLevelBridge] = []
+        self._bridges: list[HighLevelBridge | LowLevelBridge | ExecuteBehaviorServer] = []
         self._nodes: list[Node] = []
         self._started = False
         #: The simulator's object, when the configuration asks for a simulation (``sim:``).
@@ -192,6 +193,11 @@ class Robot:
                 self._bridges.append(HighLevelBridge(
                     self.high, node, state_period_s=cfg.ros.state_period_s,
                     plane=self.plane))
+                from beehave.ros.execute import ExecuteBehaviorServer
+
+                self._bridges.append(ExecuteBehaviorServer(
+                    self.plane, node, second_goal=cfg.ros.second_goal,
+                    feedback_period_s=cfg.ros.state_period_s))
                 if cfg.agent is not None:  # before the behaviours, which may use it
                     from beehave.agents import Agent
 

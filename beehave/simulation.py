@@ -10,7 +10,10 @@ object with two callables::
 - ``start(world, *, real_time_factor, ros)`` builds the world, puts its robots on ROS 2
   through ``ros`` (a :class:`~beehave.ros.context.RosContext`), starts stepping and returns
   a :class:`RunningSimulation`;
-- ``main(argv)`` is the ``beehave sim`` command line; it returns the exit code.
+- ``main(argv)`` is the ``beehave sim`` command line; it returns the exit code;
+- optionally ``world_data(world)``: the world named ``world`` (a name the simulator ships
+  or a file) as JSON data, for the web view's map (``beehave run --http --world NAME``);
+  it raises a :class:`~beehave.errors.BeehaveError` naming the worlds it knows.
 """
 
 from __future__ import annotations

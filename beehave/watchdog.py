@@ -20,7 +20,22 @@ the loop, and only the measuring thread can fail that wait with ``LoopBlocked``.
 
 The culprit is read from the loop while it is stuck: the task it is stepping
 (``asyncio.current_task(loop)``, whose name says ``logic:<path>`` or ``hal:<name>``) and the
-innermost frame of its thread outside the standard library (the line that blocks).
+innermost frame of its thread outside the standard library and beehave itself (the line
+that blocks).
+
+A late answer is not always a blocking callback. When the whole process gets no CPU (a
+machine at load 27, a stopped process, another thread holding the GIL), the loop is late
+with nothing holding it. The watchdog tells the two apart before blaming anyone:
+
+- the loop's thread was *idle* — waiting in its poll for work (``selectors`` for asyncio's
+  loop; uvloop's C loop under the frame that started it) — so nothing held it;
+- or the watchdog thread itself woke more than ``warn_s`` (and :data:`STARVED_LATE_S`)
+  late: then no thread of the process was getting CPU, and what the loop happened to be
+  running when it was stopped is not to blame.
+
+Either way the warning says "the process was starved of CPU for X s" (with the process's
+CPU time over that wall time) and names no line. A loop held inside beehave's own code
+(no frame of anyone else's) is reported as such, never as a line for the user to fix.
 """
 
 from __future__ import annotations
@@ -44,22 +59,51 @@ from beehave.events import Event, EventBus, EventKind
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Culprit", "LoopWatchdog"]
+__all__ = ["Culprit", "LoopWatchdog", "loop_is_idle"]
 
 _STDLIB = tuple(os.path.normcase(p) + os.sep for p in {
     sysconfig.get_paths()["stdlib"], sysconfig.get_paths()["platstdlib"]})
+#: beehave's own package: a frame there is never the line a user is told to fix.
+_BEEHAVE = os.path.normcase(os.path.dirname(os.path.abspath(__file__))) + os.sep
 _RULE = ("never block the loop: use `await asyncio.sleep(...)`, not time.sleep, and "
          "`await asyncio.to_thread(...)` for blocking I/O")
+#: The stdlib frames in which an idle loop waits: the calls under which uvloop's loop (C,
+#: no frame of its own) waits; asyncio's selector poll is checked with its caller.
+_IDLE_FRAMES = {("base_events.py", "run_forever"), ("base_events.py", "run_until_complete"),
+                ("runners.py", "run")}
+#: The watchdog itself must wake at least this late (and more than ``warn_s``) before a
+#: loop found running someone's code is put down to starvation: a loaded machine delays
+#: every thread a little, and a callback that really blocks must still be named.
+STARVED_LATE_S = 0.25
 
 
 @dataclass(frozen=True)
 class Culprit:
-    """What holds the loop: ``subject`` (``logic:<path>``, ``hal:<name>``, ``task:<name>``
-    or ``callback``), a readable ``who`` and ``where`` it is (``file.py:42 in run``)."""
+    """What holds the loop: ``subject`` (``logic:<path>``, ``hal:<name>``, ``task:<name>``,
+    ``callback``, or ``process`` when nothing held it and the process was starved of CPU),
+    a readable ``who`` and ``where`` it is (``file.py:42 in run``).
+
+    ``starved``: the process got no CPU (``why`` gives the figures) — nobody's line is to
+    blame. ``internal``: the loop was busy in beehave's own code (``where`` is there)."""
 
     subject: str
     who: str
     where: str
+    starved: bool = False
+    internal: bool = False
+    why: str = ""
+
+    def describe(self, lag_s: float) -> str:
+        """``lag_s`` of it in words, ending with what to do about it."""
+        if self.starved:
+            return (f"did not run for {lag_s:.3f} s: the process was starved of CPU for "
+                    f"{lag_s:.3f} s ({self.why}); a loaded machine or a stopped process, "
+                    f"not a blocking callback: nothing in your logics or HALs to fix")
+        if self.internal:
+            return (f"was held for {lag_s:.3f} s by {self.who} inside beehave itself at "
+                    f"{self.where}, not by your code; if it repeats on an idle machine, "
+                    f"report it with this line")
+        return f"blocked for {lag_s:.3f} s by {self.who} at {self.where}; {_RULE}"
 
 
 def find_culprit(loop: asyncio.AbstractEventLoop, thread_id: int) -> Culprit:
@@ -67,7 +111,14 @@ def find_culprit(loop: asyncio.AbstractEventLoop, thread_id: int) -> Culprit:
     # Both reads are made from another thread while the loop is stuck: the task dict and
     # the frame do not change under us for as long as it stays stuck.
     task = asyncio.current_task(loop)
-    where = _where(sys._current_frames().get(thread_id))
+    frame = sys._current_frames().get(thread_id)
+    where = _where(frame)
+    if where is None:  # only the standard library and beehave on the stack
+        inner = _where(frame, skip_beehave=False) or "unknown"
+        who = ("a callback outside any task" if task is None
+               else f"task {task.get_name()!r}")
+        return Culprit(task.get_name() if task is not None else "callback", who, inner,
+                       internal=True)
     if task is None:
         return Culprit("callback", "a callback outside any task", where)
     name = task.get_name()
@@ -81,17 +132,35 @@ def find_culprit(loop: asyncio.AbstractEventLoop, thread_id: int) -> Culprit:
     return Culprit(f"task:{name}", f"task {name!r}", where)
 
 
-def _where(frame: FrameType | None) -> str:
-    """The innermost frame outside the standard library: the user's line that blocks."""
-    innermost = frame
+def _where(frame: FrameType | None, *, skip_beehave: bool = True) -> str | None:
+    """The innermost frame outside the standard library (and beehave's own package): the
+    user's line that blocks; None when there is none (the loop is in beehave's code, or
+    idle). A library's frame (site-packages) counts: the user called it."""
     while frame is not None:
         filename = os.path.normcase(os.path.abspath(frame.f_code.co_filename))
-        if not filename.startswith(_STDLIB) or "site-packages" in filename:
+        if (not filename.startswith(_STDLIB) or "site-packages" in filename) and not (
+                skip_beehave and filename.startswith(_BEEHAVE)):
             return f"{frame.f_code.co_filename}:{frame.f_lineno} in {frame.f_code.co_name}"
         frame = frame.f_back
-    if innermost is None:
-        return "unknown"
-    return f"{innermost.f_code.co_filename}:{innermost.f_lineno} in {innermost.f_code.co_name}"
+    return None
+
+
+def loop_is_idle(frame: FrameType | None) -> bool:
+    """Whether the loop's thread, whose innermost frame is ``frame``, waits for work in its
+    poll — then nothing holds the loop, and a late answer means it got no CPU."""
+    if frame is None:
+        return False
+    code = frame.f_code
+    filename = os.path.normcase(os.path.abspath(code.co_filename))
+    if filename.startswith(_STDLIB) and "site-packages" not in filename:
+        base = os.path.basename(filename)
+        if base == "selectors.py":  # asyncio's loop polls in select(), called by _run_once
+            caller = frame.f_back
+            return caller is not None and caller.f_code.co_name == "_run_once" and \
+                os.path.basename(caller.f_code.co_filename) == "base_events.py"
+        return (base, code.co_name) in _IDLE_FRAMES
+    # uvloop under the low level's own thread: its C loop runs under _thread_main.
+    return filename.startswith(_BEEHAVE) and code.co_name == "_thread_main"
 
 
 class LoopWatchdog:
@@ -119,6 +188,8 @@ class LoopWatchdog:
         self._watched: set[concurrent.futures.Future[Any]] = set()
         self._blocked: LoopBlocked | None = None
         self._warned: Culprit | None = None  # who held the loop when it was last warned about
+        # Orders _warned against the loop's answer (the loop thread and this one).
+        self._answer_lock = threading.Lock()
         self._thread = threading.Thread(target=self._main, name="beehave-lowlevel-watchdog",
                                         daemon=True)
         # Subscribers run here, not in _thread: see the module docstring.
@@ -194,6 +265,7 @@ class LoopWatchdog:
         while not self._stop.is_set():
             self._answered.clear()
             sent = time.monotonic()
+            cpu = time.process_time()
             try:
                 self.loop.call_soon_threadsafe(self._answer, sent)
             except RuntimeError:  # the loop closed
@@ -201,47 +273,85 @@ class LoopWatchdog:
             if self._answered.wait(self.warn_s):
                 self._stop.wait(self._period_s)
                 continue
+            woke = time.monotonic()
             if self._stop.is_set():
                 return
             try:
-                self._held(sent)
+                self._held(sent, woke, cpu)
             except Exception:  # the watchdog must outlive its own bugs: log, keep watching
                 log.exception("%s event loop watchdog failed while the loop was held",
                               self.name)
+
+    def diagnose(self, sent: float, woke: float, cpu: float, *,
+                 waited_s: float | None = None) -> Culprit:
+        """Who held the loop since ``sent`` (monotonic), seen by a watchdog that woke at
+        ``woke`` from a wait of ``waited_s`` (default ``warn_s``) begun at ``sent``;
+        ``cpu``: ``time.process_time()`` at ``sent``."""
+        # Not the loop thread's own CPU clock or scheduler state: a callback descheduled
+        # mid-step and one asleep in time.sleep both show little CPU, and while this
+        # thread reads them it holds the GIL, which a running loop thread then waits for.
+        frame = sys._current_frames().get(self.thread_id)
+        late_s = woke - (sent + (self.warn_s if waited_s is None else waited_s))
+        idle = loop_is_idle(frame)
+        if idle or late_s > max(self.warn_s, STARVED_LATE_S):
+            wall_s = time.monotonic() - sent
+            cpu_s = time.process_time() - cpu
+            how = ("the loop was idle, waiting for work" if idle else
+                   f"the watchdog itself woke {late_s:.3f} s late")
+            return Culprit("process", "CPU starvation of the process", "", starved=True,
+                           why=f"it used {cpu_s:.3f} s of CPU in {wall_s:.3f} s; {how}")
+        return find_culprit(self.loop, self.thread_id)
 
     def _notify(self) -> None:
         while (event := self._outbox.get()) is not None:
             self.events.emit(event)  # EventBus.emit logs a failing subscriber, never raises
 
-    def _held(self, sent: float) -> None:
-        culprit = find_culprit(self.loop, self.thread_id)
+    def _held(self, sent: float, woke: float, cpu: float) -> None:
+        culprit = self.diagnose(sent, woke, cpu)
         lag = time.monotonic() - sent
         self.warnings += 1
-        self._warned = culprit
-        log.warning("%s event loop blocked for %.3f s by %s at %s; %s", self.name, lag,
-                    culprit.who, culprit.where, _RULE)
-        self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject, detail={
-            "culprit": culprit.who, "where": culprit.where, "blocked_s": round(lag, 3),
-            "ended": False}))
+        log.warning("%s event loop %s", self.name, culprit.describe(lag))
+        self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject,
+                         detail=_detail(culprit, lag, ended=False)))
+        with self._answer_lock:
+            # Set after the "blocked" event, so the loop's "ended" one follows it; an
+            # answer that came while we looked found nothing to report: report it here.
+            answered = self._answered.is_set()
+            if not answered:
+                self._warned = culprit
+        if answered:
+            self._report_answer(culprit, lag)
+            return
         declared = False
-        while not self._answered.wait(self._period_s if declared
-                                      else max(0.0, sent + self.block_s - time.monotonic())):
+        while True:
+            waited = (self._period_s if declared
+                      else max(0.0, sent + self.block_s - time.monotonic()))
+            began, began_cpu = time.monotonic(), time.process_time()
+            if self._answered.wait(waited):
+                break
             if self._stop.is_set():
                 return
-            if not declared:
-                # Read again: the first look may have caught the loop between two steps.
-                culprit = find_culprit(self.loop, self.thread_id)
-                log.error("%s", self._error(culprit, time.monotonic() - sent))
+            if not declared or culprit.starved:
+                # Read again: the first look may have caught the loop between two steps
+                # (and a process that was starved may since have run into a real block).
+                culprit = self.diagnose(began, time.monotonic(), began_cpu, waited_s=waited)
+                with self._answer_lock:
+                    if not self._answered.is_set():  # else the answer reported the old one
+                        self._warned = culprit
+                if not declared:
+                    log.error("%s", self._error(culprit, time.monotonic() - sent))
                 declared = True
             # Every period while it lasts: callers that started waiting meanwhile fail too
             # (at most one period late, so a loop that just recovered is not misjudged).
             self._declare_blocked(culprit, time.monotonic() - sent)
 
     def _error(self, culprit: Culprit, lag: float) -> LoopBlocked:
-        return LoopBlocked(
-            f"the {self.name} event loop has been blocked for {lag:.3f} s (more than "
-            f"{self.block_s} s) by {culprit.who} at {culprit.where}; {_RULE}",
-            culprit=culprit.who, where=culprit.where, blocked_s=lag)
+        what = culprit.describe(lag)
+        if not culprit.starved and not culprit.internal:
+            what = (f"has been blocked for {lag:.3f} s (more than {self.block_s} s) by "
+                    f"{culprit.who} at {culprit.where}; {_RULE}")
+        return LoopBlocked(f"the {self.name} event loop {what}", culprit=culprit.who,
+                           where=culprit.where, blocked_s=lag)
 
     def _declare_blocked(self, culprit: Culprit, lag: float) -> None:
         error = self._error(culprit, lag)
@@ -253,18 +363,38 @@ class LoopWatchdog:
 
     def _answer(self, sent: float) -> None:
         # In the loop's thread: it runs again.
-        culprit = self._warned
-        self._warned = None
-        self._blocked = None
-        self._answered.set()
+        with self._answer_lock:
+            culprit = self._warned
+            self._warned = None
+            self._blocked = None
+            self._answered.set()
         if culprit is not None:
-            held = time.monotonic() - sent
+            self._report_answer(culprit, time.monotonic() - sent)
+
+    def _report_answer(self, culprit: Culprit, held: float) -> None:
+        """The loop runs again after ``held`` seconds: say so, after the "blocked" event."""
+        if culprit.starved:
+            log.warning("%s event loop runs again after %.3f s (the process was starved of "
+                        "CPU)", self.name, held)
+        else:
             log.warning("%s event loop answers again after %.3f s (held by %s at %s)",
                         self.name, held, culprit.who, culprit.where)
-            # Through the notifier too: after the "blocked" event, never before it.
-            self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject, detail={
-                "culprit": culprit.who, "where": culprit.where, "blocked_s": round(held, 3),
-                "ended": True}))
+        # Through the notifier too: after the "blocked" event, never before it.
+        self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject,
+                         detail=_detail(culprit, held, ended=True)))
+
+
+def _detail(culprit: Culprit, lag: float, *, ended: bool) -> dict[str, Any]:
+    """A LOOP_BLOCKED event's detail: who, where, how long, whether it ended, and whether
+    the process was starved of CPU (then ``why`` has the figures and nobody is blamed)."""
+    detail: dict[str, Any] = {"culprit": culprit.who, "where": culprit.where,
+                              "blocked_s": round(lag, 3), "ended": ended,
+                              "starved": culprit.starved}
+    if culprit.why:
+        detail["why"] = culprit.why
+    if culprit.internal:
+        detail["internal"] = True
+    return detail
 
 
 def _fail(future: concurrent.futures.Future[Any], error: BaseException) -> None:

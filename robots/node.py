@@ -817,6 +817,15 @@ class PybulletSimulator:
     def main(argv: list[str]) -> int:
         return sim_main(argv)
 
+    @staticmethod
+    def world_data(world: str) -> dict[str, Any]:
+        """The world ``world`` — a shipped world's name (``warehouse``) or a YAML path, as
+        ``sim: world:`` and ``beehave sim`` take it — as JSON data (the web view's map).
+        Raises :class:`~robots.errors.UnknownWorld` listing the shipped worlds, or
+        :class:`~robots.errors.WorldError`."""
+        data: dict[str, Any] = load_world(world).model_dump(mode="json")
+        return data
+
 
 PYBULLET = PybulletSimulator()
 

@@ -130,6 +130,20 @@ class ControlPlane:
         (:class:`~beehave.errors.ConstructorFailed`). The switch then runs in a manager
         thread; its outcome arrives as events (``switch_completed``, or
         ``switch_superseded`` when a later request overtook it)."""
+        checked = self.check_switch(name, params)
+        self.high.request_switch(name, **checked)
+        return {"requested": name, "params": to_json(checked)}
+
+    def check_switch(self, name: str, params: Mapping[str, Any] | None = None
+                     ) -> dict[str, Any]:
+        """What :meth:`switch` checks before anything stops, without switching: raises
+        :class:`~beehave.errors.BadRequest`, :class:`~beehave.errors.UnknownBehavior`
+        (listing the names) or :class:`~beehave.errors.InvalidParameters` (naming the
+        parameter and the type it expects); returns the parameters converted to the
+        constructor's annotated types, ready for ``high.request_switch(name, **params)``
+        (which still reports a constructor that raises). For adapters that need the
+        behaviour object the switch creates (the ROS 2 ``execute_behavior`` goal follows
+        it to its end)."""
         if not isinstance(name, str):
             raise BadRequest(f"{self.name}: the behaviour to switch to must be a string, got "
                              f"{type(name).__name__} {name!r}; registered: "
@@ -139,9 +153,7 @@ class ControlPlane:
             raise UnknownBehavior(name, names)
         checked = _check_params(name, params)
         cls = dict(self.high._registry)[name][0]  # same package: the framework's manager
-        checked = _check_types(name, cls, checked)
-        self.high.request_switch(name, **checked)
-        return {"requested": name, "params": to_json(checked)}
+        return _check_types(name, cls, checked)
 
     def stop(self) -> dict[str, Any]:
         """Switch to ``idle``: every action is interrupted and ends in its safe state."""
