@@ -6,21 +6,23 @@ import logging
 import math
 import time
 from collections import Counter
-from typing import TYPE_CHECKING, Any, ClassVar, Self, TypeVar
+from typing import Any, ClassVar, Self, TypeVar
 
 from beehave.action import Action
+from beehave.attach import attached
 from beehave.errors import ChildFailed, Interrupted, NotASubclass
 from beehave.events import Event, EventKind
 from beehave.runnable import Runnable
 from beehave.status import Status
 
-if TYPE_CHECKING:
-    from beehave.agents.fleet import Fleet
-
 log = logging.getLogger(__name__)
 
 A = TypeVar("A", bound=Action)
 B = TypeVar("B", bound="Behavior")
+
+
+NO_FLEET = ("no fleet is attached to this manager: make a beehave.agents.fleet.Fleet(agent) "
+            "and call fleet.attach(manager)")
 
 
 class Behavior(Runnable):
@@ -87,12 +89,11 @@ class Behavior(Runnable):
         return action
 
     @property
-    def fleet(self) -> Fleet:
-        """The shared state of every agent of the fleet (:mod:`beehave.agents.fleet`), once
-        a ``Fleet`` is attached to this behaviour's manager."""
-        from beehave.agents.fleet import fleet_of  # lazy: the fleet needs rclpy
-
-        return fleet_of(self.manager)
+    def fleet(self) -> Any:
+        """The shared state of every agent of the fleet (a
+        :class:`beehave.agents.fleet.Fleet`), once one is attached to this behaviour's
+        manager (``Fleet.attach(manager)``)."""
+        return attached(self.manager, "fleet", missing=NO_FLEET)
 
     def start_behavior(self, behavior: B) -> B:
         """Start ``behavior`` as a sub-behaviour in its own thread and return it."""

@@ -335,14 +335,11 @@ def _close_recording(recorder: Recorder, *, verbose: bool) -> int:
 # ---- --http: the HTTP/WebSocket interface and web view (docs/http.md) -------------------
 
 def http_address_arg(text: str) -> tuple[str, int]:
-    """An argparse ``type`` for ``[HOST:]PORT`` (127.0.0.1 unless a host is given)."""
-    from beehave.errors import ConfigError
-    from beehave.interfaces.http.server import parse_address
+    """An argparse ``type`` for ``[HOST:]PORT`` (imported when used: the server needs
+    fastapi)."""
+    from beehave.interfaces.http.server import address_arg
 
-    try:
-        return parse_address(text)
-    except ConfigError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
+    return address_arg(text)
 
 
 def _add_http_options(parser: argparse.ArgumentParser, *, world: bool) -> None:

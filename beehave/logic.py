@@ -35,17 +35,15 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Self, TypeVar, overload
+from typing import Any, Self, TypeVar, overload
 
+from beehave.attach import attached
 from beehave.blackboard import Blackboard, BlackboardClient
 from beehave.errors import AlreadyStarted, BeehaveError, ChildFailed, HALError
 from beehave.events import Event, EventBus, EventKind
 from beehave.hal import HAL, HALManager, _wait_bounded_all
 from beehave.status import Status
 from beehave.substitutes import Substitutions
-
-if TYPE_CHECKING:
-    from beehave.agents.fleet import Fleet
 
 log = logging.getLogger(__name__)
 
@@ -169,12 +167,14 @@ class Logic(abc.ABC):
         return logic
 
     @property
-    def fleet(self) -> Fleet:
-        """The shared state of every agent of the fleet (:mod:`beehave.agents.fleet`), once
-        a ``Fleet`` is attached to this low level; available inside run()."""
-        from beehave.agents.fleet import fleet_of  # lazy: the fleet needs rclpy
+    def fleet(self) -> Any:
+        """The shared state of every agent of the fleet (a
+        :class:`beehave.agents.fleet.Fleet`), once one is attached to this low level;
+        available inside run()."""
+        from beehave.behavior import NO_FLEET
 
-        return fleet_of(self._require_runtime("self.fleet").blackboard)
+        return attached(self._require_runtime("self.fleet").blackboard, "fleet",
+                        missing=NO_FLEET)
 
     def _require_runtime(self, what: str) -> Runtime:
         if self._runtime is None or self._status is not Status.RUNNING:

@@ -40,7 +40,6 @@ import logging
 import math
 import threading
 import time
-import weakref
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -50,6 +49,8 @@ from typing import TYPE_CHECKING, Any, Self
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from beehave.attach import attach, attached, detach
+from beehave.behavior import NO_FLEET
 from beehave.errors import ConfigError
 from beehave.hal import check_duration_s
 
@@ -230,7 +231,7 @@ class Fleet:
     def attach(self, manager: object) -> None:
         """Make this ``self.fleet`` of the Behaviors and Actions of a
         HighLevelBehaviorManager, or of the Logics of a LowLevelBehaviorManager."""
-        _ATTACHED[_key(manager)] = self
+        attach(_key(manager), "fleet", self)
 
     # ---- lifecycle ---------------------------------------------------------------------
 
@@ -239,9 +240,7 @@ class Fleet:
         if self._closed:
             return
         self._closed = True
-        for key, fleet in list(_ATTACHED.items()):
-            if fleet is self:
-                del _ATTACHED[key]
+        detach(self, "fleet")
         node = self.agent.node
         for kind, entity in (("timer", self._timer), ("subscription", self._sub),
                              ("publisher", self._pub)):
@@ -261,7 +260,6 @@ class Fleet:
         return f"<Fleet of {self.name!r}: peers {sorted(self._peers)}>"
 
 
-_ATTACHED: weakref.WeakKeyDictionary[object, Fleet] = weakref.WeakKeyDictionary()
 
 
 def _key(manager: object) -> object:
@@ -276,8 +274,5 @@ def _key(manager: object) -> object:
 def fleet_of(manager: object) -> Fleet:
     """The fleet attached to a manager (a HighLevelBehaviorManager, or a
     LowLevelBehaviorManager's blackboard)."""
-    fleet = _ATTACHED.get(_key(manager))  # keyed as attach() keys it
-    if fleet is None:
-        raise ConfigError("no fleet is attached to this manager: make a "
-                          "beehave.agents.fleet.Fleet(agent) and call fleet.attach(manager)")
+    fleet: Fleet = attached(_key(manager), "fleet", missing=NO_FLEET)  # keyed as attach() does
     return fleet

@@ -39,7 +39,6 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from beehave.cli import http_address_arg
 from behaviours.demos.checks import Processes, checks_table, process_failures
 from behaviours.fleet.mission import ORDERS_QOS, ORDERS_TOPIC
 from behaviours.fleet.site import site
@@ -374,6 +373,12 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
 SCENARIOS = ("factory", "droid", "follow", "handover", "serve")
 
 
+
+def _http_address(text: str) -> tuple[str, int]:
+    from beehave.interfaces.http.server import address_arg  # fastapi: only when asked
+
+    return address_arg(text)
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     pre = argparse.ArgumentParser(prog="beehave fleet", add_help=False)
@@ -422,7 +427,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="as fast as the machine goes (lockstep), not at real time")
     parser.add_argument("--out", default="out", metavar="FOLDER",
                         help="where fleet.png, fleet_report.json and the logs go")
-    parser.add_argument("--http", type=http_address_arg, default=None, metavar="[HOST:]PORT",
+    parser.add_argument("--http", type=_http_address, default=None, metavar="[HOST:]PORT",
                         help="serve the fleet's live tables and the map (docs/http.md) on "
                              "HOST:PORT (127.0.0.1 unless given; 0: a free port)")
     parser.add_argument("--order-below", type=float, default=0.6, metavar="FRACTION",

@@ -49,6 +49,16 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def address_arg(text: str) -> tuple[str, int]:
+    """An argparse ``type`` for ``[HOST:]PORT`` (127.0.0.1 unless a host is given)."""
+    import argparse
+
+    try:
+        return parse_address(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def parse_address(text: str) -> tuple[str, int]:
     """``PORT``, ``HOST:PORT`` or ``[IPv6]:PORT`` → (host, port); the host defaults to
     127.0.0.1 and port 0 picks a free one. :class:`ConfigError` says what is wrong."""
