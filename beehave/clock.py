@@ -152,7 +152,7 @@ class SimClock(WallClock):
                     heapq.heapify(self._waiters)
 
 
-class PausableClock:
+class PausableClock(WallClock):
     """The clock behaviours and actions follow: the manager's clock with its pauses cut out.
 
     While :meth:`freeze` holds (``hl.pause()``), time stands still for them: :meth:`now`
@@ -171,8 +171,21 @@ class PausableClock:
         self._waiting: dict[threading.Condition, int] = {}
         self._local = threading.local()
 
-    def __getattr__(self, name: str) -> Any:
+    def __getattr__(self, name: str) -> Any:  # announcing, set_time, started …
         return getattr(self.base, name)
+
+    # What the managers tell their clock goes to the manager's clock.
+    def track_job(self, job: Job) -> Job:
+        return self.base.track_job(job)
+
+    def busy(self) -> AbstractContextManager[None]:
+        return self.base.busy()
+
+    def blocked(self, predicate: Callable[[], bool]) -> AbstractContextManager[None]:
+        return self.base.blocked(predicate)
+
+    def free_running(self) -> AbstractContextManager[None]:
+        return self.base.free_running()
 
     @property
     def frozen(self) -> bool:

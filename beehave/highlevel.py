@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import functools
 import inspect
 import logging
 import sys
@@ -11,8 +12,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from types import TracebackType
-from typing import TYPE_CHECKING, Any, Self
+from typing import TYPE_CHECKING, Any
 
 from beehave.behavior import Behavior, Idle
 from beehave.blackboard import Blackboard, BlackboardView
@@ -29,6 +29,7 @@ from beehave.errors import (
 )
 from beehave.events import Event, EventBus, EventCallback, EventKind
 from beehave.hal import check_duration_s
+from beehave.lifecycle import Running
 from beehave.locks import TypeLocks
 from beehave.runnable import Runnable, current
 from beehave.status import Status
@@ -68,7 +69,7 @@ class _Request:
         self.done.set()
 
 
-class HighLevelBehaviorManager:
+class HighLevelBehaviorManager(Running):
     """Runs exactly one top-level behaviour at a time, registered by name.
 
     ``switch(name)`` interrupts the running one, waits until every sub-behaviour and
@@ -278,13 +279,6 @@ class HighLevelBehaviorManager:
     def _holding_role(self) -> bool:
         return getattr(_tls, "holding", None) is self
 
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.shutdown()
 
     # ------------------------------------------------------------------ switching
     def switch(self, name: str, **params: Any) -> Behavior:
@@ -360,7 +354,10 @@ class HighLevelBehaviorManager:
         with self._cond:
             if self._state is not ManagerState.RUNNING:
                 raise ManagerShutdown(f"cannot pause: the manager is {self._state.value}")
-        self._pool.submit("beehave:pause", lambda: self._pause_now(source))
+        def job() -> None:
+            self._pause_now(source)
+
+        self._pool.submit("beehave:pause", job)
 
     def _source(self) -> str:
         """Who in this manager asks (recordings replay only what came from outside)."""
@@ -411,7 +408,7 @@ class HighLevelBehaviorManager:
             for action, done in waits:
                 if action._pause_hooked:
                     self._pool.submit(f"beehave:on_pause:{action.path}",
-                                      lambda a=action, d=done: self._hook_pause(a, d))
+                                      functools.partial(self._hook_pause, action, done))
             stuck: list[Action] = []
             for action, done in waits:
                 with self.clock.blocked(done.is_set):

@@ -14,8 +14,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from types import TracebackType
-from typing import TYPE_CHECKING, Any, Literal, Self
+from typing import TYPE_CHECKING, Any, Literal
 
 from beehave.behavior import Behavior
 from beehave.clock import SimClock, WallClock
@@ -30,6 +29,7 @@ from beehave.errors import (
 )
 from beehave.hal import HAL
 from beehave.highlevel import HighLevelBehaviorManager
+from beehave.lifecycle import Running
 from beehave.logic import Logic
 from beehave.lowlevel import LowLevelBehaviorManager
 
@@ -53,7 +53,7 @@ HIGH_NODE = "beehave_high_level"
 LOW_NODE = "beehave_low_level"
 
 
-class Robot:
+class Robot(Running):
     """Builds, starts and stops a robot described by a :class:`RobotConfig`.
 
     Use it as a context manager. :meth:`shutdown` interrupts the actions (safe states
@@ -310,13 +310,6 @@ class Robot:
                 first.add_note(f"also while shutting down: {type(later).__name__}: {later}")
             raise first
 
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.shutdown()
 
 
 def _register_arbiters(ll: LowLevelBehaviorManager, cfg: RobotConfig,

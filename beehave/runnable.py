@@ -265,7 +265,7 @@ class Runnable(abc.ABC):
         """Wait ``seconds`` (``math.inf``: until interrupted); return False at once when
         interrupted, True otherwise. While the manager is paused, time stands still: the
         sleep goes on with what it had left after ``resume()``."""
-        clock: WallClock = self._manager.run_clock if self._manager is not None else _WALL
+        clock = self._manager.run_clock if self._manager is not None else _WALL
         timeout_s = _timeout(seconds, f"{self.path}: sleep(seconds)")
         with self._cond:
             clock.wait(self._cond, self._wake_reason, timeout_s)

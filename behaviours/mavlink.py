@@ -113,7 +113,7 @@ class MavlinkAction(Action):
         self.heartbeat_timeout_s = heartbeat_timeout_s
         self.connect_timeout_s = connect_timeout_s
         self._link: MavlinkLink | None = None
-        self.holding = False  # paused: in the hold mode, run() keeps its place
+        self.pause_held = False  # paused: in the hold mode, run() keeps its place
         self._mode_before_pause: str | None = None
         #: The mode this action drives the vehicle in (what a resume gives back; the
         #: heartbeat's mode may lag a change just made).
@@ -209,11 +209,11 @@ class MavlinkAction(Action):
         if self._mode_before_pause is None:
             self._mode_before_pause = self.drive_mode
         self._held.clear()
-        self.holding = True
+        self.pause_held = True
         self._hold_now()
 
     def _hold_if_paused(self) -> None:
-        if self.holding and not self._held.is_set():
+        if self.pause_held and not self._held.is_set():
             self._held.set()
             self._hold_now()
 
@@ -230,13 +230,13 @@ class MavlinkAction(Action):
             if link is not None and link.alive and mode is not None:
                 link.set_mode(mode)
         finally:
-            self.holding = False
+            self.pause_held = False
 
     def operator_held(self, link: MavlinkLink, *, resume_in: str) -> bool:
         """Whether someone else (a ground station) put the vehicle in its hold mode; if so,
         the robot is paused (see the module docstring), ``resume_in`` is the mode the
         resume gives back, and True is returned."""
-        if self.holding or link.kind is None or link.mode != HOLD_MODE[link.kind]:
+        if self.pause_held or link.kind is None or link.mode != HOLD_MODE[link.kind]:
             return False
         if self._mode_before_pause is None:  # once: the pause takes effect in a moment
             log.warning("%s: %s was put in %s from outside; pausing the robot (resume it "
@@ -376,7 +376,7 @@ class GotoPosition(MavlinkAction):
                 raise MavlinkTimeout(f"{self.path}: {left:.2f} m from the target after "
                                      f"{self.timeout_s} s")
             self.check_alive(link, "going to a position")
-            if self.holding or self.operator_held(link, resume_in="GUIDED"):
+            if self.pause_held or self.operator_held(link, resume_in="GUIDED"):
                 self.pause(0.1)  # stands still while paused
                 continue
             link.goto_local(north, east, alt)
@@ -456,7 +456,7 @@ class RunMission(MavlinkAction):
                 if clock.now() > deadline:
                     raise MavlinkTimeout(f"{self.path}: mission not done after "
                                          f"{self.timeout_s} s (reached {self.reached})")
-                if self.holding or self.operator_held(link, resume_in="AUTO"):
+                if self.pause_held or self.operator_held(link, resume_in="AUTO"):
                     self.pause(0.1)  # stands still while paused
                     anchor, anchor_at = link.local_position(), _vehicle_time_s(link)
                     continue

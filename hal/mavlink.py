@@ -58,8 +58,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from types import TracebackType
-from typing import Any, ClassVar, Self
+from typing import Any, ClassVar
 
 from beehave import runnable as _runnable
 from beehave.errors import (
@@ -72,6 +71,7 @@ from beehave.errors import (
     VehicleLost,
 )
 from beehave.hal import HAL, check_duration_s
+from beehave.lifecycle import Closing
 
 os.environ.setdefault("MAVLINK20", "1")  # MISSION_*_INT and mission_type need MAVLink 2
 from pymavlink import mavutil  # type: ignore[import-untyped]  # noqa: E402
@@ -279,7 +279,7 @@ def _check_url(url: object) -> str:
                       f"{', '.join(_CONNECTION_FORMS)}")
 
 
-class Inbox:
+class Inbox(Closing):
     """Messages of some types that arrive after it was opened (:meth:`MavlinkLink.listen`),
     for a protocol step that sends, then waits for the answer. Close it (``with``)."""
 
@@ -327,19 +327,13 @@ class Inbox:
     def close(self) -> None:
         self.link._remove_inbox(self)
 
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
 
 
 MessageCallback = Callable[[Any], None]
 LinkCallback = Callable[[bool], None]
 
 
-class MavlinkLink:
+class MavlinkLink(Closing):
     """One MAVLink connection to one vehicle, with a reader thread it owns.
 
     Made by :func:`open_link` (shared per connection string); :meth:`close` ends it once
@@ -855,12 +849,6 @@ class MavlinkLink:
         except OSError:
             pass
 
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return (f"<MavlinkLink {self.url} system={self.system_id} kind={self.kind} "

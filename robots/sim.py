@@ -50,11 +50,12 @@ from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from concurrent.futures import Future
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Self, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import pybullet  # type: ignore[import-not-found]  # no stubs
 from pybullet_utils.bullet_client import BulletClient  # type: ignore[import-untyped]
 
+from beehave.lifecycle import Running
 from robots.emili import Emili
 from robots.errors import SimulationError, UnknownRobot
 from robots.kobuki import Kobuki
@@ -65,7 +66,6 @@ from robots.robot import URDF_DIR, SimRobot
 from robots.world import Box, Cylinder, Station, World, load_world
 
 if TYPE_CHECKING:
-    from types import TracebackType
 
     from beehave.planning import GridPlanner
 
@@ -126,7 +126,7 @@ class _OnStep:
         self.every = every
 
 
-class Simulation:
+class Simulation(Running):
     """A world with its robots in pybullet (DIRECT mode: no window), stepped at a fixed rate.
 
     ``world`` is a :class:`~robots.world.World`, a YAML path or a shipped world's name.
@@ -259,13 +259,7 @@ class Simulation:
                 self._state = SimState.CLOSED
             self._client.disconnect()
 
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
+    _stop_with = "close"
 
     # ---- time -----------------------------------------------------------------------
 

@@ -407,7 +407,7 @@ def test_a_pause_holds_the_rover_and_the_resume_finishes_its_mission(
     hl.pause()
     assert wait_until(lambda: vehicles.rover.mode == "HOLD")
     assert held_still(vehicles, 1.5) < 0.02
-    assert mission.status is Status.RUNNING and mission.holding  # kept its place
+    assert mission.status is Status.RUNNING and mission.pause_held  # kept its place
     hl.resume()
     assert wait_until(lambda: vehicles.rover.mode == "AUTO"), [e.as_dict() for e in events]
     assert mission.wait(WALL_TIMEOUT_S)
@@ -423,7 +423,7 @@ def test_a_ground_station_hold_pauses_the_robot_until_beehave_resumes_it(
     gcs = open_link(vehicles.rover_url)  # MAV_CMD_DO_SET_MODE, as a ground station sends it
     cleanup(gcs.close)
     gcs.request_mode("HOLD")
-    assert wait_until(lambda: hl.paused and mission.holding)
+    assert wait_until(lambda: hl.paused and mission.pause_held)
     assert mission.status is Status.RUNNING  # not a failed mission: the operator holds it
     assert held_still(vehicles, 1.0) < 0.02
     hl.resume()

@@ -44,8 +44,7 @@ import uuid
 import weakref
 from collections import deque
 from collections.abc import Callable, Iterable
-from types import TracebackType
-from typing import TYPE_CHECKING, Any, Self
+from typing import TYPE_CHECKING, Any
 
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
@@ -76,6 +75,7 @@ from beehave.errors import (
 )
 from beehave.events import Event, EventBus, EventKind
 from beehave.hal import check_duration_s
+from beehave.lifecycle import Closing
 
 if TYPE_CHECKING:
     from rclpy.node import Node
@@ -145,7 +145,7 @@ def _waiter() -> tuple[threading.Condition | None, Callable[[], bool], str]:
     return node._cond, lambda: node._interrupt_requested, node.path
 
 
-class Mailbox:
+class Mailbox(Closing):
     """Messages for one consumer, in arrival order (made by :meth:`Agent.mailbox`,
     :meth:`Agent.conversation`, or the agent's own :attr:`Agent.inbox`).
 
@@ -293,12 +293,6 @@ class Mailbox:
         self.agent._remove_mailbox(self)
         self._wake()
 
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
 
 
 class Conversation(Mailbox):
@@ -375,7 +369,7 @@ def agent_of(manager: HighLevelBehaviorManager) -> Agent:
     return agent
 
 
-class Agent:
+class Agent(Closing):
     """A named agent: a directory entry kept alive by a lease, an inbox, and the API to
     talk (see the module doc).
 
@@ -899,12 +893,6 @@ class Agent:
     def closed(self) -> bool:
         return self._closed
 
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"<Agent {self.name!r} {self._state.value}>"

@@ -43,8 +43,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import TracebackType
-from typing import TYPE_CHECKING, Any, Self
+from typing import TYPE_CHECKING, Any
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
@@ -53,6 +52,7 @@ from beehave.attach import attach, attached, detach
 from beehave.behavior import NO_FLEET
 from beehave.errors import ConfigError
 from beehave.hal import check_duration_s
+from beehave.lifecycle import Closing
 
 if TYPE_CHECKING:
     from beehave.agents.agent import Agent
@@ -109,7 +109,7 @@ def _uses_sim_time(node: Any) -> bool:
                 and node.get_parameter("use_sim_time").value)
 
 
-class Fleet:
+class Fleet(Closing):
     """This agent's view of the fleet, and its own contribution (see the module doc).
 
     ``agent``: the :class:`~beehave.agents.Agent` whose node and name it uses. ``state``:
@@ -249,12 +249,6 @@ class Fleet:
             except Exception:  # the node went first (its owner shut it down)
                 log.debug("fleet of %r: destroying its %s failed", self.name, kind)
 
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"<Fleet of {self.name!r}: peers {sorted(self._peers)}>"

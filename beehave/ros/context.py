@@ -5,14 +5,15 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Sequence
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 import rclpy
 from rclpy.context import Context
 from rclpy.experimental.events_executor import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+
+from beehave.lifecycle import Running
 
 log = logging.getLogger(__name__)
 
@@ -26,7 +27,7 @@ def in_executor_thread() -> bool:
     return bool(getattr(_executor_thread, "active", False))
 
 
-class RosContext:
+class RosContext(Running):
     """Owns an rclpy :class:`~rclpy.context.Context`, the nodes created through it, and one
     ``EventsExecutor`` spun by a framework thread.
 
@@ -104,10 +105,3 @@ class RosContext:
         if self.context.ok():
             rclpy.shutdown(context=self.context)
 
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.shutdown()
