@@ -162,10 +162,22 @@ class ActionState:
 
 @dataclass(frozen=True)
 class Drive:
-    """Drive to ``node`` (along ``edge``, None for an order's first node)."""
+    """Drive to ``node`` (along ``edge``, None for an order's first node), and on through
+    ``then`` without stopping."""
 
     node: Node
     edge: Edge | None
+    then: tuple[tuple[Node, Edge], ...] = ()
+    """The released nodes after ``node`` (each with the edge that leads to it) that the
+    AGV drives on to: it passes ``node`` and all of them but the last without stopping,
+    since none of those has an action and no edge among them has one (VDA 5050 2.1: the
+    AGV stops only where an action or the end of the base needs it). Empty: stop at
+    ``node``. Report each with ``node_reached`` as it is passed."""
+
+    @property
+    def stop(self) -> Node:
+        """The node the AGV stops at: the last of ``then``, else ``node``."""
+        return self.then[-1][0] if self.then else self.node
 
 
 @dataclass(frozen=True)
@@ -579,7 +591,26 @@ class AgvOrders:
                 if pending:
                     order.todo.extend(pending)
                     return RunAction(self._actions[pending[0]])
-            return Drive(node, edge)
+            return Drive(node, edge, self._drive_on(node))
+
+    def _drive_on(self, node: Node) -> tuple[tuple[Node, Edge], ...]:
+        """The released nodes after ``node`` the AGV may drive on to without stopping
+        (see :attr:`Drive.then`); called with the lock held."""
+        order = self._order
+        then: list[tuple[Node, Edge]] = []
+        if node.actions or len(order.nodes) < 2 or not order.nodes[1].released:
+            return ()
+        edges = {e.sequence_id: e for e in order.edges if e.released}
+        last = node
+        for following in order.nodes[1:]:
+            if last.actions or not following.released:
+                break
+            edge = edges.get(following.sequence_id - 1)
+            if edge is None or edge.end_node_id != following.node_id or edge.actions:
+                break
+            then.append((following, edge))
+            last = following
+        return tuple(then)
 
     def node_reached(self, node: Node) -> None:
         """The AGV stands on ``node``: it becomes the last node, leaves the node states
