@@ -474,8 +474,9 @@ class Navigation(_Drive):
         """The waypoints from ``(x, y)`` through the vias not passed yet to the goal
         (``first_leg``: the plan of the first of those legs, already made); sets
         :attr:`planned` and, per waypoint, which via it is (:attr:`_marks`)."""
-        targets = [((v.x_m, v.y_m), v.tolerance_m, i) for i, v in enumerate(self.via)
-                   if i >= self.passed]
+        targets: list[tuple[tuple[float, float], float, int | None]] = [
+            ((v.x_m, v.y_m), v.tolerance_m, i) for i, v in enumerate(self.via)
+            if i >= self.passed]
         # A goal that hugs an obstacle ends at the nearest reachable point rather than
         # fail — but only one close enough for the robot to stop within tolerance_m of the
         # goal it was given: success is always judged against that goal.
