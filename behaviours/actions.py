@@ -24,7 +24,7 @@ import math
 import threading
 import time
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -66,6 +66,20 @@ class LiftError(BeehaveError):
 class Goal:
     x_m: float
     y_m: float
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class Via:
+    """A point :class:`Navigation` drives through without stopping, before its goal (a
+    VDA 5050 node without actions): passed once the robot comes within ``tolerance_m``;
+    ``speed_mps`` is the speed of the leg that ends here (None: Navigation's
+    ``speed_mps``)."""
+
+    x_m: float
+    y_m: float
+    tolerance_m: float = 0.15
+    speed_mps: float | None = None
     name: str = ""
 
 
@@ -385,6 +399,14 @@ class Navigation(_Drive):
     ends within ``tolerance_m`` less :attr:`end_precision_m` of the goal; otherwise the
     leg is planned from where the robot stands, as without it. Re-planning when blocked is
     unchanged.
+
+    ``via``: points (:class:`Via`) to drive through, in order, before the goal, without
+    slowing down for them: the robot slows only for the goal. Each leg is straight where
+    the map lets it, planned otherwise (re-planning when blocked goes through the vias not
+    passed yet); each is driven at its via's ``speed_mps``, the last one at ``speed_mps``.
+    ``on_via(i)`` is called (in the action's thread) when ``via[i]`` is passed;
+    ``initial_path`` is then the plan of the first leg, to ``via[0]``. A corner sharper
+    than :attr:`TURN_ON_SPOT_RAD` still turns on the spot.
     """
 
     TURN_ON_SPOT_RAD = 0.8
@@ -400,11 +422,22 @@ class Navigation(_Drive):
                  replan_after_s: float = 3.0, robot_radius_m: float = 0.55,
                  clearance_m: float = 0.1, waypoint_tolerance_m: float = 0.3,
                  forget_obstacles_after_s: float = 60.0, timeout_s: float = 300.0,
-                 initial_path: PlannedPath | None = None) -> None:
+                 initial_path: PlannedPath | None = None, via: Sequence[Via] = (),
+                 on_via: Callable[[int], None] | None = None) -> None:
         self.goal = resolve_goal(goal, world)
         self.initial_path = initial_path
         if speed_mps <= 0 or tolerance_m <= 0:
             raise BeehaveError("speed_mps and tolerance_m must be positive")
+        self.via = tuple(via)
+        for i, point in enumerate(self.via):
+            if not point.tolerance_m > 0 or not (point.speed_mps is None
+                                                  or point.speed_mps > 0):
+                raise BeehaveError(f"via[{i}] ({point.name or (point.x_m, point.y_m)}): "
+                                   f"tolerance_m and speed_mps must be positive, got "
+                                   f"{point.tolerance_m} and {point.speed_mps}")
+        self.on_via = on_via
+        #: How many of ``via`` the robot has passed.
+        self.passed = 0
         self.speed_mps, self.tolerance_m = speed_mps, tolerance_m
         self.stop_distance_m, self.slow_distance_m = stop_distance_m, slow_distance_m
         self.field_half_angle_rad = field_half_angle_rad
@@ -436,19 +469,71 @@ class Navigation(_Drive):
         end_precision_m`` from the goal, so stopping there is within ``tolerance_m``."""
         return min(0.05, self.tolerance_m / 2)
 
-    def _plan(self, planner: GridPlanner, x: float, y: float) -> list[tuple[float, float]]:
+    def _plan(self, planner: GridPlanner, x: float, y: float,
+              first_leg: PlannedPath | None = None) -> list[tuple[float, float]]:
+        """The waypoints from ``(x, y)`` through the vias not passed yet to the goal
+        (``first_leg``: the plan of the first of those legs, already made); sets
+        :attr:`planned` and, per waypoint, which via it is (:attr:`_marks`)."""
+        targets: list[tuple[tuple[float, float], float, int | None]] = [
+            ((v.x_m, v.y_m), v.tolerance_m, i) for i, v in enumerate(self.via)
+            if i >= self.passed]
         # A goal that hugs an obstacle ends at the nearest reachable point rather than
         # fail — but only one close enough for the robot to stop within tolerance_m of the
         # goal it was given: success is always judged against that goal.
-        try:
-            self.planned = planner.plan((x, y), (self.goal.x_m, self.goal.y_m),
-                                        goal_tolerance_m=self.tolerance_m - self.end_precision_m)
-        except NoPath as exc:
-            raise NoPath(f"{self.name}: {exc} (tolerance_m={self.tolerance_m:g} less "
-                         f"end_precision_m={self.end_precision_m:g})") from exc
+        targets.append(((self.goal.x_m, self.goal.y_m),
+                        self.tolerance_m - self.end_precision_m, None))
+        points: list[tuple[float, float]] = [(x, y)]
+        marks: list[int | None] = []
+        for leg, (target, tolerance, mark) in enumerate(targets):
+            start = points[-1]
+            if leg == 0 and first_leg is not None:
+                legs = list(first_leg.waypoints_m[1:])
+            elif leg > 0 and planner.segment_free(start, target):
+                legs = [target]  # node to node in a straight line: no search needed
+            else:
+                try:
+                    legs = list(planner.plan(start, target,
+                                             goal_tolerance_m=tolerance).waypoints_m[1:])
+                except NoPath as exc:
+                    raise NoPath(f"{self.name}: {exc} (tolerance_m={self.tolerance_m:g} "
+                                 f"less end_precision_m={self.end_precision_m:g})"
+                                 if mark is None else f"{self.name}: via[{mark}]: {exc}"
+                                 ) from exc
+            points += legs
+            marks += [None] * (len(legs) - 1) + [mark]
+        self.planned = PlannedPath(tuple(points))
+        self._marks = marks
         log.info("%s: planned %.1f m via %d waypoint(s)", self.name, self.planned.length_m,
-                 len(self.planned.waypoints_m) - 2)
-        return list(self.planned.waypoints_m[1:])
+                 len(points) - 2)
+        return points[1:]
+
+    _marks: list[int | None]
+
+    def _pass_waypoint(self, marks: list[int | None]) -> None:
+        """The first waypoint is reached: if it is a via, it is passed."""
+        mark = marks.pop(0)
+        if mark is not None:
+            self.passed = mark + 1
+            if self.on_via is not None:
+                self.on_via(mark)
+
+    def _leg_speed_mps(self, x: float, y: float) -> float:
+        """The speed of the leg being driven; near the via just passed (within its
+        tolerance, on either side of it) the slower of the two legs that meet there, so
+        each leg's speed holds up to its end."""
+        speed = (self.via[self.passed].speed_mps if self.passed < len(self.via)
+                 else None) or self.speed_mps
+        if self.passed:
+            last = self.via[self.passed - 1]
+            if math.hypot(last.x_m - x, last.y_m - y) <= last.tolerance_m:
+                speed = min(speed, last.speed_mps or self.speed_mps)
+        return speed
+
+    def _reach_m(self, mark: int | None) -> float:
+        """How close the robot must come to a waypoint to head for the next one."""
+        if mark is None:
+            return self.waypoint_tolerance_m
+        return min(self.waypoint_tolerance_m, self.via[mark].tolerance_m)
 
     def _initial_path_fits(self, x: float, y: float) -> bool:
         """Whether :attr:`initial_path` may be followed from ``(x, y)`` (see the class)."""
@@ -456,8 +541,10 @@ class Navigation(_Drive):
         if path is None or len(path.waypoints_m) < 2:
             return False
         (sx, sy), (gx, gy) = path.waypoints_m[0], path.goal_m
+        # With vias the initial path is the first leg's, to via[0].
+        first = self.via[0] if self.via else self.goal
         fits = (math.hypot(sx - x, sy - y) <= self.tolerance_m
-                and math.hypot(gx - self.goal.x_m, gy - self.goal.y_m)
+                and math.hypot(gx - first.x_m, gy - first.y_m)
                 <= self.tolerance_m - self.end_precision_m + 1e-9)
         if not fits:
             log.info("%s: the initial path (%.2f, %.2f) → (%.2f, %.2f) does not start where "
@@ -473,12 +560,19 @@ class Navigation(_Drive):
         p = odom.pose.pose.position
         planner = self.planner
         if planner is None:
-            waypoints = [(self.goal.x_m, self.goal.y_m)]
+            waypoints = [*((v.x_m, v.y_m) for v in self.via), (self.goal.x_m, self.goal.y_m)]
+            marks: list[int | None] = [*range(len(self.via)), None]
         elif self.initial_path is not None and self._initial_path_fits(p.x, p.y):
-            self.planned = self.initial_path
-            waypoints = list(self.initial_path.waypoints_m[1:])
+            if self.via:
+                waypoints = self._plan(planner, p.x, p.y, first_leg=self.initial_path)
+            else:
+                self.planned = self.initial_path
+                waypoints = list(self.initial_path.waypoints_m[1:])
+                self._marks = [None] * len(waypoints)
+            marks = self._marks
         else:
             waypoints = self._plan(planner, p.x, p.y)  # NoPath fails the action
+            marks = self._marks
         blocked_since: float | None = None
         last_replan = -math.inf
         turning = False
@@ -486,8 +580,9 @@ class Navigation(_Drive):
             odom = self.odom.get() or odom
             p = odom.pose.pose.position
             while len(waypoints) > 1 and math.hypot(waypoints[0][0] - p.x, waypoints[0][1] - p.y
-                                                    ) <= self.waypoint_tolerance_m:
-                waypoints.pop(0)  # corner reached: head for the next one
+                                                    ) <= self._reach_m(marks[0]):
+                waypoints.pop(0)  # corner (or via) reached: head for the next one
+                self._pass_waypoint(marks)
             tx, ty = waypoints[0]
             dx, dy = tx - p.x, ty - p.y
             # Slow down for the goal, not for every corner on the way.
@@ -506,7 +601,8 @@ class Navigation(_Drive):
             elif abs(heading_err) < self.ALIGNED_RAD:
                 turning = False
             angular = max(-1.2, min(1.2, 2.0 * heading_err))
-            linear = min(self.speed_mps, 0.8 * remaining) * max(0.0, math.cos(heading_err)) ** 2
+            leg_speed = self._leg_speed_mps(p.x, p.y)
+            linear = min(leg_speed, 0.8 * remaining) * max(0.0, math.cos(heading_err)) ** 2
             if turning:
                 linear = 0.0
             nearest = math.inf
@@ -535,6 +631,7 @@ class Navigation(_Drive):
                     try:
                         waypoints = self._plan(planner.with_obstacles(self.seen.shapes()),
                                                p.x, p.y)
+                        marks = self._marks
                         self.replans += 1
                         turning = True  # face the new path before driving on
                     except NoPath as exc:  # no way around (yet): wait, try again later

@@ -34,13 +34,15 @@ from beehave.interfaces.vda5050.order import (
     ActionStatus,
     AgvOrders,
     Drive,
+    Edge,
+    Node,
     OrderRejected,
     Point,
     RunAction,
     error_entry,
 )
 from beehave.planning import PlannedPath
-from behaviours.actions import Goal, Lift, Navigation, prepare_driving, world_planner
+from behaviours.actions import Goal, Lift, Navigation, Via, prepare_driving, world_planner
 
 if TYPE_CHECKING:
     from robots.world import World
@@ -176,7 +178,9 @@ class OrderLoop(Behavior):
 
     @abc.abstractmethod
     def drive(self, task: Drive) -> None:
-        """Go to ``task.node``; call ``orders.node_reached`` once there."""
+        """Go to ``task.node``; call ``orders.node_reached`` once there. A drive may go on
+        through ``task.then`` without stopping, calling ``node_reached`` for each node as
+        it is passed (one that does not is asked for the next drive, as usual)."""
 
     @abc.abstractmethod
     def execute(self, action: ActionState) -> None:
@@ -188,7 +192,8 @@ class OrderExecution(OrderLoop):
 
     It runs until switched away; with nothing due (no order, or the horizon not yet
     released) it waits. Node and edge actions run one after another, each to its end,
-    before the AGV drives on (every action is treated as ``HARD`` blocking).
+    before the AGV drives on (every action is treated as ``HARD`` blocking); between
+    nodes that need no stop it drives on in one ``Navigation`` through them (``via``).
     """
 
     logic = None
@@ -218,25 +223,45 @@ class OrderExecution(OrderLoop):
             # find after subscribing and waiting for odometry, without that wait.
             self.orders.node_reached(node)
             return
-        speed = self.speed_mps
-        if edge is not None and edge.max_speed_mps:
-            speed = min(speed, edge.max_speed_mps)
-        # The route check's plan of this leg: followed when the AGV stands at its start
-        # (Navigation plans again otherwise).
+        # One drive through the nodes the AGV need not stop at (no actions, see
+        # Drive.then), each passed within its allowedDeviationXY, each leg at its edge's
+        # maxSpeed; it stops at the last.
+        legs = [(node, edge), *task.then]
+        passing = [n for n, _ in legs[:-1]]
+        stop, last_edge = legs[-1]
+        via = [Via(*n.position, tolerance_m=self._deviation_m(n),
+                   speed_mps=self._speed_mps(e), name=n.node_id) for n, e in legs[:-1]]
+        # The route check's plan of the first leg: followed when the AGV stands at its
+        # start (Navigation plans again otherwise).
         path = node.route if isinstance(node.route, PlannedPath) else None
-        nav = self.start_action(Navigation(Goal(*node.position, name=node.node_id),
-                                           world=self.world, speed_mps=speed,
-                                           tolerance_m=self.tolerance_m, initial_path=path))
+        nav = self.start_action(Navigation(
+            Goal(*stop.position, name=stop.node_id), world=self.world,
+            speed_mps=self._speed_mps(last_edge), tolerance_m=self.tolerance_m,
+            initial_path=path, via=via,
+            on_via=lambda i: self.orders.node_reached(passing[i])))
         nav.wait()
         if nav.status is Status.SUCCEEDED:
-            self.orders.node_reached(node)
+            self.orders.node_reached(stop)
         elif not self.interrupted:
             # The AGV cannot go on: say so, fail the order's remaining actions.
+            missed = legs[min(nav.passed, len(legs) - 1)][0]
             self.orders.add_error(error_entry(
-                "noRouteError", f"could not reach node {node.node_id!r}: {nav.error}",
-                references={"nodeId": node.node_id, "orderId": self.orders.order_id},
+                "noRouteError", f"could not reach node {missed.node_id!r}: {nav.error}",
+                references={"nodeId": missed.node_id, "orderId": self.orders.order_id},
                 level="FATAL"))
-            self.orders.cancel(f"node {node.node_id!r} not reached")
+            self.orders.cancel(f"node {missed.node_id!r} not reached")
+
+    def _speed_mps(self, edge: Edge | None) -> float:
+        """The speed on ``edge``: ``speed_mps``, lowered to the edge's ``maxSpeed``."""
+        if edge is not None and edge.max_speed_mps:
+            return min(self.speed_mps, edge.max_speed_mps)
+        return self.speed_mps
+
+    def _deviation_m(self, node: Node) -> float:
+        """How close a node passed without stopping must be passed: its
+        ``allowedDeviationXY``, else the drive's ``tolerance_m``."""
+        allowed = float((node.raw_position or {}).get("allowedDeviationXY") or 0.0)
+        return allowed or self.tolerance_m
 
     def execute(self, action: ActionState) -> None:
         self.orders.set_action(action.action_id, ActionStatus.RUNNING)

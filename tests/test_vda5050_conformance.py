@@ -344,17 +344,29 @@ def test_a_blocking_action_starts_only_once_the_agv_stands_still(agv: Agv,
 # ---- 5: a new order starts where the AGV is (6.6.1) -------------------------------------
 
 def test_a_new_order_whose_first_node_is_far_away_is_refused(agv: Agv) -> None:
+    # 6.6.1 / Figure 8 step 4: refused. 2.1 names no error type for it; an order with a
+    # field the AGV cannot use is an orderError naming that field (6.6.4.2).
     agv.master.order("far", 0, [node("n9", 0, 4.0), node("n10", 2, 5.0)])
     state = agv.master.wait_state(lambda s: bool(s["errors"]))
     (error,) = state["errors"]
-    assert error["errorType"] == "noRouteError"
+    assert error["errorType"] == "orderError" and error["errorLevel"] == "WARNING"
+    assert refs(error)["field"] == "nodes[0].nodePosition"
     assert refs(error)["nodeId"] == "n9" and refs(error)["orderId"] == "far"
+    assert refs(error)["topic"] == "order"
     assert state["orderId"] == "" and state["nodeStates"] == []
     assert FakeDrive.done == []
+    # Reported until an order is accepted (6.6.4.2, 3.).
+    agv.master.order("o1", 0, on_n0())
+    state = agv.master.wait_state(lambda s: s["orderId"] == "o1")
+    assert state["errors"] == []
 
 
-def test_a_first_node_within_its_allowed_deviation_is_accepted(agv: Agv) -> None:
+def test_a_first_node_within_its_allowed_deviation_counts_as_traversed(agv: Agv) -> None:
+    # 6.6.3.1: "the first node is the last traversed node [...] but set the deviation
+    # range so large that the AGV is within this range. Thus, the AGV shall realize that
+    # this node shall be counted as traversed" - not driven back to.
     agv.master.order("near", 0, [node("n9", 0, 0.8, allowedDeviationXY=1.0),
                                  node("n10", 2, 2.0)])
     state = agv.master.wait_state(lambda s: s["lastNodeId"] == "n10")
     assert state["orderId"] == "near" and not state["errors"]
+    assert FakeDrive.done == ["n10"]

@@ -171,6 +171,8 @@ class Master:
         self.invalid: list[str] = []
         #: ``(clock(), state)`` for every state received, when a ``clock`` was given.
         self.stamped: list[tuple[float, dict[str, Any]]] = []
+        #: ``time.perf_counter()`` when each state of ``received["state"]`` arrived.
+        self.state_arrived: list[float] = []
         self._clock = clock
         self._cond = threading.Condition()
         #: Set once the master is on the broker.
@@ -197,6 +199,7 @@ class Master:
         self.connected.set()
 
     def _on_message(self, _c: mqtt.Client, _u: Any, message: mqtt.MQTTMessage) -> None:
+        arrived = time.perf_counter()
         kind = message.topic.rsplit("/", 1)[-1]
         data = json.loads(message.payload)
         found = validation.problems(kind, data)  # type: ignore[arg-type]
@@ -204,8 +207,10 @@ class Master:
             if found:
                 self.invalid.append(f"{kind}: {found}")
             self.received[kind].append(data)
-            if kind == "state" and self._clock is not None:
-                self.stamped.append((self._clock(), data))
+            if kind == "state":
+                self.state_arrived.append(arrived)
+                if self._clock is not None:
+                    self.stamped.append((self._clock(), data))
             self._cond.notify_all()
 
     def close(self) -> None:
@@ -322,7 +327,9 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
     latencies measured on the way (the benchmark reads them): ``order_to_wheels_<id>_ms``
     (wall time from the master publishing an order to the first physics step with a
     non-zero wheel command), ``cancel_to_stop_sim_s`` and ``cancel_to_stop_wall_ms``
-    (cancelOrder published → EMILI's measured velocity below 0.01 m/s).
+    (cancelOrder published → EMILI's measured velocity below 0.01 m/s),
+    ``cancel_to_standstill_state_sim_s`` and ``..._wall_ms`` (cancelOrder published → the
+    first state at the master saying ``driving: false``).
     ``broker``: ``(host, port)`` of a running broker to use instead of a local mosquitto
     of the scenario's own (anonymous access)."""
     import math as _math
@@ -441,9 +448,11 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
                 if not stopped and abs(emili.odometry().linear_mps) < 0.01:
                     stopped_wall.append(time.perf_counter())
                     stopped.append(t)
-            t_cancel = sim.time_s
             watch = sim.on_step(on_stop)
-            wall_cancel = time.perf_counter()
+            with master._cond:
+                before = len(master.received["state"])
+                t_cancel = sim.time_s
+                wall_cancel = time.perf_counter()
             master.instant(action("cancelOrder", "cancel-1"))
             cancelled = wait(lambda s: any(a["actionId"] == "cancel-1" and
                                            a["actionStatus"] == "FINISHED"
@@ -458,6 +467,23 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
                 (stopped_wall[0] - wall_cancel) * 1e3 if stopped_wall else _math.inf)
             checks.append(("velocity 0 after cancelOrder", f"{stop_s:.3f} s sim",
                            "≤ 0.5 s sim", stop_s <= 0.5))
+            # The first state after the cancel that says driving false: when the master
+            # learns the AGV stands (and the simulation must agree that it does).
+            with master._cond:
+                after = list(zip(master.stamped[before:],
+                                 master.state_arrived[before:], strict=False))
+            standing = next(((t, wall) for (t, st), wall in after if not st["driving"]),
+                            None)
+            if standing is not None:
+                latencies["cancel_to_standstill_state_sim_s"] = standing[0] - t_cancel
+                latencies["cancel_to_standstill_state_wall_ms"] = (
+                    standing[1] - wall_cancel) * 1e3
+                still = bool(stopped) and stopped[0] <= standing[0]
+                checks.append(("driving false: stands still",
+                               f"{standing[0] - t_cancel:.3f} s sim",
+                               f"≥ stop {stop_s:.3f} s", still))
+            else:
+                problems.append("no state with driving false after the cancelOrder")
             # VDA 5050 2.1 (6.6.3, 6.12): cancelOrder is FINISHED, and a HARD action
             # RUNNING, only once the AGV stands still: the state that says so must not
             # say driving.

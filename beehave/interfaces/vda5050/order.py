@@ -19,6 +19,8 @@ an invalid update never disturbs a running order:
   every node must be placed on the map (``nodePosition`` with the world's ``mapId``, or a
   ``nodeId`` that names a station) and every action must be one the AGV supports —
   ``validationError`` naming the field;
+- the first node of a new order must be where the AGV is (standing on it, or within its
+  ``allowedDeviationXY``, then it counts as traversed) — ``orderError`` naming the node;
 - the released base must be drivable on the map — ``noRouteError`` naming the node.
 
 The behaviour that executes orders (:class:`behaviours.vda5050.OrderExecution`) asks
@@ -162,10 +164,22 @@ class ActionState:
 
 @dataclass(frozen=True)
 class Drive:
-    """Drive to ``node`` (along ``edge``, None for an order's first node)."""
+    """Drive to ``node`` (along ``edge``, None for an order's first node), and on through
+    ``then`` without stopping."""
 
     node: Node
     edge: Edge | None
+    then: tuple[tuple[Node, Edge], ...] = ()
+    """The released nodes after ``node`` (each with the edge that leads to it) that the
+    AGV drives on to: it passes ``node`` and all of them but the last without stopping,
+    since none of those has an action and no edge among them has one (VDA 5050 2.1: the
+    AGV stops only where an action or the end of the base needs it). Empty: stop at
+    ``node``. Report each with ``node_reached`` as it is passed."""
+
+    @property
+    def stop(self) -> Node:
+        """The node the AGV stops at: the last of ``then``, else ``node``."""
+        return self.then[-1][0] if self.then else self.node
 
 
 @dataclass(frozen=True)
@@ -356,7 +370,7 @@ class AgvOrders:
                     hint="cancel the running order (instant action cancelOrder) or wait "
                          "until it is done")
             nodes, edges, actions = self._parse(order)
-            self._first_node_reachable(order_id, nodes[0], refs)
+            traversed = self._first_node_reachable(order_id, nodes[0], refs)
             self._route(nodes, from_robot=True)
             with self._changing():
                 self._order = _Order(order_id, update_id, nodes, edges)
@@ -365,26 +379,36 @@ class AgvOrders:
                                  if not v.status.ended} | actions
                 self._errors = [e for e in self._errors
                                 if e["errorType"] not in ORDER_ERROR_TYPES]
+                if traversed:
+                    self.node_reached(nodes[0])
             return True
 
     def _first_node_reachable(self, order_id: str, first: Node,
-                              refs: Mapping[str, str]) -> None:
-        """A new order starts where the AGV is: its first node within the node's
-        ``allowedDeviationXY`` (the manufacturer's tolerance when 0 or absent), else the
-        order is refused (VDA 5050 2.1, 6.6.1) — the AGV never drives off the graph."""
+                              refs: Mapping[str, str]) -> bool:
+        """A new order starts where the AGV is (VDA 5050 2.1, 6.6.1): "the AGV is already
+        standing on the node, or [...] in the node's deviation range". Else the order is
+        refused (Figure 8, step 4) — the AGV never drives off the graph — as an
+        ``orderError`` naming the field (6.6.4.2: an order with fields the AGV cannot use;
+        the standard names no other error type for it). Returns True when the AGV is
+        within the node's own ``allowedDeviationXY``: the node then counts as traversed
+        (6.6.3.1) and is not driven to. "Standing on the node" is within
+        :data:`FIRST_NODE_TOLERANCE_M` when the node gives no deviation (or 0)."""
         here = self._position()
         if here is None:
-            return
-        allowed = float((first.raw_position or {}).get("allowedDeviationXY") or 0.0)
-        allowed = allowed or FIRST_NODE_TOLERANCE_M
+            return False
+        deviation = float((first.raw_position or {}).get("allowedDeviationXY") or 0.0)
+        allowed = deviation or FIRST_NODE_TOLERANCE_M
         away = distance_m(here, first.position)
         if away > allowed:
             raise OrderRejected(
-                "noRouteError",
+                "orderError",
                 f"order {order_id!r}: its first node {first.node_id!r} is {away:.2f} m from "
                 f"the AGV (allowed {allowed:.2f} m): a new order must start where the AGV "
-                "is", references={**refs, "nodeId": first.node_id},
-                hint="start the order at the AGV's last node or current position")
+                "is", references={**refs, "field": "nodes[0].nodePosition",
+                                  "nodeId": first.node_id},
+                hint="start the order at the AGV's position, or at its last node with an "
+                     "allowedDeviationXY that reaches the AGV")
+        return deviation > 0 and away <= deviation
 
     def _stitch_node(self) -> tuple[str, int]:
         released = [n for n in self._order.nodes if n.released]
@@ -579,7 +603,26 @@ class AgvOrders:
                 if pending:
                     order.todo.extend(pending)
                     return RunAction(self._actions[pending[0]])
-            return Drive(node, edge)
+            return Drive(node, edge, self._drive_on(node))
+
+    def _drive_on(self, node: Node) -> tuple[tuple[Node, Edge], ...]:
+        """The released nodes after ``node`` the AGV may drive on to without stopping
+        (see :attr:`Drive.then`); called with the lock held."""
+        order = self._order
+        then: list[tuple[Node, Edge]] = []
+        if node.actions or len(order.nodes) < 2 or not order.nodes[1].released:
+            return ()
+        edges = {e.sequence_id: e for e in order.edges if e.released}
+        last = node
+        for following in order.nodes[1:]:
+            if last.actions or not following.released:
+                break
+            edge = edges.get(following.sequence_id - 1)
+            if edge is None or edge.end_node_id != following.node_id or edge.actions:
+                break
+            then.append((following, edge))
+            last = following
+        return tuple(then)
 
     def node_reached(self, node: Node) -> None:
         """The AGV stands on ``node``: it becomes the last node, leaves the node states
