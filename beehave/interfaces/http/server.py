@@ -21,6 +21,7 @@ from beehave.interfaces.http.guard import (
     MAX_BODY_BYTES,
     header_timeout_protocol,
 )
+from beehave.interfaces.http.remote import Address
 
 if TYPE_CHECKING:
     from beehave.lowlevel import LowLevelBehaviorManager
@@ -80,7 +81,10 @@ class HttpServer:
     ``world`` / ``fleet``: what the web view draws (see
     :func:`~beehave.interfaces.http.create_app`). ``rate_hz``: WebSocket updates per robot
     and second at most. ``refresh_s``: the longest time between two updates of a robot
-    that did not change (its blackboard's ages and staleness move on).
+    that did not change (its blackboard's ages and staleness move on). ``remotes``: robots
+    served by other processes, name → their server's address (with ``#token=…`` when it
+    has one, as their :attr:`url` gives it) or a function returning it once known: a
+    fleet process's page shows them in full (:mod:`beehave.interfaces.http.remote`).
 
     :meth:`start` returns once the server accepts connections; :meth:`stop` ends it and
     its thread (the robots keep running). Use it as a context manager.
@@ -91,7 +95,8 @@ class HttpServer:
                  world: Provider = None, fleet: Provider = None, rate_hz: float = 20.0,
                  refresh_s: float = 1.0, hosts: Iterable[str] = (),
                  origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES,
-                 header_timeout_s: float = HEADER_TIMEOUT_S) -> None:
+                 header_timeout_s: float = HEADER_TIMEOUT_S,
+                 remotes: Mapping[str, Address] | None = None) -> None:
         if isinstance(planes, ControlPlane):
             planes = {planes.name: planes}
         if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
@@ -131,7 +136,8 @@ class HttpServer:
         self.app = create_app(self.planes, world=world, fleet=fleet, token=token,
                               loopback=self.loopback, rate_hz=rate_hz, refresh_s=refresh_s,
                               on_started=self._ready.set, hosts=[host, *hosts],
-                              origins=origins, max_body_bytes=max_body_bytes)
+                              origins=origins, max_body_bytes=max_body_bytes,
+                              remotes=remotes)
         self._port = port
         self._sock: socket.socket | None = None
         self._server: Any = None
@@ -294,7 +300,7 @@ def serve(planes: ControlPlane | Mapping[str, ControlPlane], *, host: str = DEFA
                        world=world.model_dump(mode="json"), fleet=fleet_view)
 
     ``options``: the rest of :class:`HttpServer`'s settings (``hosts``, ``origins``,
-    ``max_body_bytes``, ``header_timeout_s``).
+    ``max_body_bytes``, ``header_timeout_s``, ``remotes``).
     """
     server = HttpServer(planes, host=host, port=port, token=token, world=world, fleet=fleet,
                         rate_hz=rate_hz, refresh_s=refresh_s, **options)
