@@ -31,7 +31,7 @@ from beehave.errors import (
     UnknownNameError,
 )
 from beehave.interfaces.core import ControlPlane, shorten
-from beehave.interfaces.http.guard import MAX_BODY_BYTES, Guard
+from beehave.interfaces.http.guard import MAX_BODY_BYTES, MAX_CONNECTIONS, Guard
 from beehave.interfaces.http.hub import Client, Hub
 from beehave.interfaces.http.remote import Address, RemoteError, Remotes
 
@@ -103,7 +103,9 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
                rate_hz: float = 20.0, refresh_s: float = 1.0,
                on_started: Callable[[], None] | None = None, hosts: Iterable[str] = (),
                origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES,
-               remotes: Mapping[str, Address] | None = None) -> FastAPI:
+               remotes: Mapping[str, Address] | None = None,
+               connections: Callable[[], int] | None = None,
+               max_connections: int = MAX_CONNECTIONS) -> FastAPI:
     """The application serving ``planes`` (robot name → its control plane).
 
     ``world``: the map the web view draws (the world YAML as JSON: floor, walls, shelves,
@@ -116,7 +118,8 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
     the loopback names and the server's own origin, and the largest request body.
     ``remotes``: robots served by other processes, name → their server's address
     (``http://127.0.0.1:8101/``, with ``#token=…`` when it has one), or a function returning
-    it once known (None before): their API and stream
+    it once known (None before); ``connections`` (how many the server holds open now) and
+    ``max_connections``: the connection limit. Their API and stream
     are forwarded (:mod:`beehave.interfaces.http.remote`), so the page shows them too.
     """
     forwarded = Remotes(remotes or {})
@@ -159,7 +162,8 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
     app.state.auth = auth
     # Host (DNS rebinding) is checked whenever something is answered without a token.
     app.add_middleware(Guard, check_host=token is None or loopback, hosts=hosts,
-                       origins=origins, max_body_bytes=max_body_bytes)
+                       origins=origins, max_body_bytes=max_body_bytes,
+                       connections=connections, max_connections=max_connections)
 
     @app.exception_handler(BeehaveError)
     async def beehave_error(_: Request, exc: BeehaveError) -> JSONResponse:

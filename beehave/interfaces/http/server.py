@@ -19,6 +19,7 @@ from beehave.interfaces.http.app import Provider, create_app
 from beehave.interfaces.http.guard import (
     HEADER_TIMEOUT_S,
     MAX_BODY_BYTES,
+    MAX_CONNECTIONS,
     header_timeout_protocol,
 )
 from beehave.interfaces.http.remote import Address
@@ -85,6 +86,8 @@ class HttpServer:
     served by other processes, name → their server's address (with ``#token=…`` when it
     has one, as their :attr:`url` gives it) or a function returning it once known: a
     fleet process's page shows them in full (:mod:`beehave.interfaces.http.remote`).
+    ``max_connections``: the most connections (HTTP and WebSocket) open at once; beyond,
+    requests and upgrades get 503 (:class:`~beehave.interfaces.http.guard.Guard`).
 
     :meth:`start` returns once the server accepts connections; :meth:`stop` ends it and
     its thread (the robots keep running). Use it as a context manager.
@@ -96,6 +99,7 @@ class HttpServer:
                  refresh_s: float = 1.0, hosts: Iterable[str] = (),
                  origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES,
                  header_timeout_s: float = HEADER_TIMEOUT_S,
+                 max_connections: int = MAX_CONNECTIONS,
                  remotes: Mapping[str, Address] | None = None) -> None:
         if isinstance(planes, ControlPlane):
             planes = {planes.name: planes}
@@ -113,6 +117,11 @@ class HttpServer:
         if not (isinstance(header_timeout_s, (int, float)) and 0 < header_timeout_s <= 3600):
             raise ConfigError(f"HttpServer: header_timeout_s must be a number of seconds in "
                               f"(0, 3600], got {header_timeout_s!r}")
+        if not (isinstance(max_connections, int) and not isinstance(max_connections, bool)
+                and max_connections > 0):
+            raise ConfigError(f"HttpServer: max_connections must be a positive int, got "
+                              f"{max_connections!r}")
+        self.max_connections = max_connections
         self.header_timeout_s = float(header_timeout_s)
         self.max_body_bytes = max_body_bytes
         self.host = host
@@ -137,7 +146,8 @@ class HttpServer:
                               loopback=self.loopback, rate_hz=rate_hz, refresh_s=refresh_s,
                               on_started=self._ready.set, hosts=[host, *hosts],
                               origins=origins, max_body_bytes=max_body_bytes,
-                              remotes=remotes)
+                              remotes=remotes, connections=self._open_connections,
+                              max_connections=max_connections)
         self._port = port
         self._sock: socket.socket | None = None
         self._server: Any = None
@@ -158,6 +168,11 @@ class HttpServer:
             host = f"[{host}]"
         base = f"http://{host}:{self._port}/"
         return f"{base}#token={self.token}" if self.token else base
+
+    def _open_connections(self) -> int:
+        """The connections uvicorn holds now (HTTP and WebSocket; in the server's loop)."""
+        server = self._server
+        return 0 if server is None else len(server.server_state.connections)
 
     @property
     def hub(self) -> Any:
@@ -300,7 +315,7 @@ def serve(planes: ControlPlane | Mapping[str, ControlPlane], *, host: str = DEFA
                        world=world.model_dump(mode="json"), fleet=fleet_view)
 
     ``options``: the rest of :class:`HttpServer`'s settings (``hosts``, ``origins``,
-    ``max_body_bytes``, ``header_timeout_s``, ``remotes``).
+    ``max_body_bytes``, ``header_timeout_s``, ``max_connections``, ``remotes``).
     """
     server = HttpServer(planes, host=host, port=port, token=token, world=world, fleet=fleet,
                         rate_hz=rate_hz, refresh_s=refresh_s, **options)
