@@ -149,6 +149,9 @@ def test_status_shows_type_locks_and_stuck_actions_and_behaviours_list_their_par
         ("station", "dock", False), ("speed_mps", 0.5, False)]
     stats = httpx.get(f"{api}/stats").json()
     assert stats["rate_hz"] == 50.0 and stats["clients"] == []
+    # What serving costs, apart from the robot's threads (Linux).
+    assert set(stats["cpu_s"]) == {"server", "pump"}
+    assert all(isinstance(v, float) and v > 0 for v in stats["cpu_s"].values())
 
 
 def test_the_blackboard_endpoint_marks_stale_entries(server: HttpServer,
