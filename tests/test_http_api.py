@@ -149,6 +149,9 @@ def test_status_shows_type_locks_and_stuck_actions_and_behaviours_list_their_par
         ("station", "dock", False), ("speed_mps", 0.5, False)]
     stats = httpx.get(f"{api}/stats").json()
     assert stats["rate_hz"] == 50.0 and stats["clients"] == []
+    # What serving costs, apart from the robot's threads (Linux).
+    assert set(stats["cpu_s"]) == {"server", "pump"}
+    assert all(isinstance(v, float) and v > 0 for v in stats["cpu_s"].values())
 
 
 def test_the_blackboard_endpoint_marks_stale_entries(server: HttpServer,
@@ -433,3 +436,50 @@ def test_one_server_serves_several_robots_and_a_client_picks_its_own(
         for plane in planes.values():
             plane.close()
         other.shutdown()
+
+
+def test_a_fleet_server_forwards_its_remote_robots_api_errors_and_stream(
+        server: HttpServer, hl: HighLevelBehaviorManager) -> None:
+    """Issue 22, item 13: a fleet process's server given a robot server's address answers
+    for that robot with the robot's own answers (its errors too), after its own checks;
+    a robot whose server is gone is a 502 naming it, and nothing else is affected."""
+    with socket.socket() as closed:  # a port nobody listens on
+        closed.bind(("127.0.0.1", 0))
+        gone = f"http://127.0.0.1:{closed.getsockname()[1]}/"
+    told: list[str] = []  # a robot that tells its address once it serves
+    with HttpServer({}, fleet=lambda: {"robots": []},
+                    remotes={"emili1": server.url, "atv9": gone,
+                             "late": lambda: told[0] if told else None}) as srv:
+        api = f"{base(srv)}/api"
+        listed = httpx.get(f"{api}/robots").json()["robots"]
+        assert [(r["name"], r["remote"]) for r in listed] == [
+            ("atv9", gone.rstrip("/")), ("emili1", base(server)), ("late", None)]
+        early = httpx.get(f"{api}/robots/late/status")
+        assert early.status_code == 502 and "not told its address yet" in early.text
+        told.append(server.url)
+        assert httpx.get(f"{api}/robots/late/status").status_code == 404  # emili1's server
+        status = httpx.get(f"{api}/robots/emili1/status")
+        assert status.status_code == 200 and status.json()["behavior"] == "idle"
+        board = httpx.get(f"{api}/robots/emili1/blackboard", params={"key": "scan/front_m"})
+        assert board.json()["scan/front_m"]["value"] == {"$float": "inf"}
+        unknown = httpx.post(f"{api}/robots/emili1/switch", json={"behavior": "fly"})
+        assert unknown.status_code == 404 and "drive" in unknown.json()["detail"]
+        wrong = httpx.post(f"{api}/robots/emili1/switch",
+                           json={"behavior": "drive", "params": {"speed_mps": "fast"}})
+        assert wrong.status_code == 422 and "speed_mps" in wrong.json()["detail"]
+        # This server's own checks come first: a foreign page's command never goes on.
+        foreign = httpx.post(f"{api}/robots/emili1/switch", json={"behavior": "drive"},
+                             headers={"Origin": "http://evil.example"})
+        assert foreign.status_code == 403 and hl.current == "idle"
+        assert httpx.post(f"{api}/robots/emili1/switch",
+                          json={"behavior": "drive"}).status_code == 202
+        assert wait_until(lambda: hl.current == "drive")
+        down = httpx.get(f"{api}/robots/atv9/status")
+        assert down.status_code == 502 and "'atv9'" in down.json()["detail"]
+        with connect(f"ws://127.0.0.1:{srv.port}/api/ws?robots=emili1",
+                     subprotocols=["beehave"]) as ws:  # type: ignore[list-item]
+            first = _read_updates(ws, 1)[0]
+            assert first["robot"] == "emili1" and first["snapshot"]["behavior"] == "drive"
+        assert httpx.post(f"{api}/robots/emili1/stop", content=b"{}",
+                          headers={"content-type": "application/json"}).status_code == 202
+        assert wait_until(lambda: hl.current == "idle")

@@ -161,3 +161,56 @@ def test_close_ends_the_pump_and_its_subscriptions_when_the_loop_has_gone() -> N
     assert plane.open == 0
     assert hub._thread is None
     hub.close()  # idempotent
+
+
+def test_a_turn_reads_the_running_tree_again_only_after_an_event_or_when_it_is_old(
+        hl: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A driving robot writes its blackboard all the time and starts or ends something
+    rarely: its turns re-encode the blackboard, not the tree — until an event comes, whose
+    effect is in the very next update."""
+    from config_fixtures import Drive
+
+    from beehave.interfaces import ControlPlane
+    from beehave.interfaces.http import hub as hub_module
+    from beehave.testing import wait_until
+
+    hl.register("drive", Drive, station="dock")
+    plane = ControlPlane(hl, name="emili1")
+    reads = [0]
+    snapshot = plane.snapshot
+
+    def counted() -> dict[str, Any]:
+        reads[0] += 1
+        return snapshot()
+
+    monkeypatch.setattr(plane, "snapshot", counted)
+    monkeypatch.setattr(hub_module, "TREE_MAX_AGE_S", 3600.0)
+    hub = hub_module.Hub({"emili1": plane})
+
+    async def started() -> None:
+        hub.start()
+    asyncio.run(started())
+    try:
+        def turn() -> dict[str, Any]:
+            return json.loads(hub.build("emili1", reuse_tree=True))
+
+        assert turn()["snapshot"]["behavior"] == "idle"
+        for i in range(20):
+            hl.blackboard.set("odom/x_m", i * 0.1)
+            assert turn()["blackboard"]["odom/x_m"]["value"] == i * 0.1
+        assert reads[0] == 1
+        hl.switch("drive")
+        # The switch's events have the tree read again (never because of its age here).
+        assert wait_until(lambda: turn()["snapshot"]["behavior"] == "drive")
+        assert wait_until(lambda: turn()["snapshot"]["tree"]["children"] != [])
+        settled = reads[0]
+        turn()
+        assert reads[0] == settled
+        monkeypatch.setattr(hub_module, "TREE_MAX_AGE_S", 0.0)  # old: read again
+        turn()
+        assert reads[0] == settled + 1
+        assert json.loads(hub.build("emili1"))["snapshot"]["behavior"] == "drive"
+        assert reads[0] == settled + 2  # a build of its own reads it fresh
+    finally:
+        hub.close()
+        plane.close()

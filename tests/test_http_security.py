@@ -5,6 +5,7 @@ running its behaviour (the same instance, no switch requested)."""
 
 from __future__ import annotations
 
+import contextlib
 import http.server
 import json
 import socket
@@ -24,7 +25,7 @@ from websockets.exceptions import InvalidStatus  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
 from beehave import Behavior, HighLevelBehaviorManager  # noqa: E402
-from beehave.errors import InvalidParameters  # noqa: E402
+from beehave.errors import ConfigError, InvalidParameters  # noqa: E402
 from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
@@ -314,6 +315,50 @@ def test_half_open_connections_are_closed_after_the_header_timeout(
         for sock in socks:
             sock.close()
     kept_driving(hl, driving)
+
+
+# ---- a cap on connections ---------------------------------------------------------------------
+
+def test_connections_above_the_cap_are_refused_with_503_and_the_served_ones_go_on(
+        plane: ControlPlane, hl: HighLevelBehaviorManager, driving: Any,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Clients beyond ``max_connections`` (HTTP, WebSocket) get 503 with Retry-After (a
+    WebSocket's handshake too) and their connection closed; the streams already open keep
+    receiving, the robot keeps driving, and a slot that frees is served again."""
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    with HttpServer(plane, max_connections=4, refresh_s=0.2) as srv, \
+            contextlib.ExitStack() as opened:
+        url = f"ws://127.0.0.1:{srv.port}/api/ws"
+        streams = [opened.enter_context(connect(url)) for _ in range(3)]
+        keep_alive = _raw(srv.port, b"GET /api/robots/emili1/status HTTP/1.1\r\n"
+                                    b"Host: 127.0.0.1\r\n\r\n")
+        try:
+            assert _status_line(keep_alive).startswith(b"HTTP/1.1 200")
+            # Four open: three streams and one kept-alive connection. A fifth:
+            refused = httpx.get(f"{base(srv)}/api/robots/emili1/status")
+            assert refused.status_code == 503, refused.text
+            assert refused.json()["error"] == "TooManyConnections"
+            assert "max_connections" in refused.json()["detail"]
+            assert refused.headers["retry-after"] == "1"
+            assert refused.headers["connection"] == "close"
+            with pytest.raises(InvalidStatus) as ws_refused:
+                connect(url)
+            assert ws_refused.value.response.status_code == 503
+            for stream in streams:  # the served ones are not disturbed
+                assert json.loads(stream.recv(timeout=WALL_TIMEOUT_S))["robot"] == "emili1"
+            kept_driving(hl, driving)
+        finally:
+            keep_alive.close()
+        # A slot frees: served again.
+        assert wait_until(lambda: httpx.get(
+            f"{base(srv)}/api/robots/emili1/status").status_code == 200)
+    kept_driving(hl, driving)
+
+
+def test_max_connections_must_be_a_positive_int(plane: ControlPlane) -> None:
+    for bad in (0, -1, 2.5, True, "100"):
+        with pytest.raises(ConfigError, match="max_connections must be a positive int"):
+            HttpServer(plane, max_connections=bad)  # type: ignore[arg-type]
 
 
 # ---- chromium on another origin: no-cors fetch and form posts --------------------------------

@@ -108,3 +108,67 @@ def test_a_fleet_view_shows_no_empty_robot_panels_and_its_tables_fit(
         label.wait_for(state="attached", timeout=WAIT_MS)
         phone.wait_for_function("document.querySelector('[data-machine-label=\"press1\"]')"
                                 ".textContent === 'press1 70/100'", timeout=WAIT_MS)
+
+
+def test_a_fleet_view_shows_the_robot_picked_in_full_and_commands_it(
+        server: HttpServer, phone: Any, hl: HighLevelBehaviorManager) -> None:
+    """Issue 22, item 13: the fleet's page (a server of a fleet process, no robot of its
+    own) is given the addresses of its robots' servers; the user picks a robot with the
+    selector or on the map and sees its full view, and Switch and Stop act on it. The
+    second robot's server has a token: it rides in its address."""
+    phone.set_viewport_size({"width": 1280, "height": 800})
+    other = HighLevelBehaviorManager(stop_timeout_s=0.3)
+    other.start()
+    other.register("drive", Drive, station="dock")
+    other.blackboard.set("odom/x_m", 3.0, writer="hal:odometry")
+    other.blackboard.set("odom/y_m", 2.0, writer="hal:odometry")
+    other.blackboard.set("bumper/pressed", False, writer="hal:kobuki")
+    plane = ControlPlane(other, name="kobuki1")
+    fleet = {"robots": [{"name": "emili1", "x_m": 1.0, "y_m": 1.0},
+                        {"name": "kobuki1", "x_m": 3.0, "y_m": 2.0}]}
+    try:
+        with HttpServer(plane, token="kobuki-secret") as robot2, \
+                HttpServer({}, world=FACTORY, fleet=lambda: fleet,
+                           remotes={"emili1": server.url, "kobuki1": robot2.url}) as srv:
+            assert "#token=kobuki-secret" in robot2.url
+            phone.goto(srv.url)
+            # The first robot is shown at once: its behaviours, its blackboard, its marker.
+            phone.wait_for_function("document.querySelectorAll('#behavior-choice option')"
+                                    ".length > 1", timeout=WAIT_MS)
+            assert phone.locator("#robot-select").input_value() == "emili1"
+            phone.wait_for_selector('#blackboard tr[data-key="some/very/long/key/that/a/'
+                                    'phone/must/wrap/or/scroll"]', timeout=WAIT_MS)
+            phone.wait_for_selector("#robot-emili1", state="attached", timeout=WAIT_MS)
+            assert phone.locator("#current-behavior").inner_text() == "idle"
+            phone.select_option("#behavior-choice", "drive")
+            phone.fill('#params input[data-param="station"]', "dock")
+            phone.locator("#switch-btn").click()
+            assert wait_until(lambda: hl.current == "drive")
+            phone.wait_for_function("document.querySelector('#current-behavior')"
+                                    ".textContent === 'drive'", timeout=WAIT_MS)
+            phone.wait_for_selector('#tree [data-status="RUNNING"]', timeout=WAIT_MS)
+            phone.wait_for_selector('#events li[data-kind="switch_completed"]',
+                                    timeout=WAIT_MS)
+            # Pick the other one on the map: its own view replaces the first one's.
+            phone.locator('[data-fleet-robot="kobuki1"] .body').click()
+            phone.wait_for_selector('#blackboard tr[data-key="bumper/pressed"]',
+                                    timeout=WAIT_MS)
+            assert phone.locator("#robot-select").input_value() == "kobuki1"
+            assert phone.locator('#blackboard tr[data-key^="some/very"]').count() == 0
+            phone.wait_for_function("document.querySelectorAll('#behavior-choice option')"
+                                    ".length > 1", timeout=WAIT_MS)
+            phone.select_option("#behavior-choice", "drive")
+            phone.locator("#switch-btn").click()
+            assert wait_until(lambda: other.current == "drive")
+            phone.locator("#stop-btn").click()
+            assert wait_until(lambda: other.current == "idle")
+            assert hl.current == "drive", "a command for kobuki1 reached emili1"
+            # And back with the selector.
+            phone.select_option("#robot-select", "emili1")
+            phone.locator("#stop-btn").click()
+            assert wait_until(lambda: hl.current == "idle")
+            assert phone.locator("#control-msg.error").count() == 0, \
+                phone.locator("#control-msg").inner_text()
+    finally:
+        plane.close()
+        other.shutdown()

@@ -25,10 +25,12 @@ import argparse
 import contextlib
 import json
 import os
+import re
 import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -142,6 +144,22 @@ class Watch:
                "content": content if len(content) <= 80 else content[:79] + "…"}
         with self.lock:
             self.messages.append(row)
+
+
+def announced_url(log: Path) -> Callable[[], str | None]:
+    """The address ``beehave run --http`` announces in its log (``web view and API at
+    URL``), once it has: what the fleet's web view forwards a robot's own view to."""
+    found: list[str] = []
+
+    def url() -> str | None:
+        if not found:
+            with contextlib.suppress(OSError):
+                match = re.search(r"web view and API at (\S+)", log.read_text(errors="replace"))
+                if match:
+                    found.append(match.group(1))
+        return found[0] if found else None
+
+    return url
 
 
 def fleet_view(watch: Watch) -> dict[str, list[dict[str, Any]]]:
@@ -309,7 +327,10 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
             cfg = fleet_dir / f"{ns}.yaml"
             cfg.write_text(yaml.safe_dump(atv_config(ns, world), sort_keys=False))
             recording = ["--record", str(fleet_dir / f"{ns}.mcap")] if record else []
-            procs.start(ns, [py, "-m", "beehave.cli", "run", str(cfg), *recording])
+            # With --http, each ATV serves its own view on a free loopback port; the
+            # fleet's page forwards to it (docs/http.md, "robots of other processes").
+            view = ["--http", "127.0.0.1:0"] if http is not None else []
+            procs.start(ns, [py, "-m", "beehave.cli", "run", str(cfg), *recording, *view])
         for name in sorted(places.machines):
             procs.start(name, [py, "-m", "behaviours.fleet.machine", name, "--world", world,
                                "--lease-s", str(LEASE_S), "--below", str(order_below)])
@@ -320,7 +341,9 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
 
                 server = serve({}, host=http[0], port=http[1],
                                world=yaml.safe_load(Path(places.world_path).read_text()),
-                               fleet=lambda: fleet_view(watch))
+                               fleet=lambda: fleet_view(watch),
+                               remotes={f"atv{k}": announced_url(fleet_dir / f"atv{k}.log")
+                                        for k in range(1, robots + 1)})
                 web.callback(server.stop)
                 console.print(f"fleet web view at {server.url}")
             started = time.monotonic()

@@ -9,13 +9,13 @@ import asyncio
 import contextlib
 import logging
 import secrets
-from collections.abc import AsyncIterator, Callable, Iterable, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI, Query, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, JSONResponse
+from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -31,8 +31,9 @@ from beehave.errors import (
     UnknownNameError,
 )
 from beehave.interfaces.core import ControlPlane, shorten
-from beehave.interfaces.http.guard import MAX_BODY_BYTES, Guard
+from beehave.interfaces.http.guard import MAX_BODY_BYTES, MAX_CONNECTIONS, Guard
 from beehave.interfaces.http.hub import Client, Hub
+from beehave.interfaces.http.remote import Address, RemoteError, Remotes
 
 log = logging.getLogger(__name__)
 
@@ -101,8 +102,10 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
                fleet: Provider = None, token: str | None = None, loopback: bool = True,
                rate_hz: float = 20.0, refresh_s: float = 1.0,
                on_started: Callable[[], None] | None = None, hosts: Iterable[str] = (),
-               origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES
-               ) -> FastAPI:
+               origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES,
+               remotes: Mapping[str, Address] | None = None,
+               connections: Callable[[], int] | None = None,
+               max_connections: int = MAX_CONNECTIONS) -> FastAPI:
     """The application serving ``planes`` (robot name → its control plane).
 
     ``world``: the map the web view draws (the world YAML as JSON: floor, walls, shelves,
@@ -113,8 +116,18 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
     called once the server has started (its lifespan began). ``hosts``, ``origins``,
     ``max_body_bytes``: what :class:`~beehave.interfaces.http.guard.Guard` accepts besides
     the loopback names and the server's own origin, and the largest request body.
+    ``remotes``: robots served by other processes, name → their server's address
+    (``http://127.0.0.1:8101/``, with ``#token=…`` when it has one), or a function returning
+    it once known (None before); ``connections`` (how many the server holds open now) and
+    ``max_connections``: the connection limit. Their API and stream
+    are forwarded (:mod:`beehave.interfaces.http.remote`), so the page shows them too.
     """
-    if not planes and fleet is None:
+    forwarded = Remotes(remotes or {})
+    both = sorted(set(planes) & set(forwarded.robots))
+    if both:
+        raise ConfigError(f"robot(s) {both} are given both as a ControlPlane and as a remote "
+                          f"address: serve each robot one way")
+    if not planes and fleet is None and not forwarded:
         raise ConfigError("the HTTP interface needs at least one robot's ControlPlane, or a "
                           "fleet view (a fleet process whose robots run elsewhere)")
     for name in planes:
@@ -128,10 +141,12 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
         try:  # the hub stops even when its start or on_started fails halfway
             hub.start()
+            await forwarded.start()
             if on_started is not None:
                 on_started()
             yield
         finally:
+            await forwarded.stop()
             await hub.stop()
 
     # No /docs: Swagger UI would load its script from a CDN into the robot's origin (and
@@ -143,10 +158,12 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
                     "beehave robots; `WS /api/ws` streams coalesced updates. The web view "
                     "is at `/`. With a token: `Authorization: Bearer TOKEN`.")
     app.state.hub = hub
+    app.state.remotes = forwarded
     app.state.auth = auth
     # Host (DNS rebinding) is checked whenever something is answered without a token.
     app.add_middleware(Guard, check_host=token is None or loopback, hosts=hosts,
-                       origins=origins, max_body_bytes=max_body_bytes)
+                       origins=origins, max_body_bytes=max_body_bytes,
+                       connections=connections, max_connections=max_connections)
 
     @app.exception_handler(BeehaveError)
     async def beehave_error(_: Request, exc: BeehaveError) -> JSONResponse:
@@ -156,6 +173,11 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
         # Bounded: an error naming a huge value must not echo it (issue 22).
         return JSONResponse({"error": type(exc).__name__, "detail": shorten(str(exc))},
                             status)
+
+    @app.exception_handler(RemoteError)
+    async def remote_error(_: Request, exc: RemoteError) -> JSONResponse:
+        return JSONResponse({"error": "RemoteRobotUnavailable", "detail": shorten(str(exc))},
+                            502)
 
     @app.exception_handler(HttpError)
     async def http_error(_: Request, exc: HttpError) -> JSONResponse:
@@ -190,9 +212,10 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
         plane = planes.get(robot)
         if plane is None:
             raise HttpError(404, "UnknownRobot", f"unknown robot {robot!r}; serving: "
-                            f"{', '.join(repr(n) for n in sorted(planes))}")
+                            f"{', '.join(repr(n) for n in served)}")
         return plane
 
+    served = sorted([*planes, *forwarded.robots])
     Read = Annotated[None, Depends(read_access)]
     Command = Annotated[None, Depends(command_access)]
     Plane = Annotated[ControlPlane, Depends(plane_of)]
@@ -203,11 +226,35 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
             raise HttpError(404, "NotServed", f"this server has no {what}")
         return value
 
+    def forwarder(name: str) -> Callable[..., Awaitable[Response]]:
+        async def forward(request: Request, rest: str, _: Read) -> Response:
+            if request.method != "GET":
+                command_access(request)
+            status, content, kind = await forwarded.forward(
+                name, request.method, request.scope["raw_path"].decode("latin-1"),
+                request.scope.get("query_string", b""), await request.body())
+            return Response(content, status, media_type=kind)
+        return forward
+
+    for name in forwarded.robots:
+        # One literal route per remote robot, ahead of the local routes (the first route
+        # that matches answers).
+        app.add_api_route(f"/api/robots/{name}/{{rest:path}}", forwarder(name),
+                          methods=["GET", "POST"], include_in_schema=False)
+
     @app.get("/api/robots", summary="The robots served, with what each runs")
     def robots(_: Read) -> dict[str, Any]:
-        return {"robots": [{"name": name, "behavior": plane.high.current,
-                            "logic": None if plane.low is None else plane.low.current}
-                           for name, plane in sorted(planes.items())],
+        local = [{"name": name, "behavior": plane.high.current,
+                  "logic": None if plane.low is None else plane.low.current}
+                 for name, plane in sorted(planes.items())]
+        # A remote robot's state is its own server's to tell (its /status, its stream).
+        remote = []
+        for name in sorted(forwarded.robots):
+            found = None
+            with contextlib.suppress(BeehaveError):  # not told yet / a bad one: null
+                found = forwarded.find(name)
+            remote.append({"name": name, "remote": found.base if found else None})
+        return {"robots": local + remote,
                 "auth": auth.describe(), "world": world is not None,
                 "fleet": fleet is not None}
 
@@ -280,7 +327,8 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
     @app.websocket("/api/ws")
     async def stream(websocket: WebSocket, robots: str | None = None,
                      token: str | None = None) -> None:
-        """Updates of the robots (comma-separated names, default all): one JSON message
+        """Updates of the robots (comma-separated names, default: this process's robots;
+        a robot of another process is relayed from its own server): one JSON message
         per robot and turn, ``{"type": "update", "robot", "seq", "stamp", "snapshot",
         "blackboard", "events"}`` (``snapshot`` and ``blackboard`` may be missing from a
         message that only carries events), plus this connection's ``dropped`` and
@@ -292,31 +340,51 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
             await _deny(websocket, 401, "missing or wrong token: offer the subprotocol "
                                         "'bearer.TOKEN' or add ?token=TOKEN")
             return
+        # Default: this process's robots. A robot of another process is streamed when
+        # named (the page asks for the one it shows).
         names = sorted(planes) if not robots else [n.strip() for n in robots.split(",")
                                                     if n.strip()]
-        unknown = [n for n in names if n not in planes]
+        unknown = [n for n in names if n not in planes and n not in forwarded]
         if unknown or not names:
             await _deny(websocket, 404, f"unknown robot(s) {unknown}; serving: "
-                                        f"{', '.join(sorted(planes))}")
+                                        f"{', '.join(served)}")
             return
         await websocket.accept(subprotocol=SUBPROTOCOL if SUBPROTOCOL in offered else None)
-        client = hub.add(names)
-        sender = asyncio.get_running_loop().create_task(_send_loop(websocket, client))
+        local = [n for n in names if n in planes]
+        remote = [n for n in names if n in forwarded]
+        lock = asyncio.Lock()
+
+        async def send_locked(text: str) -> None:
+            async with lock:
+                await websocket.send_text(text)
+
+        # Several writers (the hub's client, relays) send one frame at a time.
+        send = send_locked if len(remote) + bool(local) > 1 else websocket.send_text
+        loop = asyncio.get_running_loop()
+        client = hub.add(local) if local else None
+        senders = [loop.create_task(_send_loop(send, client))] if client is not None else []
+        senders += [loop.create_task(forwarded.relay(name, send)) for name in remote]
+        receiver = loop.create_task(_until_disconnect(websocket))
+        gone = False
         try:
-            while True:  # nothing to read; a receive tells when the client has gone
-                message = await websocket.receive()
-                if message["type"] == "websocket.disconnect":
-                    break
-        except WebSocketDisconnect:
-            pass
+            await asyncio.wait([receiver, *senders], return_when=asyncio.FIRST_COMPLETED)
+            gone = receiver.done()
         finally:
-            hub.remove(client)
-            sender.cancel()
-            await asyncio.wait([sender])  # never raises; the handler's own cancel still does
-            error = None if sender.cancelled() else sender.exception()
-            if error is not None and not isinstance(error, _CLIENT_GONE):
-                log.warning("web view: the stream to a WebSocket client failed: %r", error,
-                            exc_info=error)
+            if client is not None:
+                hub.remove(client)
+            for task in (receiver, *senders):
+                task.cancel()
+            await asyncio.wait([receiver, *senders])  # never raises
+            ended = [t for t in senders if not t.cancelled()]
+            for task in ended:
+                error = task.exception()
+                if error is not None and not isinstance(error, _CLIENT_GONE):
+                    log.warning("web view: the stream to a WebSocket client failed: %r",
+                                error, exc_info=not isinstance(error, RemoteError))
+        if ended and not gone:
+            # A robot's stream ended (its process stopped): the page reconnects.
+            with contextlib.suppress(*_CLIENT_GONE):
+                await websocket.close(code=1011, reason="a robot's stream ended")
 
     @app.get("/openapi.json", include_in_schema=False)
     def openapi(_: Read) -> dict[str, Any]:
@@ -335,13 +403,20 @@ _CLIENT_GONE = (WebSocketDisconnect, RuntimeError, OSError)
 close; uvicorn: ClientDisconnected, an OSError): not worth a warning. Anything else is."""
 
 
-async def _send_loop(websocket: WebSocket, client: Client) -> None:
+async def _until_disconnect(websocket: WebSocket) -> None:
+    """Wait until the client goes (it sends nothing else on the stream)."""
+    with contextlib.suppress(WebSocketDisconnect):
+        while (await websocket.receive())["type"] != "websocket.disconnect":
+            pass
+
+
+async def _send_loop(send: Callable[[str], Awaitable[None]], client: Client) -> None:
     while True:
         for message in await client.next_messages():
             # Awaits the socket's flow control: only this client waits, and the pump
             # meanwhile replaces what it has not sent yet. Text frames: what a browser's
             # JSON.parse takes without a Blob round trip.
-            await websocket.send_text(message)
+            await send(message)
             client.sent += 1
 
 

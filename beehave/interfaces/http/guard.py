@@ -15,6 +15,11 @@
 - **Body size**: a request body above ``max_body_bytes`` is refused with 413: at once
   when its ``Content-Length`` says so, else as soon as that many bytes of a chunked body
   have come (the rest is never read).
+- **Connections**: while more than ``max_connections`` connections are open (HTTP ones,
+  kept-alive or still sending their headers, and WebSocket streams, this one included),
+  a request and a WebSocket upgrade are refused with 503 (``Retry-After``) and their
+  connection closed: the server's memory and the robot's CPU stay bounded however many
+  clients come; those already served are not disturbed.
 
 :func:`header_timeout_protocol` closes connections that do not complete a request's
 headers within ``header_timeout_s`` (half-open connections, slowloris).
@@ -24,6 +29,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
+import time
 from collections.abc import Awaitable, Callable, Iterable, MutableMapping
 from typing import Any
 
@@ -37,10 +44,14 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 MAX_BODY_BYTES = 64 * 1024
 #: The longest a connection may take to send a request's headers (seconds).
 HEADER_TIMEOUT_S = 10.0
+#: The most connections (HTTP and WebSocket) a server holds open at once.
+MAX_CONNECTIONS = 100
 #: Names of this machine every loopback server answers to.
 LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
 _SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 _SAME_SITE = frozenset({"same-origin", "none"})
+
+log = logging.getLogger(__name__)
 
 
 def host_name(host: str) -> str:
@@ -58,11 +69,18 @@ class Guard:
 
     ``check_host``: whether the Host rule applies (the server answers something without a
     token); ``hosts``: the names accepted besides the loopback names; ``origins``: origins
-    (``scheme://host:port``) accepted besides the server's own."""
+    (``scheme://host:port``) accepted besides the server's own; ``connections``: how many
+    connections the server holds open now (None: not counted), ``max_connections`` the
+    most it serves."""
 
     def __init__(self, app: ASGIApp, *, check_host: bool, hosts: Iterable[str] = (),
-                 origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES) -> None:
+                 origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES,
+                 connections: Callable[[], int] | None = None,
+                 max_connections: int = MAX_CONNECTIONS) -> None:
         self.app = app
+        self.connections = connections
+        self.max_connections = max_connections
+        self._warned = -float("inf")
         self.check_host = check_host
         self.hosts = LOOPBACK_NAMES | {host_name(h) for h in hosts if h}
         self.origins = frozenset(o.rstrip("/").lower() for o in origins)
@@ -73,6 +91,20 @@ class Guard:
         if kind not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
+        if self.connections is not None:
+            open_now = self.connections()  # this one included
+            if open_now > self.max_connections:
+                now = time.monotonic()
+                if now - self._warned > 10.0:  # a flood is reported, not logged per request
+                    self._warned = now
+                    log.warning("HTTP interface: %d connections open, above its limit of %d:"
+                                " refusing new requests with 503", open_now,
+                                self.max_connections)
+                await _refuse(scope, send, 503, "TooManyConnections",
+                              f"this server holds {open_now} connections, more than its "
+                              f"limit of {self.max_connections} (max_connections): try again "
+                              f"later", retry_after_s=1)
+                return
         headers = _headers(scope)
         refusal = self._refusal(scope, headers)
         if refusal is not None:
@@ -155,11 +187,14 @@ def _headers(scope: Scope) -> dict[str, str]:
             for k, v in scope.get("headers", ())}
 
 
-async def _refuse(scope: Scope, send: Send, status: int, error: str, detail: str) -> None:
+async def _refuse(scope: Scope, send: Send, status: int, error: str, detail: str, *,
+                  retry_after_s: int | None = None) -> None:
     body = json.dumps({"error": error, "detail": detail}).encode()
-    start = {"status": status, "headers": [(b"content-type", b"application/json"),
-                                           (b"content-length", str(len(body)).encode()),
-                                           (b"connection", b"close")]}
+    headers = [(b"content-type", b"application/json"),
+               (b"content-length", str(len(body)).encode()), (b"connection", b"close")]
+    if retry_after_s is not None:
+        headers.append((b"retry-after", str(retry_after_s).encode()))
+    start = {"status": status, "headers": headers}
     if scope["type"] == "websocket":  # the denial response the browser sees
         if "websocket.http.response" in scope.get("extensions", {}):
             await send({"type": "websocket.http.response.start", **start})

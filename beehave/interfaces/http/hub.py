@@ -6,11 +6,13 @@ most ``rate_hz`` turns a second: a change to a quiet robot goes out at once, a b
 coalesced into one update per ``1/rate_hz`` (while the pump sleeps out a period, changes
 only set a flag: no wakeup at all). In a turn, for every robot that changed it builds the
 update once (snapshot + blackboard; the blackboard's entries re-encoded only when they
-changed), serialises the whole message once, and *offers* that one string to each client
-watching that robot. A client's mailbox holds one update per robot: an offer that finds
-the previous one still unsent replaces it and counts it as dropped. A client that keeps
-up is sent the shared string as it is — no per-client work; only a client that dropped
-something gets a message of its own (the events of the replaced updates, its counts).
+changed; the snapshot and the event log read again only after one of the robot's events,
+the snapshot also when it is ``TREE_MAX_AGE_S`` old), serialises the whole message once,
+and *offers* that one string to each client watching that robot. A client's mailbox
+holds one update per robot: an offer that finds the previous one still unsent replaces
+it and counts it as dropped. A client that keeps up is sent the shared string as it
+is — no per-client work; only a client that dropped something gets a message of its own
+(the events of the replaced updates, its counts).
 Nothing the robot does waits for a client: the managers only set a flag, the pump never
 awaits a socket, and a client whose socket is full simply receives fewer, newer updates.
 Events are never dropped with a snapshot: they accumulate in the mailbox (bounded by
@@ -34,6 +36,12 @@ from pydantic_core import to_json
 from beehave.interfaces.core import ControlPlane
 
 log = logging.getLogger(__name__)
+
+#: The oldest a robot's running tree (its snapshot) may be in an update when none of its
+#: events came since it was read: what moves without an event — durations, a decision
+#: engine's state or a tree's tick statuses — is shown at least this often. An event
+#: (a start, an end, a switch …) has it read again at the next turn.
+TREE_MAX_AGE_S = 0.25
 
 
 @dataclass(frozen=True)
@@ -243,6 +251,13 @@ class Hub:
         self._boards = {name: _BoardCache(plane.board, resync_s=refresh_s)
                         for name, plane in self.planes.items()}
         self._dirty = {name: threading.Event() for name in self.planes}
+        #: Set by each of the robot's events (in its threads): the pump reads the event log
+        #: and the running tree again only then (or when the tree is TREE_MAX_AGE_S old):
+        #: a robot whose blackboard alone changes costs a turn the blackboard's changes.
+        self._happened = {name: threading.Event() for name in self.planes}
+        self._tree_happened = {name: threading.Event() for name in self.planes}
+        #: robot → (when, its snapshot serialised) for the turns between two reads.
+        self._trees: dict[str, tuple[float, bytes]] = {}
         self._last_seq = dict.fromkeys(self.planes, 0)
         self._last_built = dict.fromkeys(self.planes, -math.inf)
         #: The robots some client watches (replaced, never changed in place: the pump
@@ -258,10 +273,13 @@ class Hub:
         self._unsubscribe: list[Callable[[], None]] = []
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        #: "server" (the server's loop) and "pump" → their OS thread ids, for ``stats()``.
+        self._threads: dict[str, int] = {}
 
     def start(self) -> None:
         """Subscribe to the robots and start the pump (in the server's running loop)."""
         self._loop = asyncio.get_running_loop()
+        self._threads["server"] = threading.get_native_id()
         kick = self._kick
         for name, plane in self.planes.items():
             flag, board = self._dirty[name], self._boards[name]
@@ -281,7 +299,14 @@ class Hub:
                 board.written(change.key)
                 mark(change)
 
-            self._unsubscribe.append(plane.subscribe(mark))
+            def happened(event: object, mark: Callable[[object], None] = mark,
+                         flags: tuple[threading.Event, ...] = (
+                             self._happened[name], self._tree_happened[name])) -> None:
+                for flag in flags:
+                    flag.set()
+                mark(event)
+
+            self._unsubscribe.append(plane.subscribe(happened))
             sub = plane.board.subscribe("**", written)
             self._unsubscribe.append(sub.close)
         self._thread = threading.Thread(target=self._pump, name="beehave:http-pump",
@@ -340,17 +365,23 @@ class Hub:
         self._watched = frozenset(name for c in self.clients for name in c.robots)
         self.dropped_total += client.dropped
 
-    def build(self, name: str) -> bytes:
+    def build(self, name: str, *, reuse_tree: bool = False) -> bytes:
         """One robot's update (``{"seq", "stamp", "snapshot", "blackboard"}``), serialised
-        once for every client (any thread)."""
+        once for every client (any thread). ``reuse_tree``: take the snapshot built last
+        unless one of the robot's events came since or it is :data:`TREE_MAX_AGE_S` old
+        (the pump's turns; the blackboard is read every time)."""
         with self._build_lock:
             started = time.perf_counter()
-            plane = self.planes[name]
+            now = time.monotonic()
+            tree = self._trees.get(name) if reuse_tree else None
+            happened = self._tree_happened[name]
+            if tree is None or happened.is_set() or now - tree[0] >= TREE_MAX_AGE_S:
+                happened.clear()  # before reading: an event during the read sets it again
+                tree = self._trees[name] = (now, to_json(self.planes[name].snapshot()))
             self._seq += 1
-            head = to_json({"seq": self._seq, "stamp": time.time(),
-                            "snapshot": plane.snapshot()})
-            out = b"".join([head[:-1], b',"blackboard":', self._boards[name].encode(),
-                            b"}"])
+            out = b"".join([b'{"seq":%d,"stamp":' % self._seq, to_json(time.time()),
+                            b',"snapshot":', tree[1], b',"blackboard":',
+                            self._boards[name].encode(), b"}"])
             self.build_s += time.perf_counter() - started
             self.updates_built += 1
             return out
@@ -361,6 +392,7 @@ class Hub:
                    for name in self._watched)
 
     def _pump(self) -> None:
+        self._threads["pump"] = threading.get_native_id()
         last_turn = -math.inf
         while not self._stopping:
             # The coalescing: at most one turn every period_s. While it sleeps out the
@@ -395,9 +427,12 @@ class Hub:
                 continue
             self._dirty[name].clear()
             self._last_built[name] = now
-            body = self.build(name)[1:-1]
-            plane = self.planes[name]
-            events = plane.events(after_seq=self._last_seq[name], limit=self.events_kept)
+            body = self.build(name, reuse_tree=True)[1:-1]
+            events: list[dict[str, Any]] = []
+            if self._happened[name].is_set():  # the log is read only when it grew
+                self._happened[name].clear()
+                events = self.planes[name].events(after_seq=self._last_seq[name],
+                                                  limit=self.events_kept)
             if events:
                 self._last_seq[name] = events[-1]["seq"]
             updates.append(Update(name, body, events, _message(name, body, events)))
@@ -420,4 +455,15 @@ class Hub:
                 "build_ms_mean": round(1000 * self.build_s / self.updates_built, 3)
                 if self.updates_built else None,
                 "dropped_snapshots": self.dropped_total + sum(c["dropped"] for c in clients),
-                "rate_hz": round(1.0 / self.period_s, 3)}
+                "rate_hz": round(1.0 / self.period_s, 3),
+                "cpu_s": {name: _thread_cpu_s(tid) for name, tid in self._threads.items()}}
+
+
+def _thread_cpu_s(tid: int) -> float | None:
+    """The CPU time a thread of this process has used (Linux; None elsewhere): what serving
+    costs, told apart from the robot's own threads (``GET /api/stats``, the benchmark)."""
+    try:
+        with open(f"/proc/self/task/{tid}/schedstat") as stat:
+            return int(stat.read().split()[0]) / 1e9
+    except (OSError, ValueError, IndexError):
+        return None

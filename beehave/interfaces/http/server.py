@@ -19,8 +19,10 @@ from beehave.interfaces.http.app import Provider, create_app
 from beehave.interfaces.http.guard import (
     HEADER_TIMEOUT_S,
     MAX_BODY_BYTES,
+    MAX_CONNECTIONS,
     header_timeout_protocol,
 )
+from beehave.interfaces.http.remote import Address
 
 if TYPE_CHECKING:
     from beehave.lowlevel import LowLevelBehaviorManager
@@ -90,7 +92,12 @@ class HttpServer:
     ``world`` / ``fleet``: what the web view draws (see
     :func:`~beehave.interfaces.http.create_app`). ``rate_hz``: WebSocket updates per robot
     and second at most. ``refresh_s``: the longest time between two updates of a robot
-    that did not change (its blackboard's ages and staleness move on).
+    that did not change (its blackboard's ages and staleness move on). ``remotes``: robots
+    served by other processes, name → their server's address (with ``#token=…`` when it
+    has one, as their :attr:`url` gives it) or a function returning it once known: a
+    fleet process's page shows them in full (:mod:`beehave.interfaces.http.remote`).
+    ``max_connections``: the most connections (HTTP and WebSocket) open at once; beyond,
+    requests and upgrades get 503 (:class:`~beehave.interfaces.http.guard.Guard`).
 
     :meth:`start` returns once the server accepts connections; :meth:`stop` ends it and
     its thread (the robots keep running). Use it as a context manager.
@@ -101,7 +108,9 @@ class HttpServer:
                  world: Provider = None, fleet: Provider = None, rate_hz: float = 20.0,
                  refresh_s: float = 1.0, hosts: Iterable[str] = (),
                  origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES,
-                 header_timeout_s: float = HEADER_TIMEOUT_S) -> None:
+                 header_timeout_s: float = HEADER_TIMEOUT_S,
+                 max_connections: int = MAX_CONNECTIONS,
+                 remotes: Mapping[str, Address] | None = None) -> None:
         if isinstance(planes, ControlPlane):
             planes = {planes.name: planes}
         if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
@@ -118,6 +127,11 @@ class HttpServer:
         if not (isinstance(header_timeout_s, (int, float)) and 0 < header_timeout_s <= 3600):
             raise ConfigError(f"HttpServer: header_timeout_s must be a number of seconds in "
                               f"(0, 3600], got {header_timeout_s!r}")
+        if not (isinstance(max_connections, int) and not isinstance(max_connections, bool)
+                and max_connections > 0):
+            raise ConfigError(f"HttpServer: max_connections must be a positive int, got "
+                              f"{max_connections!r}")
+        self.max_connections = max_connections
         self.header_timeout_s = float(header_timeout_s)
         self.max_body_bytes = max_body_bytes
         self.host = host
@@ -141,7 +155,9 @@ class HttpServer:
         self.app = create_app(self.planes, world=world, fleet=fleet, token=token,
                               loopback=self.loopback, rate_hz=rate_hz, refresh_s=refresh_s,
                               on_started=self._ready.set, hosts=[host, *hosts],
-                              origins=origins, max_body_bytes=max_body_bytes)
+                              origins=origins, max_body_bytes=max_body_bytes,
+                              remotes=remotes, connections=self._open_connections,
+                              max_connections=max_connections)
         self._port = port
         self._sock: socket.socket | None = None
         self._server: Any = None
@@ -162,6 +178,11 @@ class HttpServer:
             host = f"[{host}]"
         base = f"http://{host}:{self._port}/"
         return f"{base}#token={self.token}" if self.token else base
+
+    def _open_connections(self) -> int:
+        """The connections uvicorn holds now (HTTP and WebSocket; in the server's loop)."""
+        server = self._server
+        return 0 if server is None else len(server.server_state.connections)
 
     @property
     def hub(self) -> Any:
@@ -304,7 +325,7 @@ def serve(planes: ControlPlane | Mapping[str, ControlPlane], *, host: str = DEFA
                        world=world.model_dump(mode="json"), fleet=fleet_view)
 
     ``options``: the rest of :class:`HttpServer`'s settings (``hosts``, ``origins``,
-    ``max_body_bytes``, ``header_timeout_s``).
+    ``max_body_bytes``, ``header_timeout_s``, ``max_connections``, ``remotes``).
     """
     server = HttpServer(planes, host=host, port=port, token=token, world=world, fleet=fleet,
                         rate_hz=rate_hz, refresh_s=refresh_s, **options)

@@ -12,6 +12,8 @@ const KEYS = {x: "odom/x_m", y: "odom/y_m", yaw: "odom/yaw_rad", battery: "batte
 
 const view = {
   token: null, robots: [], selected: null, world: null, ws: null, retryMs: 500,
+  remote: new Set(),  // robots of other processes (a fleet's): streamed while selected
+  remoteWs: null,
   state: {},        // robot -> {snapshot, blackboard, events[], trail[], seq}
   behaviors: {},    // robot -> list from /behaviors
   renderQueued: false, updates: 0, dropped: 0, eventsDropped: 0,
@@ -87,11 +89,15 @@ function setConn(up, text) {
 
 // ---- the WebSocket stream -----------------------------------------------------------------
 
-function connect() {
+function openStream(query) {
   const scheme = location.protocol === "https:" ? "wss" : "ws";
   const protocols = ["beehave"];
   if (view.token) protocols.push(`bearer.${view.token}`);
-  const ws = new WebSocket(`${scheme}://${location.host}/api/ws`, protocols);
+  return new WebSocket(`${scheme}://${location.host}/api/ws${query}`, protocols);
+}
+
+function connect() {
+  const ws = openStream("");  // this process's robots
   view.ws = ws;
   ws.onopen = () => { view.retryMs = 500; setConn(true, "live"); };
   ws.onmessage = (message) => receive(JSON.parse(message.data));
@@ -103,6 +109,32 @@ function connect() {
     setTimeout(connect, view.retryMs);
     view.retryMs = Math.min(view.retryMs * 2, 5000);
   };
+}
+
+// A robot of another process (a fleet's): its stream is relayed by this server while it
+// is the selected one; another selection closes it.
+function connectRemote(name) {
+  const ws = openStream(`?robots=${encodeURIComponent(name)}`);
+  view.remoteWs = ws;
+  ws.onopen = () => { view.retryMs = 500; setConn(true, `live: ${name}`); };
+  ws.onmessage = (message) => receive(JSON.parse(message.data));
+  ws.onclose = () => {
+    if (view.remoteWs !== ws) return;
+    setConn(false, `reconnecting to ${name}…`);
+    api("/api/robots").catch(() => {});
+    setTimeout(() => { if (view.remoteWs === ws) connectRemote(name); }, view.retryMs);
+    view.retryMs = Math.min(view.retryMs * 2, 5000);
+  };
+}
+
+function leaveRemote(name) {
+  // What was streamed of it goes stale the moment its stream closes: forget it (the
+  // fleet's rows draw its marker again).
+  const ws = view.remoteWs;
+  view.remoteWs = null;
+  if (ws) ws.close();
+  delete view.state[name];
+  for (const node of document.querySelectorAll(`#robot-layer [data-robot="${CSS.escape(name)}"], #trail-layer [data-robot="${CSS.escape(name)}"]`)) node.remove();
 }
 
 function robotState(name) {
@@ -308,7 +340,10 @@ function drawRobots() {
 
 function select(name) {
   if (!name || name === view.selected) return;
+  if (view.selected && view.remote.has(view.selected)) leaveRemote(view.selected);
   view.selected = name;
+  robotState(name);  // its panels start empty, not with the previous robot's
+  if (view.remote.has(name)) connectRemote(name);
   $("#robot-select").value = name;
   $("#control-msg").textContent = "";
   loadBehaviors(name);
@@ -575,6 +610,8 @@ function drawFleetRobots(rows) {
     if (!group) {
       group = svg("g", {class: "robot fleet-robot", "data-fleet-robot": String(name)});
       group.append(svg("circle", {class: "body", r: 0.3}), svg("text", {class: "label", x: -0.3, y: 0.62}));
+      // A robot this server forwards to: clicking it shows its full view.
+      group.addEventListener("click", () => { if (view.robots.includes(group.dataset.fleetRobot)) select(group.dataset.fleetRobot); });
       layer.append(group);
     }
     group.setAttribute("transform", `translate(${row.x_m} ${Y(row.y_m)})`);
@@ -643,6 +680,8 @@ async function start() {
     return;
   }
   view.robots = info.robots.map((r) => r.name);
+  view.remote = new Set(info.robots.filter((r) => r.remote).map((r) => r.name));
+  const local = view.robots.filter((n) => !view.remote.has(n));
   fillRobotSelect();
   if (info.world) {
     try { view.world = await api("/api/world"); drawWorld(view.world); } catch (err) { view.world = null; }
@@ -650,12 +689,14 @@ async function start() {
   if (info.fleet) pollFleet();
   select(view.selected || view.robots[0]);
   if (view.ws) { const old = view.ws; view.ws = null; old.close(); }
-  // A fleet process whose robots run elsewhere serves the fleet and the map only.
-  // Without a robot of its own, the robot panels (and Switch, Stop) would only be empty
-  // or answer "unknown robot": they are hidden.
+  // A fleet process whose robots run elsewhere serves the fleet and the map, and the
+  // robots it was given the addresses of (picked with the selector or on the map). Without
+  // any robot, the robot panels (and Switch, Stop) would only be empty or answer "unknown
+  // robot": they are hidden.
   for (const panel of document.querySelectorAll(".robot-panel")) panel.hidden = !view.robots.length;
   $("#robot-label").hidden = !view.robots.length;
-  if (view.robots.length) connect(); else setConn(true, "fleet view");
+  if (local.length) connect();
+  else if (!view.remote.has(view.selected)) setConn(true, "fleet view");
 }
 
 view.render = render;  // for the console: time a redraw with performance.now()
