@@ -10,8 +10,7 @@ import secrets
 import socket
 import threading
 from collections.abc import Callable, Iterable, Mapping
-from types import TracebackType
-from typing import TYPE_CHECKING, Any, Self
+from typing import TYPE_CHECKING, Any
 
 from beehave.errors import BeehaveError, ConfigError
 from beehave.interfaces.core import ControlPlane
@@ -23,6 +22,7 @@ from beehave.interfaces.http.guard import (
     header_timeout_protocol,
 )
 from beehave.interfaces.http.remote import Address
+from beehave.lifecycle import Running
 
 if TYPE_CHECKING:
     from beehave.lowlevel import LowLevelBehaviorManager
@@ -80,7 +80,7 @@ def parse_address(text: str) -> tuple[str, int]:
     return host, int(port_text)
 
 
-class HttpServer:
+class HttpServer(Running):
     """The HTTP/WebSocket interface and web view of one or more robots, served by uvicorn
     in a thread of its own (with its own event loop) of this process.
 
@@ -276,13 +276,7 @@ class HttpServer:
             self._sock.close()
             self._sock = None
 
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.stop()
+    _stop_with = "stop"
 
 
 def hold_hals(low: LowLevelBehaviorManager, names: Iterable[str], *,
