@@ -53,12 +53,8 @@ class Behavior(Runnable):
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
-        self._engine = None
-        self._children = []
-        self._names = Counter()
-        self._unobserved_failures = []
-        self._hook_errors = []
-        self._accepting = True
+        self.__dict__.update(_engine=None, _children=[], _names=Counter(),
+                             _unobserved_failures=[], _hook_errors=[], _accepting=True)
         return self
 
     def start_action(self, action: A, *, preempt: bool = False) -> A:

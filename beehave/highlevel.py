@@ -838,10 +838,18 @@ docs/concepts.md): a STUCK action's ``safe_state()`` normally has run when ``swi
 returns, and one that hangs is reported (SAFE_STATE_OVERDUE) instead of blocking it."""
 
 
-def _check_params(name: str, cls: type[Behavior], params: dict[str, Any], *, partial: bool) -> None:
+@functools.lru_cache(maxsize=256)
+def _signature(cls: type[Behavior]) -> inspect.Signature | None:
+    """A class's constructor signature (inspect takes ~30 µs; a switch asks every time)."""
     try:
-        signature = inspect.signature(cls)
+        return inspect.signature(cls)
     except (TypeError, ValueError):  # builtins without a signature: let the call decide
+        return None
+
+
+def _check_params(name: str, cls: type[Behavior], params: dict[str, Any], *, partial: bool) -> None:
+    signature = _signature(cls)
+    if signature is None:
         return
     try:
         (signature.bind_partial if partial else signature.bind)(**params)

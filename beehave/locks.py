@@ -125,7 +125,14 @@ class TypeLocks:
                 self._cond.notify_all()
 
     def poke(self) -> None:
-        """Wake preempting waiters so they re-check whether their caller was interrupted."""
+        """Wake preempting waiters so they re-check whether their caller was interrupted.
+
+        Read without the lock first: a waiter that queues after this look checks whether
+        it was cancelled (under the lock) before it waits, so none is missed; and an
+        interrupt — every action's, in every switch — then costs no lock when nobody
+        waits to preempt (the common case)."""
+        if not any(self._queues.values()):
+            return
         with self._cond:
             self._cond.notify_all()
 

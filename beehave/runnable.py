@@ -127,43 +127,29 @@ class Runnable(abc.ABC):
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         # Runtime state lives here so that subclasses need not call super().__init__().
         self = super().__new__(cls)
-        init = object.__setattr__
-        init(self, "name", cls.__name__)
-        init(self, "result", None)
-        init(self, "error", None)
-        init(self, "parent", None)
-        init(self, "started_at", None)  # time.monotonic()
-        init(self, "ended_at", None)
-        self._manager = None
-        self._traceback = ""
-        self._status = Status.PENDING
-        self._interrupt_requested = False
-        self._stop_deadline = None
-        self._cond = threading.Condition(threading.Lock())
-        self._decided = threading.Event()
-        self._started = False
-        self._ros = None
-        self._view = None
-        self._ended = threading.Event()
-        self._interrupted_at = None
-        self._thread_id = None
-        # What keeps the type lock and the ROS entities: run(), plus a forced safe_state()
-        # while one runs. Whichever of them ends last releases them.
-        self._holds = 1
-        # Set while a safe_state() runs (in its own thread or in run's): who waits for the
-        # hardware to be safe waits on it.
-        self._safe_done = None
-        self._safe_thread_id = None
-        self._overdue_reported = False
-        self._in_history = False
-        self._suffix = ""  # "#2" for the second child of that name in its behaviour
-        # Pause (actions only, see Action): asked to wind down for a pause; set once it is
-        # paused (or ended); its hardware made safe by the pause and run() not yet
-        # restarted; paused through its own on_pause() hook.
-        self._pausing = False
-        self._paused_done = None
-        self._pause_safe = False
-        self._pause_hooked = False
+        # Straight into the instance dict: __setattr__ (the reserved-name check) is for
+        # user code, and a switch creates objects often enough for it to show.
+        self.__dict__.update(
+            name=cls.__name__, result=None, error=None, parent=None,
+            started_at=None,  # time.monotonic()
+            ended_at=None,
+            _manager=None, _traceback="", _status=Status.PENDING,
+            _interrupt_requested=False, _stop_deadline=None,
+            _cond=threading.Condition(threading.Lock()), _decided=threading.Event(),
+            _started=False, _ros=None, _view=None, _ended=threading.Event(),
+            _interrupted_at=None, _thread_id=None,
+            # What keeps the type lock and the ROS entities: run(), plus a forced
+            # safe_state() while one runs. Whichever of them ends last releases them.
+            _holds=1,
+            # Set while a safe_state() runs (in its own thread or in run's): who waits for
+            # the hardware to be safe waits on it.
+            _safe_done=None, _safe_thread_id=None, _overdue_reported=False,
+            _in_history=False,
+            _suffix="",  # "#2" for the second child of that name in its behaviour
+            # Pause (actions only, see Action): asked to wind down for a pause; set once
+            # it is paused (or ended); its hardware made safe by the pause and run() not
+            # yet restarted; paused through its own on_pause() hook.
+            _pausing=False, _paused_done=None, _pause_safe=False, _pause_hooked=False)
         return self
 
     def __init__(self, name: str | None = None) -> None:
