@@ -357,7 +357,10 @@ class HighLevelBehaviorManager(Running):
         def job() -> None:
             self._pause_now(source)
 
-        self._pool.submit("beehave:pause", job)
+        try:
+            self._pool.submit("beehave:pause", job)
+        except RuntimeError:  # the pool closed meanwhile: the manager is shutting down
+            raise ManagerShutdown("cannot pause: the manager is shutting down") from None
 
     def _source(self) -> str:
         """Who in this manager asks (recordings replay only what came from outside)."""
