@@ -44,6 +44,7 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
 from beehave import HighLevelBehaviorManager
+from beehave.cli import settle_heap
 from beehave.config import parse_config
 from beehave.interfaces import ControlPlane
 from beehave.interfaces.vda5050 import Vda5050Interface
@@ -331,6 +332,7 @@ def _large_orders_loaded(port: int) -> list[dict[str, Any]]:
         listener.subscribe("uagv/v2/beehave/large1/state")
         listener.loop_start()
         agv = _agv(port, "large1", executor=_Hold, state_period_s=1.0)
+        settle_heap()  # as `beehave run` does once its robot runs
         master: Master | None = None
         try:
             master = Master(port, serial_number="large1")
