@@ -299,6 +299,12 @@ def action(action_type: str, action_id: str, **params: Any) -> dict[str, Any]:
 
 # ---- the scenario: ``python -m behaviours.demos.vda5050_master`` ----------------------
 
+VIA_M = (6.0, 2.0)
+"""A node without actions between the start and the pick-up (on the free aisle y = 2)."""
+VIA_DEVIATION_M = 0.15
+EDGE_MPS = 0.6
+"""The edges' speed: ``speed_mps`` of robots/config/emili_vda5050.yaml (no maxSpeed)."""
+
 @dataclass
 class Timeline:
     """What the master saw, stamped with the simulation's time."""
@@ -365,8 +371,14 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
         master = Master(port, host=host, serial_number="emili1", clock=lambda: sim.time_s)
         emili = sim.emili("emili1")
         lift_max = [0.0]
-        remove = sim.on_step(lambda _t: lift_max.__setitem__(
-            0, max(lift_max[0], emili.lift_height())))
+        trace: list[tuple[float, float, float]] = []  # the body's x, y, forward speed
+
+        def on_step(_t: float) -> None:
+            lift_max[0] = max(lift_max[0], emili.lift_height())
+            odom = emili.odometry()
+            trace.append((odom.x_m, odom.y_m, odom.linear_mps))
+
+        remove = sim.on_step(on_step)
 
         latencies: dict[str, float] = {} if figures is None else figures
 
@@ -403,11 +415,14 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
                             timeout_s=30)
             wait(lambda s: "agvPosition" in s, 30)
             start = node("start", 0, x=3.0, y=2.0)
-            take = node("emili_pickup", 2, actions=[action("pick", "pick-1", loadId="box-1")])
-            put = node("emili_dropoff", 4, actions=[action("drop", "drop-1")])
-            console.print("master → order o1: start → emili_pickup (pick) → emili_dropoff "
-                          "(drop)")
-            send_order("o1", [start, take, put])
+            # A node without actions on the way: EMILI drives on through it (6.6.3).
+            via = node("via", 2, x=VIA_M[0], y=VIA_M[1])
+            via["nodePosition"]["allowedDeviationXY"] = VIA_DEVIATION_M
+            take = node("emili_pickup", 4, actions=[action("pick", "pick-1", loadId="box-1")])
+            put = node("emili_dropoff", 6, actions=[action("drop", "drop-1")])
+            console.print("master → order o1: start → via → emili_pickup (pick) → "
+                          "emili_dropoff (drop)")
+            send_order("o1", [start, via, take, put])
             picked = wait(lambda s: s["lastNodeId"] == "emili_pickup" and any(
                 a["actionId"] == "pick-1" and a["actionStatus"] == "FINISHED"
                 for a in s["actionStates"]), 120)
@@ -418,6 +433,13 @@ def run_scenario(*, out: Path, real_time_factor: float | None = None,
                 for a in s["actionStates"]), 120)
             drop_pose = emili.pose()
             drop_lift = emili.lift_height()
+            near_via = [v for x, y, v in list(trace)
+                        if _math.hypot(x - VIA_M[0], y - VIA_M[1]) <= VIA_DEVIATION_M]
+            slowest = min(near_via) if near_via else _math.nan
+            # The slowest the body went within the node's deviation: above half the edge's.
+            checks.append(("drove through 'via'", f"{slowest:.3f} m/s",
+                           f"> {0.5 * EDGE_MPS:.2f} m/s", bool(near_via)
+                           and slowest > 0.5 * EDGE_MPS))
             if picked and done:
                 e_pick = _math.hypot(pick_pose.x_m - pickup.center_m[0],
                                      pick_pose.y_m - pickup.center_m[1])
