@@ -204,6 +204,12 @@ class PausableClock(WallClock):
             conds = list(self._waiting)
         _notify(conds)
 
+    def frozen_for(self) -> float:
+        """How long the current freeze has lasted (the base clock's seconds; 0 when not
+        frozen)."""
+        since = self._since
+        return 0.0 if since is None else max(0.0, self.base.now() - since)
+
     def thaw(self) -> float:
         """End the freeze; returns how long it lasted (the base clock's seconds)."""
         with self._lock:

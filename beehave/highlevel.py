@@ -371,17 +371,22 @@ class HighLevelBehaviorManager(Running):
         """End the pause: actions paused by their ``on_pause()`` hook get ``on_resume()``
         and go on, the others run again from the start; time runs again for behaviours.
         Returns True when it ended a pause, False when none was on."""
-        with self._pause_lock:
-            actions, lasted = self._end_pause()
-            if actions is None:
-                return False
-        # Before anything moves again: observers see the resume before its first command.
         source = self._source() if self._own_thread() else "external"
-        self.events.emit(Event(EventKind.RESUMED, self._top_name or "", detail={
-            "by": "resume", "source": source, "paused_s": round(lasted, 6),
-            "actions": [a.path for a in actions]}))
-        for action in actions:
-            if action._pause_hooked and not action._decided.is_set():
+        with self._pause_lock:
+            with self._locks.table():
+                if not self._paused:
+                    return False
+                hooked = [a for a in self._paused_actions
+                          if a._pause_hooked and not a._decided.is_set()]
+            # Before anything moves again: observers see the resume before its first
+            # command.
+            self.events.emit(Event(EventKind.RESUMED, self._top_name or "", detail={
+                "by": "resume", "source": source,
+                "paused_s": round(self.run_clock.frozen_for(), 6),
+                "actions": [a.path for a in self._paused_actions]}))
+            # The hooks first, while everything else still stands still: an action whose
+            # run() went on meanwhile could undo what its on_resume() does.
+            for action in hooked:
                 try:
                     with self.run_clock.unfrozen():
                         action.on_resume()
@@ -389,6 +394,8 @@ class HighLevelBehaviorManager(Running):
                     self.events.emit(Event(EventKind.HOOK_FAILED, action.path,
                                            action.status.name, exc, {"hook": "on_resume"}))
                     action.interrupt()
+            actions, _ = self._end_pause()
+        for action in actions or []:
             action._request_resume()
         return True
 
