@@ -74,15 +74,30 @@ class Script(Action):
 
 
 class ScriptedBroker(Broker):
+    """``refuse``: the reason it gives for every role instead of a bid. ``forge``: the
+    JSON value it puts on the wire as the cost of each of its bids (a negative number,
+    ``true``, a string: what a broken or hostile broker might send)."""
+
     def __init__(self, caps: list[str], cost: float = 1.0, *, lie: bool = False,
-                 report: Report = say) -> None:
+                 report: Report = say, refuse: str | None = None,
+                 forge: Any = None) -> None:
         self.capabilities = tuple(caps)
         self.base = cost
         self.lie = lie
         self.report = report
+        self.refusal = refuse
+        self.forge = forge
 
     def cost(self, job: Job, queue: list[Job]) -> float | str | None:
+        if self.refusal is not None:
+            return self.refusal
         return self.base + 10.0 * len(queue)
+
+    def _reply(self, to: Message, performative: Performative, content: Any = None) -> bool:
+        if self.forge is not None and performative is Performative.PROPOSE:
+            content = {**content, "bids": [{**b, "cost": self.forge}
+                                           for b in content["bids"]]}
+        return super()._reply(to, performative, content)
 
     def perform_role(self, job: Job) -> Action:
         return Script(job, self.report, self.agent.name)

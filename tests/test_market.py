@@ -93,13 +93,15 @@ def brokers(ros: RosContext, reports: Reports) -> Iterator[Callable[..., Agent]]
     """In-process brokers, each an agent with its own manager (its own type locks)."""
     opened: list[tuple[Agent, HighLevelBehaviorManager]] = []
 
-    def make(name: str, caps: list[str], cost: float = 1.0, *, lie: bool = False) -> Agent:
+    def make(name: str, caps: list[str], cost: float = 1.0, *, lie: bool = False,
+             **options: Any) -> Agent:
         agent = Agent(name, ros=ros, lease_s=LEASE_S, probe_s=PROBE_S)
         hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
         hl.start()
         opened.append((agent, hl))
         agent.attach(hl)
-        hl.register("broker", ScriptedBroker, caps=caps, cost=cost, lie=lie, report=reports)
+        hl.register("broker", ScriptedBroker, caps=caps, cost=cost, lie=lie, report=reports,
+                    **options)
         hl.switch("broker")
         return agent
 
@@ -319,6 +321,40 @@ def test_a_task_that_needs_two_robots_is_not_given_to_one(
     assert isinstance(outcome, Outcome)
     assert outcome.state is TaskState.FAILED
     assert "'front': ['two_only'], 'back': ['two_only']" in outcome.reason
+    assert not reports.of("perform")
+
+
+@pytest.mark.parametrize("forged", [-5, True, "0.5"], ids=["negative", "true", "string"])
+def test_a_bid_that_is_not_a_cost_never_wins(
+        boss: Agent, brokers: Callable[..., Agent], reports: Reports, forged: Any) -> None:
+    """A cost on the wire is a finite number >= 0: ``-5``, ``true`` (read as 1) or
+    ``"0.5"`` would beat the honest bid of 2 and leave the task with a broker the
+    auctioneer must not trust."""
+    tag = f"forge_{next(_ids)}"
+    brokers(f"{tag}_bad", ["carry"], 0.1, forge=forged)
+    brokers(f"{tag}_honest", ["carry"], 2.0)
+    _see(boss, {f"{tag}_bad", f"{tag}_honest"})
+    task = Task.make("deliver", id=f"t_{tag}", roles=[
+        Role("carry", "carry", params={"script": ["sleep:0.01"]})])
+    outcome = auction(boss, task, reply_by_s=WAIT_S)
+    assert outcome.state is TaskState.COMPLETED
+    assert [r["members"] for r in outcome.rounds] == [{"carry": f"{tag}_honest"}]
+    assert outcome.rounds[0]["cost"] == 2.0
+    assert not reports.of("perform", broker=f"{tag}_bad")
+
+
+def test_the_brokers_reasons_for_refusing_are_in_the_failure(
+        boss: Agent, brokers: Callable[..., Agent], reports: Reports) -> None:
+    brokers("why_a", ["carry"], refuse="out of order")
+    brokers("why_b", ["carry"], refuse="battery 12 % is too low")
+    _see(boss, {"why_a", "why_b"})
+    task = Task.make("deliver", id="t_why", roles=[Role("carry", "carry")])
+    with pytest.raises(TaskFailed) as err:
+        auction(boss, task, reply_by_s=WAIT_S, max_rounds=1)
+    reason = str(err.value)
+    assert "'why_a': 'out of order'" in reason, reason
+    assert "'why_b': 'battery 12 % is too low'" in reason, reason
+    assert err.value.outcome.reason in reason
     assert not reports.of("perform")
 
 

@@ -934,6 +934,9 @@ class _Round:
         self.tell("cfp", conversation_id=cid, tasks=[e["task"]["id"] for e in entries],
                   candidates=names)
         bids: Bids = {}
+        #: (task, plan, role) → {broker: its reason for not bidding}: what a task that
+        #: is left unassigned says.
+        refusals: dict[tuple[str, str, str], dict[str, str]] = {}
         if names:
             unanswered.update(names)
             try:
@@ -953,6 +956,7 @@ class _Round:
                 if reply.performative is Performative.PROPOSE:
                     undecided.add(reply.sender)
                     self._read_bids(reply, bids)
+                self._read_refusals(reply, refusals)
             if unanswered:
                 late = sorted(unanswered)
                 unanswered.clear()
@@ -1005,7 +1009,8 @@ class _Round:
             self.tell("deferred", conversation_id=cid, task=o.task.id, reason=o.reason)
         for o in unassigned:
             o.state = TaskState.WAITING
-            o.reason = unstaffable.get(o.task.id) or self._why_not(o, bids, names)
+            o.reason = unstaffable.get(o.task.id) or self._why_not(o, bids, names,
+                                                                  refusals)
             o.rounds.append({"round": cid, "plan": None, "members": {}, "cost": None,
                              "ended": f"unassigned: {o.reason}"})
             self.tell("unassigned", conversation_id=cid, task=o.task.id, reason=o.reason)
@@ -1024,22 +1029,51 @@ class _Round:
         for bid in content.get("bids", []) if isinstance(content.get("bids"), list) else []:
             try:
                 key = (str(bid["task"]), str(bid["plan"]), str(bid["role"]))
-                cost = float(bid["cost"])
-            except (KeyError, TypeError, ValueError):
-                log.warning("agent %r: malformed bid from %r ignored: %r", self.agent.name,
-                            reply.sender, bid)
+                cost = bid["cost"]
+            except (KeyError, TypeError):
+                key, cost = None, None
+            # A cost is a finite number >= 0: a bool (JSON true read as 1), a string, a
+            # negative cost (which would win every auction) or NaN/inf is no bid.
+            if key is None or isinstance(cost, bool) or not isinstance(cost, (int, float)) \
+                    or not math.isfinite(cost) or cost < 0:
+                log.warning("agent %r: bid from %r ignored: the cost must be a finite "
+                            "number >= 0, got %r", self.agent.name, reply.sender, bid)
                 continue
             o = self.outcomes.get(key[0])
-            if o is None or not math.isfinite(cost) or key[2] not in \
-                    o.open_roles().get(key[1], []):
+            if o is None or key[2] not in o.open_roles().get(key[1], []):
                 continue
-            bids.setdefault(key, {})[reply.sender] = cost
+            bids.setdefault(key, {})[reply.sender] = float(cost)
 
-    def _why_not(self, o: Outcome, bids: Bids, names: list[str]) -> str:
+    @staticmethod
+    def _read_refusals(reply: Message,
+                       refusals: dict[tuple[str, str, str], dict[str, str]]) -> None:
+        """Keep the reasons a broker gave for the roles it did not bid for (a
+        ``propose``'s or a ``refuse``'s ``refused`` list)."""
+        content = reply.content if isinstance(reply.content, dict) else {}
+        rows = content.get("refused")
+        for row in rows if isinstance(rows, list) else []:
+            if isinstance(row, dict) and all(k in row for k in ("task", "plan", "role")):
+                key = (str(row["task"]), str(row["plan"]), str(row["role"]))
+                refusals.setdefault(key, {})[reply.sender] = f"{row.get('reason')!s:.200}"
+        if reply.performative is not Performative.PROPOSE and not rows:
+            refusals.setdefault(("*", "*", "*"), {})[reply.sender] = \
+                f"{content.get('reason', reply.content)!s:.200}"
+
+    def _why_not(self, o: Outcome, bids: Bids, names: list[str],
+                 refusals: Mapping[tuple[str, str, str], Mapping[str, str]]
+                 | None = None) -> str:
         parts = []
+        refusals = refusals or {}
         for plan, roles in o.open_roles().items():
             filled = {r: sorted(bids.get((o.task.id, plan, r), {})) for r in roles}
-            parts.append(f"plan {plan!r}: bidders per role {filled}")
+            said = {r: dict(sorted(refusals.get((o.task.id, plan, r), {}).items()))
+                    for r in roles}
+            said = {r: why for r, why in said.items() if why}
+            parts.append(f"plan {plan!r}: bidders per role {filled}"
+                         + (f", refusals per role {said}" if said else ""))
+        general = refusals.get(("*", "*", "*"))
+        if general:
+            parts.append(f"refused outright: {dict(sorted(general.items()))}")
         return (f"no assignment of distinct brokers in this round (brokers asked: "
                 f"{names or 'none'}; excluded: {sorted(o.excluded) or 'none'}); "
                 + "; ".join(parts))
