@@ -243,7 +243,7 @@ def _within(old: Any, new: Any, deadband: float) -> bool:
     return False
 
 
-class _Slot:
+class Slot:
     """Everything the blackboard knows about one key; looked up once per ``set``."""
 
     __slots__ = ("key", "parts", "change", "notified", "subs", "max_age_s", "deadband",
@@ -423,14 +423,14 @@ class Blackboard:
 
     def __init__(self, *, clock: Callable[[], float] = time.monotonic,
                  on_error: ErrorHook | None = None) -> None:
-        self._slots: dict[str, _Slot] = {}
+        self._slots: dict[str, Slot] = {}
         self._subs: list[Subscription] = []
         self._lock = threading.RLock()
         self._clock = clock
         self.on_error = on_error
         self._loop: asyncio.AbstractEventLoop | None = None
         self._loop_tid: int | None = None
-        self._pending: dict[str, _Slot] = {}
+        self._pending: dict[str, Slot] = {}
         self._flush_scheduled = False
         self._taps: tuple[ChangeCallback, ...] = ()
         self._on_wake: tuple[Callable[[], None], ...] = ()
@@ -522,7 +522,7 @@ class Blackboard:
                 self._loop_tid = None
             self._flush()
 
-    def _store(self, slot: _Slot, value: Any, writer: str | None,
+    def _store(self, slot: Slot, value: Any, writer: str | None,
                stale: bool = False) -> Change | None:
         old = slot.change
         deadband = slot.deadband
@@ -597,14 +597,14 @@ class Blackboard:
         with self._lock:
             self._taps = tuple(t for t in self._taps if t is not tap)
 
-    def _notify(self, slot: _Slot, change: Change) -> None:
+    def _notify(self, slot: Slot, change: Change) -> None:
         slot.notified = change
         for sub in slot.subs:
             sub.deliver(change)
         if slot.max_age_s is not None and slot.timer is None and not change.stale:
             self._arm(slot)
 
-    def _deliver(self, slot: _Slot, first: Change | None = None) -> None:
+    def _deliver(self, slot: Slot, first: Change | None = None) -> None:
         """Unbound delivery, outside the lock: the calling thread (which claimed
         ``slot.delivering``) delivers ``first``, then every change of ``slot`` queued
         meanwhile by other threads or by the callbacks themselves."""
@@ -637,11 +637,11 @@ class Blackboard:
             if change is not None and change is not slot.notified:
                 self._notify(slot, change)
 
-    def _slot(self, key: str) -> _Slot:
+    def _slot(self, key: str) -> Slot:
         with self._lock:
             slot = self._slots.get(key)
             if slot is None:
-                slot = _Slot(check_key(key))
+                slot = Slot(check_key(key))
                 slot.subs = tuple(s for s in self._subs if _match(s.parts, slot.parts))
                 self._slots[key] = slot
             return slot
@@ -676,18 +676,18 @@ class Blackboard:
         if slot.max_age_s is not None and slot.change is not None and self._loop is not None:
             self._call_in_loop(self._arm_if_idle, slot)
 
-    def _arm_if_idle(self, slot: _Slot) -> None:
+    def _arm_if_idle(self, slot: Slot) -> None:
         if slot.timer is None and slot.change is not None and not slot.change.stale:
             self._arm(slot)
 
-    def _arm(self, slot: _Slot) -> None:
+    def _arm(self, slot: Slot) -> None:
         loop = self._loop
         if loop is None or slot.change is None or slot.max_age_s is None:
             return
         remaining = slot.change.monotonic + slot.max_age_s - self._clock()
         slot.timer = loop.call_later(max(remaining, 0.0), self._check_age, slot)
 
-    def _check_age(self, slot: _Slot) -> None:
+    def _check_age(self, slot: Slot) -> None:
         slot.timer = None
         change = slot.change
         if change is None or change.stale or slot.max_age_s is None:
@@ -707,7 +707,7 @@ class Blackboard:
         fresh again. Returns the keys that were marked. With neither argument, marks all.
         """
         parts = None if pattern is None else _compile(pattern)
-        marked: list[tuple[_Slot, Change]] = []
+        marked: list[tuple[Slot, Change]] = []
         with self._lock:
             for slot in self._slots.values():
                 change = slot.change
@@ -734,7 +734,7 @@ class Blackboard:
                 self._call_in_loop(self._notify_if_current, slot, stale)
         return [slot.key for slot, _ in marked]
 
-    def _notify_if_current(self, slot: _Slot, change: Change) -> None:
+    def _notify_if_current(self, slot: Slot, change: Change) -> None:
         if slot.change is change:
             self._notify(slot, change)
 
@@ -772,7 +772,7 @@ class Blackboard:
         entry = self.entry(key)
         return entry is None or entry.stale
 
-    def _is_stale(self, slot: _Slot, change: Change) -> bool:
+    def _is_stale(self, slot: Slot, change: Change) -> bool:
         if change.stale:
             return True
         return slot.max_age_s is not None and self._clock() - change.monotonic > slot.max_age_s

@@ -63,7 +63,7 @@ from dataclasses import dataclass
 from numbers import Real
 from typing import Any, ClassVar, TypeVar
 
-from beehave.blackboard import Change, _Slot
+from beehave.blackboard import Change, Slot
 from beehave.errors import BadProposal, ConfigError, UnknownFusionSource
 from beehave.events import Event, EventKind
 from beehave.hal import HAL, MAX_DURATION_S
@@ -271,13 +271,13 @@ class Arbiter(HAL):
     _winner_key: str
     _rejected_key: str
     _order: tuple[tuple[str, str, float], ...]
-    _slots: tuple[tuple[str, _Slot, float], ...]
+    _slots: tuple[tuple[str, Slot, float], ...]
     _checked: dict[str, tuple[Any, Any]]
     _bad: dict[str, Any]
     _safe_sent: bool
     locks: dict[str, FusionLock]
     locked: tuple[str, ...]
-    _lock_slots: tuple[tuple[str, _Slot, FusionLock], ...]
+    _lock_slots: tuple[tuple[str, Slot, FusionLock], ...]
     _bad_locks: dict[str, Any]
 
     def __init__(self, *, actuator: str, inputs: Mapping[str, FusionInput | Mapping[str, Any]],

@@ -260,7 +260,7 @@ class HALManager:
         while entry is None and (previous := self._unload_of(name)) is not None:
             # The old instance first gets its safe_state and on_unload (bounded), so the
             # hardware never sees the new on_load before the old stop.
-            await _wait_ignoring_cancel(previous)
+            await wait_ignoring_cancel(previous)
             if self._closed:
                 raise ManagerShutdown(f"HAL manager is shut down; cannot load HAL {name!r}")
             entry = self._loaded.get(name)
@@ -424,7 +424,7 @@ class HALManager:
 
             task.add_done_callback(unloaded)
         if wait:
-            await _wait_ignoring_cancel(entry.unloading)
+            await wait_ignoring_cancel(entry.unloading)
 
     async def _unload_now(self, name: str, entry: _Loaded) -> None:
         hal = entry.hal
@@ -510,7 +510,7 @@ class HALManager:
             if entry.winding:
                 # on_load obeyed; _start is in safe_state/on_unload, which are bounded
                 # themselves. Cutting that short would leave the hardware half stopped.
-                await _wait_ignoring_cancel(ready)
+                await wait_ignoring_cancel(ready)
                 return
             entry.abandoned = True
             self._leave(name, entry)
@@ -534,12 +534,12 @@ class HALManager:
             if isinstance(outcome, Exception):
                 log.error("HAL %r: unload at shutdown failed: %r", name, outcome)
         if self._unloading:  # unloads that releases started; each is bounded
-            await _wait_bounded_all(set(self._unloading), 3 * self.stop_timeout_s)
+            await wait_bounded_all(set(self._unloading), 3 * self.stop_timeout_s)
         stuck = {t for t in self._stuck if not t.done()}
         for task in stuck:
             task.cancel()
         if stuck:
-            await _wait_bounded_all(stuck, self.stop_timeout_s)
+            await wait_bounded_all(stuck, self.stop_timeout_s)
         for task, name in list(self._stuck.items()):
             if not task.done():
                 log.error("HAL %r: task %r still ignores its cancellation at shutdown; it is "
@@ -596,7 +596,7 @@ def _set_done(hal: HAL) -> None:
         done.set()
 
 
-async def _wait_ignoring_cancel(task: asyncio.Future[Any]) -> None:
+async def wait_ignoring_cancel(task: asyncio.Future[Any]) -> None:
     """Wait for ``task`` to end even if we are cancelled meanwhile (then re-raise), so no
     task outlives its owner. Only for tasks that are bounded themselves."""
     cancelled = False
@@ -612,11 +612,11 @@ async def _wait_ignoring_cancel(task: asyncio.Future[Any]) -> None:
 async def _wait_bounded(task: asyncio.Future[Any], timeout_s: float) -> bool:
     """Wait at most ``timeout_s`` for ``task``; True when it ended. A cancellation of the
     waiter does not cut the (short) wait: it is raised again afterwards."""
-    await _wait_bounded_all({task}, timeout_s)
+    await wait_bounded_all({task}, timeout_s)
     return task.done()
 
 
-async def _wait_bounded_all(tasks: set[asyncio.Task[Any]] | set[asyncio.Future[Any]],
+async def wait_bounded_all(tasks: set[asyncio.Task[Any]] | set[asyncio.Future[Any]],
                             timeout_s: float) -> None:
     """Wait at most ``timeout_s`` for all of ``tasks``. A cancellation of the waiter does
     not cut the (short) wait: it is raised again afterwards."""

@@ -41,7 +41,7 @@ from beehave.attach import attached
 from beehave.blackboard import Blackboard, BlackboardClient
 from beehave.errors import AlreadyStarted, BeehaveError, ChildFailed, HALError
 from beehave.events import Event, EventBus, EventKind
-from beehave.hal import HAL, HALManager, _wait_bounded_all
+from beehave.hal import HAL, HALManager, wait_bounded_all
 from beehave.status import Status
 from beehave.substitutes import Substitutions
 
@@ -331,7 +331,7 @@ async def stop_logics(logics: list[Logic], runtime: Runtime) -> None:
         task.cancel()
     cancelled = False
     try:
-        await _wait_bounded_all(set(tasks), runtime.stop_timeout_s)
+        await wait_bounded_all(set(tasks), runtime.stop_timeout_s)
     except asyncio.CancelledError:
         cancelled = True  # raised again once the stuck ones are reported
     for task in [t for t in tasks if not t.done()]:

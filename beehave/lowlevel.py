@@ -52,7 +52,7 @@ from beehave.errors import (
     UnknownLogic,
 )
 from beehave.events import Event, EventBus, EventCallback, EventKind
-from beehave.hal import HALManager, _wait_ignoring_cancel, check_duration_s, check_params
+from beehave.hal import HALManager, check_duration_s, check_params, wait_ignoring_cancel
 from beehave.logic import Logic, Runtime, stop_logics
 from beehave.status import Status
 from beehave.substitutes import Substitute
@@ -458,7 +458,7 @@ class LowLevelBehaviorManager:
                     self._phase = _Phase.STOPPING
             teardown = loop.create_task(self._teardown(), name="beehave-lowlevel-teardown")
             try:
-                await _wait_ignoring_cancel(teardown)
+                await wait_ignoring_cancel(teardown)
             finally:
                 watchdog, self._watchdog = self._watchdog, None
                 if watchdog is not None:

@@ -137,7 +137,7 @@ def first_message(latest: Latest[Any], *, timeout_s: float = 10.0) -> Any:
                 raise
 
 
-class _LockstepLine:
+class LockstepLine:
     """One node's ``/lockstep`` publisher, shared by all the driving actions of that node.
 
     Made on first use and kept for the node's life (``destroy_node`` destroys it with the
@@ -151,7 +151,7 @@ class _LockstepLine:
     subscriber, e.g. ``beehave sim --no-lockstep``: each action waits this long only until
     the line is this old)."""
 
-    _lines: weakref.WeakKeyDictionary[Any, _LockstepLine] = weakref.WeakKeyDictionary()
+    _lines: weakref.WeakKeyDictionary[Any, LockstepLine] = weakref.WeakKeyDictionary()
     _lines_lock = threading.Lock()
 
     def __init__(self, node: Any) -> None:
@@ -159,7 +159,7 @@ class _LockstepLine:
         self.made_s = time.monotonic()
 
     @classmethod
-    def of(cls, node: Any) -> _LockstepLine:
+    def of(cls, node: Any) -> LockstepLine:
         with cls._lines_lock:
             line = cls._lines.get(node)
             if line is None:
@@ -235,7 +235,7 @@ def prepare_driving(node: Any) -> None:
     """Make ``node``'s shared driving entities now — its ``/lockstep`` line (whose first
     use waits for the simulator's subscription) and its :class:`SpeedLimit` parameter — so
     the first driving action does not wait for them (e.g. when a robot is set up)."""
-    _LockstepLine.of(node)
+    LockstepLine.of(node)
     SpeedLimit.of(node)
 
 
@@ -246,7 +246,7 @@ def twist(linear_mps: float = 0.0, angular_rps: float = 0.0) -> Twist:
     return msg
 
 
-class _Drive(Action):
+class DriveBase(Action):
     """Shared by the driving actions: a cmd_vel publisher, odometry, zero velocity as the
     safe state, and lockstep with a simulator.
 
@@ -305,7 +305,7 @@ class _Drive(Action):
         clock = self.manager.clock
         node = self.manager.node
         if isinstance(clock, SimClock) and node is not None:
-            line = _LockstepLine.of(node)
+            line = LockstepLine.of(node)
             self._participant = f"{node.get_fully_qualified_name()}/{self.path}#{id(self):x}"
             self._cmd_topic = node.resolve_topic_name(topics.CMD_VEL)
             self._lockstep = line.publisher
@@ -369,7 +369,7 @@ def world_planner(world: str, robot_radius_m: float, clearance_m: float) -> Grid
                        clearance_m=clearance_m)
 
 
-class Navigation(_Drive):
+class Navigation(DriveBase):
     """Drive to a point or a named station along a planned path, with a laser safety field.
 
     With a map — ``world`` (a world name or YAML path) or ``occupancy`` (a
@@ -666,7 +666,7 @@ class Navigation(_Drive):
         return found
 
 
-class LaneFollowing(_Drive):
+class LaneFollowing(DriveBase):
     """Follow the lane tape under the robot with the line sensor (EMILI) for
     ``distance_m`` of travel, or until ``until`` (a goal or station) is within
     ``tolerance_m``. Slows down where the tape bends; raises :class:`LaneLost` when no tape

@@ -8,11 +8,11 @@ import random
 from std_msgs.msg import Int32
 
 from beehave import Behavior, Status
-from behaviours.actions import _Drive
+from behaviours.actions import DriveBase
 from robots import topics
 
 
-class BumperWander(_Drive):
+class BumperWander(DriveBase):
     """Drive straight at ``speed_mps``; on a bumper hit stop at once, back off, turn away
     from the hit (random extra angle), go on. Runs until interrupted or ``duration_s``;
     returns the number of bumps."""

@@ -62,7 +62,7 @@ from beehave.errors import (
     VehicleLost,
 )
 from beehave.status import Status
-from behaviours.actions import _LockstepLine  # one /lockstep line per node, shared
+from behaviours.actions import LockstepLine  # one /lockstep line per node, shared
 from hal.mavlink import (
     COPTER,
     HOLD_MODE,
@@ -168,7 +168,7 @@ class MavlinkAction(Action):
         node = self.manager.node
         if not self.lockstep or node is None or not isinstance(self.manager.clock, SimClock):
             return
-        line = _LockstepLine.of(node)
+        line = LockstepLine.of(node)
         self._participant = f"{node.get_fully_qualified_name()}/{self.path}#{id(self):x}"
         self._lockstep_pub = line.publisher
         # No hold before the first pause: the set-up (mode, arming) waits for the vehicle's

@@ -32,7 +32,7 @@ from robots.robot import BatteryModel, DriveLimits, SimRobot
 
 LedColor = Literal["off", "green", "orange", "red"]
 LED_COLORS: tuple[LedColor, ...] = ("off", "green", "orange", "red")
-_LED_RGBA = {"off": (0.2, 0.2, 0.2, 1.0), "green": (0.0, 0.9, 0.1, 1.0),
+LED_RGBA = {"off": (0.2, 0.2, 0.2, 1.0), "green": (0.0, 0.9, 0.1, 1.0),
              "orange": (1.0, 0.55, 0.0, 1.0), "red": (0.95, 0.05, 0.05, 1.0)}
 
 
@@ -99,7 +99,7 @@ class Kobuki(SimRobot):
         def recolour(client: object) -> None:
             for link, value in zip(links, (led1, led2), strict=True):
                 self._client.changeVisualShape(self.body_id, link,
-                                               rgbaColor=list(_LED_RGBA[value]))
+                                               rgbaColor=list(LED_RGBA[value]))
 
         self._post(recolour)
 

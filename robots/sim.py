@@ -586,8 +586,8 @@ class Simulation(Running):
             if isinstance(robot, Emili):
                 leds = (robot.leds(),)
             elif isinstance(robot, Kobuki):
-                from robots.kobuki import _LED_RGBA
-                leds = tuple(_LED_RGBA[name][:3] for name in robot.leds())
+                from robots.kobuki import LED_RGBA
+                leds = tuple(LED_RGBA[name][:3] for name in robot.leds())
             else:
                 leds = ()
             sketches.append(RobotSketch(robot.namespace, robot.kind, pose.x_m, pose.y_m,

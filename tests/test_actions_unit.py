@@ -45,9 +45,9 @@ class _DeadPublisher:
 
 def _drive_with_a_dead_publisher(outcome: object) -> object:
     from beehave import Behavior, HighLevelBehaviorManager
-    from behaviours.actions import _Drive
+    from behaviours.actions import DriveBase
 
-    class Broken(_Drive):
+    class Broken(DriveBase):
         def _open(self) -> None:
             self._cmd = _DeadPublisher()
 

@@ -136,7 +136,7 @@ def inbox_qos(depth: int) -> QoSProfile:
                       durability=DurabilityPolicy.VOLATILE)
 
 
-def _waiter() -> tuple[threading.Condition | None, Callable[[], bool], str]:
+def current_waiter() -> tuple[threading.Condition | None, Callable[[], bool], str]:
     """How the calling thread waits: a Behavior or Action on its own condition, woken by
     its interrupt (as ``self.ros`` waits do); any other thread on the mailbox's."""
     node = _runnable.current()
@@ -213,7 +213,7 @@ class Mailbox(Closing):
     def _next(self, timeout_s: float | None) -> Message | None:
         """The next message, or None when poked or at the timeout. Raises
         :class:`~beehave.errors.Interrupted` when the calling runnable is interrupted."""
-        cond, interrupted, who = _waiter()
+        cond, interrupted, who = current_waiter()
         if cond is None:
             cond = self._own_cond
         with self._lock:
@@ -657,7 +657,7 @@ class Agent(Closing):
 
     def _wait_matched(self, pending: dict[str, Any], timeout_s: float, text: String) -> None:
         """Publish ``text`` to each receiver of ``pending`` as soon as its inbox matches."""
-        cond, interrupted, who = _waiter()
+        cond, interrupted, who = current_waiter()
         cond = cond if cond is not None else threading.Condition()
         deadline = time.monotonic() + timeout_s
         # DDS matching raises no event rclpy hands to another thread: look in short slices.

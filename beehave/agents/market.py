@@ -55,9 +55,9 @@ from enum import Enum
 from typing import Any, TypeVar
 
 from beehave.action import Action
-from beehave.agents.agent import Agent, AgentBehavior, Conversation, _waiter
+from beehave.agents.agent import Agent, AgentBehavior, Conversation, current_waiter
 from beehave.agents.message import Message, Performative, jsonable
-from beehave.agents.protocols import _REFUSALS, Responder, _cancel_quietly, _Task
+from beehave.agents.protocols import REFUSALS, Responder, ResponderTask, cancel_quietly
 from beehave.errors import (
     AgentError,
     Interrupted,
@@ -559,7 +559,7 @@ class Job:
             raise InvalidTask(f"task {self.task.id!r}, role {self.role.name!r}: cannot wait "
                               f"for {event!r}: events are '<role>:<event>' with a role of "
                               f"plan {self.plan.name!r}: {names}")
-        cond, interrupted, who = _waiter()
+        cond, interrupted, who = current_waiter()
         cond = cond or threading.Condition()
         with self._lock:
             self._conds.add(cond)
@@ -794,7 +794,7 @@ class Broker(Responder):
             self.waiting.remove(mine)
             self.waiting.insert(max(0, min(index, len(self.waiting))), mine)
 
-    def _launch(self, task: _Task, *, queue: bool) -> bool:
+    def _launch(self, task: ResponderTask, *, queue: bool) -> bool:
         started = super()._launch(task, queue=queue)
         if started:
             job = self._jobs.get(task.request.conversation_id)
@@ -904,9 +904,9 @@ class _Round:
                 self._run(conv, undecided, unanswered)
             except Interrupted:
                 why = {"reason": "the auctioneer was interrupted"}
-                _cancel_quietly(conv, sorted(self.members), Performative.CANCEL, why)
-                _cancel_quietly(conv, sorted(undecided), Performative.REJECT_PROPOSAL, why)
-                _cancel_quietly(conv, sorted(unanswered), Performative.CANCEL, why)
+                cancel_quietly(conv, sorted(self.members), Performative.CANCEL, why)
+                cancel_quietly(conv, sorted(undecided), Performative.REJECT_PROPOSAL, why)
+                cancel_quietly(conv, sorted(unanswered), Performative.CANCEL, why)
                 raise
 
     def _run(self, conv: Conversation, undecided: set[str], unanswered: set[str]) -> None:
@@ -960,7 +960,7 @@ class _Round:
             if unanswered:
                 late = sorted(unanswered)
                 unanswered.clear()
-                _cancel_quietly(conv, late, Performative.CANCEL,
+                cancel_quietly(conv, late, Performative.CANCEL,
                                 {"reason": "no proposal before reply_by"})
         open_roles = {tid: o.open_roles() for tid, o in self.outcomes.items() if not o.done}
         chosen = self._choose_avoiding_excluded(open_roles, bids)
@@ -993,7 +993,7 @@ class _Round:
         if undecided:
             losers = sorted(undecided)
             undecided.clear()
-            _cancel_quietly(conv, losers, Performative.REJECT_PROPOSAL,
+            cancel_quietly(conv, losers, Performative.REJECT_PROPOSAL,
                             {"reason": "not chosen in this round"})
         unassigned = [o for tid, o in self.outcomes.items() if not o.done and tid not in chosen]
         # Batch: a task whose cheapest brokers went to other tasks of this round is
@@ -1116,7 +1116,7 @@ class _Round:
                 self._event(conv, reply.sender, m, str(content["event"]), content)
             elif reply.performative is Performative.INFORM:
                 self._role_done(conv, reply.sender, m, content.get("result"))
-            elif reply.performative in (Performative.FAILURE, *_REFUSALS):
+            elif reply.performative in (Performative.FAILURE, *REFUSALS):
                 why = content.get("reason", reply.content)
                 self._dissolve(conv, reply.sender, f"{reply.performative.value}: {why}",
                                exclude=not content.get("departed"))
@@ -1158,7 +1158,7 @@ class _Round:
                   role=m.role, broker=sender, event=event, data=content.get("data"))
         others = sorted(n for n, x in self.members.items() if x.task == m.task and n != sender)
         if others:
-            _cancel_quietly(conv, others, Performative.INFORM,
+            cancel_quietly(conv, others, Performative.INFORM,
                             {"event": event, "data": content.get("data")})
 
     def _role_done(self, conv: Conversation, sender: str, m: _Member, result: Any) -> None:
@@ -1177,7 +1177,7 @@ class _Round:
         for name in mine:
             del self.members[name]
             conv.unwatch(name)
-        _cancel_quietly(conv, mine, Performative.CANCEL, {"reason": why or "task ended"})
+        cancel_quietly(conv, mine, Performative.CANCEL, {"reason": why or "task ended"})
         if o.rounds:
             o.rounds[-1]["ended"] = state.value if not why else f"{state.value}: {why}"
         o.state = state
@@ -1197,7 +1197,7 @@ class _Round:
         for name in mine:
             del self.members[name]
             conv.unwatch(name)
-        _cancel_quietly(conv, mine, Performative.CANCEL,
+        cancel_quietly(conv, mine, Performative.CANCEL,
                         {"reason": f"coalition dissolved: {culprit!r} ({m.role}) {why}"})
         if exclude:
             o.excluded.add(culprit)
@@ -1248,7 +1248,7 @@ def auction(agent: Agent, task: Task, *, reply_by_s: float = 0.5,
         check_capabilities(task, capabilities, vocabulary=True)
     outcome = Outcome(task)
     tell = _tell_with(observer)
-    cond, interrupted, who = _waiter()
+    cond, interrupted, who = current_waiter()
     cond = cond or threading.Condition()
     for n in itertools.count(1):
         _Round(agent, [outcome], batch=False, reply_by_s=reply_by_s,

@@ -46,10 +46,10 @@ log = logging.getLogger(__name__)
 REQUEST = "fipa-request"
 CONTRACT_NET = "fipa-contract-net"
 
-_REFUSALS = (Performative.REFUSE, Performative.NOT_UNDERSTOOD)
+REFUSALS = (Performative.REFUSE, Performative.NOT_UNDERSTOOD)
 
 
-def _cancel_quietly(conv: Conversation, receivers: list[str], performative: Performative,
+def cancel_quietly(conv: Conversation, receivers: list[str], performative: Performative,
                     content: Any) -> None:
     """Best effort while unwinding: an unreachable peer must not hide the first error."""
     if not receivers:
@@ -82,7 +82,7 @@ def request(agent: Agent, receiver: str, content: Any = None, *, protocol: str =
                 if _request_done(agent, receiver, sent, reply):
                     return reply.content
         except (NoReply, Interrupted):
-            _cancel_quietly(conv, [receiver], Performative.CANCEL,
+            cancel_quietly(conv, [receiver], Performative.CANCEL,
                             {"reason": "the initiator stopped waiting"})
             raise
 
@@ -118,7 +118,7 @@ async def arequest(agent: Agent, receiver: str, content: Any = None, *,
         except (NoReply, asyncio.CancelledError):
             # The receiver's inbox is matched (the request went out): this send hands the
             # cancel to DDS without waiting, so the loop is not blocked while unwinding.
-            _cancel_quietly(conv, [receiver], Performative.CANCEL,
+            cancel_quietly(conv, [receiver], Performative.CANCEL,
                             {"reason": "the initiator stopped waiting"})
             raise
 
@@ -131,7 +131,7 @@ def _request_done(agent: Agent, receiver: str, sent: Message, reply: Message) ->
         return False
     if reply.performative is Performative.INFORM:
         return True
-    if reply.performative in (*_REFUSALS, Performative.FAILURE):
+    if reply.performative in (*REFUSALS, Performative.FAILURE):
         raise ProtocolFailed(
             f"agent {agent.name!r}: {receiver!r} answered the request "
             f"{sent.message_id[:8]} with {reply.performative.value}: "
@@ -298,7 +298,7 @@ def contract_net(agent: Agent, service: str, task: Any, *,
                 # silent awardee might still do it, and so might one that "left" the
                 # directory only because its announcements were late (a loaded host) —
                 # an expired lease is no proof of death. A dead one never reads it.
-                _cancel_quietly(conv, [name], Performative.CANCEL,
+                cancel_quietly(conv, [name], Performative.CANCEL,
                                 {"reason": f"re-awarded after {outcome.performative.value}: "
                                            f"{why}"})
                 current = None
@@ -307,9 +307,9 @@ def contract_net(agent: Agent, service: str, task: Any, *,
         except Interrupted:
             why = {"reason": "the initiator was interrupted"}
             if current is not None:
-                _cancel_quietly(conv, [current], Performative.CANCEL, why)
-            _cancel_quietly(conv, sorted(undecided), Performative.REJECT_PROPOSAL, why)
-            _cancel_quietly(conv, sorted(unanswered), Performative.CANCEL, why)
+                cancel_quietly(conv, [current], Performative.CANCEL, why)
+            cancel_quietly(conv, sorted(undecided), Performative.REJECT_PROPOSAL, why)
+            cancel_quietly(conv, sorted(unanswered), Performative.CANCEL, why)
             raise
 
 
@@ -326,7 +326,7 @@ def _await_done(conv: Conversation, name: str, done_timeout_s: float) -> Message
                            content={"reason": f"silent for {done_timeout_s} s"})
         if reply.sender != name:
             continue  # a late proposal or a stale report of an earlier awardee
-        if reply.performative in (Performative.INFORM, Performative.FAILURE, *_REFUSALS):
+        if reply.performative in (Performative.INFORM, Performative.FAILURE, *REFUSALS):
             conv.unwatch(name)
             return reply
 
@@ -357,7 +357,7 @@ class ContractNetInitiator(AgentBehavior):
 
 # ---------------------------------------------------------------------- responders
 @dataclass
-class _Task:
+class ResponderTask:
     request: Message
     action: Action | None = None
 
@@ -414,9 +414,9 @@ class Responder(AgentBehavior):
             box.poke()
 
     def run(self) -> None:
-        self.tasks: dict[str, _Task] = {}
+        self.tasks: dict[str, ResponderTask] = {}
         #: Accepted tasks waiting for their action type (:attr:`queue_tasks`), oldest first.
-        self.waiting: list[_Task] = []
+        self.waiting: list[ResponderTask] = []
         self.proposals: dict[str, tuple[Message, float]] = {}
         with self.agent.mailbox(protocols=[self.protocol]) as box:
             self._box = box
@@ -498,12 +498,12 @@ class Responder(AgentBehavior):
             self._reply(message, Performative.INFORM, {"result": jsonable(outcome)})
             return
         if self.queue_tasks and self.waiting:
-            self.waiting.append(_Task(message, outcome))  # behind the earlier ones
+            self.waiting.append(ResponderTask(message, outcome))  # behind the earlier ones
             return
-        if self._launch(_Task(message, outcome), queue=self.queue_tasks):
+        if self._launch(ResponderTask(message, outcome), queue=self.queue_tasks):
             self._reap()  # it may have ended already
 
-    def _launch(self, task: _Task, *, queue: bool) -> bool:
+    def _launch(self, task: ResponderTask, *, queue: bool) -> bool:
         """Start ``task``'s action; True when it runs. A busy type queues it (``queue``,
         at the front: it was next) or fails it."""
         assert task.action is not None
