@@ -443,6 +443,21 @@ def test_pause_and_resume(agv: Agv) -> None:
     assert FakeDrive.done.count("n2") == 1
 
 
+def test_a_pause_from_elsewhere_shows_on_the_state_and_holds_the_order(agv: Agv) -> None:
+    """A pause through ROS 2 or the web page (here the core call they make) is the same
+    pause: the master sees ``paused`` and no node is reached until the resume."""
+    agv.master.order("o1", 0, three_nodes())
+    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=5)
+    agv.hl.pause()
+    paused = agv.master.wait_state(lambda s: s["paused"] is True, timeout_s=5)
+    done_when_paused = list(FakeDrive.done)
+    time.sleep(2 * EDGE_S)  # long enough to reach the next node, had the pause not held
+    assert FakeDrive.done == done_when_paused and paused["lastNodeId"] == "n0"
+    agv.hl.resume()
+    agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and not s["paused"],
+                          timeout_s=10)
+
+
 def test_broker_killed_and_restarted(broker: Broker) -> None:
     made = Agv(broker)
     try:
