@@ -27,6 +27,15 @@ whom it delays), and ``*_capacity`` (the earlier model: a bid is the round trip 
 the queue, at most 2 tasks per robot, optimum ``linear_sum_assignment`` on 2 slots per
 robot; there the queue changes no bid, and a sequence of single-item auctions is greedy).
 
+The shipped protocol (``market_protocol_<robots>x<tasks>_<single|two_role>_<mode>``):
+brokers that write ``queue_cost`` (the same model) and the real
+:class:`~beehave.agents.market.Auctioneer` (default mode, and ``batch=False`` for
+comparison), every broker an agent over DDS in this process. An awarded role starts at
+once and holds its robot until every task is in a queue, so the running role keeps its
+place as in a fleet; the figure is the metric of the queues then, over the optimum of the
+same instance (mean and worst of ``BENCH_MARKET_PROTOCOL_SEEDS`` seeds; target mean ≤ 1.05
+and worst ≤ 1.25).
+
 Over DDS:
 
 - ``market_award``: one auction (cfp → accept-proposals) with 10 brokers, each in its
@@ -60,8 +69,9 @@ sys.path.insert(0, str(TESTS))  # the agent tests' process helper, shared with t
 
 from agent_procs import AgentProc, stop_all  # noqa: E402
 
-from beehave.agents import Agent, Role, Task, TaskState, auction  # noqa: E402
-from beehave.agents.market import Bids, cheapest_insertion, choose  # noqa: E402
+from beehave import Action, HighLevelBehaviorManager  # noqa: E402
+from beehave.agents import Agent, Auctioneer, Role, Task, TaskState, auction  # noqa: E402
+from beehave.agents.market import Bids, Broker, Job, cheapest_insertion, choose  # noqa: E402
 from benchmarks._util import median, percentile, report  # noqa: E402
 
 NODE = TESTS / "market_node.py"
@@ -265,6 +275,166 @@ def quality() -> list[dict[str, Any]]:
     return rows
 
 
+# ---------------------------------------------------------------------- the real protocol
+class _HallRole(Action):
+    """An awarded role: holds its robot (started: it runs, the rest queue behind it) until
+    the benchmark has read the queues."""
+
+    action_type = "role"
+
+    def __init__(self, go: threading.Event) -> None:
+        self.go = go
+
+    def run(self) -> None:
+        while not self.go.is_set():
+            if not self.sleep(0.01):
+                return
+
+
+class _HallBroker(Broker):
+    """A robot of the queue model, bidding through the shipped code path: ``queue_cost``
+    (the sum of its roles' completion times, round trips at 1 m/s from its base), so the
+    market bids the marginal cost of the cheapest place after the running role."""
+
+    capabilities = ("carry",)
+    instances: dict[str, _HallBroker] = {}
+
+    def __init__(self, go: threading.Event) -> None:
+        self.go = go
+        self.base: Point | None = None  # None: not in this instance (it refuses)
+
+    def run(self) -> None:
+        _HallBroker.instances[self.agent.name] = self
+        super().run()
+
+    def duration_s(self, job: Job) -> float:
+        assert self.base is not None
+        return 2 * _dist(self.base, tuple(job.role.params["at"]))
+
+    def queue_cost(self, queue: list[Job]) -> float | str | None:
+        if self.base is None:
+            return "not in this instance"
+        return completion_sum([self.duration_s(j) for j in queue])
+
+    def perform_role(self, job: Job) -> Action:
+        return _HallRole(self.go)
+
+
+PROTOCOL_SIZES = [(3, 3, 1), (5, 10, 1), (10, 20, 1), (3, 3, 2), (5, 10, 2)]
+"""(robots, tasks, roles per task). Two-role 10 × 20 is left out: its exact optimum (an
+integer programme of 16 000 variables) takes minutes per instance."""
+PROTOCOL_SEEDS = int(os.environ.get("BENCH_MARKET_PROTOCOL_SEEDS", 10))
+
+
+def _run_instance(boss_hl: HighLevelBehaviorManager, names: list[str], go: threading.Event,
+                  bases: list[Point], tasks: list[list[Point]], *, batch: bool | None,
+                  tag: str) -> float:
+    """Auction ``tasks`` with the shipped Auctioneer to the first ``len(bases)`` brokers;
+    the sum of completion times of the queues it leaves."""
+    brokers = [_HallBroker.instances[n] for n in names]
+    for i, b in enumerate(brokers):
+        b.base = bases[i] if i < len(bases) else None
+    go.clear()
+    awarded: set[str] = set()
+    cond = threading.Condition()
+
+    def seen(step: str, detail: dict[str, Any]) -> None:
+        with cond:
+            if step == "awarded":
+                awarded.add(detail["task"])
+            elif step in ("dissolved", "failed"):
+                awarded.discard(detail["task"])
+            cond.notify_all()
+
+    market_tasks = [Task.make("deliver", id=f"{tag}_{t}", roles=[
+        Role(f"r{i}", "carry", params={"at": list(at)}) for i, at in enumerate(places)])
+        for t, places in enumerate(tasks)]
+    ids = {t.id for t in market_tasks}
+    boss_hl.register(tag, Auctioneer, tasks=market_tasks, batch=batch, reply_by_s=10.0,
+                     start_timeout_s=60.0, observer=seen)
+    auctioneer = boss_hl.switch(tag)
+    with cond:
+        if not cond.wait_for(lambda: awarded >= ids, 300):
+            raise RuntimeError(f"{tag}: not every task was awarded: {sorted(ids - awarded)}")
+    # Every role in a queue (its broker agreed): started (running) or waiting behind it.
+    roles = sum(len(places) for places in tasks)
+    deadline = time.monotonic() + 120
+    while sum(len(b.queue()) for b in brokers[:len(bases)]) < roles:
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"{tag}: the awarded roles did not reach the queues")
+        time.sleep(0.01)
+    total = 0.0
+    for b in brokers[:len(bases)]:
+        queue = b.queue()
+        total += completion_sum([b.duration_s(j) for j in queue])
+    go.set()
+    deadline = time.monotonic() + 120
+    while not all(o.done for o in auctioneer.outcomes.values()):
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"{tag}: the roles did not finish")
+        time.sleep(0.02)
+    return total
+
+
+def protocol_quality() -> list[dict[str, Any]]:
+    """The shipped protocol's allocation quality per size: real brokers and the real
+    Auctioneer (default mode, and ``batch=False`` for comparison), agents over DDS in
+    this process; the optimum computed in the same run."""
+    from beehave.ros.context import RosContext
+
+    go = threading.Event()
+    tag = random.randint(0, 99999)
+    names = [f"hall{tag}_{i}" for i in range(max(s[0] for s in PROTOCOL_SIZES))]
+    opened: list[tuple[Agent, HighLevelBehaviorManager]] = []
+    rows = []
+    with RosContext() as ros:
+        try:
+            for name in names:
+                agent = Agent(name, ros=ros, lease_s=5.0)
+                hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+                hl.start()
+                opened.append((agent, hl))
+                agent.attach(hl)
+                hl.register("broker", _HallBroker, go=go)
+                hl.switch("broker")
+            boss = Agent(f"hall{tag}_boss", ros=ros, lease_s=5.0)
+            boss_hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+            boss_hl.start()
+            opened.append((boss, boss_hl))
+            boss.attach(boss_hl)
+            _wait_brokers(boss, set(names))
+            n = 0
+            for robots, n_tasks, k in PROTOCOL_SIZES:
+                ratios: dict[str, list[float]] = {"default": [], "sequential": []}
+                for seed in range(PROTOCOL_SEEDS):
+                    rng = random.Random(1000 * robots + 10 * n_tasks + k + 7919 * seed)
+                    bases = [_place(rng) for _ in range(robots)]
+                    tasks = [[_place(rng) for _ in range(k)] for _ in range(n_tasks)]
+                    best = _optimum_single(bases, [t[0] for t in tasks]) if k == 1 \
+                        else _optimum_coalition(bases, tasks)
+                    for mode, batch in (("default", None), ("sequential", False)):
+                        n += 1
+                        got = _run_instance(boss_hl, names, go, bases, tasks, batch=batch,
+                                            tag=f"q{n}")
+                        ratios[mode].append(got / best)
+                size = f"{robots}x{n_tasks}_{'single' if k == 1 else 'two_role'}"
+                for mode, values in ratios.items():
+                    mean, worst = sum(values) / len(values), max(values)
+                    graded = mode == "default"
+                    ok = mean <= 1.05 and worst <= 1.25
+                    rows.append(report(
+                        f"market_protocol_{size}_{mode}", round(mean, 3), "x optimum (mean)",
+                        "mean <= 1.05, worst <= 1.25" if graded else None,
+                        ok if graded else None, worst=round(worst, 3), seeds=len(values),
+                        median=round(median(values), 3)))
+        finally:
+            go.set()
+            for agent, hl in reversed(opened):
+                hl.shutdown()
+                agent.close()
+    return rows
+
+
 # ---------------------------------------------------------------------- over DDS
 def _Broker(name: str, caps: str, cost: float) -> AgentProc:  # noqa: N802 - reads as a class
     """A scripted broker process (``tests/market_node.py``)."""
@@ -367,7 +537,7 @@ def reaward() -> list[dict[str, Any]]:
 
 def main() -> list[dict[str, Any]]:
     sys.setswitchinterval(0.001)
-    return quality() + award_latency() + reaward()
+    return protocol_quality() + quality() + award_latency() + reaward()
 
 
 if __name__ == "__main__":

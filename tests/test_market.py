@@ -602,3 +602,24 @@ def test_tasks_submitted_to_a_running_auctioneer_are_allocated(
             top.submit(outcome.task)
         hl.switch("idle")  # keep_running: it waits for more until switched away
         assert top.status is Status.INTERRUPTED
+
+
+def test_by_default_tasks_that_wait_together_are_assigned_jointly(
+        boss: Agent, brokers: Callable[..., Agent], reports: Reports) -> None:
+    """One task at a time in arrival order pins each robot's first role to whichever task
+    came first (issue 24: 1.22 x the optimum); by default the Auctioneer announces every
+    task that waits in one round and assigns them jointly."""
+    brokers("joint_a", ["carry"], 1.0)
+    brokers("joint_b", ["carry"], 2.0)
+    _see(boss, {"joint_a", "joint_b"})
+    tasks = [Task.make("deliver", id=f"t_joint{i}", roles=[
+        Role("carry", "carry", params={"script": ["sleep:0.01"]})]) for i in range(3)]
+    steps = Steps()
+    with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
+        boss.attach(hl)
+        hl.register("alloc", Auctioneer, tasks=tasks, reply_by_s=WAIT_S, observer=steps)
+        top = hl.switch("alloc")
+        assert top.wait(WAIT_S) and top.status is Status.SUCCEEDED, top.error
+    assert all(o.state is TaskState.COMPLETED for o in top.result.values())
+    first = steps.wait("cfp")
+    assert sorted(first["tasks"]) == ["t_joint0", "t_joint1", "t_joint2"]

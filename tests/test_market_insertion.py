@@ -129,7 +129,7 @@ def test_a_short_role_is_bid_and_queued_before_a_long_one(ros: RosContext) -> No
         # broker bids on the queue the earlier awards made. "hold" runs until the gate
         # opens; "long" (10 s) queues behind it; "short" (2 s) is cheapest before "long".
         tasks = [_task("hold", 1.0, hold=True), _task("long", 10.0), _task("short", 2.0)]
-        boss_hl.register("alloc", Auctioneer, tasks=tasks, reply_by_s=WAIT_S)
+        boss_hl.register("alloc", Auctioneer, tasks=tasks, batch=False, reply_by_s=WAIT_S)
         boss_hl.switch("alloc")
         top = boss_hl.top
         assert top is not None

@@ -1,6 +1,7 @@
 """Brokers that bid the time a role takes a mobile robot: the drive there, planned on the
-floor map around the obstacles inflated by the robot's radius, after the roles it has
-queued, plus handling time — refusing when the battery or the deadline would not allow it.
+floor map around the obstacles inflated by the robot's radius, plus handling time, as the
+marginal sum of completion times of its queue — refusing when the battery or a deadline
+would not allow it.
 """
 
 from __future__ import annotations
@@ -17,15 +18,22 @@ Point = tuple[float, float]
 
 
 class TravelBroker(Broker):
-    """Bids seconds: ``(metres along the planned path) / speed_mps + handling_s`` for each
-    role ahead of this one (the queue) and for this one, starting from where the robot
-    stands. Refuses without odometry or a battery reading, beyond ``max_queue`` roles,
-    without a path, when the battery would fall below ``reserve_pct``, and when it would
-    miss the task's deadline.
+    """Bids seconds, as the market's :meth:`~beehave.agents.market.Broker.queue_cost`: the
+    sum of the completion times of its roles, each ``(drive along the planned path) +
+    handling_s`` after the roles ahead of it, starting from where the robot stands. So a
+    bid is the marginal cost of the cheapest place for the new role after the role that
+    runs (its own completion time *and* the delay it puts on the roles behind it), and an
+    awarded role takes that place.
+
+    An order is not feasible (the bid names why) without odometry or a battery reading,
+    beyond ``max_queue`` roles, without a path, when the battery would fall below
+    ``reserve_pct``, and when a role of it would miss its task's deadline.
 
     Where a role happens: ``role.params["at"]`` (or ``"meeting_point"``), else the task's
-    ``route`` (driven end to end) or ``location``. Subclass it, set ``capabilities`` and
-    write :meth:`~beehave.agents.market.Broker.perform_role`."""
+    ``route`` (driven end to end) or ``location``. How long a leg takes is
+    :meth:`leg_s` (a subclass adds speed limits and waits for reserved zones). Subclass
+    it, set ``capabilities`` and write
+    :meth:`~beehave.agents.market.Broker.perform_role`."""
 
     pose_keys: tuple[str, str] = ("odom/x_m", "odom/y_m")
     battery_key: str = "battery/percentage"
@@ -62,30 +70,54 @@ class TravelBroker(Broker):
             return list(job.task.route)
         return [job.task.location] if job.task.location is not None else []
 
-    def cost(self, job: Job, queue: list[Job]) -> float | str | None:
+    def leg_s(self, start: Point, stop: Point, *, at_s: float) -> float:
+        """Optional hook: seconds from ``start`` to ``stop`` for a leg that begins
+        ``at_s`` seconds from now (default: the planned path at ``speed_mps``). Raises
+        :class:`~beehave.errors.NoPath`."""
+        return self.planner.plan(start, stop).length_m / self.speed_mps
+
+    def schedule(self, jobs: list[Job]) -> list[float] | str:
+        """The completion time of each role of ``jobs`` done in this order (seconds from
+        now), or why this order is not feasible."""
         pose = self.pose()
         if pose is None:
             return "no odometry yet"  # no honest bid without it
-        if len(queue) >= self.max_queue:
-            return f"{len(queue)} roles queued already (at most {self.max_queue})"
-        metres, at = 0.0, pose
-        for role in [*queue, job]:
+        if len(jobs) > self.max_queue:
+            return f"{len(jobs) - 1} roles queued already (at most {self.max_queue})"
+        done: list[float] = []
+        t_s, at = 0.0, pose
+        for role in jobs:
             for stop in self.stops(role):
                 try:
-                    metres += self.planner.plan(at, stop).length_m
+                    t_s += self.leg_s(at, stop, at_s=t_s)
                 except NoPath as exc:
                     return f"no path from {at} to {stop}: {exc}"
                 at = stop
-        eta_s = metres / self.speed_mps + self.handling_s * (len(queue) + 1)
-        if not math.isfinite(eta_s):
-            return "no finite time to get there"
+            t_s += self.handling_s
+            if not math.isfinite(t_s):
+                return "no finite time to get there"
+            if role.task.deadline is not None and time.time() + t_s > role.task.deadline:
+                return (f"would miss the deadline of {role.task.id}/{role.role.name} by "
+                        f"{time.time() + t_s - role.task.deadline:.0f} s")
+            done.append(t_s)
         battery = self.battery_pct()
         if battery is None:
             return "no battery reading"
-        need_pct = 100.0 * eta_s * self.power_w / 3600.0 / self.capacity_wh
+        need_pct = 100.0 * (done[-1] if done else 0.0) * self.power_w / 3600.0 \
+            / self.capacity_wh
         if battery - need_pct < self.reserve_pct:
             return (f"battery {battery:.0f} % would fall to {battery - need_pct:.0f} %, "
                     f"below the reserve of {self.reserve_pct:g} %")
-        if job.task.deadline is not None and time.time() + eta_s > job.task.deadline:
-            return f"would miss the deadline by {time.time() + eta_s - job.task.deadline:.0f} s"
-        return round(eta_s, 3)
+        return done
+
+    def queue_cost(self, queue: list[Job]) -> float | str | None:
+        """The sum of the roles' completion times (seconds): what every order waits."""
+        done = self.schedule(queue)
+        return done if isinstance(done, str) else round(sum(done), 3)
+
+    def cost(self, job: Job, queue: list[Job]) -> float | str | None:
+        """The completion time of ``job`` done after ``queue`` (seconds from now). Not the
+        bid (that is the marginal :meth:`queue_cost` of the cheapest place): what an
+        operator reads as "when would it be done at the end of the queue"."""
+        done = self.schedule([*queue, job])
+        return done if isinstance(done, str) else round(done[-1], 3)

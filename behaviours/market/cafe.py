@@ -18,8 +18,9 @@ of ``robots/worlds/serve.yaml``: ``shelf_open``, ``shelf_narrow``, ``meeting``,
 
 :class:`OrderSource` waits until ``brokers`` brokers (and ``keepers`` zone keepers) are
 in the directory, auctions the
-orders with the :class:`~beehave.agents.market.Auctioneer` (sequential single-item
-auctions: each bid sees the queues of the awards before it) and reports every step on
+orders with the :class:`~beehave.agents.market.Auctioneer` (its default: the orders
+that wait together are assigned jointly, each later round's bids see the queues of the
+awards before it) and reports every step on
 ``/serve/orders`` (:data:`ORDERS_TOPIC`, JSON lines ``{"step", "detail", "stamp"}``), and
 ``{"step": "finished", "outcomes": {task: ...}}`` when every order is settled (also
 written to ``--result`` FILE: the launcher that started it reads the outcome there, not

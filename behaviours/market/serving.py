@@ -208,9 +208,12 @@ class ZoneKeeper(Reservations):
 
 
 class ServeBroker(TravelBroker):
-    """A robot's broker for serving roles: bids the planned drive through the role's
-    steps after its queued roles (seconds), refuses what its size cannot reach (EMILI has
-    no path into the narrow aisle), and performs a role with :class:`ServeRole`.
+    """A robot's broker for serving roles: bids seconds as a
+    :class:`~behaviours.market.TravelBroker` (the marginal sum of completion times of its
+    queue, the role at its cheapest place after the one that runs) — the planned drive
+    through the roles' steps, slower in speed zones, waiting for a kept zone another
+    robot holds — refuses what its size cannot reach (EMILI has no path into the narrow
+    aisle), and performs a role with :class:`ServeRole`.
 
     ``capabilities``: what it registers (EMILI: ``carry`` and ``serve`` — lift and display;
     a Kobuki: ``carry``). ``robot_radius_m`` and ``clearance_m`` inflate the obstacles for
@@ -240,8 +243,10 @@ class ServeBroker(TravelBroker):
         #: What this robot carries, for which order (shared by its roles).
         self.hold = Hold()
         self._state: Any = None  # the physics' word, for the bids (None without ROS)
+        self._live = False  # started (it has an agent and its directory)
 
     def run(self) -> None:
+        self._live = True
         if self.manager.node is not None:
             # Declared now, not at the first drive: the speed zones logic sets it from the
             # start (a robot entering the aisle on its first role is already limited).
@@ -261,23 +266,70 @@ class ServeBroker(TravelBroker):
         return [xy for op, _, xy in parse_steps(job.role.params)
                 if not (carried and op in ("pick", "take"))]
 
-    def cost(self, job: Job, queue: list[Job]) -> float | str | None:
-        try:
-            parse_steps(job.role.params, where=f"task {job.task.id!r}, role "
-                                               f"{job.role.name!r}")
-        except ValueError as exc:
-            return str(exc)  # a malformed order is refused, saying why
+    def schedule(self, jobs: list[Job]) -> list[float] | str:
+        for job in jobs:
+            try:
+                parse_steps(job.role.params, where=f"task {job.task.id!r}, role "
+                                                   f"{job.role.name!r}")
+            except ValueError as exc:
+                return str(exc)  # a malformed order is refused, saying why
         known, item = self._physics_item()
-        if known and not queue:
-            # Nothing running that could change it: the physics' word is current (a role
+        if known and not getattr(self, "_jobs", None):
+            # Nothing awarded that could change it: the physics' word is current (a role
             # interrupted right after its hand-over did not get to forget the item).
             self.hold.sync(item)
-        conflict = self.hold.conflict([*queue, job])
-        offer = conflict if conflict is not None else super().cost(job, queue)
-        log.info("%s: %s for %s/%s after %d queued role(s): %s", self.path,
-                 "refuses" if isinstance(offer, str) else "bids", job.task.id,
-                 job.role.name, len(queue), offer)
-        return offer
+        conflict = self.hold.conflict(jobs)
+        return conflict if conflict is not None else super().schedule(jobs)
+
+    def zone_holders(self) -> dict[str, str]:
+        """Optional hook: kept zone → the robot that holds it now (default: the zone
+        keepers' directory entries; other robots only)."""
+        if not self._live:
+            return {}  # not started: no directory to read
+        agent = self.agent
+        held = {}
+        for info in agent.directory.search(ZONE_SERVICE):
+            props = info.properties(ZONE_SERVICE)
+            holder = props.get("holder")
+            if isinstance(holder, str) and holder != agent.name:
+                held[str(props.get("station"))] = holder
+        return held
+
+    def _crossing_s(self, zone: Any) -> float:
+        """What a robot that holds ``zone`` needs to get out of it, at worst: in to its
+        far end and back at the zone's limit, plus handling there."""
+        xs = [p[0] for p in zone.points_m]
+        ys = [p[1] for p in zone.points_m]
+        extent_m = math.hypot(max(xs) - min(xs), max(ys) - min(ys))
+        return 2.0 * extent_m / min(zone.max_speed_mps, self.speed_mps) + self.handling_s
+
+    def leg_s(self, start: tuple[float, float], stop: tuple[float, float], *,
+              at_s: float) -> float:
+        """The planned path at the robot's speed, slower where it crosses a speed zone
+        (sampled every 0.1 m), plus the wait, before a leg that ends in a kept zone
+        another robot holds, until that robot is out (at worst one crossing of the zone
+        from now: :meth:`_crossing_s`)."""
+        points = self.planner.plan(start, stop).waypoints_m
+        zones = site(self.world).zones
+        holders = self.zone_holders() if zones else {}
+        waits = [z for z in zones if z.name in holders and z.contains(*stop)
+                 and not z.contains(*start)]
+        outside_s = inside_s = 0.0  # inside: in a zone it must wait for
+        for a, b in zip(points, points[1:], strict=False):
+            length_m = math.hypot(b[0] - a[0], b[1] - a[1])
+            n = max(1, math.ceil(length_m / 0.1))
+            for i in range(n):
+                f = (i + 0.5) / n
+                x, y = a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1])
+                speed = min([self.speed_mps, *(z.max_speed_mps for z in zones
+                                               if z.contains(x, y))])
+                if any(z.contains(x, y) for z in waits):
+                    inside_s += length_m / n / speed
+                else:
+                    outside_s += length_m / n / speed
+        # It stands at the zone's edge until the holder is out of the zone.
+        free_at_s = max((self._crossing_s(z) for z in waits), default=0.0)
+        return max(outside_s, free_at_s - at_s) + inside_s
 
     def perform_role(self, job: Job) -> Action:
         return ServeRole(job, agent=self.agent, hold=self.hold, has_lift=self.has_lift,
