@@ -38,7 +38,7 @@ from pybullet_utils.bullet_client import BulletClient
 
 from benchmarks._util import report
 from robots.robot import URDF_DIR
-from robots.sim import Simulation, _quiet_stdout
+from robots.sim import Simulation, quiet_stdout
 from robots.world import World, world_from_dict
 
 RATE_HZ = 240.0
@@ -64,7 +64,7 @@ def fleet_world(n: int) -> World:
 
 def bare(world: World, duration_s: float) -> float:
     """Robot-steps per wall second for the same bodies stepped by bare pybullet."""
-    with _quiet_stdout():
+    with quiet_stdout():
         client = BulletClient(connection_mode=pybullet.DIRECT)
     try:
         client.setGravity(0, 0, -9.81)

@@ -94,7 +94,7 @@ class SimState(enum.Enum):
 
 
 @contextmanager
-def _quiet_stdout() -> Iterator[None]:
+def quiet_stdout() -> Iterator[None]:
     """Silence the C library's prints on file descriptor 1 (pybullet's connect prints
     ``argv[0]=``); Python's own stdout is untouched."""
     fd = 1  # the C library writes to fd 1, whatever sys.stdout is (pytest swaps it)
@@ -176,7 +176,7 @@ class Simulation(Running):
         self._wall_started_s = 0.0
         self._steps_at_start = 0
 
-        with _quiet_stdout():
+        with quiet_stdout():
             self._client = BulletClient(connection_mode=pybullet.DIRECT)
         c = self._client
         c.setGravity(0, 0, -9.81)

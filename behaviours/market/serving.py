@@ -301,7 +301,8 @@ class ServeBroker(TravelBroker):
         xs = [p[0] for p in zone.points_m]
         ys = [p[1] for p in zone.points_m]
         extent_m = math.hypot(max(xs) - min(xs), max(ys) - min(ys))
-        return 2.0 * extent_m / min(zone.max_speed_mps, self.speed_mps) + self.handling_s
+        speed_mps = float(min(zone.max_speed_mps, self.speed_mps))
+        return 2.0 * extent_m / speed_mps + float(self.handling_s)
 
     def leg_s(self, start: tuple[float, float], stop: tuple[float, float], *,
               at_s: float) -> float:
