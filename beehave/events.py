@@ -122,10 +122,12 @@ class EventBus:
 
         return unsubscribe
 
-    def emit(self, event: Event) -> None:
+    def emit(self, event: Event, *, log_it: bool = True) -> None:
+        """Log ``event`` (``log_it`` False: another bus logs it) and give it to every
+        subscriber."""
         warn = event.kind in _WARN or (event.kind is EventKind.FALLBACK and event.error is not None)
         level = logging.WARNING if warn else logging.DEBUG
-        if self._log.isEnabledFor(level):
+        if log_it and self._log.isEnabledFor(level):
             self._log.log(level, "%s", describe(event))
         for callback in self._subscribers:
             try:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import math
 import sys
 import threading
@@ -268,6 +269,25 @@ def test_malformed_and_misaddressed_messages_get_not_understood(
               "MESSAGE_REJECTED")
         with pytest.raises(NoReply):
             probe.receive(timeout_s=0.3)
+
+
+def test_a_rejected_message_is_logged_once_however_many_managers_listen(
+        ros: RosContext, caplog: pytest.LogCaptureFixture) -> None:
+    with Agent("once_agent", ros=ros, probe_s=PROBE_S) as agent, \
+            HighLevelBehaviorManager(stop_timeout_s=5.0) as hl:
+        agent.attach(hl)  # its own bus and the manager's: both get the event
+        events: list[Any] = []
+        hl.subscribe(events.append)
+        inbox = agent.node.create_publisher(String, INBOX_PREFIX + "once_agent",
+                                            inbox_qos(10))
+        _wait(lambda: inbox.get_subscription_count() > 0, "inbox")
+        with caplog.at_level(logging.WARNING):
+            inbox.publish(String(data="garbage"))
+            _wait(lambda: any(e.kind is EventKind.MESSAGE_REJECTED for e in events),
+                  "MESSAGE_REJECTED on the manager's bus")
+        lines = [r for r in caplog.records if "message_rejected agent:once_agent" in
+                 r.getMessage()]
+        assert len(lines) == 1, [r.getMessage() for r in lines]
 
 
 def test_interrupted_receive_ends_the_behavior(ros: RosContext) -> None:

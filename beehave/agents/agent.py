@@ -515,8 +515,7 @@ class Agent(Closing):
         log.error("agent %r: %s; closing this one", self.name, self.error)
         event = Event(EventKind.AGENT_NAME_LOST, f"agent:{self.name}", None, self.error,
                       {"holder": holder.incarnation, "holder_started_at": holder.started_at})
-        for bus in list(self._buses):
-            bus.emit(event)
+        self._emit(event)
         # Not here: close() destroys the subscription whose callback is running.
         self._closer = threading.Thread(target=self.close, name=f"beehave:agent-close:"
                                                                 f"{self.name}", daemon=True)
@@ -752,13 +751,17 @@ class Agent(Closing):
         else:
             self.inbox._deliver(message)
 
+    def _emit(self, event: Event) -> None:
+        """To the agent's own bus and every manager it is attached to, logged once."""
+        for i, bus in enumerate(list(self._buses)):
+            bus.emit(event, log_it=i == 0)
+
     def _emit_rejected(self, reason: str, sender: str | None, text: str, *,
                        reply: bool = False, message: Message | None = None,
                        refused: bool = False) -> None:
         detail = {"reason": reason, "sender": sender, "message": text[:300]}
         event = Event(EventKind.MESSAGE_REJECTED, f"agent:{self.name}", None, None, detail)
-        for bus in list(self._buses):
-            bus.emit(event)
+        self._emit(event)
         if not reply or sender is None or self._closed:
             return
         if message is not None and message.performative is Performative.NOT_UNDERSTOOD:
