@@ -189,12 +189,16 @@ def test_an_outsider_without_the_fleets_key_is_refused_visibly(
                "other_name": "signed with the key certified for 'ext_c'",
                "altered": "bad signature", "stale": "stale message from 'ext_a'",
                "expired": "certificate of 'ext_old' expired"}
-    with _signed_agent("tr_worker", keys) as worker:
-        box = worker.mailbox(protocols=["fipa-request"])
+    def forge() -> dict[str, Any]:
         message = ext.message("request", "tr_worker", {"do": "it"}, protocol="fipa-request",
                               sent_at=time.time() - 120 if how == "stale" else None)
         if how == "altered":  # signed, then changed on the way
             message = {**message, "content": {"do": "something else"}}
+        return message
+
+    with _signed_agent("tr_worker", keys) as worker:
+        box = worker.mailbox(protocols=["fipa-request"])
+        message = forge()
         ext.send(message)
         refusal = ext.wait("inbox", WAIT_S, performative="not-understood",
                            in_reply_to=message["message_id"])
@@ -202,8 +206,7 @@ def test_an_outsider_without_the_fleets_key_is_refused_visibly(
         assert refusal["sender"] == "tr_worker"
         assert refusal["conversation_id"] != message["conversation_id"]  # its own one
         # The refusal is on the sniffer topic for anyone to see, and in the log.
-        copy = ext.wait("copies", WAIT_S, performative="not-understood",
-                        in_reply_to=message["message_id"])
+        copy = _refusal_copy(ext, forge, sent=[message["message_id"]])
         assert reasons[how] in copy["content"]["reason"]
         assert any(r.levelno == logging.WARNING and "refused request from 'ext_a'" in
                    r.getMessage() and reasons[how] in r.getMessage() for r in caplog.records)
@@ -218,12 +221,13 @@ def test_an_outsider_without_the_fleets_key_is_refused_visibly(
 # ---------------------------------------------------------------------- spoofing and replay
 
 
-def _refusal_copy(spoof: Outsider, forge: Callable[[], dict[str, Any]]) -> dict[str, Any]:
-    """Send forged messages until the copy of a refusal reaches ``spoof`` on
-    /beehave/agents/messages (volatile: a copy sent before the keeper's publisher has
-    matched the outsider's new subscription is not delivered to it; under load that
-    takes a while). Returns the copy."""
-    sent: list[str] = []
+def _refusal_copy(spoof: Outsider, forge: Callable[[], dict[str, Any]], *,
+                  sent: list[str] | None = None) -> dict[str, Any]:
+    """The copy of a refusal of one of ``sent`` (message ids) or of further forged
+    messages, which are sent until one reaches ``spoof`` on /beehave/agents/messages
+    (volatile: a copy sent before the agent's publisher has matched the outsider's new
+    subscription is not delivered to it; under load that takes a while)."""
+    sent = list(sent or [])
     deadline = time.monotonic() + WAIT_S
 
     def found() -> dict[str, Any] | None:
@@ -231,6 +235,10 @@ def _refusal_copy(spoof: Outsider, forge: Callable[[], dict[str, Any]]) -> dict[
                      and m.get("in_reply_to") in sent), None)
 
     while True:
+        with spoof.cond:
+            hit = found()
+        if hit is not None:
+            return hit
         forged = forge()
         sent.append(forged["message_id"])
         spoof.send(forged)
