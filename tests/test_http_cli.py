@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from beehave.testing import WALL_TIMEOUT_S
+
 pytest.importorskip("fastapi")
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -18,7 +20,8 @@ CONFIG = str(ROOT / "tests" / "data" / "config" / "waits.yaml")
 
 def beehave(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "beehave.cli", *args], cwd=ROOT,
-                          env=dict(os.environ), capture_output=True, text=True, timeout=60)
+                          env=dict(os.environ), capture_output=True, text=True,
+                          timeout=2 * WALL_TIMEOUT_S)  # a bound: at load 16 60 s were too few
 
 
 @pytest.mark.parametrize(("args", "message"), [
@@ -91,7 +94,6 @@ def _page_draws(url: str, robots: list[str]) -> None:
     sync_api = pytest.importorskip("playwright.sync_api")
     if not Path("/usr/bin/chromium").exists():  # pragma: no cover - `make setup` installs it
         pytest.skip("/usr/bin/chromium is not installed")
-    from beehave.testing import WALL_TIMEOUT_S
 
     with sync_api.sync_playwright() as playwright:
         browser = playwright.chromium.launch(executable_path="/usr/bin/chromium",

@@ -189,7 +189,7 @@ class HttpServer(Running):
         """The WebSocket fan-out (its ``stats()``: clients, updates, dropped snapshots)."""
         return self.app.state.hub
 
-    def start(self, *, timeout_s: float = 10.0) -> None:
+    def start(self, *, timeout_s: float = 30.0) -> None:
         """Bind, start the thread, return once requests are served. A port in use or an
         address this machine does not have raises :class:`ConfigError` at once."""
         import uvicorn
