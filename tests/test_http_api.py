@@ -138,8 +138,15 @@ def test_status_shows_type_locks_and_stuck_actions_and_behaviours_list_their_par
     # Stop: the action ignores its interrupt past stop_timeout_s, so it is STUCK, and its
     # type lock stays held until its thread really ends.
     assert httpx.post(f"{api}/robots/emili1/stop", json={}).status_code == 202
-    assert wait_until(lambda: httpx.get(f"{api}/robots/emili1/status").json()["stuck"])
-    status = httpx.get(f"{api}/robots/emili1/status").json()
+    seen: list[dict[str, Any]] = []  # the status that showed it (it ends by itself)
+
+    def stuck() -> bool:
+        now = httpx.get(f"{api}/robots/emili1/status").json()
+        seen.append(now)
+        return bool(now["stuck"]) and now["behavior"] == "idle"  # the switch is over
+
+    assert wait_until(stuck)
+    status = seen[-1]
     assert status["behavior"] == "idle" and "stubborn/raise" in str(status["stuck"])
     assert status["locks"] == {"lift": "stubborn/raise"}
     assert wait_until(lambda: not httpx.get(f"{api}/robots/emili1/status").json()["stuck"])
