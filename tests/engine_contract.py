@@ -98,7 +98,10 @@ class EngineContract(abc.ABC):
 
     def test_a_pause_keeps_the_engine_where_it_is_and_resume_goes_on(
             self, hl: HighLevelBehaviorManager) -> None:
-        act = Recorder("act", duration_s=0.3, result=7)
+        # Generous bounds: on a loaded host the pause must not find the action already
+        # done, nor declare it STUCK (the fixture's 0.3 s is for switches).
+        hl.stop_timeout_s = 2.0
+        act = Recorder("act", duration_s=1.0, result=7)
         engine = self.single(act)
         behavior = run(hl, engine)
         assert wait_until(lambda: bool(act.built) and act.built[0].status is Status.RUNNING)
@@ -131,6 +134,7 @@ class EngineContract(abc.ABC):
 
     def test_a_switch_while_paused_stops_the_engine_and_its_action_once(
             self, hl: HighLevelBehaviorManager) -> None:
+        hl.stop_timeout_s = 2.0  # a loaded host must not make the pause STUCK
         act = Recorder("long", duration_s=30)
         behavior = run(hl, self.single(act))
         assert wait_until(lambda: bool(act.built) and act.built[0].status is Status.RUNNING)
