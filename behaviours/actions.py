@@ -284,6 +284,11 @@ class DriveBase(Action):
         stop's failure noted on it — the first cause is what the user must see."""
         try:
             self.command(0.0, 0.0)
+            if self._lockstep is not None and failed_with is None and not self.interrupted:
+                # Held one more period: the zero command travels on another topic than the
+                # release, and a simulator let go first would run on at the old speed
+                # until it arrives (0.3 m past the goal at full speed on a loaded host).
+                self.tick()
         except Exception as stop_error:
             if failed_with is None:
                 raise
