@@ -25,7 +25,7 @@ from beehave.engines import (
 )
 from beehave.engines.engine import StartLike
 from beehave.runnable import Runnable
-from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, wait_until
+from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, Timeline, wait_until
 
 
 class Recorder:
@@ -101,15 +101,20 @@ class EngineContract(abc.ABC):
         # Generous bounds: on a loaded host the pause must not find the action already
         # done, nor declare it STUCK (the fixture's 0.3 s is for switches).
         hl.stop_timeout_s = 2.0
-        act = Recorder("act", duration_s=1.0, result=7)
+        timeline = Timeline()
+        act = Recorder("act", duration_s=1.0, result=7, timeline=timeline)
         engine = self.single(act)
         behavior = run(hl, engine)
-        assert wait_until(lambda: bool(act.built) and act.built[0].status is Status.RUNNING)
+        # Inside run(): paused before it, an action only waits for the resume (it has
+        # moved nothing, so it needs no safe state).
+        assert wait_until(lambda: bool(act.built)
+                          and bool(timeline.times("run", act.built[0].path)))
         hl.pause()
         (action,) = act.built
         # The action is in its safe state, paused (still RUNNING, its type held); the
-        # engine decides nothing while paused, although the action's 0.3 s passed.
-        assert action.safe_state_calls == 1 and action.status is Status.RUNNING
+        # engine decides nothing while paused, although the action's 1 s passed.
+        assert action.safe_state_calls == 1 and action.status is Status.RUNNING, (
+            action.safe_state_calls, action.status, action.error, hl.snapshot())
 
         def described() -> str:
             return json.dumps(engine.describe(), sort_keys=True, default=str)
