@@ -588,7 +588,8 @@ def test_a_sub_logic_that_ends_late_does_not_leak_its_hal_reference_to_the_hando
         ll.switch("idle")  # idle does not use the lamp
         assert wait_until(lambda: "lamp" not in ll.hals.loaded), \
             "the late sub-logic's lamp reference is never given back"
-        assert safe == [1]
+        # Unloaded first, then its safe state runs (in the loop): wait for it.
+        assert wait_until(lambda: safe == [1])
     assert safe == [1]
 
 
