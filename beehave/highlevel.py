@@ -135,7 +135,6 @@ class HighLevelBehaviorManager(Running):
         self._pause_lock = threading.Lock()
         self._paused = False
         self._paused_actions: list[Action] = []
-        self._paused_at = 0.0
         self._pause_round = 0
         self._locks.on_take = self._lock_taken
 
@@ -410,7 +409,6 @@ class HighLevelBehaviorManager(Running):
                 self._paused = True
                 self._pause_round += 1
                 round_ = self._pause_round
-                self._paused_at = began
                 self.run_clock.freeze()
                 self._paused_actions = list(holders)
                 waits = [(a, a._request_pause(hooked=a._has_pause_hooks)) for a in holders]
