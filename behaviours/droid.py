@@ -319,10 +319,18 @@ class FollowLeader(MavlinkAction):
     """The longest a leader's state is carried forward by its velocity."""
     lockstep = True  # a control loop: under sim time the simulator waits for each period
     FRESH_WAIT_S = 0.8
-    """In lockstep, how long (wall) a period waits for a leader's state that is late in sim
-    time (below the simulator's lockstep timeout, 1 s, which would let it go). 0.3 s was
-    too short on a loaded host: the follower went on with stale states and fell 2 m
-    behind in 2 of 3 stress runs."""
+    """In lockstep, how long (wall) a period waits for the leader to make progress: a
+    period whose leader state is late in sim time waits (the simulation held) while newer
+    states keep coming, and goes on with what it has once none came for this long (the
+    leader's process is gone or stuck). A leader that stayed silent through such a wait is
+    not waited for again until it is heard."""
+    MAX_FRESH_WAIT_S = 10.0
+    """In lockstep, the longest (wall) one period waits for a leader that makes progress
+    but does not catch up."""
+    HOLD_REFRESH_S = 0.25
+    """While a period waits, its hold on the simulation is announced again this often
+    (wall), well inside the simulator's lockstep timeout (1 s): the wait is the control
+    loop's own, not a loop that stopped answering."""
 
     def __init__(self, leader: str, *, distance_m: float = 2.0, tolerance_m: float = 0.2,
                  safety_m: float = 1.0, alt_m: float = 2.5, rate_hz: float = 10.0,
@@ -342,6 +350,8 @@ class FollowLeader(MavlinkAction):
         self.lead_s = lead_s
         self.min_gap_m = math.inf
         self.holding: str | None = None
+        self._leader_silent = False  # in lockstep: the last wait for the leader heard nothing
+        self._silent_seq = -1
 
     def perform(self, link: MavlinkLink) -> None:
         fleet = fleet_of(self.manager)
@@ -396,21 +406,43 @@ class FollowLeader(MavlinkAction):
 
     def _fresh_peer(self, fleet: Fleet) -> PeerState | None:
         """The leader's latest state. In lockstep (the simulation waits for this loop, not
-        for the leader's robot), a state older than two periods of sim time is waited for
-        — up to :attr:`FRESH_WAIT_S` of wall time, the simulation held meanwhile — so a
-        simulation faster than the leader's process does not make the leader look stale
-        or far behind where it is."""
+        for the leader's robot), a state older than two periods of sim time is waited for,
+        the simulation held meanwhile, as long as the leader makes progress (see
+        :attr:`FRESH_WAIT_S`): a simulation faster than the leader's process must not make
+        the leader look stale or far behind where it is. (Going on with a stale state,
+        the follower held while the simulated leader drove on, and fell up to 2.7 m
+        behind in stress runs.)"""
         peer = fleet.get(self.leader)
         if self._lockstep_pub is None or peer is None \
                 or peer.age_s <= 2 * self.period_s:
+            self._leader_silent = False
             return peer
-        deadline = time.monotonic() + self.FRESH_WAIT_S
-        while time.monotonic() < deadline and not self.interrupted:
+        if self._leader_silent and peer.seq == self._silent_seq:
+            return peer
+        start = now = time.monotonic()
+        progress_by = now + self.FRESH_WAIT_S
+        refresh_at = now + self.HOLD_REFRESH_S
+        held_s = self.manager.clock.now()
+        while not self.interrupted:
             time.sleep(0.002)
+            now = time.monotonic()
             newer = fleet.get(self.leader)
             if newer is not None and newer.seq != peer.seq:
-                return newer
-        return fleet.get(self.leader)
+                peer, progress_by = newer, now + self.FRESH_WAIT_S
+                if peer.age_s <= 2 * self.period_s:
+                    break
+            if now >= progress_by:  # silent: go on with what there is
+                self._leader_silent, self._silent_seq = True, peer.seq
+                log.info("%s: no newer state of %r for %g s (wall); going on with one "
+                         "%.2f s old", self.path, self.leader, self.FRESH_WAIT_S, peer.age_s)
+                return peer
+            if now - start >= self.MAX_FRESH_WAIT_S:
+                break
+            if now >= refresh_at:
+                refresh_at = now + self.HOLD_REFRESH_S
+                self._hold_at(held_s)
+        self._leader_silent = False
+        return peer
 
     def _hold(self, link: MavlinkLink, here: tuple[float, float, float], alt: float | None,
               why: str | None) -> None:
@@ -428,10 +460,10 @@ class Follower(Behavior):
 
     def __init__(self, *, connection: str, leader: str, distance_m: float = 2.0,
                  tolerance_m: float = 0.2, safety_m: float = 1.0, alt_m: float = 2.5,
-                 give_up_s: float | None = None) -> None:
+                 give_up_s: float | None = None, lead_s: float = 0.6) -> None:
         self.follow = FollowLeader(leader, distance_m=distance_m, tolerance_m=tolerance_m,
                                    safety_m=safety_m, alt_m=alt_m, give_up_s=give_up_s,
-                                   connection=connection)
+                                   lead_s=lead_s, connection=connection)
 
     def run(self) -> dict[str, Any]:
         follow = self.start_action(self.follow)
