@@ -519,3 +519,30 @@ def test_a_second_award_on_a_standing_one_is_a_violation_and_fails_the_fleet() -
                      _order("lathe1-1", "lathe1", "delivered", ["atv1"]))
     assert twice.violations == ["order lathe1-1 delivered twice"]
     assert "every contract awarded at most once" in _failed_checks(FACTS, twice)
+
+
+def test_a_station_agrees_to_a_release_from_a_robot_that_holds_nothing_and_frees_nobody(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """At fleet shutdown charger1 once refused atv4's release (its lease had lapsed while
+    it stopped): a release is idempotent; it never frees another robot's reservation."""
+    from beehave.agents import Message, Performative
+    from behaviours.fleet.station import Reservations
+
+    station = Reservations("charger1")
+    monkeypatch.setattr(station, "_publish", lambda: None)
+
+    def request(sender: str, op: str) -> Message:
+        return Message(performative=Performative.REQUEST, sender=sender,
+                       receivers=["charger1"], conversation_id=f"{sender}-{op}",
+                       protocol="charging", content={"op": op, "lease_s": 6.0})
+
+    release = request("atv4", "release")
+    assert station.refuse(release) is None  # nobody holds it: nothing to refuse
+    assert station.perform(release)["holder"] is None
+    station.perform(request("atv1", "reserve"))
+    monkeypatch.setattr(station, "_free_if_lapsed", lambda: None)  # atv1's lease holds
+    assert station.refuse(release) is None
+    assert station.perform(release)["holder"] == "atv1"  # atv1 keeps its reservation
+    assert "holds no reservation" in str(station.refuse(request("atv4", "renew")))
+    assert station.refuse(request("atv1", "release")) is None
+    assert station.perform(request("atv1", "release"))["holder"] is None
