@@ -102,6 +102,17 @@ class Behavior(Runnable):
         behavior._start_thread()
         return behavior
 
+    @classmethod
+    def prepare_node(cls, node: Any) -> None:
+        """Optional hook: the robot made its high-level ROS node ``node``, and nothing runs
+        yet — neither level, nor this behaviour.
+
+        Called once per behaviour class the robot's configuration names (``beehave run``),
+        before the low level starts: declare here the node's parameters that a logic may
+        set from its first moment (a speed limit the low level sets at once would
+        otherwise meet an undeclared parameter).
+        """
+
     def on_child_ended(self, child: Runnable) -> None:
         """Optional hook: ``child`` (an action or sub-behaviour of this one) has ended.
 

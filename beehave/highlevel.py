@@ -171,6 +171,12 @@ class HighLevelBehaviorManager(Running):
         with self._cond:
             self._registry[name] = (behavior_cls, dict(params))
 
+    def registered_classes(self) -> list[type[Behavior]]:
+        """The behaviour classes registered, each once, in the order of registration."""
+        with self._cond:
+            classes = [cls for cls, _params in self._registry.values()]
+        return list(dict.fromkeys(classes))
+
     def substitute(self, pattern: str, substitute: Substitute) -> Callable[[], None]:
         """From now on, run ``substitute`` instead of every action or sub-behaviour whose
         path, name or class name matches ``pattern`` (``fnmatch``: ``"tour/Navigate*"``,

@@ -172,6 +172,15 @@ class Robot(Running):
             ros.start()
             if cfg.sim is not None and self.only != "high":
                 self._start_sim(ros)
+            high_node = None
+            if self.high is not None:
+                # Before the low level starts: a logic may set the high-level node's
+                # parameters from its first moment, so they are declared first.
+                high_node = ros.create_node(HIGH_NODE, namespace=cfg.namespace,
+                                            use_sim_time=cfg.use_sim_time)
+                self._nodes.append(high_node)
+                for behavior_cls in self.high.registered_classes():
+                    behavior_cls.prepare_node(high_node)
             if self.low is not None:
                 # The low level runs on wall time (asyncio); only the high level follows
                 # /clock, so each robot subscribes to it once, not once per node.
@@ -183,9 +192,8 @@ class Robot(Running):
                     self.low, node, blackboard_rate_hz=cfg.ros.blackboard_rate_hz,
                     snapshot_period_s=cfg.ros.snapshot_period_s))
             if self.high is not None:
-                node = ros.create_node(HIGH_NODE, namespace=cfg.namespace,
-                                       use_sim_time=cfg.use_sim_time)
-                self._nodes.append(node)
+                assert high_node is not None
+                node = high_node
                 from beehave.interfaces import ControlPlane
 
                 self.plane = ControlPlane(self.high, low=self.low,

@@ -161,6 +161,10 @@ class RobotFacts:
     """|linear speed| averaged over the speed window."""
     pickups: int
     deliveries: int
+    distance_m: float = 0.0
+    """The distance it drove: |linear speed| integrated over sim time."""
+    charging_s: float = 0.0
+    """Sim seconds its centre spent inside a charging station."""
 
 
 @dataclass(frozen=True)
@@ -339,6 +343,8 @@ class _RobotState:
         self.dwell_since_s = 0.0
         self.pickups = 0
         self.deliveries = 0
+        self.distance_m = 0.0
+        self.charging_s = 0.0
 
     def add_speed(self, speed: float) -> float:
         """The mean of the last ``window`` speeds (a running sum: O(1) per sample)."""
@@ -356,7 +362,7 @@ class _RobotState:
             self.robot.namespace, None if self.load is None else self.load.amount,
             None if zone is None else zone.name, None if zone is None else zone.max_speed_mps,
             self.charging_at, self.battery, self.min_battery, self.min_battery_at_s,
-            self.speed, self.pickups, self.deliveries)
+            self.speed, self.pickups, self.deliveries, self.distance_m, self.charging_s)
 
 
 # ---- the factory ------------------------------------------------------------------------
@@ -493,7 +499,7 @@ class Factory:
             for station in self._stations:
                 station.occupants = ()
             for state in self._robots:
-                self._update_robot(state, time_s, events)
+                self._update_robot(state, time_s, dt, events)
             for station in self._stations:
                 n = len(station.occupants)
                 if n > station.max_charging:
@@ -505,12 +511,13 @@ class Factory:
             for callback in listeners:
                 callback(event)
 
-    def _update_robot(self, state: _RobotState, time_s: float,
+    def _update_robot(self, state: _RobotState, time_s: float, dt_s: float,
                       events: list[FactoryEvent]) -> None:
         robot = state.robot
         odom = robot.odometry()
         x, y = odom.x_m, odom.y_m
         speed = state.add_speed(abs(odom.linear_mps))
+        state.distance_m += abs(odom.linear_mps) * dt_s
         battery = robot.battery().fraction
         state.battery = battery
         if battery < state.min_battery:
@@ -532,6 +539,7 @@ class Factory:
             if station.spec.contains(x, y):
                 station.occupants = (*station.occupants, robot.namespace)
                 state.charging_at = station.spec.name
+                state.charging_s += dt_s
 
         # Where this robot could load or unload now, if it stands still long enough.
         place: Depot | Machine | None = None

@@ -140,6 +140,8 @@ def render_topdown(world: World, robots: Sequence[RobotSketch], path: str | Path
         draw.polygon(rect(*area.center_m, *area.size_m, math.radians(area.yaw_deg)),
                      fill=None, outline=DELIVERY_COLOR, width=2)
 
+    # Where names are written already: a robot's name goes where it covers none of them.
+    taken: list[tuple[float, float, float, float]] = []
     for station in world.stations:
         color = STATION_COLORS[station.kind]
         pale = ((color[0] + 2 * floor_rgb[0]) // 3, (color[1] + 2 * floor_rgb[1]) // 3,
@@ -149,6 +151,7 @@ def render_topdown(world: World, robots: Sequence[RobotSketch], path: str | Path
         x, y = px(station.center_m[0] - station.size_m[0] / 2,
                   station.center_m[1] + station.size_m[1] / 2)
         draw.text((x + 3, y + 2), station.name, fill=(20, 20, 20))
+        taken.append(draw.textbbox((x + 3, y + 2), station.name))
 
     for lane in world.lanes:
         draw.line([px(*p) for p in lane.points_m], fill=_rgb8(lane.color),
@@ -189,7 +192,8 @@ def render_topdown(world: World, robots: Sequence[RobotSketch], path: str | Path
         if len(robot.path) >= 2:
             draw.line([px(*p) for p in robot.path], fill=color, width=2, joint="curve")
     for i, robot in enumerate(robots):
-        _draw_robot(draw, robot, PATH_COLORS[i % len(PATH_COLORS)], px, rect, scale_px_per_m)
+        _draw_robot(draw, robot, PATH_COLORS[i % len(PATH_COLORS)], px, rect, scale_px_per_m,
+                    taken)
 
     if title:
         draw.text((6, 4), title, fill=(235, 235, 235))
@@ -225,8 +229,17 @@ def _draw_machine(draw: ImageDraw.ImageDraw, machine: Machine, level: float, px:
               fill=(20, 30, 90), anchor="mt" if below else "mb")
 
 
+def _overlaps(a: tuple[float, float, float, float],
+              b: tuple[float, float, float, float]) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
 def _draw_robot(draw: ImageDraw.ImageDraw, robot: RobotSketch, label: RGB8, px: object,
-                rect: object, scale: float) -> None:
+                rect: object, scale: float,
+                taken: list[tuple[float, float, float, float]] | None = None) -> None:
+    """Draw ``robot`` and its name: above it, or below it where the name would cover a
+    label in ``taken`` (a station's name, where a robot charging there stands); the box
+    written is added to ``taken``."""
     to_px = px  # typed loosely above to keep the signature short
     assert callable(to_px) and callable(rect)
     c, s = math.cos(robot.yaw_rad), math.sin(robot.yaw_rad)
@@ -255,4 +268,11 @@ def _draw_robot(draw: ImageDraw.ImageDraw, robot: RobotSketch, label: RGB8, px: 
     x, y = to_px(robot.x_m, robot.y_m)
     # Centred above the robot: robots parked side by side keep their names apart.
     above_m = 0.55 if robot.kind == "emili" else 0.3
-    draw.text((x, y - above_m * scale), robot.namespace, fill=label, anchor="mb")
+    taken = [] if taken is None else taken
+    place, anchor = (x, y - above_m * scale), "mb"
+    box = draw.textbbox(place, robot.namespace, anchor=anchor)
+    if any(_overlaps(box, other) for other in taken):
+        place, anchor = (x, y + above_m * scale), "mt"
+        box = draw.textbbox(place, robot.namespace, anchor=anchor)
+    draw.text(place, robot.namespace, fill=label, anchor=anchor)
+    taken.append(box)

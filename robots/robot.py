@@ -24,7 +24,8 @@ Models shared by all kinds:
   scanner height (``scan_rate_hz``, default 10 Hz). Every ray starts where it leaves the
   robot's own outline, so the robot never sees itself; ranges are measured from the centre,
   ``inf`` where nothing is hit within ``range_max_m``.
-- **Battery.** Power = idle draw + a part proportional to speed and turn rate (+ the lift
+- **Battery.** Power = idle draw (the kind's, or the world's ``battery.idle_w`` for this
+  robot) + a part proportional to speed and turn rate (+ the lift
   while it moves, on EMILI); the state of charge falls by power × dt / capacity. While the
   robot's centre is inside a ``charging`` station the charger supplies the robot and
   charges at ``charge_w``. Voltage is linear in the state of charge between empty and full;
@@ -220,6 +221,7 @@ class SimRobot:
         self._charge_wh = capacity * spec.battery.initial_fraction
         self._battery = self._battery_state(0.0, capacity, 0.0, False)
         self._capacity_wh = capacity
+        self._idle_w = model.idle_w if spec.battery.idle_w is None else spec.battery.idle_w
         self._scan: LaserScan | None = None
         self._sounds: list[Sound] = []
         self._path: list[tuple[float, float]] = [(start.x_m, start.y_m)]
@@ -385,7 +387,7 @@ class SimRobot:
         model = self.battery_model
         charging = any(s.contains(odom.x_m, odom.y_m)
                        for s in self._sim._charging_stations)
-        power = (model.idle_w + model.drive_w_per_mps * abs(odom.linear_mps)
+        power = (self._idle_w + model.drive_w_per_mps * abs(odom.linear_mps)
                  + model.turn_w_per_rps * abs(odom.angular_rps) + self._extra_power_w)
         delta_wh = (model.charge_w if charging else -power) * dt_s / 3600.0
         self._charge_wh = max(0.0, min(self._capacity_wh, self._charge_wh + delta_wh))

@@ -250,6 +250,10 @@ class Battery(_Model):
 
     capacity_wh: float | None = Field(None, gt=0)
     initial_fraction: float = Field(1.0, ge=0, le=1)
+    idle_w: float | None = Field(None, ge=0)
+    """The draw standing still (electronics, sensors), where it differs from the kind's:
+    a demo battery made small so that driving empties it in minutes can keep the idle
+    loss of the real one by shrinking this with it."""
 
 
 class Laser(_Model):

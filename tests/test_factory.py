@@ -330,6 +330,53 @@ def test_the_picture_shows_levels_zones_and_each_robot(sim_of: Any, tmp_path: Pa
     assert zone[0] > zone[1] + 30 and abs(floor[0] - floor[1]) < 15
 
 
+def test_a_robot_in_a_station_leaves_the_station_name_readable(tmp_path: Path) -> None:
+    """A robot charging at charger1 once had its name drawn over the station's (issue
+    24 item 7): its name then goes below it."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    from robots.render import PATH_COLORS, RobotSketch, render_topdown
+
+    world = load_world("factory")
+    station = next(s for s in world.stations if s.name == "charger1")
+    # Where an ATV stops to charge: inside the station, short of its centre.
+    at = (station.center_m[0], station.center_m[1] - 0.25)
+    sketch = RobotSketch("atv4", "kobuki", *at, math.pi / 2, (), [])
+    image = Image.open(render_topdown(world, [sketch], tmp_path / "f.png")).convert("RGB")
+    # Where render_topdown writes the station's name (40 px/m, 0.5 m margin, y upwards).
+    draw = ImageDraw.Draw(image)
+    draw.font = ImageFont.load_default(size=12)
+    x = (station.center_m[0] - station.size_m[0] / 2 + 0.5) * 40 + 3
+    y = (world.floor.size_m[1] + 0.5 - station.center_m[1] - station.size_m[1] / 2) * 40 + 2
+    x0, y0, x1, y1 = draw.textbbox((x, y), station.name)
+    label = PATH_COLORS[0]
+    covered = [(i, j) for i in range(int(x0), int(x1) + 1) for j in range(int(y0), int(y1) + 1)
+               if image.getpixel((i, j)) == label]
+    assert not covered, f"atv4's name covers charger1's at {covered[:5]}"
+    # ... and it is still written, next to the robot.
+    cx, cy = (at[0] + 0.5) * 40, (world.floor.size_m[1] + 0.5 - at[1]) * 40
+    near = [(i, j) for i in range(int(cx) - 30, int(cx) + 30)
+            for j in range(int(cy) - 40, int(cy) + 40) if image.getpixel((i, j)) == label]
+    assert near
+
+
+def test_a_world_may_give_a_robot_its_idle_draw_and_the_facts_count_distance(
+        sim_of: Any) -> None:
+    # 0.01 Wh is 36 J: at the Kobuki's own 5 W idle that is 7.2 s, at 0.05 W 720 s.
+    sim, factory = sim_of(shop(robots=[{
+        "namespace": "k1", "kind": "kobuki", "start": {"x_m": 4.5, "y_m": 1.0},
+        "battery": {"capacity_wh": 0.01, "initial_fraction": 1.0, "idle_w": 0.05}}]))
+    sim.run_for(3.6)
+    robot = factory.facts().robot("k1")
+    assert robot.battery_fraction == pytest.approx(1.0 - 3.6 / 720, abs=2e-3)
+    assert robot.distance_m == pytest.approx(0.0, abs=0.01) and robot.charging_s == 0.0
+    drive_along_x(sim, sim.robot("k1"), 5.5)
+    assert factory.facts().robot("k1").distance_m == pytest.approx(1.0, abs=0.1)
+    assert "idle_w" in problems_of(shop(robots=[{
+        "namespace": "k1", "kind": "kobuki", "start": {"x_m": 4.5, "y_m": 1.0},
+        "battery": {"idle_w": -1}}]))
+
+
 # ---- ROS 2 ----------------------------------------------------------------------------
 
 def unique(prefix: str) -> str:

@@ -373,6 +373,7 @@ def test_the_fleet_web_view_serves_the_live_tables_without_a_robot_in_process() 
     (["--order-below", "1.5"], "--order-below must be a fraction"),
     (["no_such_world"], "world 'no_such_world'"),
     (["--scenario", "droid", "--robots", "3"], "unrecognized arguments: --robots 3"),
+    (["--dispatch", "nobody"], "invalid choice: 'nobody'"),
 ])
 def test_bad_fleet_arguments_exit_2_naming_the_problem(
         argv: list[str], says: str, capsys: pytest.CaptureFixture[str]) -> None:
@@ -519,3 +520,75 @@ def test_a_second_award_on_a_standing_one_is_a_violation_and_fails_the_fleet() -
                      _order("lathe1-1", "lathe1", "delivered", ["atv1"]))
     assert twice.violations == ["order lathe1-1 delivered twice"]
     assert "every contract awarded at most once" in _failed_checks(FACTS, twice)
+
+
+def test_a_station_agrees_to_a_release_from_a_robot_that_holds_nothing_and_frees_nobody(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """At fleet shutdown charger1 once refused atv4's release (its lease had lapsed while
+    it stopped): a release is idempotent; it never frees another robot's reservation."""
+    from beehave.agents import Message, Performative
+    from behaviours.fleet.station import Reservations
+
+    station = Reservations("charger1")
+    monkeypatch.setattr(station, "_publish", lambda: None)
+
+    def request(sender: str, op: str) -> Message:
+        return Message(performative=Performative.REQUEST, sender=sender,
+                       receivers=["charger1"], conversation_id=f"{sender}-{op}",
+                       protocol="charging", content={"op": op, "lease_s": 6.0})
+
+    release = request("atv4", "release")
+    assert station.refuse(release) is None  # nobody holds it: nothing to refuse
+    assert station.perform(release)["holder"] is None
+    station.perform(request("atv1", "reserve"))
+    monkeypatch.setattr(station, "_free_if_lapsed", lambda: None)  # atv1's lease holds
+    assert station.refuse(release) is None
+    assert station.perform(release)["holder"] == "atv1"  # atv1 keeps its reservation
+    assert "holds no reservation" in str(station.refuse(request("atv4", "renew")))
+    assert station.refuse(request("atv1", "release")) is None
+    assert station.perform(request("atv1", "release"))["holder"] is None
+
+
+def test_the_figures_count_lead_times_lateness_and_busy_time_once() -> None:
+    """Order reports as the mission controllers send them → the figures: atv1 holds two
+    orders at once (counted once), atv2 loses one to atv1; an order past its due time and
+    still open is late, as is one delivered after it."""
+    from behaviours.demos.fleet import figures
+
+    def rep(order: str, state: str, at: float, atv: str | None = None,
+            awards: tuple[str, ...] = (), placed: float = 0.0, due: float = 1000.0
+            ) -> dict[str, Any]:
+        return {"order": order, "machine": order.split("-")[0], "state": state, "atv": atv,
+                "awards": list(awards), "sim_s": at, "placed_sim_s": placed,
+                "due_sim_s": due}
+
+    history = [
+        rep("m1-1", "announced", 10.0, placed=10.0),
+        rep("m1-1", "awarded", 11.0, "atv1", ("atv1",), placed=10.0),
+        rep("m2-1", "announced", 20.0, placed=20.0, due=80.0),
+        rep("m2-1", "awarded", 21.0, "atv1", ("atv1",), placed=20.0, due=80.0),
+        rep("m1-1", "delivered", 50.0, "atv1", ("atv1",), placed=10.0),
+        rep("m2-1", "delivered", 90.0, "atv1", ("atv1",), placed=20.0, due=80.0),
+        rep("m3-1", "announced", 30.0, placed=30.0, due=100.0),
+        rep("m3-1", "awarded", 31.0, "atv2", ("atv2",), placed=30.0, due=100.0),
+        rep("m3-1", "announced", 41.0, "atv2", ("atv2",), placed=30.0, due=100.0),
+        rep("m3-1", "awarded", 95.0, "atv1", ("atv2", "atv1"), placed=30.0, due=100.0),
+    ]
+    report = {"time_s": 200.0, "deliveries": [{}, {}],
+              "robots": {"atv1": {"deliveries": 2, "distance_m": 40.0, "charging_s": 0.0},
+                         "atv2": {"deliveries": 0, "distance_m": 3.0, "charging_s": 5.0}},
+              "machines": {"m1": {"empty_s": 0.0, "first_empty_at_s": None,
+                                  "deliveries": 1, "min_level": 30.0}}}
+    figs = figures(report, history, 200.0)
+    orders = {o["order"]: o for o in figs["order_list"]}
+    assert orders["m1-1"]["lead_time_s"] == 40.0 and not orders["m1-1"]["late"]
+    assert orders["m2-1"]["lead_time_s"] == 70.0 and orders["m2-1"]["late"]
+    assert orders["m3-1"]["lead_time_s"] is None and orders["m3-1"]["late"]
+    # atv1: 11 → 90 and 95 → 200 (the end): 184 s of 200; atv2: 31 → 41.
+    assert figs["atvs"]["atv1"]["busy_s"] == 184.0
+    assert figs["atvs"]["atv1"]["utilisation"] == 0.92
+    assert figs["atvs"]["atv2"]["busy_s"] == 10.0
+    assert figs["throughput_per_h"] == 36.0
+    assert figs["orders"] == {"placed": 3, "delivered": 2, "open": 1, "failed": 0,
+                              "late": 2, "lead_time_mean_s": 55.0,
+                              "lead_time_max_s": 70.0}

@@ -14,7 +14,19 @@ checks, in the physics:
 - every contract was awarded at most once: no order delivered twice, no award while an
   award stood (the mission controller's state machines), and the physical deliveries per
   machine match the orders the machine saw done (give or take the ones under way);
-- and work was done: at least one delivery, so that an idle fleet fails.
+- work was done: at least one delivery, so that an idle fleet fails;
+- no order was late: every order delivered before its machine would have fallen to its
+  safety stock (20 % of its capacity; from its level and consumption when it ordered),
+  none still open past that.
+
+It prints, writes into the JSON report and draws beside the picture the figures a
+logistics engineer reads: per order its lead time (placed → delivered, sim seconds) and
+whether it was late; per ATV its utilisation (the share of the run it had an order: from
+an award to its delivery or loss), distance driven and time charging; throughput
+(deliveries per hour of sim time); per machine the time it starved (ran empty).
+
+``--dispatch single`` turns coordination off (every machine calls atv1 alone): the
+baseline the market is compared with, and a run whose checks fail.
 
 Exit 0 when every check passed, 1 otherwise, 2 for bad arguments.
 """
@@ -24,6 +36,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import re
 import sys
@@ -76,6 +89,8 @@ class Watch:
 
     state: dict[str, Any] = field(default_factory=dict)
     orders: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Every order report, in the order they came (the figures read the award times).
+    history: list[dict[str, Any]] = field(default_factory=list)
     violations: list[str] = field(default_factory=list)
     agents: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: The latest agent messages (copies from ``MESSAGES_TOPIC``), newest last: as many as
@@ -113,6 +128,7 @@ class Watch:
                     and report["state"] == "delivered":
                 self.violations.append(f"order {order} delivered twice")
             self.orders[order] = report
+            self.history.append(report)
 
     def on_directory(self, data: str) -> None:
         from beehave.agents.directory import DIRECTORY_TOPIC
@@ -208,18 +224,30 @@ def _table(watch: Watch, started: float) -> Group:
                        f"{r['load']:g}" if r["load"] else "", r["zone"] or "",
                        f"{r['speed_mps']:.2f}", r["charging_at"] or "")
     machines = Table(title="machines", title_justify="left")
-    for col in ("machine", "level", "open order", "state", "ATV", "awards"):
+    for col in ("machine", "level", "open order", "state", "ATV", "awards", "delivered",
+                "late"):
         machines.add_column(col)
+    # Only an order still open is "open": a delivered or failed one is counted instead.
     latest: dict[str, dict[str, Any]] = {}
+    delivered: dict[str, int] = {}
+    late: dict[str, list[str]] = {}
     for o in orders:
-        latest[o["machine"]] = o
+        if o["state"] in OPEN_STATES:
+            latest[o["machine"]] = o
+        elif o["state"] == "delivered":
+            delivered[o["machine"]] = delivered.get(o["machine"], 0) + 1
+        due = o.get("due_sim_s")
+        ended = o.get("sim_s") if o["state"] == "delivered" else sim_s
+        if due is not None and ended is not None and ended > due and o["state"] != "failed":
+            late.setdefault(o["machine"], []).append(o["order"])
     for name, m in sorted(state.get("machines", {}).items()):
         o = latest.get(name, {})
         level = m["level"] / m["capacity"]
         machines.add_row(name, Text(f"{100 * level:3.0f} %",
                                     style="red" if level < 0.2 else "green"),
                          o.get("order", ""), o.get("state", ""), o.get("atv") or "",
-                         " → ".join(o.get("awards", [])))
+                         " → ".join(o.get("awards", [])), str(delivered.get(name, 0)),
+                         Text(", ".join(late.get(name, [])), style="red"))
     stations = Table(title="charging stations", title_justify="left")
     for col in ("agent", "station", "reserved by", "charging now"):
         stations.add_column(col)
@@ -251,9 +279,199 @@ def _watch(ros: Any, watch: Watch) -> None:
                              MESSAGES_QOS)
 
 
-def checks(report: dict[str, Any], watch: Watch) -> list[tuple[str, bool, str]]:
+OPEN_STATES = ("created", "announced", "awarded")
+
+
+def _union_s(spans: list[tuple[float, float]]) -> float:
+    """The length of the union of ``spans`` ((start, end) pairs)."""
+    total, reach = 0.0, -math.inf
+    for start, end in sorted(spans):
+        if end <= reach:
+            continue
+        total += end - max(start, reach)
+        reach = end
+    return total
+
+
+def figures(report: dict[str, Any], history: list[dict[str, Any]],
+            sim_s: float) -> dict[str, Any]:
+    """What a logistics engineer reads of a run (all times in sim seconds): per order its
+    lead time and lateness, per ATV its utilisation, distance and charging, throughput,
+    per machine its starvation. ``report`` is the sim's facts, ``history`` every order
+    report in the order they came (:attr:`Watch.history`), ``sim_s`` the run's end."""
+    latest: dict[str, dict[str, Any]] = {}
+    awarded_at: dict[str, tuple[str, float]] = {}  # order → (atv, since)
+    spans: dict[str, list[tuple[float, float]]] = {}
+    delivered_at: dict[str, float] = {}
+    for r in history:
+        order, at = r["order"], r.get("sim_s")
+        latest[order] = r
+        if at is None:
+            continue
+        held = awarded_at.pop(order, None)
+        if held is not None:
+            spans.setdefault(held[0], []).append((held[1], at))
+        if r["state"] == "awarded" and r.get("atv"):
+            awarded_at[order] = (r["atv"], at)
+        elif r["state"] == "delivered":
+            delivered_at.setdefault(order, at)
+    for atv, since in awarded_at.values():  # still under way at the end
+        spans.setdefault(atv, []).append((since, sim_s))
+    orders = []
+    for order, r in latest.items():
+        placed, due = r.get("placed_sim_s"), r.get("due_sim_s")
+        done = delivered_at.get(order)
+        lead = None if done is None or placed is None else done - placed
+        state = r["state"]
+        late = due is not None and ((done is not None and done > due)
+                                    or (done is None and state in OPEN_STATES and sim_s > due))
+        orders.append({"order": order, "machine": r["machine"], "state": state,
+                       "atv": r.get("atv"), "awards": list(r.get("awards", [])),
+                       "placed_s": None if placed is None else round(placed, 1),
+                       "delivered_s": None if done is None else round(done, 1),
+                       "due_s": None if due is None else round(due, 1),
+                       "lead_time_s": None if lead is None else round(lead, 1),
+                       "late": late})
+    orders.sort(key=lambda o: (o["placed_s"] is None, o["placed_s"] or 0.0, o["order"]))
+    leads = [o["lead_time_s"] for o in orders if o["lead_time_s"] is not None]
+    robots = report.get("robots", {})
+    atvs = {ns: {"utilisation": round(min(1.0, _union_s(spans.get(ns, [])) / sim_s), 3)
+                 if sim_s > 0 else 0.0,
+                 "busy_s": round(_union_s(spans.get(ns, [])), 1),
+                 "deliveries": r.get("deliveries", 0),
+                 "distance_m": round(r.get("distance_m", 0.0), 1),
+                 "charging_s": round(r.get("charging_s", 0.0), 1)}
+            for ns, r in sorted(robots.items(), key=lambda kv: (len(kv[0]), kv[0]))}
+    machines = {n: {"starved_s": round(m["empty_s"], 1),
+                    "first_empty_s": None if m.get("first_empty_at_s") is None
+                    else round(m["first_empty_at_s"], 1),
+                    "deliveries": m.get("deliveries", 0),
+                    "lowest_level": round(m["min_level"], 1)}
+                for n, m in sorted(report.get("machines", {}).items())}
+    delivered = len(report.get("deliveries", []))
+    return {
+        "sim_s": round(sim_s, 1),
+        "throughput_per_h": round(delivered / sim_s * 3600.0, 1) if sim_s > 0 else 0.0,
+        "deliveries": delivered,
+        "orders": {"placed": len(orders),
+                   "delivered": sum(1 for o in orders if o["state"] == "delivered"),
+                   "open": sum(1 for o in orders if o["state"] in OPEN_STATES),
+                   "failed": sum(1 for o in orders if o["state"] == "failed"),
+                   "late": sum(1 for o in orders if o["late"]),
+                   "lead_time_mean_s": round(sum(leads) / len(leads), 1) if leads else None,
+                   "lead_time_max_s": max(leads) if leads else None},
+        "order_list": orders, "atvs": atvs, "machines": machines,
+        "starved_s": round(sum(m["starved_s"] for m in machines.values()), 1),
+    }
+
+
+def figures_tables(figs: dict[str, Any]) -> Group:
+    """:func:`figures` as the summary's tables: ATVs, machines, orders."""
+    o = figs["orders"]
+    atvs = Table(title=f"throughput {figs['throughput_per_h']:g} deliveries / h   orders: "
+                       f"{o['placed']} placed, {o['delivered']} delivered, {o['open']} open, "
+                       f"{o['late']} late   lead time mean "
+                       f"{_num(o['lead_time_mean_s'])} s, max {_num(o['lead_time_max_s'])} s",
+                 title_justify="left")
+    for col in ("ATV", "utilisation", "deliveries", "distance", "charging"):
+        atvs.add_column(col)
+    for ns, a in figs["atvs"].items():
+        atvs.add_row(ns, f"{100 * a['utilisation']:.0f} %", str(a["deliveries"]),
+                     f"{a['distance_m']:.0f} m", f"{a['charging_s']:.0f} s")
+    machines = Table(title="machines", title_justify="left")
+    for col in ("machine", "starved", "deliveries", "lowest level"):
+        machines.add_column(col)
+    for name, m in figs["machines"].items():
+        machines.add_row(name, Text(f"{m['starved_s']:.0f} s",
+                                    style="red" if m["starved_s"] > 0 else "green"),
+                         str(m["deliveries"]), f"{m['lowest_level']:g}")
+    orders = Table(title="orders (sim seconds)", title_justify="left")
+    for col in ("order", "ATV", "placed", "delivered", "lead time", "due", "state"):
+        orders.add_column(col)
+    for r in figs["order_list"]:
+        orders.add_row(r["order"], " → ".join(r["awards"]), _num(r["placed_s"]),
+                       _num(r["delivered_s"]), _num(r["lead_time_s"]), _num(r["due_s"]),
+                       Text("late", style="red") if r["late"] else r["state"])
+    return Group(atvs, machines, orders)
+
+
+def _num(value: float | None) -> str:
+    return "—" if value is None else f"{value:.0f}"
+
+
+def draw_figures(picture: Path, figs: dict[str, Any]) -> None:
+    """Add the figures to the sim's picture, in a panel on its right: utilisation bars per
+    ATV with its distance, starvation per machine, each order's lead time against the time
+    it had (late ones in red), throughput."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    base = Image.open(picture).convert("RGB")
+    panel_w = 460
+    image = Image.new("RGB", (base.width + panel_w, base.height), (30, 30, 34))
+    image.paste(base, (0, 0))
+    draw = ImageDraw.Draw(image)
+    draw.font = ImageFont.load_default(size=12)
+    x0, y = base.width + 12, 8
+    ink, dim, red, green = (235, 235, 235), (160, 160, 165), (220, 60, 60), (80, 180, 90)
+    o = figs["orders"]
+    for line in (f"throughput {figs['throughput_per_h']:g} deliveries/h "
+                 f"over {figs['sim_s']:.0f} s",
+                 f"orders {o['placed']} placed, {o['delivered']} delivered, "
+                 f"{o['open']} open, {o['late']} late",
+                 f"lead time mean {_num(o['lead_time_mean_s'])} s, "
+                 f"max {_num(o['lead_time_max_s'])} s"):
+        draw.text((x0, y), line, fill=ink)
+        y += 16
+    y += 6
+    draw.text((x0, y), "ATV utilisation (busy share), distance", fill=dim)
+    y += 16
+    bar_w = 200
+    for ns, a in figs["atvs"].items():
+        draw.text((x0, y), ns, fill=ink)
+        draw.rectangle([x0 + 50, y + 2, x0 + 50 + bar_w, y + 12], outline=dim)
+        draw.rectangle([x0 + 50, y + 2, x0 + 50 + round(bar_w * a["utilisation"]), y + 12],
+                       fill=green)
+        draw.text((x0 + 58 + bar_w, y), f"{100 * a['utilisation']:.0f} %  "
+                                         f"{a['distance_m']:.0f} m", fill=ink)
+        y += 16
+    y += 6
+    draw.text((x0, y), "machines: time starved (empty)", fill=dim)
+    y += 16
+    for name, m in figs["machines"].items():
+        draw.text((x0, y), f"{name}: {m['starved_s']:.0f} s", fill=red if m["starved_s"] > 0
+                  else ink)
+        y += 16
+    y += 6
+    draw.text((x0, y), "orders: lead time (bar) and time until due (|)", fill=dim)
+    y += 16
+    rows = [r for r in figs["order_list"] if r["placed_s"] is not None]
+    longest = max([1.0, *(r["lead_time_s"] or 0.0 for r in rows),
+                   *((r["due_s"] or 0.0) - (r["placed_s"] or 0.0) for r in rows)])
+    scale = 260 / longest
+    for r in rows:
+        if y > image.height - 14:
+            draw.text((x0, y), f"… {len(rows)} orders in all", fill=dim)
+            break
+        draw.text((x0, y), r["order"], fill=red if r["late"] else ink)
+        lead = r["lead_time_s"]
+        if lead is None:  # still open: how long it has waited
+            lead = figs["sim_s"] - r["placed_s"]
+            colour = red if r["late"] else dim
+        else:
+            colour = red if r["late"] else green
+        left = x0 + 90
+        draw.rectangle([left, y + 3, left + max(1, round(lead * scale)), y + 11], fill=colour)
+        if r["due_s"] is not None:
+            due_x = left + round((r["due_s"] - r["placed_s"]) * scale)
+            draw.line([due_x, y, due_x, y + 13], fill=ink, width=2)
+        y += 14
+    image.save(picture, format="PNG", optimize=True)
+
+
+def checks(report: dict[str, Any], watch: Watch,
+           figs: dict[str, Any] | None = None) -> list[tuple[str, bool, str]]:
     """(check, passed, what was measured) — the physics from the sim's report, the
-    contracts from the mission controllers' reports."""
+    contracts from the mission controllers' reports, lateness from :func:`figures`."""
     out: list[tuple[str, bool, str]] = []
     machines = report.get("machines", {})
     empty = [f"{n} {m['empty_s']:.0f} s" for n, m in machines.items() if m["empty_s"] > 0]
@@ -294,13 +512,20 @@ def checks(report: dict[str, Any], watch: Watch) -> list[tuple[str, bool, str]]:
                    f"{sum(len(o['awards']) for o in orders)} awards"))
     total = len(report.get("deliveries", []))
     out.append(("deliveries made", total > 0, f"{total} in the physics"))
+    if figs is not None:
+        late = [r["order"] for r in figs["order_list"] if r["late"]]
+        o = figs["orders"]
+        out.append(("no order late (delivered before its machine fell to 20 %)",
+                    not late, f"late: {', '.join(late)}" if late else
+                    f"{o['delivered']} delivered in time, lead time max "
+                    f"{_num(o['lead_time_max_s'])} s"))
     return out
 
 
 def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
               minutes: float = 5.0, fast: bool = False, out_dir: Path = Path("out"),
               record: bool = False, http: tuple[str, int] | None = None,
-              order_below: float = 0.6) -> int:
+              order_below: float = 0.6, dispatch: str = "market") -> int:
     places = site(world)
     fleet_dir = out_dir / "fleet"
     fleet_dir.mkdir(parents=True, exist_ok=True)
@@ -333,7 +558,8 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
             procs.start(ns, [py, "-m", "beehave.cli", "run", str(cfg), *recording, *view])
         for name in sorted(places.machines):
             procs.start(name, [py, "-m", "behaviours.fleet.machine", name, "--world", world,
-                               "--lease-s", str(LEASE_S), "--below", str(order_below)])
+                               "--lease-s", str(LEASE_S), "--below", str(order_below),
+                               *(["--only", "atv1"] if dispatch == "single" else [])])
         with RosContext() as ros, contextlib.ExitStack() as web:
             _watch(ros, watch)
             if http is not None:
@@ -362,8 +588,12 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
                         break
             wall_s = time.monotonic() - started
             console.print(_table(watch, started))
-        agents = [n for n in procs.procs if n != "sim"]
-        procs.stop(agents)
+        # The ATVs first: one that charges releases its station, one that delivers lets
+        # its machine know, while both still listen; then the machines and stations; the
+        # sim last (it writes the facts and the picture).
+        atvs = [n for n in procs.procs if n.startswith("atv")]
+        procs.stop(atvs)
+        procs.stop([n for n in procs.procs if n != "sim" and n not in atvs])
         procs.stop(["sim"])
     finally:
         procs.kill_all()
@@ -372,13 +602,24 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
                       f"{fleet_dir / 'sim.log'}")
         return 1
     report = json.loads(report_path.read_text())
-    results = checks(report, watch)
+    with watch.lock:
+        history = list(watch.history)
+    figs = figures(report, history, float(report.get("time_s", now_s)))
+    results = checks(report, watch, figs)
     results += process_failures(failed, fleet_dir)
     if now_s < sim_s:
         results.append((f"{minutes:g} sim minutes run", False,
                         f"only {now_s:.0f} s in {wall_s:.0f} s wall"))
-    console.print(checks_table(f"fleet summary — {robots} ATVs, {now_s:.0f} s sim in "
-                               f"{wall_s:.0f} s wall (×{now_s / wall_s:.2f})", results))
+    console.print(figures_tables(figs))
+    console.print(checks_table(f"fleet summary — {robots} ATVs ({dispatch}), {now_s:.0f} s "
+                               f"sim in {wall_s:.0f} s wall (×{now_s / wall_s:.2f})", results))
+    passed = all(ok for _, ok, _ in results)
+    report["fleet"] = {"robots": robots, "dispatch": dispatch, "figures": figs,
+                       "checks": [{"check": n, "passed": ok, "measured": m}
+                                  for n, ok, m in results], "passed": passed}
+    report_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    if picture.exists():
+        draw_figures(picture, figs)
     if watch.malformed:
         console.print(f"[yellow]unreadable messages:[/] {watch.malformed}")
     console.print(f"picture: {picture}   facts: {report_path}   logs"
@@ -386,8 +627,13 @@ def run_fleet(console: Console, *, world: str = "factory", robots: int = 4,
     print(json.dumps({"fleet": {"robots": robots, "sim_s": round(now_s, 1),
                                 "wall_s": round(wall_s, 1),
                                 "real_time_factor": round(now_s / wall_s, 3),
-                                "passed": all(ok for _, ok, _ in results)}}), flush=True)
-    return 0 if all(ok for _, ok, _ in results) else 1
+                                "dispatch": dispatch,
+                                "throughput_per_h": figs["throughput_per_h"],
+                                "orders": figs["orders"], "starved_s": figs["starved_s"],
+                                "utilisation": {k: v["utilisation"]
+                                                for k, v in figs["atvs"].items()},
+                                "passed": passed}}), flush=True)
+    return 0 if passed else 1
 
 
 #: ``--scenario`` → what runs. ``follow``, ``handover`` and ``droid`` (both at once) are the
@@ -456,6 +702,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--order-below", type=float, default=0.6, metavar="FRACTION",
                         help="a machine orders material when its level falls below this "
                              "fraction of its capacity (default 0.6)")
+    parser.add_argument("--dispatch", choices=("market", "single"), default="market",
+                        help="market (default): every machine awards its orders by contract "
+                             "net to the cheapest bid; single: no coordination, every order "
+                             "goes to atv1 alone (the baseline; its checks fail)")
     parser.add_argument("--record", action="store_true",
                         help="record every ATV into FOLDER/fleet/atvK.mcap (one file per "
                              "robot; docs/recording.md: beehave inspect/plot/replay)")
@@ -488,7 +738,7 @@ def main(argv: list[str] | None = None) -> int:
     console.rule(f"[bold]beehave fleet — {args.robots} ATVs in {args.world}")
     return run_fleet(console, world=args.world, robots=args.robots, minutes=args.minutes,
                      fast=args.fast, out_dir=Path(args.out), record=args.record,
-                     http=args.http, order_below=args.order_below)
+                     http=args.http, order_below=args.order_below, dispatch=args.dispatch)
 
 
 if __name__ == "__main__":

@@ -204,9 +204,14 @@ class Work(AgentBehavior):
         self.charge_below_pct = charge_below_pct
         self.critical_pct = critical_pct
 
+    @classmethod
+    def prepare_node(cls, node: Any) -> None:
+        # The zones logic sets max_speed_mps from its first odometry: declared before.
+        SpeedLimit.of(node)
+
     def run(self) -> str:
         if self.manager.node is not None:
-            SpeedLimit.of(self.manager.node)  # the zones logic may set it from the start
+            SpeedLimit.of(self.manager.node)
         transport = self.start_behavior(Transport(self.world))
         while self.sleep(0.25):
             if transport.status.finished:
@@ -254,6 +259,10 @@ class Charge(AgentBehavior):
     def _ask(self, station: str, op: str) -> Any:
         return request(self.agent, station, {"op": op, "lease_s": self.lease_s},
                        protocol="charging", timeout_s=3.0)
+
+    @classmethod
+    def prepare_node(cls, node: Any) -> None:
+        SpeedLimit.of(node)
 
     def run(self) -> str:
         if self.manager.node is not None:

@@ -19,7 +19,14 @@ Every state change is published on ``/fleet/orders`` (std_msgs/String, reliable,
 
     {"schema": "beehave.fleet.order/1", "order": "press1-3", "machine": "press1",
      "depot": "depot", "state": "awarded", "atv": "atv2", "attempt": 1,
-     "awards": ["atv2"], "reason": null, "violation": null, "stamp": 1795240691.6}
+     "awards": ["atv2"], "reason": null, "violation": null, "stamp": 1795240691.6,
+     "sim_s": 131.4, "placed_sim_s": 128.9, "due_sim_s": 328.9}
+
+``stamp`` is wall time; ``sim_s`` the simulation's time of the change (the machine's latest
+``/factory/state``), ``placed_sim_s`` when the order was placed and ``due_sim_s`` when the
+machine would fall to its safety stock (20 % of its capacity) without it: an order
+delivered after it, or still open past it, is **late**. The lead time of an order is
+``sim_s`` of its ``delivered`` report minus ``placed_sim_s``.
 """
 
 from __future__ import annotations
@@ -55,8 +62,13 @@ class Mission:
     state: str
     trigger: Any  # added by transitions.Machine
 
-    def __init__(self, order: str, machine: str, depot: str, publish: Any) -> None:
+    def __init__(self, order: str, machine: str, depot: str, publish: Any, *,
+                 sim_s: Any = None, due_sim_s: float | None = None) -> None:
         self.order, self.machine, self.depot = order, machine, depot
+        #: The simulation's time now (a callable; None: not known).
+        self._sim_s = sim_s if sim_s is not None else (lambda: None)
+        self.placed_sim_s: float | None = self._sim_s()
+        self.due_sim_s = due_sim_s
         self.atv: str | None = None
         self.attempt = 0
         self.awards: list[str] = []
@@ -70,7 +82,8 @@ class Mission:
         return {"schema": SCHEMA, "order": self.order, "machine": self.machine,
                 "depot": self.depot, "state": self.state, "atv": self.atv,
                 "attempt": self.attempt, "awards": list(self.awards), "reason": self.reason,
-                "violation": violation, "stamp": time.time()}
+                "violation": violation, "stamp": time.time(), "sim_s": self._sim_s(),
+                "placed_sim_s": self.placed_sim_s, "due_sim_s": self.due_sim_s}
 
     def _report(self) -> None:
         self._publish(self.as_dict())
@@ -114,8 +127,12 @@ class MissionController:
     def _publish(self, report: dict[str, Any]) -> None:
         self._pub.publish(String(data=json.dumps(report)))
 
-    def new(self, order: str, machine: str, depot: str) -> Mission:
-        mission = Mission(order, machine, depot, self._publish)
+    def new(self, order: str, machine: str, depot: str, *, sim_s: Any = None,
+            due_sim_s: float | None = None) -> Mission:
+        """A new order's mission; ``sim_s()`` tells the simulation's time (for the reports'
+        ``sim_s`` and ``placed_sim_s``), ``due_sim_s`` when the machine runs empty."""
+        mission = Mission(order, machine, depot, self._publish, sim_s=sim_s,
+                          due_sim_s=due_sim_s)
         self.missions[order] = mission
         mission._report()
         return mission

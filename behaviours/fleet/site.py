@@ -62,6 +62,7 @@ class Site:
         self.machines = {m.name: _place(m.name, m.delivery.center_m, m.delivery.size_m)
                          for m in w.machines}
         self.capacity = {m.name: m.capacity for m in w.machines}
+        self.consumption_per_s = {m.name: m.consumption_per_s for m in w.machines}
         self.stations = {s.name: _place(s.name, s.center_m, s.size_m, margin_m=0.15)
                          for s in w.stations_of_kind("charging")}
         #: Battery capacity (Wh) of each robot the world places, by namespace.

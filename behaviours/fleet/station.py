@@ -11,7 +11,8 @@ null>}`` and answers FIPA requests of protocol ``charging`` whose content is
   to the holder itself;
   otherwise refused naming the holder.
 - ``renew``: the holder extends its lease by ``lease_s``; anyone else is refused.
-- ``release``: the holder frees the place.
+- ``release``: the holder frees the place. Idempotent: a release from a robot that holds
+  nothing (its lease lapsed while it stopped) is agreed to and changes nothing.
 
 The station does not know where robots physically are: a robot that keeps its lease but
 charges elsewhere is the robot's bug, and ``beehave fleet`` checks in the physics that no
@@ -73,16 +74,22 @@ class Reservations(RequestResponder):
         op, sender = content["op"], message.sender
         if op == "reserve" and self.holder not in (None, sender):
             return f"{self.station} is reserved by {self.holder}"
-        if op in ("renew", "release") and self.holder != sender:
+        if op == "renew" and self.holder != sender:
             return f"{sender} holds no reservation at {self.station} (holder: {self.holder})"
+        # A release is idempotent: one whose lease lapsed already (a robot stopping, or
+        # slow) wants what is true, the station free of it; it frees nobody else's.
         return None
 
     def perform(self, task: Message) -> Any:
         op, sender = task.content["op"], task.sender
         lease_s = float(task.content.get("lease_s", 10.0))
         if op == "release":
-            self.holder = None
-            say("released", station=self.station, holder=sender)
+            if self.holder == sender:
+                self.holder = None
+                say("released", station=self.station, holder=sender)
+            else:
+                say("nothing_to_release", station=self.station, sender=sender,
+                    holder=self.holder)
         else:
             if self.holder != sender:
                 say("reserved", station=self.station, holder=sender)
