@@ -10,6 +10,7 @@ ROS 2 nodes over DDS, the Debug HAL under the low level.
 from __future__ import annotations
 
 import json
+import logging
 import threading
 import uuid
 from collections.abc import Iterator
@@ -351,3 +352,65 @@ def test_a_robot_that_shuts_down_aborts_its_goal() -> None:
         if client is not None:
             client.close()
         robot.shutdown()
+
+
+def test_cancel_brings_emili_to_a_standstill_in_the_physics() -> None:
+    """EMILI in the pybullet warehouse, driven by a goal; the client cancels it and
+    watches the robot's own odometry (nav_msgs/Odometry, as any ROS 2 tool would) until the
+    base stands still, and stays still."""
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import qos_profile_sensor_data
+
+    config = parse_config({
+        "namespace": "emili1", "use_sim_time": True, "stop_timeout_s": 1.0,
+        "behaviors": {"patrol": {"class": "rosbot:Patrol", "params": {"speed_mps": 0.3}}},
+        "sim": {"world": "warehouse", "real_time_factor": 1.0}}, source="exec_sim.yaml")
+    odom: list[tuple[float, float, float]] = []  # (sim time s, x m, forward speed m/s)
+    lock = threading.Lock()
+
+    def on_odom(msg: Odometry) -> None:
+        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        with lock:
+            odom.append((stamp, msg.pose.pose.position.x, msg.twist.twist.linear.x))
+
+    with Robot(config) as robot:
+        client = GoalClient("emili1")
+        try:
+            client.node.create_subscription(Odometry, "/emili1/odom", on_odom,
+                                            qos_profile_sensor_data)
+            goal = client.send("patrol")
+            assert wait_until(lambda: bool(odom) and odom[-1][2] > 0.25), odom[-3:]
+            with lock:
+                cancelled_at = odom[-1][0]
+            assert goal.cancel().goals_canceling
+            status, result = goal.result()
+            assert status == "CANCELED", (status, result)
+            assert robot.high is not None and robot.high.current == "idle"
+
+            def still() -> bool:
+                with lock:
+                    return bool(odom) and abs(odom[-1][2]) < 0.01
+            assert wait_until(still), odom[-3:]
+            with lock:
+                stopped_at, x_stopped = odom[-1][0], odom[-1][1]
+                seen = len(odom)
+            # And it stays still: the next 20 odometry messages (1 s of sim time at 20 Hz).
+            assert wait_until(lambda: len(odom) >= seen + 20)
+            with lock:
+                after = odom[seen:seen + 20]
+            assert all(abs(v) < 0.01 and abs(x - x_stopped) < 0.01 for _, x, v in after), after
+            logging.getLogger(__name__).info(
+                "cancel → standstill: %.3f s of sim time", stopped_at - cancelled_at)
+        finally:
+            client.close()
+
+
+def test_without_the_interface_package_the_error_says_how_to_build_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    from beehave.ros.execute import InterfacesMissing, load_action_type
+
+    monkeypatch.setitem(sys.modules, "beehave_interfaces.action", None)  # import fails
+    with pytest.raises(InterfacesMissing, match=r"build_ros_interfaces\.sh"):
+        load_action_type()
