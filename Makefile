@@ -6,7 +6,8 @@ STAMP  := $(VENV)/.setup-done
 .PHONY: setup test test-stress demo bench lint clean
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml Makefile
+$(STAMP): pyproject.toml Makefile scripts/setup.sh scripts/build_ros_interfaces.sh \
+          $(wildcard ros_interfaces/beehave_interfaces/* ros_interfaces/beehave_interfaces/action/*)
 	bash scripts/setup.sh $(VENV)
 	touch $(STAMP)
 

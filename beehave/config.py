@@ -110,7 +110,7 @@ class RosOptions(_Strict):
     state_period_s: Seconds = 1.0
     second_goal: Literal["reject", "preempt"] = Field(
         "reject", description="beehave/execute_behavior: a goal that arrives while another "
-        "executes is rejected, or preempts it")
+        "executes is refused (ABORTED at once, naming the running goal), or preempts it")
 
 
 class SimOptions(_Strict):

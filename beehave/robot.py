@@ -201,11 +201,15 @@ class Robot(Running):
                 self._bridges.append(HighLevelBridge(
                     self.high, node, state_period_s=cfg.ros.state_period_s,
                     plane=self.plane))
-                from beehave.ros.execute import ExecuteBehaviorServer
+                from beehave.ros.execute import ExecuteBehaviorServer, InterfacesMissing
 
-                self._bridges.append(ExecuteBehaviorServer(
-                    self.plane, node, second_goal=cfg.ros.second_goal,
-                    feedback_period_s=cfg.ros.state_period_s))
+                try:
+                    self._bridges.append(ExecuteBehaviorServer(
+                        self.plane, node, second_goal=cfg.ros.second_goal,
+                        feedback_period_s=cfg.ros.state_period_s))
+                except InterfacesMissing as exc:  # the robot runs; only the action is gone
+                    log.warning("robot %r: no beehave/execute_behavior action: %s",
+                                cfg.namespace, exc)
                 if cfg.agent is not None:  # before the behaviours, which may use it
                     from beehave.agents import Agent
 

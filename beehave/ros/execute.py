@@ -1,69 +1,40 @@
-"""``beehave/execute_behavior``: run a top-level behaviour as a goal, from any ROS 2 program.
+"""``beehave/execute_behavior``: a ROS 2 action that runs a top-level behaviour as a goal.
 
-A goal names a behaviour and its parameters; the robot switches to it, sends feedback
-while it runs (the engine's state, the running actions) and a result when it ends; a cancel
-switches to ``idle``. What happens to a second goal while one runs is the robot's policy
-(``ros.second_goal`` in its YAML): ``reject`` it, or ``preempt`` the running one.
+Any ROS 2 program with an ``rclpy.action.ActionClient`` (or ``ros2 action send_goal``)
+sends a goal — a behaviour's name and its parameters as JSON — and the robot switches to
+that behaviour, sends feedback while it runs (the running actions, each engine's state),
+and a result when it ends; a cancel switches to ``idle``. What happens to a second goal
+while one executes is the robot's policy (``ros.second_goal`` in its YAML): ``reject`` it,
+or ``preempt`` the running one.
 
-Why not a ROS 2 action type. beehave keeps to standard message types, and no action type
-that the ROS 2 wheels on PyPI ship (``test_msgs`` has the only ones: ``Fibonacci``,
-``NestedMessage``) can carry a behaviour's name, let alone its parameters;
-``example_interfaces``, ``action_tutorials_interfaces`` and ``nav2_msgs`` are not on PyPI.
-So the action's parts travel as they would in a ROS 2 action, with the goal, feedback and
-result as JSON in ``std_msgs/String`` (as the other beehave topics) and the cancel as the
-standard ``action_msgs/srv/CancelGoal``. Names are relative to the robot's namespace:
+The type is beehave's own, ``beehave_interfaces/action/ExecuteBehavior``
+(``ros_interfaces/beehave_interfaces``), generated with rosidl at set-up time
+(``scripts/build_ros_interfaces.sh``): no action type among the ROS 2 wheels on PyPI can
+carry a behaviour's name and parameters under fields that say so.
 
-==================================  ========================  ==============================
-``beehave/execute_behavior/goal``     topic, client → robot     std_msgs/String, JSON goal
-``beehave/execute_behavior/status``   topic, robot → clients    std_msgs/String, JSON status
-``beehave/execute_behavior/feedback`` topic, robot → clients    std_msgs/String, JSON feedback
-``beehave/execute_behavior/cancel``   service                   action_msgs/srv/CancelGoal
-==================================  ========================  ==============================
-
-Goal (``goal_id``: a UUID the client makes, as a ROS 2 action client does)::
-
-    {"schema": "beehave/execute_behavior/goal/1", "goal_id": "5f0c…", "behavior": "patrol",
-     "params": {"speed_mps": 0.3}}
-
-Status — every change of a goal's status, the result with the terminal one (reliable,
-transient-local, the last :data:`STATUS_DEPTH` kept)::
-
-    {"schema": "beehave/execute_behavior/status/1", "goal_id": "5f0c…", "behavior": "patrol",
-     "status": "ACCEPTED" | "REJECTED" | "EXECUTING" | "CANCELING"
-               | "SUCCEEDED" | "CANCELED" | "ABORTED",
-     "message": "why (a rejection names the valid choices)", "stamp": 1795240691.7,
-     "result": null | {"status": "SUCCEEDED" | "FAILED" | "INTERRUPTED" | "STUCK",
-                       "value": <the behaviour's return value, JSON>, "error": null | "…",
-                       "elapsed_s": 12.5}}
-
-Feedback — while a goal executes, on every change of what runs and every
-``feedback_period_s``::
-
-    {"schema": "beehave/execute_behavior/feedback/1", "goal_id": "5f0c…",
-     "behavior": "patrol", "elapsed_s": 3.2,
-     "state": {"behavior", "logic", "running", "engines", "locks", "stuck"}}
-
-``state`` is the ``beehave/high_level/state`` message's content (see ``docs/ros.md``).
-Everything is validated by the control-plane core (:meth:`ControlPlane.check_switch`), so a
-goal is accepted or refused exactly as a switch over HTTP or VDA 5050 would be.
+A ROS 2 goal response carries no reason (``accepted`` is a bool), so this server rejects
+no goal it can name a reason for: a goal it will not run — an unknown behaviour, bad
+parameters, a second goal under ``reject`` — is accepted and ABORTED at once, before
+anything is switched, with ``result.refused = true`` and ``result.message`` naming the
+valid choices. Everything is validated by the control-plane core
+(:meth:`ControlPlane.check_switch`), so a goal is refused exactly as a switch over HTTP
+or VDA 5050 would be, with the same words. ``docs/ros.md`` is the specification.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 import uuid
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from action_msgs.msg import GoalInfo
-from action_msgs.srv import CancelGoal
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from rclpy.action.server import ActionServer, CancelResponse, GoalResponse, ServerGoalHandle
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import String
+from rclpy.task import Future
 
 from beehave.behavior import Behavior
 from beehave.blackboard import to_json
@@ -75,73 +46,84 @@ from beehave.status import Status
 
 log = logging.getLogger(__name__)
 
-GOAL_TOPIC = "beehave/execute_behavior/goal"
-STATUS_TOPIC = "beehave/execute_behavior/status"
-FEEDBACK_TOPIC = "beehave/execute_behavior/feedback"
-CANCEL_SERVICE = "beehave/execute_behavior/cancel"
-GOAL_SCHEMA = "beehave/execute_behavior/goal/1"
-STATUS_SCHEMA = "beehave/execute_behavior/status/1"
-FEEDBACK_SCHEMA = "beehave/execute_behavior/feedback/1"
+#: The action's name, relative to the robot's namespace.
+ACTION_NAME = "beehave/execute_behavior"
 
 #: What to do with a goal that arrives while another one executes.
 SecondGoal = Literal["reject", "preempt"]
 SECOND_GOAL_POLICIES: tuple[str, ...] = ("reject", "preempt")
 
-#: Status messages kept for late joiners (a client that subscribed a moment after its goal).
-STATUS_DEPTH = 20
-STATUS_QOS = QoSProfile(depth=STATUS_DEPTH, history=HistoryPolicy.KEEP_LAST,
-                        reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
-#: A goal message larger than this is refused unread (an outsider must not make the robot
-#: parse megabytes).
-MAX_GOAL_BYTES = 64 * 1024
+#: A ``params_json`` longer than this is refused unread (an outsider must not make the
+#: robot parse megabytes).
+MAX_PARAMS_CHARS = 64 * 1024
 #: How often the running goal is looked at (feedback on change, a request that never ran).
 _TICK_S = 0.1
+#: How long :meth:`ExecuteBehaviorServer.destroy` waits (wall time) for the results of the
+#: goals it ends to be handed to rclpy before the action server goes away.
+_RESULT_FLUSH_S = 1.0
 
 
-class GoalMessage(BaseModel):
-    """``beehave/execute_behavior/goal`` (see the module docstring)."""
+class InterfacesMissing(ConfigError):
+    """The ``beehave_interfaces`` package (the ExecuteBehavior action type) is not built."""
 
-    model_config = ConfigDict(extra="forbid", populate_by_name=True)
-    schema_: Literal["beehave/execute_behavior/goal/1"] = Field(alias="schema")
-    goal_id: uuid.UUID
-    behavior: Any  # checked by the control plane, whose message lists the behaviours
-    params: Any = None
+
+def load_action_type() -> type[Any]:
+    """The ``ExecuteBehavior`` action type, or :class:`InterfacesMissing` saying how to
+    build it."""
+    try:
+        from beehave_interfaces.action import ExecuteBehavior
+    except ImportError as exc:
+        raise InterfacesMissing(
+            f"beehave/execute_behavior needs the ROS 2 interface package beehave_interfaces, "
+            f"which is built at set-up time: run `make setup` (or "
+            f"`bash scripts/build_ros_interfaces.sh .venv`); import failed: {exc}") from exc
+    action: type[Any] = ExecuteBehavior
+    return action
 
 
 @dataclass(eq=False)
 class _Goal:
+    """One accepted goal, from its acceptance to its result."""
+
+    handle: ServerGoalHandle[Any, Any, Any]
     goal_id: uuid.UUID
     name: str
-    behavior: Behavior
-    accepted_at: float = field(default_factory=time.monotonic)
+    #: Completed with the Result message once the goal has ended (any thread may complete
+    #: it; the action server's execute coroutine awaits it in the executor thread).
+    result: Future[Any]
+    behavior: Behavior | None = None  # None: refused before anything was switched
     lock: threading.Lock = field(default_factory=threading.Lock)
-    executing: bool = False
     done: bool = False
+    #: The terminal status the execute coroutine gives the goal handle.
+    outcome: Literal["SUCCEEDED", "CANCELED", "ABORTED"] = "ABORTED"
     cancel_requested: bool = False
     preempted_by: uuid.UUID | None = None
     #: Ticks on which the behaviour was seen neither running nor queued (see _tick).
     unqueued_ticks: int = 0
     last_feedback: str | None = None
     last_feedback_at: float = 0.0
+    sent: threading.Event = field(default_factory=threading.Event)
 
 
 class ExecuteBehaviorServer:
-    """Serves ``beehave/execute_behavior`` for one robot on its high-level ``node``.
+    """Serves the ``beehave/execute_behavior`` action for one robot on its high-level
+    ``node``.
 
     ``plane``: the robot's control plane (validation, state); ``second_goal``: ``"reject"``
-    (a goal that arrives while one executes is refused, naming the running one) or
-    ``"preempt"`` (the running goal is ABORTED with "preempted by goal …" and the new one
-    runs; the switch replaces one behaviour by the other as any switch does);
-    ``feedback_period_s``: the feedback heartbeat (feedback also goes out at once when
-    what runs changes). At most one goal executes at a time: the robot runs one top-level
-    behaviour.
+    (a goal that arrives while one executes is refused — ABORTED at once, naming the
+    running one) or ``"preempt"`` (the running goal is ABORTED with "preempted by goal …"
+    and the new one runs; the switch replaces one behaviour by the other as any switch
+    does); ``feedback_period_s``: the feedback heartbeat (feedback also goes out at once
+    when what runs changes). At most one goal executes at a time: the robot runs one
+    top-level behaviour.
 
     A switch made by other means (the ``behavior`` parameter, ``beehave/stop``, HTTP, VDA
     5050) while a goal executes ends that goal: ABORTED, the message names the switch. A
     behaviour that ends on its own ends its goal: SUCCEEDED when its ``run`` returned (its
-    return value is the result's ``value``), ABORTED when it failed or went STUCK.
-    :meth:`destroy` aborts a goal that still executes and removes what it added to the node.
+    return value is the result's ``value_json``), ABORTED when it failed or went STUCK.
+    :meth:`destroy` aborts a goal that still executes and removes the action server and
+    its timer from the node. Raises :class:`InterfacesMissing` when ``beehave_interfaces``
+    has not been built.
     """
 
     def __init__(self, plane: ControlPlane, node: Node, *,
@@ -154,127 +136,128 @@ class ExecuteBehaviorServer:
                 and 0 < feedback_period_s < float("inf")):
             raise ConfigError(f"ExecuteBehaviorServer: feedback_period_s must be a finite "
                               f"number of seconds > 0, got {feedback_period_s!r}")
+        self.action_type = load_action_type()
         self.plane = plane
         self.high = plane.high
         self.node = node
         self.second_goal = second_goal
         self.feedback_period_s = float(feedback_period_s)
-        self._lock = threading.Lock()  # the goal slot and publishing vs. destroy()
-        self._goal: _Goal | None = None  # the latest accepted goal
-        #: Accepted goals not ended yet: the latest, and one it preempted while that ends.
+        self._lock = threading.Lock()  # the goal slot and the list of goals followed
+        self._goal: _Goal | None = None  # the latest goal that switched the robot
+        #: Goals not ended yet: the latest, one it preempted while that ends, refused ones
+        #: until their result is out.
         self._following: tuple[_Goal, ...] = ()
         self._closed = False
-        self._status_pub = node.create_publisher(String, STATUS_TOPIC, STATUS_QOS)
-        self._feedback_pub = node.create_publisher(String, FEEDBACK_TOPIC, 10)
-        self._goal_sub = node.create_subscription(String, GOAL_TOPIC, self._on_goal, 10)
-        self._cancel_srv = node.create_service(CancelGoal, CANCEL_SERVICE, self._on_cancel)
+        self._server: ActionServer[Any, Any, Any] = ActionServer(
+            node, self.action_type, ACTION_NAME, self._execute,
+            goal_callback=self._on_goal_request,
+            handle_accepted_callback=self._on_accepted,
+            cancel_callback=self._on_cancel)
         self._timer = node.create_timer(_TICK_S, self._tick)
         self._unsubscribe = self.high.subscribe(self._on_event)
 
-    # -- goals -------------------------------------------------------------------------------
-    def _on_goal(self, msg: String) -> None:
-        """A goal arrives (executor thread: goals and cancels are handled one at a time)."""
-        if len(msg.data) > MAX_GOAL_BYTES:
-            self._publish_status(None, None, "REJECTED",
-                                 f"goal refused: {len(msg.data)} characters, more than "
-                                 f"{MAX_GOAL_BYTES}")
-            return
-        try:
-            goal = GoalMessage.model_validate_json(msg.data)
-        except ValidationError as exc:
-            raw_id = _raw_goal_id(msg.data)
-            problems = "; ".join(
-                f"{'.'.join(str(p) for p in e['loc']) or '<top>'}: {e['msg']}"
-                for e in exc.errors())
-            self._publish_status(raw_id, None, "REJECTED", shorten(
-                f"malformed goal refused: {problems}; expected {{\"schema\": "
-                f"\"{GOAL_SCHEMA}\", \"goal_id\": <UUID>, \"behavior\": <name>, "
-                f"\"params\": {{…}}}}"))
-            return
-        gid = goal.goal_id
-        name = goal.behavior
+    # -- goals (executor thread: goals and cancels are handled one at a time) -----------------
+    def _on_goal_request(self, request: Any) -> GoalResponse:
+        """Accept every goal while the server runs: a goal that will not run is ABORTED
+        with its reason (a goal response has no room for one)."""
+        return GoalResponse.REJECT if self._closed else GoalResponse.ACCEPT
+
+    def _on_accepted(self, handle: ServerGoalHandle[Any, Any, Any]) -> None:
+        """Check the goal, switch to its behaviour (or refuse it), then let rclpy run
+        :meth:`_execute`, which waits for the goal's end."""
+        gid = uuid.UUID(bytes=bytes(handle.goal_id.uuid))
+        request = handle.request
+        name = str(request.behavior)
+        goal = _Goal(handle, gid, name, Future(executor=self.node.executor))
         with self._lock:
-            if self._closed:
-                return
-            active = self._goal if self._goal is not None and not self._goal.done else None
-        if active is not None and active.goal_id == gid:
-            self._publish_status(gid, name, "REJECTED",
-                                 f"goal {gid} is already executing ({active.name!r})")
-            return
+            self._following = (*self._following, goal)
         try:
-            params = self.plane.check_switch(name, goal.params)
+            self._start(goal, request.params_json)
+        except _Refused as refusal:
+            self._finish(goal, None, refused=refusal.reason)
+        handle.execute()
+
+    def _start(self, goal: _Goal, params_json: str) -> None:
+        """Validate ``goal`` and request its switch; :class:`_Refused` says why not."""
+        name = goal.name
+        params = _parse_params(params_json)
+        try:
+            checked = self.plane.check_switch(name, params)
         except Exception as exc:  # BeehaveError: the reason; anything else must not crash
             if not isinstance(exc, BeehaveError):
-                log.exception("execute_behavior: checking goal %s failed", gid)
-            self._publish_status(gid, name if isinstance(name, str) else None, "REJECTED",
-                                 shorten(str(exc) if isinstance(exc, BeehaveError)
-                                         else f"goal refused: {exc!r}"))
-            return
+                log.exception("execute_behavior: checking goal %s failed", goal.goal_id)
+            raise _Refused(str(exc) if isinstance(exc, BeehaveError)
+                           else f"goal refused: {exc!r}") from exc
+        with self._lock:
+            active = self._goal if self._goal is not None and not self._goal.done else None
         if active is not None and self.second_goal == "reject":
-            self._publish_status(gid, name, "REJECTED", (
+            raise _Refused(
                 f"goal {active.goal_id} ({active.name!r}) is executing and this robot's "
-                f"policy for a second goal is 'reject' (ros.second_goal: reject | "
-                f"preempt); cancel it first"))
-            return
+                f"policy for a second goal is 'reject' (ros.second_goal: reject | preempt); "
+                f"cancel it first")
         if active is not None:
             with active.lock:
-                active.preempted_by = gid
+                active.preempted_by = goal.goal_id
         try:
-            behavior = self.high.request_switch(name, **params)
+            goal.behavior = self.high.request_switch(name, **checked)
         except Exception as exc:  # the constructor raised, or the manager shuts down
             if active is not None:
                 with active.lock:
                     active.preempted_by = None
-            self._publish_status(gid, name, "REJECTED", shorten(
-                str(exc) if isinstance(exc, BeehaveError) else f"goal refused: {exc!r}"))
-            return
-        new = _Goal(gid, name, behavior)
+            raise _Refused(str(exc) if isinstance(exc, BeehaveError)
+                           else f"goal refused: {exc!r}") from exc
         with self._lock:
-            self._goal = new
-            self._following = (*self._following, new)
-        self._publish_status(gid, name, "ACCEPTED", (
-            f"switching to {name!r}" + (f"; preempts goal {active.goal_id}"
-                                        if active is not None else "")))
-        self._check(new)  # it may have started (or ended) already
+            self._goal = goal
+        self._check(goal)  # it may have started (or ended) already
 
-    def _on_cancel(self, request: CancelGoal.Request,
-                   response: CancelGoal.Response) -> CancelGoal.Response:
-        """Cancel the executing goal: a switch to ``idle``. As in ROS 2 actions, a zero
-        goal id (with a zero stamp) means every goal."""
-        info = request.goal_info
-        wanted = uuid.UUID(bytes=bytes(info.goal_id.uuid))
-        every = wanted.int == 0
-        with self._lock:
-            goal = self._goal
-        if goal is None or goal.done or (not every and goal.goal_id != wanted):
-            if goal is not None and goal.goal_id == wanted:
-                response.return_code = CancelGoal.Response.ERROR_GOAL_TERMINATED
-            elif every:
-                response.return_code = CancelGoal.Response.ERROR_NONE  # nothing to cancel
+    async def _execute(self, handle: ServerGoalHandle[Any, Any, Any]) -> Any:
+        """rclpy's execute callback, a coroutine in the executor thread: waits for the
+        goal's end without blocking the executor, then sets the terminal status."""
+        goal = self._find(handle)
+        if goal is None:  # cannot happen: _on_accepted registered it before execute()
+            handle.abort()
+            return self.action_type.Result(refused=True, message="unknown goal")
+        result = await goal.result
+        try:
+            if goal.outcome == "SUCCEEDED":
+                handle.succeed()
+            elif goal.outcome == "CANCELED" and handle.is_cancel_requested:
+                handle.canceled()
             else:
-                response.return_code = CancelGoal.Response.ERROR_UNKNOWN_GOAL_ID
-            return response
+                handle.abort()
+        except Exception as exc:  # an illegal transition must not lose the result
+            log.error("execute_behavior: goal %s: setting %s failed: %s",
+                      goal.goal_id, goal.outcome, exc)
+        goal.sent.set()
+        return result
+
+    def _find(self, handle: ServerGoalHandle[Any, Any, Any]) -> _Goal | None:
+        return next((g for g in self._following if g.handle is handle), None)
+
+    def _on_cancel(self, handle: ServerGoalHandle[Any, Any, Any]) -> CancelResponse:
+        """A cancel of the executing goal is a switch to ``idle``; the goal is CANCELED
+        once its behaviour has stopped through its safe states."""
+        goal = self._find(handle)
+        if goal is None or goal.behavior is None:
+            return CancelResponse.REJECT  # ended (a refused goal ends at once)
         with goal.lock:  # before the switch: its end must read as this cancel's
-            first = not goal.cancel_requested and not goal.done
+            if goal.done:
+                return CancelResponse.REJECT
+            first = not goal.cancel_requested
             goal.cancel_requested = True
+        with self._lock:
+            latest = self._goal is goal
+        if not latest:  # preempted, ending already: the cancel just marks it
+            return CancelResponse.ACCEPT
         try:
             self.plane.stop()
         except BeehaveError as exc:
             with goal.lock:
                 goal.cancel_requested = not first
             log.error("execute_behavior: cancel of goal %s refused: %s", goal.goal_id, exc)
-            response.return_code = CancelGoal.Response.ERROR_REJECTED
-            return response
-        if first:
-            self._publish_status(goal.goal_id, goal.name, "CANCELING",
-                                 f"switching to {IDLE!r}")
-        stamp = GoalInfo()
-        stamp.goal_id.uuid = list(goal.goal_id.bytes)
-        stamp.stamp = self.node.get_clock().now().to_msg()
-        response.goals_canceling = [stamp]
-        response.return_code = CancelGoal.Response.ERROR_NONE
+            return CancelResponse.REJECT
         self._check(goal)
-        return response
+        return CancelResponse.ACCEPT
 
     # -- following the goal's behaviour --------------------------------------------------------
     def _on_event(self, event: Event) -> None:
@@ -287,16 +270,9 @@ class ExecuteBehaviorServer:
                     self._check(goal)
 
     def _check(self, goal: _Goal) -> None:
-        status = goal.behavior.status
-        if status.finished:
-            self._finish(goal, status)
-        elif status is Status.RUNNING:
-            with goal.lock:
-                first = not goal.executing and not goal.done
-                goal.executing = True
-            if first:
-                self._publish_status(goal.goal_id, goal.name, "EXECUTING",
-                                     f"{goal.name!r} runs")
+        behavior = goal.behavior
+        if behavior is not None and behavior.status.finished:
+            self._finish(goal, behavior.status)
 
     def _tick(self) -> None:
         """Executor thread, every :data:`_TICK_S`: feedback on change and every
@@ -305,20 +281,22 @@ class ExecuteBehaviorServer:
         following = self._following
         for item in following:
             self._check(item)
-            if item.behavior.status is Status.PENDING and not item.done:
+            behavior = item.behavior
+            if behavior is not None and behavior.status is Status.PENDING and not item.done:
                 # Neither running nor waiting in the manager's queue: it never will. Seen
                 # on two ticks in a row, since the manager takes a request off its queue a
                 # moment before it shows it as being executed.
                 high = self.high
-                unqueued = high.top is not item.behavior and high.requested is None
+                unqueued = high.top is not behavior and high.requested is None
                 item.unqueued_ticks = item.unqueued_ticks + 1 if unqueued else 0
                 if item.unqueued_ticks >= 2:
                     self._finish(item, None)
-        if any(item.done for item in following):
+        if any(item.done and item.sent.is_set() for item in following):
             with self._lock:
-                self._following = tuple(g for g in self._following if not g.done)
+                self._following = tuple(g for g in self._following
+                                        if not (g.done and g.sent.is_set()))
         goal = self._goal
-        if goal is None or goal.done:
+        if goal is None or goal.done or goal.behavior is None:
             return
         behavior = goal.behavior
         if behavior.status is not Status.RUNNING:
@@ -326,97 +304,121 @@ class ExecuteBehaviorServer:
         state = self.plane.status()
         state.pop("schema", None)
         state.pop("stamp", None)
-        encoded = json.dumps(state, sort_keys=True)
+        encoded = json.dumps(state, sort_keys=True, allow_nan=False)
         now = time.monotonic()
         if encoded == goal.last_feedback and now - goal.last_feedback_at < self.feedback_period_s:
             return
         goal.last_feedback, goal.last_feedback_at = encoded, now
-        self._publish(self._feedback_pub, {
-            "schema": FEEDBACK_SCHEMA, "goal_id": str(goal.goal_id), "behavior": goal.name,
-            "elapsed_s": behavior.elapsed_s, "state": state})
+        feedback = self.action_type.Feedback(
+            elapsed_s=_finite(behavior.elapsed_s),
+            running_actions=[str(r["path"]) for r in state.get("running", ())
+                             if r.get("kind") == "action"],
+            state_json=encoded)
+        with self._lock:
+            if not self._closed:
+                goal.handle.publish_feedback(feedback)
 
-    def _finish(self, goal: _Goal, status: Status | None) -> None:
-        """The goal's end: ``status`` is its behaviour's final status (None: it never ran)."""
+    def _finish(self, goal: _Goal, status: Status | None, *, refused: str | None = None,
+                why: str | None = None) -> None:
+        """The goal's end: ``status`` is its behaviour's final status (None: it never
+        ran); ``refused``: the reason it was refused before anything was switched."""
         with goal.lock:
             if goal.done:
                 return
             goal.done = True
             cancel, preempted_by = goal.cancel_requested, goal.preempted_by
         behavior = goal.behavior
-        result: dict[str, Any] | None = None
-        if status is not None:
+        result = self.action_type.Result(refused=refused is not None, value_json="null")
+        if status is not None and behavior is not None:
             error = behavior.error
-            result = {"status": status.name, "value": bounded(to_json(behavior.result)),
-                      "error": None if error is None else shorten(f"{error!r}"),
-                      "elapsed_s": behavior.elapsed_s}
-        if status is Status.SUCCEEDED:
+            result.behavior_status = status.name
+            result.value_json = json.dumps(bounded(to_json(behavior.result)), allow_nan=False)
+            result.error = "" if error is None else shorten(f"{error!r}")
+            result.elapsed_s = _finite(behavior.elapsed_s)
+        outcome: Literal["SUCCEEDED", "CANCELED", "ABORTED"] = "ABORTED"
+        if why is not None:
+            pass
+        elif refused is not None:
+            why = refused
+        elif status is Status.SUCCEEDED:
             outcome, why = "SUCCEEDED", f"{goal.name!r} succeeded"
         elif cancel:
             outcome, why = "CANCELED", f"cancelled: {goal.name!r} stopped, {IDLE!r} runs"
         elif preempted_by is not None:
-            outcome, why = "ABORTED", f"preempted by goal {preempted_by}"
+            why = f"preempted by goal {preempted_by}"
         elif status is None:
-            outcome, why = "ABORTED", (f"{goal.name!r} never started: another switch "
-                                       f"overtook it (now {self.high.current!r})")
+            why = (f"{goal.name!r} never started: another switch overtook it (now "
+                   f"{self.high.current!r})")
         elif status is Status.FAILED:
-            outcome, why = "ABORTED", f"{goal.name!r} failed: {behavior.error!r}"
+            why = f"{goal.name!r} failed: {behavior.error if behavior else None!r}"
         elif status is Status.STUCK:
-            outcome, why = "ABORTED", (f"{goal.name!r} went STUCK: it ignored its interrupt "
-                                       f"for stop_timeout_s")
+            why = f"{goal.name!r} went STUCK: it ignored its interrupt for stop_timeout_s"
         else:  # INTERRUPTED by a switch made by other means, or the manager's shutdown
             asked = self.high.requested or self.high.current
-            outcome, why = "ABORTED", (f"{goal.name!r} was interrupted by a switch to "
-                                       f"{asked!r} made outside this goal"
-                                       if asked is not None else
-                                       f"{goal.name!r} was interrupted: the robot shuts down")
-        self._publish_status(goal.goal_id, goal.name, outcome, shorten(why), result)
+            why = (f"{goal.name!r} was interrupted by a switch to {asked!r} made outside "
+                   f"this goal" if asked is not None else
+                   f"{goal.name!r} was interrupted: the robot shuts down")
+        result.message = shorten(why)
+        goal.outcome = outcome
+        goal.result.set_result(result)
 
-    # -- output ------------------------------------------------------------------------------
-    def _publish_status(self, goal_id: uuid.UUID | str | None, name: str | None, status: str,
-                        message: str, result: dict[str, Any] | None = None) -> None:
-        self._publish(self._status_pub, {
-            "schema": STATUS_SCHEMA, "goal_id": None if goal_id is None else str(goal_id),
-            "behavior": name, "status": status, "message": message, "stamp": time.time(),
-            "result": result})
-
-    def _publish(self, publisher: Any, data: dict[str, Any]) -> None:
-        text = json.dumps(data, allow_nan=False)
+    def destroy(self) -> None:
+        """Abort the goals that still execute ("the robot's execute_behavior server shuts
+        down"), wait (at most :data:`_RESULT_FLUSH_S`) until their results are handed to
+        rclpy, then remove the action server and the timer from the node (the node
+        stays)."""
+        self._unsubscribe()
         with self._lock:
             if self._closed:
                 return
-            publisher.publish(String(data=text))
-
-    def destroy(self) -> None:
-        """Abort a goal that still executes ("the server shuts down") and remove the
-        topics, the service and the timer from the node (the node stays)."""
-        self._unsubscribe()
-        for goal in self._following:
-            with goal.lock:
-                first = not goal.done
-                goal.done = True
-            if first:
-                self._publish_status(goal.goal_id, goal.name, "ABORTED",
-                                     "the robot's execute_behavior server shuts down")
+            following = self._following
+        for goal in following:
+            self._finish(goal, None, why="the robot's execute_behavior server shuts down")
+        deadline = time.monotonic() + _RESULT_FLUSH_S
+        for goal in following:
+            goal.sent.wait(max(0.0, deadline - time.monotonic()))
+        # A client's pending result request is answered by a task the executor runs after
+        # the goal's own: one more round through the executor before the server goes.
+        flushed = threading.Event()
+        marker: Future[None] = Future(executor=self.node.executor)
+        marker.add_done_callback(lambda _: flushed.set())
+        marker.set_result(None)
+        flushed.wait(max(0.0, deadline - time.monotonic()))
         with self._lock:
             self._closed = True
-        node = self.node
-        node.destroy_timer(self._timer)
-        node.destroy_service(self._cancel_srv)
-        node.destroy_subscription(self._goal_sub)
-        node.destroy_publisher(self._feedback_pub)
-        node.destroy_publisher(self._status_pub)
+        self.node.destroy_timer(self._timer)
+        self._server.destroy()
 
 
-def _raw_goal_id(data: str) -> str | None:
-    """The ``goal_id`` of a goal refused as malformed, if it has one, so its client learns
-    why (anything but a short string is not echoed)."""
-    try:
-        raw = json.loads(data)
-    except ValueError:
+class _Refused(Exception):
+    """A goal that will not run; ``reason`` names the problem and the valid choices."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = shorten(reason)
+
+
+def _parse_params(text: str) -> Any:
+    """The goal's ``params_json``: "" means none; otherwise strict JSON (no NaN)."""
+    if not text.strip():
         return None
-    gid = raw.get("goal_id") if isinstance(raw, dict) else None
-    return gid if isinstance(gid, str) and len(gid) <= 64 else None
+    if len(text) > MAX_PARAMS_CHARS:
+        raise _Refused(f"params_json refused: {len(text)} characters, more than "
+                       f"{MAX_PARAMS_CHARS}")
+
+    def no_constant(word: str) -> Any:
+        raise ValueError(f"{word} is not JSON")
+
+    try:
+        return json.loads(text, parse_constant=no_constant)
+    except ValueError as exc:
+        raise _Refused(f"params_json is not a JSON object: {exc}; expected e.g. "
+                       f"'{{\"speed_mps\": 0.3}}' or \"\" for none") from exc
 
 
-__all__ = ["CANCEL_SERVICE", "FEEDBACK_TOPIC", "GOAL_TOPIC", "SECOND_GOAL_POLICIES",
-           "STATUS_TOPIC", "ExecuteBehaviorServer", "GoalMessage", "SecondGoal"]
+def _finite(value: float | None) -> float:
+    return float(value) if value is not None and math.isfinite(value) else 0.0
+
+
+__all__ = ["ACTION_NAME", "SECOND_GOAL_POLICIES", "ExecuteBehaviorServer",
+           "InterfacesMissing", "SecondGoal", "load_action_type"]
