@@ -56,11 +56,13 @@
   function draw() {
     const fleet = seq.fleet || {};
     const all = (Array.isArray(fleet.messages) ? fleet.messages : []).slice().reverse();  // oldest first
+    // An agent's filter keeps the arrows it sends or receives.
+    const mine = (m, to) => !seq.agent || m.from === seq.agent || to === seq.agent;
     const shown = all.filter((m) => (!seq.conversation || m.conversation === seq.conversation) &&
-      (!seq.agent || m.from === seq.agent || receivers(m).includes(seq.agent))).slice(-MAX_MESSAGES);
+      receivers(m).some((to) => mine(m, to))).slice(-MAX_MESSAGES);
+    const arrows = shown.flatMap((m) => receivers(m).filter((to) => mine(m, to)).map((to) => ({m, to})));
     const lanes = [];
-    for (const m of shown) for (const who of [m.from, ...receivers(m)]) if (who && !lanes.includes(who)) lanes.push(who);
-    const arrows = shown.flatMap((m) => receivers(m).map((to) => ({m, to})));
+    for (const {m, to} of arrows) for (const who of [m.from, to]) if (who && !lanes.includes(who)) lanes.push(who);
     const width = Math.max(lanes.length, 1) * COL_W, height = TOP + arrows.length * ROW_H + 14;
     const s = svg("svg", {id: "sequence-svg", width, height, viewBox: `0 0 ${width} ${height}`,
                           role: "img", "aria-label": "sequence diagram of the agents' messages"});
