@@ -17,6 +17,7 @@ by its pixels (the plot's line colour, the arrows of the diagram) and its width.
 from __future__ import annotations
 
 import io
+import json
 import math
 import os
 import re
@@ -209,7 +210,7 @@ class ViewProcess:
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return make_recording(tmp_path_factory.mktemp("timeline") / "patrol.mcap", laps=1.0)
+    return make_recording(tmp_path_factory.mktemp("timeline") / "patrol.mcap")
 
 
 @pytest.fixture(scope="module")
@@ -224,15 +225,15 @@ def viewer(recording: Path) -> Iterator[ViewProcess]:
     assert process.proc.returncode == 0, output
 
 
-def inspect_at(recording: Path, t_s: float) -> dict[str, Any]:
-    """``beehave inspect --at t``'s lines, parsed."""
+def inspect_at(recording: Path, t_s: float) -> dict[str, dict[str, Any]]:
+    """``beehave inspect --at t``'s lines, parsed: robot → what it says of it."""
     done = subprocess.run([sys.executable, "-m", "beehave.cli", "inspect", str(recording),
                            "--at", f"{t_s}"], cwd=ROOT, capture_output=True, text=True,
                           timeout=60, check=True)
-    said: dict[str, Any] = {"running": [], "locks": {}, "blackboard": {}}
+    robots: dict[str, dict[str, Any]] = {}
     for line in done.stdout.splitlines()[1:]:
         robot, _, fact = line.partition(" ")
-        assert robot == "emili1", line
+        said = robots.setdefault(robot, {"running": [], "locks": {}, "blackboard": {}})
         what, _, rest = fact.partition(": ")
         if what == "behaviour":
             said["behavior"] = rest
@@ -244,20 +245,18 @@ def inspect_at(recording: Path, t_s: float) -> dict[str, Any]:
         elif what == "blackboard":
             key, _, value = rest.partition(" = ")
             said["blackboard"][key] = value.rsplit(" (writer", 1)[0]
-    return said
+    return robots
 
 
-def mcap_board(recording: Path, t_s: float) -> dict[str, Any]:
+def mcap_board(recording: Path, robot: str, t_s: float) -> dict[str, Any]:
     """The blackboard at ``t_s`` straight from the file (the plain MCAP reader)."""
-    import json
-
     with open(recording, "rb") as f:
         messages = [(m.log_time, ch.topic, m.data) for _, ch, m in
                     make_reader(f).iter_messages(log_time_order=True)]
     start = messages[0][0]
     board = {}
     for t, topic, data in messages:
-        if topic == "/emili1/beehave/blackboard" and t <= start + t_s * 1e9:
+        if topic == f"/{robot}/beehave/blackboard" and t <= start + t_s * 1e9:
             change = json.loads(data)
             board[change["key"]] = change["value"]
     return board
@@ -276,24 +275,38 @@ def test_the_recorded_page_at_t_says_what_beehave_inspect_says_at_t(
     page, errors = open_page(browser, viewer.url, size)
     page.wait_for_selector("body.recording", timeout=WAIT_MS)
     assert page.locator("#switch-btn").is_hidden()
-    for t_s in (0.5, 2.0, 3.5):
-        seek(page, t_s)
-        said = inspect_at(recording, t_s)
-        assert page.inner_text("#current-behavior") == said["behavior"]
-        running = page.eval_on_selector_all("#tree li", "ls => ls.map((l) => l.dataset.path)")
-        assert running == said["running"]
-        assert {row[0]: row[1] for row in table(page, "#locks")} == said["locks"]
-        shown = {row[0]: row[1] for row in table(page, "#blackboard")}
-        raw = mcap_board(recording, t_s)
-        assert set(shown) == set(said["blackboard"]) == set(raw)
-        for key, text in said["blackboard"].items():
-            value = eval(text, {"true": True, "false": False, "null": None})  # JSON
-            if isinstance(value, float):
-                assert float(shown[key]) == pytest.approx(value, abs=1e-3), key
-                assert raw[key] == pytest.approx(value, abs=1e-9), key
-            else:
-                assert shown[key] == str(value), key
-                assert raw[key] == value, key
+    assert page.eval_on_selector_all("#robot-select option", "os => os.map((o) => o.value)") \
+        == ["emili1", "kobuki1"]
+    behaviours = set()
+    for robot in ("emili1", "kobuki1"):
+        page.select_option("#robot-select", robot)
+        for t_s in (0.5, 2.0, 3.5):
+            seek(page, t_s)
+            said = inspect_at(recording, t_s)[robot]
+            behaviours.add((robot, t_s, said["behavior"]))
+            assert page.inner_text("#current-behavior") == said["behavior"]
+            running = page.eval_on_selector_all("#tree li",
+                                                "ls => ls.map((l) => l.dataset.path)")
+            assert running == said["running"]
+            assert {row[0]: row[1] for row in table(page, "#locks")} == said["locks"]
+            shown = {row[0]: row[1] for row in table(page, "#blackboard")}
+            raw = mcap_board(recording, robot, t_s)
+            assert set(shown) == set(said["blackboard"]) == set(raw)
+            for key, text in said["blackboard"].items():
+                value = json.loads(text)
+                if isinstance(value, float):
+                    assert float(shown[key]) == pytest.approx(value, abs=1e-3), key
+                    assert raw[key] == pytest.approx(value, abs=1e-9), key
+                else:  # a string as it is, anything else as JSON
+                    assert shown[key] == (value if isinstance(value, str) else text), key
+                    assert raw[key] == value, key
+            # The robot's marker stands where its recorded pose was.
+            marker = page.locator(f"#robot-{robot}")
+            assert float(marker.get_attribute("data-x")) == pytest.approx(
+                raw["odom/x_m"], abs=0.002)
+    # The two robots did different things: kobuki1's half lap was over at 3.5 s.
+    assert ("emili1", 3.5, "patrol") in behaviours and ("kobuki1", 3.5, "idle") in behaviours
+    page.select_option("#robot-select", "emili1")
     # Play at ×5: the moment moves on by itself; pause holds it.
     seek(page, 0.0)
     page.select_option("#tl-speed", "5")
@@ -389,7 +402,7 @@ def test_the_fleet_lists_its_members_and_draws_a_conversation_as_a_sequence_diag
                 assert ys == sorted(ys) and len(set(ys)) == len(ys)
                 for from_x, x1, to_x, x2, _ in geometry:
                     assert x1 == from_x and abs(x2 - to_x) <= 2
-                diagram = page.locator("#sequence-svg")
+                diagram = page.locator("#sequence")
                 diagram.scroll_into_view_if_needed()
                 assert pixels_near(diagram.screenshot(), BLUE) > 100
                 OUT.mkdir(exist_ok=True)

@@ -1,9 +1,11 @@
-"""Recordings and robots for the timeline tests (test_http_timeline.py): a robot that
-patrols (a behaviour whose ``driving`` action moves the odometry on the blackboard),
-recorded into MCAP the way ``beehave run --record`` records it (events + blackboard)."""
+"""Recordings and robots for the timeline tests (test_http_timeline.py): robots that
+patrol (a behaviour whose ``driving`` action moves the odometry on the blackboard),
+recorded into one MCAP file the way ``beehave run --record`` records a fleet (events +
+blackboard, one prefix per robot)."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 from pathlib import Path
 
@@ -59,21 +61,31 @@ class Patrol(Behavior):
             pass
 
 
-def make_recording(path: Path, *, prefix: str = "emili1", laps: float = 1.0) -> Path:
-    """A recording of ``prefix`` patrolling ``laps`` laps (4 s each), then idle."""
-    with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
-        hl.register("patrol", Patrol)
-        hl.blackboard.set("odom/x_m", 4.5, writer="hal:odometry")
-        hl.blackboard.set("odom/y_m", 2.0, writer="hal:odometry")
-        hl.blackboard.set("battery/percentage", 90.0, writer="hal:battery")
+def make_recording(path: Path, *, laps: dict[str, float] | None = None) -> Path:
+    """A fleet recording: each robot (prefix → laps, default ``emili1`` one lap and
+    ``kobuki1`` half a lap; 4 s a lap) patrols in a manager of its own, then idles."""
+    laps = {"emili1": 1.0, "kobuki1": 0.5} if laps is None else laps
+    with contextlib.ExitStack() as stack:
+        managers = {}
+        for name in laps:
+            hl = stack.enter_context(HighLevelBehaviorManager(stop_timeout_s=0.5))
+            hl.register("patrol", Patrol)
+            hl.blackboard.set("odom/x_m", 4.5, writer="hal:odometry")
+            hl.blackboard.set("odom/y_m", 2.0, writer="hal:odometry")
+            hl.blackboard.set("battery/percentage", 90.0, writer="hal:battery")
+            managers[name] = hl
         with Recorder(path, flush_period_s=0.05) as recorder:
-            recorder.attach_events(hl.events, prefix=prefix, level="high")
-            recorder.attach_blackboard(hl.blackboard, prefix=prefix)
-            hl.blackboard.set("mission", "start", writer="test")
-            hl.switch("patrol", laps=laps)
-            assert wait_until(lambda: hl.blackboard.get("patrol/done") is True)
-            hl.switch("idle")
-            hl.blackboard.set("mission", "done", writer="test")
+            for name, hl in managers.items():
+                recorder.attach_events(hl.events, prefix=name, level="high")
+                recorder.attach_blackboard(hl.blackboard, prefix=name)
+                hl.blackboard.set("mission", "start", writer="test")
+            for name, hl in managers.items():
+                hl.switch("patrol", laps=laps[name])
+            for name in sorted(laps, key=laps.__getitem__):  # the shortest patrol first
+                hl = managers[name]
+                assert wait_until(lambda hl=hl: hl.blackboard.get("patrol/done") is True)
+                hl.switch("idle")
+                hl.blackboard.set("mission", "done", writer="test")
     return path
 
 

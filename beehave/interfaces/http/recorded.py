@@ -9,12 +9,15 @@ too, with ``?t=`` (default: the end). Commands are refused with 405: a recording
 be switched, stopped or paused.
 """
 
-from typing import Annotated, Any
+from collections.abc import Callable
+from typing import Annotated, Any, TypeVar
 
 from fastapi import FastAPI, Query
 
 from beehave.errors import RecordingError
 from beehave.recording.timeline import RecordingTimeline
+
+_T = TypeVar("_T")
 
 #: The commands of a live robot, refused on a recording.
 COMMANDS = ("switch", "stop", "pause", "resume")
@@ -36,12 +39,11 @@ def add_recording_routes(app: FastAPI, timeline: RecordingTimeline, read: Any,
     def moment(t: float | None) -> float:
         return timeline.duration_s if t is None else t
 
-    def answer(call: Any) -> Any:
+    def answer(call: Callable[[], _T]) -> _T:
         try:
             return call()
         except RecordingError as exc:
-            raise http_error(422, "BadTime" if "t=" in str(exc) or "time" in str(exc)
-                             else "UnknownKey", str(exc)) from None
+            raise http_error(422, "BadRecordingQuery", str(exc)) from None
 
     T = Annotated[float | None, Query(description="seconds since the start of the "
                                                   "recording (default: its end)")]

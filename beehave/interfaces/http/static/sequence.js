@@ -55,6 +55,10 @@
 
   function draw() {
     const fleet = seq.fleet || {};
+    // The fleet is polled every second: redraw only when what is drawn would change.
+    const drawn = JSON.stringify([fleet.messages, seq.conversation, seq.agent]);
+    if (drawn === seq.drawn && holder.firstChild) return;
+    seq.drawn = drawn;
     const all = (Array.isArray(fleet.messages) ? fleet.messages : []).slice().reverse();  // oldest first
     // An agent's filter keeps the arrows it sends or receives.
     const mine = (m, to) => !seq.agent || m.from === seq.agent || to === seq.agent;
