@@ -58,8 +58,10 @@ class _State:
 
 
 def _without(items: dict[str, _Item], path: str) -> dict[str, _Item]:
-    """``items`` without ``path`` and what runs under it."""
-    return {p: i for p, i in items.items() if p != path and not p.startswith(path + "/")}
+    """``items`` without ``path`` and what runs under it, but for STUCK actions: their
+    thread (and type lock) outlives their parent until ``stuck_released``."""
+    return {p: i for p, i in items.items()
+            if p != path and (not p.startswith(path + "/") or i.status == "STUCK")}
 
 
 def _step(state: _State, level: str, t_ns: int, event: dict[str, Any]) -> _State:
@@ -77,7 +79,11 @@ def _step(state: _State, level: str, t_ns: int, event: dict[str, Any]) -> _State
                                            "RUNNING", since, action_type)}
             behavior = subject if "/" not in subject else state.behavior
             return _State(behavior, state.logic, state.paused, high, state.low, state.hals)
-        if kind in ("ended", "stuck_released"):
+        if kind == "stuck_released":
+            return _State(state.behavior, state.logic, state.paused,
+                          {p: i for p, i in high.items() if p != subject}, state.low,
+                          state.hals)
+        if kind == "ended":
             return _State(state.behavior, state.logic, state.paused, _without(high, subject),
                           state.low, state.hals)
         if kind == "stuck":
