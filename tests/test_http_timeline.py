@@ -173,6 +173,34 @@ def test_the_slider_shows_the_robot_as_it_was_and_live_returns_to_now(
     assert not errors, errors
 
 
+def test_the_kept_history_is_bounded_in_time_and_count(
+        live: tuple[HttpServer, HighLevelBehaviorManager], browser: Any) -> None:
+    """Eleven minutes of updates at 20 Hz (fed to the page's history as the stream would):
+    the page keeps the last ten minutes, one picture per 0.1 s, 2000 changes per key."""
+    server, _ = live
+    page, errors = open_page(browser, server.url, DESKTOP)
+    page.wait_for_selector("#conn.up", timeout=WAIT_MS)
+    kept = page.evaluate("""(() => {
+        const view = window.beehave, t0 = 1e9, state = {blackboard: {}};
+        for (let i = 0; i < 11 * 60 * 20; i++) {
+            const t = t0 + i / 20;
+            const board = {"speed_mps": {value: i, stamp: t, stale: false, age_s: 0}};
+            state.blackboard = board;
+            view.onUpdate({type: "update", robot: "ghost", stamp: t, blackboard: board,
+                           snapshot: {behavior: "drive"}, events: []}, state);
+        }
+        const h = window.beehaveTimeline.robots.ghost;
+        return {first: h.snaps[0][0] - t0, last: h.snaps[h.snaps.length - 1][0] - t0,
+                snaps: h.snaps.length, changes: h.keys.speed_mps.length,
+                limits: window.beehaveTimeline.limits}; })()""")
+    assert kept["limits"]["HISTORY_S"] == 600 and kept["limits"]["SNAPS_MAX"] == 6000
+    assert kept["last"] == pytest.approx(11 * 60 - 0.05)
+    assert kept["last"] - kept["first"] <= 600
+    assert kept["snaps"] <= 6000 and kept["changes"] == 2000
+    page.close()
+    assert not errors, errors
+
+
 # ---- item 3: a recording in the same page ------------------------------------------------
 
 class ViewProcess:

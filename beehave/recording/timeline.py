@@ -159,6 +159,7 @@ class _Robot:
     states: list[_State] = field(default_factory=list)
     trail_times: list[int] = field(default_factory=list)
     trail: list[tuple[float, float]] = field(default_factory=list)
+    low_recorded: bool = False
 
 
 class RecordingTimeline:
@@ -173,6 +174,8 @@ class RecordingTimeline:
         self.robots: dict[str, _Robot] = {p: _Robot(p) for p in recording.prefixes}
         topics: dict[str, tuple[_Robot, str]] = {}
         for robot in self.robots.values():
+            robot.low_recorded = schema.topic(robot.prefix, schema.EVENTS_LOW) in \
+                recording.channels
             topics[schema.topic(robot.prefix, schema.BLACKBOARD)] = (robot, "board")
             topics[schema.topic(robot.prefix, schema.EVENTS_HIGH)] = (robot, "high")
             topics[schema.topic(robot.prefix, schema.EVENTS_LOW)] = (robot, "low")
@@ -264,9 +267,11 @@ class RecordingTimeline:
                                     "held_s": round(max(0, t_ns - item.since_ns) / 1e9, 3)}
                              for kind, (p, item) in holders.items()},
             "stuck": stuck, "tree": _tree(state.high, state.behavior, t_ns), "history": [],
+            # None when the low level was not recorded (as a process without one)
             "low": {"current": state.logic, "registered": [],
                     "logic": _tree(state.low, low_root, t_ns),
-                    "hals": {"loaded": {h: {} for h in state.hals}}},
+                    "hals": {"loaded": {h: {} for h in state.hals}}}
+            if robot.low_recorded else None,
         }
 
     def events_at(self, name: str, t_s: float, *, limit: int = EVENTS_SHOWN
