@@ -276,6 +276,16 @@ def inspect_at(recording: Path, t_s: float) -> dict[str, dict[str, Any]]:
     return robots
 
 
+def inspect_timeline(recording: Path) -> list[tuple[float, str, str, str]]:
+    """``beehave inspect``'s event timeline: (t, robot, kind, subject) per line."""
+    done = subprocess.run([sys.executable, "-m", "beehave.cli", "inspect", str(recording),
+                           "--limit", "1000"], cwd=ROOT, capture_output=True, text=True,
+                          timeout=60, check=True)
+    lines = done.stdout.split("event timeline", 1)[1].splitlines()[1:]
+    return [(float(t), robot, kind, subject) for t, robot, _, kind, subject, *_ in
+            (line.split() for line in lines if line.strip())]
+
+
 def mcap_board(recording: Path, robot: str, t_s: float) -> dict[str, Any]:
     """The blackboard at ``t_s`` straight from the file (the plain MCAP reader)."""
     with open(recording, "rb") as f:
@@ -306,6 +316,7 @@ def test_the_recorded_page_at_t_says_what_beehave_inspect_says_at_t(
     assert page.eval_on_selector_all("#robot-select option", "os => os.map((o) => o.value)") \
         == ["emili1", "kobuki1"]
     behaviours = set()
+    timeline = inspect_timeline(recording)
     for robot in ("emili1", "kobuki1"):
         page.select_option("#robot-select", robot)
         for t_s in (0.5, 2.0, 3.5):
@@ -328,6 +339,13 @@ def test_the_recorded_page_at_t_says_what_beehave_inspect_says_at_t(
                 else:  # a string as it is, anything else as JSON
                     assert shown[key] == (value if isinstance(value, str) else text), key
                     assert raw[key] == value, key
+            # The events up to t: every line of inspect's timeline is in the list.
+            listed = page.eval_on_selector_all(
+                "#events li", "ls => ls.map((l) => l.textContent.split(' ').slice(-3))")
+            for when, who, kind, subject in timeline:
+                if who == robot and when <= t_s - 0.002:
+                    assert any(kind in item and subject in item for item in listed), \
+                        (when, kind, subject, listed)
             # The robot's marker stands where its recorded pose was.
             marker = page.locator(f"#robot-{robot}")
             assert float(marker.get_attribute("data-x")) == pytest.approx(

@@ -180,6 +180,7 @@ class RecordingTimeline:
             topics[schema.topic(robot.prefix, schema.EVENTS_HIGH)] = (robot, "high")
             topics[schema.topic(robot.prefix, schema.EVENTS_LOW)] = (robot, "low")
         pose: dict[str, dict[str, float]] = {p: {} for p in self.robots}
+        seq = 0
         for message in recording.messages:
             found = topics.get(message.topic)
             if found is None:
@@ -199,7 +200,9 @@ class RecordingTimeline:
             state = robot.states[-1] if robot.states else _State()
             robot.event_times.append(t_ns)
             robot.states.append(_step(state, what, t_ns, data))
-            robot.events.append({**data, "seq": len(robot.events) + 1, "source": what,
+            # One numbering over every robot: a page tells two robots' lists apart by it.
+            seq += 1
+            robot.events.append({**data, "seq": seq, "source": what,
                                  "t_s": round((t_ns - self.start_ns) / 1e9, 6)})
 
     @staticmethod
