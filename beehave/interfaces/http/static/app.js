@@ -1,4 +1,4 @@
-// beehave live view: plain JavaScript + SVG, no build step, no third-party code.
+// beehave live view: plain JavaScript + SVG, no build step (uPlot, for plots.js, is vendored).
 // Data: REST under /api (behaviours, world, fleet, switch/stop) and the coalesced
 // WebSocket /api/ws (one message per robot and turn: snapshot, blackboard, events).
 "use strict";
