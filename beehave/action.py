@@ -148,7 +148,7 @@ class Action(Runnable):
                 return False
         self._pause_safe = False
         manager.events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name,
-                                  detail={"resumed": True}))
+                                  detail={"resumed": True, "action_type": self.action_type}))
         return True
 
     def _enter_safe_state(self, *, paused: bool = False) -> None:

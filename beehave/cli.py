@@ -617,6 +617,8 @@ _RECORDING_COMMANDS: dict[str, str] = {
     "replay": "run a robot's logics and behaviours again on a recording and check they "
               "decide the same (beehave replay -h)",
     "inspect": "a recording's channels, counts, duration and event timeline",
+    "view": "serve a recording with the web view: play, pause, scrub, plots "
+            "(beehave view -h)",
     "plot": "a recording as a Gantt chart of behaviours and actions with blackboard series "
             "(beehave plot -h)",
 }

@@ -308,7 +308,11 @@ class Runnable(abc.ABC):
         ended = True
         try:
             assert self._manager is not None
-            self._manager.events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name))
+            # An action's type rides along: a recording then tells who held which type
+            # lock when (the timeline of `beehave view`).
+            kind = getattr(self, "action_type", None)
+            self._manager.events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name,
+                                            detail={"action_type": kind} if kind else {}))
             error: BaseException | None = None
             again = self._pause_point(None, ran=False)
             while again:

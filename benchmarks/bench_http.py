@@ -15,11 +15,16 @@ Targets (issue 14):
   windows, and the ratio they alone make: the robot's own CPU drifts by ±10–20 % between
   windows, more than serving costs;
 - one update's cost (snapshot + blackboard, serialised once for every client): p99, and
-  what 20 Hz of it is of one core (informational; the ratio above is the target).
+  what 20 Hz of it is of one core (informational; the ratio above is the target);
+- scrubbing a 30-minute recording in ``beehave view`` (issue 28): one step — ``GET
+  /api/recording/at?t=`` at a random moment, everything the page draws then (snapshot,
+  blackboard, events, trail) — median ≤ 100 ms; the recording: 12 blackboard keys at
+  10 Hz and a behaviour switch with two actions every 5 s (≈ 270 000 messages).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import random
 import re
@@ -280,6 +285,94 @@ def cpu_ratio() -> dict[str, Any]:
                        "in one beehave run --http process (the sim, EMILI driving)")
 
 
+SCRUB_MINUTES = 30
+SCRUB_STEPS = 200
+
+
+def _long_recording(path: Path, minutes: float) -> int:
+    """A synthetic recording of ``minutes``: what ``beehave run --record`` writes of a
+    robot that drives (12 keys at 10 Hz) and switches every 5 s. Returns its messages."""
+    import json
+
+    from beehave.recording import schema
+    from beehave.recording.writer import McapFile
+
+    start_ns = 1_800_000_000 * 10**9
+    with open(path, "wb") as stream:
+        mcap = McapFile(stream, chunk_bytes=1 << 20, profile="", library="bench")
+        ids = {name: mcap.add_schema(name, "jsonschema", json.dumps(body).encode())
+               for name, body in schema.SCHEMAS.items()}
+        board = mcap.add_channel("/emili1/beehave/blackboard", "json",
+                                 ids["beehave.BlackboardChange"])
+        events = mcap.add_channel("/emili1/beehave/events/high", "json", ids["beehave.Event"])
+        keys = ["odom/x_m", "odom/y_m", "odom/yaw_rad", "speed_mps", "battery/percentage",
+                *(f"laser/sector{i}_m" for i in range(7))]
+        count = 0
+        for second in range(int(minutes * 60)):
+            times, datas = [], []
+            for tick in range(10):
+                t_ns = start_ns + second * 10**9 + tick * 10**8
+                angle = (second * 10 + tick) / 100
+                for i, key in enumerate(keys):
+                    value = 5 + 4 * math.cos(angle + i) if key != "battery/percentage" \
+                        else 100 - second / 60
+                    times.append(t_ns + i)
+                    datas.append(json.dumps({"key": key, "value": value, "stamp": t_ns / 1e9,
+                                             "writer": "hal:odometry", "stale": False}).encode())
+            mcap.add_messages(board, times, datas)
+            count += len(times)
+            if second % 5 == 0:
+                name = f"job{second // 5}"
+                happened = [("switch_completed", name, None, {}),
+                            ("started", name, "RUNNING", {}),
+                            ("started", f"{name}/drive", "RUNNING", {"action_type": "driving"}),
+                            ("started", f"{name}/beep", "RUNNING", {"action_type": "sound"}),
+                            ("ended", f"{name}/beep", "SUCCEEDED", {})]
+                t_ns = start_ns + second * 10**9 + 5 * 10**7
+                datas = [json.dumps({"kind": k, "subject": s, "status": st, "error": None,
+                                     "detail": d, "stamp": t_ns / 1e9}).encode()
+                         for k, s, st, d in happened]
+                mcap.add_messages(events, [t_ns + i for i in range(len(datas))], datas)
+                count += len(datas)
+        mcap.finish()
+    return count
+
+
+def scrub_recording() -> dict[str, Any]:
+    """``beehave view`` of a 30-minute recording: one scrub step over HTTP, as the page
+    asks it (everything drawn at t), at random moments."""
+    from beehave.recording.reader import read_recording
+    from beehave.recording.timeline import RecordingTimeline
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "long.mcap"
+        messages = _long_recording(path, SCRUB_MINUTES)
+        began = time.perf_counter()
+        timeline = RecordingTimeline(read_recording(path))
+        load_s = time.perf_counter() - began
+    import gc
+
+    gc.collect()
+    gc.freeze()  # as `beehave view` does once the recording is read
+    rng = random.Random(28)
+    samples = []
+    with HttpServer({}, recording=timeline) as server, httpx.Client(timeout=30) as client:
+        url = f"{server.url}api/recording/at"
+        for _ in range(SCRUB_STEPS):
+            t = rng.uniform(0, timeline.duration_s)
+            started = time.perf_counter()
+            answer = client.get(url, params={"t": f"{t:.3f}"})
+            answer.raise_for_status()
+            samples.append(time.perf_counter() - started)
+    gc.unfreeze()
+    value = median(samples) * 1e3
+    return report("http_recording_scrub_step_p50", value, "ms", "<= 100 ms", value <= 100,
+                  p99_ms=round(percentile(samples, 99) * 1e3, 3), messages=messages,
+                  minutes=SCRUB_MINUTES, load_s=round(load_s, 1), bytes=len(answer.content),
+                  note="GET /api/recording/at?t= at random t: snapshot, blackboard, "
+                       "events, trail of the moment")
+
+
 def main() -> list[dict[str, Any]]:
     rows = []
     hl = _manager()
@@ -294,6 +387,7 @@ def main() -> list[dict[str, Any]]:
         plane.close()
         hl.shutdown()
     rows.append(cpu_ratio())
+    rows.append(scrub_recording())
     return rows
 
 

@@ -194,7 +194,13 @@ def inspect_main(argv: list[str]) -> int:
         robot_help="only this robot's events (repeatable)")
     parser.add_argument("--limit", type=int, default=200, metavar="N",
                         help="show at most N timeline lines (default 200; 0: none)")
+    parser.add_argument("--at", dest="at_s", type=_time_arg, default=None, metavar="T",
+                        help="instead: what each robot ran, held and knew at T seconds "
+                             "(wall time since the start): behaviour, logic, running items, "
+                             "type locks, blackboard (what `beehave view` shows at T)")
     args = parser.parse_args(argv)
+    if args.at_s is not None:
+        return _inspect_at(args.recording, args.at_s, args.robot)
     from rich.console import Console
     from rich.table import Table
 
@@ -254,6 +260,73 @@ def inspect_main(argv: list[str]) -> int:
                       f"{data['subject']}{state}{error}{asked}", highlight=False)
         shown += 1
     return status
+
+
+def _inspect_at(path: str, at_s: float, robots: list[str] | None) -> int:
+    from beehave.recording.reader import read_recording
+    from beehave.recording.timeline import RecordingTimeline
+
+    try:
+        rec = read_recording(path)
+        timeline = RecordingTimeline(rec)
+        for name in robots or []:
+            timeline.robot(name)
+        lines = timeline.describe_at(at_s, robots)
+    except BeehaveError as exc:
+        return _fail("inspect", exc)
+    print("\n".join(lines), flush=True)
+    return 2 if rec.damaged else 0
+
+
+# ---- beehave view -----------------------------------------------------------------------
+
+def view_main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="beehave view",
+        description="Serve a recording with the live web view's page: play, pause, speed, "
+                    "scrub, the same panels and plots, for each robot recorded. Read-only: "
+                    "switch, stop, pause and resume are refused (405). docs/http.md")
+    parser.add_argument("recording", metavar="FILE.mcap")
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="the address to listen on (default 127.0.0.1: this machine "
+                             "only; any other needs the token, printed at start)")
+    parser.add_argument("--port", type=int, default=8080,
+                        help="the port (default 8080; 0 picks a free one)")
+    args = parser.parse_args(argv)
+    import gc
+    import signal
+    import threading
+
+    from beehave.interfaces.http import HttpServer
+    from beehave.recording.reader import read_recording
+    from beehave.recording.timeline import RecordingTimeline
+
+    try:
+        rec = read_recording(args.recording)
+        timeline = RecordingTimeline(rec)
+        # The recording's objects live as long as the server: out of the collector's way
+        # (a full collection over a 30-minute recording's messages paused a scrub step
+        # for half a second).
+        gc.collect()
+        gc.freeze()
+        server = HttpServer({}, host=args.host, port=args.port, recording=timeline)
+        server.start()
+    except BeehaveError as exc:
+        return _fail("view", exc)
+    robots = ", ".join(timeline.robots) or "-"
+    print(f"beehave: recording {args.recording} ({timeline.duration_s:.1f} s, robots: "
+          f"{robots}) at {server.url}", flush=True)
+    for damage in rec.describe_damage():
+        print(f"DAMAGED: {damage}", flush=True)
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    try:
+        done.wait()
+    finally:
+        server.stop()
+    print("beehave view: stopped", flush=True)
+    return 0
 
 
 # ---- beehave plot -----------------------------------------------------------------------

@@ -105,7 +105,7 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
                origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES,
                remotes: Mapping[str, Address] | None = None,
                connections: Callable[[], int] | None = None,
-               max_connections: int = MAX_CONNECTIONS) -> FastAPI:
+               max_connections: int = MAX_CONNECTIONS, recording: Any = None) -> FastAPI:
     """The application serving ``planes`` (robot name → its control plane).
 
     ``world``: the map the web view draws (the world YAML as JSON: floor, walls, shelves,
@@ -121,13 +121,16 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
     it once known (None before); ``connections`` (how many the server holds open now) and
     ``max_connections``: the connection limit. Their API and stream
     are forwarded (:mod:`beehave.interfaces.http.remote`), so the page shows them too.
+    ``recording``: a :class:`~beehave.recording.timeline.RecordingTimeline` served
+    read-only instead of live robots (``beehave view``,
+    :mod:`beehave.interfaces.http.recorded`).
     """
     forwarded = Remotes(remotes or {})
     both = sorted(set(planes) & set(forwarded.robots))
     if both:
         raise ConfigError(f"robot(s) {both} are given both as a ControlPlane and as a remote "
                           f"address: serve each robot one way")
-    if not planes and fleet is None and not forwarded:
+    if not planes and fleet is None and not forwarded and recording is None:
         raise ConfigError("the HTTP interface needs at least one robot's ControlPlane, or a "
                           "fleet view (a fleet process whose robots run elsewhere)")
     for name in planes:
@@ -235,6 +238,11 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
                 request.scope.get("query_string", b""), await request.body())
             return Response(content, status, media_type=kind)
         return forward
+
+    if recording is not None:  # `beehave view`: its routes answer before the live ones
+        from beehave.interfaces.http.recorded import add_recording_routes
+
+        add_recording_routes(app, recording, Read, HttpError)
 
     for name in forwarded.robots:
         # One literal route per remote robot, ahead of the local routes (the first route

@@ -98,6 +98,8 @@ class HttpServer(Running):
     fleet process's page shows them in full (:mod:`beehave.interfaces.http.remote`).
     ``max_connections``: the most connections (HTTP and WebSocket) open at once; beyond,
     requests and upgrades get 503 (:class:`~beehave.interfaces.http.guard.Guard`).
+    ``recording``: a :class:`~beehave.recording.timeline.RecordingTimeline` to serve
+    read-only with the same page (``beehave view FILE.mcap``; ``planes`` then ``{}``).
 
     :meth:`start` returns once the server accepts connections; :meth:`stop` ends it and
     its thread (the robots keep running). Use it as a context manager.
@@ -110,7 +112,8 @@ class HttpServer(Running):
                  origins: Iterable[str] = (), max_body_bytes: int = MAX_BODY_BYTES,
                  header_timeout_s: float = HEADER_TIMEOUT_S,
                  max_connections: int = MAX_CONNECTIONS,
-                 remotes: Mapping[str, Address] | None = None) -> None:
+                 remotes: Mapping[str, Address] | None = None, recording: Any = None
+                 ) -> None:
         if isinstance(planes, ControlPlane):
             planes = {planes.name: planes}
         if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
@@ -157,7 +160,7 @@ class HttpServer(Running):
                               on_started=self._ready.set, hosts=[host, *hosts],
                               origins=origins, max_body_bytes=max_body_bytes,
                               remotes=remotes, connections=self._open_connections,
-                              max_connections=max_connections)
+                              max_connections=max_connections, recording=recording)
         self._port = port
         self._sock: socket.socket | None = None
         self._server: Any = None

@@ -1,4 +1,4 @@
-// beehave live view: plain JavaScript + SVG, no build step, no third-party code.
+// beehave live view: plain JavaScript + SVG, no build step (uPlot, for plots.js, is vendored).
 // Data: REST under /api (behaviours, world, fleet, switch/stop) and the coalesced
 // WebSocket /api/ws (one message per robot and turn: snapshot, blackboard, events).
 "use strict";
@@ -166,6 +166,8 @@ function receive(message) {
   }
   if (!view.robots.includes(message.robot)) { view.robots.push(message.robot); fillRobotSelect(); }
   view.updates += 1;
+  // Timeline hook (timeline.js): keeps the history this update adds to.
+  if (view.onUpdate) view.onUpdate(message, state);
   // The selected robot's panels change at once (the DOM is what a test or a screen
   // reader sees; the paint follows at the next frame); other robots only move markers,
   // drawn once per frame however many messages arrive.
@@ -298,7 +300,8 @@ function drawRobots() {
   if (!view.world) fitWithoutWorld();
   const Y = view.flip || ((y) => 12 - y);
   const robots = $("#robot-layer"), trails = $("#trail-layer");
-  for (const [name, state] of Object.entries(view.state)) {
+  // Timeline hook: view.past (robot -> state) is a past moment being shown, else now.
+  for (const [name, state] of Object.entries(view.past || view.state)) {
     const pose = poseOf(state.blackboard);
     let group = robots.querySelector(`[data-robot="${CSS.escape(name)}"]`);
     if (!pose) { if (group) group.remove(); continue; }
@@ -571,7 +574,7 @@ function renderEvents(state) {
 function render() {
   drawRobots();
   const name = view.selected;
-  const state = name && view.state[name];
+  const state = name && (view.past || view.state)[name];  // timeline hook: a past moment
   if (!state) return;
   const snap = state.snapshot;
   const current = snap ? (snap.behavior || "switching…") + (snap.paused ? " (paused)" : "") : "–";
@@ -656,6 +659,7 @@ function renderFleet(fleet) {
     }
   }
   box.replaceChildren(...parts);
+  if (window.beehaveSequence) window.beehaveSequence.render(fleet);  // hook: sequence.js
 }
 
 async function pollFleet() {
@@ -688,6 +692,10 @@ async function start() {
   }
   if (info.fleet) pollFleet();
   select(view.selected || view.robots[0]);
+  if (info.recording && view.onRecording) {  // timeline hook: `beehave view FILE.mcap`
+    view.onRecording(info);
+    return;
+  }
   if (view.ws) { const old = view.ws; view.ws = null; old.close(); }
   // A fleet process whose robots run elsewhere serves the fleet and the map, and the
   // robots it was given the addresses of (picked with the selector or on the map). Without

@@ -1,0 +1,470 @@
+"""The web view's timeline, plots, recordings and fleet sequence diagram (issue 28 items 2,
+3, 5) in a real chromium page.
+
+- Live: the page keeps the robot's history; the slider shows a past moment (behaviour,
+  running actions, type locks, blackboard, map as they were) and Live returns to now;
+  blackboard values are plotted.
+- ``beehave view FILE.mcap``: the same page plays a recording; what it shows at t is what
+  ``beehave inspect --at t`` prints (and, for the blackboard, what the MCAP file holds, read
+  with the plain ``mcap`` reader); commands are refused (405).
+- A fleet: its robots and agents are listed and open a robot's full view; its messages are
+  drawn as a sequence diagram, filtered by conversation.
+
+Every view is shot at desktop (1280x800) and phone (390x844) size into out/ and checked
+by its pixels (the plot's line colour, the arrows of the diagram) and its width.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("fastapi")
+pytest.importorskip("uvicorn")
+pytest.importorskip("playwright.sync_api")
+httpx = pytest.importorskip("httpx")
+Image = pytest.importorskip("PIL.Image")
+from mcap.reader import make_reader  # noqa: E402
+from timeline_fixtures import Patrol, make_recording  # noqa: E402
+
+from beehave import HighLevelBehaviorManager  # noqa: E402
+from beehave.interfaces import ControlPlane  # noqa: E402
+from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
+from tests.chromium import CHROMIUM, chromium  # noqa: E402
+
+pytestmark = pytest.mark.xdist_group("test_http_timeline")
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "out"
+WAIT_MS = WALL_TIMEOUT_S * 1000
+DESKTOP = {"width": 1280, "height": 800}
+PHONE = {"width": 390, "height": 844}
+BLUE = (0x2F, 0x7D, 0xE1)  # the first plotted series, the diagram's arrows
+
+if not Path(CHROMIUM).exists():  # pragma: no cover - `make setup` installs it
+    pytest.skip(f"{CHROMIUM} is not installed", allow_module_level=True)
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    with chromium() as launched:
+        yield launched
+
+
+def open_page(browser: Any, url: str, size: dict[str, int]) -> tuple[Any, list[str]]:
+    phone = size["width"] < 500
+    page = browser.new_page(viewport=size, device_scale_factor=1, is_mobile=phone,
+                            has_touch=phone)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.goto(url)
+    return page, errors
+
+
+def pixels_near(png: bytes, colour: tuple[int, int, int], *, tolerance: int = 40) -> int:
+    """How many pixels of the picture are within ``tolerance`` of ``colour``."""
+    image = Image.open(io.BytesIO(png)).convert("RGB")
+    data = image.tobytes()
+    return sum(1 for i in range(0, len(data), 3)
+               if all(abs(data[i + c] - colour[c]) <= tolerance for c in range(3)))
+
+
+def fits(page: Any, width: int) -> None:
+    scroll = page.evaluate("document.documentElement.scrollWidth")
+    assert scroll <= width, f"the page is {scroll} px wide on a {width} px screen"
+
+
+def table(page: Any, selector: str) -> list[list[str]]:
+    return page.evaluate(f"""[...document.querySelectorAll('{selector} tbody tr')]
+        .map((r) => [...r.children].map((c) => c.textContent.trim()))""")
+
+
+# ---- item 2: the live timeline and plots -------------------------------------------------
+
+@pytest.fixture
+def live(monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[HttpServer, HighLevelBehaviorManager]]:
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
+        hl.register("patrol", Patrol)
+        hl.blackboard.set("odom/x_m", 4.5, writer="hal:odometry")
+        hl.blackboard.set("odom/y_m", 2.0, writer="hal:odometry")
+        hl.blackboard.set("mission", "start", writer="test")
+        plane = ControlPlane(hl, name="emili1")
+        try:
+            with HttpServer(plane) as server:
+                yield server, hl
+        finally:
+            plane.close()
+
+
+@pytest.mark.parametrize("size", [DESKTOP, PHONE], ids=["desktop", "phone"])
+def test_the_slider_shows_the_robot_as_it_was_and_live_returns_to_now(
+        live: tuple[HttpServer, HighLevelBehaviorManager], browser: Any,
+        size: dict[str, int]) -> None:
+    server, hl = live
+    page, errors = open_page(browser, server.url, size)
+    page.wait_for_selector("#conn.up", timeout=WAIT_MS)
+    hl.switch("patrol", laps=1.0)
+    # The page saw the lap (its locks) and then the robot idle again.
+    page.wait_for_selector('#locks tr[data-lock="driving"]', timeout=WAIT_MS)
+    assert wait_until(lambda: hl.blackboard.get("patrol/done") is True)
+    hl.switch("idle")
+    hl.blackboard.set("mission", "done", writer="test")
+    page.wait_for_function("document.querySelector('#current-behavior').textContent === 'idle'"
+                           " && [...document.querySelectorAll('#blackboard tr[data-key=mission]"
+                           " td')].some((c) => c.textContent === 'done')", timeout=WAIT_MS)
+    # The slider's moment where the lap ran: half-way between the first and the last
+    # picture of it the page kept.
+    offset = page.evaluate("""(() => {
+        const snaps = window.beehaveTimeline.robots.emili1.snaps;
+        const lap = snaps.filter(([, s]) => s.lock_details && s.lock_details.driving);
+        const first = snaps[0][0];
+        return (lap[0][0] + lap[lap.length - 1][0]) / 2 - first; })()""")
+    slider = page.locator("#tl-slider")
+    slider.evaluate("(s, v) => { s.value = v; s.dispatchEvent(new Event('input')); }",
+                    f"{offset:.2f}")
+    page.wait_for_function("document.querySelector('#tl-live').getAttribute('aria-pressed')"
+                           " === 'false'", timeout=WAIT_MS)
+    assert page.inner_text("#current-behavior") == "patrol"
+    locks = {row[0]: row[1] for row in table(page, "#locks")}
+    assert locks == {"driving": "patrol/Roll", "sound": "patrol/Beep"}
+    running = page.eval_on_selector_all("#tree li", "ls => ls.map((l) => l.dataset.path)")
+    assert running == ["patrol", "patrol/Beep", "patrol/Roll"]
+    board = {row[0]: row[1] for row in table(page, "#blackboard")}
+    assert board["mission"] == "start"
+    x, y = float(board["odom/x_m"]), float(board["odom/y_m"])
+    # A pose of the lap (a circle of 1.5 m about (3, 2)), and the marker is drawn there.
+    assert math.hypot(x - 3.0, y - 2.0) == pytest.approx(1.5, abs=0.01)
+    marker = page.locator("#robot-emili1")
+    assert float(marker.get_attribute("data-x")) == pytest.approx(x, abs=0.002)
+    assert float(marker.get_attribute("data-y")) == pytest.approx(y, abs=0.002)
+
+    # Plots: the speed over the kept history, the moment marked.
+    page.fill("#plot-key", "odom/x_m")
+    page.click("#plot-add")
+    page.wait_for_function("Number(document.querySelector('#plot').dataset.points) > 20",
+                           timeout=WAIT_MS)
+    page.locator("#plot").scroll_into_view_if_needed()
+    assert pixels_near(page.locator("#plot canvas").screenshot(), BLUE) > 200
+    OUT.mkdir(exist_ok=True)
+    name = "desktop" if size is DESKTOP else "phone"
+    page.screenshot(path=str(OUT / f"webview-timeline-{name}.png"))
+    fits(page, size["width"])
+
+    page.click("#tl-live")
+    page.wait_for_function("document.querySelector('#current-behavior').textContent === "
+                           "'idle'", timeout=WAIT_MS)
+    board = {row[0]: row[1] for row in table(page, "#blackboard")}
+    assert board["mission"] == "done"
+    assert table(page, "#locks") == []
+    page.close()
+    assert not errors, errors
+
+
+def test_the_kept_history_is_bounded_in_time_and_count(
+        live: tuple[HttpServer, HighLevelBehaviorManager], browser: Any) -> None:
+    """Eleven minutes of updates at 20 Hz (fed to the page's history as the stream would):
+    the page keeps the last ten minutes, one picture per 0.1 s, 2000 changes per key."""
+    server, _ = live
+    page, errors = open_page(browser, server.url, DESKTOP)
+    page.wait_for_selector("#conn.up", timeout=WAIT_MS)
+    kept = page.evaluate("""(() => {
+        const view = window.beehave, t0 = 1e9, state = {blackboard: {}};
+        for (let i = 0; i < 11 * 60 * 20; i++) {
+            const t = t0 + i / 20;
+            const board = {"speed_mps": {value: i, stamp: t, stale: false, age_s: 0}};
+            state.blackboard = board;
+            view.onUpdate({type: "update", robot: "ghost", stamp: t, blackboard: board,
+                           snapshot: {behavior: "drive"}, events: []}, state);
+        }
+        const h = window.beehaveTimeline.robots.ghost;
+        return {first: h.snaps[0][0] - t0, last: h.snaps[h.snaps.length - 1][0] - t0,
+                snaps: h.snaps.length, changes: h.keys.speed_mps.length,
+                limits: window.beehaveTimeline.limits}; })()""")
+    assert kept["limits"]["HISTORY_S"] == 600 and kept["limits"]["SNAPS_MAX"] == 6000
+    assert kept["last"] == pytest.approx(11 * 60 - 0.05)
+    assert kept["last"] - kept["first"] <= 600
+    assert kept["snaps"] <= 6000 and kept["changes"] == 2000
+    page.close()
+    assert not errors, errors
+
+
+# ---- item 3: a recording in the same page ------------------------------------------------
+
+class ViewProcess:
+    """``beehave view FILE.mcap --port 0`` in a process of its own."""
+
+    def __init__(self, recording: Path) -> None:
+        env = {k: v for k, v in os.environ.items() if k != TOKEN_ENV}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "beehave.cli", "view", str(recording), "--port", "0"],
+            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines: list[str] = []
+        self.url = ""
+        self._found = threading.Event()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line)
+            match = re.search(r" at (http://\S+)", line)
+            if match:
+                self.url = match.group(1)
+                self._found.set()
+        self._found.set()
+
+    def stop(self) -> str:
+        self.proc.terminate()
+        try:
+            self.proc.wait(30)
+        except subprocess.TimeoutExpired:  # pragma: no cover - reported by the assert
+            self.proc.kill()
+            self.proc.wait(5)
+        return "".join(self.lines)
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_recording(tmp_path_factory.mktemp("timeline") / "patrol.mcap")
+
+
+@pytest.fixture(scope="module")
+def viewer(recording: Path) -> Iterator[ViewProcess]:
+    process = ViewProcess(recording)
+    try:
+        process._found.wait(60)
+        assert process.url, "beehave view printed no URL:\n" + "".join(process.lines)
+        yield process
+    finally:
+        output = process.stop()
+    assert process.proc.returncode == 0, output
+
+
+def inspect_at(recording: Path, t_s: float) -> dict[str, dict[str, Any]]:
+    """``beehave inspect --at t``'s lines, parsed: robot → what it says of it."""
+    done = subprocess.run([sys.executable, "-m", "beehave.cli", "inspect", str(recording),
+                           "--at", f"{t_s}"], cwd=ROOT, capture_output=True, text=True,
+                          timeout=60, check=True)
+    robots: dict[str, dict[str, Any]] = {}
+    for line in done.stdout.splitlines()[1:]:
+        robot, _, fact = line.partition(" ")
+        said = robots.setdefault(robot, {"running": [], "locks": {}, "blackboard": {}})
+        what, _, rest = fact.partition(": ")
+        if what == "behaviour":
+            said["behavior"] = rest
+        elif what == "running":
+            said["running"].append(rest.split(" ")[0])
+        elif what == "lock":
+            kind, _, holder = rest.partition(" held by ")
+            said["locks"][kind] = holder
+        elif what == "blackboard":
+            key, _, value = rest.partition(" = ")
+            said["blackboard"][key] = value.rsplit(" (writer", 1)[0]
+    return robots
+
+
+def inspect_timeline(recording: Path) -> list[tuple[float, str, str, str]]:
+    """``beehave inspect``'s event timeline: (t, robot, kind, subject) per line."""
+    done = subprocess.run([sys.executable, "-m", "beehave.cli", "inspect", str(recording),
+                           "--limit", "1000"], cwd=ROOT, capture_output=True, text=True,
+                          timeout=60, check=True)
+    lines = done.stdout.split("event timeline", 1)[1].splitlines()[1:]
+    return [(float(t), robot, kind, subject) for t, robot, _, kind, subject, *_ in
+            (line.split() for line in lines if line.strip())]
+
+
+def mcap_board(recording: Path, robot: str, t_s: float) -> dict[str, Any]:
+    """The blackboard at ``t_s`` straight from the file (the plain MCAP reader)."""
+    with open(recording, "rb") as f:
+        messages = [(m.log_time, ch.topic, m.data) for _, ch, m in
+                    make_reader(f).iter_messages(log_time_order=True)]
+    start = messages[0][0]
+    board = {}
+    for t, topic, data in messages:
+        if topic == f"/{robot}/beehave/blackboard" and t <= start + t_s * 1e9:
+            change = json.loads(data)
+            board[change["key"]] = change["value"]
+    return board
+
+
+def seek(page: Any, t_s: float) -> None:
+    page.locator("#tl-slider").evaluate(
+        "(s, v) => { s.value = v; s.dispatchEvent(new Event('input')); }", f"{t_s:.2f}")
+    page.wait_for_function(f"document.querySelector('#timeline').dataset.shown === "
+                           f"'{t_s:.2f}'.replace(/\\.?0+$/, '')", timeout=WAIT_MS)
+
+
+@pytest.mark.parametrize("size", [DESKTOP, PHONE], ids=["desktop", "phone"])
+def test_the_recorded_page_at_t_says_what_beehave_inspect_says_at_t(
+        viewer: ViewProcess, recording: Path, browser: Any, size: dict[str, int]) -> None:
+    page, errors = open_page(browser, viewer.url, size)
+    page.wait_for_selector("body.recording", timeout=WAIT_MS)
+    assert page.locator("#switch-btn").is_hidden()
+    assert page.eval_on_selector_all("#robot-select option", "os => os.map((o) => o.value)") \
+        == ["emili1", "kobuki1"]
+    behaviours = set()
+    timeline = inspect_timeline(recording)
+    for robot in ("emili1", "kobuki1"):
+        page.select_option("#robot-select", robot)
+        for t_s in (0.5, 2.0, 3.5):
+            seek(page, t_s)
+            said = inspect_at(recording, t_s)[robot]
+            behaviours.add((robot, t_s, said["behavior"]))
+            assert page.inner_text("#current-behavior") == said["behavior"]
+            running = page.eval_on_selector_all("#tree li",
+                                                "ls => ls.map((l) => l.dataset.path)")
+            assert running == said["running"]
+            assert {row[0]: row[1] for row in table(page, "#locks")} == said["locks"]
+            shown = {row[0]: row[1] for row in table(page, "#blackboard")}
+            raw = mcap_board(recording, robot, t_s)
+            assert set(shown) == set(said["blackboard"]) == set(raw)
+            for key, text in said["blackboard"].items():
+                value = json.loads(text)
+                if isinstance(value, float):
+                    assert float(shown[key]) == pytest.approx(value, abs=1e-3), key
+                    assert raw[key] == pytest.approx(value, abs=1e-9), key
+                else:  # a string as it is, anything else as JSON
+                    assert shown[key] == (value if isinstance(value, str) else text), key
+                    assert raw[key] == value, key
+            # The events up to t: every line of inspect's timeline is in the list.
+            listed = page.eval_on_selector_all(
+                "#events li", "ls => ls.map((l) => l.textContent.split(' ').slice(-3))")
+            for when, who, kind, subject in timeline:
+                if who == robot and when <= t_s - 0.002:
+                    assert any(kind in item and subject in item for item in listed), \
+                        (when, kind, subject, listed)
+            # The robot's marker stands where its recorded pose was.
+            marker = page.locator(f"#robot-{robot}")
+            assert float(marker.get_attribute("data-x")) == pytest.approx(
+                raw["odom/x_m"], abs=0.002)
+    # The two robots did different things: kobuki1's half lap was over at 3.5 s.
+    assert ("emili1", 3.5, "patrol") in behaviours and ("kobuki1", 3.5, "idle") in behaviours
+    page.select_option("#robot-select", "emili1")
+    # Play at ×5: the moment moves on by itself; pause holds it.
+    seek(page, 0.0)
+    page.select_option("#tl-speed", "5")
+    page.click("#tl-play")
+    page.wait_for_function("Number(document.querySelector('#timeline').dataset.shown) > 1",
+                           timeout=WAIT_MS)
+    page.click("#tl-play")
+    page.fill("#plot-key", "speed_mps")
+    page.click("#plot-add")
+    page.wait_for_function("Number(document.querySelector('#plot').dataset.points) > 50",
+                           timeout=WAIT_MS)
+    page.locator("#plot").scroll_into_view_if_needed()
+    assert pixels_near(page.locator("#plot canvas").screenshot(), BLUE) > 200
+    OUT.mkdir(exist_ok=True)
+    name = "desktop" if size is DESKTOP else "phone"
+    page.screenshot(path=str(OUT / f"webview-recording-{name}.png"))
+    fits(page, size["width"])
+    page.close()
+    assert not errors, errors
+
+
+def test_a_recording_refuses_commands_and_bad_times_with_the_reason(
+        viewer: ViewProcess) -> None:
+    for verb in ("switch", "stop", "pause", "resume"):
+        answer = httpx.post(f"{viewer.url}api/robots/emili1/{verb}", json={}, timeout=10)
+        assert answer.status_code == 405, answer.text
+        assert "recording" in answer.json()["detail"]
+    answer = httpx.get(f"{viewer.url}api/recording/at", params={"t": 1e6}, timeout=10)
+    assert answer.status_code == 422 and "outside the recording" in answer.json()["detail"]
+    answer = httpx.get(f"{viewer.url}api/robots/kobuki9/snapshot", timeout=10)
+    assert answer.status_code == 404 and "emili1" in answer.json()["detail"]
+    answer = httpx.get(f"{viewer.url}api/robots/emili1/series", params={"keys": "nope"},
+                       timeout=10)
+    assert answer.status_code == 422 and "odom/x_m" in answer.json()["detail"]
+
+
+# ---- item 5: the fleet: members and the sequence diagram ---------------------------------
+
+FLEET = {
+    "robots": [{"atv": "emili1", "x_m": 1.0, "y_m": 1.0, "battery_pct": 80.0}],
+    "agents": [{"agent": "emili1", "state": "idle"}, {"agent": "press1", "state": "ok"},
+               {"agent": "orders", "state": "ok"}],
+    # newest first, as a fleet process serves them
+    "messages": [
+        {"sent": "10:00:05", "performative": "inform", "from": "emili1", "to": "orders",
+         "protocol": "fipa-contract-net", "conversation": "c1", "content": "{}"},
+        {"sent": "10:00:04", "performative": "accept-proposal", "from": "orders",
+         "to": "emili1", "protocol": "fipa-contract-net", "conversation": "c1", "content": "{}"},
+        {"sent": "10:00:03", "performative": "request", "from": "press1", "to": "orders",
+         "protocol": "fipa-request", "conversation": "c2", "content": "{}"},
+        {"sent": "10:00:02", "performative": "propose", "from": "emili1", "to": "orders",
+         "protocol": "fipa-contract-net", "conversation": "c1", "content": "{}"},
+        {"sent": "10:00:01", "performative": "cfp", "from": "orders", "to": "emili1, press1",
+         "protocol": "fipa-contract-net", "conversation": "c1", "content": "{}"}]}
+
+
+@pytest.mark.parametrize("size", [DESKTOP, PHONE], ids=["desktop", "phone"])
+def test_the_fleet_lists_its_members_and_draws_a_conversation_as_a_sequence_diagram(
+        browser: Any, size: dict[str, int], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
+        hl.register("patrol", Patrol)
+        plane = ControlPlane(hl, name="emili1")
+        try:
+            with HttpServer(plane, fleet=FLEET) as server:
+                page, errors = open_page(browser, server.url, size)
+                page.wait_for_selector('#fleet-members [data-member="press1"]',
+                                       timeout=WAIT_MS)
+                members = page.eval_on_selector_all(
+                    "#fleet-members li", "ls => ls.map((l) => [l.dataset.member, l.className])")
+                assert members == [["emili1", "robot"], ["orders", "agent"],
+                                   ["press1", "agent"]]
+                page.select_option("#seq-conversation", "c1")
+                arrows = page.eval_on_selector_all(
+                    "#sequence-svg .seq-msg",
+                    "gs => gs.map((g) => [g.dataset.from, g.dataset.to, g.dataset.performative])")
+                # oldest first, one arrow per receiver, c2's request left out
+                assert arrows == [["orders", "emili1", "cfp"], ["orders", "press1", "cfp"],
+                                  ["emili1", "orders", "propose"],
+                                  ["orders", "emili1", "accept-proposal"],
+                                  ["emili1", "orders", "inform"]]
+                # Each arrow runs from its sender's lifeline to its receiver's, downwards.
+                geometry = page.evaluate("""(() => {
+                    const lane = {};
+                    for (const t of document.querySelectorAll('#sequence-svg .seq-name'))
+                        lane[t.dataset.lane] = Number(t.getAttribute('x'));
+                    return [...document.querySelectorAll('#sequence-svg .seq-msg')].map((g) => {
+                        const l = g.querySelector('line');
+                        return [lane[g.dataset.from], Number(l.getAttribute('x1')),
+                                lane[g.dataset.to], Number(l.getAttribute('x2')),
+                                Number(l.getAttribute('y1'))]; }); })()""")
+                ys = [g[4] for g in geometry]
+                assert ys == sorted(ys) and len(set(ys)) == len(ys)
+                for from_x, x1, to_x, x2, _ in geometry:
+                    assert x1 == from_x and abs(x2 - to_x) <= 2
+                diagram = page.locator("#sequence")
+                diagram.scroll_into_view_if_needed()
+                assert pixels_near(diagram.screenshot(), BLUE) > 100
+                OUT.mkdir(exist_ok=True)
+                name = "desktop" if size is DESKTOP else "phone"
+                page.screenshot(path=str(OUT / f"webview-fleet-{name}.png"))
+                fits(page, size["width"])
+                # An agent's button filters its messages; a robot's opens its full view.
+                page.click('#fleet-members [data-member="press1"] button')
+                assert page.locator("#sequence-svg .seq-msg").count() == 1  # c1 + press1
+                page.select_option("#seq-conversation", "")
+                assert page.locator("#sequence-svg .seq-msg").count() == 2
+                page.click('#fleet-members [data-member="emili1"] button')
+                assert page.input_value("#robot-select") == "emili1"
+                page.wait_for_function("document.querySelectorAll('#behavior-choice option')"
+                                       ".length > 1", timeout=WAIT_MS)
+                page.close()
+                assert not errors, errors
+        finally:
+            plane.close()

@@ -1,0 +1,143 @@
+"""A recording as a timeline (beehave.recording.timeline): what each robot ran, held and
+knew at any moment, read as ``beehave view`` and ``beehave inspect --at`` read it. The
+rules as a table: after each recorded event, the behaviour, the running items, the type
+locks, STUCK items and the pause."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from beehave.blackboard import Blackboard
+from beehave.errors import RecordingError
+from beehave.events import Event, EventBus, EventKind
+from beehave.recording import Recorder, read_recording
+from beehave.recording.timeline import RecordingTimeline
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# (event, behaviour, running paths, locks, stuck, paused) after each high-level event
+HIGH: list[tuple[tuple[Any, ...], str | None, list[str], dict[str, str], list[str], bool]] = [
+    ((EventKind.SWITCH_COMPLETED, "tour", None, {}), "tour", [], {}, [], False),
+    ((EventKind.STARTED, "tour", "RUNNING", {}), "tour", ["tour"], {}, [], False),
+    ((EventKind.STARTED, "tour/drive", "RUNNING", {"action_type": "driving"}), "tour",
+     ["tour", "tour/drive"], {"driving": "tour/drive"}, [], False),
+    ((EventKind.STARTED, "tour/sub", "RUNNING", {}), "tour",
+     ["tour", "tour/drive", "tour/sub"], {"driving": "tour/drive"}, [], False),
+    ((EventKind.STARTED, "tour/sub/lift", "RUNNING", {"action_type": "lifting"}), "tour",
+     ["tour", "tour/drive", "tour/sub", "tour/sub/lift"],
+     {"driving": "tour/drive", "lifting": "tour/sub/lift"}, [], False),
+    ((EventKind.PAUSED, "tour", None, {}), "tour",
+     ["tour", "tour/drive", "tour/sub", "tour/sub/lift"],
+     {"driving": "tour/drive", "lifting": "tour/sub/lift"}, [], True),
+    ((EventKind.STUCK, "tour/sub/lift", "STUCK", {}), "tour",
+     ["tour", "tour/drive", "tour/sub", "tour/sub/lift"],
+     {"driving": "tour/drive", "lifting": "tour/sub/lift"}, ["tour/sub/lift"], True),
+    ((EventKind.RESUMED, "tour", None, {}), "tour",
+     ["tour", "tour/drive", "tour/sub", "tour/sub/lift"],
+     {"driving": "tour/drive", "lifting": "tour/sub/lift"}, ["tour/sub/lift"], False),
+    # the parent ends; its STUCK action holds its lock until its thread ends
+    ((EventKind.ENDED, "tour/sub", "INTERRUPTED", {}), "tour",
+     ["tour", "tour/drive", "tour/sub/lift"],
+     {"driving": "tour/drive", "lifting": "tour/sub/lift"}, ["tour/sub/lift"], False),
+    ((EventKind.STUCK_RELEASED, "tour/sub/lift", None, {}), "tour",
+     ["tour", "tour/drive"], {"driving": "tour/drive"}, [], False),
+    ((EventKind.ENDED, "tour", "INTERRUPTED", {}), "tour", [], {}, [], False),
+    ((EventKind.SWITCH_COMPLETED, "idle", None, {}), "idle", [], {}, [], False),
+    ((EventKind.STARTED, "idle", "RUNNING", {}), "idle", ["idle"], {}, [], False),
+]
+
+
+@pytest.fixture
+def recorded(tmp_path: Path) -> Path:
+    path = tmp_path / "timeline.mcap"
+    high, low, board = EventBus(), EventBus(), Blackboard()
+    with Recorder(path, flush_period_s=0.05) as recorder:
+        recorder.attach_events(high, prefix="r1", level="high")
+        recorder.attach_events(low, prefix="r1", level="low")
+        recorder.attach_blackboard(board, prefix="r1")
+        board.set("speed_mps", 0.5, writer="hal:odometry")
+        board.set("mode", "auto", writer="test")
+        for (kind, subject, status, detail), *_ in HIGH:
+            high.emit(Event(kind, subject, status, detail=detail))
+        board.set("speed_mps", 0.0, writer="hal:odometry")
+        board.mark_stale(pattern="mode")
+        low.emit(Event(EventKind.STARTED, "hal:odometry", "RUNNING"))
+        low.emit(Event(EventKind.SWITCH_COMPLETED, "leds"))
+        low.emit(Event(EventKind.STARTED, "leds", "RUNNING"))
+    return path
+
+
+def _at(timeline: RecordingTimeline, t_ns: int) -> float:
+    return (t_ns - timeline.start_ns) / 1e9
+
+
+def test_after_each_event_the_timeline_says_what_ran_held_and_was_paused(
+        recorded: Path) -> None:
+    rec = read_recording(recorded)
+    timeline = RecordingTimeline(rec)
+    times = [m.log_time_ns for m in rec.of("/r1/beehave/events/high")]
+    assert len(times) == len(HIGH)
+    for t_ns in times:
+        # Two events recorded in the same nanosecond: the moment is after both.
+        last = max(j for j, t in enumerate(times) if t == t_ns)
+        event, behaviour, running, locks, stuck, paused = HIGH[last]
+        snap = timeline.snapshot_at("r1", _at(timeline, t_ns))
+        got = (snap["behavior"], [r["path"] for r in snap["running"]], snap["locks"],
+               snap["stuck"], snap["paused"])
+        assert got == (behaviour, running, locks, stuck, paused), event
+    # The tree is drawn from its root: a STUCK orphan is in the locks, not the tree.
+    t = _at(timeline, times[8])
+    tree = timeline.snapshot_at("r1", t)["tree"]
+    assert [c["path"] for c in tree["children"]] == ["tour/drive"]
+    assert tree["children"][0]["action_type"] == "driving"
+    assert len(timeline.events_at("r1", t)) == 9
+
+
+def test_the_blackboard_and_the_low_level_at_a_moment(recorded: Path) -> None:
+    rec = read_recording(recorded)
+    timeline = RecordingTimeline(rec)
+    changes = rec.of("/r1/beehave/blackboard")
+    first = _at(timeline, changes[0].log_time_ns)
+    assert list(timeline.blackboard_at("r1", first)) == ["speed_mps"]
+    end = timeline.duration_s
+    board = timeline.blackboard_at("r1", end)
+    assert board["speed_mps"]["value"] == 0.0 and board["speed_mps"]["writer"] == "hal:odometry"
+    assert board["mode"]["stale"] is True and board["mode"]["value"] == "auto"
+    low = timeline.snapshot_at("r1", end)
+    assert low["logic"] == "leds" and low["low"]["logic"]["path"] == "leds"
+    assert low["low"]["hals"]["loaded"] == {"odometry": {}}
+    assert timeline.keys("r1") == ["speed_mps"]
+    assert timeline.series("r1", ["speed_mps"])["speed_mps"]["v"] == [0.5, 0.0]
+
+
+def test_bad_questions_name_what_is_wrong_and_what_exists(recorded: Path) -> None:
+    timeline = RecordingTimeline(read_recording(recorded))
+    with pytest.raises(RecordingError, match=r"outside the recording: 0 to"):
+        timeline.state_at("r1", timeline.duration_s + 5)
+    with pytest.raises(RecordingError, match="finite"):
+        timeline.state_at("r1", float("nan"))
+    with pytest.raises(RecordingError, match="robots recorded: 'r1'"):
+        timeline.state_at("r9", 0.0)
+    with pytest.raises(RecordingError, match="numeric keys: speed_mps"):
+        timeline.series("r1", ["mode/nope"])
+
+
+def test_inspect_at_prints_the_moment_and_refuses_a_time_outside(recorded: Path) -> None:
+    def inspect(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "beehave.cli", "inspect", str(recorded),
+                               *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+
+    done = inspect("--at", "0")
+    assert done.returncode == 0, done.stderr
+    assert "r1 blackboard: speed_mps = 0.5 (writer hal:odometry)" in done.stdout
+    bad = inspect("--at", "9999")
+    assert bad.returncode == 2 and "outside the recording" in bad.stderr
+    missing = subprocess.run([sys.executable, "-m", "beehave.cli", "view",
+                              str(recorded.with_name("none.mcap")), "--port", "0"],
+                             cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert missing.returncode == 2 and "does not exist" in missing.stderr
