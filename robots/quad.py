@@ -104,11 +104,7 @@ class Quad(SimRobot):
         self._vcmd = _VelCmd(0.0, 0.0, 0.0, 0.0, -math.inf)
         self._pos = Position3D(0.0, self._x, self._y, 0.0, self._yaw, 0.0, 0.0, 0.0)
         self._odom = Odometry(0.0, self._x, self._y, self._yaw, 0.0, 0.0)
-        model = self.battery_model
-        capacity = spec.battery.capacity_wh or model.capacity_wh
-        self._charge_wh = capacity * spec.battery.initial_fraction
-        self._capacity_wh = capacity
-        self._battery = self._battery_state(0.0, capacity, 0.0, False)
+        self._init_battery(spec)
         self._scan = None
         self._sounds = []
         self._path = [(start.x_m, start.y_m)]

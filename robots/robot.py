@@ -216,12 +216,7 @@ class SimRobot:
         self._applied: tuple[float, float] | None = None
         start = spec.start
         self._odom = Odometry(0.0, start.x_m, start.y_m, start.yaw_rad, 0.0, 0.0)
-        model = self.battery_model
-        capacity = spec.battery.capacity_wh or model.capacity_wh
-        self._charge_wh = capacity * spec.battery.initial_fraction
-        self._battery = self._battery_state(0.0, capacity, 0.0, False)
-        self._capacity_wh = capacity
-        self._idle_w = model.idle_w if spec.battery.idle_w is None else spec.battery.idle_w
+        self._init_battery(spec)
         self._scan: LaserScan | None = None
         self._sounds: list[Sound] = []
         self._path: list[tuple[float, float]] = [(start.x_m, start.y_m)]
@@ -373,6 +368,15 @@ class SimRobot:
                     self._path.append((odom.x_m, odom.y_m))
         if scan and self.scan_enabled:
             self._scan = self._cast_scan(time_s, odom)
+
+    def _init_battery(self, spec: RobotSpec) -> None:
+        """The battery as the world gives it (capacity, charge, idle draw), else the kind's."""
+        model = self.battery_model
+        capacity = spec.battery.capacity_wh or model.capacity_wh
+        self._charge_wh = capacity * spec.battery.initial_fraction
+        self._capacity_wh = capacity
+        self._battery = self._battery_state(0.0, capacity, 0.0, False)
+        self._idle_w = model.idle_w if spec.battery.idle_w is None else spec.battery.idle_w
 
     def _battery_state(self, time_s: float, capacity_wh: float, power_w: float,
                        charging: bool) -> BatteryState:
