@@ -27,6 +27,7 @@ import yaml
 pytest.importorskip("pybullet")
 pytest.importorskip("rclpy")
 
+from beehave.procs import dies_with_parent  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
 from behaviours.demos.fleet import Watch, _watch, atv_config  # noqa: E402
 
@@ -63,7 +64,8 @@ class Fleet:
         log = open(self.tmp / f"{name}.log", "wb")  # noqa: SIM115 - the child owns it
         self.procs[name] = subprocess.Popen([sys.executable, *argv], cwd=ROOT,
                                             env=dict(os.environ), stdout=log,
-                                            stderr=subprocess.STDOUT)
+                                            stderr=subprocess.STDOUT,
+                                            preexec_fn=dies_with_parent)
 
     def atv(self, ns: str, world: str, **overrides: Any) -> None:
         cfg = atv_config(ns, world)

@@ -23,6 +23,7 @@ import pytest
 pytest.importorskip("pybullet")
 pytest.importorskip("rclpy")
 
+from beehave.procs import dies_with_parent  # noqa: E402
 from beehave.testing import WALL_TIMEOUT_S  # noqa: E402
 
 # One real fleet run of 5 sim minutes (11 processes) is set up by the first test: about
@@ -38,11 +39,13 @@ def single(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """One 5-sim-minute run of the default factory with coordination off: every machine
     calls atv1 alone; atv2 is there and could help."""
     out = tmp_path_factory.mktemp("fleet_single")
+    # Dies with this worker (a timeout ends it without cleanup), and takes its sim,
+    # robots and agents with it.
     run = subprocess.run(
         [sys.executable, "-m", "beehave.cli", "fleet", "--robots", "2", "--minutes", "5",
          "--fast", "--dispatch", "single", "--out", str(out)],
         cwd=ROOT, env={**os.environ, "COLUMNS": "200"}, capture_output=True, text=True,
-        timeout=10 * WALL_TIMEOUT_S)
+        timeout=10 * WALL_TIMEOUT_S, preexec_fn=dies_with_parent)
     last = run.stdout.strip().splitlines()[-1] if run.stdout.strip() else "{}"
     return {"code": run.returncode, "stdout": run.stdout, "stderr": run.stderr,
             "line": json.loads(last).get("fleet", {}), "out": out,

@@ -15,6 +15,8 @@ from typing import TextIO
 from rich.table import Table
 from rich.text import Text
 
+from beehave.procs import dies_with_parent
+
 Check = tuple[str, bool, str]
 
 #: How long :meth:`Processes.stop` waits after SIGINT before it kills.
@@ -55,8 +57,11 @@ class Processes:
     def start(self, name: str, argv: list[str]) -> None:
         log = open(self.log_dir / f"{name}.log", "w")  # noqa: SIM115 - closed in kill_all
         self._logs.append(log)
+        # A scenario killed with -9 (or a test worker ended by its timeout) runs no
+        # cleanup: its sim, robots and agents must not run on without it.
         self.procs[name] = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
-                                            stdin=subprocess.DEVNULL, cwd=self.cwd)
+                                            stdin=subprocess.DEVNULL, cwd=self.cwd,
+                                            preexec_fn=dies_with_parent)
 
     def dead(self) -> dict[str, int]:
         return {n: p.returncode for n, p in self.procs.items() if p.poll() is not None}
