@@ -163,7 +163,10 @@ class Action(Runnable):
             self._manager.events.emit(
                 Event(EventKind.SAFE_STATE_FAILED, self.path, self.status.name, exc))
         else:
-            self._manager.events.emit(Event(
+            events = self._manager.events
+            if not events.wants(EventKind.SAFE_STATE_RAN):
+                return
+            events.emit(Event(
                 EventKind.SAFE_STATE_RAN, self.path, self.status.name,
                 detail={"took_s": round(time.monotonic() - began, 6),
                         "action_type": self.action_type,

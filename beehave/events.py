@@ -122,6 +122,13 @@ class EventBus:
 
         return unsubscribe
 
+    def wants(self, kind: EventKind) -> bool:
+        """Whether an event of ``kind`` would reach anyone (a subscriber or the log): hot
+        paths build their events only then."""
+        if self._subscribers:
+            return True
+        return self._log.isEnabledFor(logging.WARNING if kind in _WARN else logging.DEBUG)
+
     def emit(self, event: Event, *, log_it: bool = True) -> None:
         """Log ``event`` (``log_it`` False: another bus logs it) and give it to every
         subscriber."""

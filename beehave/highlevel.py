@@ -518,8 +518,9 @@ class HighLevelBehaviorManager(Running):
         if become:
             _tls.holding = self
         try:
-            self.events.emit(Event(EventKind.SWITCH_REQUESTED, name,
-                                   detail={"params": _jsonable(params), "source": source}))
+            if self.events.wants(EventKind.SWITCH_REQUESTED):
+                self.events.emit(Event(EventKind.SWITCH_REQUESTED, name, detail={
+                    "params": _jsonable(params), "source": source}))
             for old in replaced:
                 if old.fallback_from is None:
                     self._supersede(old, request)
@@ -762,7 +763,10 @@ class HighLevelBehaviorManager(Running):
                            top.name)
         # The behaviour itself gives up on its children at `deadline`; allow it a moment
         # to record that before declaring the behaviour itself STUCK.
-        if not top._wait_decided(deadline + _MARGIN_S) or not top._join(_MARGIN_S):
+        # Normally one wake-up: its end (the status is decided before it). Otherwise the
+        # bounds of both steps: decided by the deadline, its clean-up over soon after.
+        ended = top._join(max(0.0, deadline + _MARGIN_S - time.monotonic()))
+        if not ended and (not top._decided.is_set() or not top._join(_MARGIN_S)):
             top._mark_stuck()
             with self._cond:
                 self._record_history(top)
@@ -788,7 +792,8 @@ class HighLevelBehaviorManager(Running):
         self._top_name = request.name
         behavior._start_thread()
         request.finish()
-        self.events.emit(Event(EventKind.SWITCH_COMPLETED, request.name, detail=detail))
+        if self.events.wants(EventKind.SWITCH_COMPLETED):
+            self.events.emit(Event(EventKind.SWITCH_COMPLETED, request.name, detail=detail))
 
     # ------------------------------------------------------------------ callbacks from items
     def _node_ended(self, node: Runnable, was_stuck: bool) -> None:

@@ -119,6 +119,7 @@ class Runnable(abc.ABC):
     _overdue_reported: bool
     _in_history: bool
     _suffix: str
+    _path: str | None
     _pausing: bool
     _paused_done: threading.Event | None
     _pause_safe: bool
@@ -146,6 +147,7 @@ class Runnable(abc.ABC):
             _safe_done=None, _safe_thread_id=None, _overdue_reported=False,
             _in_history=False,
             _suffix="",  # "#2" for the second child of that name in its behaviour
+            _path=None,  # path, kept once started (events name it often)
             # Pause (actions only, see Action): asked to wind down for a pause; set once
             # it is paused (or ended); its hardware made safe by the pause and run() not
             # yet restarted; paused through its own on_pause() hook.
@@ -166,6 +168,8 @@ class Runnable(abc.ABC):
             raise ReservedAttribute(
                 f"{type(self).__name__}.{attr} is beehave's ({_RESERVED[attr]}) and cannot be "
                 f"assigned; store yours under another name, e.g. self.my_{attr}")
+        if attr == "name":
+            object.__setattr__(self, "_path", None)
         object.__setattr__(self, attr, value)
 
     # ------------------------------------------------------------------ user hooks
@@ -191,9 +195,15 @@ class Runnable(abc.ABC):
 
     @property
     def path(self) -> str:
-        """``parent/…/name``: where this sits in the running tree."""
-        own = f"{self.name}{self._suffix}"
-        return own if self.parent is None else f"{self.parent.path}/{own}"
+        """``parent/…/name``: where this sits in the running tree (fixed once it runs:
+        renaming a running behaviour renames it, not the paths its children have)."""
+        path = self._path
+        if path is None:
+            own = f"{self.name}{self._suffix}"
+            path = own if self.parent is None else f"{self.parent.path}/{own}"
+            if self._started:
+                object.__setattr__(self, "_path", path)
+        return path
 
     @property
     def stop_deadline(self) -> float | None:
@@ -308,7 +318,9 @@ class Runnable(abc.ABC):
         ended = True
         try:
             assert self._manager is not None
-            self._manager.events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name))
+            events = self._manager.events
+            if events.wants(EventKind.STARTED):
+                events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name))
             error: BaseException | None = None
             again = self._pause_point(None, ran=False)
             while again:
@@ -325,6 +337,13 @@ class Runnable(abc.ABC):
             self._thread_id = None
             if ended:
                 self._ended.set()
+                self._tell_parent()
+
+    def _tell_parent(self) -> None:
+        """It has ended or become STUCK: a parent collecting its children counts it."""
+        parent = self.parent
+        if parent is not None:
+            parent._child_settled(self)
 
     def _join(self, timeout: float | None = None) -> bool:
         """Wait until its ``run`` and clean-up are over (the thread goes back to the pool)."""
@@ -379,7 +398,8 @@ class Runnable(abc.ABC):
         assert manager is not None
         stuck_now = False
         try:
-            if status is not Status.SUCCEEDED and not self._pause_safe:
+            if (status is not Status.SUCCEEDED and not self._pause_safe
+                    and self._has_safe_state()):
                 # (A pause already made it safe and nothing ran since: not twice.)
                 self._run_safe_state()
             self._destroy_io()
@@ -395,8 +415,9 @@ class Runnable(abc.ABC):
                 # _decided it no longer can (_mark_stuck checks it under this lock).
                 stuck_now = self._status is Status.STUCK
             kind = EventKind.STUCK_RELEASED if stuck_now else EventKind.ENDED
-            manager.events.emit(Event(kind, self.path, self._status.name, self.error,
-                                      {"elapsed_s": self.elapsed_s}))
+            if manager.events.wants(kind):
+                manager.events.emit(Event(kind, self.path, self._status.name, self.error,
+                                          {"elapsed_s": self.elapsed_s}))
             if self.parent is not None:
                 self.parent._call_child_hook(self)
         finally:
@@ -420,6 +441,7 @@ class Runnable(abc.ABC):
         finally:
             manager._node_ended(self, stuck)
             self._ended.set()
+            self._tell_parent()
 
     def _destroy_io(self) -> None:
         """Close what this item created: its ROS entities and blackboard subscriptions."""
@@ -464,6 +486,7 @@ class Runnable(abc.ABC):
                 threading.Thread(target=self._forced_safe_state, daemon=True,
                                  name=f"beehave:safe_state:{self.path}").start()
         self._decided.set()
+        self._tell_parent()
         if self._paused_done is not None:
             self._paused_done.set()
 
