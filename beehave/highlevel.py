@@ -472,6 +472,10 @@ class HighLevelBehaviorManager(Running):
     def _end_pause_by(self, why: str, subject: str) -> None:
         """A switch or the shutdown ends the pause (everything was interrupted first):
         the paused actions end INTERRUPTED, nothing restarts."""
+        if not self._paused:
+            # (Read without the lock: a pause that begins after this look could as well
+            # begin after the locked one; it pauses the next behaviour.)
+            return
         actions, lasted = self._end_pause()
         if actions is None:
             return
@@ -755,7 +759,7 @@ class HighLevelBehaviorManager(Running):
             return
         self._top_name = None
         self._stopping = top  # its end is ours, not its own: no fallback to idle
-        stuck_before = set(self._stuck_nodes())
+        stuck_before = set(self._stuck_nodes()) if self._stuck else set()
         deadline = time.monotonic() + self.stop_timeout_s
         top._interrupt(deadline)
         # After the interrupt: what a pause froze wakes to find it, and nothing restarts.
@@ -773,7 +777,7 @@ class HighLevelBehaviorManager(Running):
         # Forced safe states run in threads of their own: give them a short grace, so that
         # the switch normally returns with the hardware safe, but never waits unbounded.
         grace = max(deadline, time.monotonic()) + _GRACE_S
-        for node in self._stuck_nodes():
+        for node in self._stuck_nodes() if self._stuck else ():
             if node not in stuck_before:
                 node._wait_safe_state(grace)
         self._top = None
@@ -860,13 +864,25 @@ def _signature(cls: type[Behavior]) -> inspect.Signature | None:
         return None
 
 
-def _check_params(name: str, cls: type[Behavior], params: dict[str, Any], *, partial: bool) -> None:
+@functools.lru_cache(maxsize=1024)
+def _names_fit(cls: type[Behavior], names: frozenset[str], partial: bool) -> TypeError | None:
+    """Whether a constructor takes keyword arguments of these names (binding depends on
+    the names alone; a switch asks every time): None, or binding's error."""
     signature = _signature(cls)
     if signature is None:
-        return
+        return None
     try:
-        (signature.bind_partial if partial else signature.bind)(**params)
+        (signature.bind_partial if partial else signature.bind)(**dict.fromkeys(names))
     except TypeError as exc:
+        return exc
+    return None
+
+
+def _check_params(name: str, cls: type[Behavior], params: dict[str, Any], *, partial: bool) -> None:
+    exc = _names_fit(cls, frozenset(params), partial)
+    if exc is not None:
+        signature = _signature(cls)
+        assert signature is not None
         accepted = [p for p in signature.parameters if p not in ("args", "kwargs")]
         raise InvalidParameters(
             f"behavior {name!r} ({cls.__name__}) rejects parameters {_jsonable(params)}: "

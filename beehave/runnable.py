@@ -59,6 +59,33 @@ _RESERVED = {
 :class:`ReservedAttribute` naming it (``name`` is yours to set)."""
 
 
+class _Flag:
+    """A one-way flag that threads wait for, kept on its owner's condition: a
+    ``threading.Event`` would bring a lock and a condition of its own to every behaviour
+    and action (a switch makes and ends dozens of them). Never set it with that condition
+    held."""
+
+    __slots__ = ("_cond", "_on")
+
+    def __init__(self, cond: threading.Condition) -> None:
+        self._cond = cond
+        self._on = False
+
+    def is_set(self) -> bool:
+        return self._on
+
+    def set(self) -> None:
+        with self._cond:
+            self._on = True
+            self._cond.notify_all()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if self._on:
+            return True
+        with self._cond:
+            return self._cond.wait_for(self.is_set, timeout)
+
+
 class _OwnedView(BlackboardView):
     """The blackboard as one behaviour or action sees it: its subscriptions are closed
     when it ends, as a logic's are."""
@@ -105,16 +132,16 @@ class Runnable(abc.ABC):
     _interrupt_requested: bool
     _stop_deadline: float | None
     _cond: threading.Condition
-    _decided: threading.Event
+    _decided: _Flag
     _started: bool
     _ros: RosIO | None
-    _ended: threading.Event
+    _ended: _Flag
     _traceback: str
     _view: _OwnedView | None
     _interrupted_at: float | None
     _thread_id: int | None
     _holds: int
-    _safe_done: threading.Event | None
+    _safe_done: _Flag | None
     _safe_thread_id: int | None
     _overdue_reported: bool
     _in_history: bool
@@ -130,14 +157,15 @@ class Runnable(abc.ABC):
         self = super().__new__(cls)
         # Straight into the instance dict: __setattr__ (the reserved-name check) is for
         # user code, and a switch creates objects often enough for it to show.
+        cond = threading.Condition(threading.Lock())
         self.__dict__.update(
             name=cls.__name__, result=None, error=None, parent=None,
             started_at=None,  # time.monotonic()
             ended_at=None,
             _manager=None, _traceback="", _status=Status.PENDING,
             _interrupt_requested=False, _stop_deadline=None,
-            _cond=threading.Condition(threading.Lock()), _decided=threading.Event(),
-            _started=False, _ros=None, _view=None, _ended=threading.Event(),
+            _cond=cond, _decided=_Flag(cond),
+            _started=False, _ros=None, _view=None, _ended=_Flag(cond),
             _interrupted_at=None, _thread_id=None,
             # What keeps the type lock and the ROS entities: run(), plus a forced
             # safe_state() while one runs. Whichever of them ends last releases them.
@@ -349,7 +377,7 @@ class Runnable(abc.ABC):
         """Wait until its ``run`` and clean-up are over (the thread goes back to the pool)."""
         return self._block_on(self._ended, timeout)
 
-    def _block_on(self, event: threading.Event, timeout_s: float | None) -> bool:
+    def _block_on(self, event: threading.Event | _Flag, timeout_s: float | None) -> bool:
         """``event.wait(timeout_s)`` (wall time), telling the manager's clock that this
         thread waits for another worker (a virtual clock may then move time)."""
         manager = self._manager
@@ -474,7 +502,7 @@ class Runnable(abc.ABC):
                 object.__setattr__(self, "ended_at", time.monotonic())
             if force_safe_state:
                 self._holds += 1
-                self._safe_done = threading.Event()
+                self._safe_done = _Flag(self._cond)
             # Under our lock, so that _finish cannot remove it before it is added.
             manager._stuck_add(self)
         manager.events.emit(Event(EventKind.STUCK, self.path, Status.STUCK.name,
@@ -506,7 +534,7 @@ class Runnable(abc.ABC):
         """Call the safe state here, so that others can see it is under way (and where)."""
         with self._cond:
             if self._safe_done is None:
-                self._safe_done = threading.Event()
+                self._safe_done = _Flag(self._cond)
             done = self._safe_done
         self._safe_thread_id = threading.get_ident()
         try:
@@ -581,9 +609,8 @@ class Runnable(abc.ABC):
         with self._cond:
             if self._interrupt_requested:
                 return
-            self._interrupt_requested = True
-            self._interrupted_at = time.monotonic()
-            self._stop_deadline = deadline
+            self.__dict__.update(_interrupt_requested=True, _interrupted_at=time.monotonic(),
+                                 _stop_deadline=deadline)
             self._cond.notify_all()
         self._on_interrupt(deadline)
 
