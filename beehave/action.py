@@ -121,6 +121,10 @@ class Action(Runnable):
             self._cond.notify_all()
 
     def _pause_point(self, error: BaseException | None, *, ran: bool) -> bool:
+        if not self._pausing:
+            # The common case, read without the lock: a pause asked for just after this
+            # look finds run() running and winds it down as usual.
+            return not ran
         manager = self._manager
         assert manager is not None
         with self._cond:

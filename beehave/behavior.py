@@ -205,8 +205,12 @@ class Behavior(Runnable):
     def _await_children(self, children: list[Runnable], deadline: float) -> None:
         """Wait until every child has ended or is STUCK, at most until ``deadline``: one
         wake-up when the last one settles (``_child_settled``), not one per child."""
+        awaiting = {c for c in children if not c._ended.is_set() and c.status is not Status.STUCK}
+        if not awaiting:
+            return
         with self._cond:
-            self._awaiting = {c for c in children
+            # (A child that settles before this counts itself out here.)
+            self._awaiting = {c for c in awaiting
                               if not c._ended.is_set() and c.status is not Status.STUCK}
         assert self._manager is not None
 
@@ -235,6 +239,8 @@ class Behavior(Runnable):
             child._mark_stuck()
 
     def _record_child_end(self, child: Runnable) -> None:
+        if child.status is not Status.FAILED:  # (final by now: no lock needed to read it)
+            return
         with self._cond:
             if child.status is Status.FAILED:
                 self._unobserved_failures.append(child)

@@ -125,9 +125,9 @@ class EventBus:
     def wants(self, kind: EventKind) -> bool:
         """Whether an event of ``kind`` would reach anyone (a subscriber or the log): hot
         paths build their events only then."""
-        if self._subscribers:
+        if self._subscribers or self._log.isEnabledFor(logging.DEBUG):
             return True
-        return self._log.isEnabledFor(logging.WARNING if kind in _WARN else logging.DEBUG)
+        return kind in _WARN and self._log.isEnabledFor(logging.WARNING)
 
     def emit(self, event: Event, *, log_it: bool = True) -> None:
         """Log ``event`` (``log_it`` False: another bus logs it) and give it to every

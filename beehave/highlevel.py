@@ -802,8 +802,9 @@ class HighLevelBehaviorManager(Running):
     # ------------------------------------------------------------------ callbacks from items
     def _node_ended(self, node: Runnable, was_stuck: bool) -> None:
         """Called in the item's own thread, as the last thing it does."""
-        with self._cond:
-            self._stuck.discard(node)
+        if node in self._stuck:  # (decided by now: nobody adds it any more)
+            with self._cond:
+                self._stuck.discard(node)
         if node.parent is not None:
             return
         with self._cond:

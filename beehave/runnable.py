@@ -62,28 +62,38 @@ _RESERVED = {
 class _Flag:
     """A one-way flag that threads wait for, kept on its owner's condition: a
     ``threading.Event`` would bring a lock and a condition of its own to every behaviour
-    and action (a switch makes and ends dozens of them). Never set it with that condition
-    held."""
+    and action (a switch makes and ends dozens of them). It wakes the condition only when
+    someone waits for the flag (not for the owner's ``sleep``)."""
 
-    __slots__ = ("_cond", "_on")
+    __slots__ = ("_cond", "_on", "_waiters")
 
     def __init__(self, cond: threading.Condition) -> None:
         self._cond = cond
         self._on = False
+        self._waiters = 0
 
     def is_set(self) -> bool:
         return self._on
 
     def set(self) -> None:
         with self._cond:
-            self._on = True
+            self._set_locked()
+
+    def _set_locked(self) -> None:
+        """``set`` for a caller that holds the owner's condition."""
+        self._on = True
+        if self._waiters:
             self._cond.notify_all()
 
     def wait(self, timeout: float | None = None) -> bool:
         if self._on:
             return True
         with self._cond:
-            return self._cond.wait_for(self.is_set, timeout)
+            self._waiters += 1
+            try:
+                return self._cond.wait_for(self.is_set, timeout)
+            finally:
+                self._waiters -= 1
 
 
 class _OwnedView(BlackboardView):
@@ -417,6 +427,11 @@ class Runnable(abc.ABC):
                 object.__setattr__(self, "ended_at", time.monotonic())
             self._holds -= 1
             last = self._holds == 0
+            # (A pause already made it safe and nothing ran since: not twice.)
+            safe_state = (not was_stuck and status is not Status.SUCCEEDED
+                          and not self._pause_safe and self._has_safe_state())
+            if safe_state and self._safe_done is None:
+                self._safe_done = _Flag(self._cond)
         if was_stuck:
             # Its owner gave up on it; the forced safe state (if any) ran or runs elsewhere.
             if last:
@@ -426,22 +441,20 @@ class Runnable(abc.ABC):
         assert manager is not None
         stuck_now = False
         try:
-            if (status is not Status.SUCCEEDED and not self._pause_safe
-                    and self._has_safe_state()):
-                # (A pause already made it safe and nothing ran since: not twice.)
+            if safe_state:
                 self._run_safe_state()
             self._destroy_io()
             self._release()
             if self.parent is not None:
                 # Before _decided: whoever wait()s for us must find the failure recorded.
                 self.parent._record_child_end(self)
-            self._decided.set()
-            if self._paused_done is not None:
-                self._paused_done.set()  # a pause waiting for it: it has ended instead
             with self._cond:
+                self._decided._set_locked()
                 # The owner may have given up on us while safe_state() hung; after
                 # _decided it no longer can (_mark_stuck checks it under this lock).
                 stuck_now = self._status is Status.STUCK
+            if self._paused_done is not None:
+                self._paused_done.set()  # a pause waiting for it: it has ended instead
             kind = EventKind.STUCK_RELEASED if stuck_now else EventKind.ENDED
             if manager.events.wants(kind):
                 manager.events.emit(Event(kind, self.path, self._status.name, self.error,
@@ -532,10 +545,12 @@ class Runnable(abc.ABC):
 
     def _run_safe_state(self) -> None:
         """Call the safe state here, so that others can see it is under way (and where)."""
-        with self._cond:
-            if self._safe_done is None:
-                self._safe_done = _Flag(self._cond)
-            done = self._safe_done
+        done = self._safe_done  # (_finish makes it beside the status that calls for it)
+        if done is None:
+            with self._cond:
+                if self._safe_done is None:
+                    self._safe_done = _Flag(self._cond)
+                done = self._safe_done
         self._safe_thread_id = threading.get_ident()
         try:
             self._enter_safe_state()
