@@ -14,6 +14,7 @@ import sysconfig
 import threading
 import time
 import traceback
+import weakref
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Self
 
@@ -133,8 +134,7 @@ class Runnable(abc.ABC):
     result: Any
     #: The exception ``run`` raised (FAILED), with its ``__traceback__``.
     error: BaseException | None
-    #: The behaviour that started it (None for a top-level behaviour).
-    parent: Behavior | None
+    _parent: Behavior | weakref.ref[Behavior] | None
     started_at: float | None
     ended_at: float | None
     _manager: HighLevelBehaviorManager | None
@@ -169,7 +169,7 @@ class Runnable(abc.ABC):
         # user code, and a switch creates objects often enough for it to show.
         cond = threading.Condition(threading.Lock())
         self.__dict__.update(
-            name=cls.__name__, result=None, error=None, parent=None,
+            name=cls.__name__, result=None, error=None, _parent=None,
             started_at=None,  # time.monotonic()
             ended_at=None,
             _manager=None, _traceback="", _status=Status.PENDING,
@@ -224,6 +224,16 @@ class Runnable(abc.ABC):
     @property
     def status(self) -> Status:
         return self._status
+
+    @property
+    def parent(self) -> Behavior | None:
+        """The behaviour that started it (None for a top-level behaviour). Once this has
+        ended it holds its parent weakly (the parent holds it in ``children``): None when
+        nothing keeps the parent any more."""
+        parent = self._parent
+        if isinstance(parent, weakref.ref):
+            return parent()
+        return parent
 
     @property
     def interrupted(self) -> bool:
@@ -333,13 +343,13 @@ class Runnable(abc.ABC):
                     f"{type(self).__name__} {self.name!r} was already started "
                     f"(status {self._status.name}); create a new object for each run")
             self._manager = manager
-            object.__setattr__(self, "parent", parent)
+            self._parent = parent
 
     def _detach(self) -> None:
         with self._cond:
             if self._status is Status.PENDING:
                 self._manager = None
-                object.__setattr__(self, "parent", None)
+                self._parent = None
                 self._suffix = ""
 
     def _start_thread(self) -> None:
@@ -376,12 +386,21 @@ class Runnable(abc.ABC):
             if ended:
                 self._ended.set()
                 self._tell_parent()
+                self._let_go_of_parent()
 
     def _tell_parent(self) -> None:
         """It has ended or become STUCK: a parent collecting its children counts it."""
         parent = self.parent
         if parent is not None:
             parent._child_settled(self)
+
+    def _let_go_of_parent(self) -> None:
+        """Its life is over: hold the parent weakly, so that a behaviour and its children
+        (which refer to each other) are freed as soon as nobody keeps them, not by the
+        garbage collector's cycle search (a switch would leave a dozen such cycles)."""
+        parent = self._parent
+        if parent is not None and not isinstance(parent, weakref.ref):
+            self._parent = weakref.ref(parent)
 
     def _join(self, timeout: float | None = None) -> bool:
         """Wait until its ``run`` and clean-up are over (the thread goes back to the pool)."""
@@ -483,6 +502,7 @@ class Runnable(abc.ABC):
             manager._node_ended(self, stuck)
             self._ended.set()
             self._tell_parent()
+            self._let_go_of_parent()
 
     def _destroy_io(self) -> None:
         """Close what this item created: its ROS entities and blackboard subscriptions."""
