@@ -127,7 +127,8 @@ class EventBus:
         paths build their events only then."""
         if self._subscribers or self._log.isEnabledFor(logging.DEBUG):
             return True
-        return kind in _WARN and self._log.isEnabledFor(logging.WARNING)
+        # (A tuple: membership by identity, without hashing the Enum member in Python.)
+        return kind in _WARN_KINDS and self._log.isEnabledFor(logging.WARNING)
 
     def emit(self, event: Event, *, log_it: bool = True) -> None:
         """Log ``event`` (``log_it`` False: another bus logs it) and give it to every
@@ -161,3 +162,4 @@ def describe(event: Event) -> str:
 _WARN = {EventKind.STUCK, EventKind.SAFE_STATE_FAILED, EventKind.HOOK_FAILED,
          EventKind.RESTARTED, EventKind.SAFE_STATE_OVERDUE, EventKind.MESSAGE_REJECTED,
          EventKind.AGENT_NAME_LOST}
+_WARN_KINDS = tuple(_WARN)

@@ -16,7 +16,7 @@ import time
 import traceback
 import weakref
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Self
+from typing import TYPE_CHECKING, Any, Self, cast
 
 from beehave.blackboard import Blackboard, BlackboardView, ChangeCallback, Subscription
 from beehave.clock import WallClock
@@ -390,7 +390,7 @@ class Runnable(abc.ABC):
 
     def _tell_parent(self) -> None:
         """It has ended or become STUCK: a parent collecting its children counts it."""
-        parent = self.parent
+        parent = cast("Behavior | None", self._parent)  # (strong until _let_go_of_parent)
         if parent is not None:
             parent._child_settled(self)
 
@@ -464,9 +464,10 @@ class Runnable(abc.ABC):
                 self._run_safe_state()
             self._destroy_io()
             self._release()
-            if self.parent is not None:
+            parent = cast("Behavior | None", self._parent)  # (held strongly while it lives)
+            if parent is not None:
                 # Before _decided: whoever wait()s for us must find the failure recorded.
-                self.parent._record_child_end(self)
+                parent._record_child_end(self)
             with self._cond:
                 self._decided._set_locked()
                 # The owner may have given up on us while safe_state() hung; after
@@ -478,8 +479,8 @@ class Runnable(abc.ABC):
             if manager.events.wants(kind):
                 manager.events.emit(Event(kind, self.path, self._status.name, self.error,
                                           {"elapsed_s": self.elapsed_s}))
-            if self.parent is not None:
-                self.parent._call_child_hook(self)
+            if parent is not None:
+                parent._call_child_hook(self)
         finally:
             manager._node_ended(self, stuck_now)
         return True
