@@ -642,6 +642,8 @@ class Runnable(abc.ABC):
         return where
 
     def _interrupt(self, deadline: float | None) -> None:
+        if self._interrupt_requested:  # (it only ever turns true: no lock needed to see it)
+            return
         with self._cond:
             if self._interrupt_requested:
                 return

@@ -69,7 +69,7 @@ def main(n: int = 400, show: int = 2) -> None:
             ready = threading.Event()
             hl.switch("ten", ready=ready)
             ready.wait()
-            time.sleep(0.002)  # every action asleep in its sleep()
+            time.sleep(0.0005)  # every action asleep in its sleep()
             _stamps.clear()
             t0 = time.perf_counter()
             hl.switch("idle")
