@@ -121,6 +121,10 @@ class Action(Runnable):
             self._cond.notify_all()
 
     def _pause_point(self, error: BaseException | None, *, ran: bool) -> bool:
+        if not self._pausing:
+            # The common case, read without the lock: a pause asked for just after this
+            # look finds run() running and winds it down as usual.
+            return not ran
         manager = self._manager
         assert manager is not None
         with self._cond:
@@ -163,7 +167,10 @@ class Action(Runnable):
             self._manager.events.emit(
                 Event(EventKind.SAFE_STATE_FAILED, self.path, self.status.name, exc))
         else:
-            self._manager.events.emit(Event(
+            events = self._manager.events
+            if not events.wants(EventKind.SAFE_STATE_RAN):
+                return
+            events.emit(Event(
                 EventKind.SAFE_STATE_RAN, self.path, self.status.name,
                 detail={"took_s": round(time.monotonic() - began, 6),
                         "action_type": self.action_type,

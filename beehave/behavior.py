@@ -48,13 +48,15 @@ class Behavior(Runnable):
     _accepting: bool
     _hook_errors: list[Exception]
     _names: Counter[str]
+    _awaiting: set[Runnable] | None
     #: The decision engine driving this behaviour now (set by ``DecisionEngine.drive``).
     _engine: Any
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
         self.__dict__.update(_engine=None, _children=[], _names=Counter(),
-                             _unobserved_failures=[], _hook_errors=[], _accepting=True)
+                             _unobserved_failures=[], _hook_errors=[], _accepting=True,
+                             _awaiting=None)
         return self
 
     def start_action(self, action: A, *, preempt: bool = False) -> A:
@@ -194,11 +196,12 @@ class Behavior(Runnable):
                      "finish)", self.path, ", ".join(orphans))
         for child in children:
             child._interrupt(deadline)
+        self._await_children(children, deadline)
         for child in children:
-            if not child._wait_decided(deadline):
+            if not child._decided.is_set():
                 child._mark_stuck()
         for child in children:
-            if child.status is not Status.STUCK:
+            if child.status is not Status.STUCK and not child._ended.is_set():
                 # It has decided; its clean-up is just finishing (bounded all the same).
                 child._join(max(0.0, deadline - time.monotonic()) + 0.05)
         with self._cond:
@@ -210,12 +213,45 @@ class Behavior(Runnable):
                 error.__cause__ = failed.error
         return error
 
+    def _await_children(self, children: list[Runnable], deadline: float) -> None:
+        """Wait until every child has ended or is STUCK, at most until ``deadline``: one
+        wake-up when the last one settles (``_child_settled``), not one per child."""
+        awaiting = {c for c in children if not c._ended.is_set() and c.status is not Status.STUCK}
+        if not awaiting:
+            return
+        with self._cond:
+            # (A child that settles before this counts itself out here.)
+            self._awaiting = {c for c in awaiting
+                              if not c._ended.is_set() and c.status is not Status.STUCK}
+        assert self._manager is not None
+
+        def settled() -> bool:
+            return not self._awaiting
+
+        try:
+            with self._manager.clock.blocked(settled), self._cond:
+                self._cond.wait_for(settled, max(0.0, deadline - time.monotonic()))
+        finally:
+            with self._cond:
+                self._awaiting = None
+
+    def _child_settled(self, child: Runnable) -> None:
+        """Called by ``child`` once it has ended or become STUCK."""
+        with self._cond:
+            awaiting = self._awaiting
+            if awaiting and child in awaiting:
+                awaiting.discard(child)
+                if not awaiting:
+                    self._cond.notify_all()
+
     def _mark_stuck(self) -> None:
         super()._mark_stuck()
         for child in self.children:
             child._mark_stuck()
 
     def _record_child_end(self, child: Runnable) -> None:
+        if child.status is not Status.FAILED:  # (final by now: no lock needed to read it)
+            return
         with self._cond:
             if child.status is Status.FAILED:
                 self._unobserved_failures.append(child)

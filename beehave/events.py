@@ -122,6 +122,14 @@ class EventBus:
 
         return unsubscribe
 
+    def wants(self, kind: EventKind) -> bool:
+        """Whether an event of ``kind`` would reach anyone (a subscriber or the log): hot
+        paths build their events only then."""
+        if self._subscribers or self._log.isEnabledFor(logging.DEBUG):
+            return True
+        # (A tuple: membership by identity, without hashing the Enum member in Python.)
+        return kind in _WARN_KINDS and self._log.isEnabledFor(logging.WARNING)
+
     def emit(self, event: Event, *, log_it: bool = True) -> None:
         """Log ``event`` (``log_it`` False: another bus logs it) and give it to every
         subscriber."""
@@ -154,3 +162,4 @@ def describe(event: Event) -> str:
 _WARN = {EventKind.STUCK, EventKind.SAFE_STATE_FAILED, EventKind.HOOK_FAILED,
          EventKind.RESTARTED, EventKind.SAFE_STATE_OVERDUE, EventKind.MESSAGE_REJECTED,
          EventKind.AGENT_NAME_LOST}
+_WARN_KINDS = tuple(_WARN)

@@ -478,6 +478,10 @@ class HighLevelBehaviorManager(Running):
     def _end_pause_by(self, why: str, subject: str) -> None:
         """A switch or the shutdown ends the pause (everything was interrupted first):
         the paused actions end INTERRUPTED, nothing restarts."""
+        if not self._paused:
+            # (Read without the lock: a pause that begins after this look could as well
+            # begin after the locked one; it pauses the next behaviour.)
+            return
         actions, lasted = self._end_pause()
         if actions is None:
             return
@@ -524,8 +528,9 @@ class HighLevelBehaviorManager(Running):
         if become:
             _tls.holding = self
         try:
-            self.events.emit(Event(EventKind.SWITCH_REQUESTED, name,
-                                   detail={"params": _jsonable(params), "source": source}))
+            if self.events.wants(EventKind.SWITCH_REQUESTED):
+                self.events.emit(Event(EventKind.SWITCH_REQUESTED, name, detail={
+                    "params": _jsonable(params), "source": source}))
             for old in replaced:
                 if old.fallback_from is None:
                     self._supersede(old, request)
@@ -760,7 +765,7 @@ class HighLevelBehaviorManager(Running):
             return
         self._top_name = None
         self._stopping = top  # its end is ours, not its own: no fallback to idle
-        stuck_before = set(self._stuck_nodes())
+        stuck_before = set(self._stuck_nodes()) if self._stuck else set()
         deadline = time.monotonic() + self.stop_timeout_s
         top._interrupt(deadline)
         # After the interrupt: what a pause froze wakes to find it, and nothing restarts.
@@ -768,14 +773,17 @@ class HighLevelBehaviorManager(Running):
                            top.name)
         # The behaviour itself gives up on its children at `deadline`; allow it a moment
         # to record that before declaring the behaviour itself STUCK.
-        if not top._wait_decided(deadline + _MARGIN_S) or not top._join(_MARGIN_S):
+        # Normally one wake-up: its end (the status is decided before it). Otherwise the
+        # bounds of both steps: decided by the deadline, its clean-up over soon after.
+        ended = top._join(max(0.0, deadline + _MARGIN_S - time.monotonic()))
+        if not ended and (not top._decided.is_set() or not top._join(_MARGIN_S)):
             top._mark_stuck()
             with self._cond:
                 self._record_history(top)
         # Forced safe states run in threads of their own: give them a short grace, so that
         # the switch normally returns with the hardware safe, but never waits unbounded.
         grace = max(deadline, time.monotonic()) + _GRACE_S
-        for node in self._stuck_nodes():
+        for node in self._stuck_nodes() if self._stuck else ():
             if node not in stuck_before:
                 node._wait_safe_state(grace)
         self._top = None
@@ -794,13 +802,15 @@ class HighLevelBehaviorManager(Running):
         self._top_name = request.name
         behavior._start_thread()
         request.finish()
-        self.events.emit(Event(EventKind.SWITCH_COMPLETED, request.name, detail=detail))
+        if self.events.wants(EventKind.SWITCH_COMPLETED):
+            self.events.emit(Event(EventKind.SWITCH_COMPLETED, request.name, detail=detail))
 
     # ------------------------------------------------------------------ callbacks from items
     def _node_ended(self, node: Runnable, was_stuck: bool) -> None:
         """Called in the item's own thread, as the last thing it does."""
-        with self._cond:
-            self._stuck.discard(node)
+        if node in self._stuck:  # (decided by now: nobody adds it any more)
+            with self._cond:
+                self._stuck.discard(node)
         if node.parent is not None:
             return
         with self._cond:
@@ -861,13 +871,25 @@ def _signature(cls: type[Behavior]) -> inspect.Signature | None:
         return None
 
 
-def _check_params(name: str, cls: type[Behavior], params: dict[str, Any], *, partial: bool) -> None:
+@functools.lru_cache(maxsize=1024)
+def _names_fit(cls: type[Behavior], names: frozenset[str], partial: bool) -> TypeError | None:
+    """Whether a constructor takes keyword arguments of these names (binding depends on
+    the names alone; a switch asks every time): None, or binding's error."""
     signature = _signature(cls)
     if signature is None:
-        return
+        return None
     try:
-        (signature.bind_partial if partial else signature.bind)(**params)
+        (signature.bind_partial if partial else signature.bind)(**dict.fromkeys(names))
     except TypeError as exc:
+        return exc
+    return None
+
+
+def _check_params(name: str, cls: type[Behavior], params: dict[str, Any], *, partial: bool) -> None:
+    exc = _names_fit(cls, frozenset(params), partial)
+    if exc is not None:
+        signature = _signature(cls)
+        assert signature is not None
         accepted = [p for p in signature.parameters if p not in ("args", "kwargs")]
         raise InvalidParameters(
             f"behavior {name!r} ({cls.__name__}) rejects parameters {_jsonable(params)}: "

@@ -122,7 +122,8 @@ class TypeLocks:
             hold = self._held.get(action.action_type)
             if hold is not None and hold.holder is action:
                 del self._held[action.action_type]
-                self._cond.notify_all()
+                if self._queues.get(action.action_type):  # preemptors wait for it
+                    self._cond.notify_all()
 
     def poke(self) -> None:
         """Wake preempting waiters so they re-check whether their caller was interrupted.

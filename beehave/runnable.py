@@ -14,8 +14,9 @@ import sysconfig
 import threading
 import time
 import traceback
+import weakref
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Self
+from typing import TYPE_CHECKING, Any, Self, cast
 
 from beehave.blackboard import Blackboard, BlackboardView, ChangeCallback, Subscription
 from beehave.clock import WallClock
@@ -59,6 +60,43 @@ _RESERVED = {
 :class:`ReservedAttribute` naming it (``name`` is yours to set)."""
 
 
+class _Flag:
+    """A one-way flag that threads wait for, kept on its owner's condition: a
+    ``threading.Event`` would bring a lock and a condition of its own to every behaviour
+    and action (a switch makes and ends dozens of them). It wakes the condition only when
+    someone waits for the flag (not for the owner's ``sleep``)."""
+
+    __slots__ = ("_cond", "_on", "_waiters")
+
+    def __init__(self, cond: threading.Condition) -> None:
+        self._cond = cond
+        self._on = False
+        self._waiters = 0
+
+    def is_set(self) -> bool:
+        return self._on
+
+    def set(self) -> None:
+        with self._cond:
+            self._set_locked()
+
+    def _set_locked(self) -> None:
+        """``set`` for a caller that holds the owner's condition."""
+        self._on = True
+        if self._waiters:
+            self._cond.notify_all()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if self._on:
+            return True
+        with self._cond:
+            self._waiters += 1
+            try:
+                return self._cond.wait_for(self.is_set, timeout)
+            finally:
+                self._waiters -= 1
+
+
 class _OwnedView(BlackboardView):
     """The blackboard as one behaviour or action sees it: its subscriptions are closed
     when it ends, as a logic's are."""
@@ -96,8 +134,7 @@ class Runnable(abc.ABC):
     result: Any
     #: The exception ``run`` raised (FAILED), with its ``__traceback__``.
     error: BaseException | None
-    #: The behaviour that started it (None for a top-level behaviour).
-    parent: Behavior | None
+    _parent: Behavior | weakref.ref[Behavior] | None
     started_at: float | None
     ended_at: float | None
     _manager: HighLevelBehaviorManager | None
@@ -105,20 +142,21 @@ class Runnable(abc.ABC):
     _interrupt_requested: bool
     _stop_deadline: float | None
     _cond: threading.Condition
-    _decided: threading.Event
+    _decided: _Flag
     _started: bool
     _ros: RosIO | None
-    _ended: threading.Event
+    _ended: _Flag
     _traceback: str
     _view: _OwnedView | None
     _interrupted_at: float | None
     _thread_id: int | None
     _holds: int
-    _safe_done: threading.Event | None
+    _safe_done: _Flag | None
     _safe_thread_id: int | None
     _overdue_reported: bool
     _in_history: bool
     _suffix: str
+    _path: str | None
     _pausing: bool
     _paused_done: threading.Event | None
     _pause_safe: bool
@@ -129,14 +167,15 @@ class Runnable(abc.ABC):
         self = super().__new__(cls)
         # Straight into the instance dict: __setattr__ (the reserved-name check) is for
         # user code, and a switch creates objects often enough for it to show.
+        cond = threading.Condition(threading.Lock())
         self.__dict__.update(
-            name=cls.__name__, result=None, error=None, parent=None,
+            name=cls.__name__, result=None, error=None, _parent=None,
             started_at=None,  # time.monotonic()
             ended_at=None,
             _manager=None, _traceback="", _status=Status.PENDING,
             _interrupt_requested=False, _stop_deadline=None,
-            _cond=threading.Condition(threading.Lock()), _decided=threading.Event(),
-            _started=False, _ros=None, _view=None, _ended=threading.Event(),
+            _cond=cond, _decided=_Flag(cond),
+            _started=False, _ros=None, _view=None, _ended=_Flag(cond),
             _interrupted_at=None, _thread_id=None,
             # What keeps the type lock and the ROS entities: run(), plus a forced
             # safe_state() while one runs. Whichever of them ends last releases them.
@@ -146,6 +185,7 @@ class Runnable(abc.ABC):
             _safe_done=None, _safe_thread_id=None, _overdue_reported=False,
             _in_history=False,
             _suffix="",  # "#2" for the second child of that name in its behaviour
+            _path=None,  # path, kept once started (events name it often)
             # Pause (actions only, see Action): asked to wind down for a pause; set once
             # it is paused (or ended); its hardware made safe by the pause and run() not
             # yet restarted; paused through its own on_pause() hook.
@@ -166,6 +206,8 @@ class Runnable(abc.ABC):
             raise ReservedAttribute(
                 f"{type(self).__name__}.{attr} is beehave's ({_RESERVED[attr]}) and cannot be "
                 f"assigned; store yours under another name, e.g. self.my_{attr}")
+        if attr == "name":
+            object.__setattr__(self, "_path", None)
         object.__setattr__(self, attr, value)
 
     # ------------------------------------------------------------------ user hooks
@@ -184,6 +226,16 @@ class Runnable(abc.ABC):
         return self._status
 
     @property
+    def parent(self) -> Behavior | None:
+        """The behaviour that started it (None for a top-level behaviour). Once this has
+        ended it holds its parent weakly (the parent holds it in ``children``): None when
+        nothing keeps the parent any more."""
+        parent = self._parent
+        if isinstance(parent, weakref.ref):
+            return parent()
+        return parent
+
+    @property
     def interrupted(self) -> bool:
         """True once an interrupt was requested — or, for an action without an
         ``on_pause()`` hook, while the manager pauses it: wind down and return."""
@@ -191,9 +243,15 @@ class Runnable(abc.ABC):
 
     @property
     def path(self) -> str:
-        """``parent/…/name``: where this sits in the running tree."""
-        own = f"{self.name}{self._suffix}"
-        return own if self.parent is None else f"{self.parent.path}/{own}"
+        """``parent/…/name``: where this sits in the running tree (fixed once it runs:
+        renaming a running behaviour renames it, not the paths its children have)."""
+        path = self._path
+        if path is None:
+            own = f"{self.name}{self._suffix}"
+            path = own if self.parent is None else f"{self.parent.path}/{own}"
+            if self._started:
+                object.__setattr__(self, "_path", path)
+        return path
 
     @property
     def stop_deadline(self) -> float | None:
@@ -285,13 +343,13 @@ class Runnable(abc.ABC):
                     f"{type(self).__name__} {self.name!r} was already started "
                     f"(status {self._status.name}); create a new object for each run")
             self._manager = manager
-            object.__setattr__(self, "parent", parent)
+            self._parent = parent
 
     def _detach(self) -> None:
         with self._cond:
             if self._status is Status.PENDING:
                 self._manager = None
-                object.__setattr__(self, "parent", None)
+                self._parent = None
                 self._suffix = ""
 
     def _start_thread(self) -> None:
@@ -308,11 +366,13 @@ class Runnable(abc.ABC):
         ended = True
         try:
             assert self._manager is not None
-            # An action's type rides along: a recording then tells who held which type
-            # lock when (the timeline of `beehave view`).
-            kind = getattr(self, "action_type", None)
-            self._manager.events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name,
-                                            detail={"action_type": kind} if kind else {}))
+            events = self._manager.events
+            if events.wants(EventKind.STARTED):
+                # An action's type rides along: a recording then tells who held which type
+                # lock when (the timeline of `beehave view`).
+                kind = getattr(self, "action_type", None)
+                events.emit(Event(EventKind.STARTED, self.path, Status.RUNNING.name,
+                                  detail={"action_type": kind} if kind else {}))
             error: BaseException | None = None
             again = self._pause_point(None, ran=False)
             while again:
@@ -329,12 +389,28 @@ class Runnable(abc.ABC):
             self._thread_id = None
             if ended:
                 self._ended.set()
+                self._tell_parent()
+                self._let_go_of_parent()
+
+    def _tell_parent(self) -> None:
+        """It has ended or become STUCK: a parent collecting its children counts it."""
+        parent = cast("Behavior | None", self._parent)  # (strong until _let_go_of_parent)
+        if parent is not None:
+            parent._child_settled(self)
+
+    def _let_go_of_parent(self) -> None:
+        """Its life is over: hold the parent weakly, so that a behaviour and its children
+        (which refer to each other) are freed as soon as nobody keeps them, not by the
+        garbage collector's cycle search (a switch would leave a dozen such cycles)."""
+        parent = self._parent
+        if parent is not None and not isinstance(parent, weakref.ref):
+            self._parent = weakref.ref(parent)
 
     def _join(self, timeout: float | None = None) -> bool:
         """Wait until its ``run`` and clean-up are over (the thread goes back to the pool)."""
         return self._block_on(self._ended, timeout)
 
-    def _block_on(self, event: threading.Event, timeout_s: float | None) -> bool:
+    def _block_on(self, event: threading.Event | _Flag, timeout_s: float | None) -> bool:
         """``event.wait(timeout_s)`` (wall time), telling the manager's clock that this
         thread waits for another worker (a virtual clock may then move time)."""
         manager = self._manager
@@ -374,6 +450,11 @@ class Runnable(abc.ABC):
                 object.__setattr__(self, "ended_at", time.monotonic())
             self._holds -= 1
             last = self._holds == 0
+            # (A pause already made it safe and nothing ran since: not twice.)
+            safe_state = (not was_stuck and status is not Status.SUCCEEDED
+                          and not self._pause_safe and self._has_safe_state())
+            if safe_state and self._safe_done is None:
+                self._safe_done = _Flag(self._cond)
         if was_stuck:
             # Its owner gave up on it; the forced safe state (if any) ran or runs elsewhere.
             if last:
@@ -383,26 +464,27 @@ class Runnable(abc.ABC):
         assert manager is not None
         stuck_now = False
         try:
-            if status is not Status.SUCCEEDED and not self._pause_safe:
-                # (A pause already made it safe and nothing ran since: not twice.)
+            if safe_state:
                 self._run_safe_state()
             self._destroy_io()
             self._release()
-            if self.parent is not None:
+            parent = cast("Behavior | None", self._parent)  # (held strongly while it lives)
+            if parent is not None:
                 # Before _decided: whoever wait()s for us must find the failure recorded.
-                self.parent._record_child_end(self)
-            self._decided.set()
-            if self._paused_done is not None:
-                self._paused_done.set()  # a pause waiting for it: it has ended instead
+                parent._record_child_end(self)
             with self._cond:
+                self._decided._set_locked()
                 # The owner may have given up on us while safe_state() hung; after
                 # _decided it no longer can (_mark_stuck checks it under this lock).
                 stuck_now = self._status is Status.STUCK
+            if self._paused_done is not None:
+                self._paused_done.set()  # a pause waiting for it: it has ended instead
             kind = EventKind.STUCK_RELEASED if stuck_now else EventKind.ENDED
-            manager.events.emit(Event(kind, self.path, self._status.name, self.error,
-                                      {"elapsed_s": self.elapsed_s}))
-            if self.parent is not None:
-                self.parent._call_child_hook(self)
+            if manager.events.wants(kind):
+                manager.events.emit(Event(kind, self.path, self._status.name, self.error,
+                                          {"elapsed_s": self.elapsed_s}))
+            if parent is not None:
+                parent._call_child_hook(self)
         finally:
             manager._node_ended(self, stuck_now)
         return True
@@ -424,6 +506,8 @@ class Runnable(abc.ABC):
         finally:
             manager._node_ended(self, stuck)
             self._ended.set()
+            self._tell_parent()
+            self._let_go_of_parent()
 
     def _destroy_io(self) -> None:
         """Close what this item created: its ROS entities and blackboard subscriptions."""
@@ -456,7 +540,7 @@ class Runnable(abc.ABC):
                 object.__setattr__(self, "ended_at", time.monotonic())
             if force_safe_state:
                 self._holds += 1
-                self._safe_done = threading.Event()
+                self._safe_done = _Flag(self._cond)
             # Under our lock, so that _finish cannot remove it before it is added.
             manager._stuck_add(self)
         manager.events.emit(Event(EventKind.STUCK, self.path, Status.STUCK.name,
@@ -468,6 +552,7 @@ class Runnable(abc.ABC):
                 threading.Thread(target=self._forced_safe_state, daemon=True,
                                  name=f"beehave:safe_state:{self.path}").start()
         self._decided.set()
+        self._tell_parent()
         if self._paused_done is not None:
             self._paused_done.set()
 
@@ -485,10 +570,12 @@ class Runnable(abc.ABC):
 
     def _run_safe_state(self) -> None:
         """Call the safe state here, so that others can see it is under way (and where)."""
-        with self._cond:
-            if self._safe_done is None:
-                self._safe_done = threading.Event()
-            done = self._safe_done
+        done = self._safe_done  # (_finish makes it beside the status that calls for it)
+        if done is None:
+            with self._cond:
+                if self._safe_done is None:
+                    self._safe_done = _Flag(self._cond)
+                done = self._safe_done
         self._safe_thread_id = threading.get_ident()
         try:
             self._enter_safe_state()
@@ -559,12 +646,13 @@ class Runnable(abc.ABC):
         return where
 
     def _interrupt(self, deadline: float | None) -> None:
+        if self._interrupt_requested:  # (it only ever turns true: no lock needed to see it)
+            return
         with self._cond:
             if self._interrupt_requested:
                 return
-            self._interrupt_requested = True
-            self._interrupted_at = time.monotonic()
-            self._stop_deadline = deadline
+            self.__dict__.update(_interrupt_requested=True, _interrupted_at=time.monotonic(),
+                                 _stop_deadline=deadline)
             self._cond.notify_all()
         self._on_interrupt(deadline)
 

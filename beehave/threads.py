@@ -45,6 +45,8 @@ class _Worker:
                 fn()
             except BaseException:  # the job records its own errors; this is a last resort
                 log.exception("worker job %s raised", name)
+            # An idle thread keeps nothing alive (the job is a behaviour's or an action's).
+            del job, fn
             self.thread.name = self.idle_name
             if not pool._park(self):
                 return

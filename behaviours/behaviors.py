@@ -19,50 +19,25 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from beehave.action import Action
 from beehave.behavior import Behavior
-from beehave.engines.engine import EngineBehavior, format_validation_error
+from beehave.engines.engine import format_validation_error
 from beehave.errors import ActionTypeBusy, BeehaveError, ChildFailed, ConfigError
 from beehave.runnable import Runnable
 from beehave.status import Status
-from behaviours.yaml_schema import Factory, YamlBehaviorError, document_name, load_engine
+
+# The YAML behaviour lives beside its format (the loader starts sub-files as YAML
+# behaviours); it is offered here with the other ready-made ones.
+from behaviours.yaml_schema import Factory, YamlBehavior, YamlBehaviorError
 
 __all__ = ["Command", "CommandError", "CommandQueue", "CommandedBehavior", "Outcome",
            "RandomBehavior", "YamlBehavior", "YamlBehaviorError"]
 
 log = logging.getLogger(__name__)
-
-
-class YamlBehavior(EngineBehavior):
-    """A behaviour described entirely in a YAML file.
-
-    The file is read and validated when the behaviour is constructed — at ``hl.switch``
-    time, so a broken file is refused (``InvalidParameters`` naming the file, key path and
-    what was expected) before the running behaviour is stopped::
-
-        hl.register("patrol", YamlBehavior, file="behaviours/patrol.yaml",
-                    registry={"drive": Drive}, inject={"robot": robot})
-
-    ``registry`` maps action names used in the file to Action/Behavior classes or
-    factories (a file may also name ``module:Class`` directly); ``inject`` gives
-    constructor arguments by name to every action that takes them (the robot object).
-    """
-
-    def __init__(self, file: str | Path, *, registry: Mapping[str, Factory] | None = None,
-                 inject: Mapping[str, Any] | None = None, name: str | None = None) -> None:
-        self.file = Path(file)
-        engine = load_engine(self.file, registry=registry, inject=inject)
-        super().__init__(engine, name=name or document_name(self.file))
-
-    def _snapshot(self) -> dict[str, Any]:
-        snap = super()._snapshot()
-        snap["file"] = str(self.file)  # which file is running, beside where its engine is
-        return snap
 
 
 # -- commanded ----------------------------------------------------------------------------

@@ -1,5 +1,6 @@
-"""The YAML behaviour format: a pydantic schema and the loader that turns a file into an
-engine (see ``docs/yaml_behaviors.md``).
+"""The YAML behaviour format: a pydantic schema, the loader that turns a file into an
+engine, and :class:`YamlBehavior`, which runs a file (see ``docs/yaml_behaviors.md``; it is
+offered with the other ready-made behaviours as ``behaviours.behaviors.YamlBehavior``).
 
 A file names its engine and describes the states (or the tree, or the network) and the
 actions they start::
@@ -45,7 +46,8 @@ from beehave.engines.errors import EngineConfigError
 from beehave.errors import ConfigError
 from beehave.runnable import Runnable
 
-__all__ = ["ActionRef", "BehaviorDoc", "YamlBehaviorError", "build_engine", "load_engine"]
+__all__ = ["ActionRef", "BehaviorDoc", "YamlBehavior", "YamlBehaviorError", "build_engine",
+           "load_engine"]
 
 #: What a registry maps names to: an Action/Behavior class or a factory taking the params.
 Factory = Callable[..., Runnable]
@@ -220,7 +222,6 @@ class _Loader:
                 raise self.error(path, str(exc)) from None
 
             def make_file() -> Runnable:
-                from behaviours.behaviors import YamlBehavior
                 return YamlBehavior(sub_file, registry=registry, inject=inject)
             return Starter(make_file, False, Path(body).stem)
         if not isinstance(body, Mapping):
@@ -371,6 +372,33 @@ def document_name(file: str | Path) -> str:
     data = _read(Path(file))
     name = data.get("name") if isinstance(data, Mapping) else None
     return str(name) if name else Path(file).stem
+
+
+class YamlBehavior(EngineBehavior):
+    """A behaviour described entirely in a YAML file.
+
+    The file is read and validated when the behaviour is constructed — at ``hl.switch``
+    time, so a broken file is refused (``InvalidParameters`` naming the file, key path and
+    what was expected) before the running behaviour is stopped::
+
+        hl.register("patrol", YamlBehavior, file="behaviours/patrol.yaml",
+                    registry={"drive": Drive}, inject={"robot": robot})
+
+    ``registry`` maps action names used in the file to Action/Behavior classes or
+    factories (a file may also name ``module:Class`` directly); ``inject`` gives
+    constructor arguments by name to every action that takes them (the robot object).
+    """
+
+    def __init__(self, file: str | Path, *, registry: Mapping[str, Factory] | None = None,
+                 inject: Mapping[str, Any] | None = None, name: str | None = None) -> None:
+        self.file = Path(file)
+        engine = load_engine(self.file, registry=registry, inject=inject)
+        super().__init__(engine, name=name or document_name(self.file))
+
+    def _snapshot(self) -> dict[str, Any]:
+        snap = super()._snapshot()
+        snap["file"] = str(self.file)  # which file is running, beside where its engine is
+        return snap
 
 
 EngineKind = Literal["state_machine", "tree", "neural"]

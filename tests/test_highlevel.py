@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import threading
 import time
+import weakref
 from typing import Any
 
 import pytest
@@ -82,6 +84,24 @@ def test_switch_returns_after_old_ended_and_new_runs(hl: HighLevelBehaviorManage
     assert all(a.status is Status.INTERRUPTED and a.safe_state_calls == 1 for a in old.actions)
     assert new.status is Status.RUNNING and hl.current == "idle"
     assert hl.snapshot()["locks"] == {}
+
+
+def test_a_switch_leaves_no_reference_cycles(hl: HighLevelBehaviorManager) -> None:
+    """An ended behaviour and its actions are freed as soon as nobody holds them, without
+    the garbage collector: cycles would wait for it, and its pauses land in later switches."""
+    hl.register("busy", Busy)
+    gc.collect()
+    gc.disable()
+    try:
+        old = switch_ready(hl, "busy")
+        refs = [weakref.ref(old)] + [weakref.ref(a) for a in old.actions]
+        hl.switch("idle")
+        assert wait_until(lambda: not any(item.alive for r in refs if (item := r()) is not None))
+        del old
+        assert wait_until(lambda: all(r() is None for r in refs)), \
+            f"still alive: {[r() for r in refs if r() is not None]}"
+    finally:
+        gc.enable()
 
 
 def test_switch_params_override_registered_ones(hl: HighLevelBehaviorManager) -> None:
