@@ -588,6 +588,7 @@ function render() {
   }
   $("#current-logic").textContent = snap && snap.low && snap.low.current ? `logic: ${snap.low.current}` : "";
   renderEngines(snap);
+  if (window.beehaveGraphHook) window.beehaveGraphHook(name, snap);  // graph.js: graphs, breakpoints
   renderRunning(snap);
   renderLow(snap);
   renderBlackboard(state.blackboard);
