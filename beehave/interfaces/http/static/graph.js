@@ -64,7 +64,8 @@ window.beehaveGraph = (() => {
       "label": "data(label)", "text-valign": "center", "text-halign": "center",
       "text-wrap": "wrap", "text-max-width": 150, "font-size": 11, "color": "#1f2328",
       "shape": "round-rectangle",
-      "background-color": "#ffffff", "border-width": 1.5, "border-color": "#8a8f96"}},
+      "background-color": "#ffffff", "border-width": 1.5, "border-color": "#8a8f96",
+      "min-zoomed-font-size": 5}},  // labels too small to read are not drawn (zoom in)
     {selector: "node[w]", style: {"width": "data(w)", "height": "data(h)"}},
     {selector: "node.engine", style: {
       "label": "data(label)", "text-valign": "top", "text-halign": "center",
@@ -96,7 +97,7 @@ window.beehaveGraph = (() => {
       "target-arrow-shape": "triangle", "curve-style": "bezier", "arrow-scale": 0.9,
       "label": "data(label)", "font-size": 10, "text-rotation": "none",
       "text-background-color": "#ffffff", "text-background-opacity": 0.9,
-      "text-background-padding": 2, "color": "#444a52"}},
+      "text-background-padding": 2, "color": "#444a52", "min-zoomed-font-size": 6}},
     {selector: "edge.tree-edge", style: {"curve-style": "taxi", "taxi-direction": "downward",
       "target-arrow-shape": "none", "label": ""}},
     {selector: "edge.last", style: {"line-color": ACTIVE, "target-arrow-color": "#9a6a00",
