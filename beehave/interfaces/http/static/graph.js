@@ -143,11 +143,11 @@ window.beehaveGraph = (() => {
       if (s.kind === "state_machine") {
         const init = idOf("i", engine.path);
         els.push({group: "nodes", data: {id: init, parent: box, engine: engine.path}, classes: "initial"});
-        for (const state of s.states) {
+        for (const [order, state] of s.states.entries()) {
           const starts = (state.starts || []).map((x) => `▶ ${x.label}`).join("\n");
           els.push({group: "nodes", classes: `state${state.final ? " final" : ""}`, data: sized({
             id: idOf("s", engine.path, state.name), parent: box, label: starts ? `${state.name}\n${starts}` : state.name,
-            engine: engine.path, state: state.name, bpKind: "state", bpTarget: state.name})});
+            engine: engine.path, state: state.name, bpKind: "state", bpTarget: state.name, order})});
         }
         els.push({group: "edges", data: {id: idOf("ie", engine.path), source: init,
           target: idOf("s", engine.path, s.initial), label: ""}});
@@ -162,20 +162,24 @@ window.beehaveGraph = (() => {
             from: t.source, to: t.dest}});
         });
       } else if (s.kind === "behaviour_tree") {
+        const edges = [];
         s.nodes.forEach((node, i) => {
           const composite = s.nodes.some((n) => n.parent === i);
           const type = node.type ? ` (${node.type}${node.memory ? ", memory" : ""})` : "";
           els.push({group: "nodes", classes: `tnode${composite ? " composite" : ""}`, data: sized({
             id: idOf("n", engine.path, i), parent: box, label: `${node.name}${composite ? type : ""}`,
             full: `${node.name}${composite ? type : ""}`,
-            engine: engine.path, path: node.path, name: node.name, index: i,
+            engine: engine.path, path: node.path, name: node.name, index: i, order: i,
             bpKind: "node", bpTarget: node.path, actionType: node.action_type || ""})});
           if (node.parent !== null && node.parent !== undefined) {
-            els.push({group: "edges", classes: "tree-edge", data: {
+            edges.push({group: "edges", classes: "tree-edge", data: {
               id: idOf("te", engine.path, i), source: idOf("n", engine.path, node.parent),
               target: idOf("n", engine.path, i), label: ""}});
           }
         });
+        // dagre orders siblings by the edges it meets, and places the first met
+        // rightmost: given last child first, the children read left to right as ticked.
+        els.push(...edges.reverse());
       }
     }
     return els;
@@ -424,7 +428,7 @@ window.beehaveGraph = (() => {
           return el("li", {"data-kind": k, "data-target": t}, `${k}: ${t} `, rm);
         })));
       const h = data.hit;
-      hit.textContent = h ? `⏸ stopped at ${h.kind === "action_type" ? "action type" : h.kind} “${h.target}” (${h.path})` : "";
+      hit.textContent = h ? `Paused at ${h.kind === "action_type" ? "action type" : h.kind} “${h.target}” (${h.path})` : "";
       hit.dataset.hit = h ? `${h.kind}:${h.target}` : "";
       if (h || data.paused) cont.removeAttribute("disabled"); else cont.setAttribute("disabled", "");
       if (onChange) onChange(data);
