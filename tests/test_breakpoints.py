@@ -16,7 +16,9 @@ httpx = pytest.importorskip("httpx")
 
 from beehave import HighLevelBehaviorManager  # noqa: E402
 from beehave.breakpoints import Breakpoints, UnknownBreakpointTarget  # noqa: E402
+from beehave.breakpoints import of as breakpoints_of  # noqa: E402
 from beehave.engines import EngineBehavior  # noqa: E402
+from beehave.errors import BadRequest  # noqa: E402
 from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
 from beehave.testing import wait_until  # noqa: E402
@@ -92,7 +94,6 @@ def test_unknown_targets_and_kinds_are_refused_naming_the_valid_ones(
         points.add("action_type", "drivng")
     with pytest.raises(UnknownBreakpointTarget, match="'root/patrol/look'"):
         points.add("node", "nope")
-    from beehave.errors import BadRequest
     with pytest.raises(BadRequest, match="'state', 'node', 'action_type'"):
         points.add("transition", "x")
 
@@ -169,9 +170,7 @@ def test_breakpoint_endpoints_off_loopback_need_the_token(
                 wrong = client.request(method, api + path, json=payload,
                                        headers={"Authorization": "Bearer nope"})
                 assert wrong.status_code == 401, (path, wrong.text)
-            assert Breakpoints is not None
-            from beehave.breakpoints import of
-            points = of(robot)
+            points = breakpoints_of(robot)
             assert points is None or points.listing()["state"] == []  # nothing was set
             ok = client.post(api + "/breakpoints", json=body,
                              headers={"Authorization": "Bearer t0ken"})
