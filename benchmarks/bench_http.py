@@ -20,6 +20,9 @@ Targets (issue 14):
   /api/recording/at?t=`` at a random moment, everything the page draws then (snapshot,
   blackboard, events, trail) — median ≤ 100 ms; the recording: 12 blackboard keys at
   10 Hz and a behaviour switch with two actions every 5 s (≈ 270 000 messages).
+- the graphs (issue 28, :mod:`benchmarks._graph_view`): a 300-node tree and a 60-state
+  machine render in ≤ 200 ms and stay live at 20 Hz with the page's main thread busy
+  ≤ 25 %.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ from beehave.events import EventKind  # noqa: E402
 from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import HttpServer  # noqa: E402
 from beehave.testing import ScriptedAction  # noqa: E402
+from benchmarks._graph_view import graph_view  # noqa: E402
 from benchmarks._util import median, percentile, report  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -388,6 +392,7 @@ def main() -> list[dict[str, Any]]:
         hl.shutdown()
     rows.append(cpu_ratio())
     rows.append(scrub_recording())
+    rows += graph_view()  # issue 28: the graphs of a 300-node tree, a 60-state machine
     return rows
 
 

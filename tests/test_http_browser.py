@@ -263,6 +263,68 @@ def test_pause_on_the_page_holds_the_robot_still_and_resume_drives_on(
         "document.querySelector('#current-behavior').textContent === 'idle'", timeout=WAIT_MS)
 
 
+def test_a_breakpoint_on_driving_set_on_the_page_holds_emili_still_and_continue_drives_on(
+        robot: RobotProcess, page: Any) -> None:
+    """Issue 28, item 4: a breakpoint on the action type ``driving``, set from the page,
+    pauses the robot as the shuttle's navigation starts: EMILI stands still in the
+    physics (its odometry) and the page shows where it stopped; "Continue" drives on."""
+    def pose() -> tuple[float, float]:
+        board = robot.api("api/robots/emili1/blackboard", params={"pattern": "odom/*"})
+        return board["odom/x_m"]["value"], board["odom/y_m"]["value"]
+
+    def moved_from(where: tuple[float, float]) -> float:
+        x, y = pose()
+        return math.hypot(x - where[0], y - where[1])
+
+    page.wait_for_selector("#robot-emili1", timeout=WAIT_MS)
+    page.wait_for_selector("#breakpoints .bp-add", timeout=WAIT_MS)
+    page.select_option("#breakpoints .bp-kind", "action_type")
+    page.fill("#breakpoints .bp-target", "driving")
+    page.click("#breakpoints .bp-add")
+    page.wait_for_selector('#breakpoints li[data-kind="action_type"][data-target="driving"]',
+                           timeout=WAIT_MS)
+    assert robot.api("api/robots/emili1/breakpoints")["breakpoints"]["action_type"] == [
+        "driving"]
+    start = pose()
+    page.select_option("#behavior-choice", "shuttle")
+    page.click("#switch-btn")
+    assert wait_until(lambda: robot.api("api/robots/emili1/status")["paused"]), \
+        "the breakpoint did not pause the robot"
+    hit = robot.api("api/robots/emili1/breakpoints")["hit"]
+    assert hit["kind"] == "action_type" and hit["target"] == "driving", hit
+    assert hit["path"].startswith("shuttle/"), hit
+    page.wait_for_selector('#breakpoints .bp-hit[data-hit="action_type:driving"]',
+                           timeout=WAIT_MS)
+    assert "driving" in page.locator("#breakpoints .bp-hit").text_content()
+
+    # It may have rolled a little before the pause took hold; then it stands still.
+    def settled() -> bool:
+        before = pose()
+        time.sleep(0.5)
+        return moved_from(before) < 0.005
+
+    assert wait_until(settled), "the robot did not come to a standstill at the breakpoint"
+    held = pose()
+    # Stopped where the drive began (the pause is requested as the action starts, and
+    # the action runs again from its start after "Continue").
+    rolled = math.hypot(held[0] - start[0], held[1] - start[1])
+    assert rolled < 0.1, f"EMILI rolled {rolled:.3f} m past the breakpoint"
+    time.sleep(1.5)
+    assert moved_from(held) < 0.01, "the robot moved while held at the breakpoint"
+    assert robot.api("api/robots/emili1/status")["paused"]
+    page.click("#breakpoints .bp-remove")
+    page.wait_for_function("!document.querySelector('#breakpoints li[data-kind]')",
+                           timeout=WAIT_MS)
+    page.click("#breakpoints .bp-continue")
+    assert wait_until(lambda: not robot.api("api/robots/emili1/status")["paused"])
+    assert wait_until(lambda: moved_from(held) > 0.2), "the robot did not drive on"
+    page.wait_for_function("document.querySelector('#breakpoints .bp-hit').textContent === ''",
+                           timeout=WAIT_MS)
+    page.click("#stop-btn")
+    page.wait_for_function(
+        "document.querySelector('#current-behavior').textContent === 'idle'", timeout=WAIT_MS)
+
+
 def test_off_loopback_the_page_needs_the_token_and_a_wrong_one_is_refused(
         browser: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     from beehave import HighLevelBehaviorManager

@@ -271,7 +271,7 @@ def test_the_engine_description_names_the_state_and_the_last_transition(
     assert wait_until(lambda: machine.state == "wait")
     assert hl.snapshot()["top"]["engine"] == {
         "kind": "state_machine", "state": "wait", "states": ["wait", "go", "end"],
-        "last_transition": None}
+        "last_transition": None, "structure_id": machine.structure_id()}
     machine.post("next")
     assert wait_until(lambda: machine.state == "go")
     engine = hl.snapshot()["top"]["engine"]

@@ -21,7 +21,9 @@ Conditions are callables ``condition(blackboard) -> bool``; :func:`parse_conditi
 from __future__ import annotations
 
 import abc
+import hashlib
 import importlib
+import json
 import operator
 import re
 import threading
@@ -336,11 +338,13 @@ class DecisionEngine(abc.ABC):
 
     _drive_lock: threading.Lock
     _context: EngineContext | None
+    _structure_memo: tuple[str | None] | None
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
         self._drive_lock = threading.Lock()
         self._context = None
+        self._structure_memo = None
         return self
 
     def drive(self, behavior: Behavior) -> Any:
@@ -395,6 +399,32 @@ class DecisionEngine(abc.ABC):
     def to_graph(self) -> graphviz.Digraph:
         """The engine's structure as a graphviz graph (``beehave graph`` renders it)."""
         raise NotRenderable(f"{type(self).__name__} has no graph to draw")
+
+    def structure(self) -> dict[str, Any] | None:
+        """What the engine is made of, for viewers that draw it (the web view's graphs),
+        JSON-serialisable with at least ``"kind"``; None (the default): nothing to draw.
+        A state machine gives its states and labelled transitions, a tree its nodes.
+
+        It changes rarely, so :meth:`describe` carries only its :meth:`structure_id` and a
+        viewer asks for the structure itself when that id is new to it (``GET
+        /api/robots/{robot}/structure``). Override it in your own engine, and call
+        :meth:`structure_changed` when it changes."""
+        return None
+
+    def structure_id(self) -> str | None:
+        """A short id of :meth:`structure` (a hash of it), computed once until
+        :meth:`structure_changed`; None when there is no structure."""
+        memo = self._structure_memo
+        if memo is None:
+            structure = self.structure()
+            digest = None if structure is None else hashlib.sha1(
+                json.dumps(structure, sort_keys=True, default=str).encode()).hexdigest()[:12]
+            memo = self._structure_memo = (digest,)
+        return memo[0]
+
+    def structure_changed(self) -> None:
+        """The structure changed: the next :meth:`structure_id` is computed again."""
+        self._structure_memo = None
 
     def describe(self) -> dict[str, Any]:
         """Where the engine is now, as a small JSON-serialisable dict with at least

@@ -44,6 +44,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from beehave import breakpoints
 from beehave.engines.engine import (
     Condition,
     DecisionEngine,
@@ -515,7 +516,36 @@ class StateMachineEngine(DecisionEngine):
         "state": …, "states": […], "last_transition": {…} or None}``. Safe from any
         thread (the high-level snapshot calls it)."""
         return {"kind": "state_machine", "state": self._state, "states": list(self.states),
-                "last_transition": self.last_transition}
+                "last_transition": self.last_transition,
+                "structure_id": self.structure_id()}
+
+    def structure(self) -> dict[str, Any]:
+        """The machine as a graph, JSON-serialisable: ``{"kind": "state_machine",
+        "initial", "states": [{"name", "final", "starts": [{"label", "action_type"}]}],
+        "transitions": [{"source", "dest", "on", "when": [...], "unless": [...],
+        "label"}], "events": [...]}``. A wildcard transition (``"*"``) is listed once,
+        with ``"source": "*"`` and the states it leaves in ``"sources"``; ``label`` reads
+        ``on [when] [not unless]`` (``action_type`` is null where a starter is a factory
+        rather than an Action class)."""
+        states = []
+        for state in self.states.values():
+            starts = [{"label": s.name, "action_type": _action_type_of(s)}
+                      for s in state.starters]
+            states.append({"name": state.name, "final": state.final, "starts": starts})
+        transitions = []
+        for tr, when, unless, sources in self._compiled:
+            whens = [condition_label(c) for c in when]
+            unlesses = [condition_label(c) for c in unless]
+            parts = ([tr.on] if tr.on else []) + [f"[{w}]" for w in whens]
+            parts += [f"[not {u}]" for u in unlesses]
+            common = {"dest": tr.dest, "on": tr.on, "when": whens, "unless": unlesses,
+                      "label": " ".join(parts)}
+            if tr.source == "*":  # one edge from "any state", not one per state
+                transitions.append({"source": "*", "sources": list(sources), **common})
+            else:
+                transitions += [{"source": src, **common} for src in sources]
+        return {"kind": "state_machine", "initial": self.initial, "states": states,
+                "transitions": transitions, "events": sorted(self.events)}
 
     # -- the driver ----------------------------------------------------------------------
     def on_start(self, context: EngineContext) -> None:
@@ -619,6 +649,7 @@ class StateMachineEngine(DecisionEngine):
             self._last_transition = {"source": self._state, "dest": name,
                                      "trigger": trigger, "time": time.time()}
         self._state = name
+        breakpoints.entered(context.behavior, "state", name)
         starters = self.states[name].starters
         if starters:
             self._pending = [context.start(s) for s in starters]
@@ -655,6 +686,12 @@ class StateMachineEngine(DecisionEngine):
             for src in sources:
                 graph.edge(src, tr.dest, " ".join(parts))
         return graph
+
+
+def _action_type_of(starter: Starter) -> str | None:
+    factory = starter.factory
+    action_type = getattr(factory, "action_type", None) if isinstance(factory, type) else None
+    return action_type if isinstance(action_type, str) else None
 
 
 def _bind(condition: Condition, blackboard: Readable) -> Callable[..., bool]:

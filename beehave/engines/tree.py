@@ -30,6 +30,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
+from beehave import breakpoints
 from beehave.engines.engine import (
     Condition,
     DecisionEngine,
@@ -203,7 +204,36 @@ class TreeEngine(DecisionEngine):
             tick, statuses = self.ticks, tuple(node.status.name for node, _ in layout)
         nodes = [{"name": node.name, "path": path, "status": status}
                  for (node, path), status in zip(layout, statuses, strict=True)]
-        return {"kind": "behaviour_tree", "tick": tick, "nodes": nodes}
+        return {"kind": "behaviour_tree", "tick": tick, "nodes": nodes,
+                "structure_id": self.structure_id()}
+
+    def structure(self) -> dict[str, Any]:
+        """The tree as a graph, JSON-serialisable: ``{"kind": "behaviour_tree", "nodes":
+        [{"name", "path", "parent", "type", "memory", "starts", "action_type"}, …]}`` in
+        the pre-order of :meth:`describe` (its statuses line up by index); ``parent`` is
+        the index of the parent node (None for the root), ``type`` the py_trees class
+        (``Sequence``, ``Selector``, ``Parallel``, a decorator, ``StartLeaf`` …),
+        ``memory`` a composite's memory flag (else None), ``starts`` what a StartLeaf
+        starts and ``action_type`` its type where the starter is an Action class."""
+        layout = self._layout()
+        index = {id(node): i for i, (node, _) in enumerate(layout)}
+        nodes = []
+        for node, path in layout:
+            parent = node.parent
+            entry: dict[str, Any] = {
+                "name": node.name, "path": path,
+                "parent": None if node is self.root or parent is None
+                else index.get(id(parent)),
+                "type": type(node).__name__,
+                "memory": getattr(node, "memory", None)}
+            if isinstance(node, StartLeaf):
+                factory = node.starter.factory
+                action_type = getattr(factory, "action_type", None) \
+                    if isinstance(factory, type) else None
+                entry["starts"] = node.starter.name
+                entry["action_type"] = action_type if isinstance(action_type, str) else None
+            nodes.append(entry)
+        return {"kind": "behaviour_tree", "nodes": nodes}
 
     # -- the driver ----------------------------------------------------------------------
     def on_start(self, context: EngineContext) -> None:
@@ -223,10 +253,20 @@ class TreeEngine(DecisionEngine):
         period_s = 1.0 / self.rate_hz
         next_tick = context.now()
         layout = self._layout()
+        self.structure_changed()  # the tree may have been rebuilt since the last run
+        before: tuple[str, ...] = ("INVALID",) * len(layout)
+        behavior = context.behavior
         while not context.interrupted:
             status = self.tick()
             # One tuple, swapped in whole: describe() never sees half a tick.
-            self._seen = (self.ticks, layout, tuple(node.status.name for node, _ in layout))
+            statuses = tuple(node.status.name for node, _ in layout)
+            self._seen = (self.ticks, layout, statuses)
+            if breakpoints.wanted(behavior, "node"):
+                for (node, path), new, was in zip(layout, statuses, before, strict=True):
+                    # Entered: ticked into a new status from one that was not RUNNING.
+                    if new != was and new != "INVALID" and was != "RUNNING":
+                        breakpoints.entered(behavior, "node", path, also=node.name)
+            before = statuses
             if context.interrupted:  # leaves saw their actions interrupted: not a failure
                 return None
             if status == TreeStatus.SUCCESS:

@@ -37,6 +37,9 @@ from typing import TYPE_CHECKING, Any
 from pydantic import TypeAdapter, ValidationError
 
 from beehave.blackboard import Blackboard, check_key, to_json
+from beehave.breakpoints import KINDS as BREAKPOINT_KINDS
+from beehave.breakpoints import Breakpoints
+from beehave.breakpoints import of as breakpoints_of
 from beehave.errors import BadRequest, InvalidParameters, UnknownBehavior, UnknownKey
 from beehave.events import Event
 from beehave.highlevel import IDLE, HighLevelBehaviorManager
@@ -94,6 +97,7 @@ class ControlPlane:
         self._low_cache: tuple[float, dict[str, Any]] | None = None
         self._low_dirty = True
         self._unsubscribe = [high.subscribe(self._on_high_event)]
+        self._points: Breakpoints | None = None
         if low is not None:
             self._unsubscribe.append(low.subscribe(self._on_low_event))
 
@@ -172,6 +176,64 @@ class ControlPlane:
         """End the pause: ``{"resumed": True}``, or ``{"resumed": False}`` when none was on
         (nothing is refused: a resume of a running robot changes nothing)."""
         return {"resumed": self.high.resume()}
+
+    # -- breakpoints ------------------------------------------------------------------------
+
+    def breakpoints(self) -> dict[str, Any]:
+        """``{"breakpoints": {kind: [targets]}, "hit": {"kind", "target", "path",
+        "stamp"} or None, "paused": bool, "choices": {kind: [names]}}`` (see
+        :mod:`beehave.breakpoints`)."""
+        points = self._breakpoints()
+        out = points.state()
+        out["choices"] = {kind: points.choices(kind) for kind in BREAKPOINT_KINDS}
+        return out
+
+    def set_breakpoint(self, kind: str, target: str) -> dict[str, Any]:
+        """Pause the robot when ``target`` (a state, a tree node, an action type: ``kind``)
+        is entered; an unknown kind is a :class:`~beehave.errors.BadRequest`, an unknown
+        target an :class:`~beehave.breakpoints.UnknownBreakpointTarget` naming the valid
+        ones. Returns :meth:`breakpoints`."""
+        self._breakpoints().add(kind, target)
+        return self.breakpoints()
+
+    def clear_breakpoint(self, kind: str, target: str) -> dict[str, Any]:
+        """Remove a breakpoint; returns :meth:`breakpoints`."""
+        self._breakpoints().remove(kind, target)
+        return self.breakpoints()
+
+    def continue_(self) -> dict[str, Any]:
+        """Continue after a breakpoint (ends the pause): ``{"resumed": bool}``."""
+        return {"resumed": self._breakpoints().resume()}
+
+    def _breakpoints(self) -> Breakpoints:
+        with self._lock:
+            if self._points is None:
+                existing = breakpoints_of(self.high)
+                if existing is None:
+                    existing = Breakpoints(self.high)
+                    self._unsubscribe.append(existing.close)  # ours: closed with the plane
+                self._points = existing
+            return self._points
+
+    def structures(self) -> list[dict[str, Any]]:
+        """The structure of every running decision engine (what a viewer draws once; the
+        updates carry only its ``structure_id`` and the statuses):
+        ``[{"path", "structure_id", **engine.structure()}]`` (see
+        :meth:`~beehave.engines.engine.DecisionEngine.structure`)."""
+        out: list[dict[str, Any]] = []
+
+        def walk(node: Any) -> None:
+            engine = getattr(node, "_engine", None)
+            if engine is not None:
+                structure = engine.structure()
+                if structure is not None:
+                    out.append({"path": node.path, "structure_id": engine.structure_id(),
+                                **to_json(structure)})
+            for child in list(getattr(node, "children", ())):
+                walk(child)
+
+        walk(self.high.top)
+        return out
 
     # -- what runs --------------------------------------------------------------------------
 

@@ -84,6 +84,15 @@ class SwitchRequest(BaseModel):
                                    description="constructor parameters, JSON values")
 
 
+class BreakpointRequest(BaseModel):
+    """``POST /api/robots/{robot}/breakpoints`` (and ``…/breakpoints/remove``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    kind: str = Field(description="'state', 'node' or 'action_type'")
+    target: str = Field(description="a state name, a tree node's path or name, an action "
+                                    "type (GET …/breakpoints lists the choices)")
+
+
 class HttpError(Exception):
     def __init__(self, status: int, error: str, detail: str) -> None:
         super().__init__(detail)
@@ -313,6 +322,35 @@ def create_app(planes: Mapping[str, ControlPlane], *, world: Provider = None,
               summary="End the pause: the behaviour goes on where it was")
     def resume(_: Command, plane: Plane) -> dict[str, Any]:
         return plane.resume()
+
+    @app.get("/api/robots/{robot}/structure",
+             summary="The structure of each running decision engine (states and labelled "
+                     "transitions, tree nodes): fetched when an update names a new "
+                     "structure_id")
+    def structure(_: Read, plane: Plane) -> dict[str, Any]:
+        return {"engines": plane.structures()}
+
+    @app.get("/api/robots/{robot}/breakpoints",
+             summary="Breakpoints set, the one that holds the robot (hit), valid targets")
+    def get_breakpoints(_: Read, plane: Plane) -> dict[str, Any]:
+        return plane.breakpoints()
+
+    @app.post("/api/robots/{robot}/breakpoints", status_code=201,
+              summary="Pause the robot when a state, a tree node or an action type is "
+                      "entered")
+    def set_breakpoint(_: Command, plane: Plane, body: BreakpointRequest) -> dict[str, Any]:
+        return plane.set_breakpoint(body.kind, body.target)
+
+    @app.post("/api/robots/{robot}/breakpoints/remove", status_code=200,
+              summary="Remove a breakpoint")
+    def clear_breakpoint(_: Command, plane: Plane, body: BreakpointRequest
+                         ) -> dict[str, Any]:
+        return plane.clear_breakpoint(body.kind, body.target)
+
+    @app.post("/api/robots/{robot}/continue", status_code=200,
+              summary="Continue after a breakpoint (ends the pause)")
+    def continue_(_: Command, plane: Plane) -> dict[str, Any]:
+        return plane.continue_()
 
     @app.get("/api/robots/{robot}/blackboard",
              summary="Blackboard entries by key or pattern, with age and staleness")

@@ -451,38 +451,74 @@ function renderEngines(snapshot) {
   const box = $("#engines");
   const engines = (snapshot && snapshot.engines) || [];
   if (!engines.length) {
-    box.replaceChildren(el("span", {class: "muted", text: "no decision engine runs"}));
+    if (box.dataset.key !== "") {
+      box.dataset.key = "";
+      box.replaceChildren(el("span", {class: "muted", text: "no decision engine runs"}));
+    }
     return;
   }
-  box.replaceChildren(...engines.map((engine) => {
-    const part = el("div", {class: `engine ${engine.kind}`, "data-engine": engine.path});
-    part.append(el("h3", {text: `${engine.path} — ${engine.kind || "engine"}`}));
-    if (engine.kind === "state_machine") {
-      const row = el("div", {class: "sm"});
-      for (const state of engine.states || []) {
-        const name = typeof state === "string" ? state : state.name;
-        row.append(el("span", {class: `sm-state${name === engine.state ? " active" : ""}`,
-                               "data-state": name, text: name}));
-      }
-      part.append(row);
-      const t = engine.last_transition;
-      if (t) part.append(el("div", {class: "muted", text: `last: ${t.source || "?"} → ${t.dest || "?"}${t.trigger ? " on " + t.trigger : ""}`}));
-    } else if (engine.kind === "behaviour_tree") {
-      for (const node of engine.nodes || []) {
-        const depth = (node.path.match(/\//g) || []).length;
-        const row = el("div", {class: `bt-node status-${node.status}`, "data-node": node.path,
-                               "data-status": node.status, style: `padding-left:${depth * 14}px`},
-                       el("span", {class: `dot status-${node.status}`}), node.name);
-        part.append(row);
-      }
-      part.append(el("div", {class: "muted", text: `tick ${engine.tick}`}));
-    } else {
-      const rest = Object.assign({}, engine);
-      delete rest.path; delete rest.kind;
-      part.append(el("pre", {class: "muted", text: JSON.stringify(rest, null, 1)}));
+  // Rebuilt only when the engines or their states / nodes change; otherwise the rows are
+  // updated in place (a 300-node tree at 20 Hz must not rebuild 300 rows per update).
+  const key = engines.map((e) => `${e.path}|${e.kind}|${e.structure_id || ""}|${
+    e.kind === "state_machine" ? (e.states || []).map((s) => typeof s === "string" ? s : s.name).join(",")
+    : e.kind === "behaviour_tree" ? (e.nodes || []).length : JSON.stringify(e)}`).join("\n");
+  if (box.dataset.key !== key) {
+    box.dataset.key = key;
+    box.replaceChildren(...engines.map(engineView));
+  }
+  engines.forEach((engine, i) => updateEngine(box.children[i], engine));
+}
+
+function engineView(engine) {
+  const part = el("div", {class: `engine ${engine.kind}`, "data-engine": engine.path});
+  part.append(el("h3", {text: `${engine.path} — ${engine.kind || "engine"}`}));
+  if (engine.kind === "state_machine") {
+    const row = el("div", {class: "sm"});
+    for (const state of engine.states || []) {
+      const name = typeof state === "string" ? state : state.name;
+      row.append(el("span", {class: "sm-state", "data-state": name, text: name}));
     }
-    return part;
-  }));
+    part.append(row, el("div", {class: "muted last"}));
+  } else if (engine.kind === "behaviour_tree") {
+    for (const node of engine.nodes || []) {
+      const depth = (node.path.match(/\//g) || []).length;
+      part.append(el("div", {class: "bt-node", "data-node": node.path,
+                             style: `padding-left:${depth * 14}px`},
+                     el("span", {class: "dot"}), node.name));
+    }
+    part.append(el("div", {class: "muted tick"}));
+  } else {
+    const rest = Object.assign({}, engine);
+    delete rest.path; delete rest.kind;
+    part.append(el("pre", {class: "muted", text: JSON.stringify(rest, null, 1)}));
+  }
+  return part;
+}
+
+function updateEngine(part, engine) {
+  if (!part) return;
+  if (engine.kind === "state_machine") {
+    for (const span of part.querySelectorAll(".sm-state")) {
+      const active = span.dataset.state === engine.state;
+      if (span.classList.contains("active") !== active) span.classList.toggle("active", active);
+    }
+    const t = engine.last_transition;
+    const text = t ? `last: ${t.source || "?"} → ${t.dest || "?"}${t.trigger ? " on " + t.trigger : ""}` : "";
+    const last = part.querySelector(".last");
+    if (last.textContent !== text) last.textContent = text;
+  } else if (engine.kind === "behaviour_tree") {
+    const rows = part.querySelectorAll(".bt-node");
+    (engine.nodes || []).forEach((node, i) => {
+      const row = rows[i];
+      if (!row || row.dataset.status === node.status) return;
+      row.dataset.status = node.status;
+      row.className = `bt-node status-${node.status}`;
+      row.firstChild.className = `dot status-${node.status}`;
+    });
+    const tick = part.querySelector(".tick");
+    const text = `tick ${engine.tick}`;
+    if (tick.textContent !== text) tick.textContent = text;
+  }
 }
 
 function treeItem(node) {
@@ -591,6 +627,7 @@ function render() {
   }
   $("#current-logic").textContent = snap && snap.low && snap.low.current ? `logic: ${snap.low.current}` : "";
   renderEngines(snap);
+  if (window.beehaveGraphHook) window.beehaveGraphHook(name, snap);  // graph.js: graphs, breakpoints
   renderRunning(snap);
   renderLow(snap);
   renderBlackboard(state.blackboard);

@@ -1,0 +1,139 @@
+"""The web view's graphs (issue 28): a 300-node tree and a 60-state machine drawn in
+headless chromium, then kept live at 20 Hz.
+
+- render: a fresh graph from a snapshot and its structure (build, dagre layout, the paint
+  of the next frame), timed in the page with ``performance.now()``: median of 5, target
+  ≤ 200 ms;
+- update at 20 Hz: the page connected to a robot running the engine (statuses change at
+  every tick), over ``WINDOW_S``: the main thread's busy share from Chrome's own
+  ``TaskDuration`` (DevTools protocol ``Performance.getMetrics``: the time the renderer's
+  main thread spent in tasks) ÷ wall time, target ≤ 25 %; beside it the share of the
+  graph renderer alone and the updates the page received per second.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any
+
+from beehave import HighLevelBehaviorManager
+from beehave.engines import EngineBehavior
+from beehave.interfaces import ControlPlane
+from beehave.interfaces.http import HttpServer
+from benchmarks._util import median, report
+
+CHROMIUM = "/usr/bin/chromium"
+RENDERS = 5
+WINDOW_S = 10.0
+
+_RENDER = """async ([snapshot, structures, renders]) => {
+  const times = [];
+  for (let i = 0; i < renders; i++) {
+    const box = document.createElement("div");
+    box.style.cssText = "position:fixed;left:0;top:0;width:900px;height:700px;z-index:99";
+    document.body.append(box);
+    const t0 = performance.now();
+    beehaveGraph.render(box, snapshot, {structures});
+    await new Promise((r) => requestAnimationFrame(() => setTimeout(r, 0)));  // painted
+    times.push(performance.now() - t0);
+    box.remove();
+  }
+  return times;
+}"""
+
+_WRAP = """() => {
+  if (window.__graphMs !== undefined) return;
+  window.__graphMs = 0;
+  const render = beehaveGraph.render;
+  beehaveGraph.render = (...args) => {
+    const t0 = performance.now();
+    try { return render(...args); } finally { window.__graphMs += performance.now() - t0; }
+  };
+}"""
+
+
+def _metrics(cdp: Any) -> dict[str, float]:
+    return {m["name"]: m["value"] for m in cdp.send("Performance.getMetrics")["metrics"]}
+
+
+def graph_view() -> list[dict[str, Any]]:
+    """Render time and live-update cost of the two big graphs (skipped without chromium)."""
+    from playwright.sync_api import sync_playwright
+
+    from behaviours.demos.graphs import big_machine, big_tree
+
+    if not os.path.exists(CHROMIUM):
+        return []
+    rows = []
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    engines = {"tree": big_tree(300), "state_machine": big_machine(60)}
+    for name, engine in engines.items():
+        hl.register(name, EngineBehavior, engine=engine)
+    hl.start()
+    plane = ControlPlane(hl, name="robot")
+    try:
+        with HttpServer(plane, rate_hz=20.0) as server, sync_playwright() as playwright:
+            browser = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
+            try:
+                for name, engine in engines.items():
+                    size = len(engine.structure()["nodes" if name == "tree" else "states"])
+                    hl.switch(name)
+                    page = browser.new_page(viewport={"width": 1280, "height": 800})
+                    page.goto(server.url)
+                    page.wait_for_function(
+                        "+(document.querySelector('#graphs') || {dataset: {}}).dataset.nodes"
+                        f" >= {size}", timeout=60_000)
+                    snapshot = plane.snapshot()
+                    structures = plane.structures()
+                    cdp = page.context.new_cdp_session(page)
+                    cdp.send("Performance.enable")
+                    before = _metrics(cdp)
+                    times = page.evaluate(_RENDER, [snapshot, structures, RENDERS])
+                    after = _metrics(cdp)
+                    render_ms = median(times)
+                    cpu_ms = (after["ThreadTime"] - before["ThreadTime"]) * 1e3 / RENDERS
+                    rows.append(report(
+                        f"http_graph_render_{name}_ms", render_ms, "ms", "<= 200 ms",
+                        render_ms <= 200.0, max_ms=round(max(times), 1),
+                        main_thread_cpu_ms=round(cpu_ms, 1), nodes=size,
+                        load_average=round(os.getloadavg()[0], 1),
+                        note="fresh graph from a snapshot: build + dagre layout + paint "
+                             "(wall, median; main_thread_cpu_ms: the renderer thread's CPU "
+                             "per render, what a busy host does not inflate)"))
+                    page.evaluate(_WRAP)
+                    updates0 = page.evaluate("window.beehave.updates")
+                    graph0 = page.evaluate("window.__graphMs")
+                    m0, wall0 = _metrics(cdp), time.monotonic()
+                    time.sleep(WINDOW_S)
+                    m1, wall1 = _metrics(cdp), time.monotonic()
+                    updates = page.evaluate("window.beehave.updates") - updates0
+                    graph_ms = page.evaluate("window.__graphMs") - graph0
+                    wall = wall1 - wall0
+
+                    def share(key: str, m0: dict[str, float] = m0,
+                              m1: dict[str, float] = m1, wall: float = wall) -> float:
+                        return round((m1[key] - m0[key]) / wall * 100, 2)
+
+                    busy = share("ThreadTime")
+                    rows.append(report(
+                        f"http_graph_live_{name}_busy_share", busy, "%",
+                        "<= 25 % at 20 Hz", busy <= 25.0,
+                        updates_per_s=round(updates / wall, 1),
+                        graph_share_pct=round(graph_ms / 1e3 / wall * 100, 2),
+                        task_share_pct=share("TaskDuration"),
+                        script_pct=share("ScriptDuration"),
+                        layout_style_pct=round(share("LayoutDuration")
+                                               + share("RecalcStyleDuration"), 2),
+                        nodes=size, load_average=round(os.getloadavg()[0], 1),
+                        note="the page's main thread CPU (Chrome ThreadTime) / wall with "
+                             "the page live (the whole page: map, panels, graph); "
+                             "task_share_pct: the time in tasks (wall, inflated on a busy "
+                             "host); graph_share_pct: graph.js's render alone"))
+                    page.close()
+            finally:
+                browser.close()
+    finally:
+        plane.close()
+        hl.shutdown()
+    return rows
