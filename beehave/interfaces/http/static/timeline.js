@@ -148,25 +148,13 @@
     live.setAttribute("aria-pressed", String(tl.at === null));
   }
 
-  // The graphs of the decision engines (graph.js, when present) drawn from the snapshot
-  // of the moment shown: window.beehaveGraph.render(container, snapshot).
-  function drawGraph() {
-    const graph = window.beehaveGraph;
-    const shown = view.past && view.selected && view.past[view.selected];
-    const box = document.querySelector("#engines");
-    if (graph && typeof graph.render === "function" && shown && shown.snapshot && box) {
-      graph.render(box, shown.snapshot);
-    }
-  }
-
   // Show the moment t (wall seconds live; seconds since the start in a recording).
   function show(t) {
     tl.at = t;
     if (tl.recording) { seek(t); return; }
     view.past = t === null ? null : pastAt(t);
     updateBar();
-    render();
-    drawGraph();
+    render();  // the graphs too: app.js's render() gives graph.js the snapshot shown
     for (const listener of tl.listeners) listener(t);
   }
   tl.show = show;
@@ -198,7 +186,6 @@
         }
         bar.dataset.shown = String(asked);
         render();
-        drawGraph();
         for (const listener of tl.listeners) listener(asked);
       }
     } catch (err) {
