@@ -65,11 +65,16 @@ class UsesBroken(Logic):
 
 class BlocksTheLoop(Logic):
     """The mistake of issue 11: ``time.sleep`` in a logic holds the whole event loop.
-    Starts blocking a moment after it starts, so the robot is up first, and says so on
-    stdout (the test waits for that line)."""
+    Starts blocking once the robot is up (the high level's state has reached this low
+    level), and says so on stdout (the test waits for that line). A fixed 0.3 s was not
+    enough on a loaded machine: it blocked before ``beehave run`` said "running"."""
 
     async def run(self) -> None:
-        await asyncio.sleep(0.3)
+        for _ in range(400):  # at most 20 s, then block anyway
+            if self.blackboard.get("high_level/behavior") is not None:
+                break
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(0.5)  # "running" is printed once the robot's start returned
         print("BlocksTheLoop: blocking the event loop now", flush=True)
         while True:
             time.sleep(0.05)  # noqa: ASYNC251 - the bug this fixture stands for

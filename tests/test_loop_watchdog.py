@@ -105,7 +105,9 @@ def test_a_hal_that_blocks_the_loop_is_named() -> None:
         name = "sleepy"
 
         async def run(self) -> None:
-            time.sleep(0.3)  # a blocking driver read
+            while True:
+                time.sleep(0.3)  # a blocking driver read
+                await asyncio.sleep(0.05)
 
     class UsesSleepy(Logic):
         async def run(self) -> None:
@@ -116,10 +118,18 @@ def test_a_hal_that_blocks_the_loop_is_named() -> None:
     ll.register("uses", UsesSleepy)
     ll.hals.register(Sleepy)
     events = events_of(ll)
+
+    def blocked() -> list[Any]:
+        return [e for e in events if e.kind is EventKind.LOOP_BLOCKED]
+
+    # On a loaded machine the watchdog itself may wake late during one block, and then
+    # rightly blames no one (the process was starved); a driver that keeps blocking is
+    # named at a block where it woke on time. Nobody else is ever blamed.
     with ll:
-        assert wait_until(lambda: any(e.kind is EventKind.LOOP_BLOCKED for e in events))
-    first = next(e for e in events if e.kind is EventKind.LOOP_BLOCKED)
-    assert first.subject == "hal:sleepy" and first.detail["culprit"] == "HAL 'sleepy'"
+        assert wait_until(lambda: any(e.subject == "hal:sleepy" for e in blocked()))
+    named = next(e for e in blocked() if e.subject == "hal:sleepy")
+    assert named.detail["culprit"] == "HAL 'sleepy'"
+    assert {e.subject for e in blocked()} <= {"hal:sleepy", "process"}, blocked()
 
 
 def test_a_blocking_blackboard_callback_is_found_by_its_line() -> None:
