@@ -303,9 +303,16 @@ class _EngineSampler:
             seen = set()
             for path, engine in found:
                 seen.add(path)
-                described = to_json(engine.describe())
+                described = engine.describe()
                 if not isinstance(described, dict):
                     continue
+                # Compared as given (cheaper than encoding it at every look): encoded
+                # only when it changed.
+                compared = {k: v for k, v in described.items() if k != "tick"} \
+                    if "tick" in described else described
+                if self.last.get(path) == compared:
+                    continue
+                self.last[path] = compared
                 sid = described.get("structure_id")
                 if isinstance(sid, str) and sid not in self.recorded:
                     structure = engine.structure()
@@ -314,12 +321,8 @@ class _EngineSampler:
                         self.structures.put((t_ns, _dumps({
                             "path": path, "structure_id": sid,
                             "structure": to_json(structure), "stamp": stamp})))
-                compared = {k: v for k, v in described.items() if k != "tick"} \
-                    if "tick" in described else described
-                if self.last.get(path) != compared:
-                    self.last[path] = compared
-                    self.states.put((t_ns, _dumps({"path": path, "engine": described,
-                                                   "stamp": stamp})))
+                self.states.put((t_ns, _dumps({"path": path, "engine": to_json(described),
+                                               "stamp": stamp})))
             for path in [p for p in self.last if p not in seen]:
                 del self.last[path]
                 self.states.put((t_ns, _dumps({"path": path, "engine": None,
