@@ -38,9 +38,18 @@ Image = pytest.importorskip("PIL.Image")
 from mcap.reader import make_reader  # noqa: E402
 from timeline_fixtures import Patrol, make_recording  # noqa: E402
 
-from beehave import HighLevelBehaviorManager  # noqa: E402
+from beehave import Action, HighLevelBehaviorManager  # noqa: E402
+from beehave.engines import (  # noqa: E402
+    EngineBehavior,
+    StartLeaf,
+    State,
+    StateMachineEngine,
+    Transition,
+    TreeEngine,
+)
 from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
+from beehave.recording import Recorder  # noqa: E402
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
 from tests.chromium import CHROMIUM, chromium  # noqa: E402
 
@@ -273,6 +282,15 @@ def inspect_at(recording: Path, t_s: float) -> dict[str, dict[str, Any]]:
         elif what == "blackboard":
             key, _, value = rest.partition(" = ")
             said["blackboard"][key] = value.rsplit(" (writer", 1)[0]
+        elif what == "engine":  # "<path> (state_machine) state <name> (from …)"
+            path, _, tail = rest.partition(" (")
+            kind, _, facts = tail.partition(") ")
+            said.setdefault("engines", {})[path] = (
+                kind, facts.split(" ")[1] if facts.startswith("state ") else None)
+        elif what == "node":  # "<engine path> <node path> <status>"
+            engine, _, tail = rest.partition(" ")
+            node, _, status = tail.rpartition(" ")
+            said.setdefault("nodes", {})[(engine, node)] = status
     return robots
 
 
@@ -372,6 +390,149 @@ def test_the_recorded_page_at_t_says_what_beehave_inspect_says_at_t(
     fits(page, size["width"])
     page.close()
     assert not errors, errors
+
+
+# ---- item 3: the same graphs in a recording -----------------------------------------------
+
+class Hold(Action):
+    """Holds its state for ``HOLD_S``."""
+
+    action_type = "driving"
+
+    def run(self) -> None:
+        self.sleep(HOLD_S)
+
+
+class Look(Hold):
+    action_type = "camera"
+
+
+HOLD_S = 1.2
+
+
+def mission() -> StateMachineEngine:
+    """go (an action) → check (a behaviour driven by a tree: look, then hold) → done."""
+    import py_trees
+
+    def check() -> EngineBehavior:
+        root = py_trees.composites.Sequence("check", memory=True, children=[
+            StartLeaf("look", Look), StartLeaf("hold", Hold)])
+        return EngineBehavior(TreeEngine(root, rate_hz=20.0), name="check")
+
+    return StateMachineEngine(
+        [State("go", start=Hold), State("check", start=check), State("done", final=True)],
+        [Transition("go", "check", on="succeeded"),
+         Transition("check", "done", on="succeeded")], initial="go")
+
+
+@pytest.fixture(scope="module")
+def machine_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A robot whose behaviour runs a state machine (one state drives a tree), recorded
+    as ``beehave run --record`` records it (events, blackboard, engines)."""
+    path = tmp_path_factory.mktemp("machine") / "mission.mcap"
+    with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
+        hl.register("mission", EngineBehavior, engine=mission())
+        with Recorder(path, flush_period_s=0.05) as recorder:
+            recorder.attach_events(hl.events, prefix="emili1", level="high")
+            recorder.attach_blackboard(hl.blackboard, prefix="emili1")
+            recorder.attach_engines(hl, prefix="emili1")
+            hl.blackboard.set("mission", "start", writer="test")
+            ended = threading.Event()
+            hl.events.subscribe(lambda e: ended.set() if e.kind.value == "ended"
+                                and e.subject == "mission" else None)
+            hl.switch("mission")
+            assert wait_until(ended.is_set)
+            hl.switch("idle")
+    return path
+
+
+@pytest.fixture(scope="module")
+def machine_viewer(machine_recording: Path) -> Iterator[ViewProcess]:
+    process = ViewProcess(machine_recording)
+    try:
+        process._found.wait(60)
+        assert process.url, "beehave view printed no URL:\n" + "".join(process.lines)
+        yield process
+    finally:
+        output = process.stop()
+    assert process.proc.returncode == 0, output
+
+
+def mcap_engines(recording: Path) -> list[tuple[float, str, dict[str, Any] | None]]:
+    """The engine states straight from the file: (t_s, behaviour path, state or None)."""
+    with open(recording, "rb") as f:
+        messages = [(m.log_time, ch.topic, m.data) for _, ch, m in
+                    make_reader(f).iter_messages(log_time_order=True)]
+    start = messages[0][0]
+    return [((t - start) / 1e9, data["path"], data["engine"]) for t, topic, raw in messages
+            if topic == "/emili1/beehave/engines/state" and (data := json.loads(raw))]
+
+
+def graph_at(page: Any) -> dict[str, Any]:
+    return page.evaluate("window.beehaveGraph.inspect(document.querySelector('#graphs'))")
+
+
+@pytest.mark.parametrize("size", [DESKTOP, PHONE], ids=["desktop", "phone"])
+def test_the_recorded_page_draws_the_engines_graphs_as_beehave_inspect_says_at_t(
+        machine_viewer: ViewProcess, machine_recording: Path, browser: Any,
+        size: dict[str, int]) -> None:
+    """At two moments with different states, the graph highlights the state that
+    ``beehave inspect --at t`` names (and the file holds); the tree drawn inside the
+    second state colours its nodes as ``inspect`` says."""
+    machine = [(t, engine) for t, path, engine in mcap_engines(machine_recording)
+               if path == "mission"]
+    spans: dict[str, tuple[float, float]] = {}  # state → its longest stay (from, to)
+    for (t, engine), (t_next, _) in zip(machine, machine[1:], strict=False):
+        if engine is not None and engine["state"] is not None:
+            was = spans.get(engine["state"], (0.0, 0.0))
+            if t_next - t > was[1] - was[0]:
+                spans[engine["state"]] = (t, t_next)
+    assert {"go", "check"} <= set(spans), spans
+    page, errors = open_page(browser, machine_viewer.url, size)
+    page.wait_for_selector("body.recording", timeout=WAIT_MS)
+    for state in ("go", "check"):
+        t_s = round(sum(spans[state]) / 2, 2)  # well inside the stay (HOLD_S long)
+        seek(page, t_s)
+        said = inspect_at(machine_recording, t_s)["emili1"]
+        assert said["engines"]["mission"] == ("state_machine", state)
+        # The graph is drawn for the moment shown: its active state is the one named.
+        page.wait_for_function(
+            "(() => { const g = window.beehaveGraph.inspect(document.querySelector("
+            "'#graphs')); return g && g.nodes.some((n) => n.classes.includes('active')) && "
+            f"document.querySelector('#graphs').dataset.engines === '{len(said['engines'])}'"
+            "; })()", timeout=WAIT_MS)
+        graph = graph_at(page)
+        active = [(n["engine"], n["state"]) for n in graph["nodes"]
+                  if "active" in n["classes"]]
+        assert active == [("mission", state)]
+        assert {n["state"] for n in graph["nodes"] if n["engine"] == "mission"} >= \
+            {"go", "check", "done"}
+        if state == "check":  # the tree of the state, each node as inspect says
+            assert said["engines"]["mission/check"] == ("behaviour_tree", None)
+            nodes = {(n["engine"], n["path"]): n["status"] for n in graph["nodes"]
+                     if n["engine"] == "mission/check" and n["path"]}
+            assert nodes == said["nodes"]
+            assert nodes[("mission/check", "check/look")] in ("RUNNING", "SUCCESS")
+        OUT.mkdir(exist_ok=True)
+        name = "desktop" if size is DESKTOP else "phone"
+        page.locator("#graphs").scroll_into_view_if_needed()
+        page.screenshot(path=str(OUT / f"webview-recording-graph-{state}-{name}.png"))
+    fits(page, size["width"])
+    page.close()
+    assert not errors, errors
+
+
+def test_a_recording_without_engines_serves_no_structure_and_refuses_breakpoints(
+        viewer: ViewProcess) -> None:
+    """An older recording (no engine channels) still opens: no graphs, no error."""
+    answer = httpx.get(f"{viewer.url}api/robots/emili1/structure", timeout=10)
+    assert answer.status_code == 200 and answer.json() == {"engines": []}
+    answer = httpx.get(f"{viewer.url}api/robots/emili1/breakpoints", timeout=10)
+    assert answer.status_code == 200 and answer.json()["breakpoints"] == {}
+    for verb in ("breakpoints", "breakpoints/remove", "continue"):
+        answer = httpx.post(f"{viewer.url}api/robots/emili1/{verb}",
+                            json={"kind": "state", "target": "go"}, timeout=10)
+        assert answer.status_code == 405, answer.text
 
 
 def test_a_recording_refuses_commands_and_bad_times_with_the_reason(

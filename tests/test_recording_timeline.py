@@ -141,3 +141,88 @@ def test_inspect_at_prints_the_moment_and_refuses_a_time_outside(recorded: Path)
                               str(recorded.with_name("none.mcap")), "--port", "0"],
                              cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert missing.returncode == 2 and "does not exist" in missing.stderr
+
+
+# ---- decision engines: structure once, state on change ------------------------------------
+
+def test_a_state_machine_changing_state_at_20_hz_is_recorded_with_its_structure_once(
+        tmp_path: Path) -> None:
+    """Read as an outside tool reads the file (the plain ``mcap`` reader, each message
+    checked against the JSON Schema the file carries), then through the timeline."""
+    import json
+
+    import jsonschema
+    from mcap.reader import make_reader
+
+    from beehave import Action, HighLevelBehaviorManager
+    from beehave.engines import EngineBehavior, State, StateMachineEngine, Transition
+    from beehave.testing import wait_until
+
+    class Step(Action):
+        action_type = "driving"
+
+        def run(self) -> None:
+            self.sleep(0.05)  # 20 state changes a second
+            board = self.manager.blackboard
+            board.set("steps", board.get("steps", 0) + 1, writer="test")
+
+    machine = StateMachineEngine(
+        [State("a", start=Step), State("b", start=Step)],
+        [Transition("a", "b", on="succeeded"), Transition("b", "a", on="succeeded")],
+        initial="a")
+    path = tmp_path / "sm.mcap"
+    with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
+        hl.register("flip", EngineBehavior, engine=machine)
+        with Recorder(path, flush_period_s=0.05) as recorder:
+            recorder.attach_events(hl.events, prefix="r1", level="high")
+            recorder.attach_engines(hl, prefix="r1")
+            hl.switch("flip")
+            assert wait_until(lambda: hl.blackboard.get("steps", 0) >= 20)
+            hl.switch("idle")
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        schemas = {ch.topic: json.loads(summary.schemas[ch.schema_id].data)
+                   for ch in summary.channels.values()}
+        messages = [(ch.topic, json.loads(m.data)) for _, ch, m in
+                    reader.iter_messages(log_time_order=True)]
+    for topic, data in messages:
+        if topic.startswith("/r1/beehave/engines/"):
+            jsonschema.validate(data, schemas[topic])
+    structures = [d for t, d in messages if t == "/r1/beehave/engines/structure"]
+    states = [d for t, d in messages if t == "/r1/beehave/engines/state"]
+    assert len(structures) == 1 and structures[0]["path"] == "flip"
+    assert {s["name"] for s in structures[0]["structure"]["states"]} == {"a", "b"}
+    assert states[-1]["engine"] is None  # the behaviour ended: no engine
+    seen = {s["engine"]["state"] for s in states[:-1]}
+    assert seen - {None} == {"a", "b"}  # None: the machine built, no state entered yet
+    assert all(s["engine"]["structure_id"] == structures[0]["structure_id"]
+               for s in states[:-1])
+    # Recorded on change only: no two equal states in a row (a lap's last_transition
+    # differs), and not more often than the machine changed.
+    descs = [json.dumps(s["engine"], sort_keys=True) for s in states[:-1]]
+    assert all(x != y for x, y in zip(descs, descs[1:], strict=False))
+    steps = sum(1 for t, d in messages if t == "/r1/beehave/events/high"
+                and d["kind"] == "started" and d["subject"].startswith("flip/Step"))
+    assert len(states) - 1 <= steps + 1
+
+    timeline = RecordingTimeline(read_recording(path))
+    first = next(i for i, s in enumerate(states) if s["engine"]["state"] is not None)
+    t_first = (timeline.robots["r1"].engine_times[first] - timeline.start_ns) / 1e9
+    engines = timeline.engines_at("r1", t_first)
+    assert [(e["path"], e["kind"], e["state"]) for e in engines] == [
+        ("flip", "state_machine", states[first]["engine"]["state"])]
+    assert timeline.snapshot_at("r1", t_first)["engines"] == engines
+    assert [s["structure_id"] for s in timeline.structures("r1", t_first)] == \
+        [structures[0]["structure_id"]]
+    assert timeline.engines_at("r1", timeline.duration_s) == []
+    line = f"r1 engine: flip (state_machine) state {states[first]['engine']['state']}"
+    assert any(x.startswith(line) for x in timeline.describe_at(t_first))
+
+
+def test_a_recording_without_engine_channels_has_no_engines(recorded: Path) -> None:
+    timeline = RecordingTimeline(read_recording(recorded))
+    assert timeline.engines_at("r1", timeline.duration_s) == []
+    assert timeline.structures("r1") == []
+    assert not any(" engine: " in line for line in timeline.describe_at(0.0))

@@ -40,6 +40,7 @@ from beehave.recording import schema
 from beehave.recording.writer import Channel, OpenFile, RecorderStats, WriterThread
 
 if TYPE_CHECKING:
+    from beehave.highlevel import HighLevelBehaviorManager
     from beehave.lowlevel import LowLevelBehaviorManager
     from beehave.robot import Robot
 
@@ -264,6 +265,74 @@ def _identity(item: tuple[int, bytes]) -> tuple[int, bytes]:
     return item
 
 
+class _EngineSampler:
+    """Looks at the decision engines of a high level's running behaviours (in the writer's
+    thread, at each drain: about 50 times a second) and records what changed: a structure
+    the first time its structure_id is seen, an engine's :meth:`describe` when it differs
+    from the one recorded last (a tree's ``tick`` alone is no change), and ``engine:
+    null`` when a behaviour no longer runs one. The engines only answer ``describe()`` --
+    what the live snapshot asks them too --, so recording them adds nothing to their
+    threads; a state held shorter than one look (20 ms) may be missed."""
+
+    def __init__(self, high: HighLevelBehaviorManager, structures: Channel,
+                 states: Channel) -> None:
+        self.high = high
+        self.structures = structures
+        self.states = states
+        self.recorded: set[str] = set()  # structure_ids written
+        self.last: dict[str, dict[str, Any]] = {}  # path → describe() as compared
+        self.failed = False
+        self.detached = False  # the recorder closes: one last look (what ended is in)
+
+    def sample(self) -> None:
+        found: list[tuple[str, Any]] = []
+
+        def walk(node: Any) -> None:
+            engine = getattr(node, "_engine", None)
+            if engine is not None:
+                found.append((node.path, engine))
+            for child in list(getattr(node, "children", ())):
+                walk(child)
+
+        try:
+            top = self.high.top
+            if top is not None:
+                walk(top)
+            stamp = time.time()
+            t_ns = int(stamp * 1e9)
+            seen = set()
+            for path, engine in found:
+                seen.add(path)
+                described = engine.describe()
+                if not isinstance(described, dict):
+                    continue
+                # Compared as given (cheaper than encoding it at every look): encoded
+                # only when it changed.
+                compared = {k: v for k, v in described.items() if k != "tick"} \
+                    if "tick" in described else described
+                if self.last.get(path) == compared:
+                    continue
+                self.last[path] = compared
+                sid = described.get("structure_id")
+                if isinstance(sid, str) and sid not in self.recorded:
+                    structure = engine.structure()
+                    if structure is not None:
+                        self.recorded.add(sid)
+                        self.structures.put((t_ns, _dumps({
+                            "path": path, "structure_id": sid,
+                            "structure": to_json(structure), "stamp": stamp})))
+                self.states.put((t_ns, _dumps({"path": path, "engine": to_json(described),
+                                               "stamp": stamp})))
+            for path in [p for p in self.last if p not in seen]:
+                del self.last[path]
+                self.states.put((t_ns, _dumps({"path": path, "engine": None,
+                                               "stamp": stamp})))
+        except Exception as exc:  # a user engine's describe(): never stop the writer
+            if not self.failed:
+                self.failed = True
+                log.warning("recorder: reading the decision engines failed: %r", exc)
+
+
 class Recorder:
     """Records into the MCAP file ``path`` (see the module docstring); a context manager.
 
@@ -292,11 +361,12 @@ class Recorder:
         self.queue_size = queue_size
         self.close_timeout_s = check_duration_s("close_timeout_s", close_timeout_s)
         self._clocks: list[tuple[Channel, WallClock]] = []
+        self._engines: list[_EngineSampler] = []
         self._writer = WriterThread(
             self.path, flush_period_s=check_duration_s("flush_period_s", flush_period_s),
             max_file_bytes=None if max_file_mb is None else int(max_file_mb * 1e6),
             open_file=open_file, metadata={"beehave": beehave.__version__},
-            on_drain=self._sample_clocks)
+            on_drain=self._sample)
         self._detach: list[Callable[[], None]] = []
         self._topics: dict[str, Channel] = {}
         self._started = False
@@ -437,6 +507,33 @@ class Recorder:
         channel = self._channel(prefix, schema.CLOCK, _identity)
         self._clocks.append((channel, clock))
 
+    def attach_engines(self, high: HighLevelBehaviorManager, *, prefix: str = "") -> None:
+        """Record the decision engines of ``high``'s running behaviours (state machines,
+        trees …): each structure once per ``structure_id`` on
+        ``/<robot>/beehave/engines/structure``, and each engine's state
+        (``DecisionEngine.describe()``) whenever it changes on
+        ``/<robot>/beehave/engines/state``, looked at about 50 times a second by the
+        writer thread (:class:`_EngineSampler`), so ``beehave view`` draws the same graphs
+        as the live page."""
+        sampler = _EngineSampler(high,
+                                 self._channel(prefix, schema.ENGINE_STRUCTURE, _identity),
+                                 self._channel(prefix, schema.ENGINE_STATE, _identity))
+        self._engines = [*self._engines, sampler]
+
+        def detach() -> None:  # the writer thread looks once more, then lets go
+            sampler.detached = True
+
+        self._detach.append(detach)
+
+    def _sample(self) -> None:  # in the writer thread, before each drain
+        self._sample_clocks()
+        engines = self._engines
+        done = [s for s in engines if s.detached]  # detached before this look: its last
+        for sampler in engines:
+            sampler.sample()
+        if done:
+            self._engines = [s for s in self._engines if s not in done]
+
     def _sample_clocks(self) -> None:  # in the writer thread
         for channel, clock in self._clocks:
             if not getattr(clock, "started", True):
@@ -464,9 +561,9 @@ class Recorder:
 
     def attach_robot(self, robot: Robot, *, prefix: str | None = None) -> None:
         """Record a :class:`~beehave.robot.Robot`'s blackboard, events of both levels, HAL
-        commands and (on sim time) its clock, under ``prefix`` (default: its namespace).
-        Call it before ``robot.start()`` so the first switches and HAL loads are in; then
-        :meth:`attach_ros_topics` once it runs."""
+        commands, decision engines and (on sim time) its clock, under ``prefix`` (default:
+        its namespace). Call it before ``robot.start()`` so the first switches and HAL
+        loads are in; then :meth:`attach_ros_topics` once it runs."""
         prefix = robot.config.namespace if prefix is None else prefix
         if robot.low is not None:
             self.attach_blackboard(robot.low.blackboard, prefix=prefix)
@@ -474,6 +571,7 @@ class Recorder:
             self.attach_hal_outputs(robot.low, prefix=prefix)
         if robot.high is not None:
             self.attach_events(robot.high.events, prefix=prefix, level="high")
+            self.attach_engines(robot.high, prefix=prefix)
             if robot.low is None:
                 self.attach_blackboard(robot.high.blackboard, prefix=prefix)
             if type(robot.high.clock) is not WallClock:

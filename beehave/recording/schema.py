@@ -8,6 +8,8 @@ shows and plots it as it is. Channels of one robot share a prefix (its namespace
     /<robot>/beehave/events/low     low-level events (logic switches, HAL loads …)
     /<robot>/beehave/outputs        HAL commands the logics gave (set_color, show …)
     /<robot>/beehave/clock          sim time beside wall time (robots on sim time)
+    /<robot>/beehave/engines/structure  each decision engine's structure, once per id
+    /<robot>/beehave/engines/state  each engine's state whenever it changes
     /<robot>/<topic>                ROS 2 topics, ros2msg/CDR (odom, scan, cmd_vel …):
                                     those of the configuration, and every topic a
                                     behaviour subscribes to (lift/state, orders …)
@@ -32,6 +34,8 @@ OUTPUTS = "beehave/outputs"
 CLOCK = "beehave/clock"
 LOG = "beehave/log"
 TF = "beehave/tf"
+ENGINE_STRUCTURE = "beehave/engines/structure"
+ENGINE_STATE = "beehave/engines/state"
 RECORDER = "/beehave/recorder"
 
 PROFILE = ""
@@ -107,6 +111,24 @@ SCHEMAS: dict[str, dict[str, Any]] = {s["title"]: s for s in (
     _object("beehave.ClockSample", "The robot's sim time at a wall time: replay paces by it.",
             {"sim_time_s": {"type": "number"}, "stamp": _TIME},
             ["sim_time_s", "stamp"]),
+    _object("beehave.EngineStructure",
+            "What a running behaviour's decision engine is made of (what the web view "
+            "draws as a graph: DecisionEngine.structure()), recorded once per structure_id "
+            "(a hash of it) when an engine with that id is first seen.",
+            {"path": {"type": "string", "description": "the behaviour the engine drives"},
+             "structure_id": {"type": "string"},
+             "structure": {"type": "object", "description": "DecisionEngine.structure(): "
+                           "kind, states and transitions or tree nodes"},
+             "stamp": _TIME},
+            ["path", "structure_id", "structure", "stamp"]),
+    _object("beehave.EngineState",
+            "Where a running behaviour's decision engine is (DecisionEngine.describe(): a "
+            "state machine's state and last_transition, a tree's node statuses, with its "
+            "structure_id), recorded whenever it changes (a tree's tick count alone is no "
+            "change); engine null: the behaviour no longer runs an engine.",
+            {"path": {"type": "string"},
+             "engine": {"type": ["object", "null"]}, "stamp": _TIME},
+            ["path", "engine", "stamp"]),
     _object("beehave.RecorderStats",
             "How many messages the recorder wrote and dropped so far.",
             {"written": {"type": "integer"}, "dropped": {"type": "integer"},
@@ -118,7 +140,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {s["title"]: s for s in (
 CHANNEL_SCHEMA = {BLACKBOARD: "beehave.BlackboardChange", EVENTS_HIGH: "beehave.Event",
                   EVENTS_LOW: "beehave.Event", OUTPUTS: "beehave.HalCommand",
                   CLOCK: "beehave.ClockSample", LOG: "foxglove.Log",
-                  TF: "foxglove.FrameTransform"}
+                  TF: "foxglove.FrameTransform", ENGINE_STRUCTURE: "beehave.EngineStructure",
+                  ENGINE_STATE: "beehave.EngineState"}
 
 
 def schema_bytes(name: str) -> bytes:

@@ -8,9 +8,11 @@ view of ``beehave view FILE.mcap`` and ``beehave inspect --at T`` both read it, 
 at ``t`` says what ``inspect`` says.
 
 Times are wall seconds since the start of the recording (what ``beehave inspect`` prints).
-What a recording does not hold is not invented: a decision engine's inner state (the
-active state of a state machine, a tree's tick statuses) is not recorded, so ``engines``
-is empty; the type locks come from the actions' ``started`` events (``action_type``).
+What a recording does not hold is not invented: the decision engines (a state machine's
+state, a tree's node statuses, and their structures for the graphs) come from the
+``engines`` channels (:meth:`~beehave.recording.Recorder.attach_engines`); a recording
+without them (older ones) has ``engines`` empty. The type locks come from the actions'
+``started`` events (``action_type``).
 """
 
 from __future__ import annotations
@@ -160,6 +162,12 @@ class _Robot:
     trail_times: list[int] = field(default_factory=list)
     trail: list[tuple[float, float]] = field(default_factory=list)
     low_recorded: bool = False
+    high_recorded: bool = False
+    #: the engines (path → its recorded describe(), with "path") after each change
+    engine_times: list[int] = field(default_factory=list)
+    engine_sets: list[dict[str, dict[str, Any]]] = field(default_factory=list)
+    #: structure_id → {"path", "structure_id", **structure} (what /structure serves)
+    structures: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 class RecordingTimeline:
@@ -179,6 +187,10 @@ class RecordingTimeline:
             topics[schema.topic(robot.prefix, schema.BLACKBOARD)] = (robot, "board")
             topics[schema.topic(robot.prefix, schema.EVENTS_HIGH)] = (robot, "high")
             topics[schema.topic(robot.prefix, schema.EVENTS_LOW)] = (robot, "low")
+            topics[schema.topic(robot.prefix, schema.ENGINE_STRUCTURE)] = (robot, "structure")
+            topics[schema.topic(robot.prefix, schema.ENGINE_STATE)] = (robot, "engine")
+            robot.high_recorded = schema.topic(robot.prefix, schema.EVENTS_HIGH) in \
+                recording.channels
         pose: dict[str, dict[str, float]] = {p: {} for p in self.robots}
         seq = 0
         for message in recording.messages:
@@ -196,6 +208,22 @@ class RecordingTimeline:
                     if value is not None:
                         pose[robot.prefix][key] = value
                         self._extend_trail(robot, t_ns, pose[robot.prefix])
+                continue
+            if what == "structure":
+                structure = data.get("structure")
+                if isinstance(structure, dict):
+                    robot.structures.setdefault(data["structure_id"], {
+                        "path": data["path"], "structure_id": data["structure_id"],
+                        **structure})
+                continue
+            if what == "engine":
+                engines = dict(robot.engine_sets[-1]) if robot.engine_sets else {}
+                if isinstance(data.get("engine"), dict):
+                    engines[data["path"]] = {"path": data["path"], **data["engine"]}
+                else:
+                    engines.pop(data["path"], None)
+                robot.engine_times.append(t_ns)
+                robot.engine_sets.append(engines)
                 continue
             state = robot.states[-1] if robot.states else _State()
             robot.event_times.append(t_ns)
@@ -248,10 +276,39 @@ class RecordingTimeline:
                         "age_s": round((t_ns - robot.times[key][i]) / 1e9, 6)}
         return out
 
+    def _engines(self, robot: _Robot, t_ns: int, state: _State) -> list[dict[str, Any]]:
+        """The engines at ``t_ns`` as the live snapshot lists them, those of the running
+        behaviours only (the events say which run; the engines were looked at apart)."""
+        i = bisect.bisect_right(robot.engine_times, t_ns) - 1
+        if i < 0:
+            return []
+        return [engine for path, engine in sorted(robot.engine_sets[i].items())
+                if not robot.high_recorded or path in state.high]
+
+    def engines_at(self, name: str, t_s: float) -> list[dict[str, Any]]:
+        """The decision engines of the behaviours running at ``t_s``: ``[{"path", "kind",
+        "structure_id", …}]`` as the live snapshot's ``engines`` (a state machine's
+        ``state`` and ``last_transition``, a tree's ``nodes`` with their statuses);
+        empty for a recording without engine channels."""
+        robot, t_ns = self.robot(name), self._t_ns(t_s)
+        i = bisect.bisect_right(robot.event_times, t_ns) - 1
+        return self._engines(robot, t_ns, robot.states[i] if i >= 0 else _State())
+
+    def structures(self, name: str, t_s: float | None = None) -> list[dict[str, Any]]:
+        """The recorded structures of the robot's engines, as ``GET
+        /api/robots/{robot}/structure`` lists them (``[{"path", "structure_id",
+        **structure}]``): every one recorded, or (``t_s``) those of the engines at that
+        time."""
+        robot = self.robot(name)
+        if t_s is None:
+            return list(robot.structures.values())
+        ids = {e.get("structure_id") for e in self.engines_at(name, t_s)}
+        return [s for sid, s in robot.structures.items() if sid in ids]
+
     def snapshot_at(self, name: str, t_s: float) -> dict[str, Any]:
         """What runs at ``t_s``, in the shape of the live snapshot (``behavior``, ``logic``,
-        ``paused``, ``running``, ``locks``, ``lock_details``, ``stuck``, ``tree``,
-        ``low``); ``engines`` is empty (not recorded) and ``recorded`` is True."""
+        ``paused``, ``running``, ``engines``, ``locks``, ``lock_details``, ``stuck``,
+        ``tree``, ``low``) and ``recorded``: True."""
         robot, t_ns = self.robot(name), self._t_ns(t_s)
         i = bisect.bisect_right(robot.event_times, t_ns) - 1
         state = robot.states[i] if i >= 0 else _State()
@@ -264,7 +321,8 @@ class RecordingTimeline:
         return {
             "robot": name, "recorded": True, "t_s": round(t_s, 6),
             "stamp": (t_ns) / 1e9, "behavior": state.behavior, "logic": state.logic,
-            "paused": state.paused, "running": running, "engines": [],
+            "paused": state.paused, "running": running,
+            "engines": self._engines(robot, t_ns, state),
             "locks": {kind: p for kind, (p, _) in holders.items()},
             "lock_details": {kind: {"holder": p, "status": item.status,
                                     "held_s": round(max(0, t_ns - item.since_ns) / 1e9, 3)}
@@ -321,8 +379,9 @@ class RecordingTimeline:
         return out
 
     def describe_at(self, t_s: float, robots: Iterable[str] | None = None) -> list[str]:
-        """``beehave inspect --at T``: each robot's behaviour, logic, running items, type
-        locks and blackboard at ``t_s``, one fact per line."""
+        """``beehave inspect --at T``: each robot's behaviour, logic, running items, decision
+        engines (a state machine's state, a tree's node statuses), type locks and
+        blackboard at ``t_s``, one fact per line."""
         lines = [f"at {t_s:.3f} s (wall seconds since the start of the recording)"]
         for name in robots or self.robots:
             snap, board = self.snapshot_at(name, t_s), self.blackboard_at(name, t_s)
@@ -332,6 +391,8 @@ class RecordingTimeline:
             for item in snap["running"]:
                 kind = f"action {item['action_type']}" if item["action_type"] else item["kind"]
                 lines.append(f"{name} running: {item['path']} ({kind}) {item['status']}")
+            for engine in snap["engines"]:
+                lines.extend(_engine_lines(name, engine))
             for kind, lock in sorted(snap["lock_details"].items()):
                 lines.append(f"{name} lock: {kind} held by {lock['holder']}")
             for key, entry in board.items():
@@ -340,6 +401,23 @@ class RecordingTimeline:
                              f"{json.dumps(entry['value'], separators=(',', ':'))}"
                              f" (writer {entry['writer'] or '-'}){stale}")
         return lines
+
+
+def _engine_lines(name: str, engine: dict[str, Any]) -> list[str]:
+    """``beehave inspect --at``'s lines of one engine: ``<robot> engine: <path>
+    (<kind>) …``, and for a tree one ``<robot> node: <path> <node path> <status>`` per
+    node."""
+    head = f"{name} engine: {engine['path']} ({engine.get('kind', 'engine')})"
+    if engine.get("kind") == "state_machine":
+        last = engine.get("last_transition")
+        came = f" (from {last['source']} on {last['trigger']})" \
+            if isinstance(last, dict) else ""
+        return [f"{head} state {engine.get('state') or '-'}{came}"]
+    if engine.get("kind") == "behaviour_tree":
+        return [f"{head} tick {engine.get('tick')}"] + [
+            f"{name} node: {engine['path']} {node['path']} {node['status']}"
+            for node in engine.get("nodes") or ()]
+    return [head]
 
 
 __all__ = ["RecordingTimeline"]

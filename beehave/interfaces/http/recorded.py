@@ -5,8 +5,10 @@ tells it to play a timeline instead of opening the stream. It then reads each mo
 ``GET /api/recording/at?t=T`` (every robot's snapshot, blackboard, events and trail at T,
 from :class:`~beehave.recording.timeline.RecordingTimeline`: bisections, no replay) and
 the plots with ``GET /api/robots/{robot}/series?keys=…``. The live read endpoints answer
-too, with ``?t=`` (default: the end). Commands are refused with 405: a recording cannot
-be switched, stopped or paused.
+too, with ``?t=`` (default: the end), and ``GET /api/robots/{robot}/structure`` gives the
+recorded structures of the robot's decision engines, so the page draws the same graphs.
+Commands are refused with 405: a recording cannot be switched, stopped, paused, or given
+breakpoints.
 """
 
 from collections.abc import Callable
@@ -14,13 +16,15 @@ from typing import Annotated, Any, TypeVar
 
 from fastapi import FastAPI, Query
 
+from beehave.breakpoints import KINDS as BREAKPOINT_KINDS
 from beehave.errors import RecordingError
 from beehave.recording.timeline import RecordingTimeline
 
 _T = TypeVar("_T")
 
 #: The commands of a live robot, refused on a recording.
-COMMANDS = ("switch", "stop", "pause", "resume")
+COMMANDS = ("switch", "stop", "pause", "resume", "breakpoints", "breakpoints/remove",
+            "continue")
 
 
 def add_recording_routes(app: FastAPI, timeline: RecordingTimeline, read: Any,
@@ -91,6 +95,20 @@ def add_recording_routes(app: FastAPI, timeline: RecordingTimeline, read: Any,
     def events(_: read, robot: str, t: T = None) -> list[dict[str, Any]]:
         name = robot_of(robot)
         return answer(lambda: timeline.events_at(name, moment(t)))
+
+    @app.get("/api/robots/{robot}/structure",
+             summary="The recorded structures of the robot's decision engines (every one, "
+                     "or with ?t= those running at t)")
+    def structure(_: read, robot: str, t: T = None) -> dict[str, Any]:
+        name = robot_of(robot)
+        return answer(lambda: {"engines": timeline.structures(name, t)})
+
+    @app.get("/api/robots/{robot}/breakpoints",
+             summary="None: a recording cannot be paused")
+    def breakpoints(_: read, robot: str) -> dict[str, Any]:
+        robot_of(robot)
+        return {"breakpoints": {}, "hit": None, "paused": False,
+                "choices": {kind: [] for kind in BREAKPOINT_KINDS}}
 
     @app.get("/api/robots/{robot}/behaviors", summary="None: a recording runs nothing")
     def behaviors(_: read, robot: str) -> list[dict[str, Any]]:
