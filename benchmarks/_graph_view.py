@@ -1,9 +1,9 @@
 """The web view's graphs (issue 28): a 300-node tree and a 60-state machine drawn in
 headless chromium, then kept live at 20 Hz.
 
-- render: a fresh graph from a snapshot and its structure (build, dagre layout, the paint
-  of the next frame), timed in the page with ``performance.now()``: median of 5, target
-  ≤ 200 ms;
+- render: a fresh graph from a snapshot and its structure (build, layout: dagre for a state
+  machine, cytoscape's breadth-first for a tree; the paint of the next frame), timed in
+  the page with ``performance.now()``: median of 5, target ≤ 200 ms;
 - update at 20 Hz: the page connected to a robot running the engine (statuses change at
   every tick), over ``WINDOW_S``: the main thread's busy share from Chrome's own
   ``TaskDuration`` (DevTools protocol ``Performance.getMetrics``: the time the renderer's
@@ -98,7 +98,7 @@ def graph_view() -> list[dict[str, Any]]:
                         render_ms <= 200.0, max_ms=round(max(times), 1),
                         main_thread_cpu_ms=round(cpu_ms, 1), nodes=size,
                         load_average=round(os.getloadavg()[0], 1),
-                        note="fresh graph from a snapshot: build + dagre layout + paint "
+                        note="fresh graph from a snapshot: build + layout + paint "
                              "(wall, median; main_thread_cpu_ms: the renderer thread's CPU "
                              "per render, what a busy host does not inflate)"))
                     page.evaluate(_WRAP)
