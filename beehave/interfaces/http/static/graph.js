@@ -25,6 +25,11 @@ window.beehaveGraph = (() => {
                           INVALID: "#b9bcc2"};
   const ACTIVE = "#f2b01e";
   const structures = new Map();   // structure_id -> structure
+  // Laid out once per structure (and set of collapsed boxes): a second view of it (another
+  // robot's with the same engine, a past moment, collapse and expand back) reuses the
+  // positions. Positions only depend on the structure; the view fits them to its size.
+  const LAYOUTS_KEPT = 32;
+  const layouts = new Map();      // v.key + collapsed ids -> {node id: position}
   const pending = new Map();      // robot -> Promise (one structure fetch at a time)
   const views = new WeakMap();    // container -> view
   const doc = document;
@@ -250,6 +255,25 @@ window.beehaveGraph = (() => {
 
   function layout(v) {
     const cy = v.cy;
+    // (breadthfirst spreads a tree over the view: its shape is kept per size class)
+    const size = `${Math.round(cy.width() / 300)}x${Math.round(cy.height() / 300)}`;
+    const key = `${v.key}#${[...v.collapsed].sort().join(",")}#${size}`;
+    const known = layouts.get(key);
+    if (known && cy.nodes().every((n) => known[n.id()])) {
+      cy.layout({name: "preset", positions: (n) => known[n.id()], fit: true, padding: 16,
+                 animate: false}).run();
+      return;
+    }
+    run(cy);
+    if (!cy.width() || !cy.height()) return;  // a hidden view: laid out again when shown
+    const positions = {};
+    cy.nodes().forEach((n) => { positions[n.id()] = Object.assign({}, n.position()); });
+    layouts.delete(key);
+    layouts.set(key, positions);
+    if (layouts.size > LAYOUTS_KEPT) layouts.delete(layouts.keys().next().value);  // oldest
+  }
+
+  function run(cy) {
     if (cy.nodes(".state, .engine").empty()) {
       // Trees alone (no state, no nested box): cytoscape's own breadth-first layout, one
       // row per depth, each row in the order a depth-first walk meets the nodes (siblings
@@ -482,7 +506,7 @@ window.beehaveGraph = (() => {
     };
   }
 
-  return {render, inspect, tap, breakpointsPanel, structures, STATUS_COLOURS, ACTIVE};
+  return {render, inspect, tap, breakpointsPanel, structures, layouts, STATUS_COLOURS, ACTIVE};
 })();
 
 // The page's hook (app.js calls window.beehaveGraphHook(robot, snapshot) after each render
