@@ -35,6 +35,15 @@ function svg(tag, attrs = {}) {
   for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, v);
   return node;
 }
+// Writes that change nothing still cost the browser a style and layout pass: only
+// write what differs (a live page writes the same values 20 times a second).
+function setText(node, text) {
+  if (node.textContent !== text) node.textContent = text;
+}
+function setAttr(node, name, v) {
+  v = String(v);
+  if (node.getAttribute(name) !== v) node.setAttribute(name, v);
+}
 
 // ---- token and REST -----------------------------------------------------------------------
 
@@ -168,16 +177,18 @@ function receive(message) {
   view.updates += 1;
   // Timeline hook (timeline.js): keeps the history this update adds to.
   if (view.onUpdate) view.onUpdate(message, state);
-  // The selected robot's panels change at once (the DOM is what a test or a screen
-  // reader sees; the paint follows at the next frame); other robots only move markers,
-  // drawn once per frame however many messages arrive.
-  if (message.robot === view.selected) render(); else queueRender();
+  // The DOM follows at the next frame, once however many messages arrived since the last
+  // (updates faster than frames are coalesced; the panels only write what changed).
+  queueRender();
 }
 
 function queueRender() {
   if (view.renderQueued) return;
   view.renderQueued = true;
-  requestAnimationFrame(() => { view.renderQueued = false; render(); });
+  const run = () => { if (view.renderQueued) render(); };
+  requestAnimationFrame(run);
+  // A hidden tab gets no frames: its DOM still follows, at most 100 ms late.
+  setTimeout(run, 100);
 }
 
 // ---- values -------------------------------------------------------------------------------
@@ -225,6 +236,7 @@ function drawWorld(world) {
   const Y = (y) => h - y;  // the world's y points up, the SVG's down
   $("#map").setAttribute("viewBox", `-0.3 -0.3 ${w + 0.6} ${h + 0.6}`);
   view.flip = Y;
+  view.flipKey = `world ${w} ${h}`;
   layer.append(svg("rect", {class: "floor", x: 0, y: 0, width: w, height: h}));
   for (const hole of world.holes || []) {
     const [cx, cy] = hole.center_m, [sx, sy] = hole.size_m;
@@ -293,7 +305,8 @@ function fitWithoutWorld() {
   const x0 = Math.min(...xs) - 2, x1 = Math.max(...xs) + 2;
   const y0 = Math.min(...ys) - 2, y1 = Math.max(...ys) + 2;
   view.flip = (y) => y1 - y + y0;
-  $("#map").setAttribute("viewBox", `${x0} ${y0} ${x1 - x0} ${y1 - y0}`);
+  view.flipKey = `${x0} ${y0} ${x1 - x0} ${y1 - y0}`;  // the trails follow a new frame
+  setAttr($("#map"), "viewBox", view.flipKey);
 }
 
 function drawRobots() {
@@ -321,21 +334,28 @@ function drawRobots() {
       trails.append(trail);
     }
     // Only the body turns: the battery bar and the label stay upright.
-    group.setAttribute("transform", `translate(${pose.x} ${Y(pose.y)})`);
-    group.querySelector(".turning").setAttribute("transform", `rotate(${-pose.yaw * 180 / Math.PI})`);
-    group.dataset.x = pose.x.toFixed(3);
-    group.dataset.y = pose.y.toFixed(3);
-    group.dataset.yaw = pose.yaw.toFixed(3);
-    group.classList.toggle("selected", name === view.selected);
-    group.querySelector(".body").setAttribute("fill", ledColour(state.blackboard));
+    setAttr(group, "transform", `translate(${pose.x} ${Y(pose.y)})`);
+    setAttr(group.querySelector(".turning"), "transform", `rotate(${-pose.yaw * 180 / Math.PI})`);
+    setAttr(group, "data-x", pose.x.toFixed(3));
+    setAttr(group, "data-y", pose.y.toFixed(3));
+    setAttr(group, "data-yaw", pose.yaw.toFixed(3));
+    const selected = name === view.selected;
+    if (group.classList.contains("selected") !== selected) group.classList.toggle("selected", selected);
+    setAttr(group.querySelector(".body"), "fill", ledColour(state.blackboard));
     const battery = value(state.blackboard, KEYS.battery);
     const bar = group.querySelector(".battery");
-    bar.setAttribute("width", typeof battery === "number" ? 0.6 * Math.max(0, Math.min(100, battery)) / 100 : 0);
-    bar.classList.toggle("low", typeof battery === "number" && battery < 20);
-    group.dataset.battery = typeof battery === "number" ? battery.toFixed(1) : "";
-    const label = group.querySelector(".label");
-    label.textContent = typeof battery === "number" ? `${name} ${battery.toFixed(0)}%` : name;
-    trail.setAttribute("points", state.trail.map(([x, y]) => `${x},${Y(y)}`).join(" "));
+    setAttr(bar, "width", typeof battery === "number" ? 0.6 * Math.max(0, Math.min(100, battery)) / 100 : 0);
+    const low = typeof battery === "number" && battery < 20;
+    if (bar.classList.contains("low") !== low) bar.classList.toggle("low", low);
+    setAttr(group, "data-battery", typeof battery === "number" ? battery.toFixed(1) : "");
+    setText(group.querySelector(".label"), typeof battery === "number" ? `${name} ${battery.toFixed(0)}%` : name);
+    // 300 points joined and re-parsed at every frame only when the trail moved on.
+    const tip = state.trail[state.trail.length - 1];
+    const trailKey = `${state.trail.length}:${tip ? tip.join(",") : ""}:${view.flipKey || ""}`;
+    if (trail.__key !== trailKey) {
+      trail.__key = trailKey;
+      trail.setAttribute("points", state.trail.map(([x, y]) => `${x},${Y(y)}`).join(" "));
+    }
   }
 }
 
@@ -498,14 +518,16 @@ function engineView(engine) {
 function updateEngine(part, engine) {
   if (!part) return;
   if (engine.kind === "state_machine") {
-    for (const span of part.querySelectorAll(".sm-state")) {
-      const active = span.dataset.state === engine.state;
-      if (span.classList.contains("active") !== active) span.classList.toggle("active", active);
+    if (part.__active !== engine.state) {
+      part.__active = engine.state;
+      for (const span of part.querySelectorAll(".sm-state")) {
+        const active = span.dataset.state === engine.state;
+        if (span.classList.contains("active") !== active) span.classList.toggle("active", active);
+      }
     }
     const t = engine.last_transition;
     const text = t ? `last: ${t.source || "?"} → ${t.dest || "?"}${t.trigger ? " on " + t.trigger : ""}` : "";
-    const last = part.querySelector(".last");
-    if (last.textContent !== text) last.textContent = text;
+    setText(part.querySelector(".last"), text);
   } else if (engine.kind === "behaviour_tree") {
     const rows = part.querySelectorAll(".bt-node");
     (engine.nodes || []).forEach((node, i) => {
@@ -515,36 +537,72 @@ function updateEngine(part, engine) {
       row.className = `bt-node status-${node.status}`;
       row.firstChild.className = `dot status-${node.status}`;
     });
-    const tick = part.querySelector(".tick");
-    const text = `tick ${engine.tick}`;
-    if (tick.textContent !== text) tick.textContent = text;
+    setText(part.querySelector(".tick"), `tick ${engine.tick}`);
   }
 }
+
+const shownChildren = (node) =>
+  (node.children || []).filter((c) => c.status === "RUNNING" || c.status === "STUCK").slice(-20);
 
 function treeItem(node) {
   const item = el("li", {class: `status-${node.status}`, "data-path": node.path, "data-status": node.status});
   const extra = node.action_type ? ` [${node.action_type}]` : "";
   item.append(el("span", {class: "node"}, el("span", {class: "dot"}),
     el("span", {class: "kind", text: node.kind === "action" ? "action" : "behaviour"}),
-    el("b", {text: node.name}), `${extra} ${node.status} ${(node.elapsed_s || 0).toFixed(1)} s`));
-  const children = (node.children || []).filter((c) => c.status === "RUNNING" || c.status === "STUCK").slice(-20);
+    el("b", {text: node.name}), `${extra} ${node.status} `,
+    el("span", {class: "elapsed", text: `${(node.elapsed_s || 0).toFixed(1)} s`})));
+  const children = shownChildren(node);
   if (children.length) item.append(el("ul", {}, ...children.map(treeItem)));
   return item;
 }
 
+// What the running tree shows apart from its durations: while it stays, only the
+// durations are written (the tree is rebuilt when an item starts, ends or changes status).
+function treeKey(node) {
+  return `${node.path}|${node.name}|${node.kind}|${node.status}|${node.action_type || ""}(${
+    shownChildren(node).map(treeKey).join(",")})`;
+}
+
+function treeDurations(item, node) {
+  setText(item.querySelector(":scope > .node > .elapsed"), `${(node.elapsed_s || 0).toFixed(1)} s`);
+  const children = shownChildren(node);
+  const list = children.length ? item.querySelector(":scope > ul").children : [];
+  children.forEach((child, i) => treeDurations(list[i], child));
+}
+
 function renderRunning(snapshot) {
-  $("#tree").replaceChildren(...(snapshot && snapshot.tree ? [treeItem(snapshot.tree)] : []));
+  const box = $("#tree");
+  const tree = snapshot && snapshot.tree;
+  const key = tree ? treeKey(tree) : "";
+  if (box.__key !== key) {
+    box.__key = key;
+    box.replaceChildren(...(tree ? [treeItem(tree)] : []));
+  } else if (tree) {
+    treeDurations(box.firstChild, tree);
+  }
   const locks = (snapshot && snapshot.lock_details) || {};
-  $("#locks tbody").replaceChildren(...Object.entries(locks).map(([type, lock]) =>
-    el("tr", {"data-lock": type}, el("td", {text: type}), el("td", {text: lock.holder}),
-       el("td", {text: lock.status}), el("td", {text: `${(lock.held_s || 0).toFixed(1)} s`}))));
+  const body = $("#locks tbody");
+  const lockKey = Object.entries(locks).map(([type, lock]) => `${type}|${lock.holder}|${lock.status}`).join("\n");
+  if (body.__key !== lockKey) {
+    body.__key = lockKey;
+    body.replaceChildren(...Object.entries(locks).map(([type, lock]) =>
+      el("tr", {"data-lock": type}, el("td", {text: type}), el("td", {text: lock.holder}),
+         el("td", {text: lock.status}), el("td", {text: `${(lock.held_s || 0).toFixed(1)} s`}))));
+  } else {
+    Object.values(locks).forEach((lock, i) =>
+      setText(body.children[i].children[3], `${(lock.held_s || 0).toFixed(1)} s`));
+  }
   const stuck = (snapshot && snapshot.stuck) || [];
-  $("#stuck").textContent = stuck.length ? `STUCK: ${stuck.join(", ")}` : "";
+  setText($("#stuck"), stuck.length ? `STUCK: ${stuck.join(", ")}` : "");
 }
 
 function renderLow(snapshot) {
   const low = snapshot && snapshot.low;
   const box = $("#logics");
+  // Rebuilt only when the low level's state changed (it rarely does between updates).
+  const key = low ? JSON.stringify(low) : "";
+  if (box.__key === key) return;
+  box.__key = key;
   if (!low) { box.replaceChildren(el("span", {class: "muted", text: "no low level in this process"})); return; }
   const parts = [el("div", {}, "logic ", el("b", {id: "current-logic-name", text: low.current || "–"}),
                     ` (registered: ${(low.registered || []).join(", ")})`)];
@@ -577,11 +635,11 @@ function renderBlackboard(board) {
                el("td", {class: "age"}), el("td", {class: "writer"}));
     }
     rows.delete(key);
-    row.children[1].textContent = show(entry.value);
-    row.children[2].textContent = entry.age_s == null ? "–" : `${entry.age_s.toFixed(1)} s`;
-    row.children[3].textContent = entry.writer || "";
-    row.classList.toggle("stale", !!entry.stale);
-    row.dataset.stale = entry.stale ? "true" : "false";
+    setText(row.children[1], show(entry.value));
+    setText(row.children[2], entry.age_s == null ? "–" : `${entry.age_s.toFixed(1)} s`);
+    setText(row.children[3], entry.writer || "");
+    if (row.classList.contains("stale") !== !!entry.stale) row.classList.toggle("stale", !!entry.stale);
+    setAttr(row, "data-stale", entry.stale ? "true" : "false");
     // Keep the rows in key order without rebuilding the table (no flicker).
     if (previous ? previous.nextSibling !== row : body.firstChild !== row) {
       if (previous) previous.after(row); else body.prepend(row);
@@ -593,21 +651,41 @@ function renderBlackboard(board) {
 
 $("#bb-filter").addEventListener("input", () => render());
 
-function renderEvents(state) {
+function eventItem(e) {
+  const warn = /stuck|failed|rejected|blocked/.test(e.kind) || e.status === "FAILED";
+  const time = new Date(e.stamp * 1000).toLocaleTimeString();
+  return el("li", {class: warn ? "warn" : "", "data-seq": e.seq, "data-kind": e.kind},
+    `${time} ${e.source} ${e.kind} ${e.subject}${e.status ? " " + e.status : ""}${e.error ? " " + e.error : ""}`);
+}
+
+function renderEvents(name, state) {
   const list = $("#events");
   const shown = state.events.slice(-EVENTS_SHOWN).reverse();
-  if (list.dataset.last === String(shown.length && shown[0].seq) && list.children.length === shown.length) return;
-  list.dataset.last = String(shown.length && shown[0].seq);
-  list.replaceChildren(...shown.map((e) => {
-    const warn = /stuck|failed|rejected|blocked/.test(e.kind) || e.status === "FAILED";
-    const time = new Date(e.stamp * 1000).toLocaleTimeString();
-    return el("li", {class: warn ? "warn" : "", "data-seq": e.seq, "data-kind": e.kind},
-      `${time} ${e.source} ${e.kind} ${e.subject}${e.status ? " " + e.status : ""}${e.error ? " " + e.error : ""}`);
-  }));
-  $("#dropped").textContent = view.dropped ? `${view.dropped} updates skipped (slow link)` : "";
+  setText($("#dropped"), view.dropped ? `${view.dropped} updates skipped (slow link)` : "");
+  // Keyed by the event's seq (one robot's events): new events are added at the top and
+  // old ones dropped at the bottom; the items in between are left alone.
+  const keyed = shown.every((e) => e.seq !== undefined && e.seq !== null);
+  if (!keyed || list.__robot !== name) {
+    list.__robot = keyed ? name : null;
+    list.replaceChildren(...shown.map(eventItem));
+    return;
+  }
+  const items = new Map([...list.children].map((li) => [li.dataset.seq, li]));
+  let previous = null;
+  for (const e of shown) {
+    const seq = String(e.seq);
+    let item = items.get(seq);
+    if (item) items.delete(seq); else item = eventItem(e);
+    if (previous ? previous.nextSibling !== item : list.firstChild !== item) {
+      if (previous) previous.after(item); else list.prepend(item);
+    }
+    previous = item;
+  }
+  for (const item of items.values()) item.remove();
 }
 
 function render() {
+  view.renderQueued = false;  // whatever was queued is drawn now
   drawRobots();
   const name = view.selected;
   const state = name && (view.past || view.state)[name];  // timeline hook: a past moment
@@ -625,13 +703,13 @@ function render() {
     badge.textContent = current;
     if (snap && snap.behavior) loadBehaviors(name);  // "current" flags changed
   }
-  $("#current-logic").textContent = snap && snap.low && snap.low.current ? `logic: ${snap.low.current}` : "";
+  setText($("#current-logic"), snap && snap.low && snap.low.current ? `logic: ${snap.low.current}` : "");
   renderEngines(snap);
   if (window.beehaveGraphHook) window.beehaveGraphHook(name, snap);  // graph.js: graphs, breakpoints
   renderRunning(snap);
   renderLow(snap);
   renderBlackboard(state.blackboard);
-  renderEvents(state);
+  renderEvents(name, state);
 }
 
 // ---- the fleet ----------------------------------------------------------------------------

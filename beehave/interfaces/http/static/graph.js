@@ -25,6 +25,11 @@ window.beehaveGraph = (() => {
                           INVALID: "#b9bcc2"};
   const ACTIVE = "#f2b01e";
   const structures = new Map();   // structure_id -> structure
+  // Laid out once per structure (and set of collapsed boxes): a second view of it (another
+  // robot's with the same engine, a past moment, collapse and expand back) reuses the
+  // positions. Positions only depend on the structure; the view fits them to its size.
+  const LAYOUTS_KEPT = 32;
+  const layouts = new Map();      // v.key + collapsed ids -> {node id: position}
   const pending = new Map();      // robot -> Promise (one structure fetch at a time)
   const views = new WeakMap();    // container -> view
   const doc = document;
@@ -77,8 +82,11 @@ window.beehaveGraph = (() => {
       "label": "", "background-color": "#1f2328", "border-width": 0}},
     {selector: "node.any", style: {"border-style": "dotted", "color": "#6b7077"}},
     {selector: "node.state.final", style: {"border-width": 4, "border-style": "double"}},
+    // Live classes (active, statuses, last) change colours only: a border width or a
+    // font weight would have cytoscape measure the node and its edges again at every
+    // update (its bounding boxes), a colour only repaints.
     {selector: "node.state.active", style: {"background-color": ACTIVE,
-      "border-color": "#9a6a00", "border-width": 3, "font-weight": "bold"}},
+      "border-color": "#9a6a00"}},
     {selector: "node.tnode", style: {"shape": "round-rectangle"}},
     {selector: "node.composite", style: {"shape": "cut-rectangle"}},
     {selector: "node.st-RUNNING", style: {"background-color": STATUS_COLOURS.RUNNING,
@@ -93,15 +101,14 @@ window.beehaveGraph = (() => {
     {selector: "node.hit", style: {"outline-width": 5, "outline-color": "#b4169a",
       "underlay-color": "#b4169a", "underlay-padding": 8, "underlay-opacity": 0.35}},
     {selector: "edge", style: {
-      "width": 1.5, "line-color": "#8a8f96", "target-arrow-color": "#8a8f96",
+      "width": 2, "line-color": "#8a8f96", "target-arrow-color": "#8a8f96",
       "target-arrow-shape": "triangle", "curve-style": "bezier", "arrow-scale": 0.9,
       "label": "data(label)", "font-size": 10, "text-rotation": "none",
       "text-background-color": "#ffffff", "text-background-opacity": 0.9,
       "text-background-padding": 2, "color": "#444a52", "min-zoomed-font-size": 6}},
     {selector: "edge.tree-edge", style: {"curve-style": "taxi", "taxi-direction": "downward",
       "target-arrow-shape": "none", "label": ""}},
-    {selector: "edge.last", style: {"line-color": ACTIVE, "target-arrow-color": "#9a6a00",
-      "width": 3}},
+    {selector: "edge.last", style: {"line-color": ACTIVE, "target-arrow-color": "#9a6a00"}},
     {selector: "edge.nested", style: {"line-style": "dashed", "target-arrow-shape": "none"}},
   ];
 
@@ -247,11 +254,50 @@ window.beehaveGraph = (() => {
   }
 
   function layout(v) {
-    // Trees rank trivially: the cheapest ranker; state machines get dagre's best.
-    const trees = v.cy.nodes(".state").empty();
-    v.cy.layout({name: "dagre", rankDir: "TB", nodeSep: 18, rankSep: 40, edgeSep: 8,
-                 ranker: trees ? "longest-path" : "network-simplex",
+    const cy = v.cy;
+    // (breadthfirst spreads a tree over the view: its shape is kept per size class)
+    const size = `${Math.round(cy.width() / 300)}x${Math.round(cy.height() / 300)}`;
+    const key = `${v.key}#${[...v.collapsed].sort().join(",")}#${size}`;
+    const known = layouts.get(key);
+    if (known && cy.nodes().every((n) => known[n.id()])) {
+      cy.layout({name: "preset", positions: (n) => known[n.id()], fit: true, padding: 16,
+                 animate: false}).run();
+      return;
+    }
+    run(cy);
+    if (!cy.width() || !cy.height()) return;  // a hidden view: laid out again when shown
+    const positions = {};
+    cy.nodes().forEach((n) => { positions[n.id()] = Object.assign({}, n.position()); });
+    layouts.delete(key);
+    layouts.set(key, positions);
+    if (layouts.size > LAYOUTS_KEPT) layouts.delete(layouts.keys().next().value);  // oldest
+  }
+
+  function run(cy) {
+    if (cy.nodes(".state, .engine").empty()) {
+      // Trees alone (no state, no nested box): cytoscape's own breadth-first layout, one
+      // row per depth, each row in the order a depth-first walk meets the nodes (siblings
+      // in tick order, a subtree beside its siblings'), parent above child. Linear in the
+      // nodes: ~110 ms less than dagre for a 300-node tree (most of the rest is the style).
+      const order = new Map();
+      let next = 0;
+      const walk = (n) => {
+        order.set(n.id(), next++);
+        n.outgoers("node").sort((a, b) => a.data("order") - b.data("order")).forEach(walk);
+      };
+      const roots = cy.nodes(".tnode").roots();
+      roots.sort((a, b) => a.data("order") - b.data("order")).forEach(walk);
+      cy.layout({name: "breadthfirst", directed: true, roots, spacingFactor: 1,
+                 avoidOverlap: true, nodeDimensionsIncludeLabels: false,
+                 depthSort: (a, b) => order.get(a.id()) - order.get(b.id()),
                  fit: true, padding: 16, animate: false}).run();
+      return;
+    }
+    // State machines (and trees nested in them) get dagre's best ranker.
+    const trees = cy.nodes(".state").empty();
+    cy.layout({name: "dagre", rankDir: "TB", nodeSep: 18, rankSep: 40, edgeSep: 8,
+               ranker: trees ? "longest-path" : "network-simplex",
+               fit: true, padding: 16, animate: false}).run();
   }
 
   function toggle(v, id) {
@@ -460,7 +506,7 @@ window.beehaveGraph = (() => {
     };
   }
 
-  return {render, inspect, tap, breakpointsPanel, structures, STATUS_COLOURS, ACTIVE};
+  return {render, inspect, tap, breakpointsPanel, structures, layouts, STATUS_COLOURS, ACTIVE};
 })();
 
 // The page's hook (app.js calls window.beehaveGraphHook(robot, snapshot) after each render
