@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import importlib.metadata
 import json
+import time
 from collections.abc import Awaitable, Callable
 from typing import Any, ClassVar, TypeVar
 
@@ -22,6 +23,7 @@ from beehave.blackboard import Blackboard
 from beehave.events import Event, EventBus, EventKind
 from beehave.hal import ENTRY_POINT_GROUP, HAL, HALManager
 from beehave.status import Status
+from beehave.testing import WALL_TIMEOUT_S
 
 T = TypeVar("T")
 
@@ -104,6 +106,12 @@ class HALContract:
         async def body(manager: HALManager, events: list[Event]) -> None:
             hal = await manager.load(self.hal_cls.name)
             await self.settle()
+            # A HAL fed from outside (a MAVLink vehicle's telemetry) publishes when its
+            # input arrives: on a loaded machine that is later than a few loop turns.
+            deadline = time.monotonic() + WALL_TIMEOUT_S
+            while time.monotonic() < deadline and any(
+                    manager.blackboard.entry(key) is None for key in self.expected_keys):
+                await asyncio.sleep(0.01)
             for key in self.expected_keys:
                 entry = manager.blackboard.entry(key)
                 assert entry is not None, f"HAL {hal.name!r} did not publish {key!r}"
