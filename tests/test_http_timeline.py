@@ -550,6 +550,32 @@ def test_a_recording_refuses_commands_and_bad_times_with_the_reason(
     assert answer.status_code == 422 and "odom/x_m" in answer.json()["detail"]
 
 
+def test_a_recording_refuses_hostile_queries_naming_the_problem(viewer: ViewProcess) -> None:
+    """What a plain client may send: times that are no finite seconds inside the
+    recording, too many series keys, commands for a robot not recorded."""
+    with httpx.Client(base_url=viewer.url, timeout=10) as client:
+        for path in ("api/recording/at", "api/robots/emili1/snapshot",
+                     "api/robots/emili1/structure"):
+            for t in ("nan", "inf", "-inf", "1e400"):
+                answer = client.get(path, params={"t": t})
+                assert answer.status_code == 422, (path, t, answer.text)
+                assert "finite number of seconds" in answer.json()["detail"], (path, t)
+            answer = client.get(path, params={"t": -1})
+            assert answer.status_code == 422, (path, answer.text)
+            assert "outside the recording: 0 to" in answer.json()["detail"]
+            answer = client.get(path, params={"t": "soon"})
+            assert answer.status_code == 422 and "query.t" in answer.json()["detail"]
+        series = "api/robots/emili1/series"
+        answer = client.get(series, params={"keys": ",".join(["odom/x_m"] * 3000)})
+        assert answer.status_code == 200, answer.text  # each key read once
+        assert list(answer.json()["series"]) == ["odom/x_m"]
+        answer = client.get(series, params={"keys": ",".join(f"k{i}" for i in range(101))})
+        assert answer.status_code == 422 and "at most 100" in answer.json()["detail"]
+        answer = client.post("api/robots/kobuki9/continue", json={})
+        assert answer.status_code == 404, answer.text
+        assert "'kobuki9'" in answer.json()["detail"] and "'emili1'" in answer.json()["detail"]
+
+
 # ---- item 5: the fleet: members and the sequence diagram ---------------------------------
 
 FLEET = {

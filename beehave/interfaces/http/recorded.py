@@ -22,6 +22,10 @@ from beehave.recording.timeline import RecordingTimeline
 
 _T = TypeVar("_T")
 
+#: The most keys one ``GET …/series`` reads (each is a pass over the recording; the page
+#: asks a few at a time).
+MAX_SERIES_KEYS = 100
+
 #: The commands of a live robot, refused on a recording.
 COMMANDS = ("switch", "stop", "pause", "resume", "breakpoints", "breakpoints/remove",
             "continue")
@@ -73,7 +77,10 @@ def add_recording_routes(app: FastAPI, timeline: RecordingTimeline, read: Any,
                keys: Annotated[str, Query(description="comma-separated keys")] = ""
                ) -> dict[str, Any]:
         name = robot_of(robot)
-        wanted = [k for k in keys.split(",") if k]
+        wanted = list(dict.fromkeys(k for k in keys.split(",") if k))  # each key read once
+        if len(wanted) > MAX_SERIES_KEYS:
+            raise http_error(422, "BadRecordingQuery", f"{len(wanted)} keys asked: at most "
+                             f"{MAX_SERIES_KEYS} a request")
         return answer(lambda: {"keys": timeline.keys(name),
                                "series": timeline.series(name, wanted)})
 
@@ -122,6 +129,7 @@ def add_recording_routes(app: FastAPI, timeline: RecordingTimeline, read: Any,
 
     def refuser(command: str) -> Any:
         def refuse(robot: str) -> None:
+            robot_of(robot)  # an unknown robot is named as such, not as a recording
             raise http_error(405, "RecordingReadOnly", f"{robot!r} is a recording, served "
                              f"read-only by `beehave view`: {command} needs a live robot "
                              "(`beehave run ROBOT.yaml --http`)")
@@ -139,4 +147,4 @@ def describe(timeline: RecordingTimeline) -> dict[str, Any]:
             "truncated": rec.truncated, "damaged": rec.describe_damage()}
 
 
-__all__ = ["COMMANDS", "add_recording_routes", "describe"]
+__all__ = ["COMMANDS", "MAX_SERIES_KEYS", "add_recording_routes", "describe"]
