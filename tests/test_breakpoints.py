@@ -150,6 +150,43 @@ def test_http_bad_breakpoints_get_4xx_naming_the_choices(server: HttpServer) -> 
         assert action.status_code == 404 and "'driving'" in action.json()["detail"]
 
 
+def test_http_hostile_breakpoint_bodies_get_4xx_naming_the_problem(
+        server: HttpServer, robot: HighLevelBehaviorManager) -> None:
+    """What a plain client may send: empty, huge, non-string, unicode, extra fields,
+    malformed JSON, a remove with a typo (which would leave the meant breakpoint set)."""
+    api = f"http://127.0.0.1:{server.port}/api/robots/emili1"
+    robot.switch("delivery")
+    with httpx.Client(timeout=30) as client:
+        assert wait_until(lambda: "pick" in client.get(f"{api}/breakpoints").json()["choices"]
+                          ["state"])
+        for body, status, named in [
+                ({"kind": "state", "target": ""}, 400, "1 to 500 characters"),
+                ({"kind": "state", "target": "p" * 501}, 400, "1 to 500 characters"),
+                ({"kind": "state", "target": "p" * 70_000}, 413, "65536 bytes"),
+                ({"kind": "state", "target": 5}, 422, "body.target"),
+                ({"kind": ["state"], "target": "pick"}, 422, "body.kind"),
+                ({"kind": "state", "target": None}, 422, "body.target"),
+                ({"kind": "state", "target": "pick", "once": True}, 422, "body.once"),
+                ({"kind": "state", "target": "pïck"}, 404, "'pick'"),
+                ([1, 2], 422, "valid dictionary")]:
+            answer = client.post(f"{api}/breakpoints", json=body)
+            assert answer.status_code == status, (body, answer.text)
+            assert named in answer.json()["detail"], (body, answer.text)
+        answer = client.post(f"{api}/breakpoints", content=b'{"kind": "state",',
+                             headers={"Content-Type": "application/json"})
+        assert answer.status_code == 422 and "JSON" in answer.json()["detail"]
+        assert client.post(f"{api}/breakpoints",
+                           json={"kind": "state", "target": "drop"}).status_code == 201
+        typo = client.post(f"{api}/breakpoints/remove", json={"kind": "state", "target": "dorp"})
+        assert typo.status_code == 404, typo.text
+        assert "'dorp'" in typo.json()["detail"] and "'drop'" in typo.json()["detail"]
+        unset = client.post(f"{api}/breakpoints/remove", json={"kind": "state", "target": "pick"})
+        assert unset.status_code == 200, unset.text  # a valid one not set: nothing to do
+        assert unset.json()["breakpoints"]["state"] == ["drop"]
+        kind = client.post(f"{api}/breakpoints/remove", json={"kind": "edge", "target": "x"})
+        assert kind.status_code == 400 and "'action_type'" in kind.json()["detail"]
+
+
 def test_breakpoint_endpoints_off_loopback_need_the_token(
         robot: HighLevelBehaviorManager, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(TOKEN_ENV, raising=False)

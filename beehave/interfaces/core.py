@@ -38,7 +38,7 @@ from pydantic import TypeAdapter, ValidationError
 
 from beehave.blackboard import Blackboard, check_key, to_json
 from beehave.breakpoints import KINDS as BREAKPOINT_KINDS
-from beehave.breakpoints import Breakpoints
+from beehave.breakpoints import Breakpoints, UnknownBreakpointTarget
 from beehave.breakpoints import of as breakpoints_of
 from beehave.errors import BadRequest, InvalidParameters, UnknownBehavior, UnknownKey
 from beehave.events import Event
@@ -197,8 +197,16 @@ class ControlPlane:
         return self.breakpoints()
 
     def clear_breakpoint(self, kind: str, target: str) -> dict[str, Any]:
-        """Remove a breakpoint; returns :meth:`breakpoints`."""
-        self._breakpoints().remove(kind, target)
+        """Remove a breakpoint; returns :meth:`breakpoints`. One that is not set is not an
+        error, but a target that is neither set nor a valid choice (a typo, which would
+        leave the meant breakpoint set) is an
+        :class:`~beehave.breakpoints.UnknownBreakpointTarget` naming both."""
+        points = self._breakpoints()
+        if kind in BREAKPOINT_KINDS:  # a bad kind or target: remove() says which
+            known = set(points.listing()[kind]) | set(points.choices(kind))
+            if isinstance(target, str) and target and target not in known:
+                raise UnknownBreakpointTarget(kind, target, sorted(known))
+        points.remove(kind, target)
         return self.breakpoints()
 
     def continue_(self) -> dict[str, Any]:
