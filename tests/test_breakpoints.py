@@ -19,10 +19,10 @@ from beehave.breakpoints import Breakpoints, UnknownBreakpointTarget  # noqa: E4
 from beehave.breakpoints import of as breakpoints_of  # noqa: E402
 from beehave.engines import EngineBehavior  # noqa: E402
 from beehave.errors import BadRequest  # noqa: E402
-from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
 from beehave.testing import wait_until  # noqa: E402
 from behaviours.demos.graphs import delivery_machine, patrol_tree  # noqa: E402
+from tests.http_fixtures import served  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("test_breakpoints")
 
@@ -102,12 +102,8 @@ def test_unknown_targets_and_kinds_are_refused_naming_the_valid_ones(
 def server(robot: HighLevelBehaviorManager, monkeypatch: pytest.MonkeyPatch
            ) -> Iterator[HttpServer]:
     monkeypatch.delenv(TOKEN_ENV, raising=False)
-    plane = ControlPlane(robot, name="emili1")
-    try:
-        with HttpServer(plane) as srv:
-            yield srv
-    finally:
-        plane.close()
+    with served(robot) as srv:
+        yield srv
 
 
 def test_http_breakpoint_pause_where_and_continue(
@@ -190,31 +186,27 @@ def test_http_hostile_breakpoint_bodies_get_4xx_naming_the_problem(
 def test_breakpoint_endpoints_off_loopback_need_the_token(
         robot: HighLevelBehaviorManager, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(TOKEN_ENV, raising=False)
-    plane = ControlPlane(robot, name="emili1")
-    try:
-        # 0.0.0.0 listens on every interface; the test talks to it over loopback only.
-        with HttpServer(plane, host="0.0.0.0", token="t0ken") as srv, \
-                httpx.Client(timeout=30) as client:
-            api = f"http://127.0.0.1:{srv.port}/api/robots/emili1"
-            body = {"kind": "state", "target": "pick"}
-            for method, path, payload in (("GET", "/breakpoints", None),
-                                          ("POST", "/breakpoints", body),
-                                          ("POST", "/breakpoints/remove", body),
-                                          ("POST", "/continue", {}),
-                                          ("GET", "/structure", None)):
-                refused = client.request(method, api + path, json=payload)
-                assert refused.status_code == 401, (path, refused.text)
-                wrong = client.request(method, api + path, json=payload,
-                                       headers={"Authorization": "Bearer nope"})
-                assert wrong.status_code == 401, (path, wrong.text)
-            points = breakpoints_of(robot)
-            assert points is None or points.listing()["state"] == []  # nothing was set
-            ok = client.post(api + "/breakpoints", json=body,
-                             headers={"Authorization": "Bearer t0ken"})
-            assert ok.status_code == 201, ok.text
-            assert ok.json()["breakpoints"]["state"] == ["pick"]
-    finally:
-        plane.close()
+    # 0.0.0.0 listens on every interface; the test talks to it over loopback only.
+    with served(robot, host="0.0.0.0", token="t0ken") as srv, \
+            httpx.Client(timeout=30) as client:
+        api = f"http://127.0.0.1:{srv.port}/api/robots/emili1"
+        body = {"kind": "state", "target": "pick"}
+        for method, path, payload in (("GET", "/breakpoints", None),
+                                      ("POST", "/breakpoints", body),
+                                      ("POST", "/breakpoints/remove", body),
+                                      ("POST", "/continue", {}),
+                                      ("GET", "/structure", None)):
+            refused = client.request(method, api + path, json=payload)
+            assert refused.status_code == 401, (path, refused.text)
+            wrong = client.request(method, api + path, json=payload,
+                                   headers={"Authorization": "Bearer nope"})
+            assert wrong.status_code == 401, (path, wrong.text)
+        points = breakpoints_of(robot)
+        assert points is None or points.listing()["state"] == []  # nothing was set
+        ok = client.post(api + "/breakpoints", json=body,
+                         headers={"Authorization": "Bearer t0ken"})
+        assert ok.status_code == 201, ok.text
+        assert ok.json()["breakpoints"]["state"] == ["pick"]
 
 
 def test_the_structure_endpoint_gives_states_labelled_transitions_and_tree_nodes(

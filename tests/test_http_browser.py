@@ -102,6 +102,21 @@ class RobotProcess:
         response.raise_for_status()
         return response.json()
 
+    def pose(self) -> tuple[float, float]:
+        """Where the physics has EMILI (its odometry on the blackboard)."""
+        board = self.api("api/robots/emili1/blackboard", params={"pattern": "odom/*"})
+        return board["odom/x_m"]["value"], board["odom/y_m"]["value"]
+
+    def moved_from(self, where: tuple[float, float]) -> float:
+        x, y = self.pose()
+        return math.hypot(x - where[0], y - where[1])
+
+    def settled(self) -> bool:
+        """EMILI stood still (under 5 mm) for half a second of the physics' wall time."""
+        before = self.pose()
+        time.sleep(0.5)
+        return self.moved_from(before) < 0.005
+
     def stop(self) -> str:
         self.proc.terminate()
         try:
@@ -220,22 +235,14 @@ def test_switching_on_the_page_drives_the_robot_and_the_view_follows(
 
 def test_pause_on_the_page_holds_the_robot_still_and_resume_drives_on(
         robot: RobotProcess, page: Any) -> None:
-    def pose() -> tuple[float, float]:
-        board = robot.api("api/robots/emili1/blackboard", params={"pattern": "odom/*"})
-        return board["odom/x_m"]["value"], board["odom/y_m"]["value"]
-
-    def moved_from(where: tuple[float, float]) -> float:
-        x, y = pose()
-        return math.hypot(x - where[0], y - where[1])
-
     page.wait_for_selector("#robot-emili1", timeout=WAIT_MS)
     page.select_option("#behavior-choice", "shuttle")
     page.click("#switch-btn")
     page.wait_for_function(
         "document.querySelector('#current-behavior').textContent === 'shuttle'",
         timeout=WAIT_MS)
-    start = pose()
-    assert wait_until(lambda: moved_from(start) > 0.3), "the shuttle did not drive"
+    start = robot.pose()
+    assert wait_until(lambda: robot.moved_from(start) > 0.3), "the shuttle did not drive"
     page.click("#pause-btn")
     assert wait_until(lambda: robot.api("api/robots/emili1/status")["paused"]), \
         "the pause clicked on the page did not happen"
@@ -244,20 +251,15 @@ def test_pause_on_the_page_holds_the_robot_still_and_resume_drives_on(
     assert robot.api("api/robots/emili1/status")["behavior"] == "shuttle"  # kept
 
     # Braking ends; then the wheels stand still for as long as the pause lasts.
-    def settled() -> bool:
-        before = pose()
-        time.sleep(0.5)
-        return moved_from(before) < 0.005
-
-    assert wait_until(settled), "the robot did not come to a standstill while paused"
-    held = pose()
+    assert wait_until(robot.settled), "the robot did not come to a standstill while paused"
+    held = robot.pose()
     time.sleep(1.5)
-    assert moved_from(held) < 0.01, "the robot moved while paused"
+    assert robot.moved_from(held) < 0.01, "the robot moved while paused"
     page.click("#pause-btn")  # now "Resume"
     page.wait_for_function("document.querySelector('#pause-btn').textContent === 'Pause'",
                            timeout=WAIT_MS)
     assert not robot.api("api/robots/emili1/status")["paused"]
-    assert wait_until(lambda: moved_from(held) > 0.2), "the robot did not drive on"
+    assert wait_until(lambda: robot.moved_from(held) > 0.2), "the robot did not drive on"
     page.click("#stop-btn")
     page.wait_for_function(
         "document.querySelector('#current-behavior').textContent === 'idle'", timeout=WAIT_MS)
@@ -268,14 +270,6 @@ def test_a_breakpoint_on_driving_set_on_the_page_holds_emili_still_and_continue_
     """Issue 28, item 4: a breakpoint on the action type ``driving``, set from the page,
     pauses the robot as the shuttle's navigation starts: EMILI stands still in the
     physics (its odometry) and the page shows where it stopped; "Continue" drives on."""
-    def pose() -> tuple[float, float]:
-        board = robot.api("api/robots/emili1/blackboard", params={"pattern": "odom/*"})
-        return board["odom/x_m"]["value"], board["odom/y_m"]["value"]
-
-    def moved_from(where: tuple[float, float]) -> float:
-        x, y = pose()
-        return math.hypot(x - where[0], y - where[1])
-
     page.wait_for_selector("#robot-emili1", timeout=WAIT_MS)
     page.wait_for_selector("#breakpoints .bp-add", timeout=WAIT_MS)
     page.select_option("#breakpoints .bp-kind", "action_type")
@@ -285,7 +279,7 @@ def test_a_breakpoint_on_driving_set_on_the_page_holds_emili_still_and_continue_
                            timeout=WAIT_MS)
     assert robot.api("api/robots/emili1/breakpoints")["breakpoints"]["action_type"] == [
         "driving"]
-    start = pose()
+    start = robot.pose()
     page.select_option("#behavior-choice", "shuttle")
     page.click("#switch-btn")
     assert wait_until(lambda: robot.api("api/robots/emili1/status")["paused"]), \
@@ -298,26 +292,21 @@ def test_a_breakpoint_on_driving_set_on_the_page_holds_emili_still_and_continue_
     assert "driving" in page.locator("#breakpoints .bp-hit").text_content()
 
     # It may have rolled a little before the pause took hold; then it stands still.
-    def settled() -> bool:
-        before = pose()
-        time.sleep(0.5)
-        return moved_from(before) < 0.005
-
-    assert wait_until(settled), "the robot did not come to a standstill at the breakpoint"
-    held = pose()
+    assert wait_until(robot.settled), "the robot did not come to a standstill at the breakpoint"
+    held = robot.pose()
     # Stopped where the drive began (the pause is requested as the action starts, and
     # the action runs again from its start after "Continue").
     rolled = math.hypot(held[0] - start[0], held[1] - start[1])
     assert rolled < 0.1, f"EMILI rolled {rolled:.3f} m past the breakpoint"
     time.sleep(1.5)
-    assert moved_from(held) < 0.01, "the robot moved while held at the breakpoint"
+    assert robot.moved_from(held) < 0.01, "the robot moved while held at the breakpoint"
     assert robot.api("api/robots/emili1/status")["paused"]
     page.click("#breakpoints .bp-remove")
     page.wait_for_function("!document.querySelector('#breakpoints li[data-kind]')",
                            timeout=WAIT_MS)
     page.click("#breakpoints .bp-continue")
     assert wait_until(lambda: not robot.api("api/robots/emili1/status")["paused"])
-    assert wait_until(lambda: moved_from(held) > 0.2), "the robot did not drive on"
+    assert wait_until(lambda: robot.moved_from(held) > 0.2), "the robot did not drive on"
     page.wait_for_function("document.querySelector('#breakpoints .bp-hit').textContent === ''",
                            timeout=WAIT_MS)
     page.click("#stop-btn")

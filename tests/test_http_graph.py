@@ -32,11 +32,11 @@ numpy = pytest.importorskip("numpy")
 
 from beehave import HighLevelBehaviorManager  # noqa: E402
 from beehave.engines import EngineBehavior  # noqa: E402
-from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
 from behaviours.demos.graphs import delivery_machine, patrol_tree  # noqa: E402
 from tests.chromium import CHROMIUM, chromium  # noqa: E402
+from tests.http_fixtures import served  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("test_http_graph")
 
@@ -66,12 +66,8 @@ def robot(hl: HighLevelBehaviorManager) -> HighLevelBehaviorManager:
 def server(robot: HighLevelBehaviorManager, monkeypatch: pytest.MonkeyPatch
            ) -> Iterator[HttpServer]:
     monkeypatch.delenv(TOKEN_ENV, raising=False)
-    plane = ControlPlane(robot, name="emili1")
-    try:
-        with HttpServer(plane) as srv:
-            yield srv
-    finally:
-        plane.close()
+    with served(robot) as srv:
+        yield srv
 
 
 @pytest.fixture(scope="module")

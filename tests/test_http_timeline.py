@@ -47,11 +47,11 @@ from beehave.engines import (  # noqa: E402
     Transition,
     TreeEngine,
 )
-from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
 from beehave.recording import Recorder  # noqa: E402
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
 from tests.chromium import CHROMIUM, chromium  # noqa: E402
+from tests.http_fixtures import served  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("test_http_timeline")
 
@@ -95,6 +95,24 @@ def fits(page: Any, width: int) -> None:
     assert scroll <= width, f"the page is {scroll} px wide on a {width} px screen"
 
 
+def shoot(page: Any, view: str, size: dict[str, int]) -> None:
+    """Save the page as ``out/webview-{view}-{desktop|phone}.png``; it fits the screen."""
+    OUT.mkdir(exist_ok=True)
+    name = "desktop" if size is DESKTOP else "phone"
+    page.screenshot(path=str(OUT / f"webview-{view}-{name}.png"))
+    fits(page, size["width"])
+
+
+def plot(page: Any, key: str, *, points_over: int) -> None:
+    """Plot ``key``; it shows more than ``points_over`` points in the first series' blue."""
+    page.fill("#plot-key", key)
+    page.click("#plot-add")
+    page.wait_for_function("Number(document.querySelector('#plot').dataset.points) > "
+                           f"{points_over}", timeout=WAIT_MS)
+    page.locator("#plot").scroll_into_view_if_needed()
+    assert pixels_near(page.locator("#plot canvas").screenshot(), BLUE) > 200
+
+
 def table(page: Any, selector: str) -> list[list[str]]:
     return page.evaluate(f"""[...document.querySelectorAll('{selector} tbody tr')]
         .map((r) => [...r.children].map((c) => c.textContent.trim()))""")
@@ -110,12 +128,8 @@ def live(monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[HttpServer, HighLeve
         hl.blackboard.set("odom/x_m", 4.5, writer="hal:odometry")
         hl.blackboard.set("odom/y_m", 2.0, writer="hal:odometry")
         hl.blackboard.set("mission", "start", writer="test")
-        plane = ControlPlane(hl, name="emili1")
-        try:
-            with HttpServer(plane) as server:
-                yield server, hl
-        finally:
-            plane.close()
+        with served(hl) as server:
+            yield server, hl
 
 
 @pytest.mark.parametrize("size", [DESKTOP, PHONE], ids=["desktop", "phone"])
@@ -161,16 +175,8 @@ def test_the_slider_shows_the_robot_as_it_was_and_live_returns_to_now(
     assert float(marker.get_attribute("data-y")) == pytest.approx(y, abs=0.002)
 
     # Plots: the speed over the kept history, the moment marked.
-    page.fill("#plot-key", "odom/x_m")
-    page.click("#plot-add")
-    page.wait_for_function("Number(document.querySelector('#plot').dataset.points) > 20",
-                           timeout=WAIT_MS)
-    page.locator("#plot").scroll_into_view_if_needed()
-    assert pixels_near(page.locator("#plot canvas").screenshot(), BLUE) > 200
-    OUT.mkdir(exist_ok=True)
-    name = "desktop" if size is DESKTOP else "phone"
-    page.screenshot(path=str(OUT / f"webview-timeline-{name}.png"))
-    fits(page, size["width"])
+    plot(page, "odom/x_m", points_over=20)
+    shoot(page, "timeline", size)
 
     page.click("#tl-live")
     page.wait_for_function("document.querySelector('#current-behavior').textContent === "
@@ -378,16 +384,8 @@ def test_the_recorded_page_at_t_says_what_beehave_inspect_says_at_t(
     page.wait_for_function("Number(document.querySelector('#timeline').dataset.shown) > 1",
                            timeout=WAIT_MS)
     page.click("#tl-play")
-    page.fill("#plot-key", "speed_mps")
-    page.click("#plot-add")
-    page.wait_for_function("Number(document.querySelector('#plot').dataset.points) > 50",
-                           timeout=WAIT_MS)
-    page.locator("#plot").scroll_into_view_if_needed()
-    assert pixels_near(page.locator("#plot canvas").screenshot(), BLUE) > 200
-    OUT.mkdir(exist_ok=True)
-    name = "desktop" if size is DESKTOP else "phone"
-    page.screenshot(path=str(OUT / f"webview-recording-{name}.png"))
-    fits(page, size["width"])
+    plot(page, "speed_mps", points_over=50)
+    shoot(page, "recording", size)
     page.close()
     assert not errors, errors
 
@@ -513,11 +511,8 @@ def test_the_recorded_page_draws_the_engines_graphs_as_beehave_inspect_says_at_t
                      if n["engine"] == "mission/check" and n["path"]}
             assert nodes == said["nodes"]
             assert nodes[("mission/check", "check/look")] in ("RUNNING", "SUCCESS")
-        OUT.mkdir(exist_ok=True)
-        name = "desktop" if size is DESKTOP else "phone"
         page.locator("#graphs").scroll_into_view_if_needed()
-        page.screenshot(path=str(OUT / f"webview-recording-graph-{state}-{name}.png"))
-    fits(page, size["width"])
+        shoot(page, f"recording-graph-{state}", size)  # it fits in every state
     page.close()
     assert not errors, errors
 
@@ -602,56 +597,49 @@ def test_the_fleet_lists_its_members_and_draws_a_conversation_as_a_sequence_diag
     monkeypatch.delenv(TOKEN_ENV, raising=False)
     with HighLevelBehaviorManager(stop_timeout_s=0.5) as hl:
         hl.register("patrol", Patrol)
-        plane = ControlPlane(hl, name="emili1")
-        try:
-            with HttpServer(plane, fleet=FLEET) as server:
-                page, errors = open_page(browser, server.url, size)
-                page.wait_for_selector('#fleet-members [data-member="press1"]',
-                                       timeout=WAIT_MS)
-                members = page.eval_on_selector_all(
-                    "#fleet-members li", "ls => ls.map((l) => [l.dataset.member, l.className])")
-                assert members == [["emili1", "robot"], ["orders", "agent"],
-                                   ["press1", "agent"]]
-                page.select_option("#seq-conversation", "c1")
-                arrows = page.eval_on_selector_all(
-                    "#sequence-svg .seq-msg",
-                    "gs => gs.map((g) => [g.dataset.from, g.dataset.to, g.dataset.performative])")
-                # oldest first, one arrow per receiver, c2's request left out
-                assert arrows == [["orders", "emili1", "cfp"], ["orders", "press1", "cfp"],
-                                  ["emili1", "orders", "propose"],
-                                  ["orders", "emili1", "accept-proposal"],
-                                  ["emili1", "orders", "inform"]]
-                # Each arrow runs from its sender's lifeline to its receiver's, downwards.
-                geometry = page.evaluate("""(() => {
-                    const lane = {};
-                    for (const t of document.querySelectorAll('#sequence-svg .seq-name'))
-                        lane[t.dataset.lane] = Number(t.getAttribute('x'));
-                    return [...document.querySelectorAll('#sequence-svg .seq-msg')].map((g) => {
-                        const l = g.querySelector('line');
-                        return [lane[g.dataset.from], Number(l.getAttribute('x1')),
-                                lane[g.dataset.to], Number(l.getAttribute('x2')),
-                                Number(l.getAttribute('y1'))]; }); })()""")
-                ys = [g[4] for g in geometry]
-                assert ys == sorted(ys) and len(set(ys)) == len(ys)
-                for from_x, x1, to_x, x2, _ in geometry:
-                    assert x1 == from_x and abs(x2 - to_x) <= 2
-                diagram = page.locator("#sequence")
-                diagram.scroll_into_view_if_needed()
-                assert pixels_near(diagram.screenshot(), BLUE) > 100
-                OUT.mkdir(exist_ok=True)
-                name = "desktop" if size is DESKTOP else "phone"
-                page.screenshot(path=str(OUT / f"webview-fleet-{name}.png"))
-                fits(page, size["width"])
-                # An agent's button filters its messages; a robot's opens its full view.
-                page.click('#fleet-members [data-member="press1"] button')
-                assert page.locator("#sequence-svg .seq-msg").count() == 1  # c1 + press1
-                page.select_option("#seq-conversation", "")
-                assert page.locator("#sequence-svg .seq-msg").count() == 2
-                page.click('#fleet-members [data-member="emili1"] button')
-                assert page.input_value("#robot-select") == "emili1"
-                page.wait_for_function("document.querySelectorAll('#behavior-choice option')"
-                                       ".length > 1", timeout=WAIT_MS)
-                page.close()
-                assert not errors, errors
-        finally:
-            plane.close()
+        with served(hl, fleet=FLEET) as server:
+            page, errors = open_page(browser, server.url, size)
+            page.wait_for_selector('#fleet-members [data-member="press1"]',
+                                   timeout=WAIT_MS)
+            members = page.eval_on_selector_all(
+                "#fleet-members li", "ls => ls.map((l) => [l.dataset.member, l.className])")
+            assert members == [["emili1", "robot"], ["orders", "agent"],
+                               ["press1", "agent"]]
+            page.select_option("#seq-conversation", "c1")
+            arrows = page.eval_on_selector_all(
+                "#sequence-svg .seq-msg",
+                "gs => gs.map((g) => [g.dataset.from, g.dataset.to, g.dataset.performative])")
+            # oldest first, one arrow per receiver, c2's request left out
+            assert arrows == [["orders", "emili1", "cfp"], ["orders", "press1", "cfp"],
+                              ["emili1", "orders", "propose"],
+                              ["orders", "emili1", "accept-proposal"],
+                              ["emili1", "orders", "inform"]]
+            # Each arrow runs from its sender's lifeline to its receiver's, downwards.
+            geometry = page.evaluate("""(() => {
+                const lane = {};
+                for (const t of document.querySelectorAll('#sequence-svg .seq-name'))
+                    lane[t.dataset.lane] = Number(t.getAttribute('x'));
+                return [...document.querySelectorAll('#sequence-svg .seq-msg')].map((g) => {
+                    const l = g.querySelector('line');
+                    return [lane[g.dataset.from], Number(l.getAttribute('x1')),
+                            lane[g.dataset.to], Number(l.getAttribute('x2')),
+                            Number(l.getAttribute('y1'))]; }); })()""")
+            ys = [g[4] for g in geometry]
+            assert ys == sorted(ys) and len(set(ys)) == len(ys)
+            for from_x, x1, to_x, x2, _ in geometry:
+                assert x1 == from_x and abs(x2 - to_x) <= 2
+            diagram = page.locator("#sequence")
+            diagram.scroll_into_view_if_needed()
+            assert pixels_near(diagram.screenshot(), BLUE) > 100
+            shoot(page, "fleet", size)
+            # An agent's button filters its messages; a robot's opens its full view.
+            page.click('#fleet-members [data-member="press1"] button')
+            assert page.locator("#sequence-svg .seq-msg").count() == 1  # c1 + press1
+            page.select_option("#seq-conversation", "")
+            assert page.locator("#sequence-svg .seq-msg").count() == 2
+            page.click('#fleet-members [data-member="emili1"] button')
+            assert page.input_value("#robot-select") == "emili1"
+            page.wait_for_function("document.querySelectorAll('#behavior-choice option')"
+                                   ".length > 1", timeout=WAIT_MS)
+            page.close()
+            assert not errors, errors
