@@ -139,6 +139,17 @@ def test_the_slider_shows_the_robot_as_it_was_and_live_returns_to_now(
     server, hl = live
     page, errors = open_page(browser, server.url, size)
     page.wait_for_selector("#conn.up", timeout=WAIT_MS)
+    # Live, the bar's clock, Live button and moment stay as they are: count rewrites.
+    page.evaluate("""(() => {
+        window.barWrites = [];
+        const seen = new MutationObserver((ms) => window.barWrites.push(...ms.map(
+            (m) => `${m.target.id || m.target.parentNode.id}:${m.attributeName || m.type}`)));
+        seen.observe(document.querySelector('#tl-live'), {attributes: true});
+        seen.observe(document.querySelector('#tl-time'),
+                     {childList: true, characterData: true, subtree: true});
+        seen.observe(document.querySelector('#timeline'),
+                     {attributes: true, attributeFilter: ['data-at']}); })()""")
+    updates = page.evaluate("window.beehaveTimeline.robots.emili1.snaps.length")
     hl.switch("patrol", laps=1.0)
     # The page saw the lap (its locks) and then the robot idle again.
     page.wait_for_selector('#locks tr[data-lock="driving"]', timeout=WAIT_MS)
@@ -148,6 +159,8 @@ def test_the_slider_shows_the_robot_as_it_was_and_live_returns_to_now(
     page.wait_for_function("document.querySelector('#current-behavior').textContent === 'idle'"
                            " && [...document.querySelectorAll('#blackboard tr[data-key=mission]"
                            " td')].some((c) => c.textContent === 'done')", timeout=WAIT_MS)
+    assert page.evaluate("window.beehaveTimeline.robots.emili1.snaps.length") > updates + 10
+    assert page.evaluate("window.barWrites") == []
     # The slider's moment where the lap ran: half-way between the first and the last
     # picture of it the page kept.
     offset = page.evaluate("""(() => {

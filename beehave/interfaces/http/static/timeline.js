@@ -137,15 +137,20 @@
     return `${new Date(t * 1000).toLocaleTimeString()} (−${Math.max(0, last - t).toFixed(1)} s)`;
   }
 
+  // Live, the bar follows every update: write only what changed (no needless DOM work,
+  // and nothing rewritten under a finger or a screen reader).
+  function put(target, key, value) { if (target[key] !== value) target[key] = value; }
+
   function updateBar() {
     const [first, last] = span();
-    slider.min = "0";
-    slider.max = String(Math.max(0, last - first).toFixed(2));
     const t = tl.at === null ? last : tl.at;
-    slider.value = String((t - first).toFixed(2));
-    clock.textContent = tl.at === null ? "live" : label(t);
-    bar.dataset.at = tl.at === null ? "live" : String(tl.recording ? t : t - first);
-    live.setAttribute("aria-pressed", String(tl.at === null));
+    put(slider, "max", String(Math.max(0, last - first).toFixed(2)));
+    const at = (t - first).toFixed(2);
+    if (Number(slider.value).toFixed(2) !== at) slider.value = at;
+    put(clock, "textContent", tl.at === null ? "live" : label(t));
+    put(bar.dataset, "at", tl.at === null ? "live" : String(tl.recording ? t : t - first));
+    const pressed = String(tl.at === null);
+    if (live.getAttribute("aria-pressed") !== pressed) live.setAttribute("aria-pressed", pressed);
   }
 
   // Show the moment t (wall seconds live; seconds since the start in a recording).
