@@ -51,6 +51,7 @@ SIZES = {"desktop": {"width": 1280, "height": 800}, "phone": {"width": 390, "hei
 if not Path(CHROMIUM).exists():  # pragma: no cover - `make setup` installs it
     pytest.skip(f"{CHROMIUM} is not installed", allow_module_level=True)
 
+LOOP_WINDOW_MS = 1000  # long enough for dozens of requests on loopback
 INSPECT = "beehaveGraph.inspect(document.querySelector('#graphs'))"
 
 
@@ -316,3 +317,23 @@ def test_screenshot_of_each_view_at_desktop_and_phone_size(
         assert wait_until(lambda: not robot.paused)
     finally:
         context.close()
+
+
+def test_a_structure_the_server_does_not_have_is_asked_for_once_not_in_a_loop(
+        server: HttpServer, page: Any) -> None:
+    """An engine that ended before the page asked for its structure: the page asks once
+    (a snapshot naming a structure_id that GET …/structure does not list)."""
+    page.goto(server.url)
+    page.wait_for_selector("#graphs", state="attached", timeout=WAIT_MS)
+    asked: list[str] = []
+    page.on("request", lambda r: asked.append(r.url) if "/structure" in r.url else None)
+    with page.expect_response(lambda r: "/structure" in r.url, timeout=WAIT_MS):
+        page.evaluate("""(() => {
+            const box = document.createElement('div');
+            box.style.width = '300px'; box.style.height = '200px';
+            document.body.appendChild(box);
+            beehaveGraph.render(box, {engines: [{path: 'gone', structure_id: 'ended-1',
+                                                 kind: 'state_machine'}]},
+                                {robot: 'emili1'}); })()""")
+    page.wait_for_timeout(LOOP_WINDOW_MS)  # a loop would ask again within milliseconds
+    assert asked == [f"{server.url}api/robots/emili1/structure"]

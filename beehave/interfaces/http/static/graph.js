@@ -384,9 +384,17 @@ window.beehaveGraph = (() => {
     if (!v) v = makeView(container);
     v.options = options;
     for (const s of options.structures || []) structures.set(s.structure_id, s);
+    v.snapshot = snapshot;
     const missing = engines.filter((e) => !structures.has(e.structure_id));
     if (missing.length && options.robot) {
-      fetchStructures(options.robot).then(() => render(container, snapshot, options)).catch(() => {});
+      // Drawn again (with the newest snapshot, not this one) only when the fetch brought
+      // one of them: an engine that ended before its structure was asked is not asked
+      // for again and again. A failed fetch is kept on the container
+      // (data-structure-error), not dropped.
+      fetchStructures(options.robot).then(() => {
+        delete container.dataset.structureError;
+        if (missing.some((e) => structures.has(e.structure_id))) render(container, v.snapshot, v.options);
+      }, (err) => { container.dataset.structureError = err.message; });
     }
     const key = engines.map((e) => `${e.path}@${structures.has(e.structure_id) ? e.structure_id : "?"}`).join("|");
     container.dataset.engines = String(engines.length);
