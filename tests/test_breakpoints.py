@@ -19,6 +19,7 @@ from beehave.breakpoints import Breakpoints, UnknownBreakpointTarget  # noqa: E4
 from beehave.breakpoints import of as breakpoints_of  # noqa: E402
 from beehave.engines import EngineBehavior  # noqa: E402
 from beehave.errors import BadRequest  # noqa: E402
+from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
 from beehave.testing import wait_until  # noqa: E402
 from behaviours.demos.graphs import delivery_machine, patrol_tree  # noqa: E402
@@ -234,3 +235,22 @@ def test_the_structure_endpoint_gives_states_labelled_transitions_and_tree_nodes
                    for n in tree["nodes"]}
         assert parents["look"] == "patrol" and parents["patrol"] == "root"
         assert tree["nodes"][0]["type"] == "Selector"
+
+
+def test_breakpoints_set_through_a_second_plane_hold_after_the_first_plane_closed(
+        robot: HighLevelBehaviorManager) -> None:
+    """Two planes of one manager (e.g. VDA 5050's own and the robot's HTTP one): the
+    first made the breakpoints and closed them with itself; the second's still pause."""
+    first, second = ControlPlane(robot, name="emili1"), ControlPlane(robot, name="emili1")
+    try:
+        first.set_breakpoint("state", "drop")  # the first plane makes them
+        assert second.breakpoints()["breakpoints"]["state"] == ["drop"]  # shared
+        first.close()  # its Breakpoints go with it
+        second.set_breakpoint("state", "pick")
+        robot.switch("delivery")
+        assert wait_until(lambda: robot.paused), "the second plane's breakpoint did not hold"
+        assert second.breakpoints()["hit"]["target"] == "pick"
+        assert second.continue_() == {"resumed": True}
+    finally:
+        first.close()
+        second.close()

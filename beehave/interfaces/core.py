@@ -97,7 +97,6 @@ class ControlPlane:
         self._low_cache: tuple[float, dict[str, Any]] | None = None
         self._low_dirty = True
         self._unsubscribe = [high.subscribe(self._on_high_event)]
-        self._points: Breakpoints | None = None
         if low is not None:
             self._unsubscribe.append(low.subscribe(self._on_low_event))
 
@@ -214,14 +213,14 @@ class ControlPlane:
         return {"resumed": self._breakpoints().resume()}
 
     def _breakpoints(self) -> Breakpoints:
+        # Looked up each time, not kept: another plane of the same manager (VDA 5050's own,
+        # a ROS bridge's) may have made them and closed them with itself since.
         with self._lock:
-            if self._points is None:
-                existing = breakpoints_of(self.high)
-                if existing is None:
-                    existing = Breakpoints(self.high)
-                    self._unsubscribe.append(existing.close)  # ours: closed with the plane
-                self._points = existing
-            return self._points
+            points = breakpoints_of(self.high)
+            if points is None:
+                points = Breakpoints(self.high)
+                self._unsubscribe.append(points.close)  # ours: closed with the plane
+            return points
 
     def structures(self) -> list[dict[str, Any]]:
         """The structure of every running decision engine (what a viewer draws once; the
