@@ -558,6 +558,20 @@ def test_a_recording_refuses_commands_and_bad_times_with_the_reason(
     assert answer.status_code == 422 and "odom/x_m" in answer.json()["detail"]
 
 
+@pytest.mark.parametrize("content, said", [
+    (b"", "not an MCAP file"), (b"garbage, not MCAP\n", "not an MCAP file"),
+    ("head", "holds no message")], ids=["empty", "garbage", "truncated"])
+def test_beehave_view_of_a_file_that_is_no_recording_exits_2_saying_why(
+        recording: Path, tmp_path: Path, content: bytes | str, said: str) -> None:
+    path = tmp_path / "bad.mcap"
+    path.write_bytes(recording.read_bytes()[:3000] if content == "head" else content)
+    done = subprocess.run([sys.executable, "-m", "beehave.cli", "view", str(path), "--port",
+                           "0"], cwd=ROOT, capture_output=True, text=True,
+                          timeout=WALL_TIMEOUT_S)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert said in done.stderr and str(path) in done.stderr and "Traceback" not in done.stderr
+
+
 def test_a_recording_refuses_hostile_queries_naming_the_problem(viewer: ViewProcess) -> None:
     """What a plain client may send: times that are no finite seconds inside the
     recording, too many series keys, commands for a robot not recorded."""
@@ -579,6 +593,11 @@ def test_a_recording_refuses_hostile_queries_naming_the_problem(viewer: ViewProc
         assert list(answer.json()["series"]) == ["odom/x_m"]
         answer = client.get(series, params={"keys": ",".join(f"k{i}" for i in range(101))})
         assert answer.status_code == 422 and "at most 100" in answer.json()["detail"]
+        answer = client.get("api/recording", headers={"Host": "evil.example"})
+        assert answer.status_code == 403 and "evil.example" in answer.json()["detail"]
+        answer = client.post("api/robots/emili1/continue", json={},
+                             headers={"Origin": "http://evil.example"})
+        assert answer.status_code == 403 and "evil.example" in answer.json()["detail"]
         answer = client.post("api/robots/kobuki9/continue", json={})
         assert answer.status_code == 404, answer.text
         assert "'kobuki9'" in answer.json()["detail"] and "'emili1'" in answer.json()["detail"]
