@@ -21,7 +21,7 @@ from beehave.engines import EngineBehavior  # noqa: E402
 from beehave.errors import BadRequest  # noqa: E402
 from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
-from beehave.testing import wait_until  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
 from behaviours.demos.graphs import delivery_machine, patrol_tree  # noqa: E402
 from tests.http_fixtures import served  # noqa: E402
 
@@ -110,7 +110,7 @@ def server(robot: HighLevelBehaviorManager, monkeypatch: pytest.MonkeyPatch
 def test_http_breakpoint_pause_where_and_continue(
         server: HttpServer, robot: HighLevelBehaviorManager) -> None:
     api = f"http://127.0.0.1:{server.port}/api/robots/emili1"
-    with httpx.Client(timeout=30) as client:
+    with httpx.Client(timeout=WALL_TIMEOUT_S) as client:
         listed = client.get(f"{api}/breakpoints").json()
         assert "pick" in listed["choices"]["state"]
         assert "waiting" in listed["choices"]["action_type"]
@@ -134,7 +134,7 @@ def test_http_breakpoint_pause_where_and_continue(
 
 def test_http_bad_breakpoints_get_4xx_naming_the_choices(server: HttpServer) -> None:
     api = f"http://127.0.0.1:{server.port}/api/robots/emili1"
-    with httpx.Client(timeout=30) as client:
+    with httpx.Client(timeout=WALL_TIMEOUT_S) as client:
         unknown = client.post(f"{api}/breakpoints", json={"kind": "state", "target": "pikc"})
         assert unknown.status_code == 404
         assert "'pick'" in unknown.json()["detail"] and "'to_drop'" in unknown.json()["detail"]
@@ -153,7 +153,7 @@ def test_http_hostile_breakpoint_bodies_get_4xx_naming_the_problem(
     malformed JSON, a remove with a typo (which would leave the meant breakpoint set)."""
     api = f"http://127.0.0.1:{server.port}/api/robots/emili1"
     robot.switch("delivery")
-    with httpx.Client(timeout=30) as client:
+    with httpx.Client(timeout=WALL_TIMEOUT_S) as client:
         assert wait_until(lambda: "pick" in client.get(f"{api}/breakpoints").json()["choices"]
                           ["state"])
         for body, status, named in [
@@ -189,7 +189,7 @@ def test_breakpoint_endpoints_off_loopback_need_the_token(
     monkeypatch.delenv(TOKEN_ENV, raising=False)
     # 0.0.0.0 listens on every interface; the test talks to it over loopback only.
     with served(robot, host="0.0.0.0", token="t0ken") as srv, \
-            httpx.Client(timeout=30) as client:
+            httpx.Client(timeout=WALL_TIMEOUT_S) as client:
         api = f"http://127.0.0.1:{srv.port}/api/robots/emili1"
         body = {"kind": "state", "target": "pick"}
         for method, path, payload in (("GET", "/breakpoints", None),
@@ -214,7 +214,7 @@ def test_the_structure_endpoint_gives_states_labelled_transitions_and_tree_nodes
         server: HttpServer, robot: HighLevelBehaviorManager) -> None:
     """Item 1's data: the structure once (by structure_id), the statuses per update."""
     api = f"http://127.0.0.1:{server.port}/api/robots/emili1"
-    with httpx.Client(timeout=30) as client:
+    with httpx.Client(timeout=WALL_TIMEOUT_S) as client:
         client.post(f"{api}/switch", json={"behavior": "delivery"})
         assert wait_until(lambda: client.get(f"{api}/status").json()["engines"])
         engine = client.get(f"{api}/status").json()["engines"][0]

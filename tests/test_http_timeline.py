@@ -273,7 +273,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def viewer(recording: Path) -> Iterator[ViewProcess]:
     process = ViewProcess(recording)
     try:
-        process._found.wait(60)
+        process._found.wait(WALL_TIMEOUT_S)
         assert process.url, "beehave view printed no URL:\n" + "".join(process.lines)
         yield process
     finally:
@@ -285,7 +285,7 @@ def inspect_at(recording: Path, t_s: float) -> dict[str, dict[str, Any]]:
     """``beehave inspect --at t``'s lines, parsed: robot → what it says of it."""
     done = subprocess.run([sys.executable, "-m", "beehave.cli", "inspect", str(recording),
                            "--at", f"{t_s}"], cwd=ROOT, capture_output=True, text=True,
-                          timeout=60, check=True)
+                          timeout=WALL_TIMEOUT_S, check=True)
     robots: dict[str, dict[str, Any]] = {}
     for line in done.stdout.splitlines()[1:]:
         robot, _, fact = line.partition(" ")
@@ -317,7 +317,7 @@ def inspect_timeline(recording: Path) -> list[tuple[float, str, str, str]]:
     """``beehave inspect``'s event timeline: (t, robot, kind, subject) per line."""
     done = subprocess.run([sys.executable, "-m", "beehave.cli", "inspect", str(recording),
                            "--limit", "1000"], cwd=ROOT, capture_output=True, text=True,
-                          timeout=60, check=True)
+                          timeout=WALL_TIMEOUT_S, check=True)
     lines = done.stdout.split("event timeline", 1)[1].splitlines()[1:]
     return [(float(t), robot, kind, subject) for t, robot, _, kind, subject, *_ in
             (line.split() for line in lines if line.strip())]
@@ -461,7 +461,7 @@ def machine_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def machine_viewer(machine_recording: Path) -> Iterator[ViewProcess]:
     process = ViewProcess(machine_recording)
     try:
-        process._found.wait(60)
+        process._found.wait(WALL_TIMEOUT_S)
         assert process.url, "beehave view printed no URL:\n" + "".join(process.lines)
         yield process
     finally:
@@ -533,28 +533,29 @@ def test_the_recorded_page_draws_the_engines_graphs_as_beehave_inspect_says_at_t
 def test_a_recording_without_engines_serves_no_structure_and_refuses_breakpoints(
         viewer: ViewProcess) -> None:
     """An older recording (no engine channels) still opens: no graphs, no error."""
-    answer = httpx.get(f"{viewer.url}api/robots/emili1/structure", timeout=10)
+    answer = httpx.get(f"{viewer.url}api/robots/emili1/structure", timeout=WALL_TIMEOUT_S)
     assert answer.status_code == 200 and answer.json() == {"engines": []}
-    answer = httpx.get(f"{viewer.url}api/robots/emili1/breakpoints", timeout=10)
+    answer = httpx.get(f"{viewer.url}api/robots/emili1/breakpoints", timeout=WALL_TIMEOUT_S)
     assert answer.status_code == 200 and answer.json()["breakpoints"] == {}
     for verb in ("breakpoints", "breakpoints/remove", "continue"):
         answer = httpx.post(f"{viewer.url}api/robots/emili1/{verb}",
-                            json={"kind": "state", "target": "go"}, timeout=10)
+                            json={"kind": "state", "target": "go"}, timeout=WALL_TIMEOUT_S)
         assert answer.status_code == 405, answer.text
 
 
 def test_a_recording_refuses_commands_and_bad_times_with_the_reason(
         viewer: ViewProcess) -> None:
     for verb in ("switch", "stop", "pause", "resume"):
-        answer = httpx.post(f"{viewer.url}api/robots/emili1/{verb}", json={}, timeout=10)
+        answer = httpx.post(f"{viewer.url}api/robots/emili1/{verb}", json={},
+                            timeout=WALL_TIMEOUT_S)
         assert answer.status_code == 405, answer.text
         assert "recording" in answer.json()["detail"]
-    answer = httpx.get(f"{viewer.url}api/recording/at", params={"t": 1e6}, timeout=10)
+    answer = httpx.get(f"{viewer.url}api/recording/at", params={"t": 1e6}, timeout=WALL_TIMEOUT_S)
     assert answer.status_code == 422 and "outside the recording" in answer.json()["detail"]
-    answer = httpx.get(f"{viewer.url}api/robots/kobuki9/snapshot", timeout=10)
+    answer = httpx.get(f"{viewer.url}api/robots/kobuki9/snapshot", timeout=WALL_TIMEOUT_S)
     assert answer.status_code == 404 and "emili1" in answer.json()["detail"]
     answer = httpx.get(f"{viewer.url}api/robots/emili1/series", params={"keys": "nope"},
-                       timeout=10)
+                       timeout=WALL_TIMEOUT_S)
     assert answer.status_code == 422 and "odom/x_m" in answer.json()["detail"]
 
 
@@ -575,7 +576,7 @@ def test_beehave_view_of_a_file_that_is_no_recording_exits_2_saying_why(
 def test_a_recording_refuses_hostile_queries_naming_the_problem(viewer: ViewProcess) -> None:
     """What a plain client may send: times that are no finite seconds inside the
     recording, too many series keys, commands for a robot not recorded."""
-    with httpx.Client(base_url=viewer.url, timeout=10) as client:
+    with httpx.Client(base_url=viewer.url, timeout=WALL_TIMEOUT_S) as client:
         for path in ("api/recording/at", "api/robots/emili1/snapshot",
                      "api/robots/emili1/structure"):
             for t in ("nan", "inf", "-inf", "1e400"):
