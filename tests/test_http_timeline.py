@@ -16,6 +16,7 @@ by its pixels (the plot's line colour, the arrows of the diagram) and its width.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import math
@@ -269,8 +270,9 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return make_recording(tmp_path_factory.mktemp("timeline") / "patrol.mcap")
 
 
-@pytest.fixture(scope="module")
-def viewer(recording: Path) -> Iterator[ViewProcess]:
+@contextlib.contextmanager
+def viewing(recording: Path) -> Iterator[ViewProcess]:
+    """``beehave view recording`` serving; on the way out it ends, and must end cleanly."""
     process = ViewProcess(recording)
     try:
         process._found.wait(WALL_TIMEOUT_S)
@@ -279,6 +281,12 @@ def viewer(recording: Path) -> Iterator[ViewProcess]:
     finally:
         output = process.stop()
     assert process.proc.returncode == 0, output
+
+
+@pytest.fixture(scope="module")
+def viewer(recording: Path) -> Iterator[ViewProcess]:
+    with viewing(recording) as process:
+        yield process
 
 
 def inspect_at(recording: Path, t_s: float) -> dict[str, dict[str, Any]]:
@@ -459,14 +467,8 @@ def machine_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def machine_viewer(machine_recording: Path) -> Iterator[ViewProcess]:
-    process = ViewProcess(machine_recording)
-    try:
-        process._found.wait(WALL_TIMEOUT_S)
-        assert process.url, "beehave view printed no URL:\n" + "".join(process.lines)
+    with viewing(machine_recording) as process:
         yield process
-    finally:
-        output = process.stop()
-    assert process.proc.returncode == 0, output
 
 
 def mcap_engines(recording: Path) -> list[tuple[float, str, dict[str, Any] | None]]:
