@@ -12,7 +12,7 @@ from typing import Any, ClassVar, Self
 
 from beehave.errors import Interrupted
 from beehave.events import Event, EventKind
-from beehave.runnable import Runnable
+from beehave.runnable import Runnable, _Pause
 from beehave.status import Status
 
 
@@ -104,10 +104,8 @@ class Action(Runnable):
             if self._decided.is_set() or self._status not in (Status.PENDING, Status.RUNNING):
                 done.set()
                 return done
-            if hooked:
-                self._pause_hooked = True
-            else:
-                self._pausing = True
+            self._pause = _Pause.HOOKED if hooked else _Pause.WIND_DOWN
+            if not hooked:
                 self._cond.notify_all()
         if not hooked and self._manager is not None:
             self._manager._locks.poke()
@@ -116,19 +114,18 @@ class Action(Runnable):
     def _request_resume(self) -> None:
         """The pause ended: let ``run`` go again (it waits in ``_pause_point``)."""
         with self._cond:
-            self._pausing = False
-            self._pause_hooked = False
+            self._pause = _Pause.NONE
             self._cond.notify_all()
 
     def _pause_point(self, error: BaseException | None, *, ran: bool) -> bool:
-        if not self._pausing:
+        if self._pause is not _Pause.WIND_DOWN:
             # The common case, read without the lock: a pause asked for just after this
             # look finds run() running and winds it down as usual.
             return not ran
         manager = self._manager
         assert manager is not None
         with self._cond:
-            if (not self._pausing or self._interrupt_requested
+            if (self._pause is not _Pause.WIND_DOWN or self._interrupt_requested
                     or self._status is not Status.RUNNING):
                 return not ran
             if ran and error is not None and not isinstance(error, Interrupted):
@@ -143,7 +140,7 @@ class Action(Runnable):
             done.set()
 
         def resumed() -> bool:
-            return (not self._pausing or self._interrupt_requested
+            return (self._pause is not _Pause.WIND_DOWN or self._interrupt_requested
                     or self._status is not Status.RUNNING)
 
         with manager.clock.blocked(resumed), self._cond:
@@ -196,6 +193,6 @@ class Action(Runnable):
             snap["safe_state_error"] = repr(self.safe_state_error)
         if self.safe_state_pending:
             snap["safe_state_pending"] = True
-        if self._pausing or self._pause_hooked:
+        if self._pause is not _Pause.NONE:
             snap["paused"] = True
         return snap
