@@ -683,9 +683,6 @@ class Runnable(abc.ABC):
     def _raise_pending(self) -> None:
         """Behavior raises ChildFailed here; called with ``_cond`` held."""
 
-    def _wait_decided(self, deadline: float) -> bool:
-        return self._block_on(self._decided, max(0.0, deadline - time.monotonic()))
-
     @property
     def elapsed_s(self) -> float | None:
         if self.started_at is None:
