@@ -56,7 +56,15 @@ KINDS = {"state": "a state of a state machine",
          "node": "a behaviour-tree node (its path, or its name)",
          "action_type": "an action type"}
 
-_BY_MANAGER: weakref.WeakKeyDictionary[Any, Breakpoints] = weakref.WeakKeyDictionary()
+# Weak both ways: the Breakpoints refer to their manager, so a strong value would keep
+# the key (the manager) alive for ever once nobody closes them.
+_BY_MANAGER: weakref.WeakKeyDictionary[Any, weakref.ref[Breakpoints]] = (
+    weakref.WeakKeyDictionary())
+
+
+def _points(manager: Any) -> Breakpoints | None:
+    ref = _BY_MANAGER.get(manager)
+    return None if ref is None else ref()
 
 
 class UnknownBreakpointTarget(UnknownNameError):
@@ -73,7 +81,7 @@ class UnknownBreakpointTarget(UnknownNameError):
 
 def of(manager: Any) -> Breakpoints | None:
     """The :class:`Breakpoints` of ``manager``, or None."""
-    return _BY_MANAGER.get(manager)
+    return _points(manager)
 
 
 def entered(behavior: Any, kind: str, target: str, *, also: str | None = None) -> None:
@@ -83,7 +91,7 @@ def entered(behavior: Any, kind: str, target: str, *, also: str | None = None) -
     manager = getattr(behavior, "_manager", None)
     if manager is None:
         return
-    points = _BY_MANAGER.get(manager)
+    points = _points(manager)
     if points is not None:
         points._check(kind, target, also, behavior.path)
 
@@ -92,7 +100,7 @@ def wanted(behavior: Any, kind: str) -> bool:
     """Whether ``behavior``'s manager has breakpoints of ``kind`` (engines skip their
     comparisons otherwise)."""
     manager = getattr(behavior, "_manager", None)
-    points = None if manager is None else _BY_MANAGER.get(manager)
+    points = None if manager is None else _points(manager)
     return points is not None and bool(points._targets[kind])
 
 
@@ -114,7 +122,7 @@ class Breakpoints:
         self._targets: dict[str, frozenset[str]] = {k: frozenset() for k in KINDS}
         self._hit: dict[str, Any] | None = None
         self._unsubscribe: Callable[[], None] | None = high.subscribe(self._on_event)
-        _BY_MANAGER[high] = self
+        _BY_MANAGER[high] = weakref.ref(self)
 
     # -- setting ---------------------------------------------------------------------------
     def add(self, kind: str, target: str) -> dict[str, list[str]]:
@@ -242,7 +250,7 @@ class Breakpoints:
         unsubscribe, self._unsubscribe = self._unsubscribe, None
         if unsubscribe is not None:
             unsubscribe()
-        if _BY_MANAGER.get(self.high) is self:
+        if _points(self.high) is self:
             del _BY_MANAGER[self.high]
 
 

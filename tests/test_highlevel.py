@@ -104,6 +104,20 @@ def test_a_switch_leaves_no_reference_cycles(hl: HighLevelBehaviorManager) -> No
         gc.enable()
 
 
+def test_a_manager_whose_breakpoints_nobody_closed_is_freed_once_dropped() -> None:
+    """The registry of breakpoints per manager must not keep a manager alive: a script
+    that forgets ``Breakpoints.close()`` would otherwise keep every manager it made."""
+    from beehave.breakpoints import Breakpoints, of
+
+    with HighLevelBehaviorManager() as hl:
+        points = Breakpoints(hl)
+        assert of(hl) is points
+    ref = weakref.ref(hl)
+    del hl, points
+    gc.collect()
+    assert ref() is None, "the manager outlived every reference to it"
+
+
 def test_switch_params_override_registered_ones(hl: HighLevelBehaviorManager) -> None:
     hl.register("speedy", NeedsSpeed, speed_mps=0.5)
     assert hl.switch("speedy").speed_mps == 0.5  # type: ignore[attr-defined]
