@@ -105,11 +105,25 @@ class Action(Runnable):
                 done.set()
                 return done
             self._pause = _Pause.HOOKED if hooked else _Pause.WIND_DOWN
-            if not hooked:
-                self._cond.notify_all()
+            self._cond.notify_all()  # (also for _await_pause)
         if not hooked and self._manager is not None:
             self._manager._locks.poke()
         return done
+
+    def _await_pause(self, timeout_s: float) -> None:
+        """In its own thread, before ``run``: a pause was just asked for (a breakpoint on
+        its type). Wait until the pause has reached this action (or it is interrupted), at
+        most ``timeout_s``: the pause is carried out in a manager thread, and ``run`` would
+        otherwise begin, and move the robot, before it lands."""
+        manager = self._manager
+        assert manager is not None
+
+        def reached() -> bool:
+            return (self._pause is not _Pause.NONE or self._interrupt_requested
+                    or self._status is not Status.RUNNING)
+
+        with manager.clock.blocked(reached), self._cond:
+            self._cond.wait_for(reached, timeout_s)
 
     def _request_resume(self) -> None:
         """The pause ended: let ``run`` go again (it waits in ``_pause_point``)."""

@@ -215,35 +215,47 @@ class Breakpoints:
         """``{"breakpoints": listing, "hit": hit or None, "paused": bool}``."""
         return {"breakpoints": self.listing(), "hit": self.hit, "paused": self.high.paused}
 
-    def _check(self, kind: str, target: str, also: str | None, path: str) -> None:
+    def _check(self, kind: str, target: str, also: str | None, path: str) -> bool:
+        """Pause when ``target`` (or ``also``) is a breakpoint; whether a pause was asked
+        for."""
         targets = self._targets[kind]
         if not targets:
-            return
+            return False
         name = target if target in targets else also if also in targets else None
         if name is None:
-            return
-        self._stop(kind, name, path)
+            return False
+        return self._stop(kind, name, path)
 
-    def _stop(self, kind: str, target: str, path: str) -> None:
+    def _stop(self, kind: str, target: str, path: str) -> bool:
+        """Ask for the pause; whether it was asked for (not when one is on already, nor
+        once the manager shuts down)."""
         if self.high.paused:
-            return
+            return False
         self._hit = {"kind": kind, "target": target, "path": path, "stamp": time.time()}
         log.info("breakpoint on %s %r hit by %s: pausing", kind, target, path)
         try:
             self.high.request_pause()
         except BeehaveError as exc:  # shutting down: nothing to pause
             log.info("breakpoint %s %r: no pause (%s)", kind, target, exc)
+            return False
+        return True
 
     def _on_event(self, event: Event) -> None:
         if event.kind is not EventKind.STARTED or not self._targets["action_type"]:
             return
         if event.detail.get("resumed"):
             return  # the same action going on after a pause: not a new entry
+        from beehave.action import Action
+
         node = current()
-        action_type = getattr(node, "action_type", None)
-        if node is None or node.path != event.subject or not isinstance(action_type, str):
+        if not isinstance(node, Action) or node.path != event.subject:
             return
-        self._check("action_type", action_type, None, event.subject)
+        action_type = node.action_type
+        if not isinstance(action_type, str):
+            return
+        if self._check("action_type", action_type, None, event.subject):
+            # In the action's own thread, before its run(): not a step before the pause.
+            node._await_pause(self.high.stop_timeout_s)
 
     def close(self) -> None:
         """Stop watching; the breakpoints are gone (a pause they caused stays)."""

@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 
 from beehave import (
+    Action,
     Behavior,
     HighLevelBehaviorManager,
     InvalidParameters,
@@ -21,6 +22,7 @@ from beehave import (
     UnknownBehavior,
 )
 from beehave.errors import ConfigError, NotASubclass
+from beehave.events import Event, EventKind
 from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, beehave_threads, wait_until
 
 
@@ -116,6 +118,49 @@ def test_a_manager_whose_breakpoints_nobody_closed_is_freed_once_dropped() -> No
     del hl, points
     gc.collect()
     assert ref() is None, "the manager outlived every reference to it"
+
+
+class Drives(Action):
+    """Counts its runs; drives (sleeps) until interrupted."""
+
+    action_type = "breakpoint_driving"
+    runs = 0
+
+    def run(self) -> None:
+        type(self).runs += 1
+        self.sleep(30)
+
+
+class StartsDrives(Behavior):
+    def run(self) -> None:
+        self.start_action(Drives()).wait()
+
+
+def test_an_action_type_breakpoint_stops_the_action_before_its_run_begins(
+        hl: HighLevelBehaviorManager, events: list[Event]) -> None:
+    """The breakpoint's pause is carried out in a manager thread; with its threads warm
+    (any robot after its first switch) the action's run() — the robot moving — began
+    before that pause landed. It must wait for the resume instead."""
+    from beehave.breakpoints import Breakpoints
+
+    hl.stop_timeout_s = 2.0  # a loaded host must not give up on the pause
+    hl.register("drives", StartsDrives)
+    points = Breakpoints(hl)
+    try:
+        points.add("action_type", "breakpoint_driving")
+        for round_ in range(3):  # the later rounds find the manager's threads warm
+            Drives.runs = 0
+            events.clear()
+            top = hl.switch("drives")
+            assert wait_until(lambda: any(e.kind is EventKind.PAUSED for e in events))
+            assert Drives.runs == 0, f"round {round_}: run() began before the breakpoint"
+            (action,) = top.children
+            assert action.status is Status.RUNNING
+            assert points.resume()
+            assert wait_until(lambda: Drives.runs == 1)
+            hl.switch("idle")
+    finally:
+        points.close()
 
 
 def test_switch_params_override_registered_ones(hl: HighLevelBehaviorManager) -> None:
