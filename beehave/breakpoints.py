@@ -241,6 +241,11 @@ class Breakpoints:
         return True
 
     def _on_event(self, event: Event) -> None:
+        if event.kind is EventKind.RESUMED:
+            # Whoever ended the pause (the pause button, a switch): a later pause is not
+            # this breakpoint's.
+            self._hit = None
+            return
         if event.kind is not EventKind.STARTED or not self._targets["action_type"]:
             return
         if event.detail.get("resumed"):

@@ -163,6 +163,32 @@ def test_an_action_type_breakpoint_stops_the_action_before_its_run_begins(
         points.close()
 
 
+def test_a_breakpoint_resumed_by_someone_else_is_not_blamed_for_a_later_pause(
+        hl: HighLevelBehaviorManager, events: list[Event]) -> None:
+    """``hit`` says where a breakpoint stopped the robot; once the pause button (not
+    ``Breakpoints.resume``) ended that pause, a later pause of the button's is no hit."""
+    from beehave.breakpoints import Breakpoints
+
+    hl.stop_timeout_s = 2.0  # a loaded host must not give up on the pause
+    hl.register("drives", StartsDrives)
+    points = Breakpoints(hl)
+    try:
+        points.add("action_type", "breakpoint_driving")
+        Drives.runs = 0
+        hl.switch("drives")
+        assert wait_until(lambda: any(e.kind is EventKind.PAUSED for e in events))
+        hit = points.hit
+        assert hit is not None and hit["target"] == "breakpoint_driving", hit
+        points.clear()
+        assert hl.resume()  # the pause button, not points.resume()
+        assert wait_until(lambda: Drives.runs == 1)
+        assert hl.pause()
+        assert points.hit is None, points.hit
+        assert points.state()["paused"] is True
+    finally:
+        points.close()
+
+
 def test_switch_params_override_registered_ones(hl: HighLevelBehaviorManager) -> None:
     hl.register("speedy", NeedsSpeed, speed_mps=0.5)
     assert hl.switch("speedy").speed_mps == 0.5  # type: ignore[attr-defined]
