@@ -93,7 +93,10 @@ def entered(behavior: Any, kind: str, target: str, *, also: str | None = None) -
         return
     points = _points(manager)
     if points is not None:
-        points._check(kind, target, also, behavior.path)
+        seen = points._pauses
+        if points._check(kind, target, also, behavior.path):
+            # Before the engine starts what it entered: not a step before the pause.
+            points._await_paused(behavior, seen)
 
 
 def wanted(behavior: Any, kind: str) -> bool:
@@ -121,6 +124,10 @@ class Breakpoints:
         self._lock = threading.Lock()
         self._targets: dict[str, frozenset[str]] = {k: frozenset() for k in KINDS}
         self._hit: dict[str, Any] | None = None
+        # Pauses seen begin or end (paused and resumed events), and the behaviours waiting
+        # for the one they asked for.
+        self._pauses = 0
+        self._waiting: set[Any] = set()
         self._unsubscribe: Callable[[], None] | None = high.subscribe(self._on_event)
         _BY_MANAGER[high] = weakref.ref(self)
 
@@ -240,11 +247,40 @@ class Breakpoints:
             return False
         return True
 
+    def _await_paused(self, behavior: Any, seen: int) -> None:
+        """In ``behavior``'s thread, after its engine entered a breakpoint: wait until
+        the pause it asked for is on (a ``paused`` event, or any pause ending) or the
+        behaviour is interrupted (a switch, the shutdown), at most ``stop_timeout_s`` +
+        0.25 s.
+        The pause is carried out in a manager thread; the engine would otherwise start the
+        state's actions first, and they would move before it lands."""
+        high = self.high
+
+        def reached() -> bool:
+            return self._pauses != seen or behavior._interrupt_requested
+
+        cond = behavior._cond
+        with self._lock:
+            self._waiting.add(behavior)
+        try:
+            with high.clock.blocked(reached), cond:
+                cond.wait_for(reached, high.stop_timeout_s + 0.25)
+        finally:
+            with self._lock:
+                self._waiting.discard(behavior)
+
     def _on_event(self, event: Event) -> None:
-        if event.kind is EventKind.RESUMED:
-            # Whoever ended the pause (the pause button, a switch): a later pause is not
-            # this breakpoint's.
-            self._hit = None
+        if event.kind in (EventKind.PAUSED, EventKind.RESUMED):
+            with self._lock:
+                self._pauses += 1
+                waiting = list(self._waiting)
+            for behavior in waiting:
+                with behavior._cond:
+                    behavior._cond.notify_all()
+            if event.kind is EventKind.RESUMED:
+                # Whoever ended the pause (the pause button, a switch): a later pause is
+                # not this breakpoint's.
+                self._hit = None
             return
         if event.kind is not EventKind.STARTED or not self._targets["action_type"]:
             return
