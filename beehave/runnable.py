@@ -422,7 +422,7 @@ class Runnable(abc.ABC):
         """Wait until its ``run`` and clean-up are over (the thread goes back to the pool)."""
         return self._block_on(self._ended, timeout)
 
-    def _block_on(self, event: threading.Event | _Flag, timeout_s: float | None) -> bool:
+    def _block_on(self, event: _Flag, timeout_s: float | None) -> bool:
         """``event.wait(timeout_s)`` (wall time), telling the manager's clock that this
         thread waits for another worker (a virtual clock may then move time)."""
         manager = self._manager
