@@ -26,9 +26,11 @@ What "entered" means, per kind:
   not at every tick.
 
 The checks run in the robot's threads and cost a dictionary lookup when no breakpoint is
-set; the pause itself is carried out in a manager thread (:meth:`request_pause`). The
-engines report entries through :func:`entered`; actions are watched on the manager's
-events. One :class:`Breakpoints` per manager: whoever creates it closes it.
+set; the pause itself is carried out in a manager thread (:meth:`request_pause`), and
+the thread that hit the breakpoint waits until the pause is on (an action before its
+``run``, a behaviour before its engine starts what it entered). The engines report entries
+through :func:`entered`; actions are watched on the manager's events. One
+:class:`Breakpoints` per manager: whoever creates it closes it.
 """
 
 from __future__ import annotations
