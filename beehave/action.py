@@ -12,7 +12,7 @@ from typing import Any, ClassVar, Self
 
 from beehave.errors import Interrupted
 from beehave.events import Event, EventKind
-from beehave.runnable import Runnable
+from beehave.runnable import Runnable, _Pause
 from beehave.status import Status
 
 
@@ -104,31 +104,42 @@ class Action(Runnable):
             if self._decided.is_set() or self._status not in (Status.PENDING, Status.RUNNING):
                 done.set()
                 return done
-            if hooked:
-                self._pause_hooked = True
-            else:
-                self._pausing = True
-                self._cond.notify_all()
+            self._pause = _Pause.HOOKED if hooked else _Pause.WIND_DOWN
+            self._cond.notify_all()  # (also for _await_pause)
         if not hooked and self._manager is not None:
             self._manager._locks.poke()
         return done
 
+    def _await_pause(self, timeout_s: float) -> None:
+        """In its own thread, before ``run``: a pause was just asked for (a breakpoint on
+        its type). Wait until the pause has reached this action (or it is interrupted), at
+        most ``timeout_s``: the pause is carried out in a manager thread, and ``run`` would
+        otherwise begin, and move the robot, before it lands."""
+        manager = self._manager
+        assert manager is not None
+
+        def reached() -> bool:
+            return (self._pause is not _Pause.NONE or self._interrupt_requested
+                    or self._status is not Status.RUNNING)
+
+        with manager.clock.blocked(reached), self._cond:
+            self._cond.wait_for(reached, timeout_s)
+
     def _request_resume(self) -> None:
         """The pause ended: let ``run`` go again (it waits in ``_pause_point``)."""
         with self._cond:
-            self._pausing = False
-            self._pause_hooked = False
+            self._pause = _Pause.NONE
             self._cond.notify_all()
 
     def _pause_point(self, error: BaseException | None, *, ran: bool) -> bool:
-        if not self._pausing:
+        if self._pause is not _Pause.WIND_DOWN:
             # The common case, read without the lock: a pause asked for just after this
             # look finds run() running and winds it down as usual.
             return not ran
         manager = self._manager
         assert manager is not None
         with self._cond:
-            if (not self._pausing or self._interrupt_requested
+            if (self._pause is not _Pause.WIND_DOWN or self._interrupt_requested
                     or self._status is not Status.RUNNING):
                 return not ran
             if ran and error is not None and not isinstance(error, Interrupted):
@@ -143,7 +154,7 @@ class Action(Runnable):
             done.set()
 
         def resumed() -> bool:
-            return (not self._pausing or self._interrupt_requested
+            return (self._pause is not _Pause.WIND_DOWN or self._interrupt_requested
                     or self._status is not Status.RUNNING)
 
         with manager.clock.blocked(resumed), self._cond:
@@ -196,6 +207,6 @@ class Action(Runnable):
             snap["safe_state_error"] = repr(self.safe_state_error)
         if self.safe_state_pending:
             snap["safe_state_pending"] = True
-        if self._pausing or self._pause_hooked:
+        if self._pause is not _Pause.NONE:
             snap["paused"] = True
         return snap

@@ -26,9 +26,11 @@ What "entered" means, per kind:
   not at every tick.
 
 The checks run in the robot's threads and cost a dictionary lookup when no breakpoint is
-set; the pause itself is carried out in a manager thread (:meth:`request_pause`). The
-engines report entries through :func:`entered`; actions are watched on the manager's
-events. One :class:`Breakpoints` per manager: whoever creates it closes it.
+set; the pause itself is carried out in a manager thread (:meth:`request_pause`), and
+the thread that hit the breakpoint waits until the pause is on (an action before its
+``run``, a behaviour before its engine starts what it entered). The engines report entries
+through :func:`entered`; actions are watched on the manager's events. One
+:class:`Breakpoints` per manager: whoever creates it closes it.
 """
 
 from __future__ import annotations
@@ -56,7 +58,15 @@ KINDS = {"state": "a state of a state machine",
          "node": "a behaviour-tree node (its path, or its name)",
          "action_type": "an action type"}
 
-_BY_MANAGER: weakref.WeakKeyDictionary[Any, Breakpoints] = weakref.WeakKeyDictionary()
+# Weak both ways: the Breakpoints refer to their manager, so a strong value would keep
+# the key (the manager) alive for ever once nobody closes them.
+_BY_MANAGER: weakref.WeakKeyDictionary[Any, weakref.ref[Breakpoints]] = (
+    weakref.WeakKeyDictionary())
+
+
+def _points(manager: Any) -> Breakpoints | None:
+    ref = _BY_MANAGER.get(manager)
+    return None if ref is None else ref()
 
 
 class UnknownBreakpointTarget(UnknownNameError):
@@ -73,7 +83,7 @@ class UnknownBreakpointTarget(UnknownNameError):
 
 def of(manager: Any) -> Breakpoints | None:
     """The :class:`Breakpoints` of ``manager``, or None."""
-    return _BY_MANAGER.get(manager)
+    return _points(manager)
 
 
 def entered(behavior: Any, kind: str, target: str, *, also: str | None = None) -> None:
@@ -83,16 +93,19 @@ def entered(behavior: Any, kind: str, target: str, *, also: str | None = None) -
     manager = getattr(behavior, "_manager", None)
     if manager is None:
         return
-    points = _BY_MANAGER.get(manager)
+    points = _points(manager)
     if points is not None:
-        points._check(kind, target, also, behavior.path)
+        seen = points._pauses
+        if points._check(kind, target, also, behavior.path):
+            # Before the engine starts what it entered: not a step before the pause.
+            points._await_paused(behavior, seen)
 
 
 def wanted(behavior: Any, kind: str) -> bool:
     """Whether ``behavior``'s manager has breakpoints of ``kind`` (engines skip their
     comparisons otherwise)."""
     manager = getattr(behavior, "_manager", None)
-    points = None if manager is None else _BY_MANAGER.get(manager)
+    points = None if manager is None else _points(manager)
     return points is not None and bool(points._targets[kind])
 
 
@@ -113,8 +126,12 @@ class Breakpoints:
         self._lock = threading.Lock()
         self._targets: dict[str, frozenset[str]] = {k: frozenset() for k in KINDS}
         self._hit: dict[str, Any] | None = None
+        # Pauses seen begin or end (paused and resumed events), and the behaviours waiting
+        # for the one they asked for.
+        self._pauses = 0
+        self._waiting: set[Any] = set()
         self._unsubscribe: Callable[[], None] | None = high.subscribe(self._on_event)
-        _BY_MANAGER[high] = self
+        _BY_MANAGER[high] = weakref.ref(self)
 
     # -- setting ---------------------------------------------------------------------------
     def add(self, kind: str, target: str) -> dict[str, list[str]]:
@@ -207,42 +224,88 @@ class Breakpoints:
         """``{"breakpoints": listing, "hit": hit or None, "paused": bool}``."""
         return {"breakpoints": self.listing(), "hit": self.hit, "paused": self.high.paused}
 
-    def _check(self, kind: str, target: str, also: str | None, path: str) -> None:
+    def _check(self, kind: str, target: str, also: str | None, path: str) -> bool:
+        """Pause when ``target`` (or ``also``) is a breakpoint; whether a pause was asked
+        for."""
         targets = self._targets[kind]
         if not targets:
-            return
+            return False
         name = target if target in targets else also if also in targets else None
         if name is None:
-            return
-        self._stop(kind, name, path)
+            return False
+        return self._stop(kind, name, path)
 
-    def _stop(self, kind: str, target: str, path: str) -> None:
+    def _stop(self, kind: str, target: str, path: str) -> bool:
+        """Ask for the pause; whether it was asked for (not when one is on already, nor
+        once the manager shuts down)."""
         if self.high.paused:
-            return
+            return False
         self._hit = {"kind": kind, "target": target, "path": path, "stamp": time.time()}
         log.info("breakpoint on %s %r hit by %s: pausing", kind, target, path)
         try:
             self.high.request_pause()
         except BeehaveError as exc:  # shutting down: nothing to pause
             log.info("breakpoint %s %r: no pause (%s)", kind, target, exc)
+            return False
+        return True
+
+    def _await_paused(self, behavior: Any, seen: int) -> None:
+        """In ``behavior``'s thread, after its engine entered a breakpoint: wait until
+        the pause it asked for is on (a ``paused`` event, or any pause ending) or the
+        behaviour is interrupted (a switch, the shutdown), at most ``stop_timeout_s`` +
+        0.25 s.
+        The pause is carried out in a manager thread; the engine would otherwise start the
+        state's actions first, and they would move before it lands."""
+        high = self.high
+
+        def reached() -> bool:
+            return self._pauses != seen or behavior._interrupt_requested
+
+        cond = behavior._cond
+        with self._lock:
+            self._waiting.add(behavior)
+        try:
+            with high.clock.blocked(reached), cond:
+                cond.wait_for(reached, high.stop_timeout_s + 0.25)
+        finally:
+            with self._lock:
+                self._waiting.discard(behavior)
 
     def _on_event(self, event: Event) -> None:
+        if event.kind in (EventKind.PAUSED, EventKind.RESUMED):
+            with self._lock:
+                self._pauses += 1
+                waiting = list(self._waiting)
+            for behavior in waiting:
+                with behavior._cond:
+                    behavior._cond.notify_all()
+            if event.kind is EventKind.RESUMED:
+                # Whoever ended the pause (the pause button, a switch): a later pause is
+                # not this breakpoint's.
+                self._hit = None
+            return
         if event.kind is not EventKind.STARTED or not self._targets["action_type"]:
             return
         if event.detail.get("resumed"):
             return  # the same action going on after a pause: not a new entry
+        from beehave.action import Action
+
         node = current()
-        action_type = getattr(node, "action_type", None)
-        if node is None or node.path != event.subject or not isinstance(action_type, str):
+        if not isinstance(node, Action) or node.path != event.subject:
             return
-        self._check("action_type", action_type, None, event.subject)
+        action_type = node.action_type
+        if not isinstance(action_type, str):
+            return
+        if self._check("action_type", action_type, None, event.subject):
+            # In the action's own thread, before its run(): not a step before the pause.
+            node._await_pause(self.high.stop_timeout_s)
 
     def close(self) -> None:
         """Stop watching; the breakpoints are gone (a pause they caused stays)."""
         unsubscribe, self._unsubscribe = self._unsubscribe, None
         if unsubscribe is not None:
             unsubscribe()
-        if _BY_MANAGER.get(self.high) is self:
+        if _points(self.high) is self:
             del _BY_MANAGER[self.high]
 
 

@@ -31,7 +31,7 @@ from beehave.events import Event, EventBus, EventCallback, EventKind
 from beehave.hal import check_duration_s
 from beehave.lifecycle import Running
 from beehave.locks import TypeLocks
-from beehave.runnable import Runnable, current
+from beehave.runnable import Runnable, _Pause, current
 from beehave.status import Status
 from beehave.substitutes import Substitute, Substitutions
 from beehave.threads import WorkerPool
@@ -382,7 +382,7 @@ class HighLevelBehaviorManager(Running):
                 if not self._paused:
                     return False
                 hooked = [a for a in self._paused_actions
-                          if a._pause_hooked and not a._decided.is_set()]
+                          if a._pause is _Pause.HOOKED and not a._decided.is_set()]
             # Before anything moves again: observers see the resume before its first
             # command.
             self.events.emit(Event(EventKind.RESUMED, self._top_name or "", detail={
@@ -420,7 +420,7 @@ class HighLevelBehaviorManager(Running):
                 waits = [(a, a._request_pause(hooked=a._has_pause_hooks)) for a in holders]
             deadline = began + self.stop_timeout_s
             for action, done in waits:
-                if action._pause_hooked:
+                if action._pause is _Pause.HOOKED:
                     self._pool.submit(f"beehave:on_pause:{action.path}",
                                       functools.partial(self._hook_pause, action, done))
             stuck: list[Action] = []
@@ -451,8 +451,7 @@ class HighLevelBehaviorManager(Running):
                                    exc, {"hook": "on_pause"}))
             # It could not pause itself: the default way (interrupt to its safe state).
             with action._cond:
-                action._pause_hooked = False
-                action._pausing = True
+                action._pause = _Pause.WIND_DOWN
                 action._cond.notify_all()
             return
         done.set()

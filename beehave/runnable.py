@@ -8,6 +8,7 @@ here, under the object's own condition variable, so observers never see a half-m
 from __future__ import annotations
 
 import abc
+import enum
 import math
 import sys
 import sysconfig
@@ -58,6 +59,18 @@ _RESERVED = {
 }
 """Attributes beehave owns on every behaviour and action; user code that assigns one gets
 :class:`ReservedAttribute` naming it (``name`` is yours to set)."""
+
+
+class _Pause(enum.Enum):
+    """How the manager's pause holds an action (actions only, see :class:`Action`)."""
+
+    NONE = "none"
+    """Not paused."""
+    HOOKED = "hooked"
+    """Paused through its own ``on_pause()`` hook: ``run`` stays where it is."""
+    WIND_DOWN = "wind down"
+    """Asked to wind down: ``interrupted`` reads True, ``run`` returns, the hardware goes
+    to its safe state, and ``run`` starts again at the resume."""
 
 
 class _Flag:
@@ -157,10 +170,9 @@ class Runnable(abc.ABC):
     _in_history: bool
     _suffix: str
     _path: str | None
-    _pausing: bool
+    _pause: _Pause
     _paused_done: threading.Event | None
     _pause_safe: bool
-    _pause_hooked: bool
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         # Runtime state lives here so that subclasses need not call super().__init__().
@@ -186,10 +198,10 @@ class Runnable(abc.ABC):
             _in_history=False,
             _suffix="",  # "#2" for the second child of that name in its behaviour
             _path=None,  # path, kept once started (events name it often)
-            # Pause (actions only, see Action): asked to wind down for a pause; set once
-            # it is paused (or ended); its hardware made safe by the pause and run() not
-            # yet restarted; paused through its own on_pause() hook.
-            _pausing=False, _paused_done=None, _pause_safe=False, _pause_hooked=False)
+            # Pause (actions only, see Action): how a pause holds it; set once it is
+            # paused (or ended); its hardware made safe by the pause and run() not yet
+            # restarted.
+            _pause=_Pause.NONE, _paused_done=None, _pause_safe=False)
         return self
 
     def __init__(self, name: str | None = None) -> None:
@@ -239,7 +251,7 @@ class Runnable(abc.ABC):
     def interrupted(self) -> bool:
         """True once an interrupt was requested — or, for an action without an
         ``on_pause()`` hook, while the manager pauses it: wind down and return."""
-        return self._interrupt_requested or self._pausing
+        return self._interrupt_requested or self._pause is _Pause.WIND_DOWN
 
     @property
     def path(self) -> str:
@@ -410,7 +422,7 @@ class Runnable(abc.ABC):
         """Wait until its ``run`` and clean-up are over (the thread goes back to the pool)."""
         return self._block_on(self._ended, timeout)
 
-    def _block_on(self, event: threading.Event | _Flag, timeout_s: float | None) -> bool:
+    def _block_on(self, event: _Flag, timeout_s: float | None) -> bool:
         """``event.wait(timeout_s)`` (wall time), telling the manager's clock that this
         thread waits for another worker (a virtual clock may then move time)."""
         manager = self._manager
@@ -666,13 +678,10 @@ class Runnable(abc.ABC):
         """Action releases its type lock (after its safe state)."""
 
     def _wake_reason(self) -> bool:
-        return self._interrupt_requested or self._pausing
+        return self._interrupt_requested or self._pause is _Pause.WIND_DOWN
 
     def _raise_pending(self) -> None:
         """Behavior raises ChildFailed here; called with ``_cond`` held."""
-
-    def _wait_decided(self, deadline: float) -> bool:
-        return self._block_on(self._decided, max(0.0, deadline - time.monotonic()))
 
     @property
     def elapsed_s(self) -> float | None:

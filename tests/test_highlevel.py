@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 
 from beehave import (
+    Action,
     Behavior,
     HighLevelBehaviorManager,
     InvalidParameters,
@@ -21,6 +22,7 @@ from beehave import (
     UnknownBehavior,
 )
 from beehave.errors import ConfigError, NotASubclass
+from beehave.events import Event, EventKind
 from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, beehave_threads, wait_until
 
 
@@ -102,6 +104,89 @@ def test_a_switch_leaves_no_reference_cycles(hl: HighLevelBehaviorManager) -> No
             f"still alive: {[r() for r in refs if r() is not None]}"
     finally:
         gc.enable()
+
+
+def test_a_manager_whose_breakpoints_nobody_closed_is_freed_once_dropped() -> None:
+    """The registry of breakpoints per manager must not keep a manager alive: a script
+    that forgets ``Breakpoints.close()`` would otherwise keep every manager it made."""
+    from beehave.breakpoints import Breakpoints, of
+
+    with HighLevelBehaviorManager() as hl:
+        points = Breakpoints(hl)
+        assert of(hl) is points
+    ref = weakref.ref(hl)
+    del hl, points
+    gc.collect()
+    assert ref() is None, "the manager outlived every reference to it"
+
+
+class Drives(Action):
+    """Counts its runs; drives (sleeps) until interrupted."""
+
+    action_type = "breakpoint_driving"
+    runs = 0
+
+    def run(self) -> None:
+        type(self).runs += 1
+        self.sleep(30)
+
+
+class StartsDrives(Behavior):
+    def run(self) -> None:
+        self.start_action(Drives()).wait()
+
+
+def test_an_action_type_breakpoint_stops_the_action_before_its_run_begins(
+        hl: HighLevelBehaviorManager, events: list[Event]) -> None:
+    """The breakpoint's pause is carried out in a manager thread; with its threads warm
+    (any robot after its first switch) the action's run() — the robot moving — began
+    before that pause landed. It must wait for the resume instead."""
+    from beehave.breakpoints import Breakpoints
+
+    hl.stop_timeout_s = 2.0  # a loaded host must not give up on the pause
+    hl.register("drives", StartsDrives)
+    points = Breakpoints(hl)
+    try:
+        points.add("action_type", "breakpoint_driving")
+        for round_ in range(3):  # the later rounds find the manager's threads warm
+            Drives.runs = 0
+            events.clear()
+            top = hl.switch("drives")
+            assert wait_until(lambda: any(e.kind is EventKind.PAUSED for e in events))
+            assert Drives.runs == 0, f"round {round_}: run() began before the breakpoint"
+            (action,) = top.children
+            assert action.status is Status.RUNNING
+            assert points.resume()
+            assert wait_until(lambda: Drives.runs == 1)
+            hl.switch("idle")
+    finally:
+        points.close()
+
+
+def test_a_breakpoint_resumed_by_someone_else_is_not_blamed_for_a_later_pause(
+        hl: HighLevelBehaviorManager, events: list[Event]) -> None:
+    """``hit`` says where a breakpoint stopped the robot; once the pause button (not
+    ``Breakpoints.resume``) ended that pause, a later pause of the button's is no hit."""
+    from beehave.breakpoints import Breakpoints
+
+    hl.stop_timeout_s = 2.0  # a loaded host must not give up on the pause
+    hl.register("drives", StartsDrives)
+    points = Breakpoints(hl)
+    try:
+        points.add("action_type", "breakpoint_driving")
+        Drives.runs = 0
+        hl.switch("drives")
+        assert wait_until(lambda: any(e.kind is EventKind.PAUSED for e in events))
+        hit = points.hit
+        assert hit is not None and hit["target"] == "breakpoint_driving", hit
+        points.clear()
+        assert hl.resume()  # the pause button, not points.resume()
+        assert wait_until(lambda: Drives.runs == 1)
+        assert hl.pause()
+        assert points.hit is None, points.hit
+        assert points.state()["paused"] is True
+    finally:
+        points.close()
 
 
 def test_switch_params_override_registered_ones(hl: HighLevelBehaviorManager) -> None:

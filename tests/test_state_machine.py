@@ -327,3 +327,48 @@ def test_graph_shows_states_and_guards() -> None:
     source = machine.to_graph().source
     assert "patrol" in source and "charge" in source
     assert "[battery/percentage < 20]" in source
+
+
+class CountedDrive(ScriptedAction):
+    """Counts the runs begun (the robot moving) across objects."""
+
+    runs = 0
+
+    def run(self) -> object:
+        type(self).runs += 1
+        return super().run()
+
+
+def test_a_state_breakpoint_stops_the_machine_before_the_state_starts_its_action(
+        hl: HighLevelBehaviorManager) -> None:
+    """The breakpoint's pause is carried out in a manager thread; the machine waits for it
+    before it starts the state's actions, which then wait for the resume. Without that
+    wait, with the manager's threads warm (any robot after its first switch), the action
+    began (the robot moved) before the pause landed."""
+    from beehave.breakpoints import Breakpoints
+    from beehave.engines import EngineBehavior
+    from beehave.events import EventKind
+
+    hl.stop_timeout_s = 2.0  # a loaded host must not give up on the pause
+    machine = StateMachineEngine(
+        [State("go", start=lambda: CountedDrive("state_bp_driving", duration_s=30)),
+         State("done", final=True)],
+        [Transition("go", "done", on="succeeded")], initial="go")
+    hl.register("m", EngineBehavior, engine=machine)
+    paused: list[object] = []
+    hl.subscribe(lambda e: paused.append(e) if e.kind is EventKind.PAUSED else None)
+    points = Breakpoints(hl)
+    try:
+        points.add("state", "go")
+        for round_ in range(30):  # the race was lost in 1 of ~5 rounds with warm threads
+            CountedDrive.runs = 0
+            paused.clear()
+            hl.switch("m")
+            assert wait_until(lambda: bool(paused))
+            assert machine.state == "go"
+            assert CountedDrive.runs == 0, f"round {round_}: the action began before the pause"
+            assert points.resume()
+            assert wait_until(lambda: CountedDrive.runs == 1)
+            hl.switch("idle")
+    finally:
+        points.close()
