@@ -350,8 +350,9 @@ class FollowLeader(MavlinkAction):
         self.lead_s = lead_s
         self.min_gap_m = math.inf
         self.holding: str | None = None
-        self._leader_silent = False  # in lockstep: the last wait for the leader heard nothing
-        self._silent_seq = -1
+        # In lockstep: the leader's seq when the last wait for it heard nothing newer (that
+        # state is not waited on again), None while the leader is heard.
+        self._silent_seq: int | None = None
 
     def perform(self, link: MavlinkLink) -> None:
         fleet = fleet_of(self.manager)
@@ -415,9 +416,9 @@ class FollowLeader(MavlinkAction):
         peer = fleet.get(self.leader)
         if self._lockstep_pub is None or peer is None \
                 or peer.age_s <= 2 * self.period_s:
-            self._leader_silent = False
+            self._silent_seq = None
             return peer
-        if self._leader_silent and peer.seq == self._silent_seq:
+        if peer.seq == self._silent_seq:
             return peer
         start = now = time.monotonic()
         progress_by = now + self.FRESH_WAIT_S
@@ -432,7 +433,7 @@ class FollowLeader(MavlinkAction):
                 if peer.age_s <= 2 * self.period_s:
                     break
             if now >= progress_by:  # silent: go on with what there is
-                self._leader_silent, self._silent_seq = True, peer.seq
+                self._silent_seq = peer.seq
                 log.info("%s: no newer state of %r for %g s (wall); going on with one "
                          "%.2f s old", self.path, self.leader, self.FRESH_WAIT_S, peer.age_s)
                 return peer
@@ -441,7 +442,7 @@ class FollowLeader(MavlinkAction):
             if now >= refresh_at:
                 refresh_at = now + self.HOLD_REFRESH_S
                 self._hold_at(held_s)
-        self._leader_silent = False
+        self._silent_seq = None
         return peer
 
     def _hold(self, link: MavlinkLink, here: tuple[float, float, float], alt: float | None,

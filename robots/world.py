@@ -248,9 +248,11 @@ class Zone(_Model):
 class Battery(_Model):
     """Battery parameters of one robot; the defaults depend on the robot kind."""
 
-    capacity_wh: float | None = Field(None, gt=0)
+    # An infinite capacity or draw makes the state of charge NaN or empties the battery
+    # at once: refused, as NaN is (by the bound).
+    capacity_wh: float | None = Field(None, gt=0, allow_inf_nan=False)
     initial_fraction: float = Field(1.0, ge=0, le=1)
-    idle_w: float | None = Field(None, ge=0)
+    idle_w: float | None = Field(None, ge=0, allow_inf_nan=False)
     """The draw standing still (electronics, sensors), where it differs from the kind's:
     a demo battery made small so that driving empties it in minutes can keep the idle
     loss of the real one by shrinking this with it."""

@@ -372,9 +372,14 @@ def test_a_world_may_give_a_robot_its_idle_draw_and_the_facts_count_distance(
     assert robot.distance_m == pytest.approx(0.0, abs=0.01) and robot.charging_s == 0.0
     drive_along_x(sim, sim.robot("k1"), 5.5)
     assert factory.facts().robot("k1").distance_m == pytest.approx(1.0, abs=0.1)
-    assert "idle_w" in problems_of(shop(robots=[{
+    for bad in (-1, math.nan, math.inf, "high"):
+        problem = problems_of(shop(robots=[{
+            "namespace": "k1", "kind": "kobuki", "start": {"x_m": 4.5, "y_m": 1.0},
+            "battery": {"idle_w": bad}}]))
+        assert "idle_w" in problem, (bad, problem)
+    assert "capacity_wh" in problems_of(shop(robots=[{
         "namespace": "k1", "kind": "kobuki", "start": {"x_m": 4.5, "y_m": 1.0},
-        "battery": {"idle_w": -1}}]))
+        "battery": {"capacity_wh": math.inf}}]))
 
 
 # ---- ROS 2 ----------------------------------------------------------------------------

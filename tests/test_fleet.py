@@ -551,6 +551,19 @@ def test_a_station_agrees_to_a_release_from_a_robot_that_holds_nothing_and_frees
     assert station.perform(request("atv1", "release"))["holder"] is None
 
 
+def test_a_machine_refuses_only_a_robot_the_world_does_not_have(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """``--only`` naming no robot of the world would fail every order, for ever: refused
+    at start, naming the robots there are."""
+    from behaviours.fleet.machine import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["press1", "--only", "atv99"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2
+    assert "--only: no robot 'atv99' in world 'factory'" in err and "'atv10'" in err, err
+
+
 def test_the_figures_count_lead_times_lateness_and_busy_time_once() -> None:
     """Order reports as the mission controllers send them → the figures: atv1 holds two
     orders at once (counted once), atv2 loses one to atv1; an order past its due time and

@@ -140,3 +140,91 @@ def test_the_atvs_start_without_a_refused_speed_limit(single: dict[str, Any]) ->
     for k in (1, 2):
         log = (single["out"] / "fleet" / f"atv{k}.log").read_text()
         assert "refused max_speed_mps" not in log and "undeclared" not in log, log[-3000:]
+
+
+# ---- the figures from a scripted history (no run) -------------------------------------
+
+def _report(order: str, state: str, sim_s: float, *, placed: float, due: float | None,
+            atv: str | None = None) -> dict[str, Any]:
+    """A ``/fleet/orders`` report as docs/fleet.md gives it."""
+    return {"schema": "beehave.fleet.order/1", "order": order,
+            "machine": order.rsplit("-", 1)[0], "depot": "depot", "state": state,
+            "atv": atv, "attempt": 1, "awards": [atv] if atv else [], "reason": None,
+            "violation": None, "stamp": 0.0, "sim_s": sim_s, "placed_sim_s": placed,
+            "due_sim_s": due}
+
+
+#: (order, placed, due, [(state, sim_s, atv)]) — in time, delivered late, open past its
+#: due time, open in time, failed past its due time (failed, not late), no due time.
+Steps = list[tuple[str, float, str | None]]
+SCRIPT: list[tuple[str, float, float | None, Steps]] = [
+    ("press1-1", 100.0, 200.0, [("awarded", 101.0, "atv1"), ("delivered", 150.0, "atv1")]),
+    ("press1-2", 110.0, 180.0, [("awarded", 111.0, "atv1"), ("delivered", 190.0, "atv1")]),
+    ("press2-1", 120.0, 250.0, [("awarded", 121.0, "atv2")]),
+    ("press2-2", 130.0, 400.0, [("announced", 130.0, None)]),
+    ("press1-3", 140.0, 150.0, [("failed", 160.0, None)]),
+    ("mill-1", 145.0, None, [("announced", 145.0, None)])]
+LATE = {"press1-2", "press2-1"}
+
+
+def _scripted_history() -> list[dict[str, Any]]:
+    history = []
+    for order, placed, due, steps in SCRIPT:
+        history.append(_report(order, "created", placed, placed=placed, due=due))
+        history += [_report(order, state, at, placed=placed, due=due, atv=atv)
+                    for state, at, atv in steps]
+    return sorted(history, key=lambda r: r["sim_s"])
+
+
+def test_a_failed_order_or_one_without_a_due_time_is_never_late() -> None:
+    """Beside tests/test_fleet.py's figures test (busy time, lead times, late delivered and
+    open orders): failed and undated orders, and starvation from the sim's facts."""
+    from behaviours.demos.fleet import figures
+
+    facts = {"time_s": 300.0, "deliveries": [{}, {}],
+             "robots": {ns: {"deliveries": 1 if ns == "atv1" else 0, "distance_m": 3.0,
+                             "charging_s": 0.0} for ns in ("atv1", "atv2", "atv3")},
+             "machines": {"press1": {"empty_s": 12.0, "first_empty_at_s": 170.0,
+                                     "deliveries": 2, "min_level": 0.0,
+                                     "capacity": 100.0}}}
+    figs = figures(facts, _scripted_history(), 300.0)
+    by_order = {o["order"]: o for o in figs["order_list"]}
+    assert {o for o, r in by_order.items() if r["late"]} == LATE
+    assert by_order["press1-1"]["lead_time_s"] == 50.0
+    assert by_order["press1-2"]["lead_time_s"] == 80.0
+    assert by_order["press2-1"]["lead_time_s"] is None
+    assert figs["orders"] == {"placed": 6, "delivered": 2, "open": 3, "failed": 1, "late": 2,
+                              "lead_time_mean_s": 65.0, "lead_time_max_s": 80.0}
+    assert figs["atvs"]["atv3"]["utilisation"] == 0.0
+    assert figs["machines"]["press1"]["starved_s"] == 12.0 == figs["starved_s"]
+
+
+def _watch_with(history: list[dict[str, Any]], time_s: float = 300.0) -> Any:
+    from behaviours.demos.fleet import Watch
+
+    watch = Watch(state={"time_s": time_s, "machines": {
+        name: {"level": 50.0, "capacity": 100.0} for name in ("mill", "press1", "press2")}})
+    for r in history:
+        watch.orders[r["order"]] = r
+    watch.history = list(history)
+    return watch
+
+
+def test_the_live_table_lists_the_late_orders_the_figures_count() -> None:
+    import io
+    import time
+
+    from rich.console import Console
+
+    from behaviours.demos.fleet import _table
+
+    console = Console(file=io.StringIO(), width=220, color_system=None)
+    console.print(_table(_watch_with(_scripted_history()), time.monotonic()))
+    text = console.file.getvalue()  # type: ignore[attr-defined]
+    table = text.split("machines", 1)[1].split("charging stations")[0]
+    rows = {cells[0]: cells for cells in
+            ([c.strip() for c in line.strip("│").split("│")] for line in table.splitlines()
+             if line.startswith("│"))}
+    assert rows["press1"][-1] == "press1-2" and rows["press1"][-2] == "2", rows["press1"]
+    assert rows["press2"][-1] == "press2-1" and rows["press2"][2] == "press2-2", rows["press2"]
+    assert rows["mill"][-1] == "", rows["mill"]

@@ -236,9 +236,7 @@ def _table(watch: Watch, started: float) -> Group:
             latest[o["machine"]] = o
         elif o["state"] == "delivered":
             delivered[o["machine"]] = delivered.get(o["machine"], 0) + 1
-        due = o.get("due_sim_s")
-        ended = o.get("sim_s") if o["state"] == "delivered" else sim_s
-        if due is not None and ended is not None and ended > due and o["state"] != "failed":
+        if is_late(o["state"], o.get("sim_s"), o.get("due_sim_s"), sim_s):
             late.setdefault(o["machine"], []).append(o["order"])
     for name, m in sorted(state.get("machines", {}).items()):
         o = latest.get(name, {})
@@ -282,6 +280,19 @@ def _watch(ros: Any, watch: Watch) -> None:
 OPEN_STATES = ("created", "announced", "awarded")
 
 
+def is_late(state: str, delivered_s: float | None, due_s: float | None,
+            now_s: float) -> bool:
+    """Whether an order in ``state`` is late at ``now_s`` (sim seconds): delivered after it
+    was due, or still open past it. A failed order is failed, not late; one without a due
+    time (its machine had no sim time yet) is never late. The one rule of the live table,
+    :func:`figures` and the check."""
+    if due_s is None:
+        return False
+    if state == "delivered":
+        return delivered_s is not None and delivered_s > due_s
+    return state in OPEN_STATES and now_s > due_s
+
+
 def _union_s(spans: list[tuple[float, float]]) -> float:
     """The length of the union of ``spans`` ((start, end) pairs)."""
     total, reach = 0.0, -math.inf
@@ -323,8 +334,7 @@ def figures(report: dict[str, Any], history: list[dict[str, Any]],
         done = delivered_at.get(order)
         lead = None if done is None or placed is None else done - placed
         state = r["state"]
-        late = due is not None and ((done is not None and done > due)
-                                    or (done is None and state in OPEN_STATES and sim_s > due))
+        late = is_late(state, done, due, sim_s)
         orders.append({"order": order, "machine": r["machine"], "state": state,
                        "atv": r.get("atv"), "awards": list(r.get("awards", [])),
                        "placed_s": None if placed is None else round(placed, 1),

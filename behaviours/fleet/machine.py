@@ -171,10 +171,15 @@ def main(argv: list[str] | None = None) -> int:
                              "alone (a baseline to compare the market with)")
     add_trust_options(parser)
     args = parser.parse_args(argv)
-    machines = site(args.world).machines
+    places = site(args.world)
+    machines = places.machines
     if args.name not in machines:
         parser.error(f"no machine {args.name!r} in world {args.world!r}; it has "
                      f"{sorted(machines)}")
+    if args.only is not None and args.only not in places.robots:
+        # A name no robot answers to would fail every order, silently, for ever.
+        parser.error(f"--only: no robot {args.only!r} in world {args.world!r}; it has "
+                     f"{places.robots}")
     if not 0 < args.below < 1:
         parser.error(f"--below must be a fraction in (0, 1), got {args.below}")
     if not 0 < args.reply_by_s < math.inf:

@@ -65,6 +65,8 @@ class Site:
         self.consumption_per_s = {m.name: m.consumption_per_s for m in w.machines}
         self.stations = {s.name: _place(s.name, s.center_m, s.size_m, margin_m=0.15)
                          for s in w.stations_of_kind("charging")}
+        #: The namespaces of the robots the world places, in its order.
+        self.robots = [r.namespace for r in w.robots]
         #: Battery capacity (Wh) of each robot the world places, by namespace.
         self.battery_wh = {r.namespace: r.battery.capacity_wh for r in w.robots
                            if r.battery.capacity_wh}
