@@ -261,6 +261,12 @@ def test_unknown_behaviour_is_refused_naming_the_valid_ones(reject: Any) -> None
     ('["not", "a", "mapping"]', ("mapping",)),
     ("{not json", ("params_json", "JSON")),
     ('{"speed_mps": NaN}', ("params_json", "NaN")),
+    ('{"speed_mps": -Infinity}', ("params_json", "Infinity")),
+    ('{"speed_mps": 1e999}', ("speed_mps", "inf")),  # parses to inf without a literal
+    ("[" * 30_000 + "]" * 30_000, ("params_json", "nested")),  # deeper than Python recurses
+    ('{"speed_mps": 0.3, "pad": "' + "x" * 2_000_000 + '"}', ("params_json", "65536")),
+    ("42", ("mapping",)),
+    ('"patrol"', ("mapping",)),
 ])
 def test_bad_parameters_are_refused_naming_the_problem(reject: Any, params_json: str,
                                                        named: tuple[str, ...]) -> None:

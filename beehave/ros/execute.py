@@ -175,6 +175,9 @@ class ExecuteBehaviorServer:
             self._start(goal, request.params_json)
         except _Refused as refusal:
             self._finish(goal, None, refused=refusal.reason)
+        except Exception as exc:  # a bug here must not leave an accepted goal unanswered
+            log.exception("execute_behavior: goal %s could not be started", gid)
+            self._finish(goal, None, refused=shorten(f"goal refused: {exc!r}"))
         handle.execute()
 
     def _start(self, goal: _Goal, params_json: str) -> None:
@@ -414,6 +417,9 @@ def _parse_params(text: str) -> Any:
     except ValueError as exc:
         raise _Refused(f"params_json is not a JSON object: {exc}; expected e.g. "
                        f"'{{\"speed_mps\": 0.3}}' or \"\" for none") from exc
+    except RecursionError as exc:  # '[[[[…' within the size limit: deeper than Python goes
+        raise _Refused("params_json refused: nested too deeply to parse; expected a flat "
+                       "object of parameters, e.g. '{\"speed_mps\": 0.3}'") from exc
 
 
 def _finite(value: float | None) -> float:
