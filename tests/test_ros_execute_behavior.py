@@ -279,6 +279,20 @@ def test_bad_parameters_are_refused_naming_the_problem(reject: Any, params_json:
     assert robot.high.current == before
 
 
+@pytest.mark.parametrize("name", ["", "p" * 10_000, "patrol\n\x1b[31m", "patrol "])
+def test_hostile_behaviour_names_are_refused_naming_the_valid_ones(reject: Any,
+                                                                   name: str) -> None:
+    """An empty, a 10k-character or a control-character name: refused, the message
+    bounded and still naming what can run."""
+    robot, client = reject
+    before = robot.high.current
+    status, result = client.send(name).result()
+    assert status == "ABORTED" and result.refused, (status, result)
+    assert len(result.message) <= 1100, len(result.message)
+    assert "'patrol'" in result.message and "'idle'" in result.message, result.message
+    assert robot.high.current == before
+
+
 def test_second_goal_is_refused_under_reject_policy(reject: Any) -> None:
     robot, client = reject
     first = client.send("patrol")
