@@ -434,3 +434,76 @@ def test_without_the_interface_package_the_error_says_how_to_build_it(
     monkeypatch.setitem(sys.modules, "beehave_interfaces.action", None)  # import fails
     with pytest.raises(InterfacesMissing, match=r"build_ros_interfaces\.sh"):
         load_action_type()
+
+
+def _script_env(tmp_path: Any, tools: tuple[str, ...]) -> tuple[Any, dict[str, str]]:
+    """A virtualenv stand-in (bin/python) and a PATH holding only ``tools``."""
+    import os
+    import shutil
+    import sys
+
+    venv = tmp_path / "venv"
+    (venv / "bin").mkdir(parents=True)
+    (venv / "bin" / "python").symlink_to(sys.executable)
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for tool in tools:
+        found = shutil.which(tool)
+        assert found is not None, tool
+        (bin_dir / tool).symlink_to(found)
+    return venv, {**os.environ, "PATH": str(bin_dir)}
+
+
+_SCRIPT_TOOLS = ("mkdir", "cat", "sha256sum", "cut", "dirname")
+
+
+def _run_script(script: Any, venv: Any, env: dict[str, str]) -> Any:
+    import shutil
+    import subprocess
+
+    return subprocess.run([shutil.which("bash") or "bash", str(script), str(venv)], env=env,
+                          capture_output=True, text=True, timeout=WALL_TIMEOUT_S)
+
+
+def test_interface_build_says_which_tool_is_missing(tmp_path: Any) -> None:
+    """Without cmake or a compiler the build stops at once, naming the tool and the Debian
+    packages, before pip or cmake is run."""
+    from pathlib import Path
+
+    venv, env = _script_env(tmp_path, _SCRIPT_TOOLS)
+    script = Path(__file__).parent.parent / "scripts" / "build_ros_interfaces.sh"
+    done = _run_script(script, venv, env)
+    assert done.returncode == 1, done
+    assert "'cmake' is missing" in done.stderr and "apt-get install cmake g++" in done.stderr, \
+        done.stderr
+    assert not (venv / "share" / "beehave_interfaces").exists()  # nothing was built
+
+
+def test_interface_build_does_nothing_when_the_installed_build_matches(tmp_path: Any) -> None:
+    """Idempotent: a stamp that matches the sources and an installed package mean no
+    pip, no cmake (neither is on PATH here) and exit status 0."""
+    import hashlib
+    import sys
+    from pathlib import Path
+
+    venv, env = _script_env(tmp_path, _SCRIPT_TOOLS)
+    root = Path(__file__).parent.parent
+    src = root / "ros_interfaces" / "beehave_interfaces"
+    sources = [src / "package.xml", src / "CMakeLists.txt",
+               *sorted((src / "action").glob("*.action"))]
+    want = hashlib.sha256(b"".join(p.read_bytes() for p in sources)).hexdigest()
+    share = venv / "share" / "beehave_interfaces"
+    share.mkdir(parents=True)
+    (share / "beehave_build.sha256").write_text(want + "\n")
+    pyver = f"{sys.version_info[0]}.{sys.version_info[1]}"
+    package = venv / "lib" / f"python{pyver}" / "site-packages" / "beehave_interfaces"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    script = root / "scripts" / "build_ros_interfaces.sh"
+    done = _run_script(script, venv, env)
+    assert done.returncode == 0 and done.stderr == "" and done.stdout == "", done
+    # A changed source (the stamp no longer matches) means a build: here it stops at the
+    # missing cmake, which shows the stamp was compared and found stale.
+    (share / "beehave_build.sha256").write_text("0" * 64 + "\n")
+    done = _run_script(script, venv, env)
+    assert done.returncode == 1 and "'cmake' is missing" in done.stderr, done
