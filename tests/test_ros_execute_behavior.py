@@ -109,10 +109,11 @@ class GoalClient:
     """A plain rclpy ActionClient of one robot's ``beehave/execute_behavior``, and a
     subscriber of its ``cmd_vel``."""
 
-    def __init__(self, namespace: str) -> None:
+    def __init__(self, namespace: str, *, node_name: str | None = None) -> None:
         self.context = Context()
         rclpy.init(context=self.context)
-        self.node = rclpy.create_node(f"goal_client_{namespace}", context=self.context)
+        self.node = rclpy.create_node(node_name or f"goal_client_{namespace}",
+                                      context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.action = ActionClient(self.node, ExecuteBehavior,
@@ -323,6 +324,29 @@ def test_second_goal_preempts_under_preempt_policy(preempt: Any) -> None:
     assert robot.high.current == "patrol" and not second.ended
     assert second.cancel().goals_canceling
     assert second.result()[0] == "CANCELED"
+
+
+def test_a_goal_outlives_its_client_and_another_client_can_cancel_it(reject: Any) -> None:
+    """The client that sent a goal goes away: the behaviour runs on (a robot does not stop
+    because a laptop lost Wi-Fi), and any other client can cancel it."""
+    robot, client = reject
+    hl = robot.high
+    assert hl is not None
+    gone = GoalClient("exec_reject", node_name="goal_client_gone")
+    try:
+        goal = gone.send("patrol")
+        goal_id = bytes(goal.handle.goal_id.uuid)
+        assert wait_until(lambda: hl.current == "patrol")
+    finally:
+        gone.close()
+    behavior = hl.top
+    # Another client's goal is refused naming the running one: it still executes.
+    status, result = client.send("countdown").result()
+    assert status == "ABORTED" and goal.id in result.message, (status, result)
+    assert hl.current == "patrol" and hl.top is behavior
+    answer = client.cancel_all()
+    assert [bytes(g.goal_id.uuid) for g in answer.goals_canceling] == [goal_id]
+    assert wait_until(lambda: hl.current == "idle")
 
 
 def test_a_switch_made_elsewhere_aborts_the_goal(reject: Any) -> None:
