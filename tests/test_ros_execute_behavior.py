@@ -501,6 +501,9 @@ def test_interface_build_says_which_tool_is_missing(tmp_path: Any) -> None:
     assert "'cmake' is missing" in done.stderr and "apt-get install cmake g++" in done.stderr, \
         done.stderr
     assert not (venv / "share" / "beehave_interfaces").exists()  # nothing was built
+    # No virtualenv at all: said so, not a bare `cd` error.
+    done = _run_script(script, tmp_path / "no_venv", env)
+    assert done.returncode == 1 and "no virtualenv at" in done.stderr, done
 
 
 def test_interface_build_does_nothing_when_the_installed_build_matches(tmp_path: Any) -> None:
@@ -514,7 +517,8 @@ def test_interface_build_does_nothing_when_the_installed_build_matches(tmp_path:
     root = Path(__file__).parent.parent
     src = root / "ros_interfaces" / "beehave_interfaces"
     sources = [src / "package.xml", src / "CMakeLists.txt",
-               *sorted((src / "action").glob("*.action"))]
+               *sorted((src / "action").glob("*.action")),
+               root / "scripts" / "build_ros_interfaces.sh"]
     want = hashlib.sha256(b"".join(p.read_bytes() for p in sources)).hexdigest()
     share = venv / "share" / "beehave_interfaces"
     share.mkdir(parents=True)
