@@ -230,6 +230,28 @@ def test_goal_runs_with_feedback_and_cancel_stops_the_robot(reject: Any) -> None
     assert list(goal.cancel().goals_canceling) == []
 
 
+def test_feedback_of_a_steady_behaviour_comes_at_the_heartbeat_not_every_tick(
+        reject: Any) -> None:
+    """Feedback goes out when what runs changes and every ``ros.state_period_s`` (0.5 s
+    here), not on every 0.1 s look: a client is not flooded."""
+    import time
+
+    robot, client = reject
+    started = time.monotonic()
+    goal = client.send("patrol")
+    wanted = 6
+    assert wait_until(lambda: len(goal.feedback) >= wanted)
+    elapsed_s = time.monotonic() - started
+    # At most 3 changes at the start (switch, behaviour running, Cruise running), then one
+    # per heartbeat: `wanted` messages cannot come sooner than this.
+    floor_s = (wanted - 3) * 0.5
+    logging.getLogger(__name__).info("%d feedback messages in %.2f s (no sooner than %.1f s)",
+                                     wanted, elapsed_s, floor_s)
+    assert elapsed_s >= floor_s, (elapsed_s, [fb.running_actions for fb in goal.feedback])
+    assert goal.cancel().goals_canceling
+    assert goal.result()[0] == "CANCELED"
+
+
 def test_result_is_how_the_behaviour_ended(reject: Any) -> None:
     _, client = reject
     status, result = client.send("countdown", {"steps": 4}).result()
