@@ -289,6 +289,8 @@ def test_unknown_behaviour_is_refused_naming_the_valid_ones(reject: Any) -> None
     ("[" * 30_000 + "]" * 30_000, ("params_json", "nested")),  # deeper than Python recurses
     ('{"speed_mps": 0.3, "pad": "' + "x" * 2_000_000 + '"}', ("params_json", "65536")),
     ("42", ("mapping",)),
+    ('{"self": 1}', ("self",)),                            # a spoofed constructor argument
+    ('{"speed_mps": ' + "9" * 5000 + "}", ("params_json", "digits")),  # past int's limit
     ('"patrol"', ("mapping",)),
 ])
 def test_bad_parameters_are_refused_naming_the_problem(reject: Any, params_json: str,
