@@ -173,7 +173,10 @@ class ExecuteBehaviorServer:
         goal = _Goal(handle, gid, name, Future(executor=self.node.executor))
         with self._lock:
             self._following = (*self._following, goal)
+            closing = self._closed
         try:
+            if closing:  # accepted just before destroy() began: nothing is switched
+                raise _Refused("the robot's execute_behavior server shuts down")
             self._start(goal, request.params_json)
         except _Refused as refusal:
             self._finish(goal, None, refused=refusal.reason)
@@ -381,6 +384,9 @@ class ExecuteBehaviorServer:
         with self._lock:
             if self._closed:
                 return
+            # From here on goals are REJECTED: one accepted during the flush below would
+            # switch the robot and never get its result.
+            self._closed = True
             following = self._following
         for goal in following:
             self._finish(goal, None, why="the robot's execute_behavior server shuts down")
@@ -394,8 +400,6 @@ class ExecuteBehaviorServer:
         marker.add_done_callback(lambda _: flushed.set())
         marker.set_result(None)
         flushed.wait(max(0.0, deadline - time.monotonic()))
-        with self._lock:
-            self._closed = True
         self.node.destroy_timer(self._timer)
         self._server.destroy()
 
