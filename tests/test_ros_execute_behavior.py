@@ -57,6 +57,20 @@ class Countdown(Behavior):
         return {"counted": self.steps}
 
 
+#: Set by a test to let a Lingering behaviour end once it has been interrupted.
+RELEASE = threading.Event()
+
+
+class Lingering(Behavior):
+    """Runs until interrupted, then holds its end until the test sets :data:`RELEASE`
+    (a safe state that takes a while)."""
+
+    def run(self) -> None:
+        while self.sleep(1.0):
+            pass
+        RELEASE.wait(WALL_TIMEOUT_S)
+
+
 class Broken(Behavior):
     def run(self) -> None:
         raise RuntimeError("wheel jammed")
@@ -71,7 +85,8 @@ def _config(namespace: str, second_goal: str | None) -> dict[str, Any]:
         "behaviors": {"patrol": {"class": "rosbot:Patrol", "params": {"speed_mps": 0.3}},
                       "parked": {"class": "rosbot:Parked"},
                       "countdown": {"class": "test_ros_execute_behavior:Countdown"},
-                      "broken": {"class": "test_ros_execute_behavior:Broken"}},
+                      "broken": {"class": "test_ros_execute_behavior:Broken"},
+                      "lingering": {"class": "test_ros_execute_behavior:Lingering"}},
         "default_behavior": "parked",
         "logics": {"parked": {"class": "rosbot:Announce", "params": {"mode": "parked"}},
                    "driving": {"class": "rosbot:Announce", "params": {"mode": "driving"}}},
@@ -273,7 +288,7 @@ def test_unknown_behaviour_is_refused_naming_the_valid_ones(reject: Any) -> None
     status, result = client.send("patroll").result()
     assert status == "ABORTED" and result.refused, (status, result)
     assert result.behavior_status == "" and json.loads(result.value_json) is None
-    for name in ("broken", "countdown", "idle", "parked", "patrol"):
+    for name in ("broken", "countdown", "idle", "lingering", "parked", "patrol"):
         assert repr(name) in result.message, result.message
     assert robot.high.current == before  # nothing was switched
 
@@ -348,6 +363,28 @@ def test_second_goal_preempts_under_preempt_policy(preempt: Any) -> None:
     assert robot.high.current == "patrol" and not second.ended
     assert second.cancel().goals_canceling
     assert second.result()[0] == "CANCELED"
+
+
+def test_a_preempted_goal_cancelled_while_it_ends_names_the_preempting_goal(
+        preempt: Any) -> None:
+    robot, client = preempt
+    hl = robot.high
+    assert hl is not None
+    RELEASE.clear()
+    try:
+        first = client.send("lingering")
+        assert wait_until(lambda: hl.current == "lingering")
+        second = client.send("patrol")
+        # The first is interrupted and holds its end: cancel it now.
+        assert wait_until(lambda: hl.top is not None and hl.top.interrupted)
+        assert first.cancel().goals_canceling
+    finally:
+        RELEASE.set()
+    status, result = first.result()
+    assert status == "CANCELED", (status, result)
+    assert f"preempted by goal {second.id}" in result.message, result.message
+    assert "'idle' runs" not in result.message, result.message
+    assert wait_until(lambda: hl.current == "patrol") and not second.ended
 
 
 def test_a_goal_outlives_its_client_and_another_client_can_cancel_it(reject: Any) -> None:

@@ -355,6 +355,9 @@ class ExecuteBehaviorServer:
             why = refused
         elif status is Status.SUCCEEDED:
             outcome, why = "SUCCEEDED", f"{goal.name!r} succeeded"
+        elif cancel and preempted_by is not None:  # cancelled while it made way for another
+            outcome, why = "CANCELED", (f"cancelled: {goal.name!r} stopped, preempted by "
+                                        f"goal {preempted_by}")
         elif cancel:
             outcome, why = "CANCELED", f"cancelled: {goal.name!r} stopped, {IDLE!r} runs"
         elif preempted_by is not None:
