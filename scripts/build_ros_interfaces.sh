@@ -7,6 +7,10 @@
 #
 #   scripts/build_ros_interfaces.sh [VENV [PREFIX]]    (default: .venv, PREFIX = VENV)
 set -euo pipefail
+if [ ! -x "${1:-.venv}/bin/python" ]; then
+  echo "build_ros_interfaces: no virtualenv at '${1:-.venv}' (no bin/python); run make setup" >&2
+  exit 1
+fi
 venv=$(cd "${1:-.venv}" && pwd)
 prefix=${2:-$venv}
 mkdir -p "$prefix"
@@ -14,7 +18,9 @@ prefix=$(cd "$prefix" && pwd)
 root=$(cd "$(dirname "$0")/.." && pwd)
 src=$root/ros_interfaces/beehave_interfaces
 stamp=$prefix/share/beehave_interfaces/beehave_build.sha256
-want=$(cat "$src/package.xml" "$src/CMakeLists.txt" "$src"/action/*.action | sha256sum | cut -d' ' -f1)
+# This script is hashed too: a change of the pinned generators means a rebuild.
+want=$(cat "$src/package.xml" "$src/CMakeLists.txt" "$src"/action/*.action "$0" \
+  | sha256sum | cut -d' ' -f1)
 pyver=$("$venv/bin/python" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] \
     && [ -f "$prefix/lib/python$pyver/site-packages/beehave_interfaces/__init__.py" ]; then

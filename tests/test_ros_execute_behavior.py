@@ -57,6 +57,20 @@ class Countdown(Behavior):
         return {"counted": self.steps}
 
 
+#: Set by a test to let a Lingering behaviour end once it has been interrupted.
+RELEASE = threading.Event()
+
+
+class Lingering(Behavior):
+    """Runs until interrupted, then holds its end until the test sets :data:`RELEASE`
+    (a safe state that takes a while)."""
+
+    def run(self) -> None:
+        while self.sleep(1.0):
+            pass
+        RELEASE.wait(WALL_TIMEOUT_S)
+
+
 class Broken(Behavior):
     def run(self) -> None:
         raise RuntimeError("wheel jammed")
@@ -71,7 +85,8 @@ def _config(namespace: str, second_goal: str | None) -> dict[str, Any]:
         "behaviors": {"patrol": {"class": "rosbot:Patrol", "params": {"speed_mps": 0.3}},
                       "parked": {"class": "rosbot:Parked"},
                       "countdown": {"class": "test_ros_execute_behavior:Countdown"},
-                      "broken": {"class": "test_ros_execute_behavior:Broken"}},
+                      "broken": {"class": "test_ros_execute_behavior:Broken"},
+                      "lingering": {"class": "test_ros_execute_behavior:Lingering"}},
         "default_behavior": "parked",
         "logics": {"parked": {"class": "rosbot:Announce", "params": {"mode": "parked"}},
                    "driving": {"class": "rosbot:Announce", "params": {"mode": "driving"}}},
@@ -109,10 +124,11 @@ class GoalClient:
     """A plain rclpy ActionClient of one robot's ``beehave/execute_behavior``, and a
     subscriber of its ``cmd_vel``."""
 
-    def __init__(self, namespace: str) -> None:
+    def __init__(self, namespace: str, *, node_name: str | None = None) -> None:
         self.context = Context()
         rclpy.init(context=self.context)
-        self.node = rclpy.create_node(f"goal_client_{namespace}", context=self.context)
+        self.node = rclpy.create_node(node_name or f"goal_client_{namespace}",
+                                      context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.action = ActionClient(self.node, ExecuteBehavior,
@@ -229,6 +245,28 @@ def test_goal_runs_with_feedback_and_cancel_stops_the_robot(reject: Any) -> None
     assert list(goal.cancel().goals_canceling) == []
 
 
+def test_feedback_of_a_steady_behaviour_comes_at_the_heartbeat_not_every_tick(
+        reject: Any) -> None:
+    """Feedback goes out when what runs changes and every ``ros.state_period_s`` (0.5 s
+    here), not on every 0.1 s look: a client is not flooded."""
+    import time
+
+    robot, client = reject
+    started = time.monotonic()
+    goal = client.send("patrol")
+    wanted = 6
+    assert wait_until(lambda: len(goal.feedback) >= wanted)
+    elapsed_s = time.monotonic() - started
+    # At most 3 changes at the start (switch, behaviour running, Cruise running), then one
+    # per heartbeat: `wanted` messages cannot come sooner than this.
+    floor_s = (wanted - 3) * 0.5
+    logging.getLogger(__name__).info("%d feedback messages in %.2f s (no sooner than %.1f s)",
+                                     wanted, elapsed_s, floor_s)
+    assert elapsed_s >= floor_s, (elapsed_s, [fb.running_actions for fb in goal.feedback])
+    assert goal.cancel().goals_canceling
+    assert goal.result()[0] == "CANCELED"
+
+
 def test_result_is_how_the_behaviour_ended(reject: Any) -> None:
     _, client = reject
     status, result = client.send("countdown", {"steps": 4}).result()
@@ -250,7 +288,7 @@ def test_unknown_behaviour_is_refused_naming_the_valid_ones(reject: Any) -> None
     status, result = client.send("patroll").result()
     assert status == "ABORTED" and result.refused, (status, result)
     assert result.behavior_status == "" and json.loads(result.value_json) is None
-    for name in ("broken", "countdown", "idle", "parked", "patrol"):
+    for name in ("broken", "countdown", "idle", "lingering", "parked", "patrol"):
         assert repr(name) in result.message, result.message
     assert robot.high.current == before  # nothing was switched
 
@@ -261,6 +299,14 @@ def test_unknown_behaviour_is_refused_naming_the_valid_ones(reject: Any) -> None
     ('["not", "a", "mapping"]', ("mapping",)),
     ("{not json", ("params_json", "JSON")),
     ('{"speed_mps": NaN}', ("params_json", "NaN")),
+    ('{"speed_mps": -Infinity}', ("params_json", "Infinity")),
+    ('{"speed_mps": 1e999}', ("speed_mps", "inf")),  # parses to inf without a literal
+    ("[" * 30_000 + "]" * 30_000, ("params_json", "nested")),  # deeper than Python recurses
+    ('{"speed_mps": 0.3, "pad": "' + "x" * 2_000_000 + '"}', ("params_json", "65536")),
+    ("42", ("mapping",)),
+    ('{"self": 1}', ("self",)),                            # a spoofed constructor argument
+    ('{"speed_mps": ' + "9" * 5000 + "}", ("params_json", "digits")),  # past int's limit
+    ('"patrol"', ("mapping",)),
 ])
 def test_bad_parameters_are_refused_naming_the_problem(reject: Any, params_json: str,
                                                        named: tuple[str, ...]) -> None:
@@ -270,6 +316,20 @@ def test_bad_parameters_are_refused_naming_the_problem(reject: Any, params_json:
     assert status == "ABORTED" and result.refused, (status, result)
     for word in named:
         assert word in result.message, result.message
+    assert robot.high.current == before
+
+
+@pytest.mark.parametrize("name", ["", "p" * 10_000, "patrol\n\x1b[31m", "patrol "])
+def test_hostile_behaviour_names_are_refused_naming_the_valid_ones(reject: Any,
+                                                                   name: str) -> None:
+    """An empty, a 10k-character or a control-character name: refused, the message
+    bounded and still naming what can run."""
+    robot, client = reject
+    before = robot.high.current
+    status, result = client.send(name).result()
+    assert status == "ABORTED" and result.refused, (status, result)
+    assert len(result.message) <= 1100, len(result.message)
+    assert "'patrol'" in result.message and "'idle'" in result.message, result.message
     assert robot.high.current == before
 
 
@@ -303,6 +363,51 @@ def test_second_goal_preempts_under_preempt_policy(preempt: Any) -> None:
     assert robot.high.current == "patrol" and not second.ended
     assert second.cancel().goals_canceling
     assert second.result()[0] == "CANCELED"
+
+
+def test_a_preempted_goal_cancelled_while_it_ends_names_the_preempting_goal(
+        preempt: Any) -> None:
+    robot, client = preempt
+    hl = robot.high
+    assert hl is not None
+    RELEASE.clear()
+    try:
+        first = client.send("lingering")
+        assert wait_until(lambda: hl.current == "lingering")
+        second = client.send("patrol")
+        # The first is interrupted and holds its end: cancel it now.
+        assert wait_until(lambda: hl.top is not None and hl.top.interrupted)
+        assert first.cancel().goals_canceling
+    finally:
+        RELEASE.set()
+    status, result = first.result()
+    assert status == "CANCELED", (status, result)
+    assert f"preempted by goal {second.id}" in result.message, result.message
+    assert "'idle' runs" not in result.message, result.message
+    assert wait_until(lambda: hl.current == "patrol") and not second.ended
+
+
+def test_a_goal_outlives_its_client_and_another_client_can_cancel_it(reject: Any) -> None:
+    """The client that sent a goal goes away: the behaviour runs on (a robot does not stop
+    because a laptop lost Wi-Fi), and any other client can cancel it."""
+    robot, client = reject
+    hl = robot.high
+    assert hl is not None
+    gone = GoalClient("exec_reject", node_name="goal_client_gone")
+    try:
+        goal = gone.send("patrol")
+        goal_id = bytes(goal.handle.goal_id.uuid)
+        assert wait_until(lambda: hl.current == "patrol")
+    finally:
+        gone.close()
+    behavior = hl.top
+    # Another client's goal is refused naming the running one: it still executes.
+    status, result = client.send("countdown").result()
+    assert status == "ABORTED" and goal.id in result.message, (status, result)
+    assert hl.current == "patrol" and hl.top is behavior
+    answer = client.cancel_all()
+    assert [bytes(g.goal_id.uuid) for g in answer.goals_canceling] == [goal_id]
+    assert wait_until(lambda: hl.current == "idle")
 
 
 def test_a_switch_made_elsewhere_aborts_the_goal(reject: Any) -> None:
@@ -414,3 +519,80 @@ def test_without_the_interface_package_the_error_says_how_to_build_it(
     monkeypatch.setitem(sys.modules, "beehave_interfaces.action", None)  # import fails
     with pytest.raises(InterfacesMissing, match=r"build_ros_interfaces\.sh"):
         load_action_type()
+
+
+def _script_env(tmp_path: Any, tools: tuple[str, ...]) -> tuple[Any, dict[str, str]]:
+    """A virtualenv stand-in (bin/python) and a PATH holding only ``tools``."""
+    import os
+    import shutil
+    import sys
+
+    venv = tmp_path / "venv"
+    (venv / "bin").mkdir(parents=True)
+    (venv / "bin" / "python").symlink_to(sys.executable)
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for tool in tools:
+        found = shutil.which(tool)
+        assert found is not None, tool
+        (bin_dir / tool).symlink_to(found)
+    return venv, {**os.environ, "PATH": str(bin_dir)}
+
+
+_SCRIPT_TOOLS = ("mkdir", "cat", "sha256sum", "cut", "dirname")
+
+
+def _run_script(script: Any, venv: Any, env: dict[str, str]) -> Any:
+    import shutil
+    import subprocess
+
+    return subprocess.run([shutil.which("bash") or "bash", str(script), str(venv)], env=env,
+                          capture_output=True, text=True, timeout=WALL_TIMEOUT_S)
+
+
+def test_interface_build_says_which_tool_is_missing(tmp_path: Any) -> None:
+    """Without cmake or a compiler the build stops at once, naming the tool and the Debian
+    packages, before pip or cmake is run."""
+    from pathlib import Path
+
+    venv, env = _script_env(tmp_path, _SCRIPT_TOOLS)
+    script = Path(__file__).parent.parent / "scripts" / "build_ros_interfaces.sh"
+    done = _run_script(script, venv, env)
+    assert done.returncode == 1, done
+    assert "'cmake' is missing" in done.stderr and "apt-get install cmake g++" in done.stderr, \
+        done.stderr
+    assert not (venv / "share" / "beehave_interfaces").exists()  # nothing was built
+    # No virtualenv at all: said so, not a bare `cd` error.
+    done = _run_script(script, tmp_path / "no_venv", env)
+    assert done.returncode == 1 and "no virtualenv at" in done.stderr, done
+
+
+def test_interface_build_does_nothing_when_the_installed_build_matches(tmp_path: Any) -> None:
+    """Idempotent: a stamp that matches the sources and an installed package mean no
+    pip, no cmake (neither is on PATH here) and exit status 0."""
+    import hashlib
+    import sys
+    from pathlib import Path
+
+    venv, env = _script_env(tmp_path, _SCRIPT_TOOLS)
+    root = Path(__file__).parent.parent
+    src = root / "ros_interfaces" / "beehave_interfaces"
+    sources = [src / "package.xml", src / "CMakeLists.txt",
+               *sorted((src / "action").glob("*.action")),
+               root / "scripts" / "build_ros_interfaces.sh"]
+    want = hashlib.sha256(b"".join(p.read_bytes() for p in sources)).hexdigest()
+    share = venv / "share" / "beehave_interfaces"
+    share.mkdir(parents=True)
+    (share / "beehave_build.sha256").write_text(want + "\n")
+    pyver = f"{sys.version_info[0]}.{sys.version_info[1]}"
+    package = venv / "lib" / f"python{pyver}" / "site-packages" / "beehave_interfaces"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    script = root / "scripts" / "build_ros_interfaces.sh"
+    done = _run_script(script, venv, env)
+    assert done.returncode == 0 and done.stderr == "" and done.stdout == "", done
+    # A changed source (the stamp no longer matches) means a build: here it stops at the
+    # missing cmake, which shows the stamp was compared and found stale.
+    (share / "beehave_build.sha256").write_text("0" * 64 + "\n")
+    done = _run_script(script, venv, env)
+    assert done.returncode == 1 and "'cmake' is missing" in done.stderr, done

@@ -38,7 +38,7 @@ from rclpy.task import Future
 
 from beehave.behavior import Behavior
 from beehave.blackboard import to_json
-from beehave.errors import BeehaveError, ConfigError
+from beehave.errors import BeehaveError, ConfigError, UnknownBehavior
 from beehave.events import Event, EventKind
 from beehave.highlevel import IDLE
 from beehave.interfaces.core import ControlPlane, bounded, shorten
@@ -56,6 +56,8 @@ SECOND_GOAL_POLICIES: tuple[str, ...] = ("reject", "preempt")
 #: A ``params_json`` longer than this is refused unread (an outsider must not make the
 #: robot parse megabytes).
 MAX_PARAMS_CHARS = 64 * 1024
+#: An unknown behaviour name longer than this is cut in the refusal's message.
+MAX_NAME_SHOWN_CHARS = 100
 #: How often the running goal is looked at (feedback on change, a request that never ran).
 _TICK_S = 0.1
 #: How long :meth:`ExecuteBehaviorServer.destroy` waits (wall time) for the results of the
@@ -171,10 +173,16 @@ class ExecuteBehaviorServer:
         goal = _Goal(handle, gid, name, Future(executor=self.node.executor))
         with self._lock:
             self._following = (*self._following, goal)
+            closing = self._closed
         try:
+            if closing:  # accepted just before destroy() began: nothing is switched
+                raise _Refused("the robot's execute_behavior server shuts down")
             self._start(goal, request.params_json)
         except _Refused as refusal:
             self._finish(goal, None, refused=refusal.reason)
+        except Exception as exc:  # a bug here must not leave an accepted goal unanswered
+            log.exception("execute_behavior: goal %s could not be started", gid)
+            self._finish(goal, None, refused=shorten(f"goal refused: {exc!r}"))
         handle.execute()
 
     def _start(self, goal: _Goal, params_json: str) -> None:
@@ -183,6 +191,11 @@ class ExecuteBehaviorServer:
         params = _parse_params(params_json)
         try:
             checked = self.plane.check_switch(name, params)
+        except UnknownBehavior as exc:
+            # The name is the client's: cut, so that the registered names still fit in the
+            # message (a 10k-character name would push them out of result.message).
+            raise _Refused(str(UnknownBehavior(shorten(name, MAX_NAME_SHOWN_CHARS),
+                                               exc.choices))) from exc
         except Exception as exc:  # BeehaveError: the reason; anything else must not crash
             if not isinstance(exc, BeehaveError):
                 log.exception("execute_behavior: checking goal %s failed", goal.goal_id)
@@ -342,6 +355,9 @@ class ExecuteBehaviorServer:
             why = refused
         elif status is Status.SUCCEEDED:
             outcome, why = "SUCCEEDED", f"{goal.name!r} succeeded"
+        elif cancel and preempted_by is not None:  # cancelled while it made way for another
+            outcome, why = "CANCELED", (f"cancelled: {goal.name!r} stopped, preempted by "
+                                        f"goal {preempted_by}")
         elif cancel:
             outcome, why = "CANCELED", f"cancelled: {goal.name!r} stopped, {IDLE!r} runs"
         elif preempted_by is not None:
@@ -371,6 +387,9 @@ class ExecuteBehaviorServer:
         with self._lock:
             if self._closed:
                 return
+            # From here on goals are REJECTED: one accepted during the flush below would
+            # switch the robot and never get its result.
+            self._closed = True
             following = self._following
         for goal in following:
             self._finish(goal, None, why="the robot's execute_behavior server shuts down")
@@ -384,8 +403,6 @@ class ExecuteBehaviorServer:
         marker.add_done_callback(lambda _: flushed.set())
         marker.set_result(None)
         flushed.wait(max(0.0, deadline - time.monotonic()))
-        with self._lock:
-            self._closed = True
         self.node.destroy_timer(self._timer)
         self._server.destroy()
 
@@ -414,6 +431,9 @@ def _parse_params(text: str) -> Any:
     except ValueError as exc:
         raise _Refused(f"params_json is not a JSON object: {exc}; expected e.g. "
                        f"'{{\"speed_mps\": 0.3}}' or \"\" for none") from exc
+    except RecursionError as exc:  # '[[[[…' within the size limit: deeper than Python goes
+        raise _Refused("params_json refused: nested too deeply to parse; expected a flat "
+                       "object of parameters, e.g. '{\"speed_mps\": 0.3}'") from exc
 
 
 def _finite(value: float | None) -> float:
