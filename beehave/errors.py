@@ -14,6 +14,17 @@ class BeehaveError(Exception):
     """Root of all beehave errors."""
 
 
+#: A name longer than this is cut in an :class:`UnknownNameError`'s message.
+MAX_NAME_SHOWN_CHARS = 100
+
+
+def shorten(text: str, limit: int) -> str:
+    """``text``, cut to ``limit`` characters with a note of how long it was."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}… ({len(text)} characters, cut)"
+
+
 class UnknownNameError(BeehaveError, KeyError):
     """A name (behaviour, logic, HAL …) that is not registered.
 
@@ -26,7 +37,10 @@ class UnknownNameError(BeehaveError, KeyError):
         self.name = name
         self.choices = sorted(choices)
         listed = ", ".join(repr(c) for c in self.choices) or "none"
-        super().__init__(f"unknown {self.kind} {name!r}; registered: {listed}")
+        # The name may come from outside: cut, so that a message bounded by an interface
+        # still holds the valid names (a 10k-character name pushed them out).
+        shown = shorten(name, MAX_NAME_SHOWN_CHARS) if isinstance(name, str) else name
+        super().__init__(f"unknown {self.kind} {shown!r}; registered: {listed}")
 
     def __str__(self) -> str:  # KeyError would quote the message
         return str(self.args[0])

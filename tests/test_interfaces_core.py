@@ -66,6 +66,10 @@ def test_behaviors_list_names_classes_first_doc_paragraph_and_parameters(
 
 @pytest.mark.parametrize(("name", "params", "error", "message"), [
     ("patrol", None, UnknownBehavior, "'patrol'; registered: 'broken_later', 'drive', 'idle'"),
+    # A name from outside is cut in the message: the registered names still fit in what
+    # an interface shows (ROS 2 result, HTTP detail), however long the name.
+    ("x" * 10_000, None, UnknownBehavior,
+     "'x{100}… [^']*10000 characters, cut[^']*'; registered: 'broken_later', 'drive', 'idle'$"),
     (42, None, BadRequest, "must be a string, got int 42; registered: broken_later, drive"),
     ("drive", ["dock"], InvalidParameters, "must be a mapping of parameter names"),
     ("drive", {"station": object()}, InvalidParameters, "parameter 'station' must be a JSON"),

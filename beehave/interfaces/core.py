@@ -41,6 +41,7 @@ from beehave.breakpoints import KINDS as BREAKPOINT_KINDS
 from beehave.breakpoints import Breakpoints, UnknownBreakpointTarget
 from beehave.breakpoints import of as breakpoints_of
 from beehave.errors import BadRequest, InvalidParameters, UnknownBehavior, UnknownKey
+from beehave.errors import shorten as _shorten
 from beehave.events import Event
 from beehave.highlevel import IDLE, HighLevelBehaviorManager
 
@@ -400,9 +401,7 @@ MAX_DEPTH = 8
 
 def shorten(text: str, limit: int = MAX_TEXT_CHARS) -> str:
     """``text``, cut to ``limit`` characters with a note of how long it was."""
-    if len(text) <= limit:
-        return text
-    return f"{text[:limit]}… ({len(text)} characters, cut)"
+    return _shorten(text, limit)
 
 
 def bounded(value: Any, depth: int = 0) -> Any:

@@ -38,7 +38,7 @@ from rclpy.task import Future
 
 from beehave.behavior import Behavior
 from beehave.blackboard import to_json
-from beehave.errors import BeehaveError, ConfigError, UnknownBehavior
+from beehave.errors import BeehaveError, ConfigError
 from beehave.events import Event, EventKind
 from beehave.highlevel import IDLE
 from beehave.interfaces.core import ControlPlane, bounded, shorten
@@ -56,8 +56,6 @@ SECOND_GOAL_POLICIES: tuple[str, ...] = ("reject", "preempt")
 #: A ``params_json`` longer than this is refused unread (an outsider must not make the
 #: robot parse megabytes).
 MAX_PARAMS_CHARS = 64 * 1024
-#: An unknown behaviour name longer than this is cut in the refusal's message.
-MAX_NAME_SHOWN_CHARS = 100
 #: How often the running goal is looked at (feedback on change, a request that never ran).
 _TICK_S = 0.1
 #: How long :meth:`ExecuteBehaviorServer.destroy` waits (wall time) for the results of the
@@ -191,11 +189,6 @@ class ExecuteBehaviorServer:
         params = _parse_params(params_json)
         try:
             checked = self.plane.check_switch(name, params)
-        except UnknownBehavior as exc:
-            # The name is the client's: cut, so that the registered names still fit in the
-            # message (a 10k-character name would push them out of result.message).
-            raise _Refused(str(UnknownBehavior(shorten(name, MAX_NAME_SHOWN_CHARS),
-                                               exc.choices))) from exc
         except Exception as exc:  # BeehaveError: the reason; anything else must not crash
             if not isinstance(exc, BeehaveError):
                 log.exception("execute_behavior: checking goal %s failed", goal.goal_id)
