@@ -307,3 +307,20 @@ class Idle(Behavior):
     def run(self) -> None:
         # No deadline: nothing for a virtual clock to jump to while the robot idles.
         self.sleep(math.inf)
+
+
+def running_engines(top: Runnable | None) -> list[tuple[str, Any]]:
+    """``(path, engine)`` of every decision engine driving ``top`` or a behaviour under it
+    now, depth first (what viewers, breakpoints and recordings look at)."""
+    found: list[tuple[str, Any]] = []
+
+    def walk(node: Any) -> None:
+        engine = getattr(node, "_engine", None)
+        if engine is not None:
+            found.append((node.path, engine))
+        for child in list(getattr(node, "children", ())):
+            walk(child)
+
+    if top is not None:
+        walk(top)
+    return found

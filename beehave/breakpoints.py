@@ -42,6 +42,7 @@ import weakref
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
 
+from beehave.behavior import running_engines
 from beehave.errors import BadRequest, BeehaveError, UnknownNameError
 from beehave.events import Event, EventKind
 from beehave.runnable import current
@@ -190,14 +191,7 @@ class Breakpoints:
         for _name, (_cls, params) in list(self.high._registry.items()):
             engines += [v for v in params.values() if isinstance(v, DecisionEngine)]
 
-        def walk(node: Any) -> None:
-            engine = getattr(node, "_engine", None)
-            if engine is not None:
-                engines.append(engine)
-            for child in getattr(node, "children", ()):
-                walk(child)
-
-        walk(self.high.top)
+        engines += [engine for _path, engine in running_engines(self.high.top)]
         out = []
         for engine in {id(e): e for e in engines}.values():
             structure = engine.structure()

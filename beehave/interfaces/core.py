@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import TypeAdapter, ValidationError
 
+from beehave.behavior import running_engines
 from beehave.blackboard import Blackboard, check_key, to_json
 from beehave.breakpoints import KINDS as BREAKPOINT_KINDS
 from beehave.breakpoints import Breakpoints, UnknownBreakpointTarget
@@ -229,18 +230,11 @@ class ControlPlane:
         ``[{"path", "structure_id", **engine.structure()}]`` (see
         :meth:`~beehave.engines.engine.DecisionEngine.structure`)."""
         out: list[dict[str, Any]] = []
-
-        def walk(node: Any) -> None:
-            engine = getattr(node, "_engine", None)
-            if engine is not None:
-                structure = engine.structure()
-                if structure is not None:
-                    out.append({"path": node.path, "structure_id": engine.structure_id(),
-                                **to_json(structure)})
-            for child in list(getattr(node, "children", ())):
-                walk(child)
-
-        walk(self.high.top)
+        for path, engine in running_engines(self.high.top):
+            structure = engine.structure()
+            if structure is not None:
+                out.append({"path": path, "structure_id": engine.structure_id(),
+                            **to_json(structure)})
         return out
 
     # -- what runs --------------------------------------------------------------------------
