@@ -143,6 +143,57 @@ def test_inspect_at_prints_the_moment_and_refuses_a_time_outside(recorded: Path)
     assert missing.returncode == 2 and "does not exist" in missing.stderr
 
 
+
+def test_inspect_at_on_a_cut_or_damaged_recording_says_what_is_missing(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """stdout keeps one fact per line; stderr says the file was cut off or where it is
+    damaged, and whether T lies after what was lost (exit 2 for damage, as ``inspect``)."""
+    import random
+
+    from mcap.reader import make_reader
+
+    from beehave.recording.cli import inspect_main
+
+    path = tmp_path / "blobs.mcap"
+    board, rnd = Blackboard(), random.Random(5)
+    with Recorder(path, flush_period_s=0.05) as recorder:
+        recorder.attach_blackboard(board, prefix="r1")
+        for i in range(8):  # incompressible: three chunks of 512 kB
+            board.set("blob", rnd.randbytes(100_000).hex(), writer="test")
+            board.set("n", i, writer="test")
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    assert len(chunks) >= 3
+    data = bytearray(path.read_bytes())
+    middle = chunks[len(chunks) // 2]
+    at = middle.chunk_start_offset + middle.chunk_length // 2
+    data[at:at + 2000] = random.Random(1).randbytes(2000)
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    last = chunks[-1]
+    cut = tmp_path / "cut.mcap"  # the last chunk whole, no summary, no footer
+    cut.write_bytes(path.read_bytes()[:last.chunk_start_offset + last.chunk_length])
+    capsys.readouterr()
+
+    assert inspect_main([str(damaged), "--at", "0"]) == 2
+    out, err = capsys.readouterr()
+    assert out.startswith("at 0.000 s") and "DAMAGED" not in out
+    assert "beehave inspect: DAMAGED:" in err and "are lost" in err, err
+    assert "may lack" not in err, err  # before the damage: complete
+    end = repr(read_recording(damaged).duration_s)
+    assert inspect_main([str(damaged), "--at", end]) == 2
+    out, err = capsys.readouterr()
+    assert "r1 blackboard: n = 7 (writer test)" in out
+    assert "DAMAGED" in err and "may lack what the lost part held" in err, err
+
+    assert read_recording(cut).truncated
+    assert inspect_main([str(cut), "--at", "0"]) == 0
+    out, err = capsys.readouterr()
+    assert "r1 blackboard: blob = " in out
+    assert "truncated: the recording process died" in err, err
+
 # ---- decision engines: structure once, state on change ------------------------------------
 
 def test_a_state_machine_changing_state_at_20_hz_is_recorded_with_its_structure_once(
