@@ -144,6 +144,19 @@ def test_inspect_at_prints_the_moment_and_refuses_a_time_outside(recorded: Path)
 
 
 
+@pytest.mark.parametrize("text", ["nan", "inf", "-inf", "-1", "soon", "1e400", ""])
+def test_inspect_at_refuses_a_time_that_is_no_moment_of_a_recording(
+        recorded: Path, text: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from beehave.recording.cli import inspect_main
+
+    with pytest.raises(SystemExit) as exited:
+        inspect_main([str(recorded), f"--at={text}"])  # "--at -inf" reads as an option
+    assert exited.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --at:" in err and repr(text) in err, err
+    assert "seconds" in err, err
+
+
 def test_inspect_at_on_a_cut_or_damaged_recording_says_what_is_missing(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """stdout keeps one fact per line; stderr says the file was cut off or where it is
