@@ -290,3 +290,39 @@ def test_a_recording_without_engine_channels_has_no_engines(recorded: Path) -> N
     assert timeline.engines_at("r1", timeline.duration_s) == []
     assert timeline.structures("r1") == []
     assert not any(" engine: " in line for line in timeline.describe_at(0.0))
+
+
+def test_an_engine_that_cannot_describe_itself_does_not_hide_the_others(
+        tmp_path: Path) -> None:
+    """A user engine raising in ``describe()`` is skipped and named in
+    ``Recorder.engine_errors``; the engine of the behaviour under it is still recorded."""
+    from types import SimpleNamespace
+    from typing import cast
+
+    from beehave import HighLevelBehaviorManager
+
+    class Broken:
+        def describe(self) -> dict[str, Any]:
+            raise ValueError("no state yet")
+
+    class Steady:
+        def describe(self) -> dict[str, Any]:
+            return {"kind": "state_machine", "state": "s", "structure_id": "sid1"}
+
+        def structure(self) -> dict[str, Any]:
+            return {"kind": "state_machine", "states": [{"name": "s"}]}
+
+    inner = SimpleNamespace(path="outer/inner", _engine=Steady(), children=[])
+    high = SimpleNamespace(top=SimpleNamespace(path="outer", _engine=Broken(),
+                                               children=[inner]))
+    path = tmp_path / "broken.mcap"
+    with Recorder(path, flush_period_s=0.05) as recorder:
+        recorder.attach_engines(cast(HighLevelBehaviorManager, high), prefix="r1")
+    errors = recorder.engine_errors
+    assert list(errors) == ["outer"] and isinstance(errors["outer"], ValueError)
+    rec = read_recording(path)
+    states = [m.data for m in rec.of("/r1/beehave/engines/state")]
+    assert states and all(s["path"] == "outer/inner" for s in states)
+    assert states[0]["engine"]["state"] == "s"
+    [structure] = [m.data for m in rec.of("/r1/beehave/engines/structure")]
+    assert structure["structure_id"] == "sid1"
