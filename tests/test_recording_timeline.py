@@ -326,3 +326,32 @@ def test_an_engine_that_cannot_describe_itself_does_not_hide_the_others(
     assert states[0]["engine"]["state"] == "s"
     [structure] = [m.data for m in rec.of("/r1/beehave/engines/structure")]
     assert structure["structure_id"] == "sid1"
+
+
+def test_the_engine_schemas_are_in_the_package_and_refuse_what_they_do_not_describe(
+) -> None:
+    """The JSON Schemas each engine channel carries (``beehave.recording.schema``) are
+    valid JSON Schema, accept a tree's state and ``engine: null`` too, and refuse a message
+    without its behaviour path or with an engine that is no object."""
+    import jsonschema
+
+    from beehave.recording import schema
+
+    structure = schema.SCHEMAS[schema.CHANNEL_SCHEMA[schema.ENGINE_STRUCTURE]]
+    state = schema.SCHEMAS[schema.CHANNEL_SCHEMA[schema.ENGINE_STATE]]
+    for s in (structure, state):
+        jsonschema.Draft202012Validator.check_schema(s)
+    stamp = 1.7e9
+    tree = {"kind": "behaviour_tree", "structure_id": "t1", "tick": 42,
+            "nodes": [{"path": "root", "status": "RUNNING"}]}
+    jsonschema.validate({"path": "patrol", "engine": tree, "stamp": stamp}, state)
+    jsonschema.validate({"path": "patrol", "engine": None, "stamp": stamp}, state)
+    jsonschema.validate({"path": "patrol", "structure_id": "t1", "stamp": stamp,
+                         "structure": {"kind": "behaviour_tree", "nodes": []}}, structure)
+    for bad in ({"engine": tree, "stamp": stamp}, {"path": "p", "engine": [], "stamp": stamp},
+                {"path": "p", "engine": tree, "stamp": "now"}):
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(bad, state)
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({"path": "p", "structure_id": "t1", "stamp": stamp,
+                             "structure": "a tree"}, structure)
