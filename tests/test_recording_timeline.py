@@ -355,3 +355,41 @@ def test_the_engine_schemas_are_in_the_package_and_refuse_what_they_do_not_descr
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate({"path": "p", "structure_id": "t1", "stamp": stamp,
                              "structure": "a tree"}, structure)
+
+
+def test_a_message_without_its_schemas_fields_is_refused_naming_channel_and_field(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A file written by another tool (the plain ``mcap`` writer, the channels' beehave
+    schemas) whose engine state lacks ``path``: ``inspect --at`` says which channel, when
+    and what is missing, exit 2 (it was a KeyError traceback)."""
+    import json
+
+    from mcap.writer import Writer
+
+    from beehave.recording import schema
+    from beehave.recording.cli import inspect_main
+
+    path = tmp_path / "foreign.mcap"
+    with open(path, "wb") as f:
+        writer = Writer(f)
+        writer.start()
+        ids = {}
+        for channel in (schema.EVENTS_HIGH, schema.ENGINE_STATE):
+            name = schema.CHANNEL_SCHEMA[channel]
+            sid = writer.register_schema(name, "jsonschema", schema.schema_bytes(name))
+            ids[channel] = writer.register_channel(schema.topic("r1", channel), "json", sid)
+        event = {"kind": "started", "subject": "tour", "status": "RUNNING", "error": None,
+                 "detail": {}, "stamp": 1.0}
+        state = {"engine": {"kind": "state_machine", "state": "a"}, "stamp": 1.5}
+        for t_ns, channel, data in ((10**9, schema.EVENTS_HIGH, event),
+                                    (2 * 10**9, schema.ENGINE_STATE, state)):
+            writer.add_message(ids[channel], log_time=t_ns, publish_time=t_ns,
+                               data=json.dumps(data).encode())
+        writer.finish()
+    with pytest.raises(RecordingError, match=r"/r1/beehave/engines/state at t=1\.000 s: "
+                       r"not a beehave\.EngineState message .*\(missing 'path'\)"):
+        RecordingTimeline(read_recording(path))
+    capsys.readouterr()
+    assert inspect_main([str(path), "--at", "0"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and "beehave inspect: /r1/beehave/engines/state at t=1.000 s" in err

@@ -192,46 +192,67 @@ class RecordingTimeline:
             robot.high_recorded = schema.topic(robot.prefix, schema.EVENTS_HIGH) in \
                 recording.channels
         pose: dict[str, dict[str, float]] = {p: {} for p in self.robots}
+        # What each channel's messages must hold (their schemas' required fields): a
+        # message without them is refused here, not a KeyError at some later query.
+        required = {what: tuple(schema.SCHEMAS[schema.CHANNEL_SCHEMA[channel]]["required"])
+                    for what, channel in (("board", schema.BLACKBOARD),
+                                          ("high", schema.EVENTS_HIGH),
+                                          ("low", schema.EVENTS_LOW),
+                                          ("structure", schema.ENGINE_STRUCTURE),
+                                          ("engine", schema.ENGINE_STATE))}
         seq = 0
         for message in recording.messages:
             found = topics.get(message.topic)
             if found is None:
                 continue
             robot, what = found
-            data, t_ns = message.data, message.log_time_ns
-            if what == "board":
-                key = data["key"]
-                robot.times.setdefault(key, []).append(t_ns)
-                robot.changes.setdefault(key, []).append(data)
-                if key in POSE_KEYS and not data["stale"]:
-                    value = _number(data["value"])
-                    if value is not None:
-                        pose[robot.prefix][key] = value
-                        self._extend_trail(robot, t_ns, pose[robot.prefix])
-                continue
-            if what == "structure":
-                structure = data.get("structure")
-                if isinstance(structure, dict):
-                    robot.structures.setdefault(data["structure_id"], {
-                        "path": data["path"], "structure_id": data["structure_id"],
-                        **structure})
-                continue
-            if what == "engine":
-                engines = dict(robot.engine_sets[-1]) if robot.engine_sets else {}
-                if isinstance(data.get("engine"), dict):
-                    engines[data["path"]] = {"path": data["path"], **data["engine"]}
-                else:
-                    engines.pop(data["path"], None)
-                robot.engine_times.append(t_ns)
-                robot.engine_sets.append(engines)
-                continue
-            state = robot.states[-1] if robot.states else _State()
-            robot.event_times.append(t_ns)
-            robot.states.append(_step(state, what, t_ns, data))
-            # One numbering over every robot: a page tells two robots' lists apart by it.
-            seq += 1
-            robot.events.append({**data, "seq": seq, "source": what,
-                                 "t_s": round((t_ns - self.start_ns) / 1e9, 6)})
+            try:
+                if not isinstance(message.data, dict):
+                    raise TypeError("not a JSON object")
+                missing = [k for k in required[what] if k not in message.data]
+                if missing:
+                    raise KeyError(", ".join(missing))
+                data, t_ns = message.data, message.log_time_ns
+                if what == "board":
+                    key = data["key"]
+                    robot.times.setdefault(key, []).append(t_ns)
+                    robot.changes.setdefault(key, []).append(data)
+                    if key in POSE_KEYS and not data["stale"]:
+                        value = _number(data["value"])
+                        if value is not None:
+                            pose[robot.prefix][key] = value
+                            self._extend_trail(robot, t_ns, pose[robot.prefix])
+                    continue
+                if what == "structure":
+                    structure = data.get("structure")
+                    if isinstance(structure, dict):
+                        robot.structures.setdefault(data["structure_id"], {
+                            "path": data["path"], "structure_id": data["structure_id"],
+                            **structure})
+                    continue
+                if what == "engine":
+                    engines = dict(robot.engine_sets[-1]) if robot.engine_sets else {}
+                    if isinstance(data.get("engine"), dict):
+                        engines[data["path"]] = {"path": data["path"], **data["engine"]}
+                    else:
+                        engines.pop(data["path"], None)
+                    robot.engine_times.append(t_ns)
+                    robot.engine_sets.append(engines)
+                    continue
+                state = robot.states[-1] if robot.states else _State()
+                robot.event_times.append(t_ns)
+                robot.states.append(_step(state, what, t_ns, data))
+                # One numbering over every robot: a page tells two robots' lists apart by it.
+                seq += 1
+                robot.events.append({**data, "seq": seq, "source": what,
+                                     "t_s": round((t_ns - self.start_ns) / 1e9, 6)})
+            except (KeyError, TypeError, AttributeError) as exc:
+                # Written by another tool or version: said, not a traceback.
+                raise RecordingError(
+                    f"{message.topic} at t={(message.log_time_ns - self.start_ns) / 1e9:.3f} s: "
+                    f"not a {message.schema_name} message as beehave records it "
+                    f"({'missing ' if isinstance(exc, KeyError) else ''}{exc}): "
+                    f"{str(message.data)[:200]}") from exc
 
     @staticmethod
     def _extend_trail(robot: _Robot, t_ns: int, pose: dict[str, float]) -> None:
