@@ -181,25 +181,24 @@ class RecordingTimeline:
         self.duration_s = recording.duration_s
         self.robots: dict[str, _Robot] = {p: _Robot(p) for p in recording.prefixes}
         topics: dict[str, tuple[_Robot, str]] = {}
+        # What each channel's messages must hold (their schemas' required fields), checked
+        # on each channel's first message: a file another tool wrote is refused here, not
+        # at some later query (checking every message doubled the indexing time).
+        unchecked: dict[str, frozenset[str]] = {}
         for robot in self.robots.values():
             robot.low_recorded = schema.topic(robot.prefix, schema.EVENTS_LOW) in \
                 recording.channels
-            topics[schema.topic(robot.prefix, schema.BLACKBOARD)] = (robot, "board")
-            topics[schema.topic(robot.prefix, schema.EVENTS_HIGH)] = (robot, "high")
-            topics[schema.topic(robot.prefix, schema.EVENTS_LOW)] = (robot, "low")
-            topics[schema.topic(robot.prefix, schema.ENGINE_STRUCTURE)] = (robot, "structure")
-            topics[schema.topic(robot.prefix, schema.ENGINE_STATE)] = (robot, "engine")
             robot.high_recorded = schema.topic(robot.prefix, schema.EVENTS_HIGH) in \
                 recording.channels
+            for channel, what in ((schema.BLACKBOARD, "board"), (schema.EVENTS_HIGH, "high"),
+                                  (schema.EVENTS_LOW, "low"),
+                                  (schema.ENGINE_STRUCTURE, "structure"),
+                                  (schema.ENGINE_STATE, "engine")):
+                topic = schema.topic(robot.prefix, channel)
+                topics[topic] = (robot, what)
+                unchecked[topic] = frozenset(
+                    schema.SCHEMAS[schema.CHANNEL_SCHEMA[channel]]["required"])
         pose: dict[str, dict[str, float]] = {p: {} for p in self.robots}
-        # What each channel's messages must hold (their schemas' required fields): a
-        # message without them is refused here, not a KeyError at some later query.
-        required = {what: tuple(schema.SCHEMAS[schema.CHANNEL_SCHEMA[channel]]["required"])
-                    for what, channel in (("board", schema.BLACKBOARD),
-                                          ("high", schema.EVENTS_HIGH),
-                                          ("low", schema.EVENTS_LOW),
-                                          ("structure", schema.ENGINE_STRUCTURE),
-                                          ("engine", schema.ENGINE_STATE))}
         seq = 0
         for message in recording.messages:
             found = topics.get(message.topic)
@@ -207,11 +206,9 @@ class RecordingTimeline:
                 continue
             robot, what = found
             try:
-                if not isinstance(message.data, dict):
-                    raise TypeError("not a JSON object")
-                missing = [k for k in required[what] if k not in message.data]
-                if missing:
-                    raise KeyError(", ".join(missing))
+                required = unchecked.pop(message.topic, None)
+                if required is not None and not message.data.keys() >= required:
+                    raise KeyError(", ".join(sorted(required - message.data.keys())))
                 data, t_ns = message.data, message.log_time_ns
                 if what == "board":
                     key = data["key"]
