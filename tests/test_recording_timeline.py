@@ -17,6 +17,7 @@ from beehave.errors import RecordingError
 from beehave.events import Event, EventBus, EventKind
 from beehave.recording import Recorder, read_recording
 from beehave.recording.timeline import RecordingTimeline
+from beehave.testing import WALL_TIMEOUT_S
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -130,16 +131,18 @@ def test_bad_questions_name_what_is_wrong_and_what_exists(recorded: Path) -> Non
 def test_inspect_at_prints_the_moment_and_refuses_a_time_outside(recorded: Path) -> None:
     def inspect(*args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run([sys.executable, "-m", "beehave.cli", "inspect", str(recorded),
-                               *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+                               *args], cwd=ROOT, capture_output=True, text=True,
+                              timeout=WALL_TIMEOUT_S)
 
     done = inspect("--at", "0")
     assert done.returncode == 0, done.stderr
     assert "r1 blackboard: speed_mps = 0.5 (writer hal:odometry)" in done.stdout
     bad = inspect("--at", "9999")
-    assert bad.returncode == 2 and "outside the recording" in bad.stderr
+    assert bad.returncode == 2 and "t=9999 s is outside the recording: 0 to " in bad.stderr
     missing = subprocess.run([sys.executable, "-m", "beehave.cli", "view",
                               str(recorded.with_name("none.mcap")), "--port", "0"],
-                             cwd=ROOT, capture_output=True, text=True, timeout=60)
+                             cwd=ROOT, capture_output=True, text=True,
+                             timeout=WALL_TIMEOUT_S)
     assert missing.returncode == 2 and "does not exist" in missing.stderr
 
 
