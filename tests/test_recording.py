@@ -319,6 +319,9 @@ def test_bad_options_are_refused_with_the_reason(tmp_path: Path) -> None:
     (tmp_path / "not.mcap").write_text("hello")
     with pytest.raises(RecordingError, match="not an MCAP file"):
         read_recording(tmp_path / "not.mcap")
+    (tmp_path / "dir.mcap").mkdir()  # an OSError, said as a RecordingError (CLI: exit 2)
+    with pytest.raises(RecordingError, match=r"'.*dir\.mcap' cannot be read: Is a directory"):
+        read_recording(tmp_path / "dir.mcap")
 
 
 def test_beehave_run_records_into_mcap(tmp_path: Path) -> None:

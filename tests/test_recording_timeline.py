@@ -17,6 +17,7 @@ from beehave.errors import RecordingError
 from beehave.events import Event, EventBus, EventKind
 from beehave.recording import Recorder, read_recording
 from beehave.recording.timeline import RecordingTimeline
+from beehave.testing import WALL_TIMEOUT_S
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -130,18 +131,84 @@ def test_bad_questions_name_what_is_wrong_and_what_exists(recorded: Path) -> Non
 def test_inspect_at_prints_the_moment_and_refuses_a_time_outside(recorded: Path) -> None:
     def inspect(*args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run([sys.executable, "-m", "beehave.cli", "inspect", str(recorded),
-                               *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+                               *args], cwd=ROOT, capture_output=True, text=True,
+                              timeout=WALL_TIMEOUT_S)
 
     done = inspect("--at", "0")
     assert done.returncode == 0, done.stderr
     assert "r1 blackboard: speed_mps = 0.5 (writer hal:odometry)" in done.stdout
     bad = inspect("--at", "9999")
-    assert bad.returncode == 2 and "outside the recording" in bad.stderr
+    assert bad.returncode == 2 and "t=9999 s is outside the recording: 0 to " in bad.stderr
     missing = subprocess.run([sys.executable, "-m", "beehave.cli", "view",
                               str(recorded.with_name("none.mcap")), "--port", "0"],
-                             cwd=ROOT, capture_output=True, text=True, timeout=60)
+                             cwd=ROOT, capture_output=True, text=True,
+                             timeout=WALL_TIMEOUT_S)
     assert missing.returncode == 2 and "does not exist" in missing.stderr
 
+
+
+@pytest.mark.parametrize("text", ["nan", "inf", "-inf", "-1", "soon", "1e400", ""])
+def test_inspect_at_refuses_a_time_that_is_no_moment_of_a_recording(
+        recorded: Path, text: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from beehave.recording.cli import inspect_main
+
+    with pytest.raises(SystemExit) as exited:
+        inspect_main([str(recorded), f"--at={text}"])  # "--at -inf" reads as an option
+    assert exited.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --at:" in err and repr(text) in err, err
+    assert "seconds" in err, err
+
+
+def test_inspect_at_on_a_cut_or_damaged_recording_says_what_is_missing(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """stdout keeps one fact per line; stderr says the file was cut off or where it is
+    damaged, and whether T lies after what was lost (exit 2 for damage, as ``inspect``)."""
+    import random
+
+    from mcap.reader import make_reader
+
+    from beehave.recording.cli import inspect_main
+
+    path = tmp_path / "blobs.mcap"
+    board, rnd = Blackboard(), random.Random(5)
+    with Recorder(path, flush_period_s=0.05) as recorder:
+        recorder.attach_blackboard(board, prefix="r1")
+        for i in range(8):  # incompressible: three chunks of 512 kB
+            board.set("blob", rnd.randbytes(100_000).hex(), writer="test")
+            board.set("n", i, writer="test")
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    assert len(chunks) >= 3
+    data = bytearray(path.read_bytes())
+    middle = chunks[len(chunks) // 2]
+    at = middle.chunk_start_offset + middle.chunk_length // 2
+    data[at:at + 2000] = random.Random(1).randbytes(2000)
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    last = chunks[-1]
+    cut = tmp_path / "cut.mcap"  # the last chunk whole, no summary, no footer
+    cut.write_bytes(path.read_bytes()[:last.chunk_start_offset + last.chunk_length])
+    capsys.readouterr()
+
+    assert inspect_main([str(damaged), "--at", "0"]) == 2
+    out, err = capsys.readouterr()
+    assert out.startswith("at 0.000 s") and "DAMAGED" not in out
+    assert "beehave inspect: DAMAGED:" in err and "are lost" in err, err
+    assert "may lack" not in err, err  # before the damage: complete
+    end = repr(read_recording(damaged).duration_s)
+    assert inspect_main([str(damaged), "--at", end]) == 2
+    out, err = capsys.readouterr()
+    assert "r1 blackboard: n = 7 (writer test)" in out
+    assert "DAMAGED" in err and "may lack what the lost part held" in err, err
+
+    assert read_recording(cut).truncated
+    assert inspect_main([str(cut), "--at", "0"]) == 0
+    out, err = capsys.readouterr()
+    assert "r1 blackboard: blob = " in out
+    assert "truncated: the recording process died" in err, err
 
 # ---- decision engines: structure once, state on change ------------------------------------
 
@@ -226,3 +293,106 @@ def test_a_recording_without_engine_channels_has_no_engines(recorded: Path) -> N
     assert timeline.engines_at("r1", timeline.duration_s) == []
     assert timeline.structures("r1") == []
     assert not any(" engine: " in line for line in timeline.describe_at(0.0))
+
+
+def test_an_engine_that_cannot_describe_itself_does_not_hide_the_others(
+        tmp_path: Path) -> None:
+    """A user engine raising in ``describe()`` is skipped and named in
+    ``Recorder.engine_errors``; the engine of the behaviour under it is still recorded."""
+    from types import SimpleNamespace
+    from typing import cast
+
+    from beehave import HighLevelBehaviorManager
+
+    class Broken:
+        def describe(self) -> dict[str, Any]:
+            raise ValueError("no state yet")
+
+    class Steady:
+        def describe(self) -> dict[str, Any]:
+            return {"kind": "state_machine", "state": "s", "structure_id": "sid1"}
+
+        def structure(self) -> dict[str, Any]:
+            return {"kind": "state_machine", "states": [{"name": "s"}]}
+
+    inner = SimpleNamespace(path="outer/inner", _engine=Steady(), children=[])
+    high = SimpleNamespace(top=SimpleNamespace(path="outer", _engine=Broken(),
+                                               children=[inner]))
+    path = tmp_path / "broken.mcap"
+    with Recorder(path, flush_period_s=0.05) as recorder:
+        recorder.attach_engines(cast(HighLevelBehaviorManager, high), prefix="r1")
+    errors = recorder.engine_errors
+    assert list(errors) == ["outer"] and isinstance(errors["outer"], ValueError)
+    rec = read_recording(path)
+    states = [m.data for m in rec.of("/r1/beehave/engines/state")]
+    assert states and all(s["path"] == "outer/inner" for s in states)
+    assert states[0]["engine"]["state"] == "s"
+    [structure] = [m.data for m in rec.of("/r1/beehave/engines/structure")]
+    assert structure["structure_id"] == "sid1"
+
+
+def test_the_engine_schemas_are_in_the_package_and_refuse_what_they_do_not_describe(
+) -> None:
+    """The JSON Schemas each engine channel carries (``beehave.recording.schema``) are
+    valid JSON Schema, accept a tree's state and ``engine: null`` too, and refuse a message
+    without its behaviour path or with an engine that is no object."""
+    import jsonschema
+
+    from beehave.recording import schema
+
+    structure = schema.SCHEMAS[schema.CHANNEL_SCHEMA[schema.ENGINE_STRUCTURE]]
+    state = schema.SCHEMAS[schema.CHANNEL_SCHEMA[schema.ENGINE_STATE]]
+    for s in (structure, state):
+        jsonschema.Draft202012Validator.check_schema(s)
+    stamp = 1.7e9
+    tree = {"kind": "behaviour_tree", "structure_id": "t1", "tick": 42,
+            "nodes": [{"path": "root", "status": "RUNNING"}]}
+    jsonschema.validate({"path": "patrol", "engine": tree, "stamp": stamp}, state)
+    jsonschema.validate({"path": "patrol", "engine": None, "stamp": stamp}, state)
+    jsonschema.validate({"path": "patrol", "structure_id": "t1", "stamp": stamp,
+                         "structure": {"kind": "behaviour_tree", "nodes": []}}, structure)
+    for bad in ({"engine": tree, "stamp": stamp}, {"path": "p", "engine": [], "stamp": stamp},
+                {"path": "p", "engine": tree, "stamp": "now"}):
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(bad, state)
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({"path": "p", "structure_id": "t1", "stamp": stamp,
+                             "structure": "a tree"}, structure)
+
+
+def test_a_message_without_its_schemas_fields_is_refused_naming_channel_and_field(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A file written by another tool (the plain ``mcap`` writer, the channels' beehave
+    schemas) whose engine state lacks ``path``: ``inspect --at`` says which channel, when
+    and what is missing, exit 2 (it was a KeyError traceback)."""
+    import json
+
+    from mcap.writer import Writer
+
+    from beehave.recording import schema
+    from beehave.recording.cli import inspect_main
+
+    path = tmp_path / "foreign.mcap"
+    with open(path, "wb") as f:
+        writer = Writer(f)
+        writer.start()
+        ids = {}
+        for channel in (schema.EVENTS_HIGH, schema.ENGINE_STATE):
+            name = schema.CHANNEL_SCHEMA[channel]
+            sid = writer.register_schema(name, "jsonschema", schema.schema_bytes(name))
+            ids[channel] = writer.register_channel(schema.topic("r1", channel), "json", sid)
+        event = {"kind": "started", "subject": "tour", "status": "RUNNING", "error": None,
+                 "detail": {}, "stamp": 1.0}
+        state = {"engine": {"kind": "state_machine", "state": "a"}, "stamp": 1.5}
+        for t_ns, channel, data in ((10**9, schema.EVENTS_HIGH, event),
+                                    (2 * 10**9, schema.ENGINE_STATE, state)):
+            writer.add_message(ids[channel], log_time=t_ns, publish_time=t_ns,
+                               data=json.dumps(data).encode())
+        writer.finish()
+    with pytest.raises(RecordingError, match=r"/r1/beehave/engines/state at t=1\.000 s: "
+                       r"not a beehave\.EngineState message .*\(missing 'path'\)"):
+        RecordingTimeline(read_recording(path))
+    capsys.readouterr()
+    assert inspect_main([str(path), "--at", "0"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and "beehave inspect: /r1/beehave/engines/state at t=1.000 s" in err

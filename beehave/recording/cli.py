@@ -275,6 +275,16 @@ def _inspect_at(path: str, at_s: float, robots: list[str] | None) -> int:
     except BeehaveError as exc:
         return _fail("inspect", exc)
     print("\n".join(lines), flush=True)
+    # What is missing, on stderr (stdout stays one fact per line): exit 2 says it too.
+    intact_s = (rec.intact_until_ns - rec.start_ns) / 1e9
+    if rec.truncated:
+        print(f"beehave inspect: truncated: the recording process died; read up to its last "
+              f"complete chunk, nothing missing before t={intact_s:.3f} s", file=sys.stderr)
+    for damage in rec.describe_damage():
+        print(f"beehave inspect: DAMAGED: {damage}", file=sys.stderr)
+    if (rec.damaged or rec.truncated) and at_s >= intact_s:
+        print(f"beehave inspect: t={at_s:g} s is after t={intact_s:.3f} s: what is shown "
+              f"may lack what the lost part held", file=sys.stderr, flush=True)
     return 2 if rec.damaged else 0
 
 

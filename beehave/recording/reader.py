@@ -266,9 +266,14 @@ def read_recording(path: str | Path) -> Recording:
     damaged: list[Damage] = []
     counts: Counter[str] = Counter()
     for file in files:
-        with open(file, "rb") as f:
-            if f.read(8) != b"\x89MCAP0\r\n":
-                raise RecordingError(f"{str(file)!r} is not an MCAP file (no MCAP magic)")
+        try:
+            with open(file, "rb") as f:
+                magic = f.read(8)
+        except OSError as exc:  # a directory, no permission …: said as the CLI says errors
+            raise RecordingError(f"recording {str(file)!r} cannot be read: "
+                                 f"{exc.strerror or exc}") from exc
+        if magic != _MAGIC:
+            raise RecordingError(f"{str(file)!r} is not an MCAP file (no MCAP magic)")
         schemas: dict[int, Schema] = {}
         by_id: dict[int, ChannelInfo] = {}
         records, scan = _records(file)

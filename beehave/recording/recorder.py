@@ -272,7 +272,11 @@ class _EngineSampler:
     from the one recorded last (a tree's ``tick`` alone is no change), and ``engine:
     null`` when a behaviour no longer runs one. The engines only answer ``describe()`` --
     what the live snapshot asks them too --, so recording them adds nothing to their
-    threads; a state held shorter than one look (20 ms) may be missed."""
+    threads; a state held shorter than one look (20 ms) may be missed.
+
+    An engine whose ``describe()`` or ``structure()`` raises is skipped (the others are
+    still recorded) and its first error kept in :attr:`errors` (by behaviour path), which
+    :attr:`Recorder.engine_errors` shows: a user engine never stops the writer."""
 
     def __init__(self, high: HighLevelBehaviorManager, structures: Channel,
                  states: Channel) -> None:
@@ -281,8 +285,14 @@ class _EngineSampler:
         self.states = states
         self.recorded: set[str] = set()  # structure_ids written
         self.last: dict[str, dict[str, Any]] = {}  # path → describe() as compared
-        self.failed = False
+        self.errors: dict[str, Exception] = {}  # path → its engine's first error
         self.detached = False  # the recorder closes: one last look (what ended is in)
+
+    def _failed(self, path: str, exc: Exception) -> None:
+        if path not in self.errors:
+            self.errors[path] = exc
+            log.warning("recorder: the decision engine of %s cannot be recorded: %r",
+                        path or "the high level", exc)
 
     def sample(self) -> None:
         found: list[tuple[str, Any]] = []
@@ -298,39 +308,43 @@ class _EngineSampler:
             top = self.high.top
             if top is not None:
                 walk(top)
-            stamp = time.time()
-            t_ns = int(stamp * 1e9)
-            seen = set()
-            for path, engine in found:
-                seen.add(path)
-                described = engine.describe()
-                if not isinstance(described, dict):
-                    continue
-                # Compared as given (cheaper than encoding it at every look): encoded
-                # only when it changed.
-                compared = {k: v for k, v in described.items() if k != "tick"} \
-                    if "tick" in described else described
-                if self.last.get(path) == compared:
-                    continue
-                self.last[path] = compared
-                sid = described.get("structure_id")
-                if isinstance(sid, str) and sid not in self.recorded:
-                    structure = engine.structure()
-                    if structure is not None:
-                        self.recorded.add(sid)
-                        self.structures.put((t_ns, _dumps({
-                            "path": path, "structure_id": sid,
-                            "structure": to_json(structure), "stamp": stamp})))
-                self.states.put((t_ns, _dumps({"path": path, "engine": to_json(described),
-                                               "stamp": stamp})))
-            for path in [p for p in self.last if p not in seen]:
-                del self.last[path]
-                self.states.put((t_ns, _dumps({"path": path, "engine": None,
-                                               "stamp": stamp})))
-        except Exception as exc:  # a user engine's describe(): never stop the writer
-            if not self.failed:
-                self.failed = True
-                log.warning("recorder: reading the decision engines failed: %r", exc)
+        except Exception as exc:  # a user behaviour's children: never stop the writer
+            self._failed("", exc)
+            return
+        stamp = time.time()
+        t_ns = int(stamp * 1e9)
+        seen = set()
+        for path, engine in found:
+            seen.add(path)
+            try:
+                self._look(path, engine, t_ns, stamp)
+            except Exception as exc:  # a user engine's describe(): the others go on
+                self._failed(path, exc)
+        for path in [p for p in self.last if p not in seen]:
+            del self.last[path]
+            self.states.put((t_ns, _dumps({"path": path, "engine": None, "stamp": stamp})))
+
+    def _look(self, path: str, engine: Any, t_ns: int, stamp: float) -> None:
+        described = engine.describe()
+        if not isinstance(described, dict):
+            return
+        # Compared as given (cheaper than encoding it at every look): encoded only when
+        # it changed.
+        compared = {k: v for k, v in described.items() if k != "tick"} \
+            if "tick" in described else described
+        if self.last.get(path) == compared:
+            return
+        sid = described.get("structure_id")
+        if isinstance(sid, str) and sid not in self.recorded:
+            structure = engine.structure()
+            if structure is not None:
+                self.recorded.add(sid)
+                self.structures.put((t_ns, _dumps({
+                    "path": path, "structure_id": sid,
+                    "structure": to_json(structure), "stamp": stamp})))
+        self.states.put((t_ns, _dumps({"path": path, "engine": to_json(described),
+                                       "stamp": stamp})))
+        self.last[path] = compared
 
 
 class Recorder:
@@ -361,7 +375,8 @@ class Recorder:
         self.queue_size = queue_size
         self.close_timeout_s = check_duration_s("close_timeout_s", close_timeout_s)
         self._clocks: list[tuple[Channel, WallClock]] = []
-        self._engines: list[_EngineSampler] = []
+        self._engines: list[_EngineSampler] = []  # those the writer looks at
+        self._samplers: list[_EngineSampler] = []  # every one attached (their errors)
         self._writer = WriterThread(
             self.path, flush_period_s=check_duration_s("flush_period_s", flush_period_s),
             max_file_bytes=None if max_file_mb is None else int(max_file_mb * 1e6),
@@ -519,11 +534,20 @@ class Recorder:
                                  self._channel(prefix, schema.ENGINE_STRUCTURE, _identity),
                                  self._channel(prefix, schema.ENGINE_STATE, _identity))
         self._engines = [*self._engines, sampler]
+        self._samplers.append(sampler)
 
         def detach() -> None:  # the writer thread looks once more, then lets go
             sampler.detached = True
 
         self._detach.append(detach)
+
+    @property
+    def engine_errors(self) -> dict[str, Exception]:
+        """The decision engines that could not be recorded: behaviour path → the first
+        error its engine's ``describe()`` or ``structure()`` raised (``""``: walking the
+        running behaviours failed). The others were recorded all the same."""
+        return {path: exc for sampler in self._samplers for path, exc in
+                sampler.errors.items()}
 
     def _sample(self) -> None:  # in the writer thread, before each drain
         self._sample_clocks()

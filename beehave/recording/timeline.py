@@ -181,16 +181,23 @@ class RecordingTimeline:
         self.duration_s = recording.duration_s
         self.robots: dict[str, _Robot] = {p: _Robot(p) for p in recording.prefixes}
         topics: dict[str, tuple[_Robot, str]] = {}
+        # What each channel's messages must hold (their schemas' required fields), checked
+        # on each channel's first message: a file another tool wrote is refused here, not
+        # at some later query (checking every message doubled the indexing time).
+        unchecked: dict[str, frozenset[str]] = {}
         for robot in self.robots.values():
             robot.low_recorded = schema.topic(robot.prefix, schema.EVENTS_LOW) in \
                 recording.channels
-            topics[schema.topic(robot.prefix, schema.BLACKBOARD)] = (robot, "board")
-            topics[schema.topic(robot.prefix, schema.EVENTS_HIGH)] = (robot, "high")
-            topics[schema.topic(robot.prefix, schema.EVENTS_LOW)] = (robot, "low")
-            topics[schema.topic(robot.prefix, schema.ENGINE_STRUCTURE)] = (robot, "structure")
-            topics[schema.topic(robot.prefix, schema.ENGINE_STATE)] = (robot, "engine")
             robot.high_recorded = schema.topic(robot.prefix, schema.EVENTS_HIGH) in \
                 recording.channels
+            for channel, what in ((schema.BLACKBOARD, "board"), (schema.EVENTS_HIGH, "high"),
+                                  (schema.EVENTS_LOW, "low"),
+                                  (schema.ENGINE_STRUCTURE, "structure"),
+                                  (schema.ENGINE_STATE, "engine")):
+                topic = schema.topic(robot.prefix, channel)
+                topics[topic] = (robot, what)
+                unchecked[topic] = frozenset(
+                    schema.SCHEMAS[schema.CHANNEL_SCHEMA[channel]]["required"])
         pose: dict[str, dict[str, float]] = {p: {} for p in self.robots}
         seq = 0
         for message in recording.messages:
@@ -198,40 +205,51 @@ class RecordingTimeline:
             if found is None:
                 continue
             robot, what = found
-            data, t_ns = message.data, message.log_time_ns
-            if what == "board":
-                key = data["key"]
-                robot.times.setdefault(key, []).append(t_ns)
-                robot.changes.setdefault(key, []).append(data)
-                if key in POSE_KEYS and not data["stale"]:
-                    value = _number(data["value"])
-                    if value is not None:
-                        pose[robot.prefix][key] = value
-                        self._extend_trail(robot, t_ns, pose[robot.prefix])
-                continue
-            if what == "structure":
-                structure = data.get("structure")
-                if isinstance(structure, dict):
-                    robot.structures.setdefault(data["structure_id"], {
-                        "path": data["path"], "structure_id": data["structure_id"],
-                        **structure})
-                continue
-            if what == "engine":
-                engines = dict(robot.engine_sets[-1]) if robot.engine_sets else {}
-                if isinstance(data.get("engine"), dict):
-                    engines[data["path"]] = {"path": data["path"], **data["engine"]}
-                else:
-                    engines.pop(data["path"], None)
-                robot.engine_times.append(t_ns)
-                robot.engine_sets.append(engines)
-                continue
-            state = robot.states[-1] if robot.states else _State()
-            robot.event_times.append(t_ns)
-            robot.states.append(_step(state, what, t_ns, data))
-            # One numbering over every robot: a page tells two robots' lists apart by it.
-            seq += 1
-            robot.events.append({**data, "seq": seq, "source": what,
-                                 "t_s": round((t_ns - self.start_ns) / 1e9, 6)})
+            try:
+                required = unchecked.pop(message.topic, None)
+                if required is not None and not message.data.keys() >= required:
+                    raise KeyError(", ".join(sorted(required - message.data.keys())))
+                data, t_ns = message.data, message.log_time_ns
+                if what == "board":
+                    key = data["key"]
+                    robot.times.setdefault(key, []).append(t_ns)
+                    robot.changes.setdefault(key, []).append(data)
+                    if key in POSE_KEYS and not data["stale"]:
+                        value = _number(data["value"])
+                        if value is not None:
+                            pose[robot.prefix][key] = value
+                            self._extend_trail(robot, t_ns, pose[robot.prefix])
+                    continue
+                if what == "structure":
+                    structure = data.get("structure")
+                    if isinstance(structure, dict):
+                        robot.structures.setdefault(data["structure_id"], {
+                            "path": data["path"], "structure_id": data["structure_id"],
+                            **structure})
+                    continue
+                if what == "engine":
+                    engines = dict(robot.engine_sets[-1]) if robot.engine_sets else {}
+                    if isinstance(data.get("engine"), dict):
+                        engines[data["path"]] = {"path": data["path"], **data["engine"]}
+                    else:
+                        engines.pop(data["path"], None)
+                    robot.engine_times.append(t_ns)
+                    robot.engine_sets.append(engines)
+                    continue
+                state = robot.states[-1] if robot.states else _State()
+                robot.event_times.append(t_ns)
+                robot.states.append(_step(state, what, t_ns, data))
+                # One numbering over every robot: a page tells two robots' lists apart by it.
+                seq += 1
+                robot.events.append({**data, "seq": seq, "source": what,
+                                     "t_s": round((t_ns - self.start_ns) / 1e9, 6)})
+            except (KeyError, TypeError, AttributeError) as exc:
+                # Written by another tool or version: said, not a traceback.
+                raise RecordingError(
+                    f"{message.topic} at t={(message.log_time_ns - self.start_ns) / 1e9:.3f} s: "
+                    f"not a {message.schema_name} message as beehave records it "
+                    f"({'missing ' if isinstance(exc, KeyError) else ''}{exc}): "
+                    f"{str(message.data)[:200]}") from exc
 
     @staticmethod
     def _extend_trail(robot: _Robot, t_ns: int, pose: dict[str, float]) -> None:
