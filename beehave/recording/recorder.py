@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any, Self
 from pydantic_core import to_json as _dumps
 
 import beehave
+from beehave.behavior import running_engines
 from beehave.blackboard import Blackboard, Change, to_json
 from beehave.clock import WallClock
 from beehave.errors import RecordingError
@@ -295,19 +296,8 @@ class _EngineSampler:
                         path or "the high level", exc)
 
     def sample(self) -> None:
-        found: list[tuple[str, Any]] = []
-
-        def walk(node: Any) -> None:
-            engine = getattr(node, "_engine", None)
-            if engine is not None:
-                found.append((node.path, engine))
-            for child in list(getattr(node, "children", ())):
-                walk(child)
-
         try:
-            top = self.high.top
-            if top is not None:
-                walk(top)
+            found = running_engines(self.high.top)
         except Exception as exc:  # a user behaviour's children: never stop the writer
             self._failed("", exc)
             return
