@@ -28,6 +28,7 @@ pytest.importorskip("rclpy")
 from beehave.agents.market import Job, Task, choose  # noqa: E402
 from beehave.errors import NoPath  # noqa: E402
 from beehave.procs import dies_with_parent  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S  # noqa: E402
 from behaviours.actions import world_planner  # noqa: E402
 from behaviours.demos.serve import AISLE, ServeFloor, checks  # noqa: E402
 from behaviours.market.cafe import cafe_orders  # noqa: E402
@@ -400,14 +401,16 @@ def test_bad_serve_arguments_exit_2_naming_the_problem(
 
 # ---- the whole scenario: real processes over DDS, real pybullet ---------------------------------
 
-@pytest.mark.timeout(300)  # real processes: slow on a loaded machine
+# Real processes: slow on a loaded machine. The run's own bound stays below the test's.
+@pytest.mark.timeout(int(5 * WALL_TIMEOUT_S))
 def test_the_serve_scenario_completes_every_order_and_every_check_holds(
         tmp_path: Path) -> None:
     out = tmp_path / "out"
     # --signed: every agent signs and takes only what the fleet signed (docs/agents.md).
     proc = subprocess.run([sys.executable, "-m", "beehave.cli", "fleet", "--scenario",
                            "serve", "--fast", "--signed", "--out", str(out)], cwd=ROOT,
-                          env=dict(os.environ), capture_output=True, text=True, timeout=280,
+                          env=dict(os.environ), capture_output=True, text=True,
+                          timeout=4.7 * WALL_TIMEOUT_S,
                           preexec_fn=dies_with_parent)  # a worker's timeout: no orphans
     logs = "".join(f"--- {log.name}\n{log.read_text(errors='replace')[-1500:]}\n"
                    for log in sorted((out / "serve").glob("*.log")))
