@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import faulthandler
 import importlib
 import os
 import random
-from collections.abc import Iterator
+import tempfile
+from collections.abc import Generator, Iterator
+from pathlib import Path
 from types import ModuleType
 from typing import Any
 
@@ -63,3 +66,55 @@ def events(hl: HighLevelBehaviorManager) -> list[Event]:
     received: list[Event] = []
     hl.subscribe(received.append)
     return received
+
+
+# A stuck test must not stall the run until CI kills it. pytest-timeout (120 s, SIGALRM)
+# cannot reach a main thread blocked in C that retries on EINTR, and nothing bounds the run
+# when it hangs after its session (xdist ends hung workers then, nothing ends a hung
+# controller). So each test, and the run after its session, is also bounded by faulthandler's
+# own watchdog (a C thread, not seen by `threading`): past the bound it writes every thread's
+# stack to a file and ends the process; xdist reports the test as crashed and starts a new
+# worker, and the run's summary prints the stacks.
+_GRACE_S = float(os.environ.get("BEEHAVE_HANG_GRACE_S", "60"))
+_HANGS = "BEEHAVE_HANG_DIR"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if "PYTEST_XDIST_WORKER" not in os.environ and _HANGS not in os.environ:
+        os.environ[_HANGS] = tempfile.mkdtemp(prefix="beehave-hangs-")
+
+
+def _arm(seconds: float, why: str) -> None:
+    path = Path(os.environ.get(_HANGS, tempfile.gettempdir())) / f"{_WORKER}-{os.getpid()}.txt"
+    out = path.open("w")  # only the latest bound: a file with stacks is a watchdog that fired
+    out.write(f"{why}: still running {seconds:.0f} s later; every thread's stack:\n")
+    out.flush()
+    faulthandler.dump_traceback_later(seconds, file=out, exit=True)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item) -> Generator[None, None, None]:
+    marker = item.get_closest_marker("timeout")
+    bound = float(marker.args[0]) if marker and marker.args else float(
+        item.config.getini("timeout") or 120)
+    if bound > 0:
+        _arm(bound + _GRACE_S, f"test {item.nodeid} (timeout {bound:.0f} s)")
+    yield
+    faulthandler.cancel_dump_traceback_later()
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_sessionfinish() -> None:
+    if "PYTEST_XDIST_WORKER" not in os.environ:  # a worker waits for the others legitimately
+        _arm(_GRACE_S, "the session has finished but the process has not exited")
+
+
+def pytest_terminal_summary(terminalreporter: Any) -> None:
+    where = os.environ.get(_HANGS)
+    if "PYTEST_XDIST_WORKER" in os.environ or not where:
+        return
+    for dump in sorted(Path(where).glob("*.txt")):
+        text = dump.read_text(errors="replace")
+        if "File " in text:  # only the files whose watchdog fired hold stacks
+            terminalreporter.write_sep("=", f"stuck: {dump.name}")
+            terminalreporter.write(text[-20000:] + "\n")
