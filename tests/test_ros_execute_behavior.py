@@ -211,9 +211,12 @@ def preempt(robots: dict[str, tuple[Robot, GoalClient]]) -> Iterator[tuple[Robot
 
 
 def _settle(robot: Robot, client: GoalClient) -> None:
-    """Leave the robot with no goal executing, for the next test."""
+    """Leave the robot with no goal executing and no switch under way, for the next test
+    (the stop service answers once its switch to idle is asked for, not done: until then
+    ``current`` may still say "idle" from before, then None while it switches)."""
     client.stop()
-    assert wait_until(lambda: robot.high is not None and robot.high.current == "idle")
+    assert wait_until(lambda: robot.high is not None and robot.high.requested is None
+                      and robot.high.current == "idle")
 
 
 def test_goal_runs_with_feedback_and_cancel_stops_the_robot(reject: Any) -> None:
