@@ -545,6 +545,63 @@ def test_a_silent_awardee_is_cancelled_and_the_task_re_awarded(
         _wait(lambda: sorted(Hold.ended) == ["done", "interrupted"], "both actions ended")
 
 
+class InTurnBidder(ContractNetResponder):
+    """Bids its base price plus 10 per task it already has (running or queued), and
+    answers concurrent calls in turn (``answer_cfps_in_turn``; without it, this test
+    fails: the cheap one wins both)."""
+
+    service = "haul_in_turn"
+    answer_cfps_in_turn = True
+
+    def __init__(self, cost: float) -> None:
+        self.price = cost
+
+    def propose(self, cfp: Message) -> Any:
+        # Pricing takes a while (a path planner): the other call is in the mailbox by then.
+        self.sleep(0.3)
+        return {"cost": self.price + 10 * (len(self.tasks) + len(self.waiting))}
+
+    def perform(self, task: Message) -> Any:
+        return Hold(1.0)
+
+
+def test_two_calls_at_once_go_to_two_bidders_when_they_answer_in_turn(
+        ros: RosContext, robots: Callable[..., Agent]) -> None:
+    """Two initiators call at the same instant. Answering each call at once, the cheap
+    bidder would offer its idle price to both and win both (the other stays idle); in
+    turn, its second bid knows the first award and the dear one wins the second."""
+    robots("turn_cheap", InTurnBidder, cost=1.0)
+    robots("turn_dear", InTurnBidder, cost=2.0)
+    with Agent("turn_boss_a", ros=ros, probe_s=PROBE_S) as a, \
+            Agent("turn_boss_b", ros=ros, probe_s=PROBE_S) as b:
+        for boss in (a, b):
+            _wait(lambda boss=boss: len(boss.directory.search("haul_in_turn")) == 2,
+                  "two bidders")
+        start = threading.Barrier(2)
+        awards: dict[str, Any] = {}
+
+        def order(boss: Agent) -> None:
+            start.wait(WAIT_S)
+            try:
+                awards[boss.name] = contract_net(boss, "haul_in_turn", {}, reply_by_s=WAIT_S)
+            except BaseException as exc:  # noqa: BLE001 - inspected below
+                awards[boss.name] = exc
+
+        threads = [threading.Thread(target=order, args=(boss,)) for boss in (a, b)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(3 * WAIT_S)
+        assert not any(t.is_alive() for t in threads)
+        assert sorted(award.awardee for award in awards.values()) == ["turn_cheap",
+                                                                      "turn_dear"], awards
+        # Each at the first award (not the cheap one's "busy" failure, then a re-award),
+        # and the dear one at its idle price: it was not asked to outbid a phantom.
+        assert [len(award.attempts) for award in awards.values()] == [1, 1], awards
+        costs = {award.awardee: award.cost for award in awards.values()}
+        assert costs == {"turn_cheap": 1.0, "turn_dear": 2.0}, awards
+
+
 def test_an_unreachable_candidate_does_not_stop_the_others(
         ros: RosContext, robots: Callable[..., Agent]) -> None:
     robots("reach_real", Bidder, cost=1.0, seconds=0.0)

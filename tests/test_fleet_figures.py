@@ -37,17 +37,19 @@ ROOT = Path(__file__).resolve().parent.parent
 @pytest.fixture(scope="module")
 def single(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """One 3-sim-minute run of the default factory with coordination off: every machine
-    calls atv1 alone; atv2 is there and could help. Machines order at 40 % (not 60 %), so
-    that the first two orders (about 80 s and 84 s) leave 55-80 s before their machines
-    reach safety stock: one ATV each makes it (the market: delivered 14 s before the due
-    time), one ATV for both does not (the second delivered 16 s late); measured in both
-    modes side by side."""
+    calls atv1 alone; atv2 is there and could help. Machines order at 37.5 % (not 60 %):
+    press1 and lathe1 order within a second or two of each other (about 91 s), leaving
+    46 s and 67 s until they reach safety stock. One ATV each makes it (the market: both
+    delivered at about 131 s, 8 s before press1's due time); one ATV for both does not,
+    whichever it takes first (measured: the second delivered 4-5 s late when press1 went
+    first, about 30 s late the other way round); a loaded machine only makes it later.
+    """
     out = tmp_path_factory.mktemp("fleet_single")
     # Dies with this worker (a timeout ends it without cleanup), and takes its sim,
     # robots and agents with it.
     run = subprocess.run(
         [sys.executable, "-m", "beehave.cli", "fleet", "--robots", "2", "--minutes", "3",
-         "--fast", "--dispatch", "single", "--order-below", "0.4", "--out", str(out)],
+         "--fast", "--dispatch", "single", "--order-below", "0.375", "--out", str(out)],
         cwd=ROOT, env={**os.environ, "COLUMNS": "200"}, capture_output=True, text=True,
         timeout=5 * WALL_TIMEOUT_S, preexec_fn=dies_with_parent)
     last = run.stdout.strip().splitlines()[-1] if run.stdout.strip() else "{}"

@@ -384,6 +384,17 @@ class Responder(AgentBehavior):
     free — a robot that accepts work while it works. When False (the default), it is
     answered with ``failure`` naming the holder."""
 
+    answer_cfps_in_turn: bool = False
+    """Contract net: when True, a call for proposals that arrives while an earlier proposal
+    of this responder is undecided (neither accepted nor rejected yet) is answered once
+    that one is decided — at the latest after half the time its initiator gives
+    (``reply_by``), then with what is known. So a robot called by two auctions at once
+    bids on the second knowing whether it won the first: concurrent calls spread over the
+    fleet instead of all going to the one robot that was idle when they came. A proposal
+    left undecided for :attr:`undecided_max_s` (an initiator that went away) no longer
+    holds anything back."""
+    undecided_max_s: float = 3.0
+
     def perform(self, task: Message) -> Any:
         """Do what ``task`` asks (a request, or the accept-proposal of an award, whose
         content is the proposal you made: put in the proposal what you need here).
@@ -418,16 +429,24 @@ class Responder(AgentBehavior):
         #: Accepted tasks waiting for their action type (:attr:`queue_tasks`), oldest first.
         self.waiting: list[ResponderTask] = []
         self.proposals: dict[str, tuple[Message, float]] = {}
+        #: Proposals made and not yet accepted or rejected: conversation → when (monotonic).
+        self.undecided: dict[str, float] = {}
+        #: Calls for proposals held back (:attr:`answer_cfps_in_turn`), with the monotonic
+        #: time by which each is answered whatever happens; oldest first.
+        self.deferred: list[tuple[Message, float]] = []
         with self.agent.mailbox(protocols=[self.protocol]) as box:
             self._box = box
             if self.service is not None:
                 self.agent.register(self.service, **self.service_properties())
             try:
                 while True:
-                    message = box._next(None)
+                    wait = (None if not self.deferred
+                            else max(0.0, min(by for _, by in self.deferred) - time.monotonic()))
+                    message = box._next(wait)
                     self._reap()
                     if message is not None:
                         self._handle(message)
+                    self._answer_deferred()
             finally:
                 if self.service is not None and self.service in self.agent.services:
                     self.agent.deregister(self.service)
@@ -445,20 +464,14 @@ class Responder(AgentBehavior):
             self._reply(message, Performative.AGREE)
             self._start(message)
         elif kind is Performative.CFP:
-            self._expire_proposals()
-            try:
-                offer = self.propose(message)
-            except Exception as exc:
-                # A cfp is answered with propose, refuse or not-understood (FIPA): a
-                # task this agent cannot serve (an unknown machine) is a refusal, with why.
-                log.warning("%s: propose() raised on %s: %r", self.path, cid, exc)
-                self._reply(message, Performative.REFUSE, {"reason": repr(exc)})
+            if self.answer_cfps_in_turn and (self.deferred or self._undecided_now()):
+                now, wall = time.monotonic(), time.time()
+                left = (message.reply_by - wall) if message.reply_by is not None else 0.0
+                self.deferred.append((message, now + max(0.0, left) / 2))
                 return
-            if offer is None:
-                self._reply(message, Performative.REFUSE, {"reason": "no proposal"})
-            elif self._reply(message, Performative.PROPOSE, jsonable(offer)):
-                self._propose(cid, message)
+            self._bid(message)
         elif kind is Performative.ACCEPT_PROPOSAL:
+            self.undecided.pop(cid, None)
             entry = self.proposals.pop(cid, None)
             if entry is None or cid in self.tasks:
                 self._reply(message, Performative.FAILURE,
@@ -467,8 +480,10 @@ class Responder(AgentBehavior):
                 return
             self._start(message)
         elif kind is Performative.REJECT_PROPOSAL:
-            pass  # kept for proposal_valid_s: a re-award may still come
+            self.undecided.pop(cid, None)  # kept for proposal_valid_s: a re-award may come
         elif kind is Performative.CANCEL:
+            self.undecided.pop(cid, None)
+            self.deferred = [(m, by) for m, by in self.deferred if m.conversation_id != cid]
             self.proposals.pop(cid, None)
             self.waiting = [t for t in self.waiting if t.request.conversation_id != cid]
             task = self.tasks.pop(cid, None)
@@ -479,6 +494,43 @@ class Responder(AgentBehavior):
             agent._emit_rejected(f"{self.path} ({self.protocol} responder) does not expect "
                                  f"{kind.value} outside a task it runs", message.sender,
                                  message.to_json(), reply=True, message=message)
+
+    def _undecided_now(self) -> bool:
+        """Whether a proposal of this responder is still undecided (forgetting the ones
+        older than :attr:`undecided_max_s`)."""
+        old = time.monotonic() - self.undecided_max_s
+        for cid in [c for c, at in self.undecided.items() if at < old]:
+            del self.undecided[cid]
+        return bool(self.undecided)
+
+    def _answer_deferred(self) -> None:
+        """Answer held-back calls, oldest first, while nothing is undecided or their time
+        is up (each answer may make a new undecided proposal: the next one waits again)."""
+        while self.deferred:
+            now = time.monotonic()
+            due = [i for i, (_, by) in enumerate(self.deferred) if by <= now]
+            if self._undecided_now() and not due:
+                return
+            message, _ = self.deferred.pop(due[0] if due else 0)
+            self._bid(message)
+
+    def _bid(self, message: Message) -> None:
+        """Answer a call for proposals with :meth:`propose`'s offer or a refusal."""
+        cid = message.conversation_id
+        self._expire_proposals()
+        try:
+            offer = self.propose(message)
+        except Exception as exc:
+            # A cfp is answered with propose, refuse or not-understood (FIPA): a task this
+            # agent cannot serve (an unknown machine) is a refusal, with why.
+            log.warning("%s: propose() raised on %s: %r", self.path, cid, exc)
+            self._reply(message, Performative.REFUSE, {"reason": repr(exc)})
+            return
+        if offer is None:
+            self._reply(message, Performative.REFUSE, {"reason": "no proposal"})
+        elif self._reply(message, Performative.PROPOSE, jsonable(offer)):
+            self._propose(cid, message)
+            self.undecided[cid] = time.monotonic()
 
     def _reply(self, to: Message, performative: Performative, content: Any = None) -> bool:
         try:
@@ -558,6 +610,9 @@ class Responder(AgentBehavior):
         self.proposals[cid] = (cfp, time.monotonic())
 
     def _abandon(self) -> None:
+        for cfp, _ in self.deferred:
+            self._reply(cfp, Performative.REFUSE, {"reason": f"{self.path} stopped"})
+        self.deferred.clear()
         for task in self.waiting:
             self._reply(task.request, Performative.FAILURE, {"reason": f"{self.path} stopped"})
         self.waiting.clear()

@@ -76,6 +76,10 @@ def atv_config(namespace: str, world: str) -> dict[str, Any]:
     cfg: dict[str, Any] = yaml.safe_load(ATV_TEMPLATE.read_text())
     cfg["namespace"] = namespace
     cfg["agent"] = {**cfg.get("agent", {}), "name": namespace, "lease_s": LEASE_S}
+    # The fleet starts the sim first and reports its death itself: on a loaded machine the
+    # first /clock can take longer than the usual 30 s to be discovered (seen: 3 fleets on
+    # 2 cores), and an ATV giving up then would be a false failure.
+    cfg["sim_clock_timeout_s"] = max(float(cfg.get("sim_clock_timeout_s", 30.0)), 120.0)
     for section in ("behaviors", "logics"):
         for spec in cfg.get(section, {}).values():
             if "world" in spec.get("params", {}):

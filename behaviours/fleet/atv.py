@@ -111,6 +111,8 @@ class Transport(ContractNetResponder):
 
     service = "transport"
     queue_tasks = True
+    # Two machines that order at once must not both get the ATV that was idle for each.
+    answer_cfps_in_turn = True
 
     def __init__(self, world: str, *, max_queue: int = 2, power_w: float = 10.0,
                  capacity_wh: float | None = None, reserve_pct: float = 20.0) -> None:
