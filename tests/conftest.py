@@ -79,9 +79,16 @@ _GRACE_S = float(os.environ.get("BEEHAVE_HANG_GRACE_S", "60"))
 _HANGS = "BEEHAVE_HANG_DIR"
 
 
+@pytest.hookimpl(trylast=True)  # after pytest's faulthandler plugin: this one stays
 def pytest_configure(config: pytest.Config) -> None:
     if "PYTEST_XDIST_WORKER" not in os.environ and _HANGS not in os.environ:
         os.environ[_HANGS] = tempfile.mkdtemp(prefix="beehave-hangs-")
+    if "PYTEST_XDIST_WORKER" in os.environ and _HANGS in os.environ:
+        # A worker that crashes (a segfault in a C extension) is only "node down" in the
+        # run's output: its stacks go to a file that the summary prints.
+        crash = Path(os.environ[_HANGS]) / f"crash-{_WORKER}-{os.getpid()}.txt"
+        config._beehave_crash_file = crash.open("w")  # type: ignore[attr-defined]
+        faulthandler.enable(file=config._beehave_crash_file, all_threads=True)  # type: ignore[attr-defined]
 
 
 def _arm(seconds: float, why: str) -> None:
@@ -115,6 +122,7 @@ def pytest_terminal_summary(terminalreporter: Any) -> None:
         return
     for dump in sorted(Path(where).glob("*.txt")):
         text = dump.read_text(errors="replace")
-        if "File " in text:  # only the files whose watchdog fired hold stacks
-            terminalreporter.write_sep("=", f"stuck: {dump.name}")
+        if "File " in text or "Fatal Python error" in text:  # a watchdog fired, a crash
+            what = "crashed" if dump.name.startswith("crash-") else "stuck"
+            terminalreporter.write_sep("=", f"{what}: {dump.name}")
             terminalreporter.write(text[-20000:] + "\n")
