@@ -634,11 +634,12 @@ wait again (see :meth:`_HighSide.settle`): a thread that computes for longer is 
 it, and the feed goes on."""
 _MAX_MISSES = 3
 """After this many catch-ups timed out the replay has diverged: the feed stops waiting."""
-CATCH_UP_S = 2.0
+CATCH_UP_S = 10.0
 """How long (wall time) the feed waits, before an input of the high level, for the
 replayed behaviours to have done what the recorded ones had done by then. Bounded: a
 replay that diverged never catches up; the feed then goes on without waiting (and says
-so in a warning)."""
+so in a warning). Generous: a loaded host (load 15 on 2 cores) took more than 2 s, and a
+replay that catches up costs nothing here; one that diverged pays it once (then a tenth)."""
 HOLD_S = 0.5
 """How long a message of a topic nobody subscribes to yet is kept for the next
 subscription, in wall time and in the recording's time (both must hold): a behaviour that
