@@ -7,7 +7,6 @@ import threading
 from pathlib import Path
 
 import pytest
-import torch
 
 from beehave import HighLevelBehaviorManager
 from beehave.engines import (
@@ -24,14 +23,16 @@ from beehave.testing import WALL_TIMEOUT_S, beehave_threads, wait_until
 from tests.engine_contract import EngineContract, Recorder, run
 
 
-class Threshold(torch.nn.Module):
-    """A fixed network: decision 0 when the feature is above 0.5, else decision 1."""
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.cat([x - 0.5, 0.5 - x], dim=1)
-
-
 def fixed_policy(feature: str) -> NeuralPolicy:
+    """A fixed network: decision 0 when the feature is above 0.5, else decision 1. (torch
+    is imported here, not at collection: importing it costs every pytest-xdist worker 2 s
+    of CPU, and only the one that runs these tests needs it.)"""
+    import torch
+
+    class Threshold(torch.nn.Module):
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return torch.cat([x - 0.5, 0.5 - x], dim=1)
+
     return NeuralPolicy([feature], ["yes", "no"], model=Threshold())
 
 
