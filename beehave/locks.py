@@ -37,6 +37,7 @@ class TypeLocks:
         self._cond = threading.Condition(threading.RLock())
         self._held: dict[str, _Hold] = {}
         self._queues: dict[str, deque[Action]] = {}
+        self._preempting = 0  # how many wait in the queues (changed under the lock)
         self._events = events
         #: Called under the table's lock with every action that takes a lock (the manager
         #: pauses an action that starts while it is paused).
@@ -67,6 +68,7 @@ class TypeLocks:
                                          reason="it is waiting to preempt the type")
                 raise ActionTypeBusy(kind, hold.holder, hold.since, reason=_why(hold.holder))
             queue.append(action)
+            self._preempting += 1
             deadline = time.monotonic() + timeout_s
             interrupted: set[int] = set()
             stuck_holder: _Hold | None = None
@@ -99,6 +101,7 @@ class TypeLocks:
                     self._cond.wait(remaining)
             finally:
                 queue.remove(action)
+                self._preempting -= 1
                 self._cond.notify_all()
         # Outside the lock: safe_state() is user code.
         assert stuck_holder is not None
@@ -132,7 +135,7 @@ class TypeLocks:
         it was cancelled (under the lock) before it waits, so none is missed; and an
         interrupt — every action's, in every switch — then costs no lock when nobody
         waits to preempt (the common case)."""
-        if not any(self._queues.values()):
+        if not self._preempting:
             return
         with self._cond:
             self._cond.notify_all()
