@@ -85,16 +85,17 @@ def _reserve(cls: type) -> None:
     On :class:`Runnable` itself, the names only a subclass has (``children``,
     ``safe_state_error``) are absent until then, and refused."""
     for attr in _RESERVED:
-        found = cls.__dict__.get(attr)
-        if isinstance(found, property):
-            if found.fset is None:
-                setattr(cls, attr, found.setter(_refuse(attr)))
-        elif found is not None:
+        if attr not in cls.__dict__:
+            if cls is Runnable:
+                setattr(cls, attr, property(_absent(attr), _refuse(attr)))
+            continue
+        found = cls.__dict__[attr]
+        if not isinstance(found, property):
             raise ReservedAttribute(
                 f"{cls.__name__}.{attr} is beehave's ({_RESERVED[attr]}) and cannot be "
                 f"defined; name yours differently, e.g. my_{attr}")
-        elif cls is Runnable:
-            setattr(cls, attr, property(_absent(attr), _refuse(attr)))
+        if found.fset is None:
+            setattr(cls, attr, found.setter(_refuse(attr)))
 
 
 class _Pause(enum.Enum):
