@@ -18,7 +18,7 @@ import traceback
 import weakref
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Self, cast
+from typing import TYPE_CHECKING, Any, ClassVar, Self
 
 from beehave.blackboard import Blackboard, BlackboardView, ChangeCallback, Subscription
 from beehave.clock import WallClock
@@ -432,6 +432,7 @@ class Runnable(abc.ABC):
                 self._manager = None
                 self._parent = None
                 self._suffix = ""
+                self._path = None
 
     def _start_thread(self) -> None:
         assert self._manager is not None
@@ -514,8 +515,9 @@ class Runnable(abc.ABC):
 
     def _finish(self, error: BaseException | None) -> bool:
         """Decide the status, apply the safe state, release what it holds, tell the parent
-        and the manager. Returns False when a forced safe state still runs in another thread
-        (that thread ends the item's life when it returns)."""
+        and the manager. Returns True when the caller is to end the item's life; False for
+        a STUCK item, whose life _end_of_life ends (here, or in the thread of its forced
+        safe state when that returns later)."""
         with self._lock:
             was_stuck = self._status is Status.STUCK
             if was_stuck:
@@ -540,14 +542,15 @@ class Runnable(abc.ABC):
             if safe_state and self._safe_done is None:
                 self._safe_done = _Flag(self._cond, self._lock)
         if was_stuck:
-            # Its owner gave up on it; the forced safe state (if any) ran or runs elsewhere.
+            # Its owner gave up on it; the forced safe state (if any) ran or runs elsewhere,
+            # and whichever of the two returns last ends its life (_end_of_life).
             if last:
                 self._end_of_life(stuck=True)
-            return last
+            return False
         manager = self._manager
         assert manager is not None
         stuck_now = False
-        parent = cast("Behavior | None", self._parent)  # (held strongly while it lives)
+        parent: Behavior | None = self._parent  # type: ignore[assignment]  # (strong while it lives)
         try:
             if safe_state:
                 self._run_safe_state()
