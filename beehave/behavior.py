@@ -157,10 +157,14 @@ class Behavior(Runnable):
         with self._lock:
             # Paths name things in events and snapshots: the second `Drive` started by this
             # behaviour is `Drive#2` (its name stays `Drive`), so the two can be told apart.
-            self._names[child.name] += 1
-            count = self._names[child.name]
-        if count > 1:
-            child._suffix = f"#{count}"
+            name = child.name
+            self._names[name] += 1
+            count = self._names[name]
+        suffix = f"#{count}" if count > 1 else ""
+        child._suffix = suffix
+        # Its path is known from here on (this behaviour's is fixed while it runs): made
+        # once, not at each of the substitution check, the thread's name and the events.
+        child._path, child._path_name = f"{self.path}/{name}{suffix}", name
         return manager
 
     def _adopt(self, child: Runnable) -> None:
@@ -172,8 +176,9 @@ class Behavior(Runnable):
 
     def _prune(self) -> None:
         """Forget children whose threads are over (keeps long-running behaviours small)."""
-        done = [c for c in self._children if c._decided.is_set() and c.status is not Status.STUCK
-                and not c.alive]
+        # (Ended implies decided; a STUCK child is kept until its thread has ended too.
+        # Flags and status read directly: this runs at every start.)
+        done = [c for c in self._children if c._ended._on and c._status is not Status.STUCK]
         if done:
             self._children = [c for c in self._children if c not in done]
 
