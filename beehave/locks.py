@@ -34,7 +34,10 @@ class TypeLocks:
     """
 
     def __init__(self, events: EventBus) -> None:
-        self._cond = threading.Condition(threading.RLock())
+        # Entered as `_lock` where nothing waits: the same lock, without Condition's
+        # Python layer (every action's end releases its type here).
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
         self._held: dict[str, _Hold] = {}
         self._queues: dict[str, deque[Action]] = {}
         self._preempting = 0  # how many wait in the queues (changed under the lock)
@@ -53,7 +56,7 @@ class TypeLocks:
         ``cancelled()`` becomes true while waiting.
         """
         kind = action.action_type
-        with self._cond:
+        with self._lock:
             queue = self._queues.setdefault(kind, deque())
             hold = self._held.get(kind)
             if hold is None and not queue:
@@ -117,11 +120,11 @@ class TypeLocks:
     @contextmanager
     def table(self) -> Iterator[list[Action]]:
         """Hold the table (no lock is taken or released meanwhile) and give its holders."""
-        with self._cond:
+        with self._lock:
             yield [hold.holder for hold in self._held.values()]
 
     def release(self, action: Action) -> None:
-        with self._cond:
+        with self._lock:
             hold = self._held.get(action.action_type)
             if hold is not None and hold.holder is action:
                 del self._held[action.action_type]
@@ -137,12 +140,12 @@ class TypeLocks:
         waits to preempt (the common case)."""
         if not self._preempting:
             return
-        with self._cond:
+        with self._lock:
             self._cond.notify_all()
 
     def snapshot(self) -> dict[str, dict[str, Any]]:
         now = time.monotonic()
-        with self._cond:
+        with self._lock:
             return {kind: {"holder": h.holder.path, "class": type(h.holder).__name__,
                            "status": h.holder.status.name, "held_s": now - h.since,
                            "safe_state_pending": h.holder.safe_state_pending}

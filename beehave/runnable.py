@@ -394,7 +394,8 @@ class Runnable(abc.ABC):
         timeout_s = _timeout(seconds, self, "sleep(seconds)")
         with self._lock:
             clock.wait(self._cond, self._wake_reason, timeout_s)
-            self._raise_pending()
+            if self._HAS_CHILDREN:  # (a child's failure, raised in its behaviour)
+                self._raise_pending()
             return not (self._interrupt_requested or self._pause is _Pause.WIND_DOWN)
 
     def wait(self, timeout: float | None = None) -> bool:
@@ -464,7 +465,8 @@ class Runnable(abc.ABC):
                 except BaseException as exc:  # recorded on the handle, surfaced to the parent
                     error = exc
                 again = self._pause_point(error, ran=True)
-            error = self._after_run(error)
+            if self._HAS_CHILDREN:
+                error = self._after_run(error)
             ended = self._finish(error)
         finally:
             _local.node = None
