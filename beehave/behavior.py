@@ -139,7 +139,7 @@ class Behavior(Runnable):
     @property
     def children(self) -> list[Runnable]:
         """The actions and sub-behaviours started and not yet cleaned up."""
-        with self._lock:
+        with self._cond_lock:
             return list(self._children)
 
     # ------------------------------------------------------------------ driver
@@ -148,13 +148,13 @@ class Behavior(Runnable):
         if manager is None or self._status is not Status.RUNNING:
             raise Interrupted(f"{self.path}: cannot start {child.name!r}: the behaviour is "
                               f"{self._status.name}, not running")
-        with self._lock:
+        with self._cond_lock:
             self._raise_pending()
             self._prune()
         if self._interrupt_requested:
             raise Interrupted(f"{self.path}: interrupted; not starting {child.name!r}")
         child._attach(self, manager)
-        with self._lock:
+        with self._cond_lock:
             # Paths name things in events and snapshots: the second `Drive` started by this
             # behaviour is `Drive#2` (its name stays `Drive`), so the two can be told apart.
             name = child.name
@@ -168,7 +168,7 @@ class Behavior(Runnable):
         return manager
 
     def _adopt(self, child: Runnable) -> None:
-        with self._lock:
+        with self._cond_lock:
             # Checked under the same lock the interrupt takes, so no child escapes it.
             if self._interrupt_requested or not self._accepting:
                 raise Interrupted(f"{self.path}: interrupted; not starting {child.name!r}")
@@ -183,7 +183,7 @@ class Behavior(Runnable):
             self._children = [c for c in self._children if c not in done]
 
     def _on_interrupt(self, deadline: float | None) -> None:
-        with self._lock:
+        with self._cond_lock:
             children = list(self._children)
         for child in children:
             child._interrupt(deadline)
@@ -191,7 +191,7 @@ class Behavior(Runnable):
         # the interpreter roughly in the order they were woken, so when this one's turn
         # comes its children have mostly ended, and it collects them at once instead of
         # waiting for them and being woken a second time.
-        with self._lock:
+        with self._cond_lock:
             self._cond.notify_all()
         try:
             self.on_interrupt()
@@ -200,7 +200,7 @@ class Behavior(Runnable):
 
     def _after_run(self, error: BaseException | None) -> BaseException | None:
         assert self._manager is not None
-        with self._lock:
+        with self._cond_lock:
             self._accepting = False
             children = list(self._children)
             deadline = self._stop_deadline
@@ -227,7 +227,7 @@ class Behavior(Runnable):
                 if child._status is not Status.STUCK and not child._ended._on:
                     # It has decided; its clean-up is just finishing (bounded all the same).
                     child._join(max(0.0, deadline - time.monotonic()) + 0.05)
-        with self._lock:
+        with self._cond_lock:
             if error is None and self._hook_errors:
                 error = self._hook_errors[0]
             elif error is None and not self._interrupt_requested and self._unobserved_failures:
@@ -242,7 +242,7 @@ class Behavior(Runnable):
         awaiting = {c for c in children if not c._ended._on and c._status is not Status.STUCK}
         if not awaiting:
             return
-        with self._lock:
+        with self._cond_lock:
             # (A child that settles before this counts itself out here.)
             self._awaiting = {c for c in awaiting
                               if not c._ended._on and c._status is not Status.STUCK}
@@ -252,15 +252,15 @@ class Behavior(Runnable):
             return not self._awaiting
 
         try:
-            with self._manager.clock.blocked(settled), self._lock:
+            with self._manager.clock.blocked(settled), self._cond_lock:
                 self._cond.wait_for(settled, max(0.0, deadline - time.monotonic()))
         finally:
-            with self._lock:
+            with self._cond_lock:
                 self._awaiting = None
 
     def _child_settled(self, child: Runnable) -> None:
         """Called by ``child`` once it has ended or become STUCK."""
-        with self._lock:
+        with self._cond_lock:
             awaiting = self._awaiting
             if awaiting and child in awaiting:
                 awaiting.discard(child)
@@ -275,7 +275,7 @@ class Behavior(Runnable):
     def _record_child_end(self, child: Runnable) -> None:
         if child.status is not Status.FAILED:  # (final by now: no lock needed to read it)
             return
-        with self._lock:
+        with self._cond_lock:
             if child.status is Status.FAILED:
                 self._unobserved_failures.append(child)
                 self._cond.notify_all()
@@ -289,7 +289,7 @@ class Behavior(Runnable):
     def _hook_failed(self, hook: str, exc: Exception) -> None:
         """A user hook raised: surface it in this behaviour's thread (next framework call,
         or the end of run) and report it as an event — never log-and-drop."""
-        with self._lock:
+        with self._cond_lock:
             self._hook_errors.append(exc)
             self._cond.notify_all()
         if self._manager is not None:
@@ -297,7 +297,7 @@ class Behavior(Runnable):
                                             self._status.name, exc, {"hook": hook}))
 
     def _observed(self, child: Runnable) -> None:
-        with self._lock:
+        with self._cond_lock:
             if child in self._unobserved_failures:
                 self._unobserved_failures.remove(child)
 

@@ -186,16 +186,16 @@ class Runnable(abc.ABC):
 
     #: Shown in snapshots and events; defaults to the class name. Set it in ``__init__``.
     name: str
-    _result: Any
-    _error: BaseException | None
+    __result: Any
+    __error: BaseException | None
     _parent: Behavior | weakref.ref[Behavior] | None
-    _started_at: float | None
-    _ended_at: float | None
+    __started_at: float | None
+    __ended_at: float | None
     _manager: HighLevelBehaviorManager | None
     _status: Status
     _interrupt_requested: bool
     _stop_deadline: float | None
-    _lock: threading.RLock
+    _cond_lock: threading.RLock
     _cond: threading.Condition
     _decided: _Flag
     _started: bool
@@ -228,16 +228,14 @@ class Runnable(abc.ABC):
         # An RLock under the condition: Condition then finds the lock's own C methods
         # instead of raising and catching three AttributeErrors to fall back on its
         # Python ones (3 µs per item at creation, a Python call per wait and notify).
-        # Hot paths enter `_lock` itself: the same lock, without Condition's Python layer.
+        # Hot paths enter `_cond_lock` itself: the same lock, without Condition's Python layer.
         lock = threading.RLock()
         cond = threading.Condition(lock)
         self.__dict__.update(
-            name=cls.__name__, _result=None, _error=None, _parent=None,
-            _started_at=None,  # time.monotonic()
-            _ended_at=None,
+            name=cls.__name__, _parent=None,
             _manager=None, _traceback="", _status=Status.PENDING,
             _interrupt_requested=False, _stop_deadline=None,
-            _lock=lock, _cond=cond, _decided=_Flag(cond, lock),
+            _cond_lock=lock, _cond=cond, _decided=_Flag(cond, lock),
             _started=False, _ros=None, _view=None, _ended=_Flag(cond, lock),
             _interrupted_at=None, _thread_id=None,
             # What keeps the type lock and the ROS entities: run(), plus a forced
@@ -254,6 +252,10 @@ class Runnable(abc.ABC):
             # paused (or ended); its hardware made safe by the pause and run() not yet
             # restarted.
             _pause=_Pause.NONE, _paused_done=None, _pause_safe=False)
+        # What the reserved names read (private to this class: a subclass's own
+        # `self._result` or `self._error` must not be beehave's).
+        self.__result = self.__error = None
+        self.__started_at = self.__ended_at = None  # time.monotonic()
         return self
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -287,22 +289,22 @@ class Runnable(abc.ABC):
     @property
     def result(self) -> Any:
         """``run``'s return value once SUCCEEDED."""
-        return self._result
+        return self.__result
 
     @property
     def error(self) -> BaseException | None:
         """The exception ``run`` raised (FAILED), with its ``__traceback__``."""
-        return self._error
+        return self.__error
 
     @property
     def started_at(self) -> float | None:
         """When it started (``time.monotonic()``), or None."""
-        return self._started_at
+        return self.__started_at
 
     @property
     def ended_at(self) -> float | None:
         """When its status became final or STUCK (``time.monotonic()``), or None."""
-        return self._ended_at
+        return self.__ended_at
 
     @property
     def parent(self) -> Behavior | None:
@@ -348,7 +350,7 @@ class Runnable(abc.ABC):
         manager = self._manager
         if manager is None:
             raise ManagerShutdown(f"{self.name!r} is not started: it has no blackboard yet")
-        with self._lock:
+        with self._cond_lock:
             if self._view is None:
                 self._view = _OwnedView(manager.blackboard, self.path)
             return self._view
@@ -360,7 +362,7 @@ class Runnable(abc.ABC):
         Everything created here is destroyed when this behaviour or action ends, whatever
         its status — after ``safe_state()``, which may still use it."""
         manager = self.manager
-        with self._lock:
+        with self._cond_lock:
             if self._ros is None:
                 if manager.node is None:
                     raise ConfigError(
@@ -392,7 +394,7 @@ class Runnable(abc.ABC):
         sleep goes on with what it had left after ``resume()``."""
         clock = self._manager.run_clock if self._manager is not None else _WALL
         timeout_s = _timeout(seconds, self, "sleep(seconds)")
-        with self._lock:
+        with self._cond_lock:
             clock.wait(self._cond, self._wake_reason, timeout_s)
             if self._HAS_CHILDREN:  # (a child's failure, raised in its behaviour)
                 self._raise_pending()
@@ -419,7 +421,7 @@ class Runnable(abc.ABC):
 
     # ------------------------------------------------------------------ driver
     def _attach(self, parent: Behavior | None, manager: HighLevelBehaviorManager) -> None:
-        with self._lock:
+        with self._cond_lock:
             if self._manager is not None:
                 raise AlreadyStarted(
                     f"{type(self).__name__} {self.name!r} was already started "
@@ -428,7 +430,7 @@ class Runnable(abc.ABC):
             self._parent = parent
 
     def _detach(self) -> None:
-        with self._lock:
+        with self._cond_lock:
             if self._status is Status.PENDING:
                 self._manager = None
                 self._parent = None
@@ -437,10 +439,10 @@ class Runnable(abc.ABC):
 
     def _start_thread(self) -> None:
         assert self._manager is not None
-        with self._lock:
+        with self._cond_lock:
             self._started = True
             self._status = Status.RUNNING
-            self._started_at = time.monotonic()
+            self.__started_at = time.monotonic()
         self._manager._pool.submit(f"beehave:{self.path}", self._main)
 
     def _main(self) -> None:
@@ -461,7 +463,7 @@ class Runnable(abc.ABC):
             while again:
                 error = None
                 try:
-                    self._result = self.run()
+                    self.__result = self.run()
                 except BaseException as exc:  # recorded on the handle, surfaced to the parent
                     error = exc
                 again = self._pause_point(error, ran=True)
@@ -520,7 +522,7 @@ class Runnable(abc.ABC):
         and the manager. Returns True when the caller is to end the item's life; False for
         a STUCK item, whose life _end_of_life ends (here, or in the thread of its forced
         safe state when that returns later)."""
-        with self._lock:
+        with self._cond_lock:
             was_stuck = self._status is Status.STUCK
             if was_stuck:
                 status = Status.STUCK
@@ -531,18 +533,18 @@ class Runnable(abc.ABC):
             else:
                 status = Status.FAILED
             if status is Status.FAILED:
-                self._error = error
+                self.__error = error
                 self._traceback = "".join(traceback.format_exception(error))
             self._status = status
-            if self._ended_at is None:
-                self._ended_at = time.monotonic()
+            if self.__ended_at is None:
+                self.__ended_at = time.monotonic()
             self._holds -= 1
             last = self._holds == 0
             # (A pause already made it safe and nothing ran since: not twice.)
             safe_state = (not was_stuck and status is not Status.SUCCEEDED
                           and not self._pause_safe and self._HAS_SAFE_STATE)
             if safe_state and self._safe_done is None:
-                self._safe_done = _Flag(self._cond, self._lock)
+                self._safe_done = _Flag(self._cond, self._cond_lock)
         if was_stuck:
             # Its owner gave up on it; the forced safe state (if any) ran or runs elsewhere,
             # and whichever of the two returns last ends its life (_end_of_life).
@@ -562,7 +564,7 @@ class Runnable(abc.ABC):
             if parent is not None and self._status is Status.FAILED:
                 # Before _decided: whoever wait()s for us must find the failure recorded.
                 parent._record_child_end(self)
-            with self._lock:
+            with self._cond_lock:
                 self._decided._set_locked()
                 # The owner may have given up on us while safe_state() hung; after
                 # _decided it no longer can (_mark_stuck checks it under this lock).
@@ -571,7 +573,7 @@ class Runnable(abc.ABC):
                 self._paused_done.set()  # a pause waiting for it: it has ended instead
             kind = EventKind.STUCK_RELEASED if stuck_now else EventKind.ENDED
             if manager.events.wants(kind):
-                manager.events.emit(Event(kind, self.path, self._status.name, self._error,
+                manager.events.emit(Event(kind, self.path, self._status.name, self.__error,
                                           {"elapsed_s": self.elapsed_s}))
             if parent is not None and parent._HOOKS_CHILD_END:
                 parent._call_child_hook(self)
@@ -623,17 +625,17 @@ class Runnable(abc.ABC):
         """
         manager = self._manager
         assert manager is not None
-        with self._lock:
+        with self._cond_lock:
             if self._decided.is_set() or self._status is Status.PENDING:
                 return
             force_safe_state = self._status is Status.RUNNING and self._HAS_SAFE_STATE
             ended_as = None if self._status is Status.RUNNING else self._status
             self._status = Status.STUCK
-            if self._ended_at is None:
-                self._ended_at = time.monotonic()
+            if self.__ended_at is None:
+                self.__ended_at = time.monotonic()
             if force_safe_state:
                 self._holds += 1
-                self._safe_done = _Flag(self._cond, self._lock)
+                self._safe_done = _Flag(self._cond, self._cond_lock)
             # Under our lock, so that _finish cannot remove it before it is added.
             manager._stuck_add(self)
         manager.events.emit(Event(EventKind.STUCK, self.path, Status.STUCK.name,
@@ -655,7 +657,7 @@ class Runnable(abc.ABC):
             # Whatever run() publishes from now on would undo the safe state.
             self._destroy_io()
         finally:
-            with self._lock:
+            with self._cond_lock:
                 self._holds -= 1
                 last = self._holds == 0
             if last:
@@ -665,9 +667,9 @@ class Runnable(abc.ABC):
         """Call the safe state here, so that others can see it is under way (and where)."""
         done = self._safe_done  # (_finish makes it beside the status that calls for it)
         if done is None:
-            with self._lock:
+            with self._cond_lock:
                 if self._safe_done is None:
-                    self._safe_done = _Flag(self._cond, self._lock)
+                    self._safe_done = _Flag(self._cond, self._cond_lock)
                 done = self._safe_done
         self._safe_thread_id = threading.get_ident()
         try:
@@ -682,7 +684,7 @@ class Runnable(abc.ABC):
         done = self._safe_done
         if done is None or self._block_on(done, max(0.0, deadline - time.monotonic())):
             return True
-        with self._lock:
+        with self._cond_lock:
             report = not self._overdue_reported
             self._overdue_reported = True
         if report and self._manager is not None:
@@ -737,7 +739,7 @@ class Runnable(abc.ABC):
     def _interrupt(self, deadline: float | None) -> None:
         if self._interrupt_requested:  # (it only ever turns true: no lock needed to see it)
             return
-        with self._lock:
+        with self._cond_lock:
             if self._interrupt_requested:
                 return
             self._interrupt_requested = True
@@ -765,16 +767,16 @@ class Runnable(abc.ABC):
 
     @property
     def elapsed_s(self) -> float | None:
-        started = self._started_at
+        started = self.__started_at
         if started is None:
             return None
-        ended = self._ended_at
+        ended = self.__ended_at
         return (ended if ended is not None else time.monotonic()) - started
 
     def _snapshot(self) -> dict[str, Any]:
         started_wall = None
-        if self._started_at is not None:
-            started_wall = time.time() - (time.monotonic() - self._started_at)
+        if self.__started_at is not None:
+            started_wall = time.time() - (time.monotonic() - self.__started_at)
         return {
             "name": self.name,
             "path": self.path,

@@ -464,6 +464,52 @@ def test_reserved_names_read_as_before_and_stay_read_only(hl: HighLevelBehaviorM
     assert top.path == "renamed" and renamed == "starts"
 
 
+def test_a_behaviour_and_an_action_may_keep_a_lock_and_a_result_of_their_own(
+        hl: HighLevelBehaviorManager) -> None:
+    # `self._lock`, `self._result`, `self._error` are common names in user classes:
+    # beehave's own state must not live under them (the market's auctioneer keeps a lock).
+    class Guarded(Action):
+        def __init__(self) -> None:
+            self._lock = threading.Lock()
+            self._result = "mine"
+            self._error = "mine too"
+
+        def run(self) -> str:
+            with self._lock:
+                self.sleep(0.01)
+            return "beehave's"
+
+    class Sleeper(Action):
+        def __init__(self) -> None:
+            self._lock = threading.Lock()
+
+        def run(self) -> None:
+            with self._lock:
+                self.sleep(math.inf)
+
+    class Keeper(Behavior):
+        def __init__(self) -> None:
+            self._lock = threading.Lock()
+            self.started: list[Action] = []
+
+        def run(self) -> None:
+            with self._lock:
+                guarded = self.start_action(Guarded())
+                guarded.wait(WALL_TIMEOUT_S)
+                self.started += [guarded, self.start_action(Sleeper())]
+            while self.sleep(math.inf):
+                pass
+
+    hl.register("keeper", Keeper)
+    top = hl.switch("keeper")
+    assert wait_until(lambda: len(top.started) == 2 and top.started[1].status is Status.RUNNING)
+    guarded, sleeper = top.started
+    assert guarded.status is Status.SUCCEEDED and guarded.result == "beehave's"
+    assert guarded.error is None and guarded._result == "mine" and guarded._error == "mine too"
+    hl.switch("idle")
+    assert top.status is Status.INTERRUPTED and sleeper.status is Status.INTERRUPTED
+
+
 def test_two_actions_of_one_class_have_distinct_paths(hl: HighLevelBehaviorManager) -> None:
     paths: list[str] = []
 
