@@ -53,13 +53,18 @@ class Action(Runnable):
             raise TypeError(f"{cls.__name__}.action_type must be a str, "
                             f"not {type(cls.action_type).__name__}")
 
-    #: The exception ``safe_state()`` raised, if it did.
-    safe_state_error: BaseException | None
+    __safe_state_error: BaseException | None
+    _HAS_SAFE_STATE: ClassVar[bool] = True
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
-        object.__setattr__(self, "safe_state_error", None)
+        self.__safe_state_error = None
         return self
+
+    @property
+    def safe_state_error(self) -> BaseException | None:
+        """The exception ``safe_state()`` raised, if it did."""
+        return self.__safe_state_error
 
     def safe_state(self) -> None:
         """Leave the hardware this action controls predictable (e.g. zero velocity).
@@ -99,7 +104,7 @@ class Action(Runnable):
     def _request_pause(self, *, hooked: bool) -> threading.Event:
         """The manager pauses: ask this action to wind down (or mark it for its
         ``on_pause`` hook, which the manager calls); returns what is set once paused."""
-        with self._cond:
+        with self._cond_lock:
             done = self._paused_done = threading.Event()
             if self._decided.is_set() or self._status not in (Status.PENDING, Status.RUNNING):
                 done.set()
@@ -122,12 +127,12 @@ class Action(Runnable):
             return (self._pause is not _Pause.NONE or self._interrupt_requested
                     or self._status is not Status.RUNNING)
 
-        with manager.clock.blocked(reached), self._cond:
+        with manager.clock.blocked(reached), self._cond_lock:
             self._cond.wait_for(reached, timeout_s)
 
     def _request_resume(self) -> None:
         """The pause ended: let ``run`` go again (it waits in ``_pause_point``)."""
-        with self._cond:
+        with self._cond_lock:
             self._pause = _Pause.NONE
             self._cond.notify_all()
 
@@ -138,7 +143,7 @@ class Action(Runnable):
             return not ran
         manager = self._manager
         assert manager is not None
-        with self._cond:
+        with self._cond_lock:
             if (self._pause is not _Pause.WIND_DOWN or self._interrupt_requested
                     or self._status is not Status.RUNNING):
                 return not ran
@@ -157,7 +162,7 @@ class Action(Runnable):
             return (self._pause is not _Pause.WIND_DOWN or self._interrupt_requested
                     or self._status is not Status.RUNNING)
 
-        with manager.clock.blocked(resumed), self._cond:
+        with manager.clock.blocked(resumed), self._cond_lock:
             self._cond.wait_for(resumed)  # a resume, a switch or a shutdown ends it
             if self._interrupt_requested or self._status is not Status.RUNNING:
                 return False
@@ -174,7 +179,7 @@ class Action(Runnable):
         try:
             self.safe_state()
         except Exception as exc:  # recorded on the handle and reported as an event
-            object.__setattr__(self, "safe_state_error", exc)
+            self.__safe_state_error = exc
             self._manager.events.emit(
                 Event(EventKind.SAFE_STATE_FAILED, self.path, self.status.name, exc))
         else:
@@ -187,9 +192,6 @@ class Action(Runnable):
                         "action_type": self.action_type,
                         **({"forced": True} if self.status.name == "STUCK" else {}),
                         **({"paused": True} if paused else {})}))
-
-    def _has_safe_state(self) -> bool:
-        return True
 
     def _release(self) -> None:
         assert self._manager is not None

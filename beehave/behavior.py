@@ -51,6 +51,13 @@ class Behavior(Runnable):
     _awaiting: set[Runnable] | None
     #: The decision engine driving this behaviour now (set by ``DecisionEngine.drive``).
     _engine: Any
+    #: Whether the class has an ``on_child_ended`` hook to call (most have none).
+    _HOOKS_CHILD_END: ClassVar[bool] = False
+    _HAS_CHILDREN: ClassVar[bool] = True
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls._HOOKS_CHILD_END = cls.on_child_ended is not Behavior.on_child_ended
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         self = super().__new__(cls)
@@ -132,7 +139,7 @@ class Behavior(Runnable):
     @property
     def children(self) -> list[Runnable]:
         """The actions and sub-behaviours started and not yet cleaned up."""
-        with self._cond:
+        with self._cond_lock:
             return list(self._children)
 
     # ------------------------------------------------------------------ driver
@@ -141,23 +148,27 @@ class Behavior(Runnable):
         if manager is None or self._status is not Status.RUNNING:
             raise Interrupted(f"{self.path}: cannot start {child.name!r}: the behaviour is "
                               f"{self._status.name}, not running")
-        with self._cond:
+        with self._cond_lock:
             self._raise_pending()
             self._prune()
         if self._interrupt_requested:
             raise Interrupted(f"{self.path}: interrupted; not starting {child.name!r}")
         child._attach(self, manager)
-        with self._cond:
+        with self._cond_lock:
             # Paths name things in events and snapshots: the second `Drive` started by this
             # behaviour is `Drive#2` (its name stays `Drive`), so the two can be told apart.
-            self._names[child.name] += 1
-            count = self._names[child.name]
-        if count > 1:
-            child._suffix = f"#{count}"
+            name = child.name
+            self._names[name] += 1
+            count = self._names[name]
+        suffix = f"#{count}" if count > 1 else ""
+        child._suffix = suffix
+        # Its path is known from here on (this behaviour's is fixed while it runs): made
+        # once, not at each of the substitution check, the thread's name and the events.
+        child._path, child._path_name = f"{self.path}/{name}{suffix}", name
         return manager
 
     def _adopt(self, child: Runnable) -> None:
-        with self._cond:
+        with self._cond_lock:
             # Checked under the same lock the interrupt takes, so no child escapes it.
             if self._interrupt_requested or not self._accepting:
                 raise Interrupted(f"{self.path}: interrupted; not starting {child.name!r}")
@@ -165,16 +176,23 @@ class Behavior(Runnable):
 
     def _prune(self) -> None:
         """Forget children whose threads are over (keeps long-running behaviours small)."""
-        done = [c for c in self._children if c._decided.is_set() and c.status is not Status.STUCK
-                and not c.alive]
+        # (Ended implies decided; a STUCK child is kept until its thread has ended too.
+        # Flags and status read directly: this runs at every start.)
+        done = [c for c in self._children if c._ended._on and c._status is not Status.STUCK]
         if done:
             self._children = [c for c in self._children if c not in done]
 
     def _on_interrupt(self, deadline: float | None) -> None:
-        with self._cond:
+        with self._cond_lock:
             children = list(self._children)
         for child in children:
             child._interrupt(deadline)
+        # Its own thread last (its interrupt flag is set already): woken threads queue for
+        # the interpreter roughly in the order they were woken, so when this one's turn
+        # comes its children have mostly ended, and it collects them at once instead of
+        # waiting for them and being woken a second time.
+        with self._cond_lock:
+            self._cond.notify_all()
         try:
             self.on_interrupt()
         except Exception as exc:  # must not break the switch that is interrupting us
@@ -182,29 +200,34 @@ class Behavior(Runnable):
 
     def _after_run(self, error: BaseException | None) -> BaseException | None:
         assert self._manager is not None
-        with self._cond:
+        with self._cond_lock:
             self._accepting = False
             children = list(self._children)
             deadline = self._stop_deadline
         if deadline is None:
             deadline = time.monotonic() + self._manager.stop_timeout_s
-        orphans = [c.path for c in children if not c._decided.is_set()]
-        if orphans and not self._interrupt_requested:
-            # A common slip: run() returned without waiting for what it started.
-            log.info("%s: run() returned while %s still ran; they are interrupted now "
-                     "(a behaviour's actions never outlive it: wait() for them to let them "
-                     "finish)", self.path, ", ".join(orphans))
-        for child in children:
-            child._interrupt(deadline)
-        self._await_children(children, deadline)
-        for child in children:
-            if not child._decided.is_set():
-                child._mark_stuck()
-        for child in children:
-            if child.status is not Status.STUCK and not child._ended.is_set():
-                # It has decided; its clean-up is just finishing (bounded all the same).
-                child._join(max(0.0, deadline - time.monotonic()) + 0.05)
-        with self._cond:
+        if not self._interrupt_requested:
+            orphans = [c.path for c in children if not c._decided._on]
+            if orphans:
+                # A common slip: run() returned without waiting for what it started.
+                log.info("%s: run() returned while %s still ran; they are interrupted now "
+                         "(a behaviour's actions never outlive it: wait() for them to let "
+                         "them finish)", self.path, ", ".join(orphans))
+        # (After a switch's interrupt, often every child has ended by the time this runs:
+        # then nothing is left to interrupt, wait for or declare STUCK.)
+        running = [c for c in children if not c._ended._on]
+        if running:
+            for child in running:
+                child._interrupt(deadline)
+            self._await_children(running, deadline)
+            for child in running:
+                if not child._decided._on:
+                    child._mark_stuck()
+            for child in running:
+                if child._status is not Status.STUCK and not child._ended._on:
+                    # It has decided; its clean-up is just finishing (bounded all the same).
+                    child._join(max(0.0, deadline - time.monotonic()) + 0.05)
+        with self._cond_lock:
             if error is None and self._hook_errors:
                 error = self._hook_errors[0]
             elif error is None and not self._interrupt_requested and self._unobserved_failures:
@@ -216,28 +239,28 @@ class Behavior(Runnable):
     def _await_children(self, children: list[Runnable], deadline: float) -> None:
         """Wait until every child has ended or is STUCK, at most until ``deadline``: one
         wake-up when the last one settles (``_child_settled``), not one per child."""
-        awaiting = {c for c in children if not c._ended.is_set() and c.status is not Status.STUCK}
+        awaiting = {c for c in children if not c._ended._on and c._status is not Status.STUCK}
         if not awaiting:
             return
-        with self._cond:
+        with self._cond_lock:
             # (A child that settles before this counts itself out here.)
             self._awaiting = {c for c in awaiting
-                              if not c._ended.is_set() and c.status is not Status.STUCK}
+                              if not c._ended._on and c._status is not Status.STUCK}
         assert self._manager is not None
 
         def settled() -> bool:
             return not self._awaiting
 
         try:
-            with self._manager.clock.blocked(settled), self._cond:
+            with self._manager.clock.blocked(settled), self._cond_lock:
                 self._cond.wait_for(settled, max(0.0, deadline - time.monotonic()))
         finally:
-            with self._cond:
+            with self._cond_lock:
                 self._awaiting = None
 
     def _child_settled(self, child: Runnable) -> None:
         """Called by ``child`` once it has ended or become STUCK."""
-        with self._cond:
+        with self._cond_lock:
             awaiting = self._awaiting
             if awaiting and child in awaiting:
                 awaiting.discard(child)
@@ -252,7 +275,7 @@ class Behavior(Runnable):
     def _record_child_end(self, child: Runnable) -> None:
         if child.status is not Status.FAILED:  # (final by now: no lock needed to read it)
             return
-        with self._cond:
+        with self._cond_lock:
             if child.status is Status.FAILED:
                 self._unobserved_failures.append(child)
                 self._cond.notify_all()
@@ -266,7 +289,7 @@ class Behavior(Runnable):
     def _hook_failed(self, hook: str, exc: Exception) -> None:
         """A user hook raised: surface it in this behaviour's thread (next framework call,
         or the end of run) and report it as an event — never log-and-drop."""
-        with self._cond:
+        with self._cond_lock:
             self._hook_errors.append(exc)
             self._cond.notify_all()
         if self._manager is not None:
@@ -274,7 +297,7 @@ class Behavior(Runnable):
                                             self._status.name, exc, {"hook": hook}))
 
     def _observed(self, child: Runnable) -> None:
-        with self._cond:
+        with self._cond_lock:
             if child in self._unobserved_failures:
                 self._unobserved_failures.remove(child)
 

@@ -56,12 +56,47 @@ class ManagerState(enum.Enum):
     STOPPED = "stopped"
 
 
+class _Done:
+    """``threading.Event``'s ``is_set``/``set``/``wait`` for a request: its condition has an
+    RLock (an Event's has a Lock, which costs Condition three caught AttributeErrors per
+    request), and setting it wakes only when someone waits (usually the caller executes
+    its own request)."""
+
+    __slots__ = ("_cond", "_on", "_waiters")
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition(threading.RLock())
+        self._on = False
+        self._waiters = 0
+
+    def is_set(self) -> bool:
+        return self._on
+
+    def set(self) -> None:
+        # A waiter counts itself under the lock before it reads the flag: when this reads
+        # no waiter, any later one finds the flag set.
+        self._on = True
+        if self._waiters:
+            with self._cond:
+                self._cond.notify_all()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if self._on:
+            return True
+        with self._cond:
+            self._waiters += 1
+            try:
+                return self._cond.wait_for(self.is_set, timeout)
+            finally:
+                self._waiters -= 1
+
+
 @dataclass
 class _Request:
     name: str
     behavior: Behavior
     fallback_from: Behavior | None = None
-    done: threading.Event = field(default_factory=threading.Event)
+    done: _Done = field(default_factory=_Done)
     error: BeehaveError | None = None
 
     def finish(self, error: BeehaveError | None = None) -> None:
@@ -112,7 +147,10 @@ class HighLevelBehaviorManager(Running):
         self._gil_switch_interval_s = gil_switch_interval_s
         self._locks = TypeLocks(self.events)
         self._registry: dict[str, tuple[type[Behavior], dict[str, Any]]] = {IDLE: (Idle, {})}
-        self._cond = threading.Condition()
+        # Entered as `_lock` where nothing waits (the same lock, without Condition's
+        # Python layer).
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
         self._state = ManagerState.NEW
         self._pending: list[_Request] = []
         self._processing = False  # one thread executes switches: the processor
@@ -168,12 +206,12 @@ class HighLevelBehaviorManager(Running):
             raise NotASubclass(f"register({name!r}, {behavior_cls.__qualname__}): it does not "
                                f"implement {missing}() — a Behavior must define run(self)")
         _check_params(name, behavior_cls, params, partial=True)
-        with self._cond:
+        with self._lock:
             self._registry[name] = (behavior_cls, dict(params))
 
     def registered_classes(self) -> list[type[Behavior]]:
         """The behaviour classes registered, each once, in the order of registration."""
-        with self._cond:
+        with self._lock:
             classes = [cls for cls, _params in self._registry.values()]
         return list(dict.fromkeys(classes))
 
@@ -187,13 +225,13 @@ class HighLevelBehaviorManager(Running):
     @property
     def names(self) -> list[str]:
         """The registered behaviour names (``idle`` included)."""
-        with self._cond:
+        with self._lock:
             return sorted(self._registry)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         """Start the manager's thread and the ``default`` behaviour. Idempotent."""
-        with self._cond:
+        with self._lock:
             if self._state is not ManagerState.NEW:
                 if self._state is ManagerState.RUNNING:
                     return
@@ -217,7 +255,7 @@ class HighLevelBehaviorManager(Running):
         thread cannot wait for its own end; a later ``shutdown()`` from outside waits for it.
         """
         deferred = self._own_thread()
-        with self._cond:
+        with self._lock:
             if self._state is ManagerState.NEW:
                 self._state = ManagerState.STOPPED
                 self._stopped.set()
@@ -251,7 +289,7 @@ class HighLevelBehaviorManager(Running):
     def _stop_all(self) -> None:
         deadline = time.monotonic() + self.stop_timeout_s
         try:
-            with self._cond:
+            with self._lock:
                 become = not self._processing
                 if become:
                     self._processing = True
@@ -259,7 +297,7 @@ class HighLevelBehaviorManager(Running):
                 self._run_processor(None)
             else:
                 # A switch is under way; it sees STOPPING, starts nothing new and ends.
-                with self._cond:
+                with self._lock:
                     self._cond.wait_for(lambda: not self._processing,
                                         self.stop_timeout_s + _GRACE_S + 2 * _MARGIN_S)
                 if self._top is not None:  # it did not make it in time: stop it ourselves
@@ -271,7 +309,7 @@ class HighLevelBehaviorManager(Running):
                 log.warning("shutdown: STUCK threads still running after %.2f s (they end "
                             "by themselves; their types stay locked): %s",
                             self.stop_timeout_s, [t.name for t in leftover])
-            with self._cond:
+            with self._lock:
                 self._state = ManagerState.STOPPED
             self._stopped.set()
 
@@ -310,8 +348,9 @@ class HighLevelBehaviorManager(Running):
             if become:
                 # Nobody is switching: execute it in this thread (saves two thread hand-offs).
                 self._run_processor(request)
-            with self.clock.blocked(request.done.is_set):
-                request.done.wait()  # bounded: the processor is, and it finishes every request
+            if not request.done.is_set():  # (it is when this thread executed it)
+                with self.clock.blocked(request.done.is_set):
+                    request.done.wait()  # bounded: the processor is, and finishes every request
         if request.error is not None:
             raise request.error
         return behavior
@@ -340,7 +379,7 @@ class HighLevelBehaviorManager(Running):
         an action, an event callback) the pause is carried out in a thread of its own and
         this returns True at once.
         """
-        with self._cond:
+        with self._lock:
             if self._state is not ManagerState.RUNNING:
                 raise ManagerShutdown(f"cannot pause: the manager is {self._state.value}")
         if self._own_thread():
@@ -356,7 +395,7 @@ class HighLevelBehaviorManager(Running):
         self._request_pause(self._source() if self._own_thread() else "external")
 
     def _request_pause(self, source: str) -> None:
-        with self._cond:
+        with self._lock:
             if self._state is not ManagerState.RUNNING:
                 raise ManagerShutdown(f"cannot pause: the manager is {self._state.value}")
         def job() -> None:
@@ -509,7 +548,7 @@ class HighLevelBehaviorManager(Running):
             self.events.emit(Event(EventKind.SWITCH_REJECTED, name, error=exc))
             raise
         request = _Request(name, behavior)
-        with self._cond:
+        with self._lock:
             if self._state is not ManagerState.RUNNING:
                 raise ManagerShutdown(f"cannot switch to {name!r}: the manager is "
                                       f"{self._state.value}")
@@ -550,7 +589,7 @@ class HighLevelBehaviorManager(Running):
         """The name of the switch request waiting or being executed (the latest one:
         earlier ones were superseded), or None when none is. With :attr:`current`, what the
         manager will run once it settles: ``requested or current``."""
-        with self._cond:
+        with self._lock:
             asked = [r for r in self._pending if r.fallback_from is None]
             if asked:
                 return asked[-1].name
@@ -570,13 +609,13 @@ class HighLevelBehaviorManager(Running):
     @property
     def history(self) -> list[dict[str, Any]]:
         """Ended top-level behaviours, oldest first: name, status, error, duration."""
-        with self._cond:
+        with self._lock:
             return list(self._history)
 
     def snapshot(self) -> dict[str, Any]:
         """A JSON-serialisable picture of what runs now."""
         top = self._top
-        with self._cond:
+        with self._lock:
             stuck = sorted(s.path for s in self._stuck)
             history = list(self._history)[-10:]
         return {
@@ -592,7 +631,7 @@ class HighLevelBehaviorManager(Running):
 
     # ------------------------------------------------------------------ the manager thread
     def _construct(self, name: str, params: dict[str, Any]) -> Behavior:
-        with self._cond:
+        with self._lock:
             entry = self._registry.get(name)
             if entry is None:
                 raise UnknownBehavior(name, self._registry)
@@ -623,7 +662,7 @@ class HighLevelBehaviorManager(Running):
         try:
             self._pool.submit("beehave:switch", self._process_reporting)
         except RuntimeError:  # the pool is shut down: nothing may start any more
-            with self._cond:
+            with self._lock:
                 requests, self._pending = self._pending, []
                 self._processing = False
                 self._cond.notify_all()
@@ -647,7 +686,7 @@ class HighLevelBehaviorManager(Running):
         requests: list[_Request] = []
         try:
             while True:
-                with self._cond:
+                with self._lock:
                     stopping = self._state is not ManagerState.RUNNING
                     requests, self._pending = self._pending, []
                     work = bool(requests) or (self._top is not None if stopping
@@ -670,7 +709,7 @@ class HighLevelBehaviorManager(Running):
             # processor role is given back.
             failure = BeehaveError(f"switch failed: {exc!r}")
             failure.__cause__ = exc
-            with self._cond:
+            with self._lock:
                 requests += self._pending
                 self._pending = []
                 self._processing = False
@@ -682,7 +721,7 @@ class HighLevelBehaviorManager(Running):
                     request.finish(failure)
             if empty:
                 # One behaviour always runs: whatever failed, the safe one.
-                with self._cond:
+                with self._lock:
                     become = self._queue_locked(self._idle_request(None))
                 if become:
                     self._spawn_processor()
@@ -719,11 +758,11 @@ class HighLevelBehaviorManager(Running):
             # always runs, so the safe one.
             log.warning("no top-level behaviour was running; starting %r", IDLE)
             latest = self._idle_request(None)
-        with self._cond:
+        with self._lock:
             self._in_flight = latest
         try:
             self._stop_top()
-            with self._cond:
+            with self._lock:
                 overtaken = any(r.fallback_from is None for r in self._pending)
                 stopping = self._state is not ManagerState.RUNNING
             if stopping:
@@ -736,7 +775,7 @@ class HighLevelBehaviorManager(Running):
             else:
                 self._start_top(latest)
         finally:
-            with self._cond:
+            with self._lock:
                 self._in_flight = None
 
     def _cancel(self, request: _Request) -> None:
@@ -777,7 +816,7 @@ class HighLevelBehaviorManager(Running):
         ended = top._join(max(0.0, deadline + _MARGIN_S - time.monotonic()))
         if not ended and (not top._decided.is_set() or not top._join(_MARGIN_S)):
             top._mark_stuck()
-            with self._cond:
+            with self._lock:
                 self._record_history(top)
         # Forced safe states run in threads of their own: give them a short grace, so that
         # the switch normally returns with the hardware safe, but never waits unbounded.
@@ -808,11 +847,11 @@ class HighLevelBehaviorManager(Running):
     def _node_ended(self, node: Runnable, was_stuck: bool) -> None:
         """Called in the item's own thread, as the last thing it does."""
         if node in self._stuck:  # (decided by now: nobody adds it any more)
-            with self._cond:
+            with self._lock:
                 self._stuck.discard(node)
         if node.parent is not None:
             return
-        with self._cond:
+        with self._lock:
             self._record_history(node)
             ended_on_its_own = (isinstance(node, Behavior) and node is self._top
                                 and node is not self._stopping
@@ -844,11 +883,11 @@ class HighLevelBehaviorManager(Running):
                               "elapsed_s": node.elapsed_s})
 
     def _stuck_add(self, node: Runnable) -> None:
-        with self._cond:
+        with self._lock:
             self._stuck.add(node)
 
     def _stuck_nodes(self) -> list[Runnable]:
-        with self._cond:
+        with self._lock:
             return list(self._stuck)
 
 

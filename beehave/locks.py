@@ -34,9 +34,13 @@ class TypeLocks:
     """
 
     def __init__(self, events: EventBus) -> None:
-        self._cond = threading.Condition(threading.RLock())
+        # Entered as `_lock` where nothing waits: the same lock, without Condition's
+        # Python layer (every action's end releases its type here).
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
         self._held: dict[str, _Hold] = {}
         self._queues: dict[str, deque[Action]] = {}
+        self._preempting = 0  # how many wait in the queues (changed under the lock)
         self._events = events
         #: Called under the table's lock with every action that takes a lock (the manager
         #: pauses an action that starts while it is paused).
@@ -52,7 +56,7 @@ class TypeLocks:
         ``cancelled()`` becomes true while waiting.
         """
         kind = action.action_type
-        with self._cond:
+        with self._lock:
             queue = self._queues.setdefault(kind, deque())
             hold = self._held.get(kind)
             if hold is None and not queue:
@@ -67,6 +71,7 @@ class TypeLocks:
                                          reason="it is waiting to preempt the type")
                 raise ActionTypeBusy(kind, hold.holder, hold.since, reason=_why(hold.holder))
             queue.append(action)
+            self._preempting += 1
             deadline = time.monotonic() + timeout_s
             interrupted: set[int] = set()
             stuck_holder: _Hold | None = None
@@ -99,6 +104,7 @@ class TypeLocks:
                     self._cond.wait(remaining)
             finally:
                 queue.remove(action)
+                self._preempting -= 1
                 self._cond.notify_all()
         # Outside the lock: safe_state() is user code.
         assert stuck_holder is not None
@@ -114,11 +120,11 @@ class TypeLocks:
     @contextmanager
     def table(self) -> Iterator[list[Action]]:
         """Hold the table (no lock is taken or released meanwhile) and give its holders."""
-        with self._cond:
+        with self._lock:
             yield [hold.holder for hold in self._held.values()]
 
     def release(self, action: Action) -> None:
-        with self._cond:
+        with self._lock:
             hold = self._held.get(action.action_type)
             if hold is not None and hold.holder is action:
                 del self._held[action.action_type]
@@ -132,14 +138,14 @@ class TypeLocks:
         it was cancelled (under the lock) before it waits, so none is missed; and an
         interrupt — every action's, in every switch — then costs no lock when nobody
         waits to preempt (the common case)."""
-        if not any(self._queues.values()):
+        if not self._preempting:
             return
-        with self._cond:
+        with self._lock:
             self._cond.notify_all()
 
     def snapshot(self) -> dict[str, dict[str, Any]]:
         now = time.monotonic()
-        with self._cond:
+        with self._lock:
             return {kind: {"holder": h.holder.path, "class": type(h.holder).__name__,
                            "status": h.holder.status.name, "held_s": now - h.since,
                            "safe_state_pending": h.holder.safe_state_pending}

@@ -16,8 +16,9 @@ import threading
 import time
 import traceback
 import weakref
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Self, cast
+from typing import TYPE_CHECKING, Any, ClassVar, Self
 
 from beehave.blackboard import Blackboard, BlackboardView, ChangeCallback, Subscription
 from beehave.clock import WallClock
@@ -58,7 +59,43 @@ _RESERVED = {
     "safe_state_error": "the exception safe_state() raised",
 }
 """Attributes beehave owns on every behaviour and action; user code that assigns one gets
-:class:`ReservedAttribute` naming it (``name`` is yours to set)."""
+:class:`ReservedAttribute` naming it (``name`` is yours to set). Each is a read-only
+property (see :func:`_reserve`), so beehave's own state changes are plain attribute stores:
+a ``__setattr__`` check would cost a Python call on each of dozens per switch."""
+
+
+def _refuse(attr: str) -> Callable[[Any, Any], None]:
+    def refuse(self: Any, value: Any) -> None:
+        raise ReservedAttribute(
+            f"{type(self).__name__}.{attr} is beehave's ({_RESERVED[attr]}) and cannot be "
+            f"assigned; store yours under another name, e.g. self.my_{attr}")
+    return refuse
+
+
+def _absent(attr: str) -> Callable[[Any], Any]:
+    def absent(self: Any) -> Any:
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {attr!r}")
+    return absent
+
+
+def _reserve(cls: type) -> None:
+    """Make the reserved names of ``cls``'s own body read-only properties (a property
+    without a setter gets one that raises :class:`ReservedAttribute`); a reserved name that
+    is no property there (a class attribute would hide beehave's value) is refused at once.
+    On :class:`Runnable` itself, the names only a subclass has (``children``,
+    ``safe_state_error``) are absent until then, and refused."""
+    for attr in _RESERVED:
+        if attr not in cls.__dict__:
+            if cls is Runnable:
+                setattr(cls, attr, property(_absent(attr), _refuse(attr)))
+            continue
+        found = cls.__dict__[attr]
+        if not isinstance(found, property):
+            raise ReservedAttribute(
+                f"{cls.__name__}.{attr} is beehave's ({_RESERVED[attr]}) and cannot be "
+                f"defined; name yours differently, e.g. my_{attr}")
+        if found.fset is None:
+            setattr(cls, attr, found.setter(_refuse(attr)))
 
 
 class _Pause(enum.Enum):
@@ -76,13 +113,15 @@ class _Pause(enum.Enum):
 class _Flag:
     """A one-way flag that threads wait for, kept on its owner's condition: a
     ``threading.Event`` would bring a lock and a condition of its own to every behaviour
-    and action (a switch makes and ends dozens of them). It wakes the condition only when
-    someone waits for the flag (not for the owner's ``sleep``)."""
+    and action (a switch makes and ends dozens of them). Setting it takes the lock and
+    wakes the condition only when someone waits for the flag (not for the owner's
+    ``sleep``)."""
 
-    __slots__ = ("_cond", "_on", "_waiters")
+    __slots__ = ("_cond", "_lock", "_on", "_waiters")
 
-    def __init__(self, cond: threading.Condition) -> None:
+    def __init__(self, cond: threading.Condition, lock: threading.RLock) -> None:
         self._cond = cond
+        self._lock = lock  # the condition's, entered without Condition's Python layer
         self._on = False
         self._waiters = 0
 
@@ -90,11 +129,15 @@ class _Flag:
         return self._on
 
     def set(self) -> None:
-        with self._cond:
-            self._set_locked()
+        # A waiter counts itself (under the lock) before it reads the flag: when this
+        # reads no waiter, any later one finds the flag set and does not wait.
+        self._on = True
+        if self._waiters:
+            with self._lock:
+                self._cond.notify_all()
 
     def _set_locked(self) -> None:
-        """``set`` for a caller that holds the owner's condition."""
+        """``set`` for a caller that holds the owner's lock."""
         self._on = True
         if self._waiters:
             self._cond.notify_all()
@@ -102,7 +145,7 @@ class _Flag:
     def wait(self, timeout: float | None = None) -> bool:
         if self._on:
             return True
-        with self._cond:
+        with self._lock:
             self._waiters += 1
             try:
                 return self._cond.wait_for(self.is_set, timeout)
@@ -143,17 +186,16 @@ class Runnable(abc.ABC):
 
     #: Shown in snapshots and events; defaults to the class name. Set it in ``__init__``.
     name: str
-    #: ``run``'s return value once SUCCEEDED.
-    result: Any
-    #: The exception ``run`` raised (FAILED), with its ``__traceback__``.
-    error: BaseException | None
+    __result: Any
+    __error: BaseException | None
     _parent: Behavior | weakref.ref[Behavior] | None
-    started_at: float | None
-    ended_at: float | None
+    __started_at: float | None
+    __ended_at: float | None
     _manager: HighLevelBehaviorManager | None
     _status: Status
     _interrupt_requested: bool
     _stop_deadline: float | None
+    _cond_lock: threading.RLock
     _cond: threading.Condition
     _decided: _Flag
     _started: bool
@@ -170,24 +212,31 @@ class Runnable(abc.ABC):
     _in_history: bool
     _suffix: str
     _path: str | None
+    _path_name: str | None
     _pause: _Pause
     _paused_done: threading.Event | None
     _pause_safe: bool
+    #: Whether it has a ``safe_state()`` to call (an action: yes; a behaviour has no
+    #: hardware of its own).
+    _HAS_SAFE_STATE: ClassVar[bool] = False
+    #: Whether it has children to interrupt before its own thread is woken (a behaviour).
+    _HAS_CHILDREN: ClassVar[bool] = False
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Self:
         # Runtime state lives here so that subclasses need not call super().__init__().
         self = super().__new__(cls)
-        # Straight into the instance dict: __setattr__ (the reserved-name check) is for
-        # user code, and a switch creates objects often enough for it to show.
-        cond = threading.Condition(threading.Lock())
+        # An RLock under the condition: Condition then finds the lock's own C methods
+        # instead of raising and catching three AttributeErrors to fall back on its
+        # Python ones (3 µs per item at creation, a Python call per wait and notify).
+        # Hot paths enter `_cond_lock` itself: the same lock, without Condition's Python layer.
+        lock = threading.RLock()
+        cond = threading.Condition(lock)
         self.__dict__.update(
-            name=cls.__name__, result=None, error=None, _parent=None,
-            started_at=None,  # time.monotonic()
-            ended_at=None,
+            name=cls.__name__, _parent=None,
             _manager=None, _traceback="", _status=Status.PENDING,
             _interrupt_requested=False, _stop_deadline=None,
-            _cond=cond, _decided=_Flag(cond),
-            _started=False, _ros=None, _view=None, _ended=_Flag(cond),
+            _cond_lock=lock, _cond=cond, _decided=_Flag(cond, lock),
+            _started=False, _ros=None, _view=None, _ended=_Flag(cond, lock),
             _interrupted_at=None, _thread_id=None,
             # What keeps the type lock and the ROS entities: run(), plus a forced
             # safe_state() while one runs. Whichever of them ends last releases them.
@@ -197,12 +246,21 @@ class Runnable(abc.ABC):
             _safe_done=None, _safe_thread_id=None, _overdue_reported=False,
             _in_history=False,
             _suffix="",  # "#2" for the second child of that name in its behaviour
-            _path=None,  # path, kept once started (events name it often)
+            _path=None,  # path, kept once started (events name it often) …
+            _path_name=None,  # … for the name it was made with
             # Pause (actions only, see Action): how a pause holds it; set once it is
             # paused (or ended); its hardware made safe by the pause and run() not yet
             # restarted.
             _pause=_Pause.NONE, _paused_done=None, _pause_safe=False)
+        # What the reserved names read (private to this class: a subclass's own
+        # `self._result` or `self._error` must not be beehave's).
+        self.__result = self.__error = None
+        self.__started_at = self.__ended_at = None  # time.monotonic()
         return self
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        _reserve(cls)
 
     def __init__(self, name: str | None = None) -> None:
         """Optional: ``super().__init__(name="front_lift")`` names it (the py_trees habit);
@@ -212,15 +270,6 @@ class Runnable(abc.ABC):
                 raise ConfigError(f"{type(self).__name__}: name must be a non-empty str "
                                   f"without '/', got {name!r}")
             self.name = name
-
-    def __setattr__(self, attr: str, value: Any) -> None:
-        if attr in _RESERVED:
-            raise ReservedAttribute(
-                f"{type(self).__name__}.{attr} is beehave's ({_RESERVED[attr]}) and cannot be "
-                f"assigned; store yours under another name, e.g. self.my_{attr}")
-        if attr == "name":
-            object.__setattr__(self, "_path", None)
-        object.__setattr__(self, attr, value)
 
     # ------------------------------------------------------------------ user hooks
     @abc.abstractmethod
@@ -236,6 +285,26 @@ class Runnable(abc.ABC):
     @property
     def status(self) -> Status:
         return self._status
+
+    @property
+    def result(self) -> Any:
+        """``run``'s return value once SUCCEEDED."""
+        return self.__result
+
+    @property
+    def error(self) -> BaseException | None:
+        """The exception ``run`` raised (FAILED), with its ``__traceback__``."""
+        return self.__error
+
+    @property
+    def started_at(self) -> float | None:
+        """When it started (``time.monotonic()``), or None."""
+        return self.__started_at
+
+    @property
+    def ended_at(self) -> float | None:
+        """When its status became final or STUCK (``time.monotonic()``), or None."""
+        return self.__ended_at
 
     @property
     def parent(self) -> Behavior | None:
@@ -258,11 +327,13 @@ class Runnable(abc.ABC):
         """``parent/…/name``: where this sits in the running tree (fixed once it runs:
         renaming a running behaviour renames it, not the paths its children have)."""
         path = self._path
-        if path is None:
-            own = f"{self.name}{self._suffix}"
-            path = own if self.parent is None else f"{self.parent.path}/{own}"
+        name = self.name
+        if path is None or self._path_name is not name:
+            own = f"{name}{self._suffix}"
+            parent = self.parent
+            path = own if parent is None else f"{parent.path}/{own}"
             if self._started:
-                object.__setattr__(self, "_path", path)
+                self._path, self._path_name = path, name
         return path
 
     @property
@@ -279,7 +350,7 @@ class Runnable(abc.ABC):
         manager = self._manager
         if manager is None:
             raise ManagerShutdown(f"{self.name!r} is not started: it has no blackboard yet")
-        with self._cond:
+        with self._cond_lock:
             if self._view is None:
                 self._view = _OwnedView(manager.blackboard, self.path)
             return self._view
@@ -291,7 +362,7 @@ class Runnable(abc.ABC):
         Everything created here is destroyed when this behaviour or action ends, whatever
         its status — after ``safe_state()``, which may still use it."""
         manager = self.manager
-        with self._cond:
+        with self._cond_lock:
             if self._ros is None:
                 if manager.node is None:
                     raise ConfigError(
@@ -322,11 +393,12 @@ class Runnable(abc.ABC):
         interrupted, True otherwise. While the manager is paused, time stands still: the
         sleep goes on with what it had left after ``resume()``."""
         clock = self._manager.run_clock if self._manager is not None else _WALL
-        timeout_s = _timeout(seconds, f"{self.path}: sleep(seconds)")
-        with self._cond:
+        timeout_s = _timeout(seconds, self, "sleep(seconds)")
+        with self._cond_lock:
             clock.wait(self._cond, self._wake_reason, timeout_s)
-            self._raise_pending()
-            return not self.interrupted
+            if self._HAS_CHILDREN:  # (a child's failure, raised in its behaviour)
+                self._raise_pending()
+            return not (self._interrupt_requested or self._pause is _Pause.WIND_DOWN)
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until the outcome is decided (any final status, STUCK included).
@@ -335,7 +407,7 @@ class Runnable(abc.ABC):
         for its own child this way has seen the outcome, so a failure of that child is not
         raised again as ChildFailed.
         """
-        done = self._block_on(self._decided, _timeout(timeout, f"{self.path}: wait(timeout)"))
+        done = self._block_on(self._decided, _timeout(timeout, self, "wait(timeout)"))
         if done and self.parent is not None:
             self.parent._observed(self)
         return done
@@ -349,7 +421,7 @@ class Runnable(abc.ABC):
 
     # ------------------------------------------------------------------ driver
     def _attach(self, parent: Behavior | None, manager: HighLevelBehaviorManager) -> None:
-        with self._cond:
+        with self._cond_lock:
             if self._manager is not None:
                 raise AlreadyStarted(
                     f"{type(self).__name__} {self.name!r} was already started "
@@ -358,18 +430,19 @@ class Runnable(abc.ABC):
             self._parent = parent
 
     def _detach(self) -> None:
-        with self._cond:
+        with self._cond_lock:
             if self._status is Status.PENDING:
                 self._manager = None
                 self._parent = None
                 self._suffix = ""
+                self._path = None
 
     def _start_thread(self) -> None:
         assert self._manager is not None
-        with self._cond:
+        with self._cond_lock:
             self._started = True
             self._status = Status.RUNNING
-            object.__setattr__(self, "started_at", time.monotonic())
+            self.__started_at = time.monotonic()
         self._manager._pool.submit(f"beehave:{self.path}", self._main)
 
     def _main(self) -> None:
@@ -390,24 +463,28 @@ class Runnable(abc.ABC):
             while again:
                 error = None
                 try:
-                    object.__setattr__(self, "result", self.run())
+                    self.__result = self.run()
                 except BaseException as exc:  # recorded on the handle, surfaced to the parent
                     error = exc
                 again = self._pause_point(error, ran=True)
-            error = self._after_run(error)
+            if self._HAS_CHILDREN:
+                error = self._after_run(error)
             ended = self._finish(error)
         finally:
             _local.node = None
             self._thread_id = None
             if ended:
                 self._ended.set()
-                self._tell_parent()
-                self._let_go_of_parent()
+                # _tell_parent and _let_go_of_parent, inline (a switch ends a dozen items).
+                parent = self._parent  # (strong until now)
+                if parent is not None:
+                    parent._child_settled(self)  # type: ignore[union-attr]
+                    self._parent = weakref.ref(parent)  # type: ignore[arg-type]
 
     def _tell_parent(self) -> None:
         """It has ended or become STUCK: a parent collecting its children counts it."""
-        parent = cast("Behavior | None", self._parent)  # (strong until _let_go_of_parent)
-        if parent is not None:
+        parent = self._parent  # (strong until _let_go_of_parent)
+        if parent is not None and not isinstance(parent, weakref.ref):
             parent._child_settled(self)
 
     def _let_go_of_parent(self) -> None:
@@ -442,9 +519,10 @@ class Runnable(abc.ABC):
 
     def _finish(self, error: BaseException | None) -> bool:
         """Decide the status, apply the safe state, release what it holds, tell the parent
-        and the manager. Returns False when a forced safe state still runs in another thread
-        (that thread ends the item's life when it returns)."""
-        with self._cond:
+        and the manager. Returns True when the caller is to end the item's life; False for
+        a STUCK item, whose life _end_of_life ends (here, or in the thread of its forced
+        safe state when that returns later)."""
+        with self._cond_lock:
             was_stuck = self._status is Status.STUCK
             if was_stuck:
                 status = Status.STUCK
@@ -455,36 +533,38 @@ class Runnable(abc.ABC):
             else:
                 status = Status.FAILED
             if status is Status.FAILED:
-                object.__setattr__(self, "error", error)
+                self.__error = error
                 self._traceback = "".join(traceback.format_exception(error))
             self._status = status
-            if self.ended_at is None:
-                object.__setattr__(self, "ended_at", time.monotonic())
+            if self.__ended_at is None:
+                self.__ended_at = time.monotonic()
             self._holds -= 1
             last = self._holds == 0
             # (A pause already made it safe and nothing ran since: not twice.)
             safe_state = (not was_stuck and status is not Status.SUCCEEDED
-                          and not self._pause_safe and self._has_safe_state())
+                          and not self._pause_safe and self._HAS_SAFE_STATE)
             if safe_state and self._safe_done is None:
-                self._safe_done = _Flag(self._cond)
+                self._safe_done = _Flag(self._cond, self._cond_lock)
         if was_stuck:
-            # Its owner gave up on it; the forced safe state (if any) ran or runs elsewhere.
+            # Its owner gave up on it; the forced safe state (if any) ran or runs elsewhere,
+            # and whichever of the two returns last ends its life (_end_of_life).
             if last:
                 self._end_of_life(stuck=True)
-            return last
+            return False
         manager = self._manager
         assert manager is not None
         stuck_now = False
+        parent: Behavior | None = self._parent  # type: ignore[assignment]  # (strong while it lives)
         try:
             if safe_state:
                 self._run_safe_state()
-            self._destroy_io()
+            if self._ros is not None or self._view is not None:
+                self._destroy_io()
             self._release()
-            parent = cast("Behavior | None", self._parent)  # (held strongly while it lives)
-            if parent is not None:
+            if parent is not None and self._status is Status.FAILED:
                 # Before _decided: whoever wait()s for us must find the failure recorded.
                 parent._record_child_end(self)
-            with self._cond:
+            with self._cond_lock:
                 self._decided._set_locked()
                 # The owner may have given up on us while safe_state() hung; after
                 # _decided it no longer can (_mark_stuck checks it under this lock).
@@ -493,12 +573,15 @@ class Runnable(abc.ABC):
                 self._paused_done.set()  # a pause waiting for it: it has ended instead
             kind = EventKind.STUCK_RELEASED if stuck_now else EventKind.ENDED
             if manager.events.wants(kind):
-                manager.events.emit(Event(kind, self.path, self._status.name, self.error,
+                manager.events.emit(Event(kind, self.path, self._status.name, self.__error,
                                           {"elapsed_s": self.elapsed_s}))
-            if parent is not None:
+            if parent is not None and parent._HOOKS_CHILD_END:
                 parent._call_child_hook(self)
         finally:
-            manager._node_ended(self, stuck_now)
+            # (The manager keeps top-level behaviours and STUCK items; a child that never
+            # was STUCK is none of its business.)
+            if parent is None or stuck_now or manager._stuck:
+                manager._node_ended(self, stuck_now)
         return True
 
     def _end_of_life(self, *, stuck: bool) -> None:
@@ -542,17 +625,17 @@ class Runnable(abc.ABC):
         """
         manager = self._manager
         assert manager is not None
-        with self._cond:
+        with self._cond_lock:
             if self._decided.is_set() or self._status is Status.PENDING:
                 return
-            force_safe_state = self._status is Status.RUNNING and self._has_safe_state()
+            force_safe_state = self._status is Status.RUNNING and self._HAS_SAFE_STATE
             ended_as = None if self._status is Status.RUNNING else self._status
             self._status = Status.STUCK
-            if self.ended_at is None:
-                object.__setattr__(self, "ended_at", time.monotonic())
+            if self.__ended_at is None:
+                self.__ended_at = time.monotonic()
             if force_safe_state:
                 self._holds += 1
-                self._safe_done = _Flag(self._cond)
+                self._safe_done = _Flag(self._cond, self._cond_lock)
             # Under our lock, so that _finish cannot remove it before it is added.
             manager._stuck_add(self)
         manager.events.emit(Event(EventKind.STUCK, self.path, Status.STUCK.name,
@@ -574,7 +657,7 @@ class Runnable(abc.ABC):
             # Whatever run() publishes from now on would undo the safe state.
             self._destroy_io()
         finally:
-            with self._cond:
+            with self._cond_lock:
                 self._holds -= 1
                 last = self._holds == 0
             if last:
@@ -584,9 +667,9 @@ class Runnable(abc.ABC):
         """Call the safe state here, so that others can see it is under way (and where)."""
         done = self._safe_done  # (_finish makes it beside the status that calls for it)
         if done is None:
-            with self._cond:
+            with self._cond_lock:
                 if self._safe_done is None:
-                    self._safe_done = _Flag(self._cond)
+                    self._safe_done = _Flag(self._cond, self._cond_lock)
                 done = self._safe_done
         self._safe_thread_id = threading.get_ident()
         try:
@@ -601,7 +684,7 @@ class Runnable(abc.ABC):
         done = self._safe_done
         if done is None or self._block_on(done, max(0.0, deadline - time.monotonic())):
             return True
-        with self._cond:
+        with self._cond_lock:
             report = not self._overdue_reported
             self._overdue_reported = True
         if report and self._manager is not None:
@@ -617,10 +700,6 @@ class Runnable(abc.ABC):
         """True while its ``safe_state()`` runs (forced or not) and has not returned."""
         done = self._safe_done
         return done is not None and not done.is_set()
-
-    def _has_safe_state(self) -> bool:
-        """Action: yes; a behaviour has no hardware of its own."""
-        return False
 
     def _stuck_detail(self, ended_as: Status | None) -> dict[str, Any]:
         manager = self._manager
@@ -660,16 +739,19 @@ class Runnable(abc.ABC):
     def _interrupt(self, deadline: float | None) -> None:
         if self._interrupt_requested:  # (it only ever turns true: no lock needed to see it)
             return
-        with self._cond:
+        with self._cond_lock:
             if self._interrupt_requested:
                 return
-            self.__dict__.update(_interrupt_requested=True, _interrupted_at=time.monotonic(),
-                                 _stop_deadline=deadline)
-            self._cond.notify_all()
+            self._interrupt_requested = True
+            self._interrupted_at = time.monotonic()
+            self._stop_deadline = deadline
+            if not self._HAS_CHILDREN:
+                self._cond.notify_all()
         self._on_interrupt(deadline)
 
     def _on_interrupt(self, deadline: float | None) -> None:
-        """Behavior passes the interrupt to its children; Action wakes lock waiters."""
+        """Behavior passes the interrupt to its children, then wakes its own thread;
+        Action wakes lock waiters."""
 
     def _enter_safe_state(self) -> None:
         """Action calls ``safe_state()``; a behaviour has no hardware of its own."""
@@ -685,15 +767,16 @@ class Runnable(abc.ABC):
 
     @property
     def elapsed_s(self) -> float | None:
-        if self.started_at is None:
+        started = self.__started_at
+        if started is None:
             return None
-        end = self.ended_at if self.ended_at is not None else time.monotonic()
-        return end - self.started_at
+        ended = self.__ended_at
+        return (ended if ended is not None else time.monotonic()) - started
 
     def _snapshot(self) -> dict[str, Any]:
         started_wall = None
-        if self.started_at is not None:
-            started_wall = time.time() - (time.monotonic() - self.started_at)
+        if self.__started_at is not None:
+            started_wall = time.time() - (time.monotonic() - self.__started_at)
         return {
             "name": self.name,
             "path": self.path,
@@ -706,14 +789,17 @@ class Runnable(abc.ABC):
         }
 
 
-def _timeout(seconds: float | None, what: str) -> float | None:
+_reserve(Runnable)
+
+
+def _timeout(seconds: float | None, owner: Runnable, call: str) -> float | None:
     """A timeout for the waits of threading: None for "no timeout" (None, inf, or more
-    than threading can wait for)."""
+    than threading can wait for). ``owner`` and ``call`` name it in the error."""
     if seconds is None:
         return None
     if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or math.isnan(seconds):
-        raise ConfigError(f"{what} takes a number of seconds (math.inf for no limit), "
-                          f"got {seconds!r}")
+        raise ConfigError(f"{owner.path}: {call} takes a number of seconds (math.inf for no "
+                          f"limit), got {seconds!r}")
     if seconds > threading.TIMEOUT_MAX:
         return None
     return max(0.0, float(seconds))

@@ -430,6 +430,86 @@ def test_assigning_a_reserved_attribute_names_it(hl: HighLevelBehaviorManager,
         hl.switch("clash")
 
 
+@pytest.mark.parametrize("attr", ["result", "status", "children", "safe_state_error"])
+def test_defining_a_reserved_name_in_a_class_body_is_refused_at_once(attr: str) -> None:
+    # A class attribute of that name would hide beehave's value from every reader (a
+    # `result = None` in the body: the handle's result then reads None forever).
+    with pytest.raises(ReservedAttribute, match=rf"Shadows\.{attr} is beehave's"):
+        type("Shadows", (Action,), {attr: None, "run": lambda self: None})
+    with pytest.raises(ReservedAttribute, match=rf"Shadows\.{attr} is beehave's"):
+        type("Shadows", (Behavior,), {attr: None, "run": lambda self: None})
+
+
+def test_reserved_names_read_as_before_and_stay_read_only(hl: HighLevelBehaviorManager) -> None:
+    action = ScriptedAction(result="there")
+    assert action.result is None and action.error is None and action.started_at is None
+    assert not hasattr(action, "children")
+    with pytest.raises(ReservedAttribute, match=r"ScriptedAction\.children is beehave's"):
+        action.children = []  # type: ignore[misc]
+
+    class Starts(Behavior):
+        def run(self) -> None:
+            self.start_action(action).wait(WALL_TIMEOUT_S)
+
+    hl.register("starts", Starts)
+    top = hl.switch("starts")
+    assert top.wait(WALL_TIMEOUT_S)
+    assert action.status is Status.SUCCEEDED and action.result == "there"
+    assert action.started_at is not None and action.ended_at is not None
+    assert action.ended_at >= action.started_at and action.elapsed_s is not None
+    with pytest.raises(ReservedAttribute, match=r"Starts\.ended_at is beehave's"):
+        top.ended_at = 0.0  # type: ignore[misc]
+    renamed = top.path
+    top.name = "renamed"
+    assert top.path == "renamed" and renamed == "starts"
+
+
+def test_a_behaviour_and_an_action_may_keep_a_lock_and_a_result_of_their_own(
+        hl: HighLevelBehaviorManager) -> None:
+    # `self._lock`, `self._result`, `self._error` are common names in user classes:
+    # beehave's own state must not live under them (the market's auctioneer keeps a lock).
+    class Guarded(Action):
+        def __init__(self) -> None:
+            self._lock = threading.Lock()
+            self._result = "mine"
+            self._error = "mine too"
+
+        def run(self) -> str:
+            with self._lock:
+                self.sleep(0.01)
+            return "beehave's"
+
+    class Sleeper(Action):
+        def __init__(self) -> None:
+            self._lock = threading.Lock()
+
+        def run(self) -> None:
+            with self._lock:
+                self.sleep(math.inf)
+
+    class Keeper(Behavior):
+        def __init__(self) -> None:
+            self._lock = threading.Lock()
+            self.started: list[Action] = []
+
+        def run(self) -> None:
+            with self._lock:
+                guarded = self.start_action(Guarded())
+                guarded.wait(WALL_TIMEOUT_S)
+                self.started += [guarded, self.start_action(Sleeper())]
+            while self.sleep(math.inf):
+                pass
+
+    hl.register("keeper", Keeper)
+    top = hl.switch("keeper")
+    assert wait_until(lambda: len(top.started) == 2 and top.started[1].status is Status.RUNNING)
+    guarded, sleeper = top.started
+    assert guarded.status is Status.SUCCEEDED and guarded.result == "beehave's"
+    assert guarded.error is None and guarded._result == "mine" and guarded._error == "mine too"
+    hl.switch("idle")
+    assert top.status is Status.INTERRUPTED and sleeper.status is Status.INTERRUPTED
+
+
 def test_two_actions_of_one_class_have_distinct_paths(hl: HighLevelBehaviorManager) -> None:
     paths: list[str] = []
 

@@ -256,6 +256,25 @@ def test_stuck_action_does_not_block_the_switch(hl: HighLevelBehaviorManager) ->
     assert again.actions[0].status is Status.RUNNING
 
 
+def test_a_stuck_action_that_returns_late_ends_without_an_error(
+        hl: HighLevelBehaviorManager, caplog: pytest.LogCaptureFixture) -> None:
+    # Its forced safe state returned first, so its own thread ends its life when run()
+    # returns: that thread used to go on to tell the (by then weakly held) parent a second
+    # time and die with an AttributeError logged by the worker pool.
+    hl.register("busy", Busy)
+    old = switch_ready(hl, "busy", stubborn=True)
+    stubborn = old.actions[0]
+    hl.switch("idle")
+    assert stubborn.status is Status.STUCK and stubborn.alive
+    with caplog.at_level("ERROR"):
+        stubborn.release.set()
+        assert wait_until(lambda: not stubborn.alive)
+        assert wait_until(lambda: "driving" not in hl.snapshot()["locks"])
+        hl.switch("busy")  # the pool thread is reused: nothing raised in the one before
+        hl.switch("idle")
+    assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == []
+
+
 def test_failing_top_level_behaviour_falls_back_to_idle(hl: HighLevelBehaviorManager,
                                                         events) -> None:  # type: ignore[no-untyped-def]
     hl.register("crashes", Crashes)
