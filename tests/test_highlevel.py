@@ -23,7 +23,13 @@ from beehave import (
 )
 from beehave.errors import ConfigError, NotASubclass
 from beehave.events import Event, EventKind
-from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, beehave_threads, wait_until
+from beehave.testing import (
+    WALL_TIMEOUT_S,
+    ScriptedAction,
+    beehave_threads,
+    wait_until,
+    wall_timeout,
+)
 
 
 class Busy(Behavior):
@@ -236,7 +242,11 @@ def test_stuck_action_does_not_block_the_switch(hl: HighLevelBehaviorManager) ->
     t0 = time.monotonic()
     hl.switch("idle")
     elapsed = time.monotonic() - t0
-    assert elapsed < hl.stop_timeout_s + 0.5
+    # It returned while the stubborn thread still runs (until its release below): the
+    # switch waited stop_timeout_s for it, not for the thread. (The bound only catches a
+    # switch that waited for something else; how fast it is goes in the benchmarks.)
+    assert stubborn.alive
+    assert elapsed < hl.stop_timeout_s + wall_timeout(0.05)
     assert stubborn.status is Status.STUCK and stubborn.safe_state_calls == 1
     assert sound.status is Status.INTERRUPTED and sound.safe_state_calls == 1
     snap = hl.snapshot()
