@@ -110,7 +110,7 @@ def test_self_fleet_names_the_fix_when_no_fleet_is_attached(
 
     hl.register("look", Look)
     look = hl.switch("look")
-    look.wait(2.0)
+    look.wait(WALL_TIMEOUT_S)
     assert look.status is Status.FAILED
     assert isinstance(look.error, ConfigError) and "fleet.attach(manager)" in str(look.error)
 
@@ -396,7 +396,7 @@ def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosConte
     sim, url, endpoint = started_vehicle(world, "quad")
     try:
         link = open_link(url)
-        link.wait_heartbeat(timeout_s=5.0)
+        link.wait_heartbeat(timeout_s=WALL_TIMEOUT_S)
         link.set_mode("GUIDED")
         link.arm(True)
         link.takeoff(2.0)
@@ -418,7 +418,7 @@ def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosConte
             assert droid.status is Status.SUCCEEDED, droid.error
             assert droid.result["status"] == "battery-low" and droid.result["landed"]
             assert droid.result["told"] == ["copter_peer"]
-            news = peer.receive(timeout_s=2.0)
+            news = peer.receive(timeout_s=WALL_TIMEOUT_S)
             assert news.performative.value == "inform" and news.sender == "tired_copter"
             assert news.content["event"] == "battery-low" and news.content["returning"]
         quad = sim.robot("quad").position()  # type: ignore[attr-defined]
@@ -450,7 +450,7 @@ def test_a_malformed_mission_request_is_refused_with_its_reason(ros: RosContext)
                                 ({"waypoints": [{"lat_deg": 95, "lon_deg": 0, "alt_m": 3}]},
                                  "not on Earth")):
             with pytest.raises(ProtocolFailed) as refused:
-                request(giver, "mission_taker", content, timeout_s=5.0)
+                request(giver, "mission_taker", content, timeout_s=WALL_TIMEOUT_S)
             reply = refused.value.reply
             assert reply.performative.value == "refuse"  # type: ignore[attr-defined]
             assert reason in reply.content["reason"]  # type: ignore[attr-defined]
@@ -475,7 +475,8 @@ def test_a_mission_sent_to_another_agent_is_run_by_its_vehicle(ros: RosContext) 
                      "the responder's mailbox")
             # The sender's frame is the same vehicle's here: [north, east] in metres.
             hl_giver.register("send", SendMission, receiver="mission_runner",
-                              waypoints=[[2.0, 2.5]], connection=url, timeout_s=30.0)
+                              waypoints=[[2.0, 2.5]], connection=url,
+                              timeout_s=WALL_TIMEOUT_S)
             send = hl_giver.switch("send")
             assert send.wait(WALL_TIMEOUT_S), hl_giver.snapshot()
             assert send.status is Status.SUCCEEDED, send.error
