@@ -18,10 +18,10 @@ from beehave.events import Event, EventKind
 from beehave.hal import HAL
 from beehave.logic import Logic
 from beehave.lowlevel import LowLevelBehaviorManager
-from beehave.testing import beehave_threads, wait_until
+from beehave.testing import WALL_TIMEOUT_S, beehave_threads, wait_until
 from hal.debug import DebugHAL, DebugRobot
 
-WAIT_S = 5.0  # safety net only
+WAIT_S = WALL_TIMEOUT_S  # the suite's one bound (beehave.testing): a safety net only
 
 
 class Blocker(Logic):
