@@ -199,4 +199,4 @@ class Outsider:
         self.executor.shutdown(timeout_sec=1)
         self.node.destroy_node()
         self.context.try_shutdown()
-        self.thread.join(5)
+        self.thread.join(self.wait_s)

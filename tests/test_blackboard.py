@@ -197,7 +197,7 @@ def test_closing_a_watcher_ends_its_iteration() -> None:
         bb.set("a", 1)
         await asyncio.sleep(0)
         watcher.close()
-        await asyncio.wait_for(task, 2)
+        await asyncio.wait_for(task, WALL_TIMEOUT_S)
         return got
 
     assert asyncio.run(main()) == [1]

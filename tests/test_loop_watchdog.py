@@ -249,7 +249,7 @@ def test_a_loop_blocked_subscriber_that_calls_back_into_the_manager_keeps_calls_
     thread = threading.Thread(target=main, daemon=True)
     thread.start()
     # switch and shutdown are each bounded by about stop_timeout_s; a hang is the bug.
-    thread.join(3.0)
+    thread.join(WAIT_S)
     hung = thread.is_alive()
     gate.set()
     thread.join(WAIT_S)

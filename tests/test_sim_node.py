@@ -406,7 +406,7 @@ def test_lockstep_holds_the_sim_where_a_participant_is_due_until_it_answers(rig:
         assert rig.sim.time_s <= held_at + 2 * rig.sim.step_s
     finally:
         alive.set()
-        keeper.join(2)
+        keeper.join(WALL_TIMEOUT_S)
     # ...and /clock says it has reached the held time, so the participant wakes.
     assert rig.probe.wait(lambda: bool(clocks) and stamp_s(clocks[-1]) >= hold_s - 1e-6)
     pub.publish(lockstep(me, None))  # let go
