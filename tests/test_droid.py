@@ -166,11 +166,18 @@ class Follow(Behavior):
         action.wait()
 
 
-def _held_still(robot: Any) -> Any:
-    """After braking, ``robot`` stays within 0.1 m for a second; its pose then."""
-    time.sleep(0.5)  # braking
+def _sim_sleep(sim: Simulation, seconds: float) -> None:
+    """Until ``seconds`` of sim time have passed: the physics' own time, which a loaded
+    machine slows down together with the robots (wall seconds would then cover less)."""
+    start = sim.time_s
+    wait_for(lambda: sim.time_s >= start + seconds, f"{seconds} s of sim time")
+
+
+def _held_still(sim: Simulation, robot: Any) -> Any:
+    """After braking, ``robot`` stays within 0.1 m for a second (sim time); its pose then."""
+    _sim_sleep(sim, 0.5)  # braking
     here = robot.pose()
-    time.sleep(1.0)
+    _sim_sleep(sim, 1.0)
     there = robot.pose()
     assert math.hypot(there.x_m - here.x_m, there.y_m - here.y_m) < 0.1
     return there
@@ -213,9 +220,9 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
             wait_for(lambda: bool(Follow.actions) and flyer.position().z_m > 1.8  # type: ignore[attr-defined]
                      and abs(gaps[-1] - 2.0) < 0.4, "the follower to take off and close in")
             driver.start()
-            time.sleep(4.0)  # following a leader at 0.4 m/s: catching up
+            _sim_sleep(sim, 4.0)  # following a leader at 0.4 m/s: catching up
             start = len(gaps)
-            time.sleep(2.5)
+            _sim_sleep(sim, 2.5)
             following = gaps[start:]
             action = Follow.actions[0]
             assert action.status is Status.RUNNING, action.error
@@ -225,19 +232,19 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
             # The leader shows up closer than the safety distance: the follower stops where
             # it is (keeping its distance would make it fly 1.4 m away).
             stop_driving.set()
-            time.sleep(0.5)
+            _sim_sleep(sim, 0.5)
             f = flyer.pose()
             fake.append((f.x_m + 0.6, f.y_m))
             wait_for(lambda: action.holding is not None and "safety" in action.holding,
                      "the follower to stop below the safety distance")
-            there = _held_still(flyer)
+            there = _held_still(sim, flyer)
             assert math.hypot(there.x_m - f.x_m, there.y_m - f.y_m) < 0.5
             fake.clear()
             # The leader's state stops: the follower holds where it is.
             leader_fleet.close()
             wait_for(lambda: action.holding is not None and "stale" in action.holding,
                      "the follower to notice")
-            _held_still(flyer)
+            _held_still(sim, flyer)
             assert action.status is Status.RUNNING
             hl.switch("idle")
             assert action.status is Status.INTERRUPTED
