@@ -53,8 +53,8 @@ class AgentProc:
     def kill(self) -> None:
         if self.popen.poll() is None:
             self.popen.send_signal(signal.SIGKILL)
-        self.popen.wait(10)
-        self.reader.join(5)
+        self.popen.wait(WALL_TIMEOUT_S)
+        self.reader.join(WALL_TIMEOUT_S)
 
     def terminate(self) -> None:
         if self.popen.poll() is None:
@@ -63,11 +63,11 @@ class AgentProc:
     def stop(self) -> None:
         self.terminate()
         try:
-            self.popen.wait(10)
+            self.popen.wait(WALL_TIMEOUT_S)
         except subprocess.TimeoutExpired:
             self.popen.kill()
-            self.popen.wait(10)
-        self.reader.join(5)
+            self.popen.wait(WALL_TIMEOUT_S)
+        self.reader.join(WALL_TIMEOUT_S)
 
 
 def stop_all(procs: Iterable[AgentProc]) -> None:

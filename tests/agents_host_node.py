@@ -24,6 +24,7 @@ from beehave.agents import Agent  # noqa: E402
 from beehave.agents.protocols import contract_net  # noqa: E402
 from beehave.errors import BeehaveError  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
+from beehave.testing import wall_timeout  # noqa: E402
 
 
 def main() -> int:
@@ -49,7 +50,10 @@ def main() -> int:
         say("found", agents=found)
         try:
             award = contract_net(agent, args.service, {"to": "machine_1", "kg": 20},
-                                 reply_by_s=5.0, done_timeout_s=10.0)
+                                 # Positive bounds (the one candidate answers and reports
+                                 # at once, ending both early): shares of the suite's bound.
+                                 reply_by_s=wall_timeout(0.25),
+                                 done_timeout_s=wall_timeout(0.25))
         except BeehaveError as exc:
             say("error", error=f"{type(exc).__name__}: {exc}")
             return 1

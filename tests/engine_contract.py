@@ -27,6 +27,10 @@ from beehave.engines.engine import StartLike
 from beehave.runnable import Runnable
 from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, Timeline, wait_until
 
+# A negative check (a paused engine takes no step) runs to its end: short on purpose; a loaded
+# machine can only make it see fewer steps, never fail a right engine.
+FROZEN_S = 0.5
+
 
 class Recorder:
     """A factory of ScriptedActions that remembers every action it built."""
@@ -127,7 +131,7 @@ class EngineContract(abc.ABC):
 
         assert wait_until(settled)
         frozen = described()
-        time.sleep(0.5)
+        time.sleep(FROZEN_S)
         assert described() == frozen
         assert behavior.status is Status.RUNNING and len(act.built) == 1
         hl.resume()

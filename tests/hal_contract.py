@@ -23,7 +23,7 @@ from beehave.blackboard import Blackboard
 from beehave.events import Event, EventBus, EventKind
 from beehave.hal import ENTRY_POINT_GROUP, HAL, HALManager
 from beehave.status import Status
-from beehave.testing import WALL_TIMEOUT_S
+from beehave.testing import WALL_TIMEOUT_S, wall_timeout
 
 T = TypeVar("T")
 
@@ -63,7 +63,9 @@ class HALContract:
             self.configure(manager)
             manager.register(counted, name=self.hal_cls.name, **self.hal_params())
             try:
-                return await asyncio.wait_for(body(manager, events), 10)
+                # Twice the suite's bound: a body's own waits (each WALL_TIMEOUT_S) report
+                # what they waited for before this one cuts the whole body short.
+                return await asyncio.wait_for(body(manager, events), wall_timeout(2.0))
             finally:
                 await manager.close()
                 manager.blackboard.unbind()

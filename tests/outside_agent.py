@@ -72,8 +72,11 @@ class Outsider:
 
     def __init__(self, name: str, *, keys: Path | None = None, sign_as: str | None = None,
                  services: dict[str, dict[str, Any]] | None = None,
-                 lease_s: float = 1.0) -> None:
+                 lease_s: float = 1.0, wait_s: float) -> None:
         self.name = name
+        # How long a send waits for the receiver's inbox to match: the test's bound (no
+        # beehave import here, so the test passes WALL_TIMEOUT_S in).
+        self.wait_s = wait_s
         self.services = services or {}
         self.lease_s = lease_s
         self.key: Ed25519PrivateKey | None = None
@@ -142,12 +145,12 @@ class Outsider:
             "in_reply_to": in_reply_to, "reply_by": reply_by, "protocol": protocol,
             "content": content, "sent_at": time.time() if sent_at is None else sent_at})
 
-    def send_text(self, receiver: str, text: str, timeout_s: float = 30.0) -> None:
+    def send_text(self, receiver: str, text: str, timeout_s: float | None = None) -> None:
         publisher = self.publishers.get(receiver)
         if publisher is None:
             publisher = self.publishers[receiver] = self.node.create_publisher(
                 String, INBOX + receiver, INBOX_QOS)
-        deadline = time.monotonic() + timeout_s
+        deadline = time.monotonic() + (self.wait_s if timeout_s is None else timeout_s)
         while publisher.get_subscription_count() == 0:
             assert time.monotonic() < deadline, f"no inbox of {receiver} matched"
             time.sleep(0.01)
@@ -196,4 +199,4 @@ class Outsider:
         self.executor.shutdown(timeout_sec=1)
         self.node.destroy_node()
         self.context.try_shutdown()
-        self.thread.join(5)
+        self.thread.join(self.wait_s)

@@ -43,7 +43,8 @@ class Probe:
             time.sleep(0.01)
         return predicate()
 
-    def _call(self, srv_type: type, name: str, request: Any, timeout_s: float = 10.0) -> Any:
+    def _call(self, srv_type: type, name: str, request: Any,
+              timeout_s: float = WALL_TIMEOUT_S) -> Any:
         # One client per service, kept: with Fast DDS a server that answers before it has
         # matched a new client's response reader drops the answer ("failed to send
         # response"), which a loaded machine makes likely for a client made per call.
@@ -162,7 +163,7 @@ class FibonacciServer:
         import rclpy
 
         self.executor.shutdown()
-        self._thread.join(5)
+        self._thread.join(WALL_TIMEOUT_S)
         self.server.destroy()
         self.node.destroy_node()
         rclpy.shutdown(context=self.context)

@@ -67,6 +67,9 @@ NODE = Path(__file__).with_name("agents_node.py")
 LEASE_S = 1.0
 WAIT_S = WALL_TIMEOUT_S  # the suite's one bound (beehave.testing): the machine may be loaded
 PROBE_S = 0.3  # names in this file are unique: a short probe keeps the tests fast
+# A negative check (no reply is to come) always runs to its end: short on purpose. A loaded
+# machine can only make it miss a wrong reply, never fail a right test.
+QUIET_S = 0.3
 
 
 class Proc(AgentProc):
@@ -268,7 +271,7 @@ def test_malformed_and_misaddressed_messages_get_not_understood(
         _wait(lambda: any(e.kind is EventKind.MESSAGE_REJECTED for e in events),
               "MESSAGE_REJECTED")
         with pytest.raises(NoReply):
-            probe.receive(timeout_s=0.3)
+            probe.receive(timeout_s=QUIET_S)
 
 
 def test_a_rejected_message_is_logged_once_however_many_managers_listen(
@@ -321,7 +324,7 @@ def test_awaitable_api_for_logics(ros: RosContext) -> None:
         assert (answer.sender, answer.content) == ("async_b", 2)
 
         async def nothing() -> None:
-            await a.areceive(timeout_s=0.2)
+            await a.areceive(timeout_s=QUIET_S)
 
         with pytest.raises(NoReply):
             asyncio.run(nothing())
@@ -366,7 +369,7 @@ def test_request_round_trip_as_a_behavior(ros: RosContext, procs: list[Proc]) ->
         # A refusal is a typed failure that carries the reply.
         with pytest.raises(ProtocolFailed, match="not-understood|refuse") as failed:
             request(asker, "rq_target", None, protocol="nobody-serves-this",
-                    timeout_s=1.0)
+                    timeout_s=WAIT_S)
         assert isinstance(failed.value.reply, Message) or failed.value.reply is None
 
 

@@ -143,7 +143,8 @@ def test_a_signed_outsider_bids_in_a_signed_contract_net_and_is_awarded(
         keys: Path, outsiders: list[Outsider]) -> None:
     from beehave.agents.protocols import contract_net
 
-    ext = Outsider("ext_a", keys=keys, services={"transport": {"kind": "outside"}})
+    ext = Outsider("ext_a", keys=keys, services={"transport": {"kind": "outside"}},
+                   wait_s=WAIT_S)
     outsiders.append(ext)
     fleet_pub = (keys / "fleet.pub").read_bytes()
     with _signed_agent("tr_boss", keys) as boss:
@@ -183,7 +184,8 @@ def test_an_outsider_without_the_fleets_key_is_refused_visibly(
         from beehave.agents.trust import issue
 
         issue(keys, "ext_old", days=1e-6)
-    ext = Outsider("ext_a", keys=folder, sign_as=sign_as, services={"transport": {}})
+    ext = Outsider("ext_a", keys=folder, sign_as=sign_as, services={"transport": {}},
+                   wait_s=WAIT_S)
     outsiders.append(ext)
     reasons = {"unsigned": "unsigned message", "stranger": "not by this fleet's authority",
                "other_name": "signed with the key certified for 'ext_c'",
@@ -282,7 +284,7 @@ def test_a_signed_station_or_zone_keeper_refuses_a_spoofed_release(
         # with a key another fleet issued for that name.
         for i, folder in enumerate((None, strangers)):
             spoof = Outsider(f"ext_spoof{i}", keys=folder,
-                             sign_as="tr_holder" if folder else None)
+                             sign_as="tr_holder" if folder else None, wait_s=WAIT_S)
             outsiders.append(spoof)
             copy = _refusal_copy(spoof, lambda spoof=spoof: spoof.message(
                 "request", name, {"op": "release"}, protocol=protocol, sender="tr_holder"))
@@ -304,14 +306,14 @@ def test_a_spoofed_award_and_a_replayed_accept_are_refused(
                                      "1.0"], wait_s=WAIT_S)
     procs.append(worker)
     worker.wait_event("ready")
-    boss = Outsider("ext_a", keys=keys)
+    boss = Outsider("ext_a", keys=keys, wait_s=WAIT_S)
     outsiders.append(boss)
     cfp = boss.send(boss.message("cfp", "tr_worker", {"to": "m1"},
                                  protocol="fipa-contract-net", reply_by=None))
     proposal = boss.wait("inbox", WAIT_S, performative="propose",
                          conversation_id=cfp["conversation_id"])
     # A spoofed award: accept-proposal as ext_a, signed with ext_c's key.
-    thief = Outsider("ext_c", keys=keys)
+    thief = Outsider("ext_c", keys=keys, wait_s=WAIT_S)
     outsiders.append(thief)
     forged = thief.message("accept-proposal", "tr_worker", proposal["content"],
                            conversation_id=cfp["conversation_id"],
@@ -406,7 +408,7 @@ def test_a_signed_market_refuses_a_spoofed_and_a_replayed_award(
                                      "--lease-s", "1.0"], wait_s=WAIT_S)
     procs.append(broker)
     broker.wait_event("ready")
-    sniffer = Outsider("ext_c", keys=keys)  # a fleet member, listening to every copy
+    sniffer = Outsider("ext_c", keys=keys, wait_s=WAIT_S)  # a fleet member, listening to every copy
     outsiders.append(sniffer)
     with _signed_agent("tr_mboss", keys) as boss:
         assert wait_until(lambda: boss.directory.alive("tr_broker"), WAIT_S)

@@ -33,7 +33,7 @@ def _schema(name: str) -> dict[str, Any]:
 
 @pytest.fixture
 def outsider() -> Iterator[Outsider]:
-    ext = Outsider("wire_ext")
+    ext = Outsider("wire_ext", wait_s=WAIT_S)
     try:
         yield ext
     finally:

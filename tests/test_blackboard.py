@@ -197,7 +197,7 @@ def test_closing_a_watcher_ends_its_iteration() -> None:
         bb.set("a", 1)
         await asyncio.sleep(0)
         watcher.close()
-        await asyncio.wait_for(task, 2)
+        await asyncio.wait_for(task, WALL_TIMEOUT_S)
         return got
 
     assert asyncio.run(main()) == [1]
@@ -420,7 +420,7 @@ def test_watcher_next_times_out_and_is_cancellation_safe() -> None:
             # The change and the cancellation reach the logic in the same loop iteration.
             bb.set("a", i)
             task.cancel()
-            done, _ = await asyncio.wait({task}, timeout=1.0)
+            done, _ = await asyncio.wait({task}, timeout=WALL_TIMEOUT_S)
             assert task in done, "the cancelled logic kept running"
 
     asyncio.run(main())
@@ -469,7 +469,7 @@ def test_a_slow_callback_blocks_no_other_thread_subscribing_closing_or_writing()
 
     def slow(change: Change) -> None:
         entered.set()
-        release.wait(10)
+        release.wait(WALL_TIMEOUT_S)
 
     bb.subscribe("battery/low", slow)
     writer = threading.Thread(target=bb.set, args=("battery/low", True))
@@ -492,7 +492,7 @@ def test_a_slow_callback_blocks_no_other_thread_subscribing_closing_or_writing()
         assert not release.is_set()
     finally:
         release.set()
-        writer.join(5)
+        writer.join(WALL_TIMEOUT_S)
     assert bb.get("pose/x") == 1.0 and others == [1.0]
 
 
@@ -563,7 +563,7 @@ def test_battery_low_callback_that_switches_leaves_no_behaviour_stuck(hl: Any,
     mirror = threading.Thread(target=hl.blackboard.set, args=("battery/low", True),
                               name="mirror-writer")
     mirror.start()
-    mirror.join(10)
+    mirror.join(WALL_TIMEOUT_S)
     assert not mirror.is_alive()
     assert hl.current == "charge"
     assert work.status.name == "INTERRUPTED", work.status
@@ -604,7 +604,7 @@ def test_a_subscription_closed_during_a_delivery_is_not_called_after_close_retur
 
     def slow_first(change: Change) -> None:
         entered.set()
-        release.wait(5)
+        release.wait(WALL_TIMEOUT_S)
 
     bb.subscribe("battery/low", slow_first)
     sub = bb.subscribe("battery/low",
@@ -615,7 +615,7 @@ def test_a_subscription_closed_during_a_delivery_is_not_called_after_close_retur
     sub.close()  # while slow_first runs: sub is next in line for this change
     closed.set()
     release.set()
-    writer.join(5)
+    writer.join(WALL_TIMEOUT_S)
     assert not writer.is_alive()
     assert after_close == []
 
@@ -683,7 +683,7 @@ def test_changes_queued_when_an_on_error_hook_raised_keep_their_order() -> None:
     assert entered.wait(WALL_TIMEOUT_S)
     bb.set("k", 2)  # delivery of k is under way in the writer: queued behind it
     queued.set()
-    writer.join(5)
+    writer.join(WALL_TIMEOUT_S)
     assert failed, "the hook's exception reaches the writer that ran it"
     bb.set("k", 3)
     assert seen == [1, 2, 3]

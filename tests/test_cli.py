@@ -16,12 +16,17 @@ from typing import Any
 
 import pytest
 
+from beehave.testing import WALL_TIMEOUT_S
+
 ROOT = Path(__file__).resolve().parent.parent
 HERE = ROOT / "tests"
 CONFIGS = HERE / "data" / "config"
+# How long a user waits before pressing Ctrl-C again: part of the scenario, not a bound on
+# an outcome (the test accepts either way out), so it stays short.
+CTRL_C_AGAIN_S = 3.0
 
 
-def beehave(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str]:
+def beehave(*args: str, timeout_s: float = WALL_TIMEOUT_S) -> subprocess.CompletedProcess[str]:
     """``beehave ARGS`` in a subprocess, with tests/ on the path for the fixtures."""
     return subprocess.run([sys.executable, "-m", "beehave.cli", *args], cwd=ROOT,
                           env=_env(), capture_output=True, text=True, timeout=timeout_s)
@@ -67,21 +72,21 @@ def test_run_duration_must_be_finite(value: str) -> None:
 
 @pytest.mark.parametrize("value", ["inf", "nan", "-1"])
 def test_sim_duration_must_be_finite(value: str) -> None:
-    done = beehave("sim", "--duration-s", value, timeout_s=30)
+    done = beehave("sim", "--duration-s", value)
     assert done.returncode == 2
     assert "--duration-s must be a positive, finite number" in done.stderr, done.stderr
 
 
 @pytest.mark.parametrize("value", ["inf", "nan", "0", "5000"])
 def test_sim_clock_rate_must_be_sane(value: str) -> None:
-    done = beehave("sim", "--clock-rate-hz", value, timeout_s=30)
+    done = beehave("sim", "--clock-rate-hz", value)
     assert done.returncode == 2
     assert "--clock-rate-hz must be in [1, 1000]" in done.stderr, done.stderr
 
 
 @pytest.mark.parametrize("value", ["inf", "nan", "0"])
 def test_demo_real_time_factor_must_be_finite_and_positive(value: str) -> None:
-    done = beehave("demo", "--real-time-factor", value, timeout_s=30)
+    done = beehave("demo", "--real-time-factor", value)
     assert done.returncode == 2
     assert "argument --real-time-factor: expected a finite number > 0" in done.stderr, \
         done.stderr
@@ -201,10 +206,10 @@ def test_a_blocked_event_loop_never_hangs_the_process() -> None:
         assert any("running" in line for line in seen), seen
         proc.send_signal(signal.SIGINT)
         try:
-            proc.wait(timeout=3)
+            proc.wait(timeout=CTRL_C_AGAIN_S)
         except subprocess.TimeoutExpired:
             proc.send_signal(signal.SIGINT)  # the user presses Ctrl-C again
-        out, err = proc.communicate(timeout=20)
+        out, err = proc.communicate(timeout=WALL_TIMEOUT_S)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -221,7 +226,7 @@ def test_a_blocked_event_loop_never_hangs_the_process() -> None:
 def test_demo_out_is_a_folder() -> None:
     helped = beehave("demo", "-h")
     assert "--out FOLDER" in helped.stdout and "demo.png" in helped.stdout, helped.stdout
-    done = beehave("demo", "--out", "picture.png", timeout_s=30)
+    done = beehave("demo", "--out", "picture.png")
     assert done.returncode == 2
     assert "--out is a folder" in done.stderr and "'picture.png'" in done.stderr, done.stderr
 

@@ -110,7 +110,7 @@ def test_self_fleet_names_the_fix_when_no_fleet_is_attached(
 
     hl.register("look", Look)
     look = hl.switch("look")
-    look.wait(2.0)
+    look.wait(WALL_TIMEOUT_S)
     assert look.status is Status.FAILED
     assert isinstance(look.error, ConfigError) and "fleet.attach(manager)" in str(look.error)
 
@@ -166,11 +166,18 @@ class Follow(Behavior):
         action.wait()
 
 
-def _held_still(robot: Any) -> Any:
-    """After braking, ``robot`` stays within 0.1 m for a second; its pose then."""
-    time.sleep(0.5)  # braking
+def _sim_sleep(sim: Simulation, seconds: float) -> None:
+    """Until ``seconds`` of sim time have passed: the physics' own time, which a loaded
+    machine slows down together with the robots (wall seconds would then cover less)."""
+    start = sim.time_s
+    wait_for(lambda: sim.time_s >= start + seconds, f"{seconds} s of sim time")
+
+
+def _held_still(sim: Simulation, robot: Any) -> Any:
+    """After braking, ``robot`` stays within 0.1 m for a second (sim time); its pose then."""
+    _sim_sleep(sim, 0.5)  # braking
     here = robot.pose()
-    time.sleep(1.0)
+    _sim_sleep(sim, 1.0)
     there = robot.pose()
     assert math.hypot(there.x_m - here.x_m, there.y_m - here.y_m) < 0.1
     return there
@@ -213,9 +220,9 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
             wait_for(lambda: bool(Follow.actions) and flyer.position().z_m > 1.8  # type: ignore[attr-defined]
                      and abs(gaps[-1] - 2.0) < 0.4, "the follower to take off and close in")
             driver.start()
-            time.sleep(4.0)  # following a leader at 0.4 m/s: catching up
+            _sim_sleep(sim, 4.0)  # following a leader at 0.4 m/s: catching up
             start = len(gaps)
-            time.sleep(2.5)
+            _sim_sleep(sim, 2.5)
             following = gaps[start:]
             action = Follow.actions[0]
             assert action.status is Status.RUNNING, action.error
@@ -225,19 +232,19 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
             # The leader shows up closer than the safety distance: the follower stops where
             # it is (keeping its distance would make it fly 1.4 m away).
             stop_driving.set()
-            time.sleep(0.5)
+            _sim_sleep(sim, 0.5)
             f = flyer.pose()
             fake.append((f.x_m + 0.6, f.y_m))
             wait_for(lambda: action.holding is not None and "safety" in action.holding,
                      "the follower to stop below the safety distance")
-            there = _held_still(flyer)
+            there = _held_still(sim, flyer)
             assert math.hypot(there.x_m - f.x_m, there.y_m - f.y_m) < 0.5
             fake.clear()
             # The leader's state stops: the follower holds where it is.
             leader_fleet.close()
             wait_for(lambda: action.holding is not None and "stale" in action.holding,
                      "the follower to notice")
-            _held_still(flyer)
+            _held_still(sim, flyer)
             assert action.status is Status.RUNNING
             hl.switch("idle")
             assert action.status is Status.INTERRUPTED
@@ -396,7 +403,7 @@ def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosConte
     sim, url, endpoint = started_vehicle(world, "quad")
     try:
         link = open_link(url)
-        link.wait_heartbeat(timeout_s=5.0)
+        link.wait_heartbeat(timeout_s=WALL_TIMEOUT_S)
         link.set_mode("GUIDED")
         link.arm(True)
         link.takeoff(2.0)
@@ -418,7 +425,7 @@ def test_a_copter_low_on_battery_returns_lands_and_tells_its_peers(ros: RosConte
             assert droid.status is Status.SUCCEEDED, droid.error
             assert droid.result["status"] == "battery-low" and droid.result["landed"]
             assert droid.result["told"] == ["copter_peer"]
-            news = peer.receive(timeout_s=2.0)
+            news = peer.receive(timeout_s=WALL_TIMEOUT_S)
             assert news.performative.value == "inform" and news.sender == "tired_copter"
             assert news.content["event"] == "battery-low" and news.content["returning"]
         quad = sim.robot("quad").position()  # type: ignore[attr-defined]
@@ -450,7 +457,7 @@ def test_a_malformed_mission_request_is_refused_with_its_reason(ros: RosContext)
                                 ({"waypoints": [{"lat_deg": 95, "lon_deg": 0, "alt_m": 3}]},
                                  "not on Earth")):
             with pytest.raises(ProtocolFailed) as refused:
-                request(giver, "mission_taker", content, timeout_s=5.0)
+                request(giver, "mission_taker", content, timeout_s=WALL_TIMEOUT_S)
             reply = refused.value.reply
             assert reply.performative.value == "refuse"  # type: ignore[attr-defined]
             assert reason in reply.content["reason"]  # type: ignore[attr-defined]
@@ -475,7 +482,8 @@ def test_a_mission_sent_to_another_agent_is_run_by_its_vehicle(ros: RosContext) 
                      "the responder's mailbox")
             # The sender's frame is the same vehicle's here: [north, east] in metres.
             hl_giver.register("send", SendMission, receiver="mission_runner",
-                              waypoints=[[2.0, 2.5]], connection=url, timeout_s=30.0)
+                              waypoints=[[2.0, 2.5]], connection=url,
+                              timeout_s=WALL_TIMEOUT_S)
             send = hl_giver.switch("send")
             assert send.wait(WALL_TIMEOUT_S), hl_giver.snapshot()
             assert send.status is Status.SUCCEEDED, send.error

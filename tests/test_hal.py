@@ -16,10 +16,14 @@ from beehave.hal import HAL, HALManager
 from beehave.logic import Logic
 from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.status import Status
+from beehave.testing import WALL_TIMEOUT_S, wall_timeout
 from beehave.testing import wait_until as _wait_until
 from hal.debug import DebugHAL, DebugRobot
 
-WAIT_S = 5.0
+WAIT_S = WALL_TIMEOUT_S  # the suite's one bound (beehave.testing): a safety net only
+# When a HAL that ignores cancellation is let go at last, for code that would wait for it for
+# ever: well after a loaded machine's unload, well before WAIT_S ends the test.
+LET_GO_S = wall_timeout(0.5)
 
 
 def manager_with_events(**kwargs: Any) -> tuple[HALManager, list[Event]]:
@@ -366,7 +370,7 @@ def test_unloading_a_hal_whose_run_ignores_cancellation_is_bounded_and_reported_
         assert isinstance(hal, Deaf)
         await asyncio.sleep(0.01)
         # a safety net for the unfixed code, which would wait for ever
-        asyncio.get_running_loop().call_later(2.0, setattr, hal, "let_go", True)
+        asyncio.get_running_loop().call_later(LET_GO_S, setattr, hal, "let_go", True)
         await manager.release("deaf")
         got = {"run_still_going": not hal.let_go, "status": hal.status, "safe": hal.safe,
                "loaded": dict(manager.loaded)}
@@ -459,10 +463,12 @@ def test_an_on_load_that_ignores_cancellation_is_reported_stuck_at_shutdown() ->
 
     async def main() -> tuple[int, set[asyncio.Task[Any]]]:
         loading = asyncio.create_task(manager.load("deaf"))
-        await asyncio.sleep(0.01)
+        deadline = asyncio.get_running_loop().time() + WAIT_S
+        while "deaf" not in manager._loaded and asyncio.get_running_loop().time() < deadline:
+            await asyncio.sleep(0.01)
         hal = manager._loaded["deaf"].hal
         assert isinstance(hal, Deaf)
-        asyncio.get_running_loop().call_later(2.0, setattr, hal, "let_go", True)  # safety net
+        asyncio.get_running_loop().call_later(LET_GO_S, setattr, hal, "let_go", True)  # safety net
         await manager.close()
         safe = hal.safe
         hal.let_go = True

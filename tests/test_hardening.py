@@ -119,7 +119,7 @@ def test_a_hanging_safe_state_becomes_stuck_and_does_not_block_the_switch(
 
         def safe_state(self) -> None:
             calls.append("safe")
-            release.wait(10)  # e.g. a service call to a dead driver
+            release.wait(WALL_TIMEOUT_S)  # e.g. a service call to a dead driver
 
     holder: list[Action] = []
 

@@ -165,7 +165,7 @@ def test_a_stopped_process_is_starvation_not_a_line_of_beehave() -> None:
         if proc.poll() is None:
             proc.send_signal(signal.SIGCONT)
             proc.kill()
-            proc.wait(10)
+            proc.wait(WALL_TIMEOUT_S)
     for report in reports:  # whatever caused it, beehave never blames itself
         assert "lowlevel.py" not in json.dumps(report), report
     stopped_reports = [r for r in reports if of_a_stop(r)]

@@ -18,10 +18,10 @@ from beehave.events import Event, EventKind
 from beehave.hal import HAL
 from beehave.logic import Logic
 from beehave.lowlevel import LowLevelBehaviorManager
-from beehave.testing import beehave_threads, wait_until
+from beehave.testing import WALL_TIMEOUT_S, beehave_threads, wait_until
 from hal.debug import DebugHAL, DebugRobot
 
-WAIT_S = 5.0  # safety net only
+WAIT_S = WALL_TIMEOUT_S  # the suite's one bound (beehave.testing): a safety net only
 
 
 class Blocker(Logic):
@@ -249,7 +249,7 @@ def test_a_loop_blocked_subscriber_that_calls_back_into_the_manager_keeps_calls_
     thread = threading.Thread(target=main, daemon=True)
     thread.start()
     # switch and shutdown are each bounded by about stop_timeout_s; a hang is the bug.
-    thread.join(3.0)
+    thread.join(WAIT_S)
     hung = thread.is_alive()
     gate.set()
     thread.join(WAIT_S)

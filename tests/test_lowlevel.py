@@ -23,9 +23,12 @@ from beehave.events import Event, EventKind, describe
 from beehave.logic import Logic
 from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.status import Status
+from beehave.testing import WALL_TIMEOUT_S
 from beehave.testing import wait_until as _wait_until
 
-WAIT_S = 5.0  # safety net only; nothing here waits that long when it works
+# The suite's one bound (beehave.testing): a safety net only; nothing here waits that long
+# when it works.
+WAIT_S = WALL_TIMEOUT_S
 
 
 class Forever(Logic):

@@ -103,7 +103,7 @@ def vehicles() -> Iterator[Vehicles]:
 
 def link_to(url: str, **options: Any) -> Any:
     link = open_link(url, timeout_s=0.3, **options)
-    link.wait_heartbeat(timeout_s=5.0)
+    link.wait_heartbeat(timeout_s=WALL_TIMEOUT_S)
     return link
 
 
@@ -165,7 +165,7 @@ def test_unexpected_and_foreign_messages_are_ignored_with_a_count(
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
             raw.sendto(b"\xfd\x09garbage-that-is-no-frame", ("127.0.0.1", port))
         vehicle.mav.mission_request_int_send(255, 190, 7)  # outside any upload: stray
-        deadline = time.monotonic() + 3.0
+        deadline = time.monotonic() + WALL_TIMEOUT_S
         while time.monotonic() < deadline and not link.ignored["message from system 42"]:
             time.sleep(0.02)
         assert link.ignored["message from system 42"] >= 1
@@ -186,9 +186,9 @@ def test_out_of_order_items_are_ignored_by_the_vehicle(
     items = link.mission_items(WAYPOINTS)
     with link.listen("MISSION_REQUEST_INT") as inbox:
         link.send(lambda mav: mav.mission_count_send(1, 1, len(items)))
-        assert inbox.wait(timeout_s=2.0, what="request 0").seq == 0
+        assert inbox.wait(timeout_s=WALL_TIMEOUT_S, what="request 0").seq == 0
         link.send(link._item_sender(items[3]))  # seq 3 when 0 is expected
-        deadline = time.monotonic() + 2.0
+        deadline = time.monotonic() + WALL_TIMEOUT_S
         while time.monotonic() < deadline and not vehicles.rover.ignored:
             time.sleep(0.02)
     assert any("out of order" in reason for reason in vehicles.rover.ignored)
@@ -257,7 +257,7 @@ def run_hals(url: str, body: Callable[[Blackboard], Any]) -> Any:
     return asyncio.run(main())
 
 
-async def until(predicate: Callable[[], bool], timeout_s: float = 5.0) -> None:
+async def until(predicate: Callable[[], bool], timeout_s: float = WALL_TIMEOUT_S) -> None:
     deadline = time.monotonic() + timeout_s
     while not predicate():
         assert time.monotonic() < deadline, "condition not met in time"
@@ -276,12 +276,12 @@ def test_hals_fill_the_blackboard_and_a_lost_heartbeat_makes_every_value_stale(
         assert board.get("position/north_m") == pytest.approx(2.0, abs=0.05)
         assert board.get("battery/percentage") == pytest.approx(100, abs=1)
         vehicles.rover.faults.silent = True
-        await until(lambda: board.get("vehicle/connected") is False, timeout_s=3.0)
+        await until(lambda: board.get("vehicle/connected") is False)
         for key in ("vehicle/mode", "position/east_m", "battery/percentage"):
             assert board.is_stale(key), key
         vehicles.rover.faults.silent = False
-        await until(lambda: board.get("vehicle/connected") is True, timeout_s=3.0)
-        await until(lambda: not board.is_stale("position/east_m"), timeout_s=3.0)
+        await until(lambda: board.get("vehicle/connected") is True)
+        await until(lambda: not board.is_stale("position/east_m"))
 
     run_hals(vehicles.rover_url, body)
 
@@ -324,7 +324,7 @@ def test_a_lost_heartbeat_stops_the_running_action_and_holds_the_vehicle(
     hl.register("go", Run, make=lambda: GotoPosition(2.0, 10.0, connection=url,
                                                      heartbeat_timeout_s=1.5))
     hl.switch("go")
-    deadline = time.monotonic() + 5.0
+    deadline = time.monotonic() + WALL_TIMEOUT_S
     while not (Run.started and vehicles.rover.mode == "GUIDED" and vehicles.rover.armed):
         assert time.monotonic() < deadline, (Run.started, hl.snapshot())
         time.sleep(0.02)
@@ -335,7 +335,7 @@ def test_a_lost_heartbeat_stops_the_running_action_and_holds_the_vehicle(
     assert isinstance(action.error, VehicleLost)
     vehicles.rover.faults.silent = False
     # Its safe state asked for HOLD; the vehicle got it once the link came back or before.
-    deadline = time.monotonic() + 3.0
+    deadline = time.monotonic() + WALL_TIMEOUT_S
     while vehicles.rover.mode != "HOLD" and time.monotonic() < deadline:
         if link.alive:
             link.request_mode("HOLD")  # the safe state's single message may have been lost
@@ -349,7 +349,8 @@ def test_a_rover_blocked_by_a_wall_stalls_with_its_remaining_waypoints(
     # Across the wall at x = 4: the rover reaches the first waypoint, then pushes the wall.
     waypoints = [[2.0, 3.0], [2.0, 9.0], [4.0, 9.0]]
     action = run_to_end(hl, "mission",
-                        lambda: RunMission(waypoints, connection=url, stall_s=1.0), 40.0)
+                        lambda: RunMission(waypoints, connection=url, stall_s=1.0),
+                        WALL_TIMEOUT_S)
     assert action.status is Status.FAILED
     assert vehicles.sim.error is None
     assert isinstance(action.error, MissionStalled), vehicles.sim.time_s
@@ -452,6 +453,10 @@ def test_the_worlds_mavlink_option_is_checked_and_numbers_the_vehicles() -> None
     finally:
         sim.close()
 
+# How long writes race the newcomers: a negative check (nothing breaks) runs to its end, so
+# it is short; a loaded machine makes it race less, never fail a right test.
+CHURN_S = 1.5
+
 
 def test_sending_while_new_peers_appear_never_breaks_the_link() -> None:
     """pymavlink's UDP server adds each new peer to a set that every write iterates: reads
@@ -473,7 +478,7 @@ def test_sending_while_new_peers_appear_never_breaks_the_link() -> None:
         thread.start()
     errors: list[BaseException] = []
     try:
-        deadline = time.monotonic() + 1.5
+        deadline = time.monotonic() + CHURN_S
         while time.monotonic() < deadline:
             try:
                 link.send(lambda mav: mav.heartbeat_send(6, 8, 0, 0, 4))
@@ -500,14 +505,15 @@ def test_return_home_that_takes_too_long_fails_with_a_mavlink_timeout(
     link.set_mode("GUIDED")
     link.arm(True)
     link.takeoff(2.0)
-    deadline = time.monotonic() + 10.0
+    deadline = time.monotonic() + WALL_TIMEOUT_S
     while link.local_position()[2] < 1.0:
         assert time.monotonic() < deadline, "the quad did not climb"
         time.sleep(0.05)
     # Airborne, the quad draws hover_w (150 W) on top of idle: amperes, not a trickle.
     assert vehicles.sim.robot("quad1").battery().current_a < -5.0
     # Climbing to RTL_ALT and landing takes seconds: 0.3 s is not enough.
-    action = run_to_end(hl, "home", lambda: ReturnHome(timeout_s=0.3, connection=url), 5.0)
+    action = run_to_end(hl, "home", lambda: ReturnHome(timeout_s=0.3, connection=url),
+                        WALL_TIMEOUT_S)
     assert action.status is Status.FAILED
     assert isinstance(action.error, MavlinkTimeout), action.error
     assert "not home after 0.3 s" in str(action.error)
@@ -529,8 +535,8 @@ def test_beehave_sim_mavlink_opens_one_port_per_vehicle() -> None:
     try:
         rover = open_link(f"udp:127.0.0.1:{base}")
         copter = open_link(f"udp:127.0.0.1:{base + 1}")
-        rover.wait_heartbeat(timeout_s=30.0)
-        copter.wait_heartbeat(timeout_s=10.0)
+        rover.wait_heartbeat(timeout_s=WALL_TIMEOUT_S)
+        copter.wait_heartbeat(timeout_s=WALL_TIMEOUT_S)
         assert (rover.kind, rover.system_id) == ("rover", 1)
         assert (copter.kind, copter.system_id) == ("copter", 2)
         rover.set_mode("GUIDED")
@@ -539,5 +545,5 @@ def test_beehave_sim_mavlink_opens_one_port_per_vehicle() -> None:
     finally:
         close_all_links()
         proc.terminate()
-        out, _ = proc.communicate(timeout=20.0)
+        out, _ = proc.communicate(timeout=WALL_TIMEOUT_S)
     assert "rover1 is MAVLink rover system 1" in out and f":{base + 1}" in out, out

@@ -794,5 +794,5 @@ def test_fuzzing_every_handled_message_never_stops_beehave_sim(tmp_path: Path) -
         for gs in stations:
             gs.close()
         proc.terminate()
-        out, _ = proc.communicate(timeout=30.0)
+        out, _ = proc.communicate(timeout=WALL_TIMEOUT_S)
     assert "Traceback" not in out and " ERROR " not in out, out

@@ -125,8 +125,8 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
         if gcs is not None:
             gcs.close()
         proc.terminate()
-        proc.wait(timeout=30.0)
-        reader.join(5.0)
+        proc.wait(timeout=WALL_TIMEOUT_S)
+        reader.join(WALL_TIMEOUT_S)
 
 
 def test_the_vehicle_signs_and_a_station_with_the_key_flies_it(rig: Rig) -> None:

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from beehave.testing import WALL_TIMEOUT_S, wall_timeout
+
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = str(ROOT / "tests" / "data" / "config" / "waits.yaml")
 
@@ -101,17 +103,17 @@ def test_run_world_takes_the_world_names_sim_takes() -> None:
             if match:
                 break
         assert match, "".join(lines)
-        world = httpx.get(match.group(1) + "api/world", timeout=10).json()
+        world = httpx.get(match.group(1) + "api/world", timeout=WALL_TIMEOUT_S).json()
         assert world["walls"] and world["floor"]
         shipped = (ROOT / "robots" / "worlds" / "warehouse.yaml").read_text()
         for station in world["stations"]:
             assert station["name"] in shipped
         proc.send_signal(signal.SIGINT)
-        rest = proc.communicate(timeout=120)[0]
+        rest = proc.communicate(timeout=wall_timeout(2.0))[0]
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.wait(10)
+            proc.wait(WALL_TIMEOUT_S)
     assert proc.returncode == 0, "".join(lines) + rest
 
 
@@ -122,7 +124,7 @@ def test_the_tutorial_shows_writing_the_blackboard_from_plain_python(tmp_path: P
     program = tmp_path / "blackboard.py"
     program.write_text("\n\n".join(re.findall(r"```python\n(.*?)```", section, re.S)))
     done = subprocess.run([sys.executable, str(program)], capture_output=True, text=True,
-                          timeout=60, cwd=tmp_path, env=_env())
+                          timeout=WALL_TIMEOUT_S, cwd=tmp_path, env=_env())
     assert done.returncode == 0, done.stderr
     assert "SUCCEEDED heading for dock" in done.stdout, done.stdout
 

@@ -21,7 +21,7 @@ from beehave.clock import SimClock
 from beehave.events import Event, EventBus, EventKind
 from beehave.lowlevel import LowLevelBehaviorManager
 from beehave.recording import Recorder, RecordingError, read_recording, recording_files
-from beehave.testing import WALL_TIMEOUT_S, wait_until
+from beehave.testing import WALL_TIMEOUT_S, wait_until, wall_timeout
 from behaviours.logics import LedLogic
 from hal.debug import DebugHAL, DebugRobot
 
@@ -162,7 +162,7 @@ def test_a_crash_leaves_the_file_readable_up_to_the_last_chunk(tmp_path: Path) -
         os._exit(3)  # dies without closing: no summary, no footer
     """)
     done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True,
-                          text=True, timeout=60)
+                          text=True, timeout=WALL_TIMEOUT_S)
     assert done.returncode == 3, done.stderr
     assert "flushed" in done.stdout
     rec = read_recording(path)
@@ -207,7 +207,7 @@ class _BlockedDisk(_Disk):
     def write(self, data: bytes) -> int:
         if not self._release.is_set():
             self.blocked.set()
-            self._release.wait(30)  # bounded: a broken test must not hang the suite
+            self._release.wait(WALL_TIMEOUT_S)  # bounded: a broken test must not hang the suite
         return super().write(data)
 
 
@@ -335,7 +335,7 @@ def test_beehave_run_records_into_mcap(tmp_path: Path) -> None:
     done = subprocess.run([sys.executable, "-m", "beehave.cli", "run",
                            str(ROOT / "tests" / "data" / "rosbot.yaml"), "--duration-s", "1.5",
                            "--record", str(path)], cwd=ROOT, env=env, capture_output=True,
-                          text=True, timeout=90)
+                          text=True, timeout=wall_timeout(1.5))
     assert done.returncode == 0, done.stderr
     assert f"into {path}" in done.stdout and "stopped cleanly" in done.stdout
     rec = read_recording(path)

@@ -71,7 +71,7 @@ def _record(path: Path) -> DebugRobot:
 
         def busy() -> None:
             entered.set()
-            release.wait(5)
+            release.wait(WALL_TIMEOUT_S)
 
         loop = low.loop
         assert loop is not None

@@ -106,7 +106,7 @@ def test_the_clock_knows_who_is_due_to_run() -> None:
     assert clock.ready()
     clock.set_time(1.0)
     assert woke.wait(WALL_TIMEOUT_S)
-    thread.join(2)
+    thread.join(WALL_TIMEOUT_S)
     assert clock.parked() == set() and not clock.ready()
 
 

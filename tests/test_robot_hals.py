@@ -30,7 +30,7 @@ import hal.kobuki as kobuki_hals  # noqa: E402
 from beehave import Logic, LowLevelBehaviorManager  # noqa: E402
 from beehave.hal import ENTRY_POINT_GROUP, HAL, HALManager  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
-from beehave.testing import beehave_threads, wait_until  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, beehave_threads, wait_until  # noqa: E402
 from robots.errors import CommandOutOfRange  # noqa: E402
 from robots.kobuki import LED_COLORS, Kobuki  # noqa: E402
 from robots.node import SimNode  # noqa: E402
@@ -43,6 +43,9 @@ pytestmark = pytest.mark.xdist_group("test_robot_hals")
 T = TypeVar("T")
 EMILI = f"hal_emili_{os.getpid()}"
 KOBUKI = f"hal_kobuki_{os.getpid()}"
+# A negative check (no wake-up while standing still) runs to its end: short on purpose; a
+# loaded machine can only make it see fewer messages, never fail a right HAL.
+STILL_S = 0.3
 
 
 @dataclass
@@ -87,7 +90,7 @@ class SimHALContract(HALContract):
     """The HAL contract for a ROS-backed HAL of ``robot`` ("emili" or "kobuki")."""
 
     robot: ClassVar[str] = "emili"
-    settle_timeout_s: ClassVar[float] = 5.0
+    settle_timeout_s: ClassVar[float] = WALL_TIMEOUT_S
 
     @pytest.fixture(autouse=True)
     def _rig(self, rig: Rig) -> None:
@@ -227,13 +230,13 @@ def low_level(rig: Rig) -> Iterator[Callable[[str], LowLevelBehaviorManager]]:
 
 
 def load(ll: LowLevelBehaviorManager, name: str, cls: type[T]) -> T:
-    hal = ll.call(ll.hals.load(name), timeout_s=5)
+    hal = ll.call(ll.hals.load(name), timeout_s=WALL_TIMEOUT_S)
     assert isinstance(hal, cls)
     return hal
 
 
 def fresh(ll: LowLevelBehaviorManager, key: str, predicate: Callable[[Any], bool] = bool,
-          timeout_s: float = 5.0) -> Any:
+          timeout_s: float = WALL_TIMEOUT_S) -> Any:
     """Wait for a fresh value of ``key`` that satisfies ``predicate``; return it."""
     assert wait_until(lambda: not ll.blackboard.is_stale(key)
                       and predicate(ll.blackboard.get(key)), timeout_s), \
@@ -258,7 +261,7 @@ def test_odometry_battery_and_line_values(low_level: Callable[[str], LowLevelBeh
                                           rig: Rig) -> None:
     ll = low_level("emili")
     for name in ("odometry", "battery", "line_sensor"):
-        ll.call(ll.hals.load(name), timeout_s=5)
+        ll.call(ll.hals.load(name), timeout_s=WALL_TIMEOUT_S)
     assert fresh(ll, "odom/x_m", lambda v: v is not None) == pytest.approx(6.0, abs=0.02)
     assert ll.blackboard.get("odom/y_m") == pytest.approx(5.0, abs=0.02)
     assert ll.blackboard.get("odom/yaw_rad") == pytest.approx(0.0, abs=0.01)
@@ -279,11 +282,11 @@ def test_odometry_deadband_wakes_only_for_relevant_moves(
     fresh(ll, "odom/x_m", lambda v: v is not None)
     seen: list[float] = []
     ll.call(_subscribe(ll, "odom/x_m", seen))
-    time.sleep(0.3)  # ~1 s of sim time standing still: ~50 messages, no relevant change
+    time.sleep(STILL_S)  # ~1 s of sim time standing still: ~50 messages, no relevant change
     assert len(seen) <= 1
     kobuki = rig.sim.kobuki(KOBUKI)
     start = len(seen)
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + WALL_TIMEOUT_S
     while kobuki.pose().x_m < 7.3 and time.monotonic() < deadline:
         kobuki.set_cmd_vel(0.3, 0.0)
         time.sleep(0.02)
@@ -380,14 +383,14 @@ def test_a_logic_reacts_to_the_bumper_of_the_simulated_kobuki(rig: Rig) -> None:
     ll.register("bump_leds", BumpLeds)
     with ll:
         assert wait_until(lambda: kobuki.leds()[0] == "green")
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + WALL_TIMEOUT_S
         while not kobuki.bumpers().center and time.monotonic() < deadline:
             kobuki.set_cmd_vel(0.3, 0.0)
             time.sleep(0.02)
         assert fresh(ll, "bumper/center", lambda v: v is True)
         assert wait_until(lambda: kobuki.leds()[0] == "red")
         # Back off: the bumper releases, the LED turns green again.
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + WALL_TIMEOUT_S
         while kobuki.bumpers().center and time.monotonic() < deadline:
             kobuki.set_cmd_vel(-0.2, 0.0)
             time.sleep(0.02)
@@ -402,7 +405,7 @@ def test_unload_destroys_the_hals_ros_entities(
     node = rig.nodes["emili"]
     subs, pubs = len(list(node.subscriptions)), len(list(node.publishers))
     for name in ("lift", "emili_leds", "display", "laser"):
-        ll.call(ll.hals.load(name), timeout_s=5)
+        ll.call(ll.hals.load(name), timeout_s=WALL_TIMEOUT_S)
     assert len(list(node.subscriptions)) == subs + 4
     assert len(list(node.publishers)) == pubs + 3
     sim_side = rig.sim_node.ports[EMILI].node

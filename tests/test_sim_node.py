@@ -36,7 +36,7 @@ from sensor_msgs.msg import BatteryState, LaserScan  # noqa: E402
 from std_msgs.msg import ColorRGBA, Float64, Int32, String  # noqa: E402
 
 from beehave.ros.context import RosContext  # noqa: E402
-from beehave.testing import beehave_threads, wait_until  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, beehave_threads, wait_until  # noqa: E402
 from robots import topics  # noqa: E402
 from robots.node import SimNode, sim_main  # noqa: E402
 from robots.sim import Simulation  # noqa: E402
@@ -44,6 +44,9 @@ from robots.world import World, world_from_dict  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 REAL_TIME_FACTOR = 4.0
+# Negative checks (the robot stays put, no more odometry, the sim holds) run to their end:
+# short on purpose. A loaded machine can only make them see less, never fail a right node.
+QUIET_S = 0.3
 _ids = itertools.count()
 
 
@@ -154,7 +157,7 @@ def test_cmd_vel_drives_the_robot_and_the_watchdog_stops_it(rig: Rig) -> None:
     assert rig.sim.robot(rig.emili).cmd_vel() == (0.0, 0.0)
     x = odom[-1].pose.pose.position.x
     assert x < 7.0  # stopped well before the wall
-    time.sleep(0.2)
+    time.sleep(QUIET_S)
     assert odom[-1].pose.pose.position.x == pytest.approx(x, abs=0.005)
 
 
@@ -327,7 +330,7 @@ def test_destroy_removes_the_nodes_and_callbacks(rig: Rig) -> None:
     assert rig.probe.wait(lambda: rig.probe.publishers(topic) == 0
                           and rig.probe.publishers(topics.CLOCK) == 0)
     count = len(odom)
-    time.sleep(0.1)
+    time.sleep(QUIET_S)
     assert len(odom) == count
     assert rig.sim.state.value == "running"  # the simulation goes on without ROS
     rig.node.destroy()  # idempotent
@@ -359,7 +362,7 @@ def test_beehave_sim_runs_until_sigint(tmp_path: Path) -> None:
         odom = probe.record(Odometry, f"/{ns}/odom")
         assert probe.wait(lambda: bool(odom))
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=20)
+        out, err = proc.communicate(timeout=WALL_TIMEOUT_S)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -398,12 +401,12 @@ def test_lockstep_holds_the_sim_where_a_participant_is_due_until_it_answers(rig:
         # the node after the sim passed hold_s; it then holds at once.)
         time.sleep(0.05)
         held_at = rig.sim.time_s
-        time.sleep(0.3)
+        time.sleep(QUIET_S)
         assert not rig.node.dropped, rig.node.dropped
         assert rig.sim.time_s <= held_at + 2 * rig.sim.step_s
     finally:
         alive.set()
-        keeper.join(2)
+        keeper.join(WALL_TIMEOUT_S)
     # ...and /clock says it has reached the held time, so the participant wakes.
     assert rig.probe.wait(lambda: bool(clocks) and stamp_s(clocks[-1]) >= hold_s - 1e-6)
     pub.publish(lockstep(me, None))  # let go
@@ -463,7 +466,7 @@ def test_destroy_leaves_a_gate_that_is_not_its_own(rig: Rig) -> None:
     remove = rig.sim.set_gate(lambda time_s: holding)
     rig.node.destroy()
     held_at = rig.sim.time_s
-    time.sleep(0.3)  # at 4x, 1.2 s of sim time if it ran
+    time.sleep(QUIET_S)  # at 4x, 1.2 s of sim time if it ran
     assert rig.sim.time_s <= held_at + rig.sim.step_s
     assert rig.sim.gate is not None
     holding = False

@@ -144,7 +144,7 @@ def test_a_wildcard_never_re_enters_its_destination(hl: HighLevelBehaviorManager
         with stepped:
             seen = len(steps)
             hl.blackboard.set("battery/percentage", level)
-            assert stepped.wait_for(lambda n=seen: len(steps) > n, timeout=5)
+            assert stepped.wait_for(lambda n=seen: len(steps) > n, timeout=WALL_TIMEOUT_S)
     assert len(charge.built) == 1, "the wildcard re-entered its own destination"
     assert charge.built[0].status is Status.RUNNING and charge.built[0].safe_state_calls == 0
     assert behavior.status is Status.RUNNING

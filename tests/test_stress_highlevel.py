@@ -14,7 +14,7 @@ import time
 from typing import Any
 
 from beehave import ActionTypeBusy, BeehaveError, Behavior, HighLevelBehaviorManager, Status
-from beehave.testing import ScriptedAction, Timeline, beehave_threads, wait_until
+from beehave.testing import ScriptedAction, Timeline, beehave_threads, wait_until, wall_timeout
 
 TYPES = ["driving", "lifting", "sound", "leds"]
 THREADS = 8
@@ -114,7 +114,7 @@ def test_random_operations_keep_every_invariant() -> None:
         for t in threads:
             t.start()
         for t in threads:
-            t.join(120)
+            t.join(wall_timeout(2.0))
         assert not any(t.is_alive() for t in threads)
         # Make sure the run contains a STUCK action whatever the interleaving was.
         top: Any = hl.switch("w1", seed=1)

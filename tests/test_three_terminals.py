@@ -26,10 +26,13 @@ pytest.importorskip("rclpy")
 from nav_msgs.msg import Odometry  # noqa: E402
 from ros_probe import Probe  # noqa: E402
 
+from beehave.testing import WALL_TIMEOUT_S, wall_timeout  # noqa: E402
 from robots.world import load_world  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 TOLERANCE_M = 0.15  # Navigation's default tolerance_m, which Commanded uses
+# The order agent's own bound on the order (its --timeout-s), a share of the suite's bound.
+ORDER_S = wall_timeout(1.5)
 
 
 def _start(*args: str) -> subprocess.Popen[str]:
@@ -50,9 +53,10 @@ def test_readme_three_terminals_order_to_emili_pickup_goes_around_the_pillar() -
         assert probe.wait(lambda: bool(odom)), "no odometry from the sim"
         # Terminal 3, as the README gives it: switch to commanded, then the order.
         agent = _start("-m", "behaviours.demos.order_agent", "emili1", "--switch", "commanded",
-                       "--station", "emili_pickup", "--timeout-s", "90")
+                       "--station", "emili_pickup",
+                       "--timeout-s", str(ORDER_S))
         procs.append(agent)
-        out, _ = agent.communicate(timeout=100)
+        out, _ = agent.communicate(timeout=ORDER_S + wall_timeout(0.25))
         assert agent.returncode == 0, out
         assert '"status": "reached"' in out, out
         # The physics: the sim's odometry is ground truth.
@@ -68,7 +72,7 @@ def test_readme_three_terminals_order_to_emili_pickup_goes_around_the_pillar() -
                 proc.terminate()
         for proc in procs:
             try:
-                proc.communicate(timeout=10)
+                proc.communicate(timeout=WALL_TIMEOUT_S)
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.communicate()

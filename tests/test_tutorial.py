@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from beehave.testing import WALL_TIMEOUT_S
+
 ROOT = Path(__file__).resolve().parent.parent
 TUTORIAL = ROOT / "docs" / "tutorial.md"
 EXAMPLE = ROOT / "examples" / "patrol.py"
@@ -23,7 +25,7 @@ def test_the_tutorial_code_runs_as_written(tmp_path: Path) -> None:
     program = tmp_path / "tutorial.py"
     program.write_text("\n\n".join(section_one_blocks()))
     done = subprocess.run([sys.executable, str(program)], capture_output=True, text=True,
-                          timeout=60, cwd=tmp_path)
+                          timeout=WALL_TIMEOUT_S, cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     out = done.stdout
     assert "switched; speed right after the switch: 0.0\n" in out, out

@@ -38,6 +38,9 @@ __all__ = ["broker"]  # the fixture, imported for pytest
 
 SERIAL = "agv7"
 EDGE_S = 0.3
+# A negative check (no connection comes about) runs to its end: short on purpose; a loaded
+# machine can only make it miss a wrong connection, never fail a right refusal.
+UNCONNECTED_S = 1.5
 
 
 # ---- a map and a robot stand-in ---------------------------------------------------------
@@ -110,7 +113,7 @@ class Agv:
 
     def __init__(self, broker: Broker, **more: Any) -> None:
         FakeDrive.where, FakeDrive.done = (0.0, 0.0), []
-        self.hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+        self.hl = HighLevelBehaviorManager(stop_timeout_s=WALL_TIMEOUT_S)
         self.interface = Vda5050Interface(options(broker.port, **more), high=self.hl,
                                           executor=FakeDrive)
         self.interface._position = lambda: FakeDrive.where  # type: ignore[method-assign]
@@ -132,7 +135,7 @@ def agv(broker: Broker) -> Iterator[Agv]:
     made = Agv(broker)
     try:
         made.master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
-                             timeout_s=10)
+                             timeout_s=WALL_TIMEOUT_S)
         yield made
     finally:
         made.close()
@@ -293,13 +296,13 @@ def test_bad_orders_are_refused_naming_the_field(
 # ---- the interface on a real broker -----------------------------------------------------
 
 def test_connection_online_then_factsheet_and_state_validate(agv: Agv) -> None:
-    sheet = agv.master.wait_for("factsheet", lambda m: True, timeout_s=5)
+    sheet = agv.master.wait_for("factsheet", lambda m: True, timeout_s=WALL_TIMEOUT_S)
     actions = {a["actionType"]: a["actionScopes"]
                for a in sheet["protocolFeatures"]["agvActions"]}
     assert actions["pick"] == ["NODE", "EDGE"] and actions["cancelOrder"] == ["INSTANT"]
-    state = agv.master.wait_state(lambda s: True, timeout_s=5)
+    state = agv.master.wait_state(lambda s: True, timeout_s=WALL_TIMEOUT_S)
     assert state["orderId"] == "" and state["errors"] == []
-    agv.master.wait_for("visualization", lambda m: True, timeout_s=5)
+    agv.master.wait_for("visualization", lambda m: True, timeout_s=WALL_TIMEOUT_S)
 
 
 def test_state_is_repeated_without_changes_and_never_less_often_than_every_30_s(
@@ -308,13 +311,13 @@ def test_state_is_repeated_without_changes_and_never_less_often_than_every_30_s(
     the AGV alive); a longer configured period is cut to the standard's 30 s."""
     made = Agv(broker, state_period_s=0.2, visualization_rate_hz=1.0)
     try:
-        first = made.master.wait_state(lambda s: True, timeout_s=10)
+        first = made.master.wait_state(lambda s: True, timeout_s=WALL_TIMEOUT_S)
         # Three more states with nothing changed (the header counts them).
         made.master.wait_state(lambda s: s["headerId"] >= first["headerId"] + 3,
-                               timeout_s=10)
+                               timeout_s=WALL_TIMEOUT_S)
     finally:
         made.close()
-    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    hl = HighLevelBehaviorManager(stop_timeout_s=WALL_TIMEOUT_S)
     lazy = Vda5050Interface(options(broker.port, state_period_s=120.0), high=hl,
                             executor=FakeDrive)
     assert lazy.state_period_s == 30.0
@@ -325,13 +328,13 @@ def test_order_is_executed_node_by_node_with_its_actions(agv: Agv) -> None:
     agv.master.order("o1", 0, three_nodes())
     done = agv.master.wait_state(
         lambda s: s["lastNodeId"] == "n2" and all(
-            a["actionStatus"] == "FINISHED" for a in s["actionStates"]), timeout_s=10)
+            a["actionStatus"] == "FINISHED" for a in s["actionStates"]), timeout_s=WALL_TIMEOUT_S)
     assert done["nodeStates"] == [] and done["edgeStates"] == []
     assert FakeDrive.done == ["n0", "n1", "p1", "n2", "d1"]
     # Every step was reported as it happened: n1 reached while p1 still waited.
     agv.master.wait_state(lambda s: s["lastNodeId"] == "n1" and any(
         a["actionId"] == "d1" and a["actionStatus"] == "WAITING" for a in s["actionStates"]),
-        timeout_s=1)
+        timeout_s=WALL_TIMEOUT_S)
 
 
 def test_stale_update_is_refused_in_the_state_while_the_order_runs_on(agv: Agv) -> None:
@@ -339,12 +342,12 @@ def test_stale_update_is_refused_in_the_state_while_the_order_runs_on(agv: Agv) 
     agv.master.order("o1", 2, nodes)
     agv.master.order("o1", 1, [nodes[2], node("n3", 6, x=7.0, y=0.0)])
     state = agv.master.wait_state(lambda s: bool(errors_of(s, "orderUpdateError")),
-                                  timeout_s=5)
+                                  timeout_s=WALL_TIMEOUT_S)
     error = errors_of(state, "orderUpdateError")[0]
     assert refs(error)["orderUpdateId"] == "1" and "older than the current 2" in \
         error["errorDescription"]
     done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and all(
-        a["actionStatus"] == "FINISHED" for a in s["actionStates"]), timeout_s=10)
+        a["actionStatus"] == "FINISHED" for a in s["actionStates"]), timeout_s=WALL_TIMEOUT_S)
     assert done["orderUpdateId"] == 2
     assert FakeDrive.done == ["n0", "n1", "p1", "n2", "d1"]
 
@@ -354,9 +357,9 @@ def test_update_stitched_while_driving(agv: Agv) -> None:
             node("h2", 4, x=2.0, y=0.0, released=False)]
     agv.master.order("o1", 0, base)
     agv.master.wait_state(lambda s: s["newBaseRequest"] is True or s["lastNodeId"] == "n1",
-                          timeout_s=5)
+                          timeout_s=WALL_TIMEOUT_S)
     agv.master.order("o1", 1, [node("n1", 2, x=1.0, y=0.0), node("n2", 4, x=2.0, y=0.0)])
-    done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=5)
+    done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=WALL_TIMEOUT_S)
     assert done["orderUpdateId"] == 1 and done["errors"] == []
     assert FakeDrive.done == ["n0", "n1", "n2"]
 
@@ -369,7 +372,7 @@ def test_invalid_messages_become_validation_errors(agv: Agv, payload: Any,
                                                    field: str | None) -> None:
     agv.master.send("order", payload)
     state = agv.master.wait_state(lambda s: bool(errors_of(s, "validationError")),
-                                  timeout_s=5)
+                                  timeout_s=WALL_TIMEOUT_S)
     error = errors_of(state, "validationError")[0]
     assert refs(error)["topic"] == "order"  # the topic name (7.1), not the MQTT topic
     if field is None:
@@ -384,7 +387,7 @@ def test_an_order_for_another_serial_number_is_refused(agv: Agv) -> None:
                "orderUpdateId": 0, "nodes": [node("n0", 0, x=0.0, y=0.0)], "edges": []}
     agv.master.send("order", message)
     state = agv.master.wait_state(lambda s: bool(errors_of(s, "validationError")),
-                                  timeout_s=5)
+                                  timeout_s=WALL_TIMEOUT_S)
     assert refs(errors_of(state, "validationError")[0])["field"] == "serialNumber"
     assert state["orderId"] == ""
 
@@ -392,7 +395,7 @@ def test_an_order_for_another_serial_number_is_refused(agv: Agv) -> None:
 def test_unknown_instant_action_is_refused_in_the_state(agv: Agv) -> None:
     agv.master.instant(action("teleport", "i1"))
     state = agv.master.wait_state(lambda s: bool(errors_of(s, "validationError")),
-                                  timeout_s=5)
+                                  timeout_s=WALL_TIMEOUT_S)
     assert refs(errors_of(state, "validationError")[0])["field"] == "actions[0].actionType"
     assert {"actionId": "i1", "actionType": "teleport", "actionStatus": "FAILED"}.items() <= \
         next(a for a in state["actionStates"] if a["actionId"] == "i1").items()
@@ -400,11 +403,11 @@ def test_unknown_instant_action_is_refused_in_the_state(agv: Agv) -> None:
 
 def test_cancel_order_mid_edge_stops_and_fails_the_rest(agv: Agv) -> None:
     agv.master.order("o1", 0, three_nodes())
-    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=5)
+    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=WALL_TIMEOUT_S)
     agv.master.instant(action("cancelOrder", "c1"))
     state = agv.master.wait_state(lambda s: any(
         a["actionId"] == "c1" and a["actionStatus"] == "FINISHED"
-        for a in s["actionStates"]), timeout_s=5)
+        for a in s["actionStates"]), timeout_s=WALL_TIMEOUT_S)
     status = {a["actionId"]: a["actionStatus"] for a in state["actionStates"]}
     assert status == {"p1": "FAILED", "d1": "FAILED", "c1": "FINISHED"}
     assert state["nodeStates"] == [] and state["edgeStates"] == []
@@ -413,31 +416,33 @@ def test_cancel_order_mid_edge_stops_and_fails_the_rest(agv: Agv) -> None:
     assert "n1" not in FakeDrive.done
     # Nothing left to cancel: the standard's error.
     agv.master.instant(action("cancelOrder", "c2"))
-    agv.master.wait_state(lambda s: bool(errors_of(s, "noOrderToCancel")), timeout_s=5)
+    agv.master.wait_state(lambda s: bool(errors_of(s, "noOrderToCancel")), timeout_s=WALL_TIMEOUT_S)
     # And a new order is taken after the cancel.
     agv.master.order("o2", 0, [node("n0", 0, x=0.0, y=0.0)])
     agv.master.wait_state(lambda s: s["orderId"] == "o2" and s["lastNodeId"] == "n0",
-                          timeout_s=5)
+                          timeout_s=WALL_TIMEOUT_S)
 
 
 def test_pause_and_resume(agv: Agv) -> None:
     agv.master.order("o1", 0, three_nodes())
-    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=5)
+    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=WALL_TIMEOUT_S)
     agv.master.instant(action("startPause", "s1"))
-    paused = agv.master.wait_state(lambda s: s["paused"] is True, timeout_s=5)
+    paused = agv.master.wait_state(lambda s: s["paused"] is True, timeout_s=WALL_TIMEOUT_S)
     reached = paused["lastNodeId"]
     agv.master.wait_state(lambda s: any(a["actionId"] == "s1" and a["actionStatus"] ==
-                                        "FINISHED" for a in s["actionStates"]), timeout_s=5)
+                                        "FINISHED" for a in s["actionStates"]),
+                          timeout_s=WALL_TIMEOUT_S)
     done_when_paused = list(FakeDrive.done)
     time.sleep(2 * EDGE_S)  # long enough to reach the next node, had the pause not held
     agv.master.instant(action("stateRequest", "r1"))
     still = agv.master.wait_state(lambda s: any(a["actionId"] == "r1"
-                                                for a in s["actionStates"]), timeout_s=5)
+                                                for a in s["actionStates"]),
+                                  timeout_s=WALL_TIMEOUT_S)
     assert still["lastNodeId"] == reached and still["paused"] is True
     assert FakeDrive.done == done_when_paused
     agv.master.instant(action("stopPause", "s2"))
     done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and not s["paused"],
-                                 timeout_s=10)
+                                 timeout_s=WALL_TIMEOUT_S)
     assert {a["actionId"]: a["actionStatus"] for a in done["actionStates"]}["d1"] in (
         "RUNNING", "FINISHED", "WAITING")
     assert FakeDrive.done.count("n2") == 1
@@ -447,15 +452,15 @@ def test_a_pause_from_elsewhere_shows_on_the_state_and_holds_the_order(agv: Agv)
     """A pause through ROS 2 or the web page (here the core call they make) is the same
     pause: the master sees ``paused`` and no node is reached until the resume."""
     agv.master.order("o1", 0, three_nodes())
-    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=5)
+    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=WALL_TIMEOUT_S)
     agv.hl.pause()
-    paused = agv.master.wait_state(lambda s: s["paused"] is True, timeout_s=5)
+    paused = agv.master.wait_state(lambda s: s["paused"] is True, timeout_s=WALL_TIMEOUT_S)
     done_when_paused = list(FakeDrive.done)
     time.sleep(2 * EDGE_S)  # long enough to reach the next node, had the pause not held
     assert FakeDrive.done == done_when_paused and paused["lastNodeId"] == "n0"
     agv.hl.resume()
     agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and not s["paused"],
-                          timeout_s=10)
+                          timeout_s=WALL_TIMEOUT_S)
 
 
 def test_broker_killed_and_restarted(broker: Broker) -> None:
@@ -463,18 +468,18 @@ def test_broker_killed_and_restarted(broker: Broker) -> None:
     try:
         master = made.master
         master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
-                        timeout_s=10)
+                        timeout_s=WALL_TIMEOUT_S)
         master.order("o1", 0, three_nodes())
-        master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=5)
+        master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=WALL_TIMEOUT_S)
         # A second master on the broker sees the AGV's last will when the AGV's link
         # breaks; kill the broker, restart it, and the AGV reconnects on its own.
         broker.restart()
         master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE"
-                        and m["headerId"] >= 2, timeout_s=15)
+                        and m["headerId"] >= 2, timeout_s=WALL_TIMEOUT_S)
         assert made.interface.connects >= 2
         # The master resends the order it is not sure arrived: not executed twice.
         master.order("o1", 0, three_nodes())
-        master.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=10)
+        master.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=WALL_TIMEOUT_S)
         assert FakeDrive.done.count("n1") == 1 and FakeDrive.done.count("p1") == 1
     finally:
         made.close()
@@ -488,16 +493,17 @@ def test_a_resend_is_answered_with_a_state(broker: Broker) -> None:
     late = None
     try:
         made.master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
-                             timeout_s=10)
+                             timeout_s=WALL_TIMEOUT_S)
         made.master.order("o1", 0, three_nodes())
         made.master.wait_state(lambda s: s["lastNodeId"] == "n2" and not s["driving"]
                                and all(a["actionStatus"] == "FINISHED"
-                                       for a in s["actionStates"]), timeout_s=10)
+                                       for a in s["actionStates"]), timeout_s=WALL_TIMEOUT_S)
         late = Master(broker.port, serial_number=SERIAL)
-        late.wait_for("connection", lambda m: m["connectionState"] == "ONLINE", timeout_s=10)
+        late.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
+                      timeout_s=WALL_TIMEOUT_S)
         late._header = made.master._header  # the same master's headerIds, continued
         late.order("o1", 0, three_nodes())
-        state = late.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=5)
+        state = late.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=WALL_TIMEOUT_S)
         assert state["orderId"] == "o1" and state["errors"] == []
         assert FakeDrive.done.count("n1") == 1 and FakeDrive.done.count("d1") == 1
     finally:
@@ -512,20 +518,20 @@ def test_the_last_will_says_connection_broken(broker: Broker) -> None:
     made = Agv(broker)
     try:
         watcher.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
-                         timeout_s=10)
+                         timeout_s=WALL_TIMEOUT_S)
         # Cut the AGV's link without a DISCONNECT (as a crash or a cable would): the
         # broker publishes the will.
         assert made.interface._client is not None
         made.interface._client._sock_close()  # type: ignore[attr-defined]
         watcher.wait_for("connection", lambda m: m["connectionState"] == "CONNECTIONBROKEN",
-                         timeout_s=15)
+                         timeout_s=WALL_TIMEOUT_S)
         last = watcher.wait_for("connection", lambda m: m["connectionState"] == "ONLINE"
-                                and m["headerId"] >= 2, timeout_s=15)
+                                and m["headerId"] >= 2, timeout_s=WALL_TIMEOUT_S)
         assert last["serialNumber"] == SERIAL
     finally:
         made.close()
         watcher.wait_for("connection", lambda m: m["connectionState"] == "OFFLINE",
-                         timeout_s=5)
+                         timeout_s=WALL_TIMEOUT_S)
         watcher.close()
     assert not watcher.invalid
 
@@ -540,7 +546,7 @@ def test_config_errors_name_the_key() -> None:
 
 
 def test_username_from_a_missing_environment_variable_is_refused(broker: Broker) -> None:
-    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    hl = HighLevelBehaviorManager(stop_timeout_s=WALL_TIMEOUT_S)
     interface = Vda5050Interface(options(broker.port, broker={
         "port": broker.port, "username_env": "BEEHAVE_TEST_NO_SUCH_VAR"}),
         high=hl, executor=FakeDrive)
@@ -559,14 +565,14 @@ def _start_unconnected(port: int, broker_options: dict[str, Any],
                        caplog: pytest.LogCaptureFixture) -> None:
     """Start an AGV with ``broker_options``; it must not connect within 1.5 s (its
     warnings land in ``caplog``). Closed again either way."""
-    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    hl = HighLevelBehaviorManager(stop_timeout_s=WALL_TIMEOUT_S)
     interface = Vda5050Interface(options(port, broker=broker_options), high=hl,
                                  executor=FakeDrive)
     plane = ControlPlane(hl, name="t")
     try:
         with caplog.at_level("WARNING", logger="beehave.interfaces.vda5050.agv"):
             interface.start(control=plane)
-            assert not interface.connected.wait(1.5)
+            assert not interface.connected.wait(UNCONNECTED_S)
     finally:
         interface.close()
         plane.close()
@@ -586,7 +592,7 @@ def test_username_password_from_the_environment_over_tls(
         broker_options = {"port": secure.port, "username_env": "BEEHAVE_TEST_VDA_USER",
                           "password_env": "BEEHAVE_TEST_VDA_PASSWORD", "tls": True,
                           "ca_file": str(tls_files.cafile), "reconnect_max_s": 1.0}
-        hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+        hl = HighLevelBehaviorManager(stop_timeout_s=WALL_TIMEOUT_S)
         interface = Vda5050Interface(options(secure.port, broker=broker_options), high=hl,
                                      executor=FakeDrive)
         hl.start()
@@ -596,9 +602,9 @@ def test_username_password_from_the_environment_over_tls(
         try:
             interface.start(control=plane)
             master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
-                            timeout_s=10)
+                            timeout_s=WALL_TIMEOUT_S)
             master.order("o1", 0, three_nodes())
-            master.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=10)
+            master.wait_state(lambda s: s["lastNodeId"] == "n2", timeout_s=WALL_TIMEOUT_S)
         finally:
             hl.shutdown()
             interface.close()
@@ -624,14 +630,14 @@ def test_tls_without_the_brokers_ca_does_not_connect(
 def test_no_broker_is_reported_and_retried_until_one_appears(
         caplog: pytest.LogCaptureFixture) -> None:
     late = Broker()
-    made_hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    made_hl = HighLevelBehaviorManager(stop_timeout_s=WALL_TIMEOUT_S)
     interface = Vda5050Interface(options(late.port), high=made_hl, executor=FakeDrive)
     made_hl.start()
     plane = ControlPlane(made_hl, name="t")
     try:
         with caplog.at_level("WARNING", logger="beehave.interfaces.vda5050.agv"):
             interface.start(control=plane)
-            assert not interface.connected.wait(1.5)
+            assert not interface.connected.wait(UNCONNECTED_S)
         assert f"no MQTT broker reachable at 127.0.0.1:{late.port}" in caplog.text
         with late:
             assert interface.connected.wait(WALL_TIMEOUT_S), \
@@ -663,7 +669,7 @@ def test_beehave_broker_serves_until_sigterm() -> None:
         client.disconnect()
     finally:
         proc.terminate()
-        out, _ = proc.communicate(timeout=10)
+        out, _ = proc.communicate(timeout=WALL_TIMEOUT_S)
     assert proc.returncode == 0 and "broker stopped" in out, out
 
 
@@ -729,28 +735,28 @@ def test_charging_and_factsheet_instant_actions(agv: Agv) -> None:
     state = agv.master.wait_state(lambda s: {"c-away", "f1"} <= {
         a["actionId"] for a in s["actionStates"] if a["actionStatus"] in ("FINISHED",
                                                                         "FAILED")},
-        timeout_s=5)
+        timeout_s=WALL_TIMEOUT_S)
     status = {a["actionId"]: a["actionStatus"] for a in state["actionStates"]}
     assert status["c-away"] == "FAILED" and status["f1"] == "FINISHED"
     assert errors_of(state, "chargingError")
     agv.master.wait_for("factsheet", lambda m: len(agv.master.received["factsheet"]) >
-                        sheets, timeout_s=5)
+                        sheets, timeout_s=WALL_TIMEOUT_S)
     FakeDrive.where = LineMap.STATIONS["dock"]
     agv.master.instant(action("startCharging", "c-dock"), action("stopCharging", "c-off"))
     agv.master.wait_state(lambda s: {"c-dock", "c-off"} <= {
         a["actionId"] for a in s["actionStates"] if a["actionStatus"] == "FINISHED"},
-        timeout_s=5)
+        timeout_s=WALL_TIMEOUT_S)
 
 
 def test_malformed_messages_during_an_order_do_not_disturb_it(agv: Agv) -> None:
     agv.master.order("o1", 0, three_nodes())
-    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=5)
+    agv.master.wait_state(lambda s: s["lastNodeId"] == "n0", timeout_s=WALL_TIMEOUT_S)
     agv.master.send("order", b"{broken")
     agv.master.send("order", {**agv.master.header(), "orderId": "o1", "orderUpdateId": 1,
                               "nodes": "not a list", "edges": []})
     agv.master.send("instantActions", {**agv.master.header(), "actions": [{"x": 1}]})
     done = agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and all(
-        a["actionStatus"] == "FINISHED" for a in s["actionStates"]), timeout_s=10)
+        a["actionStatus"] == "FINISHED" for a in s["actionStates"]), timeout_s=WALL_TIMEOUT_S)
     assert done["orderUpdateId"] == 0 and len(errors_of(done, "validationError")) == 3
     assert FakeDrive.done == ["n0", "n1", "p1", "n2", "d1"]
 

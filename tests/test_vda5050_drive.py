@@ -20,6 +20,8 @@ pytest.importorskip("rclpy")
 
 from mqtt_broker import Broker, Master, edge, node  # noqa: E402
 
+from beehave.testing import WALL_TIMEOUT_S, wall_timeout  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
 SPEED_MPS = 0.6  # speed_mps of robots/config/emili_vda5050.yaml: an edge's default
 SLOW_MPS = 0.4  # maxSpeed of the edge n1 -> n2
@@ -56,8 +58,9 @@ def test_emili_passes_nodes_without_actions_at_speed() -> None:
         sim.start()
         robot.start()
         master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
-                        timeout_s=60)
-        here = master.wait_state(lambda s: "agvPosition" in s, timeout_s=60)["agvPosition"]
+                        timeout_s=WALL_TIMEOUT_S)
+        here = master.wait_state(lambda s: "agvPosition" in s,
+                                 timeout_s=WALL_TIMEOUT_S)["agvPosition"]
         x0, y0 = here["x"], here["y"]
         nodes = [node(f"n{i}", 2 * i, x=x0 + i, y=y0) for i in range(4)]
         for n in nodes:
@@ -65,7 +68,7 @@ def test_emili_passes_nodes_without_actions_at_speed() -> None:
         edges = [edge(a, b) for a, b in zip(nodes, nodes[1:], strict=False)]
         edges[1]["maxSpeed"] = SLOW_MPS
         master.order("o1", 0, nodes, edges)
-        done = master.wait_state(lambda s: s["lastNodeId"] == "n3", timeout_s=120)
+        done = master.wait_state(lambda s: s["lastNodeId"] == "n3", timeout_s=wall_timeout(2.0))
         assert done["errors"] == [] and done["nodeStates"] == []
         reported = [s["lastNodeId"] for s in list(master.received["state"])]
         assert "n1" in reported and "n2" in reported  # each node reported as passed

@@ -27,6 +27,7 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from ros_probe import Probe  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
 
+from beehave.testing import WALL_TIMEOUT_S, wall_timeout  # noqa: E402
 from robots.world import load_world  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -59,8 +60,8 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             procs.append(_start("-m", "beehave.cli", "sim", "--fast"))
             procs.append(_start("-m", "beehave.cli", "run", str(path)))
             master.wait_for("connection", lambda m: m["connectionState"] == "ONLINE",
-                            timeout_s=60)
-            master.wait_state(lambda s: "agvPosition" in s, timeout_s=60)
+                            timeout_s=WALL_TIMEOUT_S)
+            master.wait_state(lambda s: "agvPosition" in s, timeout_s=WALL_TIMEOUT_S)
             # The probe must hear the lift before it moves (discovery is slow on a loaded
             # machine): else the pick's rise is missed and the check reads only its end.
             assert probe.wait(lambda: bool(lift) and bool(odom)), "no lift/odom probe"
@@ -71,14 +72,16 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             n2 = node("emili_dropoff", 4, actions=[action("drop", "drop1")])
             master.order("o1", 1, [n0, n1, {**n2, "released": False}],
                          [edge(n0, n1), {**edge(n1, n2), "released": False}])
-            master.wait_state(lambda s: s["driving"], timeout_s=30)
+            master.wait_state(lambda s: s["driving"], timeout_s=WALL_TIMEOUT_S)
             master.order("o1", 0, [n1, n2])  # stale: refused, the order goes on
             refused = master.wait_state(lambda s: any(
-                e["errorType"] == "orderUpdateError" for e in s["errors"]), timeout_s=10)
+                e["errorType"] == "orderUpdateError" for e in s["errors"]),
+                timeout_s=WALL_TIMEOUT_S)
             assert refused["orderUpdateId"] == 1
             master.order("o1", 2, [n1, n2], [edge(n1, n2)])  # stitched at n1
             done = master.wait_state(lambda s: s["lastNodeId"] == "emili_dropoff" and
-                                     _status(s).get("drop1") == "FINISHED", timeout_s=60)
+                                     _status(s).get("drop1") == "FINISHED",
+                                     timeout_s=WALL_TIMEOUT_S)
             assert _status(done) == {"pick1": "FINISHED", "drop1": "FINISHED"}
             assert done["errors"] == [] and done["loads"] == []
             # The physics: ground-truth pose in the drop-off station, the lift went up to
@@ -98,12 +101,13 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             back = node("back", 6, x=4.0, y=2.0, actions=[action("pick", "pick2")])
             here = node("emili_dropoff", 4)
             master.order("o2", 0, [here, back], [edge(here, back)])
-            master.wait_state(lambda s: s["orderId"] == "o2" and s["driving"], timeout_s=30)
+            master.wait_state(lambda s: s["orderId"] == "o2" and s["driving"],
+                              timeout_s=WALL_TIMEOUT_S)
             assert probe.wait(lambda: abs(odom[-1].twist.twist.linear.x) > 0.05)
             t_cancel = _stamp_s(odom[-1])  # sim time, the sim's own odometry stamp
             master.instant(action("cancelOrder", "cancel1"))
             cancelled = master.wait_state(
-                lambda s: _status(s).get("cancel1") == "FINISHED", timeout_s=10)
+                lambda s: _status(s).get("cancel1") == "FINISHED", timeout_s=WALL_TIMEOUT_S)
             assert _status(cancelled)["pick2"] == "FAILED"
             # 6.6.3 / 6.12: FINISHED (cancel) and RUNNING (a HARD pick) at a standstill.
             assert cancelled["driving"] is False, cancelled["velocity"]
@@ -129,7 +133,7 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             outputs = []
             for proc in procs:
                 try:
-                    outputs.append(proc.communicate(timeout=15)[0])
+                    outputs.append(proc.communicate(timeout=WALL_TIMEOUT_S)[0])
                 except subprocess.TimeoutExpired:
                     proc.kill()
                     outputs.append(proc.communicate()[0])
@@ -155,7 +159,8 @@ def test_beehave_run_reports_an_unreachable_broker_and_keeps_retrying(
     path.write_text(yaml.safe_dump(config))
     proc = subprocess.run([sys.executable, "-m", "beehave.cli", "run", str(path),
                            "--only", "high", "--duration-s", "6"], cwd=ROOT,
-                          env=dict(os.environ), capture_output=True, text=True, timeout=90)
+                          env=dict(os.environ), capture_output=True, text=True,
+                          timeout=wall_timeout(1.5))
     reported = proc.stderr.count(f"no MQTT broker reachable at 127.0.0.1:{port}; retrying")
     assert reported >= 2, proc.stderr[-3000:]
     assert proc.returncode == 0 and "stopped cleanly" in proc.stdout, \
@@ -167,7 +172,8 @@ def test_beehave_demo_vda5050_checks_the_physics(tmp_path: Path) -> None:
     physics checks printed, the picture written, exit 0 because every check held."""
     proc = subprocess.run([sys.executable, "-m", "beehave.cli", "demo", "--vda5050",
                            "--fast", "--out", str(tmp_path)], cwd=ROOT, env=dict(os.environ),
-                          capture_output=True, text=True, timeout=110)
+                          capture_output=True, text=True,
+                          timeout=wall_timeout(2.0))
     out = proc.stdout
     assert proc.returncode == 0, (out[-3000:], proc.stderr[-3000:])
     assert "order timeline" in out and "lastNodeId: emili_dropoff" in out, out[-3000:]
