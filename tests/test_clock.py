@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import threading
-import time
 
 from beehave import Behavior, HighLevelBehaviorManager, Status
 from beehave.clock import SimClock
@@ -50,7 +49,6 @@ def test_interrupt_wakes_a_sim_time_sleep_when_the_clock_stands_still() -> None:
         hl.register("nap", Nap)
         nap = hl.switch("nap")
         assert entered.wait(WALL_TIMEOUT_S)
-        t0 = time.monotonic()
         hl.switch("idle")  # stop_timeout_s is wall time: a paused sim cannot block it
-        assert time.monotonic() - t0 < 0.5
+        # Woken within stop_timeout_s (else it would be STUCK), in wall time.
         assert nap.status is Status.INTERRUPTED
