@@ -2,8 +2,11 @@
 headless chromium, then kept live at 20 Hz.
 
 - render: a fresh graph from a snapshot and its structure (build, layout: dagre for a state
-  machine, cytoscape's breadth-first for a tree; the paint of the next frame), timed in
-  the page with ``performance.now()``: median of 5, target ≤ 200 ms;
+  machine, d3-hierarchy's tidy tree for a tree; the paint of the next frame), timed in
+  the page with ``performance.now()``: median of 5, target ≤ 200 ms; beside it the
+  renderer thread's CPU per render, and whether the tree drawn is still right (each child
+  below its parent, siblings left to right in tick order, no two boxes overlapping: a
+  faster render that draws a wrong tree does not count);
 - update at 20 Hz: a fresh page (the renders' graphs gone) connected to a robot running
   the engine (statuses change at every tick), over ``WINDOW_S``: the CPU time of the
   renderer's main thread (Chrome's own ``ThreadTime``, DevTools protocol
@@ -42,6 +45,46 @@ _RENDER = """async ([snapshot, structures, renders, cold]) => {
     box.remove();
   }
   return times;
+}"""
+
+# The tree as drawn (beehaveGraph.inspect): [children not below their parent, sibling
+# pairs out of tick order, overlapping pairs of boxes in a row]. Ids end in the node's
+# pre-order index (graph.js: idOf("n", engine, index)).
+_CHECK_TREE = """([snapshot, structures]) => {
+  const box = document.createElement("div");
+  box.style.cssText = "position:fixed;left:0;top:0;width:900px;height:700px;z-index:99";
+  document.body.append(box);
+  beehaveGraph.render(box, snapshot, {structures});
+  const g = beehaveGraph.inspect(box);
+  box.remove();
+  const byId = new Map(g.nodes.map((n) => [n.id, n]));
+  const index = (id) => +id.split("__").pop();
+  let above = 0, order = 0, overlaps = 0;
+  const kids = new Map();
+  for (const e of g.edges) {
+    const p = byId.get(e.source), c = byId.get(e.target);
+    if (!(c.center.y > p.center.y)) above++;
+    if (!kids.has(e.source)) kids.set(e.source, []);
+    kids.get(e.source).push(c);
+  }
+  for (const list of kids.values()) {
+    list.sort((a, b) => index(a.id) - index(b.id));
+    for (let i = 1; i < list.length; i++) if (!(list[i].center.x > list[i - 1].center.x)) order++;
+  }
+  const rows = new Map();
+  for (const n of g.nodes) {
+    const y = Math.round(n.center.y * 100);
+    if (!rows.has(y)) rows.set(y, []);
+    rows.get(y).push(n);
+  }
+  for (const row of rows.values()) {
+    row.sort((a, b) => a.center.x - b.center.x);
+    for (let i = 1; i < row.length; i++) {
+      const a = row[i - 1], b = row[i];
+      if (a.center.x + a.size.w / 2 > b.center.x - b.size.w / 2) overlaps++;
+    }
+  }
+  return [above, order, overlaps, g.nodes.length];
 }"""
 
 _WRAP = """() => {
@@ -102,14 +145,24 @@ def graph_view() -> list[dict[str, Any]]:
                     again = page.evaluate(_RENDER, [snapshot, structures, RENDERS, False])
                     again_cpu = _metrics(cdp)["ThreadTime"] - after["ThreadTime"]
                     render_ms = median(times)
+                    drawing = {}
+                    if name == "tree":
+                        above, order, overlaps, drawn = page.evaluate(
+                            _CHECK_TREE, [snapshot, structures])
+                        drawing = {"drawing_ok": not (above or order or overlaps)
+                                   and drawn == size,
+                                   "drawing": {"not_below_parent": above,
+                                               "siblings_out_of_order": order,
+                                               "overlapping": overlaps, "nodes": drawn}}
                     cpu_ms = (after["ThreadTime"] - before["ThreadTime"]) * 1e3 / RENDERS
                     rows.append(report(
                         f"http_graph_render_{name}_ms", render_ms, "ms", "<= 200 ms",
-                        render_ms <= 200.0, max_ms=round(max(times), 1),
+                        render_ms <= 200.0 and drawing.get("drawing_ok", True),
+                        max_ms=round(max(times), 1),
                         main_thread_cpu_ms=round(cpu_ms, 1),
                         layout_kept_ms=round(median(again), 1),
                         layout_kept_cpu_ms=round(again_cpu * 1e3 / RENDERS, 1), nodes=size,
-                        load_average=round(os.getloadavg()[0], 1),
+                        load_average=round(os.getloadavg()[0], 1), **drawing,
                         note="fresh graph from a snapshot: build + layout + paint "
                              "(wall, median; main_thread_cpu_ms: the renderer thread's CPU "
                              "per render, what a busy host does not inflate); layout_kept: "
