@@ -1,7 +1,8 @@
 """The web view's graphs (issue 28): a 300-node tree and a 60-state machine drawn in
 headless chromium, then kept live at 20 Hz.
 
-- render: a fresh graph from a snapshot and its structure (build, layout: dagre for a state
+- render (in a page whose own graph is empty: the robot idle meanwhile): a fresh graph
+  from a snapshot and its structure (build, layout: dagre for a state
   machine, d3-hierarchy's tidy tree for a tree; the paint of the next frame), timed in
   the page with ``performance.now()``: median of 5, target ≤ 200 ms; beside it the
   renderer thread's CPU per render, and whether the tree drawn is still right (each child
@@ -13,12 +14,20 @@ headless chromium, then kept live at 20 Hz.
   ``Performance.getMetrics``) ÷ wall time, target ≤ 25 %; beside it that CPU per update
   received (a starved renderer receives fewer), the share of the graph renderer alone and
   the updates the page received per second.
+
+A/B of graph.js versions (``python -m benchmarks._graph_view OLD.js NEW.js [...]``): each
+version loaded into the same page under its own name, renders of each big graph
+interleaved (A B B A A B …) on the same host at the same moment, each render's renderer
+CPU read around it; each graph destroyed after its render. A busy host inflates every
+figure but alike, which separate runs cannot promise.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 import time
+from pathlib import Path
 from typing import Any
 
 from beehave import HighLevelBehaviorManager
@@ -31,7 +40,16 @@ CHROMIUM = "/usr/bin/chromium"
 RENDERS = 5
 WINDOW_S = 10.0
 
+# Each graph is ended after its render (the page has one; ten left alive, each with its
+# frame loop and observers, would slow the next). graph.js before destroy(): its cytoscape.
+_DESTROY = """(g, box) => {
+  if (g.destroy) return g.destroy(box);
+  const canvas = box.querySelector(".bh-graph-canvas");
+  if (canvas && canvas._cyreg && canvas._cyreg.cy) canvas._cyreg.cy.destroy();
+}"""
+
 _RENDER = """async ([snapshot, structures, renders, cold]) => {
+  const destroy = (box) => (""" + _DESTROY + """)(beehaveGraph, box);
   const times = [];
   for (let i = 0; i < renders; i++) {
     if (cold && beehaveGraph.layouts) beehaveGraph.layouts.clear();  // laid out anew
@@ -42,6 +60,7 @@ _RENDER = """async ([snapshot, structures, renders, cold]) => {
     beehaveGraph.render(box, snapshot, {structures});
     await new Promise((r) => requestAnimationFrame(() => setTimeout(r, 0)));  // painted
     times.push(performance.now() - t0);
+    destroy(box);
     box.remove();
   }
   return times;
@@ -98,6 +117,23 @@ _WRAP = """() => {
 }"""
 
 
+_AB_RENDER = """async ([i, name]) => {
+  const graph = window.__graphAB[i];
+  const [snapshot, structures] = window.__graphABSnapshots[name];
+  if (graph.layouts) graph.layouts.clear();
+  const box = document.createElement("div");
+  box.style.cssText = "position:fixed;left:0;top:0;width:900px;height:700px;z-index:99";
+  document.body.append(box);
+  const t0 = performance.now();
+  graph.render(box, snapshot, {structures});
+  await new Promise((r) => requestAnimationFrame(() => setTimeout(r, 0)));
+  const ms = performance.now() - t0;
+  (""" + _DESTROY + """)(graph, box);
+  box.remove();
+  return ms;
+}"""
+
+
 def _metrics(cdp: Any) -> dict[str, float]:
     return {m["name"]: m["value"] for m in cdp.send("Performance.getMetrics")["metrics"]}
 
@@ -138,6 +174,13 @@ def graph_view() -> list[dict[str, Any]]:
                     page, cdp = live_page()
                     snapshot = plane.snapshot()
                     structures = plane.structures()
+                    # The renders in a quiet page: with the engine live, its page spent
+                    # ~9 ms on each of the 20 updates a second, counted in a render's CPU
+                    # (the more so the longer a loaded host made the render last).
+                    hl.switch("idle")
+                    page.wait_for_function(
+                        "+document.querySelector('#graphs').dataset.engines === 0",
+                        timeout=60_000)
                     before = _metrics(cdp)
                     times = page.evaluate(_RENDER, [snapshot, structures, RENDERS, True])
                     after = _metrics(cdp)
@@ -167,9 +210,9 @@ def graph_view() -> list[dict[str, Any]]:
                              "(wall, median; main_thread_cpu_ms: the renderer thread's CPU "
                              "per render, what a busy host does not inflate); layout_kept: "
                              "the same with the structure's layout already computed"))
-                    # The renders left their graphs (cytoscape instances, each with its
-                    # frame loop) in that page: the live figure gets a fresh one.
+                    # The live figure in a fresh page, the engine running again.
                     page.close()
+                    hl.switch(name)
                     page, cdp = live_page()
                     page.evaluate(_WRAP)
                     updates0 = page.evaluate("window.beehave.updates")
@@ -210,3 +253,79 @@ def graph_view() -> list[dict[str, Any]]:
         plane.close()
         hl.shutdown()
     return rows
+
+
+def graph_render_ab(versions: list[Path], *, pages: int = 3,
+                    rounds: int = 6) -> list[dict[str, Any]]:
+    """Render time and renderer CPU of each graph.js in ``versions``, interleaved in one
+    page (``pages`` fresh pages, ``rounds`` renders of each version of each graph per
+    page): one row per graph and version, medians."""
+    from playwright.sync_api import sync_playwright
+
+    from beehave.testing import wait_until
+    from behaviours.demos.graphs import big_machine, big_tree
+
+    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
+    engines = {"tree": big_tree(300), "state_machine": big_machine(60)}
+    for name, engine in engines.items():
+        hl.register(name, EngineBehavior, engine=engine)
+    hl.start()
+    plane = ControlPlane(hl, name="robot")
+    snapshots = {}
+    samples: dict[tuple[str, int], dict[str, list[float]]] = {
+        (name, i): {"wall": [], "cpu": []} for name in engines for i in range(len(versions))}
+    try:
+        for name in engines:
+            hl.switch(name)
+            assert wait_until(lambda: bool(plane.snapshot().get("engines"))
+                              and bool(plane.structures()))
+            snapshots[name] = [plane.snapshot(), plane.structures()]
+        hl.switch("idle")  # the page's own graph stays empty: the renders alone
+        with HttpServer(plane, rate_hz=20.0) as server, sync_playwright() as playwright:
+            browser = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
+            try:
+                for _ in range(pages):
+                    page = browser.new_page(viewport={"width": 1280, "height": 800})
+                    page.goto(server.url)
+                    page.wait_for_function("window.beehaveGraph && window.beehave")
+                    page.evaluate("(s) => { window.__graphAB = []; "
+                                  "window.__graphABSnapshots = s; }", snapshots)
+                    for i, path in enumerate(versions):
+                        src = path.read_text().replace(
+                            "window.beehaveGraph = (", f"window.__graphAB[{i}] = (", 1)
+                        page.add_script_tag(content=src.replace(
+                            "window.beehaveGraph.", f"window.__graphAB[{i}]."))
+                    cdp = page.context.new_cdp_session(page)
+                    cdp.send("Performance.enable")
+                    for name in engines:
+                        for i in range(len(versions)):  # compiled before it counts
+                            page.evaluate(_AB_RENDER, [i, name])
+                        for r in range(rounds):
+                            order = list(range(len(versions)))
+                            for i in order[::-1] if r % 2 else order:
+                                before = _metrics(cdp)["ThreadTime"]
+                                ms = page.evaluate(_AB_RENDER, [i, name])
+                                cpu = _metrics(cdp)["ThreadTime"] - before
+                                samples[(name, i)]["wall"].append(ms)
+                                samples[(name, i)]["cpu"].append(cpu * 1e3)
+                    page.close()
+            finally:
+                browser.close()
+    finally:
+        plane.close()
+        hl.shutdown()
+    return [report(f"http_graph_render_{name}_ab_ms", median(samples[(name, i)]["wall"]),
+                   "ms", version=str(path),
+                   main_thread_cpu_ms=round(median(samples[(name, i)]["cpu"]), 1),
+                   main_thread_cpu_min_ms=round(min(samples[(name, i)]["cpu"]), 1),
+                   renders=len(samples[(name, i)]["cpu"]),
+                   load_average=round(os.getloadavg()[0], 1))
+            for name in engines for i, path in enumerate(versions)]
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 3:
+        raise SystemExit("usage: python -m benchmarks._graph_view OLD.js NEW.js [...] "
+                         "(graph.js versions, e.g. `git show HEAD~1:beehave/interfaces/"
+                         "http/static/graph.js > /tmp/old.js`)")
+    graph_render_ab([Path(p) for p in sys.argv[1:]])  # one JSON line per graph and version

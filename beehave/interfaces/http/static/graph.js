@@ -18,6 +18,7 @@
 //     structures: optional list as GET /structure returns it (else fetched and cached);
 //     breakpoints: optional {state: [...], node: [...], action_type: [...]} to mark.
 //   beehaveGraph.inspect(container) -> {nodes, edges, zoom, pan} (tests, debugging)
+//   beehaveGraph.destroy(container): ends the view (its cytoscape instance) and empties it.
 //   beehaveGraph.breakpointsPanel(container, robot) -> the breakpoint controls.
 "use strict";
 
@@ -172,9 +173,12 @@ window.beehaveGraph = (() => {
 
   // The viewport that fits boxes of known sizes: what cy.fit() does without asking
   // cytoscape for every element's bounding box (which styles and measures them all first).
-  function fitBoxes(cy, boxes) {
+  // A hidden view (no size yet) is fitted when it gets one (makeView: on "resize").
+  function fitBoxes(v, boxes) {
+    const cy = v.cy;
     const width = cy.width(), height = cy.height();
-    if (!width || !height || !boxes.length) return;
+    v.unfitted = !width || !height;
+    if (v.unfitted || !boxes.length) return;
     let x1 = Infinity, y1 = Infinity, x2 = -Infinity, y2 = -Infinity;
     for (const b of boxes) {
       x1 = Math.min(x1, b.x - b.w / 2); x2 = Math.max(x2, b.x + b.w / 2);
@@ -202,7 +206,7 @@ window.beehaveGraph = (() => {
     items.sort((a, b) => (engineOrder.get(a.engine) - engineOrder.get(b.engine)) || (a.order - b.order));
     const positions = tidy(items);
     cy.batch(() => cy.nodes(".tnode").positions((n) => positions.get(n.id())));
-    fitBoxes(cy, items.map((d) => Object.assign({w: d.w, h: d.h}, positions.get(d.id))));
+    fitBoxes(v, items.map((d) => Object.assign({w: d.w, h: d.h}, positions.get(d.id))));
   }
 
   function build(engines, v) {
@@ -316,6 +320,9 @@ window.beehaveGraph = (() => {
     mk("+", "zoom in", () => cy.zoom({level: cy.zoom() * 1.25, renderedPosition: center(cy)}));
     mk("−", "zoom out", () => cy.zoom({level: cy.zoom() / 1.25, renderedPosition: center(cy)}));
     cy.on("tap", "node.engine, node.composite", (evt) => toggle(v, evt.target.id()));
+    cy.on("resize", () => {
+      if (v.unfitted && cy.width() && cy.height()) { v.unfitted = false; cy.fit(undefined, PADDING); }
+    });
     cy.on("dbltap", "node[bpKind]", (evt) => {
       const d = evt.target.data();
       if (v.options.onToggle) v.options.onToggle(d.bpKind, d.bpTarget);
@@ -500,7 +507,7 @@ window.beehaveGraph = (() => {
         for (const id of v.collapsed) collapse(v, id);
       });
       statusUpdate(v, engines);
-      if (v.fitTo) fitBoxes(v.cy, v.fitTo);  // trees alone: laid out in build
+      if (v.fitTo) fitBoxes(v, v.fitTo);  // trees alone: laid out in build
       else if (engines.length) layout(v);
       v.lastLayoutMs = performance.now() - started;
     } else {
@@ -533,6 +540,16 @@ window.beehaveGraph = (() => {
       edges: cy.edges().map((e) => ({id: e.id(), source: e.source().id(), target: e.target().id(),
         label: e.data("label") || "", visible: e.visible(), classes: e.classes()})),
     };
+  }
+
+  // Ends a view: its cytoscape instance (frame loop, observers, canvases) and its state.
+  function destroy(container) {
+    const v = views.get(container);
+    if (!v) return;
+    v.cy.destroy();
+    views.delete(container);
+    container.replaceChildren();
+    container.classList.remove("bh-graph");
   }
 
   function tap(container, id) {
@@ -606,7 +623,8 @@ window.beehaveGraph = (() => {
     };
   }
 
-  return {render, inspect, tap, breakpointsPanel, structures, layouts, STATUS_COLOURS, ACTIVE};
+  return {render, inspect, tap, destroy, breakpointsPanel, structures, layouts, STATUS_COLOURS,
+          ACTIVE};
 })();
 
 // The page's hook (app.js calls window.beehaveGraphHook(robot, snapshot) after each render
