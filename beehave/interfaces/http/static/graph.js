@@ -1,5 +1,6 @@
-// beehave graphs: the decision engines of a robot drawn as graphs (cytoscape.js, laid out
-// by dagre through cytoscape-dagre; both vendored under /static/vendor, see its README).
+// beehave graphs: the decision engines of a robot drawn as graphs (cytoscape.js; state
+// machines laid out by dagre through cytoscape-dagre, trees by d3-hierarchy's tidy tree;
+// all vendored under /static/vendor, see its README).
 //
 // State machines: one node per state, transitions as edges labelled "on [when] [not
 // unless]", the initial state marked, the active state highlighted. Trees: drawn as trees
@@ -17,6 +18,7 @@
 //     structures: optional list as GET /structure returns it (else fetched and cached);
 //     breakpoints: optional {state: [...], node: [...], action_type: [...]} to mark.
 //   beehaveGraph.inspect(container) -> {nodes, edges, zoom, pan} (tests, debugging)
+//   beehaveGraph.destroy(container): ends the view (its cytoscape instance) and empties it.
 //   beehaveGraph.breakpointsPanel(container, robot) -> the breakpoint controls.
 "use strict";
 
@@ -25,9 +27,9 @@ window.beehaveGraph = (() => {
                           INVALID: "#b9bcc2"};
   const ACTIVE = "#f2b01e";
   const structures = new Map();   // structure_id -> structure
-  // Laid out once per structure (and set of collapsed boxes): a second view of it (another
-  // robot's with the same engine, a past moment, collapse and expand back) reuses the
-  // positions. Positions only depend on the structure; the view fits them to its size.
+  // Laid out by dagre once per structure (and set of collapsed boxes): a second view of it
+  // (another robot's with the same engine, a past moment, collapse and expand back) reuses
+  // the positions. Positions only depend on the structure; the view fits them to its size.
   const LAYOUTS_KEPT = 32;
   const layouts = new Map();      // v.key + collapsed ids -> {node id: position}
   const pending = new Map();      // robot -> Promise (one structure fetch at a time)
@@ -64,9 +66,13 @@ window.beehaveGraph = (() => {
     return pending.get(robot);
   }
 
+  // Every property a rule gives costs each element it matches at its first style pass
+  // (cytoscape applies it, dirties the element's caches and its edges' and tells the
+  // renderer): what is a default is not written again, and a tree's edges, most of the
+  // elements of a big tree, get five properties, not twenty.
   const STYLE = [
     {selector: "node", style: {
-      "label": "data(label)", "text-valign": "center", "text-halign": "center",
+      "label": "data(label)", "text-valign": "center",
       "text-wrap": "wrap", "text-max-width": 150, "font-size": 11, "color": "#1f2328",
       "shape": "round-rectangle",
       "background-color": "#ffffff", "border-width": 1.5, "border-color": "#8a8f96",
@@ -87,7 +93,6 @@ window.beehaveGraph = (() => {
     // update (its bounding boxes), a colour only repaints.
     {selector: "node.state.active", style: {"background-color": ACTIVE,
       "border-color": "#9a6a00"}},
-    {selector: "node.tnode", style: {"shape": "round-rectangle"}},
     {selector: "node.composite", style: {"shape": "cut-rectangle"}},
     {selector: "node.st-RUNNING", style: {"background-color": STATUS_COLOURS.RUNNING,
       "color": "#ffffff", "border-color": "#1b4f91"}},
@@ -100,14 +105,14 @@ window.beehaveGraph = (() => {
       "outline-offset": 2, "outline-style": "solid"}},
     {selector: "node.hit", style: {"outline-width": 5, "outline-color": "#b4169a",
       "underlay-color": "#b4169a", "underlay-padding": 8, "underlay-opacity": 0.35}},
-    {selector: "edge", style: {
-      "width": 2, "line-color": "#8a8f96", "target-arrow-color": "#8a8f96",
-      "target-arrow-shape": "triangle", "curve-style": "bezier", "arrow-scale": 0.9,
-      "label": "data(label)", "font-size": 10, "text-rotation": "none",
+    {selector: "edge", style: {"width": 2, "line-color": "#8a8f96", "curve-style": "bezier"}},
+    {selector: "edge.tree-edge", style: {"curve-style": "taxi", "taxi-direction": "downward"}},
+    {selector: "edge.transition, edge.start", style: {"target-arrow-color": "#8a8f96",
+      "target-arrow-shape": "triangle", "arrow-scale": 0.9}},
+    {selector: "edge.transition", style: {
+      "label": "data(label)", "font-size": 10,
       "text-background-color": "#ffffff", "text-background-opacity": 0.9,
       "text-background-padding": 2, "color": "#444a52", "min-zoomed-font-size": 6}},
-    {selector: "edge.tree-edge", style: {"curve-style": "taxi", "taxi-direction": "downward",
-      "target-arrow-shape": "none", "label": ""}},
     {selector: "edge.last", style: {"line-color": ACTIVE, "target-arrow-color": "#9a6a00"}},
     {selector: "edge.nested", style: {"line-style": "dashed", "target-arrow-shape": "none"}},
   ];
@@ -132,9 +137,82 @@ window.beehaveGraph = (() => {
     return data;
   }
 
-  function build(engines) {
+  // Trees alone (no state machine, no nested box) are laid out before they are added: a
+  // tidy tree (d3-hierarchy: Reingold–Tilford in Buchheim's linear time), parent centred
+  // above its children, siblings left to right in tick order, each subtree as narrow as
+  // its nodes allow. The elements go into cytoscape once, with their positions, classes
+  // and statuses: one style pass, no layout pass, the viewport fitted from the positions
+  // (cytoscape's own fit would measure every element first).
+  const TREE_GAP_X = 18;   // px between neighbours (twice that between cousins)
+  const TREE_GAP_Y = 40;   // px between rows
+  const PADDING = 16;
+
+  const treesAlone = (engines) => Boolean(window.d3 && window.d3.tree) && engines.every((e) =>
+    e.kind === "behaviour_tree" && !parentEngine(e.path, engines.map((x) => x.path)));
+
+  // items: [{id, parent (an id or null), w, h}], parents before children, siblings in tick
+  // order (the order of the structure's nodes). Several roots sit side by side.
+  function tidy(items) {
+    const ROOT = "\u0000";
+    const roots = items.filter((d) => d.parent === null);
+    const all = roots.length === 1 ? items : [{id: ROOT, parent: null, w: 0, h: 0},
+      ...items.map((d) => (d.parent === null ? Object.assign({}, d, {parent: ROOT}) : d))];
+    const root = window.d3.stratify().id((d) => d.id).parentId((d) => d.parent)(all);
+    // nodeSize 1: x comes out in the separation's unit, pixels.
+    window.d3.tree().nodeSize([1, 1]).separation((a, b) =>
+      (a.data.w + b.data.w) / 2 + (a.parent === b.parent ? TREE_GAP_X : 2 * TREE_GAP_X))(root);
+    const rowH = [];
+    root.each((n) => { rowH[n.depth] = Math.max(rowH[n.depth] || 0, n.data.h); });
+    const rowY = [];
+    let y = 0;
+    for (let d = 0; d < rowH.length; d++) { rowY[d] = y + rowH[d] / 2; y += rowH[d] + TREE_GAP_Y; }
+    const positions = new Map();
+    root.each((n) => { if (n.id !== ROOT) positions.set(n.id, {x: n.x, y: rowY[n.depth]}); });
+    return positions;
+  }
+
+  // The viewport that fits boxes of known sizes: what cy.fit() does without asking
+  // cytoscape for every element's bounding box (which styles and measures them all first).
+  // A hidden view (no size yet) is fitted when it gets one (makeView: on "resize").
+  function fitBoxes(v, boxes) {
+    const cy = v.cy;
+    const width = cy.width(), height = cy.height();
+    v.unfitted = !width || !height;
+    if (v.unfitted || !boxes.length) return;
+    let x1 = Infinity, y1 = Infinity, x2 = -Infinity, y2 = -Infinity;
+    for (const b of boxes) {
+      x1 = Math.min(x1, b.x - b.w / 2); x2 = Math.max(x2, b.x + b.w / 2);
+      y1 = Math.min(y1, b.y - b.h / 2); y2 = Math.max(y2, b.y + b.h / 2);
+    }
+    const border = 2;
+    x1 -= border; y1 -= border; x2 += border; y2 += border;
+    const zoom = Math.min(cy.maxZoom(), Math.max(cy.minZoom(), Math.min(
+      (width - 2 * PADDING) / (x2 - x1), (height - 2 * PADDING) / (y2 - y1))));
+    cy.viewport({zoom, pan: {x: width / 2 - zoom * (x1 + x2) / 2,
+                             y: height / 2 - zoom * (y1 + y2) / 2}});
+  }
+
+  // Lays out the tree nodes the graph holds now (what collapsing left) and fits them.
+  function layoutTrees(v) {
+    const cy = v.cy;
+    const items = [];
+    cy.nodes(".tnode").forEach((n) => {
+      const d = n.data();
+      items.push({id: d.id, parent: d.up === undefined || cy.getElementById(d.up).empty()
+        ? null : d.up, w: d.w, h: d.h, order: d.order, engine: d.engine});
+    });
+    // engines in their order, then each tree's nodes in tick order
+    const engineOrder = new Map(v.lastEngines.map((e, i) => [e.path, i]));
+    items.sort((a, b) => (engineOrder.get(a.engine) - engineOrder.get(b.engine)) || (a.order - b.order));
+    const positions = tidy(items);
+    cy.batch(() => cy.nodes(".tnode").positions((n) => positions.get(n.id())));
+    fitBoxes(v, items.map((d) => Object.assign({w: d.w, h: d.h}, positions.get(d.id))));
+  }
+
+  function build(engines, v) {
     const els = [];
     const paths = engines.map((e) => e.path);
+    const alone = treesAlone(engines);
     for (const engine of engines) {
       // A nested engine (a sub-machine, a tree below a state) sits in a collapsible box;
       // a top-level one needs none (and dagre lays out compounds much more slowly).
@@ -156,7 +234,7 @@ window.beehaveGraph = (() => {
             id: idOf("s", engine.path, state.name), parent: box, label: starts ? `${state.name}\n${starts}` : state.name,
             engine: engine.path, state: state.name, bpKind: "state", bpTarget: state.name, order})});
         }
-        els.push({group: "edges", data: {id: idOf("ie", engine.path), source: init,
+        els.push({group: "edges", classes: "start", data: {id: idOf("ie", engine.path), source: init,
           target: idOf("s", engine.path, s.initial), label: ""}});
         if (s.transitions.some((t) => t.source === "*")) {
           els.push({group: "nodes", classes: "any", data: sized({id: idOf("s", engine.path, "*"),
@@ -170,15 +248,21 @@ window.beehaveGraph = (() => {
         });
       } else if (s.kind === "behaviour_tree") {
         const edges = [];
+        const live = engine.nodes || [];
+        const composite = new Set(s.nodes.map((n) => n.parent));
         s.nodes.forEach((node, i) => {
-          const composite = s.nodes.some((n) => n.parent === i);
-          const type = node.type ? ` (${node.type}${node.memory ? ", memory" : ""})` : "";
-          els.push({group: "nodes", classes: `tnode${composite ? " composite" : ""}`, data: sized({
-            id: idOf("n", engine.path, i), parent: box, label: `${node.name}${composite ? type : ""}`,
-            full: `${node.name}${composite ? type : ""}`,
-            engine: engine.path, path: node.path, name: node.name, index: i, order: i,
-            bpKind: "node", bpTarget: node.path, actionType: node.action_type || ""})});
-          if (node.parent !== null && node.parent !== undefined) {
+          const type = composite.has(i) && node.type ? ` (${node.type}${node.memory ? ", memory" : ""})` : "";
+          const hasParent = node.parent !== null && node.parent !== undefined;
+          // Its status now, in its first style pass (statusUpdate finds nothing to change).
+          const status = live[i] && live[i].status;
+          if (status) v.statuses.set(`n:${engine.path}:${i}`, status);
+          els.push({group: "nodes", classes: `tnode${composite.has(i) ? " composite" : ""}${status ? ` st-${status}` : ""}`,
+            data: sized({
+              id: idOf("n", engine.path, i), parent: box, label: `${node.name}${type}`,
+              full: `${node.name}${type}`, up: hasParent ? idOf("n", engine.path, node.parent) : undefined,
+              engine: engine.path, path: node.path, name: node.name, index: i, order: i, status,
+              bpKind: "node", bpTarget: node.path, actionType: node.action_type || ""})});
+          if (hasParent) {
             edges.push({group: "edges", classes: "tree-edge", data: {
               id: idOf("te", engine.path, i), source: idOf("n", engine.path, node.parent),
               target: idOf("n", engine.path, i), label: ""}});
@@ -186,7 +270,27 @@ window.beehaveGraph = (() => {
         });
         // dagre orders siblings by the edges it meets, and places the first met
         // rightmost: given last child first, the children read left to right as ticked.
-        els.push(...edges.reverse());
+        els.push(...(alone ? edges : edges.reverse()));
+      }
+    }
+    if (alone) {
+      // Laid out here without what is collapsed (its subtree goes aside right after).
+      const hidden = new Set();
+      const items = [];
+      for (const e of els) {
+        if (e.group !== "nodes") continue;
+        const d = e.data;
+        if (d.up !== undefined && (hidden.has(d.up) || v.collapsed.has(d.up))) { hidden.add(d.id); continue; }
+        items.push({id: d.id, parent: d.up === undefined ? null : d.up, w: d.w, h: d.h});
+      }
+      const positions = tidy(items);
+      for (const e of els) {
+        if (e.group !== "nodes") continue;
+        e.position = Object.assign({}, positions.get(e.data.id) || {x: 0, y: 0});
+      }
+      // A collapsed node's label grows ("(+N)"): then laid out again once it is collapsed.
+      if (!items.some((d) => v.collapsed.has(d.id))) {
+        v.fitTo = items.map((d) => Object.assign({w: d.w, h: d.h}, positions.get(d.id)));
       }
     }
     return els;
@@ -211,11 +315,14 @@ window.beehaveGraph = (() => {
       minZoom: 0.05, maxZoom: 4, boxSelectionEnabled: false,
       autoungrabify: true});
     const v = {container, canvas, cy, key: null, collapsed: new Set(), aside: new Map(), options: {},
-               statuses: new Map(), bp: null, hit: null};
+               statuses: new Map(), bp: null, hit: null, marked: 0};
     mk("fit", "fit", () => cy.fit(cy.elements(":visible"), 20));
     mk("+", "zoom in", () => cy.zoom({level: cy.zoom() * 1.25, renderedPosition: center(cy)}));
     mk("−", "zoom out", () => cy.zoom({level: cy.zoom() / 1.25, renderedPosition: center(cy)}));
     cy.on("tap", "node.engine, node.composite", (evt) => toggle(v, evt.target.id()));
+    cy.on("resize", () => {
+      if (v.unfitted && cy.width() && cy.height()) { v.unfitted = false; cy.fit(undefined, PADDING); }
+    });
     cy.on("dbltap", "node[bpKind]", (evt) => {
       const d = evt.target.data();
       if (v.options.onToggle) v.options.onToggle(d.bpKind, d.bpTarget);
@@ -246,6 +353,7 @@ window.beehaveGraph = (() => {
     const gone = v.aside.get(id);
     v.aside.delete(id);
     if (gone) gone.restore();
+    v.marked += 1;  // what comes back may carry marks from before: walked again
     node.removeClass("collapsed");
     node.data("label", node.data("full"));
     node.data(sized({label: node.data("full")}));
@@ -255,9 +363,8 @@ window.beehaveGraph = (() => {
 
   function layout(v) {
     const cy = v.cy;
-    // (breadthfirst spreads a tree over the view: its shape is kept per size class)
-    const size = `${Math.round(cy.width() / 300)}x${Math.round(cy.height() / 300)}`;
-    const key = `${v.key}#${[...v.collapsed].sort().join(",")}#${size}`;
+    if (v.alone) { layoutTrees(v); return; }  // linear: nothing worth keeping
+    const key = `${v.key}#${[...v.collapsed].sort().join(",")}`;
     const known = layouts.get(key);
     if (known && cy.nodes().every((n) => known[n.id()])) {
       cy.layout({name: "preset", positions: (n) => known[n.id()], fit: true, padding: 16,
@@ -274,25 +381,6 @@ window.beehaveGraph = (() => {
   }
 
   function run(cy) {
-    if (cy.nodes(".state, .engine").empty()) {
-      // Trees alone (no state, no nested box): cytoscape's own breadth-first layout, one
-      // row per depth, each row in the order a depth-first walk meets the nodes (siblings
-      // in tick order, a subtree beside its siblings'), parent above child. Linear in the
-      // nodes: ~110 ms less than dagre for a 300-node tree (most of the rest is the style).
-      const order = new Map();
-      let next = 0;
-      const walk = (n) => {
-        order.set(n.id(), next++);
-        n.outgoers("node").sort((a, b) => a.data("order") - b.data("order")).forEach(walk);
-      };
-      const roots = cy.nodes(".tnode").roots();
-      roots.sort((a, b) => a.data("order") - b.data("order")).forEach(walk);
-      cy.layout({name: "breadthfirst", directed: true, roots, spacingFactor: 1,
-                 avoidOverlap: true, nodeDimensionsIncludeLabels: false,
-                 depthSort: (a, b) => order.get(a.id()) - order.get(b.id()),
-                 fit: true, padding: 16, animate: false}).run();
-      return;
-    }
     // State machines (and trees nested in them) get dagre's best ranker.
     const trees = cy.nodes(".state").empty();
     cy.layout({name: "dagre", rankDir: "TB", nodeSep: 18, rankSep: 40, edgeSep: 8,
@@ -360,12 +448,16 @@ window.beehaveGraph = (() => {
     const states = new Set(bp.state || []);
     const nodes = new Set(bp.node || []);
     const types = new Set(bp.action_type || []);
+    // Nothing to mark and nothing marked (the usual case): no walk over every node.
+    if (!states.size && !nodes.size && !types.size && !hit && !v.marked) return;
+    let marked = 0;
     v.cy.batch(() => {
       v.cy.nodes("[bpKind]").forEach((n) => {
         const d = n.data();
         const on = d.bpKind === "state" ? states.has(d.state)
           : nodes.has(d.path) || nodes.has(d.name) || (d.actionType && types.has(d.actionType));
         if (on) n.addClass("bp"); else n.removeClass("bp");
+        marked += on ? 1 : 0;
         // hit.path: the behaviour whose engine entered it (the action, for a type).
         const isHit = hit && (hit.path === d.engine || hit.path.startsWith(d.engine + "/")) && (
           (hit.kind === "state" && d.bpKind === "state" && d.state === hit.target && hit.path === d.engine)
@@ -373,8 +465,10 @@ window.beehaveGraph = (() => {
               && (d.path === hit.target || d.name === hit.target))
           || (hit.kind === "action_type" && d.actionType === hit.target));
         if (isHit) n.addClass("hit"); else n.removeClass("hit");
+        marked += isHit ? 1 : 0;
       });
     });
+    v.marked = marked;
   }
 
   function render(container, snapshot, options = {}) {
@@ -402,14 +496,19 @@ window.beehaveGraph = (() => {
       v.key = key;
       v.statuses.clear();
       v.bp = null;
+      v.marked = 0;
       v.aside.clear();
+      v.alone = treesAlone(engines);
+      v.fitTo = null;
+      v.lastEngines = engines;
       v.cy.batch(() => {
         v.cy.elements().remove();
-        v.cy.add(build(engines));
+        v.cy.add(build(engines, v));
         for (const id of v.collapsed) collapse(v, id);
       });
       statusUpdate(v, engines);
-      if (engines.length) layout(v);
+      if (v.fitTo) fitBoxes(v, v.fitTo);  // trees alone: laid out in build
+      else if (engines.length) layout(v);
       v.lastLayoutMs = performance.now() - started;
     } else {
       statusUpdate(v, engines);
@@ -441,6 +540,16 @@ window.beehaveGraph = (() => {
       edges: cy.edges().map((e) => ({id: e.id(), source: e.source().id(), target: e.target().id(),
         label: e.data("label") || "", visible: e.visible(), classes: e.classes()})),
     };
+  }
+
+  // Ends a view: its cytoscape instance (frame loop, observers, canvases) and its state.
+  function destroy(container) {
+    const v = views.get(container);
+    if (!v) return;
+    v.cy.destroy();
+    views.delete(container);
+    container.replaceChildren();
+    container.classList.remove("bh-graph");
   }
 
   function tap(container, id) {
@@ -514,7 +623,8 @@ window.beehaveGraph = (() => {
     };
   }
 
-  return {render, inspect, tap, breakpointsPanel, structures, layouts, STATUS_COLOURS, ACTIVE};
+  return {render, inspect, tap, destroy, breakpointsPanel, structures, layouts, STATUS_COLOURS,
+          ACTIVE};
 })();
 
 // The page's hook (app.js calls window.beehaveGraphHook(robot, snapshot) after each render
