@@ -8,6 +8,7 @@ read from the ROS graph, as ``ros2 topic info -v /clock`` shows it."""
 
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 
@@ -15,9 +16,10 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
+from ros_probe import Probe  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
-from beehave import Behavior  # noqa: E402
+from beehave import Behavior, Logic, LowLevelBehaviorManager  # noqa: E402
 from beehave.config import parse_config  # noqa: E402
 from beehave.robot import HIGH_NODE, Robot  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
@@ -117,3 +119,64 @@ def test_a_node_on_sim_time_made_later_shares_the_subscription_and_outlives_its_
                           WALL_TIMEOUT_S)
         assert [s[1] for s in sim_clock.clock_subscribers()
                 if s[0] == f"/{NAMESPACE}"] == [survivor.get_name()]
+
+
+# ---- odometry: one message in `every` --------------------------------------------------
+
+class _HoldOdometry(Logic):
+    async def run(self) -> None:
+        await self.hal("odometry")
+        await asyncio.Event().wait()
+
+
+@pytest.mark.parametrize("every", [1, 5])
+def test_the_odometry_hal_reads_one_message_in_every(every: int) -> None:
+    """The sim's odometry at 50 Hz: an ATV's zones and bids need 10 Hz, so its HAL reads
+    one message in 5 (the others never become Python objects); the default reads all."""
+    from nav_msgs.msg import Odometry
+
+    from hal.mobile_base import OdometryHAL
+
+    ros = RosContext()
+    node = ros.create_node("beehave_low_level", namespace="odombot")
+    ros.start()
+    ll = LowLevelBehaviorManager(default="hold", stop_timeout_s=1.0)
+    ll.register("hold", _HoldOdometry)
+    ll.hals.register(OdometryHAL, every=every)
+    ll.hals.node = node
+    seen: list[float] = []
+    ll.blackboard.subscribe("odom/x_m", lambda change: seen.append(change.value))
+    probe = Probe()
+    try:
+        with ll:
+            pub = probe.node.create_publisher(Odometry, "/odombot/odom", 10)
+            assert probe.wait(lambda: pub.get_subscription_count() == 1)
+            for i in range(50):  # 0.1 m apart: every one is a change (deadband 0.01 m)
+                msg = Odometry()
+                msg.pose.pose.position.x = 0.1 * i
+                msg.pose.pose.orientation.w = 1.0
+                pub.publish(msg)
+                time.sleep(0.005)
+            # Then one more place, sent until it is read: the HAL is live to the end.
+            msg.pose.pose.position.x = 10.0
+            assert wait_until(lambda: pub.publish(msg) is None and seen[-1:] == [10.0],
+                              WALL_TIMEOUT_S)
+            moves = len(seen) - 1
+            # All 50 moves read, or one in 5 (a message lost on a loaded host only
+            # lowers the count; the first one is always read).
+            if every == 1:
+                assert 25 < moves <= 50, seen
+            else:
+                assert 1 <= moves <= 10, seen
+                assert seen[0] == 0.0
+    finally:
+        probe.close()
+        ros.shutdown()
+
+
+@pytest.mark.parametrize("bad", [0, 51, 2.5, True, "5"])
+def test_a_bad_every_is_refused_naming_the_range(bad: object) -> None:
+    from hal.mobile_base import OdometryHAL
+
+    with pytest.raises(ValueError, match=r"every must be an integer in \[1, 50\]"):
+        OdometryHAL(every=bad)  # type: ignore[arg-type]
