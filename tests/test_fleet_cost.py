@@ -180,3 +180,39 @@ def test_a_bad_every_is_refused_naming_the_range(bad: object) -> None:
 
     with pytest.raises(ValueError, match=r"every must be an integer in \[1, 50\]"):
         OdometryHAL(every=bad)  # type: ignore[arg-type]
+
+
+# ---- a message nobody waits for wakes nobody ---------------------------------------------
+
+class _CountingCondition(threading.Condition):
+    def __init__(self) -> None:
+        super().__init__()
+        self.notified = 0
+
+    def notify_all(self) -> None:
+        self.notified += 1
+        super().notify_all()
+
+
+def test_a_message_wakes_the_owners_sleep_only_when_a_wait_for_waits_on_it() -> None:
+    """A driving action's condition serves its sleeps and its ``Latest`` topics: odometry
+    at 50 Hz must not wake a control loop that sleeps between its 20 Hz steps."""
+    from beehave.ros.io import Latest
+
+    cond = _CountingCondition()
+    odom: Latest[int] = Latest("/atv/odom", cond=cond)
+    for i in range(50):
+        odom._on_message(i)
+    assert cond.notified == 0
+    assert odom.get() == 49 and odom.count == 50
+    got: list[int] = []
+    waiter = threading.Thread(target=lambda: got.append(odom.wait_for(lambda m: m >= 100,
+                                                                      timeout_s=WALL_TIMEOUT_S)))
+    waiter.start()
+    assert wait_until(lambda: odom._waiting == 1, WALL_TIMEOUT_S)
+    for i in range(50, 101):
+        odom._on_message(i)
+    waiter.join(WALL_TIMEOUT_S)
+    assert got == [100] and cond.notified == 51
+    odom._on_message(101)
+    assert cond.notified == 51  # the wait is over: nobody to wake
