@@ -30,7 +30,6 @@ from typing import Any
 
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message
-from rclpy.subscription_content_filter_options import ContentFilterOptions
 from sensor_msgs.msg import BatteryState, LaserScan
 
 from beehave.ros.hal import RosHAL, TopicInput
@@ -86,30 +85,17 @@ class OdometryHAL(RosHAL):
     odom_input = TopicInput(topics.ODOM, Odometry, odometry_entries)
 
     def __init__(self, *, every: int = 1) -> None:
-        """``every``: read about one message in ``every`` (1: all of them). The robot
-        publishes at 50 Hz of its time (:data:`robots.topics.ODOM_RATE_HZ`), so
-        ``every=5`` keeps the keys at about 10 Hz of sim time, whatever the simulation's
-        speed. For logics that need the pose at a lower rate than a controller would (a
-        fleet's speed zones, bids): a driving action subscribes to ``odom`` itself.
-
-        Every message a process receives costs its executor thread (about 0.2 ms of CPU
-        on a 2-core host, whatever the callback does), so the others are left out before
-        they reach it: a DDS content filter on the stamp passes the messages of the first
-        1 / ODOM_RATE_HZ of every ``every`` / ODOM_RATE_HZ seconds (sim time). Where the
-        middleware has no content filters, one message in ``every`` is read and the
-        others stay raw bytes that never become Python objects."""
+        """``every``: read one message in ``every`` (1: all of them). The robot publishes
+        at 50 Hz of its time (:data:`robots.topics.ODOM_RATE_HZ`), so ``every=5`` keeps
+        the keys at 10 Hz of sim time, whatever the simulation's speed; the messages left
+        out are never turned into Python objects (each costs the process's executor
+        thread about as much as a whole blackboard write). For logics that need the
+        pose at a lower rate than a controller would (a fleet's speed zones, bids): a
+        driving action subscribes to ``odom`` itself."""
         if isinstance(every, bool) or not isinstance(every, int) or not 1 <= every <= 50:
             raise ValueError(f"HAL 'odometry': every must be an integer in [1, 50] "
                              f"(read one message in every), got {every!r}")
         self.every = every
-
-    def stamp_filter(self) -> str:
-        """The content filter's expression for ``every`` (see :meth:`__init__`)."""
-        slot_ns = round(1e9 / topics.ODOM_RATE_HZ)
-        period_ns = self.every * slot_ns
-        return " OR ".join(
-            f"(header.stamp.nanosec >= {start} AND header.stamp.nanosec < {start + slot_ns})"
-            for start in range(0, 1_000_000_000, period_ns))
 
     async def on_load(self) -> None:
         # Declared here, per key: one TopicInput's policy would apply to every key.
@@ -123,25 +109,17 @@ class OdometryHAL(RosHAL):
         convert = self._input_callback(spec)
         if self.every == 1:
             sub = self.node.create_subscription(Odometry, spec.topic, convert, spec.qos)
-            self._entities.append(("subscription", sub))
-            return
-        sub = self.node.create_subscription(
-            Odometry, spec.topic, convert, spec.qos,
-            content_filter_options=ContentFilterOptions(filter_expression=self.stamp_filter(),
-                                                        expression_parameters=[]))
-        if sub.is_cft_enabled:
-            self._entities.append(("subscription", sub))
-            return
-        self.node.destroy_subscription(sub)
-        # No content filter here: raw bytes, one in `every` deserialised.
-        count = itertools.count()
-        every = self.every
+        else:
+            # Raw bytes: a message left out costs no Python message object.
+            count = itertools.count()
+            every = self.every
 
-        def on_raw(data: bytes) -> None:  # in the ROS executor thread
-            if next(count) % every == 0:
-                convert(deserialize_message(data, Odometry))
+            def on_raw(data: bytes) -> None:  # in the ROS executor thread
+                if next(count) % every == 0:
+                    convert(deserialize_message(data, Odometry))
 
-        sub = self.node.create_subscription(Odometry, spec.topic, on_raw, spec.qos, raw=True)
+            sub = self.node.create_subscription(Odometry, spec.topic, on_raw, spec.qos,
+                                                raw=True)
         self._entities.append(("subscription", sub))
 
 
