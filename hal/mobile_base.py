@@ -23,11 +23,13 @@ that hit nothing (inf), NaN and readings outside ``[range_min, range_max]`` are 
 
 from __future__ import annotations
 
+import itertools
 import math
 from functools import lru_cache
 from typing import Any
 
 from nav_msgs.msg import Odometry
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import BatteryState, LaserScan
 
 from beehave.ros.hal import RosHAL, TopicInput
@@ -79,7 +81,21 @@ class OdometryHAL(RosHAL):
     pose_deadband = 0.01
     twist_deadband = 0.01
     max_age_s = 0.5
-    inputs = [TopicInput(topics.ODOM, Odometry, odometry_entries)]
+    #: Subscribed by on_load itself (not ``inputs``): raw when only some are read.
+    odom_input = TopicInput(topics.ODOM, Odometry, odometry_entries)
+
+    def __init__(self, *, every: int = 1) -> None:
+        """``every``: read one message in ``every`` (1: all of them). The robot publishes
+        at 50 Hz of its time (:data:`robots.topics.ODOM_RATE_HZ`), so ``every=5`` keeps
+        the keys at 10 Hz of sim time, whatever the simulation's speed; the messages left
+        out are never turned into Python objects (each costs the process's executor
+        thread about as much as a whole blackboard write). For logics that need the
+        pose at a lower rate than a controller would (a fleet's speed zones, bids): a
+        driving action subscribes to ``odom`` itself."""
+        if isinstance(every, bool) or not isinstance(every, int) or not 1 <= every <= 50:
+            raise ValueError(f"HAL 'odometry': every must be an integer in [1, 50] "
+                             f"(read one message in every), got {every!r}")
+        self.every = every
 
     async def on_load(self) -> None:
         # Declared here, per key: one TopicInput's policy would apply to every key.
@@ -89,6 +105,22 @@ class OdometryHAL(RosHAL):
             self.blackboard.declare(key, max_age_s=self.max_age_s,
                                     deadband=self.twist_deadband)
         await super().on_load()
+        spec = self.odom_input
+        convert = self._input_callback(spec)
+        if self.every == 1:
+            sub = self.node.create_subscription(Odometry, spec.topic, convert, spec.qos)
+        else:
+            # Raw bytes: a message left out costs no Python message object.
+            count = itertools.count()
+            every = self.every
+
+            def on_raw(data: bytes) -> None:  # in the ROS executor thread
+                if next(count) % every == 0:
+                    convert(deserialize_message(data, Odometry))
+
+            sub = self.node.create_subscription(Odometry, spec.topic, on_raw, spec.qos,
+                                                raw=True)
+        self._entities.append(("subscription", sub))
 
 
 # ---- battery -----------------------------------------------------------------------------

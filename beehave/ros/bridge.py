@@ -102,7 +102,7 @@ from beehave.highlevel import HighLevelBehaviorManager
 from beehave.interfaces.core import STATE_SCHEMA as STATE_SCHEMA  # the state topic's schema
 from beehave.interfaces.core import ControlPlane
 from beehave.lowlevel import LowLevelBehaviorManager
-from beehave.ros.context import in_executor_thread
+from beehave.ros.context import RosContext, in_executor_thread
 from beehave.ros.io import LATCHED
 
 log = logging.getLogger(__name__)
@@ -269,13 +269,18 @@ class HighLevelBridge:
         self._fast = node.create_timer(1.0 / state_rate_hz, self._publish_if_dirty)
         self._slow = node.create_timer(state_period_s, self._dirty.set)
         self._clock_sub = None
+        self._clock_off: Callable[[], None] | None = None
         if isinstance(manager.clock, SimClock):
-            from rosgraph_msgs.msg import Clock as ClockMsg
-
             sim_clock = manager.clock
-            self._clock_sub = node.create_subscription(
-                ClockMsg, "/clock",
-                lambda m: sim_clock.set_time(m.clock.sec + m.clock.nanosec * 1e-9), 10)
+            ros = RosContext.of(node)
+            if ros is not None:  # the process's one /clock subscription, shared
+                self._clock_off = ros.on_clock(sim_clock.set_time, node=node)
+            else:
+                from rosgraph_msgs.msg import Clock as ClockMsg
+
+                self._clock_sub = node.create_subscription(
+                    ClockMsg, "/clock",
+                    lambda m: sim_clock.set_time(m.clock.sec + m.clock.nanosec * 1e-9), 10)
         self._unsubscribe = manager.subscribe(self._on_event)
         self._dirty.set()
 
@@ -387,6 +392,8 @@ class HighLevelBridge:
         self.node.destroy_subscription(self._bb_sub)
         if self._clock_sub is not None:
             self.node.destroy_subscription(self._clock_sub)
+        if self._clock_off is not None:
+            self._clock_off()
         self.node.destroy_service(self._stop_srv)
         self.node.destroy_service(self._pause_srv)
         self.node.destroy_service(self._resume_srv)

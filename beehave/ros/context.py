@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Sequence
+import weakref
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
+from rclpy.clock_type import ClockType
 from rclpy.context import Context
 from rclpy.experimental.events_executor import EventsExecutor
 from rclpy.node import Node
@@ -18,6 +20,14 @@ from beehave.lifecycle import Running
 log = logging.getLogger(__name__)
 
 _executor_thread = threading.local()
+
+CLOCK_TOPIC = "/clock"
+#: Reliable, depth 10 (rclpy's default): a lockstep hold publishes the held time once, and
+#: the actions waiting on it must not miss it (rclpy's own TimeSource is best effort).
+CLOCK_QOS = 10
+
+#: rclpy context → the RosContext that owns it (:meth:`RosContext.of`).
+_owners: weakref.WeakValueDictionary[int, RosContext] = weakref.WeakValueDictionary()
 
 
 def in_executor_thread() -> bool:
@@ -49,10 +59,28 @@ class RosContext(Running):
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._closed = False
+        # The one /clock subscription of this context (see create_node): its host node,
+        # the ROS clocks of the nodes on sim time, and the listeners (SimClocks).
+        self._clock_sub: Any = None
+        self._clock_host: Node | None = None
+        self._ros_clocks: dict[Node, Any] = {}
+        self._clock_listeners: tuple[Callable[[float], None], ...] = ()
+        _owners[id(self.context)] = self
+
+    @staticmethod
+    def of(node: Node) -> RosContext | None:
+        """The :class:`RosContext` that created ``node``; None for a node made otherwise."""
+        owner = _owners.get(id(node.context))
+        return owner if owner is not None and owner.context is node.context else None
 
     def create_node(self, name: str, *, namespace: str = "", use_sim_time: bool = False,
                     parameters: dict[str, Any] | None = None) -> Node:
-        """A node served by this context's executor; destroyed by :meth:`shutdown`."""
+        """A node served by this context's executor; destroyed by :meth:`shutdown`.
+
+        ``use_sim_time``: the node's ROS clock (``node.get_clock()``, its timers) follows
+        ``/clock``. Every such node of the context shares one ``/clock`` subscription
+        instead of one per node (rclpy's TimeSource makes its own for each): every message
+        a process receives costs its executor thread, and ``/clock`` comes at 50-100 Hz."""
         overrides = [Parameter("use_sim_time", value=use_sim_time)]
         overrides += [Parameter(k, value=v) for k, v in (parameters or {}).items()]
         node = rclpy.create_node(name, namespace=namespace, context=self.context,
@@ -60,14 +88,78 @@ class RosContext(Running):
                                  automatically_declare_parameters_from_overrides=True)
         with self._lock:
             self._nodes.append(node)
+            if use_sim_time:
+                self._share_clock(node)
         self.executor.add_node(node)
         return node
+
+    # ---- the shared /clock -----------------------------------------------------------------
+
+    def _share_clock(self, node: Node) -> None:
+        """Feed ``node``'s ROS clock from the context's /clock subscription, and take the
+        one its TimeSource made away (under ``self._lock``)."""
+        for sub in list(node.subscriptions):
+            if sub.topic_name == CLOCK_TOPIC:
+                node.destroy_subscription(sub)
+        self._ros_clocks[node] = node.get_clock()
+        if self._clock_sub is None:
+            self._host_clock(node)
+
+    def _host_clock(self, node: Node) -> None:
+        from rosgraph_msgs.msg import Clock
+
+        self._clock_sub = node.create_subscription(Clock, CLOCK_TOPIC, self._on_clock,
+                                                   CLOCK_QOS)
+        self._clock_host = node
+
+    def _on_clock(self, msg: Any) -> None:  # in the executor thread
+        from rclpy.time import Time
+
+        stamp = msg.clock
+        if self._ros_clocks:
+            t = Time(seconds=stamp.sec, nanoseconds=stamp.nanosec,
+                     clock_type=ClockType.ROS_TIME)
+            for clock in list(self._ros_clocks.values()):
+                clock.set_ros_time_override(t)
+        t_s = stamp.sec + stamp.nanosec * 1e-9
+        for listener in self._clock_listeners:
+            listener(t_s)
+
+    def on_clock(self, callback: Callable[[float], None], *, node: Node) -> Callable[[], None]:
+        """Call ``callback(sim_time_s)`` for every ``/clock`` message, in the executor
+        thread, from the context's one subscription (hosted on ``node`` when the context
+        has none yet). Returns a function that removes it."""
+        with self._lock:
+            if self._clock_sub is None:
+                self._host_clock(node)
+            self._clock_listeners = (*self._clock_listeners, callback)
+
+        def remove() -> None:
+            with self._lock:
+                self._clock_listeners = tuple(c for c in self._clock_listeners
+                                              if c is not callback)
+
+        return remove
+
+    def _unhost_clock(self, node: Node) -> None:
+        """``node`` goes away (under ``self._lock``): move the subscription to another."""
+        self._ros_clocks.pop(node, None)
+        if self._clock_host is not node:
+            return
+        node.destroy_subscription(self._clock_sub)
+        self._clock_sub = self._clock_host = None
+        others = [n for n in self._nodes if n is not node]
+        if self._ros_clocks or self._clock_listeners:
+            candidates = [n for n in others if n in self._ros_clocks] or others
+            if candidates:
+                self._host_clock(candidates[0])
 
     def destroy_node(self, node: Node) -> None:
         """Take ``node`` off the executor and destroy it (before :meth:`shutdown`)."""
         with self._lock:
             if node not in self._nodes:
                 return
+            self._unhost_clock(node)
             self._nodes.remove(node)
         self.executor.remove_node(node)
         node.destroy_node()

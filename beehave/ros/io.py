@@ -157,6 +157,7 @@ class Latest(Generic[M]):
         self._clock = clock or WallClock()
         self._msg: M | None = None
         self._count = 0
+        self._waiting = 0  # wait_for calls under way
         self.received_at: float | None = None  # time.monotonic() of the newest message
 
     def _on_message(self, msg: M) -> None:
@@ -164,7 +165,11 @@ class Latest(Generic[M]):
             self._msg = msg
             self._count += 1
             self.received_at = time.monotonic()
-            self._cond.notify_all()
+            # Only a wait_for looks at the message. The condition is the owner's, shared
+            # with its sleeps: waking them for every odometry message (50 Hz) would cost a
+            # thread switch each while a control loop sleeps between its steps.
+            if self._waiting:
+                self._cond.notify_all()
 
     @property
     def count(self) -> int:
@@ -193,7 +198,11 @@ class Latest(Generic[M]):
                     return False
                 return predicate is None or bool(predicate(msg))
 
-            ok = self._clock.wait(self._cond, ready, timeout_s)
+            self._waiting += 1
+            try:
+                ok = self._clock.wait(self._cond, ready, timeout_s)
+            finally:
+                self._waiting -= 1
             if self._interrupted():
                 raise Interrupted(f"interrupted while waiting on {self.topic!r}")
             if not ok:
