@@ -78,10 +78,17 @@ def _absent(attr: str) -> Callable[[Any], Any]:
     return absent
 
 
+_REPLACEABLE = frozenset({"ros", "blackboard"})
+"""The reserved names a class body may define with a plain attribute: its I/O, which a
+test double replaces (a fake ``ros``). Any other would hide what beehave keeps there
+(``result = None``: the handle's result reads None for ever), so a class body may not."""
+
+
 def _reserve(cls: type) -> None:
     """Make the reserved names of ``cls``'s own body read-only properties (a property
     without a setter gets one that raises :class:`ReservedAttribute`); a reserved name that
-    is no property there (a class attribute would hide beehave's value) is refused at once.
+    is no property there (a class attribute would hide beehave's value) is refused at once,
+    but for the I/O a test double replaces (:data:`_REPLACEABLE`).
     On :class:`Runnable` itself, the names only a subclass has (``children``,
     ``safe_state_error``) are absent until then, and refused."""
     for attr in _RESERVED:
@@ -91,6 +98,8 @@ def _reserve(cls: type) -> None:
             continue
         found = cls.__dict__[attr]
         if not isinstance(found, property):
+            if attr in _REPLACEABLE:
+                continue
             raise ReservedAttribute(
                 f"{cls.__name__}.{attr} is beehave's ({_RESERVED[attr]}) and cannot be "
                 f"defined; name yours differently, e.g. my_{attr}")
