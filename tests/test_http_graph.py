@@ -55,6 +55,19 @@ LOOP_WINDOW_MS = 1000  # long enough for dozens of requests on loopback
 INSPECT = "beehaveGraph.inspect(document.querySelector('#graphs'))"
 
 
+
+def _empty_spot(canvas: dict[str, Any], nodes: list[dict[str, Any]]
+                ) -> tuple[float, float, float, float]:
+    """A point near the canvas's edge 20 px clear of every node's box, and a diagonal drag
+    step (pixels) into the canvas from there."""
+    left, top, w, h = canvas["x"] + 8, canvas["y"] + 8, canvas["width"] - 16, canvas["height"] - 16
+    for fx, fy in ((0, 1), (1, 1), (0, 0), (1, 0), (0.5, 1), (0, 0.5), (1, 0.5), (0.5, 0)):
+        x, y = left + fx * w, top + fy * h
+        if all(abs(x - n["center"]["x"]) > n["size"]["w"] / 2 + 20
+               or abs(y - n["center"]["y"]) > n["size"]["h"] / 2 + 20 for n in nodes):
+            return x, y, (12 if fx < 1 else -12), (8 if fy < 1 else -8)
+    raise AssertionError(f"no empty spot at the canvas's edge: {canvas} {nodes}")
+
 @pytest.fixture
 def robot(hl: HighLevelBehaviorManager) -> HighLevelBehaviorManager:
     hl.register("delivery", EngineBehavior, engine=delivery_machine())
@@ -256,12 +269,13 @@ def test_zoom_with_the_wheel_and_pan_by_dragging(
 
     assert wait_until(zoomed_in), "the wheel did not zoom the graph"
     zoomed = page.evaluate(INSPECT)
-    # Drag from an empty corner: the whole graph moves with the pointer.
-    sx, sy = canvas["x"] + 6, canvas["y"] + canvas["height"] - 6
+    # Drag from an empty spot near the canvas's edge (zoomed in, a node may cover a given
+    # corner; pressing on a node drags the node): the whole graph moves with the pointer.
+    sx, sy, dx, dy = _empty_spot(canvas, zoomed["nodes"])
     page.mouse.move(sx, sy)
     page.mouse.down()
     for step in range(1, 6):
-        page.mouse.move(sx + 12 * step, sy - 8 * step)
+        page.mouse.move(sx + dx * step, sy + dy * step)
     page.mouse.up()
     page.wait_for_function(f"Math.abs({INSPECT}.pan.x - {zoomed['pan']['x']}) > 30",
                            timeout=WAIT_MS)
