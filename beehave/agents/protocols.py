@@ -356,6 +356,12 @@ class ContractNetInitiator(AgentBehavior):
 
 
 # ---------------------------------------------------------------------- responders
+def _call_order(cfp: Message) -> tuple[float, str]:
+    """A call's place in one order that every responder sees alike: when its initiator
+    sent it, then its conversation (ties)."""
+    return (cfp.sent_at, cfp.conversation_id)
+
+
 @dataclass
 class ResponderTask:
     request: Message
@@ -385,15 +391,21 @@ class Responder(AgentBehavior):
     answered with ``failure`` naming the holder."""
 
     answer_cfps_in_turn: bool = False
-    """Contract net: when True, a call for proposals that arrives while an earlier proposal
-    of this responder is undecided (neither accepted nor rejected yet) is answered once
-    that one is decided — at the latest after half the time its initiator gives
-    (``reply_by``), then with what is known. So a robot called by two auctions at once
+    """Contract net: when True, a call for proposals that arrives while this responder's
+    proposal for an earlier call (in the order the initiators sent them, the same for every
+    responder: no two wait for each other) is undecided — neither accepted nor rejected —
+    is answered once that one is decided; at the latest after half the time its initiator
+    gives (``reply_by``), then with what is known. So a robot called by two auctions at once
     bids on the second knowing whether it won the first: concurrent calls spread over the
     fleet instead of all going to the one robot that was idle when they came. A proposal
     left undecided for :attr:`undecided_max_s` (an initiator that went away) no longer
     holds anything back."""
     undecided_max_s: float = 3.0
+    gather_s: float = 0.05
+    """With :attr:`answer_cfps_in_turn`: how long a call is held before it is answered, so
+    that calls sent at about the same time are answered in the order they were sent, not
+    in the order each responder happened to receive them (then two responders agree on
+    which call comes first). Bounded by half the call's reply time."""
 
     def perform(self, task: Message) -> Any:
         """Do what ``task`` asks (a request, or the accept-proposal of an award, whose
@@ -429,19 +441,22 @@ class Responder(AgentBehavior):
         #: Accepted tasks waiting for their action type (:attr:`queue_tasks`), oldest first.
         self.waiting: list[ResponderTask] = []
         self.proposals: dict[str, tuple[Message, float]] = {}
-        #: Proposals made and not yet accepted or rejected: conversation → when (monotonic).
-        self.undecided: dict[str, float] = {}
+        #: Proposals made and not yet accepted or rejected: conversation → (when, monotonic;
+        #: the call's place in the order of calls, see _call_order).
+        self.undecided: dict[str, tuple[float, tuple[float, str]]] = {}
         #: Calls for proposals held back (:attr:`answer_cfps_in_turn`), with the monotonic
         #: time by which each is answered whatever happens; oldest first.
-        self.deferred: list[tuple[Message, float]] = []
+        self.deferred: list[tuple[Message, float, float]] = []
         with self.agent.mailbox(protocols=[self.protocol]) as box:
             self._box = box
             if self.service is not None:
                 self.agent.register(self.service, **self.service_properties())
             try:
                 while True:
-                    wait = (None if not self.deferred
-                            else max(0.0, min(by for _, by in self.deferred) - time.monotonic()))
+                    now = time.monotonic()
+                    wait = (None if not self.deferred else max(0.0, min(
+                        gather if gather > now else by
+                        for _, gather, by in self.deferred) - now))
                     message = box._next(wait)
                     self._reap()
                     if message is not None:
@@ -464,10 +479,12 @@ class Responder(AgentBehavior):
             self._reply(message, Performative.AGREE)
             self._start(message)
         elif kind is Performative.CFP:
-            if self.answer_cfps_in_turn and (self.deferred or self._undecided_now()):
+            if self.answer_cfps_in_turn:
                 now, wall = time.monotonic(), time.time()
-                left = (message.reply_by - wall) if message.reply_by is not None else 0.0
-                self.deferred.append((message, now + max(0.0, left) / 2))
+                half = max(0.0, (message.reply_by - wall) / 2
+                           if message.reply_by is not None else 0.0)
+                self.deferred.append((message, now + min(self.gather_s, half), now + half))
+                self.deferred.sort(key=lambda entry: _call_order(entry[0]))
                 return
             self._bid(message)
         elif kind is Performative.ACCEPT_PROPOSAL:
@@ -483,7 +500,7 @@ class Responder(AgentBehavior):
             self.undecided.pop(cid, None)  # kept for proposal_valid_s: a re-award may come
         elif kind is Performative.CANCEL:
             self.undecided.pop(cid, None)
-            self.deferred = [(m, by) for m, by in self.deferred if m.conversation_id != cid]
+            self.deferred = [d for d in self.deferred if d[0].conversation_id != cid]
             self.proposals.pop(cid, None)
             self.waiting = [t for t in self.waiting if t.request.conversation_id != cid]
             task = self.tasks.pop(cid, None)
@@ -495,24 +512,32 @@ class Responder(AgentBehavior):
                                  f"{kind.value} outside a task it runs", message.sender,
                                  message.to_json(), reply=True, message=message)
 
-    def _undecided_now(self) -> bool:
-        """Whether a proposal of this responder is still undecided (forgetting the ones
-        older than :attr:`undecided_max_s`)."""
+    def _blocked(self, order: tuple[float, str]) -> bool:
+        """Whether a call at ``order`` waits: a proposal of this responder for an earlier
+        call is undecided (forgetting those older than :attr:`undecided_max_s`). Only
+        earlier calls hold a call back: two responders that received two calls in
+        opposite orders then never wait for each other."""
         old = time.monotonic() - self.undecided_max_s
-        for cid in [c for c, at in self.undecided.items() if at < old]:
+        for cid in [c for c, (at, _) in self.undecided.items() if at < old]:
             del self.undecided[cid]
-        return bool(self.undecided)
+        return any(earlier < order for _, earlier in self.undecided.values())
 
     def _answer_deferred(self) -> None:
-        """Answer held-back calls, oldest first, while nothing is undecided or their time
-        is up (each answer may make a new undecided proposal: the next one waits again)."""
-        while self.deferred:
+        """Answer held calls in the order of calls: each once its gathering time has
+        passed, no earlier call is held, and no proposal for an earlier one is undecided;
+        or once its time is up (each answer may make a new undecided proposal: the later
+        ones wait again)."""
+        progress = True
+        while progress:
+            progress = False
             now = time.monotonic()
-            due = [i for i, (_, by) in enumerate(self.deferred) if by <= now]
-            if self._undecided_now() and not due:
-                return
-            message, _ = self.deferred.pop(due[0] if due else 0)
-            self._bid(message)
+            for i, (message, gather, by) in enumerate(self.deferred):  # (kept in order)
+                if by <= now or (i == 0 and gather <= now
+                                 and not self._blocked(_call_order(message))):
+                    del self.deferred[i]
+                    self._bid(message)
+                    progress = True
+                    break
 
     def _bid(self, message: Message) -> None:
         """Answer a call for proposals with :meth:`propose`'s offer or a refusal."""
@@ -530,7 +555,7 @@ class Responder(AgentBehavior):
             self._reply(message, Performative.REFUSE, {"reason": "no proposal"})
         elif self._reply(message, Performative.PROPOSE, jsonable(offer)):
             self._propose(cid, message)
-            self.undecided[cid] = time.monotonic()
+            self.undecided[cid] = (time.monotonic(), _call_order(message))
 
     def _reply(self, to: Message, performative: Performative, content: Any = None) -> bool:
         try:
@@ -610,7 +635,7 @@ class Responder(AgentBehavior):
         self.proposals[cid] = (cfp, time.monotonic())
 
     def _abandon(self) -> None:
-        for cfp, _ in self.deferred:
+        for cfp, _, _ in self.deferred:
             self._reply(cfp, Performative.REFUSE, {"reason": f"{self.path} stopped"})
         self.deferred.clear()
         for task in self.waiting:
