@@ -91,9 +91,22 @@ def pixels_near(png: bytes, colour: tuple[int, int, int], *, tolerance: int = 40
                if all(abs(data[i + c] - colour[c]) <= tolerance for c in range(3)))
 
 
+_WIDER = """(width) => [...document.querySelectorAll('body *')]
+  .filter((e) => e.getBoundingClientRect().right > width + 0.5)
+  .filter((e) => ![...e.children].some((c) => c.getBoundingClientRect().right > width + 0.5))
+  .slice(0, 8)
+  .map((e) => `${e.tagName.toLowerCase()}${e.id ? '#' + e.id : ''}` +
+              `${e.className && typeof e.className === 'string' ? '.' + e.className : ''}` +
+              ` right=${Math.round(e.getBoundingClientRect().right)}` +
+              ` "${(e.textContent || '').trim().slice(0, 60)}"`)"""
+
+
 def fits(page: Any, width: int) -> None:
     scroll = page.evaluate("document.documentElement.scrollWidth")
-    assert scroll <= width, f"the page is {scroll} px wide on a {width} px screen"
+    # When it does not fit, name the innermost elements that stick out (what overflows
+    # depends on what the page shows at that moment).
+    assert scroll <= width, (f"the page is {scroll} px wide on a {width} px screen: "
+                             f"{page.evaluate(_WIDER, width)}")
 
 
 def shoot(page: Any, view: str, size: dict[str, int]) -> None:
