@@ -31,7 +31,7 @@ from beehave.events import Event, EventBus, EventCallback, EventKind
 from beehave.hal import check_duration_s
 from beehave.lifecycle import Running
 from beehave.locks import TypeLocks
-from beehave.runnable import Runnable, _Pause, current
+from beehave.runnable import Runnable, _Flag, _Pause, current
 from beehave.status import Status
 from beehave.substitutes import Substitute, Substitutions
 from beehave.threads import WorkerPool
@@ -56,39 +56,13 @@ class ManagerState(enum.Enum):
     STOPPED = "stopped"
 
 
-class _Done:
-    """``threading.Event``'s ``is_set``/``set``/``wait`` for a request: its condition has an
-    RLock (an Event's has a Lock, which costs Condition three caught AttributeErrors per
-    request), and setting it wakes only when someone waits (usually the caller executes
-    its own request)."""
-
-    __slots__ = ("_cond", "_on", "_waiters")
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition(threading.RLock())
-        self._on = False
-        self._waiters = 0
-
-    def is_set(self) -> bool:
-        return self._on
-
-    def set(self) -> None:
-        # A waiter counts itself under the lock before it reads the flag: when this reads
-        # no waiter, any later one finds the flag set.
-        self._on = True
-        if self._waiters:
-            with self._cond:
-                self._cond.notify_all()
-
-    def wait(self, timeout: float | None = None) -> bool:
-        if self._on:
-            return True
-        with self._cond:
-            self._waiters += 1
-            try:
-                return self._cond.wait_for(self.is_set, timeout)
-            finally:
-                self._waiters -= 1
+def _done_flag() -> _Flag:
+    """A request's done flag: ``threading.Event``'s ``is_set``/``set``/``wait`` on a
+    condition of its own over an RLock (an Event's Lock costs Condition three caught
+    AttributeErrors per request); setting it wakes only when someone waits (usually the
+    caller executes its own request)."""
+    lock = threading.RLock()
+    return _Flag(threading.Condition(lock), lock)
 
 
 @dataclass
@@ -96,7 +70,7 @@ class _Request:
     name: str
     behavior: Behavior
     fallback_from: Behavior | None = None
-    done: _Done = field(default_factory=_Done)
+    done: _Flag = field(default_factory=_done_flag)
     error: BeehaveError | None = None
 
     def finish(self, error: BeehaveError | None = None) -> None:

@@ -138,21 +138,26 @@ def _metrics(cdp: Any) -> dict[str, float]:
     return {m["name"]: m["value"] for m in cdp.send("Performance.getMetrics")["metrics"]}
 
 
-def graph_view() -> list[dict[str, Any]]:
-    """Render time and live-update cost of the two big graphs (skipped without chromium)."""
-    from playwright.sync_api import sync_playwright
-
+def _robot() -> tuple[HighLevelBehaviorManager, dict[str, Any], ControlPlane]:
+    """A started manager with the two big engines registered, and its control plane."""
     from behaviours.demos.graphs import big_machine, big_tree
 
-    if not os.path.exists(CHROMIUM):
-        return []
-    rows = []
     hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
     engines = {"tree": big_tree(300), "state_machine": big_machine(60)}
     for name, engine in engines.items():
         hl.register(name, EngineBehavior, engine=engine)
     hl.start()
-    plane = ControlPlane(hl, name="robot")
+    return hl, engines, ControlPlane(hl, name="robot")
+
+
+def graph_view() -> list[dict[str, Any]]:
+    """Render time and live-update cost of the two big graphs (skipped without chromium)."""
+    from playwright.sync_api import sync_playwright
+
+    if not os.path.exists(CHROMIUM):
+        return []
+    rows = []
+    hl, engines, plane = _robot()
     try:
         with HttpServer(plane, rate_hz=20.0) as server, sync_playwright() as playwright:
             browser = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
@@ -263,14 +268,8 @@ def graph_render_ab(versions: list[Path], *, pages: int = 3,
     from playwright.sync_api import sync_playwright
 
     from beehave.testing import wait_until
-    from behaviours.demos.graphs import big_machine, big_tree
 
-    hl = HighLevelBehaviorManager(stop_timeout_s=0.5)
-    engines = {"tree": big_tree(300), "state_machine": big_machine(60)}
-    for name, engine in engines.items():
-        hl.register(name, EngineBehavior, engine=engine)
-    hl.start()
-    plane = ControlPlane(hl, name="robot")
+    hl, engines, plane = _robot()
     snapshots = {}
     samples: dict[tuple[str, int], dict[str, list[float]]] = {
         (name, i): {"wall": [], "cpu": []} for name in engines for i in range(len(versions))}
