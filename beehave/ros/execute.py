@@ -100,6 +100,10 @@ class _Goal:
     preempted_by: uuid.UUID | None = None
     #: Ticks on which the behaviour was seen neither running nor queued (see _tick).
     unqueued_ticks: int = 0
+    #: The ``idle`` a cancel switched to: the goal ends once it runs, so that a client
+    #: reading the robot's state after CANCELED finds it idle (see _check).
+    idle: Behavior | None = None
+    idle_unqueued_ticks: int = 0
     last_feedback: str | None = None
     last_feedback_at: float = 0.0
     sent: threading.Event = field(default_factory=threading.Event)
@@ -256,7 +260,7 @@ class ExecuteBehaviorServer:
         if not latest:  # preempted, ending already: the cancel just marks it
             return CancelResponse.ACCEPT
         try:
-            self.plane.stop()
+            goal.idle = self.high.request_switch(IDLE, **self.plane.check_switch(IDLE))
         except BeehaveError as exc:
             with goal.lock:
                 goal.cancel_requested = not first
@@ -277,8 +281,16 @@ class ExecuteBehaviorServer:
 
     def _check(self, goal: _Goal) -> None:
         behavior = goal.behavior
-        if behavior is not None and behavior.status.finished:
+        if behavior is not None and behavior.status.finished and self._idle_settled(goal):
             self._finish(goal, behavior.status)
+
+    def _idle_settled(self, goal: _Goal) -> bool:
+        """True unless the goal was cancelled and its ``idle`` has not started yet: the
+        behaviour ends a moment before the switch starts ``idle``. A later switch that
+        overtook the ``idle`` settles it too (seen by _tick)."""
+        idle = goal.idle
+        return (idle is None or idle.status is not Status.PENDING or self.high.top is idle
+                or goal.idle_unqueued_ticks >= 2)
 
     def _tick(self) -> None:
         """Executor thread, every :data:`_TICK_S`: feedback on change and every
@@ -297,6 +309,11 @@ class ExecuteBehaviorServer:
                 item.unqueued_ticks = item.unqueued_ticks + 1 if unqueued else 0
                 if item.unqueued_ticks >= 2:
                     self._finish(item, None)
+            idle = item.idle
+            if idle is not None and idle.status is Status.PENDING and not item.done:
+                high = self.high
+                unqueued = high.top is not idle and high.requested != IDLE
+                item.idle_unqueued_ticks = item.idle_unqueued_ticks + 1 if unqueued else 0
         if any(item.done and item.sent.is_set() for item in following):
             with self._lock:
                 self._following = tuple(g for g in self._following
