@@ -6,6 +6,7 @@ import faulthandler
 import importlib
 import os
 import random
+import sys
 import tempfile
 from collections.abc import Generator, Iterator
 from pathlib import Path
@@ -34,6 +35,13 @@ if "PYTEST_XDIST_WORKER" in os.environ:
     os.environ["ROS_DOMAIN_ID"] = _DOMAIN
 else:
     os.environ.setdefault("ROS_DOMAIN_ID", _DOMAIN)
+
+# Bytecode caches on, even where the environment turns them off (PYTHONDONTWRITEBYTECODE=1
+# on CI machines): the suite starts hundreds of Python processes (robots, agents, the CLI)
+# and each would compile beehave from source again, and each worker would rewrite every
+# test module's asserts again. Child processes and xdist workers inherit this.
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+sys.dont_write_bytecode = False
 
 if os.environ.get("BEEHAVE_REQUIRE_EXTRAS") == "1":
     # `make test` installs every extra: a missing rclpy or pybullet there is a broken

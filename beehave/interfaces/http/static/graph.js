@@ -525,6 +525,11 @@ window.beehaveGraph = (() => {
     if (!v) return null;
     const cy = v.cy;
     const box = v.canvas.getBoundingClientRect();
+    // What a press at a point of the page would hit: the element with its label.
+    const pageBox = (ele) => {
+      const b = ele.renderedBoundingBox({includeLabels: true, includeOverlays: false});
+      return {x1: box.left + b.x1, y1: box.top + b.y1, x2: box.left + b.x2, y2: box.top + b.y2};
+    };
     return {
       zoom: cy.zoom(), pan: cy.pan(), layoutMs: v.lastLayoutMs, renderMs: v.lastRenderMs,
       canvas: {x: box.left, y: box.top, width: box.width, height: box.height},
@@ -535,10 +540,11 @@ window.beehaveGraph = (() => {
                 state: n.data("state") || null, path: n.data("path") || null,
                 engine: n.data("engine") || null,
                 center: {x: box.left + (bb.x1 + bb.x2) / 2, y: box.top + (bb.y1 + bb.y2) / 2},
-                size: {w: bb.w, h: bb.h}};
+                size: {w: bb.w, h: bb.h}, box: pageBox(n)};
       }),
       edges: cy.edges().map((e) => ({id: e.id(), source: e.source().id(), target: e.target().id(),
-        label: e.data("label") || "", visible: e.visible(), classes: e.classes()})),
+        label: e.data("label") || "", visible: e.visible(), classes: e.classes(),
+        box: pageBox(e)})),
     };
   }
 
