@@ -42,6 +42,9 @@ else:
 # test module's asserts again. Child processes and xdist workers inherit this.
 os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 sys.dont_write_bytecode = False
+# Every Python child writes its threads' stacks to its stderr on a fatal signal: a harness
+# that gives up on a hung child sends it SIGABRT and the test's failure shows where it hung.
+os.environ["PYTHONFAULTHANDLER"] = "1"
 
 if os.environ.get("BEEHAVE_REQUIRE_EXTRAS") == "1":
     # `make test` installs every extra: a missing rclpy or pybullet there is a broken

@@ -111,7 +111,7 @@ class Fleet:
                 time.sleep(0.5)
         seen = {n: (m.performative.value, m.content) for n, m in answers.items()}
         raise AssertionError(f"not every ATV of {atvs} bids within {timeout_s} s: {seen}; "
-                             f"logs:\n{self.logs()}")
+                             f"logs:\n{self.stacks_and_logs()}")
 
     def wait(self, predicate: Callable[[], Any], what: str, timeout_s: float) -> Any:
         deadline = time.monotonic() + timeout_s
@@ -124,11 +124,25 @@ class Fleet:
             dead = {n: c for n, c in dead.items() if c != -signal.SIGKILL}
             assert not dead, f"{dead} ended while waiting for {what}: {self.logs(*dead)}"
             time.sleep(0.1)
-        raise AssertionError(f"no {what} within {timeout_s} s; logs:\n{self.logs()}")
+        raise AssertionError(f"no {what} within {timeout_s} s; logs:\n{self.stacks_and_logs()}")
 
-    def logs(self, *names: str) -> str:
-        return "\n".join(f"--- {n}\n" + (self.tmp / f"{n}.log").read_text(errors="replace")[-1500:]
+    def logs(self, *names: str, tail: int = 1500) -> str:
+        return "\n".join(f"--- {n}\n" + (self.tmp / f"{n}.log").read_text(errors="replace")[-tail:]
                          for n in (names or self.procs))
+
+    def stacks_and_logs(self) -> str:
+        """The logs after every process still running has written the stacks of its
+        threads (SIGABRT: faulthandler, on in every child of the suite, see conftest.py)
+        and ended: what a process waited for when the test gave up on it."""
+        running = [proc for proc in self.procs.values() if proc.poll() is None]
+        for proc in running:
+            proc.send_signal(signal.SIGABRT)
+        for proc in running:
+            try:
+                proc.wait(5)
+            except subprocess.TimeoutExpired:
+                pass
+        return self.logs(tail=6000)
 
     def close(self) -> None:
         for proc in self.procs.values():

@@ -70,6 +70,51 @@ def demo(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureReques
     yield path
 
 
+@pytest.fixture(scope="session")
+def emili_replayed(demo: Path) -> Iterator[dict[str, Any]]:
+    """EMILI replayed once through the API, asked to go 100 s beyond the recording's end,
+    while a ROS probe listens on what EMILI commands and every rclpy node made in this
+    process is counted (a replay of the whole demo is several seconds of the suite: three
+    tests read this one). ``result``: the replay's; ``made``: the names of the nodes the
+    replay made; ``heard``: what the probe received per topic after the replay."""
+    import rclpy.node
+    from geometry_msgs.msg import Twist
+    from std_msgs.msg import Float64, String
+
+    from tests.ros_probe import Probe
+
+    probe = Probe()
+    try:
+        heard = {topic: probe.record(t, topic) for topic, t in (
+            ("/emili1/cmd_vel", Twist), ("/emili1/sound", String),
+            ("/emili1/lift/command", Float64), ("/emili1/orders/progress", String))}
+        # The probe does hear a robot that publishes: its silence below means something.
+        talker = probe.ros.create_node("talker")
+        pub = talker.create_publisher(Twist, "/emili1/cmd_vel", 10)
+        assert probe.wait(lambda: (pub.publish(Twist()), bool(heard["/emili1/cmd_vel"]))[1])
+        probe.ros.destroy_node(talker)
+        probe.wait(lambda: False, timeout_s=QUIET_S)  # the talker's last messages arrive
+        heard["/emili1/cmd_vel"].clear()
+
+        made: list[str] = []
+        init = rclpy.node.Node.__init__
+        lock = threading.Lock()
+
+        def spy(self: Any, name: str, *args: Any, **kwargs: Any) -> None:
+            with lock:
+                made.append(name)
+            init(self, name, *args, **kwargs)
+
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(rclpy.node.Node, "__init__", spy)
+            result = replay(demo, _emili(), speed=None, to_s=_replayed_end(demo) + 100.0)
+        probe.wait(lambda: False, timeout_s=QUIET_S)  # anything sent would have arrived
+        yield {"result": result, "made": made,
+               "heard": {topic: list(got) for topic, got in heard.items()}}
+    finally:
+        probe.ros.shutdown()
+
+
 def test_the_fast_demo_reaches_every_goal_in_the_physics(demo: Path) -> None:
     """The checks are the fixture's (see :func:`demo`); here the recording is complete."""
     assert demo.stat().st_size > 0
@@ -85,9 +130,9 @@ def _emili(commanded: str | None = None) -> RobotConfig:
     return parse_config(data, source=f"{source} (variant)")
 
 
-def test_demo_recording_replays_to_the_same_decisions(demo: Path,
-                                                       capsys: pytest.CaptureFixture[str]
-                                                       ) -> None:
+def test_demo_recording_replays_to_the_same_decisions(
+        demo: Path, emili_replayed: dict[str, Any], capsys: pytest.CaptureFixture[str]
+        ) -> None:
     rec = read_recording(demo)
     assert rec.prefixes == ["emili1", "kobuki1"] and rec.dropped() == 0
     for robot in ("emili1", "kobuki1"):
@@ -112,8 +157,7 @@ def test_demo_recording_replays_to_the_same_decisions(demo: Path,
     assert {"subject": "tour/Navigation→emili_pickup", "status": "INTERRUPTED"}.items() \
         <= next(r for r in ran if r["subject"] == "tour/Navigation→emili_pickup").items()
 
-    # The command line replays kobuki1; EMILI is replayed through the API below (the same
-    # replay: once is enough, each is several seconds of the suite).
+    # The command line replays kobuki1; EMILI is replayed through the API (emili_replayed).
     capsys.readouterr()
     code = main(["replay", str(demo), "--robot", str(CONFIG_DIR / "kobuki.yaml"),
                  "--speed", "max"])
@@ -123,7 +167,7 @@ def test_demo_recording_replays_to_the_same_decisions(demo: Path,
     assert "(sim time)" in printed and "/cmd_vel x" in printed, printed
 
     # The behaviour switch sequence itself, from the replay (not only "no divergence").
-    result = replay(rec, _emili(), speed=None)
+    result = emili_replayed["result"]
     assert result.divergence is None, result.divergence
     switches = [o.value for o in result.outputs if o.key == HIGH_SWITCH]
     assert [v[1] for v in switches if v[0] == "completed"] == DEMO_SWITCHES
@@ -195,55 +239,22 @@ def test_a_recording_without_what_a_behaviour_reads_is_refused_naming_it(demo: P
     assert low.divergence is None and not low.high
 
 
-def test_nothing_reaches_ros_during_a_replay(demo: Path, monkeypatch: pytest.MonkeyPatch
-                                             ) -> None:
-    import rclpy.node
-    from geometry_msgs.msg import Twist
-    from std_msgs.msg import Float64, String
-
-    from tests.ros_probe import Probe
-
-    probe = Probe()
-    try:
-        heard = {topic: probe.record(t, topic) for topic, t in (
-            ("/emili1/cmd_vel", Twist), ("/emili1/sound", String),
-            ("/emili1/lift/command", Float64), ("/emili1/orders/progress", String))}
-        # The probe does hear a robot that publishes: its silence below means something.
-        talker = probe.ros.create_node("talker")
-        pub = talker.create_publisher(Twist, "/emili1/cmd_vel", 10)
-        assert probe.wait(lambda: (pub.publish(Twist()), bool(heard["/emili1/cmd_vel"]))[1])
-        probe.ros.destroy_node(talker)
-        probe.wait(lambda: False, timeout_s=QUIET_S)  # the talker's last messages arrive
-        heard["/emili1/cmd_vel"].clear()
-
-        made: list[str] = []
-        init = rclpy.node.Node.__init__
-        lock = threading.Lock()
-
-        def spy(self: Any, name: str, *args: Any, **kwargs: Any) -> None:
-            with lock:
-                made.append(name)
-            init(self, name, *args, **kwargs)
-
-        monkeypatch.setattr(rclpy.node.Node, "__init__", spy)
-        result = replay(demo, _emili(), speed=None)
-        monkeypatch.undo()
-        # (Whether it diverges is test_demo_recording_replays_to_the_same_decisions's
-        # question; here: what it sends.)
-        assert made == []  # the replay made no ROS node
-        captured = {c.topic for c in result.commands}
-        assert {"/emili1/cmd_vel", "/emili1/sound", "/emili1/lift/command",
-                "/emili1/orders/progress"} <= captured
-        assert "/lockstep" not in captured  # pacing, not a command
-        lift = [c.value["data"] for c in result.commands if c.topic == "/emili1/lift/command"]
-        assert lift[:2] == [0.2, 0.0]  # the tour's lift up and down, as commanded live
-        moving = [c for c in result.commands if c.topic == "/emili1/cmd_vel"
-                  and c.value["linear"]["x"] > 0.1]
-        assert moving  # the navigation drove (captured): it is not a silent no-op
-        probe.wait(lambda: False, timeout_s=QUIET_S)  # anything sent would have arrived
-        assert {topic: len(got) for topic, got in heard.items()} == dict.fromkeys(heard, 0)
-    finally:
-        probe.ros.shutdown()
+def test_nothing_reaches_ros_during_a_replay(emili_replayed: dict[str, Any]) -> None:
+    # (Whether it diverges is test_demo_recording_replays_to_the_same_decisions's
+    # question; here: what it sends.)
+    result = emili_replayed["result"]
+    assert emili_replayed["made"] == []  # the replay made no ROS node
+    captured = {c.topic for c in result.commands}
+    assert {"/emili1/cmd_vel", "/emili1/sound", "/emili1/lift/command",
+            "/emili1/orders/progress"} <= captured
+    assert "/lockstep" not in captured  # pacing, not a command
+    lift = [c.value["data"] for c in result.commands if c.topic == "/emili1/lift/command"]
+    assert lift[:2] == [0.2, 0.0]  # the tour's lift up and down, as commanded live
+    moving = [c for c in result.commands if c.topic == "/emili1/cmd_vel"
+              and c.value["linear"]["x"] > 0.1]
+    assert moving  # the navigation drove (captured): it is not a silent no-op
+    heard = emili_replayed["heard"]
+    assert {topic: len(got) for topic, got in heard.items()} == dict.fromkeys(heard, 0)
 
 
 # ---- recordings users bring: cut off, damaged, asked beyond their end (issue 23) --------
@@ -321,9 +332,8 @@ def test_a_damaged_recording_names_the_damage_and_exits_2(
 
 
 def test_to_beyond_the_end_replays_to_the_end_without_a_false_divergence(
-        demo: Path) -> None:
-    end = _replayed_end(demo)
-    result = replay(demo, _emili(), speed=None, to_s=end + 100.0)
+        emili_replayed: dict[str, Any]) -> None:
+    result = emili_replayed["result"]  # asked for 100 s beyond the end
     assert result.divergence is None, result.divergence
     assert any("beyond the recording's end" in w for w in result.warnings), result.warnings
 
