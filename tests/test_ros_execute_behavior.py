@@ -458,6 +458,9 @@ def test_a_goal_overtaken_by_another_switch_is_aborted(reject: Any) -> None:
     hl = robot.high
     assert hl is not None
     goal = client.send("countdown", {"steps": 1000})
+    # The goal is accepted before the server asks for its switch: the other switch comes
+    # after that request, whether it is still queued or running already.
+    assert wait_until(lambda: "countdown" in (hl.requested, hl.current))
     hl.request_switch("parked")
     status, result = goal.result()
     assert status == "ABORTED", (status, result)
