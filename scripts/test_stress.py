@@ -74,7 +74,8 @@ def main() -> int:
     env = dict(os.environ, BEEHAVE_REQUIRE_EXTRAS="1")
     env.pop("ROS_DOMAIN_ID", None)
     # The clone's packages first (python -m puts the working directory on sys.path).
-    env["PYTHONPATH"] = str(where)
+    env["PYTHONPATH"] = os.pathsep.join(
+        p for p in (str(where), os.environ.get("PYTHONPATH", "")) if p)
     counts: collections.Counter[str] = collections.Counter()
     rows = []
     hogs = start_hogs(args.hogs)
