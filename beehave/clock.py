@@ -87,9 +87,22 @@ class SimClock(WallClock):
         self._ids = itertools.count()
         self._local = threading.local()
         self._started = threading.Event()
+        self._listeners: tuple[Callable[[float], None], ...] = ()
 
     def now(self) -> float:
         return self._now
+
+    def on_set(self, callback: Callable[[float], None]) -> Callable[[], None]:
+        """Call ``callback(now_s)`` after every :meth:`set_time`, in the thread that moved
+        the clock (keep it short); returns the function that removes it. The recorder
+        samples the clock with it (see :meth:`~beehave.recording.Recorder.attach_clock`)."""
+        with self._lock:
+            self._listeners = (*self._listeners, callback)
+
+        def remove() -> None:
+            with self._lock:
+                self._listeners = tuple(c for c in self._listeners if c is not callback)
+        return remove
 
     @property
     def started(self) -> bool:
@@ -107,9 +120,12 @@ class SimClock(WallClock):
             due: list[threading.Condition] = []
             while self._waiters and self._waiters[0][0] <= self._now + self.SLACK_S:
                 due.append(heapq.heappop(self._waiters)[2])
+            now, listeners = self._now, self._listeners
         for cond in due:
             with cond:
                 cond.notify_all()
+        for listener in listeners:
+            listener(now)
 
     @contextmanager
     def announcing(self, callback: Callable[[float], None]) -> Iterator[None]:

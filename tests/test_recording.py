@@ -28,6 +28,31 @@ from hal.debug import DebugHAL, DebugRobot
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def test_a_sim_clock_is_sampled_every_clock_period_however_unevenly_it_moves(
+        tmp_path: Path) -> None:
+    """The replay maps recorded wall times to sim time by interpolating the clock's
+    samples; a simulation in lockstep under load moves in bursts and stalls. Every 10 ms
+    of sim time is sampled when the clock moves (not only when the writer wakes), so the
+    sim time of an event read back is right to one /clock period."""
+    import time
+
+    from beehave.recording.recorder import CLOCK_SAMPLE_S
+
+    path = tmp_path / "clock.mcap"
+    clock = SimClock()
+    with Recorder(path, flush_period_s=0.5) as recorder:
+        recorder.attach_clock(clock, prefix="r1")
+        for burst in range(5):  # a burst of 0.5 sim s in no wall time, then a stall
+            for step in range(50):
+                clock.set_time(burst + step * 0.01)
+            time.sleep(0.05)
+    rec = read_recording(path)
+    samples = [m.data["sim_time_s"] for m in rec.of("/r1/beehave/clock")]
+    moved = sorted({round(s, 3) for s in samples})
+    gaps = [b - a for a, b in zip(moved, moved[1:], strict=False) if b - a < 0.5]  # a burst
+    assert len(moved) >= 5 * 50 * 0.9 and max(gaps) <= CLOCK_SAMPLE_S + 1e-9, moved
+
+
 def test_every_beehave_channel_round_trips(tmp_path: Path) -> None:
     path = tmp_path / "all.mcap"
     board, high = Blackboard(), EventBus()

@@ -22,6 +22,7 @@ import asyncio
 import functools
 import inspect
 import logging
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -113,6 +114,10 @@ _HEADS: dict[str, tuple[str | None, bool, bytes, bytes]] = {}
 """Per key: its writer and stale flag, and the JSON of such a change before its value and
 after its stamp. A key is mostly written by one writer, so each is encoded once (up to
 :data:`_HEADS_MAX` keys)."""
+CLOCK_SAMPLE_S = 0.01
+"""How far (sim seconds) a sim clock moves between two of its samples in the recording:
+one ``/clock`` period at 100 Hz (see :meth:`Recorder.attach_clock`)."""
+
 _HEADS_MAX = 10_000
 
 _PLAIN = frozenset({float, int, bool, type(None)})
@@ -507,10 +512,25 @@ class Recorder:
         self._detach.append(detach)
 
     def attach_clock(self, clock: WallClock, *, prefix: str = "") -> None:
-        """Record ``clock.now()`` beside wall time (about 50 times a second), so a replay
-        can follow the simulation's time (a run at ``--fast`` replays at robot speed)."""
+        """Record ``clock.now()`` beside wall time, so a replay can follow the
+        simulation's time (a run at ``--fast`` replays at robot speed): a sim clock
+        whenever it has moved :data:`CLOCK_SAMPLE_S` since its last sample (the replay
+        interpolates between samples, and a simulation in lockstep under load does not
+        move evenly), any clock before each write of the recording (about 50 times a
+        second)."""
         channel = self._channel(prefix, schema.CLOCK, _identity)
         self._clocks.append((channel, clock))
+        on_set = getattr(clock, "on_set", None)
+        if on_set is None:
+            return
+        last = [-math.inf]
+
+        def sample(now_s: float) -> None:  # in the thread that moved the clock
+            if now_s - last[0] >= CLOCK_SAMPLE_S - 1e-6:  # (a stamp in whole ns)
+                last[0] = now_s
+                stamp = time.time()
+                channel.put((int(stamp * 1e9), _dumps({"sim_time_s": now_s, "stamp": stamp})))
+        self._detach.append(on_set(sample))
 
     def attach_engines(self, high: HighLevelBehaviorManager, *, prefix: str = "") -> None:
         """Record the decision engines of ``high``'s running behaviours (state machines,
