@@ -24,7 +24,8 @@ import math
 import threading
 import time
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,6 +46,7 @@ from beehave.planning import (
     path_length_m,
 )
 from beehave.ros.io import Latest, WaitTimeout, node_publisher
+from beehave.runnable import Runnable
 from robots import topics
 
 log = logging.getLogger(__name__)
@@ -175,6 +177,45 @@ class LockstepLine:
                 return False
             time.sleep(0.005)
         return True
+
+
+@contextmanager
+def lockstep_sleeps(runnable: Runnable) -> Iterator[Callable[[float], bool]]:
+    """Yields a ``sleep(seconds) -> bool`` for ``runnable`` (a behaviour or action whose
+    timed steps matter beside driving: a chime every 2 s) that holds a simulation in
+    lockstep where each sleep ends, until the runnable sleeps again or leaves the block,
+    as :class:`DriveBase` does for control periods. Without a simulation (wall time, or
+    no ``/lockstep`` subscriber) it is ``runnable.sleep``.
+
+    Without it a simulation at ``--fast`` runs on while a starved thread has not woken
+    yet: live the step then comes late in sim time (a chime after the drive it should have
+    sounded during), and a replay of the recording, which runs it on time, diverges."""
+    manager = runnable.manager
+    clock, node = manager.clock, manager.node
+    if not isinstance(clock, SimClock) or node is None:
+        yield runnable.sleep
+        return
+    line = LockstepLine.of(node)
+    participant = f"{node.get_fully_qualified_name()}/{runnable.path}#{id(runnable):x}"
+    line.wait_matched(lambda: runnable.interrupted)
+
+    def hold(until_s: float | None) -> None:
+        if runnable.status is Status.STUCK:
+            until_s = None  # one that ignores its interrupt must not hold the simulation
+        line.publisher.publish(String(data=json.dumps({"participant": participant,
+                                                       "until_s": until_s})))
+
+    def sleep(seconds: float) -> bool:
+        with clock.announcing(hold):
+            return runnable.sleep(seconds)
+
+    try:
+        yield sleep
+    finally:
+        try:
+            hold(None)
+        except Exception:  # the node is gone: the simulator's lockstep timeout lets go
+            log.debug("%s: could not let the simulation go", runnable.name, exc_info=True)
 
 
 class SpeedLimit:

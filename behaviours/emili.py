@@ -19,7 +19,15 @@ from typing import Any
 from std_msgs.msg import String
 
 from beehave import Behavior, Status
-from behaviours.actions import Goal, Lift, Navigation, NavigationError, PlaySound, resolve_goal
+from behaviours.actions import (
+    Goal,
+    Lift,
+    Navigation,
+    NavigationError,
+    PlaySound,
+    lockstep_sleeps,
+    resolve_goal,
+)
 
 
 class Chime(Behavior):
@@ -30,10 +38,13 @@ class Chime(Behavior):
 
     def run(self) -> int:
         played = 0
-        while not self.interrupted:
-            self.start_action(PlaySound(self.sound)).wait()
-            played += 1
-            self.sleep(self.interval_s)
+        # In lockstep with a simulation: each sound comes on time in sim time, also when
+        # a loaded host starves this thread (and a replay then agrees with the recording).
+        with lockstep_sleeps(self) as sleep:
+            while not self.interrupted:
+                self.start_action(PlaySound(self.sound)).wait()
+                played += 1
+                sleep(self.interval_s)
         return played
 
 

@@ -1,0 +1,60 @@
+"""``lockstep_sleeps``: a behaviour's timed steps held in lockstep with a simulation, as a
+driving action's control periods are (the demo's chime: live under load it sounded late in
+sim time, its replay on time, and the replay reported a divergence)."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+from std_msgs.msg import String  # noqa: E402
+
+from beehave import Behavior, HighLevelBehaviorManager  # noqa: E402
+from beehave.clock import SimClock  # noqa: E402
+from beehave.testing import wait_until  # noqa: E402
+from behaviours.actions import lockstep_sleeps  # noqa: E402
+from robots import topics  # noqa: E402
+from tests.ros_probe import Probe  # noqa: E402
+
+
+class Ticker(Behavior):
+    def run(self) -> int:
+        steps = 0
+        with lockstep_sleeps(self) as sleep:
+            while steps < 3 and sleep(1.0):
+                steps += 1
+        return steps
+
+
+def test_each_sleep_holds_the_simulation_where_it_ends_and_the_end_lets_it_go() -> None:
+    probe = Probe()
+    clock = SimClock()
+    clock.set_time(10.0)
+    hl = HighLevelBehaviorManager(node=probe.ros.create_node("ticker_robot"), clock=clock)
+    try:
+        heard = probe.record(String, topics.LOCKSTEP)
+        hl.register("ticker", Ticker)
+        hl.start()
+        ticker = hl.request_switch("ticker")
+        holds: list[Any] = []
+
+        def announced(until_s: float | None) -> bool:
+            holds[:] = [json.loads(m.data)["until_s"] for m in list(heard)]
+            return bool(holds) and holds[-1] == until_s
+
+        # The simulation may not run past a step before the behaviour has taken it.
+        for step_s in (11.0, 12.0, 13.0):
+            assert wait_until(lambda step_s=step_s: announced(step_s)), holds
+            clock.set_time(step_s)
+        assert wait_until(lambda: announced(None)), holds  # done: let go
+        assert ticker.result == 3
+        assert holds == [11.0, 12.0, 13.0, None], holds
+        participants = {json.loads(m.data)["participant"] for m in list(heard)}
+        assert len(participants) == 1 and "ticker" in participants.pop()
+    finally:
+        hl.shutdown()
+        probe.ros.shutdown()
