@@ -8,6 +8,7 @@ import os
 import random
 import sys
 import tempfile
+import zlib
 from collections.abc import Generator, Iterator
 from pathlib import Path
 from types import ModuleType
@@ -58,6 +59,28 @@ if os.environ.get("BEEHAVE_REQUIRE_EXTRAS") == "1":
                         f"extra (BEEHAVE_REQUIRE_EXTRAS=1): {exc}", pytrace=False)
 
     pytest.importorskip = _require  # type: ignore[assignment]
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The order pytest-xdist hands tests out in (each worker applies the same one): whole
+    modules, those with tests declared long (a ``timeout`` marker above the default) first,
+    longest first, so that none starts late and ends the run alone; the others in a fixed
+    mix, not alphabetically, so that files that mostly wait (MAVLink links, VDA 5050
+    brokers) are not all running at once on every worker while the CPUs idle. A module's
+    tests stay together: module-scoped fixtures are set up once per worker."""
+    default = float(config.getini("timeout") or 120)
+
+    def bound(item: pytest.Item) -> float:
+        marker = item.get_closest_marker("timeout")
+        return float(marker.args[0]) if marker and marker.args else default
+
+    longest: dict[str, float] = {}
+    for item in items:
+        name = item.nodeid.split("::", 1)[0]
+        longest[name] = max(longest.get(name, 0.0), bound(item))
+    place = {name: (-t if t > default else 0.0, zlib.crc32(name.encode()))
+             for name, t in longest.items()}
+    items.sort(key=lambda item: place[item.nodeid.split("::", 1)[0]])  # stable in a module
 
 
 @pytest.fixture

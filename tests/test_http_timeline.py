@@ -415,8 +415,20 @@ def test_the_recorded_page_at_t_says_what_beehave_inspect_says_at_t(
     seek(page, 0.0)
     page.select_option("#tl-speed", "5")
     page.click("#tl-play")
-    page.wait_for_function("Number(document.querySelector('#timeline').dataset.shown) > 1",
-                           timeout=WAIT_MS)
+    try:
+        page.wait_for_function(
+            "Number(document.querySelector('#timeline').dataset.shown) > 1", timeout=WAIT_MS)
+    except Exception as exc:  # what the player shows, and whether its server still lives
+        state = page.evaluate("""() => ({
+            shown: document.querySelector('#timeline').dataset.shown,
+            at: document.querySelector('#timeline').dataset.at,
+            time: document.querySelector('#tl-time').textContent,
+            play: document.querySelector('#tl-play').textContent,
+            speed: document.querySelector('#tl-speed').value,
+            visibility: document.visibilityState})""")
+        raise AssertionError(f"playing at x5 did not move the moment past 1 s: {state}; "
+                             f"viewer alive: {viewer.proc.poll() is None}; its output:\n"
+                             f"{''.join(viewer.lines[-20:])}") from exc
     page.click("#tl-play")
     plot(page, "speed_mps", points_over=50)
     shoot(page, "recording", size)
