@@ -215,7 +215,10 @@ def test_switching_on_the_page_drives_the_robot_and_the_view_follows(
     # The state machine is drawn with its running state highlighted.
     page.wait_for_selector('.engine.state_machine .sm-state.active[data-state="to_drop"]',
                            timeout=WAIT_MS)
-    assert page.locator('.sm-state[data-state="to_charge"]:not(.active)').count() == 1
+    # ...and its other states drawn, not active (waited for: the view redraws on updates).
+    page.wait_for_function(
+        "document.querySelectorAll('.sm-state[data-state=\"to_charge\"]:not(.active)')"
+        ".length === 1", timeout=WAIT_MS)
     # The state's Navigation holds the driving lock (it starts just after the state).
     page.wait_for_selector('#locks tr[data-lock="driving"]', timeout=WAIT_MS)
     # The marker follows the physics toward the drop-off (x = 10).
