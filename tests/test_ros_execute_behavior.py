@@ -120,6 +120,18 @@ class Sent:
         return self.client.wait(self.handle.cancel_goal_async())
 
 
+def _stacks() -> str:
+    """Every thread's stack (the robot runs in this process): where its executor waits
+    when an answer does not come (seen once: a goal request unanswered for 60 s)."""
+    import sys
+    import traceback
+
+    names = {t.ident: t.name for t in threading.enumerate()}
+    return "\n".join(f"--- {names.get(ident, ident)}\n"
+                     + "".join(traceback.format_stack(frame)[-6:])
+                     for ident, frame in sys._current_frames().items())
+
+
 class GoalClient:
     """A plain rclpy ActionClient of one robot's ``beehave/execute_behavior``, and a
     subscriber of its ``cmd_vel``."""
@@ -159,7 +171,7 @@ class GoalClient:
     def wait(self, future: Any) -> Any:
         done = threading.Event()
         future.add_done_callback(lambda _: done.set())
-        assert done.wait(WALL_TIMEOUT_S), "no answer"
+        assert done.wait(WALL_TIMEOUT_S), f"no answer; the threads of this process:\n{_stacks()}"
         return future.result()
 
     def send(self, behavior: str, params: Any = None, *, raw: str | None = None) -> Sent:
