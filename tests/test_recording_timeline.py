@@ -116,6 +116,23 @@ def test_the_blackboard_and_the_low_level_at_a_moment(recorded: Path) -> None:
     assert timeline.series("r1", ["speed_mps"])["speed_mps"]["v"] == [0.5, 0.0]
 
 
+def test_the_end_asked_to_the_microsecond_is_the_end(recorded: Path) -> None:
+    """The page plays to the end and asks for ``duration.toFixed(6)``, which may round up
+    past it: that is the end, not "outside the recording" (a play stopped on that error)."""
+    import math
+
+    timeline = RecordingTimeline(read_recording(recorded))
+    end = timeline.duration_s
+    rounded_up = math.ceil(end * 1e6) / 1e6
+    at_end, asked = timeline.state_at("r1", end), timeline.state_at("r1", rounded_up)
+    asked["snapshot"].pop("t_s")  # the moment as asked
+    at_end["snapshot"].pop("t_s")
+    assert asked == at_end
+    assert timeline.blackboard_at("r1", rounded_up) == timeline.blackboard_at("r1", end)
+    with pytest.raises(RecordingError, match=r"outside the recording: 0 to"):
+        timeline.state_at("r1", end + 2e-6)
+
+
 def test_bad_questions_name_what_is_wrong_and_what_exists(recorded: Path) -> None:
     timeline = RecordingTimeline(read_recording(recorded))
     with pytest.raises(RecordingError, match=r"outside the recording: 0 to"):

@@ -37,6 +37,10 @@ TRAIL_STEP_M = 0.02
 POSE_KEYS = ("odom/x_m", "odom/y_m")
 
 
+T_RESOLUTION_S = 1e-6
+"""The resolution of a moment asked for (seconds): the HTTP API's ``t`` has six decimals."""
+
+
 @dataclass(frozen=True)
 class _Item:
     """A running behaviour, action or logic."""
@@ -274,10 +278,12 @@ class RecordingTimeline:
     def _t_ns(self, t_s: float) -> int:
         if not isinstance(t_s, (int, float)) or isinstance(t_s, bool) or not math.isfinite(t_s):
             raise RecordingError(f"a time must be a finite number of seconds, got {t_s!r}")
-        if not 0 <= t_s <= self.duration_s + 1e-9:
+        # To the microsecond, as the page asks (``t.toFixed(6)`` of the duration may round
+        # up past the end): a time within that of the end is the end.
+        if not 0 <= t_s <= self.duration_s + T_RESOLUTION_S:
             raise RecordingError(f"t={t_s:g} s is outside the recording: 0 to "
                                  f"{self.duration_s:.3f} s")
-        return self.start_ns + round(t_s * 1e9)
+        return self.start_ns + round(min(t_s, self.duration_s) * 1e9)
 
     def blackboard_at(self, name: str, t_s: float) -> dict[str, dict[str, Any]]:
         """Every key's entry as it was at ``t_s``: ``{value, stamp, stale, writer,
