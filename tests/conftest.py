@@ -61,26 +61,27 @@ if os.environ.get("BEEHAVE_REQUIRE_EXTRAS") == "1":
     pytest.importorskip = _require  # type: ignore[assignment]
 
 
+# The files that take longest (CPU seconds of a run, measured; longest first). They go
+# first, so that none starts late and ends the run alone on one worker.
+_LONG_FILES = ("test_replay_demo", "test_fleet_figures", "test_serve", "test_fleet",
+               "test_droid", "test_http_cli", "test_http_browser", "test_http_timeline",
+               "test_vda5050_sim", "test_scenarios", "test_mavlink_ground_station",
+               "test_cli", "test_agents", "test_three_terminals")
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """The order pytest-xdist hands tests out in (each worker applies the same one): whole
-    modules, those with tests declared long (a ``timeout`` marker above the default) first,
-    longest first, so that none starts late and ends the run alone; the others in a fixed
-    mix, not alphabetically, so that files that mostly wait (MAVLink links, VDA 5050
-    brokers) are not all running at once on every worker while the CPUs idle. A module's
-    tests stay together: module-scoped fixtures are set up once per worker."""
-    default = float(config.getini("timeout") or 120)
+    modules, :data:`_LONG_FILES` first, the others in a fixed mix, not alphabetically, so
+    that files that mostly wait (MAVLink links, VDA 5050 brokers) are not all running at
+    once on every worker while the CPUs idle. A module's tests stay together:
+    module-scoped fixtures are set up once per worker."""
+    def place(item: pytest.Item) -> tuple[int, int]:
+        name = Path(item.nodeid.split("::", 1)[0]).stem
+        if name in _LONG_FILES:
+            return 0, _LONG_FILES.index(name)
+        return 1, zlib.crc32(name.encode())
 
-    def bound(item: pytest.Item) -> float:
-        marker = item.get_closest_marker("timeout")
-        return float(marker.args[0]) if marker and marker.args else default
-
-    longest: dict[str, float] = {}
-    for item in items:
-        name = item.nodeid.split("::", 1)[0]
-        longest[name] = max(longest.get(name, 0.0), bound(item))
-    place = {name: (-t if t > default else 0.0, zlib.crc32(name.encode()))
-             for name, t in longest.items()}
-    items.sort(key=lambda item: place[item.nodeid.split("::", 1)[0]])  # stable in a module
+    items.sort(key=place)  # stable: a module's tests keep their order
 
 
 @pytest.fixture
