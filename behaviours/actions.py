@@ -37,6 +37,7 @@ from std_msgs.msg import Float64, String
 from beehave import Action, Status
 from beehave.clock import SimClock
 from beehave.errors import BeehaveError, NoPath
+from beehave.events import Event, EventKind
 from beehave.planning import (
     Disc,
     GridPlanner,
@@ -206,12 +207,27 @@ def lockstep_sleeps(runnable: Runnable) -> Iterator[Callable[[float], bool]]:
                                                        "until_s": until_s})))
 
     def sleep(seconds: float) -> bool:
+        if not math.isfinite(seconds):
+            hold(None)  # no end to hold at: the last hold must not stand
         with clock.announcing(hold):
             return runnable.sleep(seconds)
 
+    def on_event(event: Event) -> None:
+        # A pause freezes this runnable's time (and may hold it in a start_action): the
+        # simulation, and every other robot in it, must not wait for it meanwhile. After
+        # the resume its sleep announces its deadline again.
+        if event.kind is EventKind.PAUSE_REQUESTED:
+            try:
+                hold(None)
+            except Exception:
+                log.debug("%s: could not let the simulation go", runnable.name,
+                          exc_info=True)
+
+    unsubscribe = manager.subscribe(on_event)
     try:
         yield sleep
     finally:
+        unsubscribe()
         try:
             hold(None)
         except Exception:  # the node is gone: the simulator's lockstep timeout lets go

@@ -24,7 +24,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 # The same as the Makefile's `test` target (keep the two in step).
-PYTEST = ["-m", "pytest", "-q", "-n", "4", "--dist", "loadgroup"]
+PYTEST = ["-m", "pytest", "-q", "-n", "4", "--dist", "loadgroup", "--no-loadscope-reorder"]
 
 
 def start_hogs(count: int) -> list[subprocess.Popen[bytes]]:

@@ -70,11 +70,13 @@ _LONG_FILES = ("test_replay_demo", "test_fleet_figures", "test_serve", "test_fle
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The order pytest-xdist hands tests out in (each worker applies the same one): whole
-    modules, :data:`_LONG_FILES` first, the others in a fixed mix, not alphabetically, so
-    that files that mostly wait (MAVLink links, VDA 5050 brokers) are not all running at
-    once on every worker while the CPUs idle. A module's tests stay together:
-    module-scoped fixtures are set up once per worker."""
+    """The order pytest-xdist hands tests out in (each worker applies the same one; ``make
+    test`` passes ``--no-loadscope-reorder``, else xdist puts the largest groups first
+    instead): by module, :data:`_LONG_FILES` first, the others in a fixed mix, not
+    alphabetically, so that files that mostly wait (MAVLink links, VDA 5050 brokers) are
+    not all running at once on every worker while the CPUs idle. A module's tests keep
+    their order (an ``xdist_group`` goes to one worker whole; the others are handed out
+    one by one)."""
     def place(item: pytest.Item) -> tuple[int, int]:
         name = Path(item.nodeid.split("::", 1)[0]).stem
         if name in _LONG_FILES:

@@ -51,10 +51,37 @@ def test_each_sleep_holds_the_simulation_where_it_ends_and_the_end_lets_it_go() 
             assert wait_until(lambda step_s=step_s: announced(step_s)), holds
             clock.set_time(step_s)
         assert wait_until(lambda: announced(None)), holds  # done: let go
-        assert ticker.result == 3
+        assert wait_until(lambda: ticker.status.finished) and ticker.result == 3
         assert holds == [11.0, 12.0, 13.0, None], holds
         participants = {json.loads(m.data)["participant"] for m in list(heard)}
         assert len(participants) == 1 and "ticker" in participants.pop()
+    finally:
+        hl.shutdown()
+        probe.ros.shutdown()
+
+
+def test_a_pause_lets_the_simulation_go_and_the_resume_holds_it_again() -> None:
+    """Paused, the behaviour's time stands still: the simulation (and every other robot in
+    it) must not wait for it meanwhile."""
+    probe = Probe()
+    clock = SimClock()
+    clock.set_time(10.0)
+    hl = HighLevelBehaviorManager(node=probe.ros.create_node("paused_robot"), clock=clock)
+    try:
+        heard = probe.record(String, topics.LOCKSTEP)
+        hl.register("ticker", Ticker)
+        hl.start()
+        hl.request_switch("ticker")
+
+        def last() -> Any:
+            return json.loads(heard[-1].data)["until_s"] if heard else "nothing"
+
+        assert wait_until(lambda: last() == 11.0), last()
+        hl.pause()
+        assert wait_until(lambda: last() is None), last()
+        clock.set_time(10.5)  # time runs on for the world, not for the paused behaviour
+        hl.resume()
+        assert wait_until(lambda: last() == 11.5), last()  # the 0.5 s it had left
     finally:
         hl.shutdown()
         probe.ros.shutdown()

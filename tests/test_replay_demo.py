@@ -71,7 +71,7 @@ def demo(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureReques
 
 
 @pytest.fixture(scope="session")
-def emili_replayed(demo: Path) -> Iterator[dict[str, Any]]:
+def emili_replayed(demo: Path) -> dict[str, Any]:
     """EMILI replayed once through the API, asked to go 100 s beyond the recording's end,
     while a ROS probe listens on what EMILI commands and every rclpy node made in this
     process is counted (a replay of the whole demo is several seconds of the suite: three
@@ -109,10 +109,11 @@ def emili_replayed(demo: Path) -> Iterator[dict[str, Any]]:
             patch.setattr(rclpy.node.Node, "__init__", spy)
             result = replay(demo, _emili(), speed=None, to_s=_replayed_end(demo) + 100.0)
         probe.wait(lambda: False, timeout_s=QUIET_S)  # anything sent would have arrived
-        yield {"result": result, "made": made,
-               "heard": {topic: list(got) for topic, got in heard.items()}}
-    finally:
+        found = {"result": result, "made": made,
+                 "heard": {topic: list(got) for topic, got in heard.items()}}
+    finally:  # not kept for the session: it would hear every later test's emili1
         probe.ros.shutdown()
+    return found
 
 
 def test_the_fast_demo_reaches_every_goal_in_the_physics(demo: Path) -> None:

@@ -260,27 +260,38 @@ def test_goal_runs_with_feedback_and_cancel_stops_the_robot(reject: Any) -> None
     assert list(goal.cancel().goals_canceling) == []
 
 
+@pytest.mark.parametrize("slow", ["_start_top", "both"])
 def test_canceled_is_sent_once_idle_runs_not_when_the_behaviour_ends(
-        reject: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+        reject: Any, monkeypatch: pytest.MonkeyPatch, slow: str) -> None:
     """The behaviour ends a moment before the switch starts ``idle`` (current is None in
-    between). Fault injection widens that moment to 0.5 s: a client that reads the robot's
-    state right after CANCELED still finds ``idle`` running (seen once in CI)."""
+    between), and may end before the server's request for ``idle`` has even returned.
+    Fault injection widens each moment to 0.5 s: a client that reads the robot's state
+    right after CANCELED still finds ``idle`` running (seen once in CI)."""
     import time
 
     from beehave.highlevel import HighLevelBehaviorManager
 
     robot, client = reject
     hl = robot.high
-    original = HighLevelBehaviorManager._start_top
+    start_top = HighLevelBehaviorManager._start_top
+    request_switch = HighLevelBehaviorManager.request_switch
 
     def slow_start(self: HighLevelBehaviorManager, request: Any) -> None:
         if request.name == "idle":
             time.sleep(0.5)
-        original(self, request)
+        start_top(self, request)
+
+    def slow_request(self: HighLevelBehaviorManager, name: str, **params: Any) -> Any:
+        asked = request_switch(self, name, **params)
+        if name == "idle":
+            time.sleep(0.3)  # the behaviour ends meanwhile; the server does not know idle
+        return asked
 
     goal = client.send("patrol")
     assert wait_until(lambda: hl.current == "patrol")
     monkeypatch.setattr(HighLevelBehaviorManager, "_start_top", slow_start)
+    if slow == "both":
+        monkeypatch.setattr(HighLevelBehaviorManager, "request_switch", slow_request)
     assert goal.cancel().goals_canceling
     status, result = goal.result()
     assert status == "CANCELED", (status, result)

@@ -103,6 +103,9 @@ class _Goal:
     #: The ``idle`` a cancel switched to: the goal ends once it runs, so that a client
     #: reading the robot's state after CANCELED finds it idle (see _check).
     idle: Behavior | None = None
+    #: Set before the cancel asks for ``idle`` (the behaviour may end before the request
+    #: returns): the goal waits for that ``idle`` even before it is known.
+    idle_asked: bool = False
     idle_unqueued_ticks: int = 0
     last_feedback: str | None = None
     last_feedback_at: float = 0.0
@@ -246,7 +249,8 @@ class ExecuteBehaviorServer:
 
     def _on_cancel(self, handle: ServerGoalHandle[Any, Any, Any]) -> CancelResponse:
         """A cancel of the executing goal is a switch to ``idle``; the goal is CANCELED
-        once its behaviour has stopped through its safe states."""
+        once its behaviour has stopped through its safe states and ``idle`` runs (or a
+        later switch overtook that ``idle``)."""
         goal = self._find(handle)
         if goal is None or goal.behavior is None:
             return CancelResponse.REJECT  # ended (a refused goal ends at once)
@@ -259,6 +263,7 @@ class ExecuteBehaviorServer:
             latest = self._goal is goal
         if not latest:  # preempted, ending already: the cancel just marks it
             return CancelResponse.ACCEPT
+        goal.idle_asked = True
         try:
             goal.idle = self.high.request_switch(IDLE, **self.plane.check_switch(IDLE))
         except BeehaveError as exc:
@@ -266,6 +271,9 @@ class ExecuteBehaviorServer:
                 goal.cancel_requested = not first
             log.error("execute_behavior: cancel of goal %s refused: %s", goal.goal_id, exc)
             return CancelResponse.REJECT
+        finally:
+            if goal.idle is None:  # not asked after all
+                goal.idle_asked = False
         self._check(goal)
         return CancelResponse.ACCEPT
 
@@ -288,9 +296,11 @@ class ExecuteBehaviorServer:
         """True unless the goal was cancelled and its ``idle`` has not started yet: the
         behaviour ends a moment before the switch starts ``idle``. A later switch that
         overtook the ``idle`` settles it too (seen by _tick)."""
-        idle = goal.idle
-        return (idle is None or idle.status is not Status.PENDING or self.high.top is idle
-                or goal.idle_unqueued_ticks >= 2)
+        if not goal.idle_asked:
+            return True
+        idle = goal.idle  # None: asked for, the request not returned yet
+        return idle is not None and (idle.status is not Status.PENDING
+                                     or goal.idle_unqueued_ticks >= 2)
 
     def _tick(self) -> None:
         """Executor thread, every :data:`_TICK_S`: feedback on change and every
@@ -368,6 +378,13 @@ class ExecuteBehaviorServer:
         elif cancel and preempted_by is not None:  # cancelled while it made way for another
             outcome, why = "CANCELED", (f"cancelled: {goal.name!r} stopped, preempted by "
                                         f"goal {preempted_by}")
+        elif cancel and goal.idle is not None and goal.idle.status is Status.PENDING:
+            # Its idle never ran: a switch made elsewhere overtook it, or the robot shuts down.
+            asked = self.high.requested or self.high.current
+            outcome, why = "CANCELED", (
+                f"cancelled: {goal.name!r} stopped; {IDLE!r} was overtaken by a switch to "
+                f"{asked!r}" if asked is not None else
+                f"cancelled: {goal.name!r} stopped; the robot shuts down")
         elif cancel:
             outcome, why = "CANCELED", f"cancelled: {goal.name!r} stopped, {IDLE!r} runs"
         elif preempted_by is not None:
