@@ -82,7 +82,10 @@ def test_a_refused_switch_names_the_problem_and_stops_nothing(
         plane: ControlPlane, hl: HighLevelBehaviorManager, name: Any, params: Any,
         error: type[Exception], message: str) -> None:
     plane.switch("drive")
-    assert wait_until(lambda: hl.current == "drive" and "driving" in plane.status()["locks"])
+    # Done switching: running, and its request no longer in flight (current is set a
+    # moment before the request is let go).
+    assert wait_until(lambda: hl.current == "drive" and hl.requested is None
+                      and "driving" in plane.status()["locks"])
     with pytest.raises(error, match=message.replace("(", r"\(")):
         plane.switch(name, params)
     assert hl.current == "drive" and hl.requested is None  # still driving, nothing queued
