@@ -357,7 +357,8 @@ def test_a_rover_blocked_by_a_wall_stalls_with_its_remaining_waypoints(
     assert action.reached == [1]
     assert [(w.north_m, w.east_m) for w in action.error.remaining] == [(2.0, 9.0), (4.0, 9.0)]
     assert action.error.position[1] < 4.0  # in front of the wall (east = world x)
-    assert vehicles.rover.mode == "HOLD"
+    # The safe state sends HOLD and does not wait for it (safe states are short).
+    assert wait_until(lambda: vehicles.rover.mode == "HOLD"), vehicles.rover.mode
 
 
 MISSION = [[2.0, 3.0], [4.0, 3.0], [3.5, 1.5]]
