@@ -185,8 +185,10 @@ def lockstep_sleeps(runnable: Runnable) -> Iterator[Callable[[float], bool]]:
     """Yields a ``sleep(seconds) -> bool`` for ``runnable`` (a behaviour or action whose
     timed steps matter beside driving: a chime every 2 s) that holds a simulation in
     lockstep where each sleep ends, until the runnable sleeps again or leaves the block,
-    as :class:`DriveBase` does for control periods. Without a simulation (wall time, or
-    no ``/lockstep`` subscriber) it is ``runnable.sleep``.
+    as :class:`DriveBase` does for control periods. On wall time (no :class:`SimClock`) or
+    without a node it is ``runnable.sleep``; on sim time it announces its holds whether or
+    not a simulator listens (its first use waits up to :attr:`LockstepLine.MATCH_TIMEOUT_S`
+    of wall time for one, as a driving action's does).
 
     Without it a simulation at ``--fast`` runs on while a starved thread has not woken
     yet: live the step then comes late in sim time (a chime after the drive it should have

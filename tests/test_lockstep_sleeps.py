@@ -5,6 +5,8 @@ sim time, its replay on time, and the replay reported a divergence)."""
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import pytest
@@ -30,7 +32,22 @@ class Ticker(Behavior):
         return steps
 
 
-def test_each_sleep_holds_the_simulation_where_it_ends_and_the_end_lets_it_go() -> None:
+@dataclass
+class Rig:
+    """A manager on a hand-moved sim clock (at 10 s) with a node, a probe on ``/lockstep``
+    and the ``Ticker`` started."""
+
+    clock: SimClock
+    hl: HighLevelBehaviorManager
+    heard: list[Any]
+    ticker: Any
+
+    def holds(self) -> list[Any]:
+        return [json.loads(m.data)["until_s"] for m in list(self.heard)]
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
     probe = Probe()
     clock = SimClock()
     clock.set_time(10.0)
@@ -39,49 +56,39 @@ def test_each_sleep_holds_the_simulation_where_it_ends_and_the_end_lets_it_go() 
         heard = probe.record(String, topics.LOCKSTEP)
         hl.register("ticker", Ticker)
         hl.start()
-        ticker = hl.request_switch("ticker")
-        holds: list[Any] = []
-
-        def announced(until_s: float | None) -> bool:
-            holds[:] = [json.loads(m.data)["until_s"] for m in list(heard)]
-            return bool(holds) and holds[-1] == until_s
-
-        # The simulation may not run past a step before the behaviour has taken it.
-        for step_s in (11.0, 12.0, 13.0):
-            assert wait_until(lambda step_s=step_s: announced(step_s)), holds
-            clock.set_time(step_s)
-        assert wait_until(lambda: announced(None)), holds  # done: let go
-        assert wait_until(lambda: ticker.status.finished) and ticker.result == 3
-        assert holds == [11.0, 12.0, 13.0, None], holds
-        participants = {json.loads(m.data)["participant"] for m in list(heard)}
-        assert len(participants) == 1 and "ticker" in participants.pop()
+        yield Rig(clock, hl, heard, hl.request_switch("ticker"))
     finally:
         hl.shutdown()
         probe.ros.shutdown()
 
 
-def test_a_pause_lets_the_simulation_go_and_the_resume_holds_it_again() -> None:
+def test_each_sleep_holds_the_simulation_where_it_ends_and_the_end_lets_it_go(
+        rig: Rig) -> None:
+    def announced(until_s: float | None) -> bool:
+        holds = rig.holds()
+        return bool(holds) and holds[-1] == until_s
+
+    # The simulation may not run past a step before the behaviour has taken it.
+    for step_s in (11.0, 12.0, 13.0):
+        assert wait_until(lambda step_s=step_s: announced(step_s)), rig.holds()
+        rig.clock.set_time(step_s)
+    assert wait_until(lambda: announced(None)), rig.holds()  # done: let go
+    assert wait_until(lambda: rig.ticker.status.finished) and rig.ticker.result == 3
+    assert rig.holds() == [11.0, 12.0, 13.0, None], rig.holds()
+    participants = {json.loads(m.data)["participant"] for m in list(rig.heard)}
+    assert len(participants) == 1 and "ticker" in participants.pop()
+
+
+def test_a_pause_lets_the_simulation_go_and_the_resume_holds_it_again(rig: Rig) -> None:
     """Paused, the behaviour's time stands still: the simulation (and every other robot in
     it) must not wait for it meanwhile."""
-    probe = Probe()
-    clock = SimClock()
-    clock.set_time(10.0)
-    hl = HighLevelBehaviorManager(node=probe.ros.create_node("paused_robot"), clock=clock)
-    try:
-        heard = probe.record(String, topics.LOCKSTEP)
-        hl.register("ticker", Ticker)
-        hl.start()
-        hl.request_switch("ticker")
+    def last() -> Any:
+        holds = rig.holds()
+        return holds[-1] if holds else "nothing"
 
-        def last() -> Any:
-            return json.loads(heard[-1].data)["until_s"] if heard else "nothing"
-
-        assert wait_until(lambda: last() == 11.0), last()
-        hl.pause()
-        assert wait_until(lambda: last() is None), last()
-        clock.set_time(10.5)  # time runs on for the world, not for the paused behaviour
-        hl.resume()
-        assert wait_until(lambda: last() == 11.5), last()  # the 0.5 s it had left
-    finally:
-        hl.shutdown()
-        probe.ros.shutdown()
+    assert wait_until(lambda: last() == 11.0), last()
+    rig.hl.pause()
+    assert wait_until(lambda: last() is None), last()
+    rig.clock.set_time(10.5)  # time runs on for the world, not for the paused behaviour
+    rig.hl.resume()
+    assert wait_until(lambda: last() == 11.5), last()  # the 0.5 s it had left
