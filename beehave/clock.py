@@ -184,6 +184,9 @@ class PausableClock(WallClock):
         self._lock = threading.Lock()
         self._since: float | None = None  # base time of the freeze, while frozen
         self._cut = 0.0  # base seconds spent frozen so far
+        # Counts freezes: a waiter that did not run between a freeze and its thaw (a
+        # starved thread, a short pause) still sees that one came and went.
+        self._freezes = 0
         self._waiting: dict[threading.Condition, int] = {}
         self._local = threading.local()
 
@@ -217,6 +220,7 @@ class PausableClock(WallClock):
             if self._since is not None:
                 return
             self._since = self.base.now()
+            self._freezes += 1
             conds = list(self._waiting)
         _notify(conds)
 
@@ -278,15 +282,17 @@ class PausableClock(WallClock):
                     return True
                 if remaining is not None and remaining <= 0:
                     return False
-                woke = self.base.wait(
-                    cond, lambda: self._since is not None or predicate(), remaining)
+                freezes = self._freezes
+                self.base.wait(
+                    cond, lambda: self._freezes != freezes or predicate(), remaining)
                 if self._since is not None:
                     continue
                 if predicate():
                     return True
-                if not woke:
-                    return False
-                # Woken by a freeze that has already ended: wait on for the time left.
+                if self._freezes == freezes:
+                    return False  # its time is up, no freeze meanwhile
+                # A freeze came (and went, perhaps before this thread ran again): wait on
+                # for the time left, from a new base deadline (announced again).
                 if deadline is not None:
                     remaining = max(0.0, deadline - self.now())
         finally:

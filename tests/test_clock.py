@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 from beehave import Behavior, HighLevelBehaviorManager, Status
 from beehave.clock import SimClock
@@ -52,3 +53,42 @@ def test_interrupt_wakes_a_sim_time_sleep_when_the_clock_stands_still() -> None:
         hl.switch("idle")  # stop_timeout_s is wall time: a paused sim cannot block it
         # Woken within stop_timeout_s (else it would be STUCK), in wall time.
         assert nap.status is Status.INTERRUPTED
+
+
+def test_a_pause_its_sleeper_never_saw_still_counts_and_is_announced_again() -> None:
+    """A starved thread may not run between a freeze and its thaw (a short pause on a
+    loaded machine): its sleep must still go on for the time it had left, from a new
+    deadline that a lockstep simulator hears about (seen on CI: the simulation held at the
+    old deadline, the behaviour woke 0.5 s early in its own time)."""
+    from beehave.clock import PausableClock
+
+    base = SimClock()
+    base.set_time(10.0)
+    clock = PausableClock(base)
+    cond = threading.Condition()
+    announced: list[float] = []
+    result: list[bool] = []
+
+    def sleeper() -> None:
+        with base.announcing(announced.append), cond:
+            result.append(clock.wait(cond, lambda: False, 1.0))
+
+    thread = threading.Thread(target=sleeper, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + WALL_TIMEOUT_S
+    while announced != [11.0] and time.monotonic() < deadline:
+        time.sleep(0.001)
+    assert announced == [11.0]
+    with cond:  # the sleeper cannot run until the pause is over
+        clock.freeze()
+        base.set_time(10.5)
+        clock.thaw()
+    while announced == [11.0] and time.monotonic() < deadline:
+        time.sleep(0.001)
+    assert announced == [11.0, 11.5]
+    base.set_time(11.2)
+    thread.join(0.05)
+    assert thread.is_alive() and clock.now() == 10.7  # 0.3 s left of its own time
+    base.set_time(11.5)
+    thread.join(WALL_TIMEOUT_S)
+    assert result == [False] and clock.now() == 11.0
