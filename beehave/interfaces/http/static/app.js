@@ -815,8 +815,9 @@ async function start() {
   // A fleet process whose robots run elsewhere serves the fleet and the map, and the
   // robots it was given the addresses of (picked with the selector or on the map). Without
   // any robot, the robot panels (and Switch, Stop) would only be empty or answer "unknown
-  // robot": they are hidden.
-  for (const panel of document.querySelectorAll(".robot-panel")) panel.hidden = !view.robots.length;
+  // robot": they are hidden, by a class on the body, so that a panel a later script adds
+  // (plots.js, which may run after this answer came) is hidden too.
+  document.body.classList.toggle("no-robots", !view.robots.length);
   $("#robot-label").hidden = !view.robots.length;
   if (local.length) connect();
   else if (!view.remote.has(view.selected)) setConn(true, "fleet view");
