@@ -93,6 +93,11 @@ SENSOR_QOS = 10
 LOCKSTEP_QOS = 100
 """QoS of ``/lockstep``: reliable, deep enough for many controllers answering at once."""
 
+CLOCK_REPEAT_S = 0.1
+"""While the simulation is held, ``/clock`` is published again at the held time this often
+(wall seconds): rclpy's time source subscribes best effort, depth 1, and a robot process
+that lost the held time would otherwise wait for it until the simulation moves on."""
+
 
 def stamp(time_s: float) -> Time:
     """A builtin_interfaces/Time for ``time_s`` seconds of sim time."""
@@ -357,6 +362,7 @@ class SimNode:
         self._hold_at_s = math.inf  # the earliest until_s: stepping below it needs no lock
         self._held_since: float | None = None
         self._last_clock_s = -math.inf
+        self._clock_sent_wall = -math.inf
         self._lock = threading.Lock()
         self._destroyed = False
         self._next_clock_s = sim.time_s
@@ -420,6 +426,7 @@ class SimNode:
 
     def _publish_clock(self, time_s: float) -> None:
         self._last_clock_s = time_s
+        self._clock_sent_wall = time.monotonic()
         self._clock_pub.publish(Clock(clock=stamp(time_s)))
 
     def _gate(self, time_s: float) -> bool:
@@ -452,8 +459,12 @@ class SimNode:
         if not holding:
             self._held_since = None
             return False
-        if self._last_clock_s < time_s:
-            self._publish_clock(time_s)  # the due controllers wake on this
+        if self._last_clock_s < time_s or now - self._clock_sent_wall >= CLOCK_REPEAT_S:
+            # The due controllers wake on this. Repeated while held: /clock is best effort
+            # (as ROS 2 clocks are), and a process that lost the last ones (a starved one
+            # on a loaded host) would stay behind the held time until the simulation moves,
+            # which may wait for that very process (a leader's state a follower waits for).
+            self._publish_clock(time_s)
         return True
 
     def _on_fast_step(self, time_s: float) -> None:

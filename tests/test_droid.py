@@ -12,6 +12,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
+from builtin_interfaces.msg import Time
 from std_msgs.msg import String
 
 from beehave import Behavior, HighLevelBehaviorManager, Status
@@ -81,6 +82,45 @@ def test_peers_see_each_others_state_with_its_age_and_it_goes_stale(ros: RosCont
             wait_for(lambda: sum(fa.rejected.values()) >= 2, "rejections")
             fa.close()
             wait_for(lambda: fb.get("fleet_a").stale, "the closed peer going stale")  # type: ignore[union-attr]
+        finally:
+            fa.close()
+            fb.close()
+
+
+def test_on_sim_time_standing_still_the_latest_state_goes_out_again(ros: RosContext) -> None:
+    """A lost state is replaced when sim time moves on, which it does not while a lockstep
+    controller holds the simulation (a follower waiting for its leader's state, seen in
+    stress runs: the follower waited with a state 0.23 s old while the leader had sent
+    two newer ones). The latest one goes out again in wall time, the same seq and stamp."""
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
+
+    from beehave.agents.fleet import SCHEMA
+
+    heard: list[dict[str, Any]] = []
+    with Agent("fleet_a", ros=ros, probe_s=PROBE_S) as a, \
+            Agent("fleet_b", ros=ros, probe_s=PROBE_S) as b:
+        a.node.set_parameters([Parameter("use_sim_time", value=True)])
+        fa = Fleet(a, state=lambda: {"battery_pct": 80.0}, rate_hz=20.0)
+        fb = Fleet(b, rate_hz=20.0)
+        b.node.create_subscription(
+            String, FLEET_TOPIC, lambda m: heard.append(json.loads(m.data)), FLEET_QOS)
+        clock = b.node.create_publisher(Clock, "/clock", 10)
+        try:
+            def sent() -> list[dict[str, Any]]:
+                return [m for m in list(heard)
+                        if m.get("schema") == SCHEMA and m.get("agent") == "fleet_a"]
+
+            # Sim time at 5 s, then standing still (nothing publishes /clock again).
+            wait_for(lambda: clock.publish(Clock(clock=Time(sec=5))) or bool(sent()),
+                     "a state on sim time")
+            first = sent()[0]
+            wait_for(lambda: len(sent()) >= 4, "the state sent again while time stands still")
+            again = sent()
+            assert {(m["seq"], m["sent_at"], m["clock"]) for m in again} \
+                == {(first["seq"], 5.0, "sim")}, again
+            peer = fb.get("fleet_a")
+            assert peer is not None and peer.seq == first["seq"]
         finally:
             fa.close()
             fb.close()
@@ -341,8 +381,9 @@ def test_the_scenario_between_vehicle_processes_over_dds_runs_fast_on_sim_time(
     lockstep), checked in the physics with the same checks as at real time."""
     from behaviours.demos.droid import run
 
+    # verbose: each process's last lines go to the captured output a failure shows.
     checks, measured = run(scenario=scenario, fast=True, timeout_s=WALL_TIMEOUT_S,
-                           start_timeout_s=WALL_TIMEOUT_S)
+                           start_timeout_s=WALL_TIMEOUT_S, verbose=True)
     for part in expected:  # each scenario checks what it promises
         assert any(part in c.name for c in checks), ([c.name for c in checks], part)
     failed = [f"{c.name}: {c.measured}" for c in checks if not c.passed]

@@ -404,6 +404,12 @@ def test_lockstep_holds_the_sim_where_a_participant_is_due_until_it_answers(rig:
         time.sleep(QUIET_S)
         assert not rig.node.dropped, rig.node.dropped
         assert rig.sim.time_s <= held_at + 2 * rig.sim.step_s
+        # While held, /clock says the held time again and again: it is best effort (so
+        # is rclpy's time source), and a process that lost it would wait for it.
+        held_s = rig.sim.time_s
+        assert rig.probe.wait(lambda: sum(abs(stamp_s(c) - held_s) < 1e-6
+                                          for c in list(clocks)) >= 3), \
+            [stamp_s(c) for c in clocks[-5:]]
     finally:
         alive.set()
         keeper.join(WALL_TIMEOUT_S)

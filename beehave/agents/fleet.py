@@ -14,7 +14,9 @@ state of every peer, with its age.
 Transport. One topic for the whole fleet, ``/beehave/fleet/state`` (``std_msgs/String``
 holding JSON, schema ``beehave.fleet/1``), BEST_EFFORT and VOLATILE: a state that is lost is
 replaced by the next one within ``1 / rate_hz``, so nothing is retransmitted and a slow
-reader never holds a fast writer back. Each agent publishes at most ``rate_hz`` times a
+reader never holds a fast writer back. (On sim time, the next one may be far off in wall
+time — the simulation held — so the latest state is sent again in every ``1 / rate_hz`` of
+wall time in which none went out; see below.) Each agent publishes at most ``rate_hz`` times a
 second (the newest state; a state that did not change is still sent, as a heartbeat, so
 that its peers can tell silence from standing still). Robot-agnostic: ``state`` is any
 JSON object; :mod:`behaviours.droid` fills it for MAVLink vehicles.
@@ -30,7 +32,10 @@ Sim time. An agent whose node follows ``/clock`` (``use_sim_time``) publishes at
 (``"clock": "sim"``); for a peer that does the same, ``age_s`` is the difference of the
 two sim times — what the state's age means to a controller of a simulation that may run
 faster or slower than real time. A state stamped on the other kind of clock is aged from
-its receipt only.
+its receipt only. While sim time stands still, the latest state goes out again (same
+``seq``, same stamp) every ``1 / rate_hz`` of wall time: a lost one would otherwise not be
+replaced until the simulation moves, and a lockstep controller that holds it may be
+waiting for exactly that state.
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from rclpy.clock import Clock, ClockType
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
@@ -141,6 +147,16 @@ class Fleet(Closing):
         self._pub = node.create_publisher(String, FLEET_TOPIC, FLEET_QOS)
         self._sub = node.create_subscription(String, FLEET_TOPIC, self._on_state, FLEET_QOS)
         self._timer = node.create_timer(1.0 / self.rate_hz, self._publish)
+        self._last_text: str | None = None
+        self._sent_since_resend = False
+        self._resend_timer = None
+        if self._sim_clock is not None:
+            # A lost state is replaced by the next one only when sim time moves on; it
+            # stands still while a lockstep controller holds the simulation, perhaps
+            # waiting for this very state (a follower for its leader's). So the latest
+            # state goes out again in every period of wall time in which none went out.
+            self._resend_timer = node.create_timer(
+                1.0 / self.rate_hz, self._resend, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # ---- own state ---------------------------------------------------------------------
 
@@ -178,6 +194,19 @@ class Fleet(Closing):
                 self.rejected[f"own state not JSON: {exc}"] += 1
                 log.error("fleet of agent %r: state is not JSON, not sent: %s", self.name, exc)
                 return
+            self._last_text, self._sent_since_resend = text, True
+        self._send(text)
+
+    def _resend(self) -> None:
+        """The latest state again, the same ``seq`` and stamp (a peer that has it drops
+        it as a repeat), when no new one went out for a period of wall time."""
+        with self._lock:
+            text, sent = self._last_text, self._sent_since_resend
+            self._sent_since_resend = False
+        if text is not None and not sent and not self._closed:
+            self._send(text)
+
+    def _send(self, text: str) -> None:
         try:
             self._pub.publish(String(data=text))
         except Exception:  # the node is being destroyed (shutdown race)
@@ -242,8 +271,11 @@ class Fleet(Closing):
         self._closed = True
         detach(self, "fleet")
         node = self.agent.node
-        for kind, entity in (("timer", self._timer), ("subscription", self._sub),
-                             ("publisher", self._pub)):
+        entities = [("timer", self._timer), ("subscription", self._sub),
+                    ("publisher", self._pub)]
+        if self._resend_timer is not None:
+            entities.insert(1, ("timer", self._resend_timer))
+        for kind, entity in entities:
             try:
                 getattr(node, f"destroy_{kind}")(entity)
             except Exception:  # the node went first (its owner shut it down)

@@ -319,6 +319,11 @@ def run(*, scenario: str = "droid", timeout_s: float = 150.0, picture: Path | No
         for endpoint in endpoints.values():
             endpoint.close()
     measured["wall_s"] = time.monotonic() - wall_start
+    # Why a follower fell behind, when it did: controllers the simulation stopped waiting
+    # for, and periods that went on with a leader state that stayed old.
+    measured["lockstep_dropped"] = dict(node.dropped)
+    measured["went_on_stale"] = sum("going on with one" in line
+                                    for proc in procs for line in proc.log)
     if verbose:
         for proc in procs:
             lines = [line for line in proc.log if "watchdog" not in line]
