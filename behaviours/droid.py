@@ -407,7 +407,7 @@ class FollowLeader(MavlinkAction):
 
     def _fresh_peer(self, fleet: Fleet) -> PeerState | None:
         """The leader's latest state. In lockstep (the simulation waits for this loop, not
-        for the leader's robot), a state older than two periods of sim time is waited for,
+        for the leader's robot), a state older than 1.5 periods of sim time is waited for,
         the simulation held meanwhile, as long as the leader makes progress (see
         :attr:`FRESH_WAIT_S`): a simulation faster than the leader's process must not make
         the leader look stale or far behind where it is. (Going on with a stale state,
@@ -415,7 +415,7 @@ class FollowLeader(MavlinkAction):
         behind in stress runs.)"""
         peer = fleet.get(self.leader)
         if self._lockstep_pub is None or peer is None \
-                or peer.age_s <= 2 * self.period_s:
+                or peer.age_s <= 1.5 * self.period_s:
             self._silent_seq = None
             return peer
         if peer.seq == self._silent_seq:
@@ -430,7 +430,7 @@ class FollowLeader(MavlinkAction):
             newer = fleet.get(self.leader)
             if newer is not None and newer.seq != peer.seq:
                 peer, progress_by = newer, now + self.FRESH_WAIT_S
-                if peer.age_s <= 2 * self.period_s:
+                if peer.age_s <= 1.5 * self.period_s:
                     break
             if now >= progress_by:  # silent: go on with what there is
                 self._silent_seq = peer.seq

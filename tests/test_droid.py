@@ -88,10 +88,11 @@ def test_peers_see_each_others_state_with_its_age_and_it_goes_stale(ros: RosCont
 
 
 def test_on_sim_time_standing_still_the_latest_state_goes_out_again(ros: RosContext) -> None:
-    """A lost state is replaced when sim time moves on, which it does not while a lockstep
-    controller holds the simulation (a follower waiting for its leader's state, seen in
-    stress runs: the follower waited with a state 0.23 s old while the leader had sent
-    two newer ones). The latest one goes out again in wall time, the same seq and stamp."""
+    """Sim time that jumps and then stands still (a lockstep controller holds the
+    simulation: a follower waiting for its leader's state) still gets a state out, and
+    again and again, the same seq and stamp: a lost one is replaced. (Seen in stress
+    runs: rclpy's sim-time timer did not fire after such a jump, and the follower waited
+    with a state 0.25 s old.)"""
     from rclpy.parameter import Parameter
     from rosgraph_msgs.msg import Clock
 
@@ -114,13 +115,15 @@ def test_on_sim_time_standing_still_the_latest_state_goes_out_again(ros: RosCont
             # Sim time at 5 s, then standing still (nothing publishes /clock again).
             wait_for(lambda: clock.publish(Clock(clock=Time(sec=5))) or bool(sent()),
                      "a state on sim time")
-            first = sent()[0]
-            wait_for(lambda: len(sent()) >= 4, "the state sent again while time stands still")
-            again = sent()
-            assert {(m["seq"], m["sent_at"], m["clock"]) for m in again} \
-                == {(first["seq"], 5.0, "sim")}, again
+            def latest() -> list[dict[str, Any]]:
+                seq = max(m["seq"] for m in sent())
+                return [m for m in sent() if m["seq"] == seq]
+
+            wait_for(lambda: len(latest()) >= 3, "the state sent again while time stands still")
+            assert {(m["sent_at"], m["clock"]) for m in sent()} == {(5.0, "sim")}, sent()
+            assert len({m["seq"] for m in sent()}) <= 2, sent()  # a timer each at most
             peer = fb.get("fleet_a")
-            assert peer is not None and peer.seq == first["seq"]
+            assert peer is not None and peer.seq == latest()[0]["seq"]
         finally:
             fa.close()
             fb.close()

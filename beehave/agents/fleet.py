@@ -15,8 +15,7 @@ Transport. One topic for the whole fleet, ``/beehave/fleet/state`` (``std_msgs/S
 holding JSON, schema ``beehave.fleet/1``), BEST_EFFORT and VOLATILE: a state that is lost is
 replaced by the next one within ``1 / rate_hz``, so nothing is retransmitted and a slow
 reader never holds a fast writer back. (On sim time, the next one may be far off in wall
-time — the simulation held — so the latest state is sent again in every ``1 / rate_hz`` of
-wall time in which none went out; see below.) Each agent publishes at most ``rate_hz`` times a
+time — the simulation held; see below.) Each agent publishes at most ``rate_hz`` times a
 second (the newest state; a state that did not change is still sent, as a heartbeat, so
 that its peers can tell silence from standing still). Robot-agnostic: ``state`` is any
 JSON object; :mod:`behaviours.droid` fills it for MAVLink vehicles.
@@ -32,10 +31,12 @@ Sim time. An agent whose node follows ``/clock`` (``use_sim_time``) publishes at
 (``"clock": "sim"``); for a peer that does the same, ``age_s`` is the difference of the
 two sim times — what the state's age means to a controller of a simulation that may run
 faster or slower than real time. A state stamped on the other kind of clock is aged from
-its receipt only. While sim time stands still, the latest state goes out again (same
-``seq``, same stamp) every ``1 / rate_hz`` of wall time: a lost one would otherwise not be
-replaced until the simulation moves, and a lockstep controller that holds it may be
-waiting for exactly that state.
+its receipt only. A wall-time timer backs the sim-time one up: every ``1 / rate_hz`` of
+wall time it sends a new state if a period of sim time passed without one (rclpy's
+sim-time timer may not fire after a jump of ``/clock`` that then stands still), else the
+latest again (same ``seq``, same stamp) if none went out: while sim time stands still, a
+lost state would otherwise never be replaced, and a lockstep controller that holds the
+simulation may be waiting for exactly that state.
 """
 
 from __future__ import annotations
@@ -148,15 +149,18 @@ class Fleet(Closing):
         self._sub = node.create_subscription(String, FLEET_TOPIC, self._on_state, FLEET_QOS)
         self._timer = node.create_timer(1.0 / self.rate_hz, self._publish)
         self._last_text: str | None = None
+        self._last_sent_s = -math.inf  # the sim time of the latest new state
         self._sent_since_resend = False
         self._resend_timer = None
         if self._sim_clock is not None:
-            # A lost state is replaced by the next one only when sim time moves on; it
-            # stands still while a lockstep controller holds the simulation, perhaps
-            # waiting for this very state (a follower for its leader's). So the latest
-            # state goes out again in every period of wall time in which none went out.
+            # Sim time may jump and then stand still while a lockstep controller holds
+            # the simulation, perhaps waiting for this very state (a follower for its
+            # leader's). rclpy's sim-time timer may then not fire (seen: no state for
+            # 0.8 s of wall time with the clock 0.25 s past the timer's due time), and a
+            # lost state is not replaced. A wall-time timer covers both (see _catch_up).
             self._resend_timer = node.create_timer(
-                1.0 / self.rate_hz, self._resend, clock=Clock(clock_type=ClockType.STEADY_TIME))
+                1.0 / self.rate_hz, self._catch_up,
+                clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # ---- own state ---------------------------------------------------------------------
 
@@ -195,15 +199,25 @@ class Fleet(Closing):
                 log.error("fleet of agent %r: state is not JSON, not sent: %s", self.name, exc)
                 return
             self._last_text, self._sent_since_resend = text, True
+            self._last_sent_s = payload["sent_at"]
         self._send(text)
 
-    def _resend(self) -> None:
-        """The latest state again, the same ``seq`` and stamp (a peer that has it drops
-        it as a repeat), when no new one went out for a period of wall time."""
+    def _catch_up(self) -> None:
+        """On sim time, every period of wall time: a new state when a period of sim time
+        has passed without one (the sim-time timer did not fire), else the latest again
+        (the same ``seq`` and stamp: a peer that has it drops it as a repeat) when none
+        went out in this period."""
+        if self._closed:
+            return
         with self._lock:
-            text, sent = self._last_text, self._sent_since_resend
+            text, sent, last_s = self._last_text, self._sent_since_resend, self._last_sent_s
             self._sent_since_resend = False
-        if text is not None and not sent and not self._closed:
+        now_s = self._sim_s()
+        if now_s == 0.0:
+            return  # no /clock yet: nothing to stamp a state with
+        if now_s - last_s >= 1.0 / self.rate_hz - 1e-9:
+            self._publish()
+        elif text is not None and not sent:
             self._send(text)
 
     def _send(self, text: str) -> None:

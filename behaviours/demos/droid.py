@@ -347,7 +347,11 @@ def run(*, scenario: str = "droid", timeout_s: float = 150.0, picture: Path | No
             trace.gaps, start_s=trace.tour_at_s, band_end_s=end_s, safety_end_s=math.inf,
             distance_m=distance_m, safety_m=safety_m, who="rover2")
         checks += gap_checks
-        measured.update({"min_gap_m": min_gap, "misses_m": misses})
+        widest = max(((g, t) for t, g in trace.gaps if t >= trace.tour_at_s),
+                     default=(math.nan, math.nan))
+        measured.update({"min_gap_m": min_gap, "misses_m": misses,
+                         "widest_gap": {"m": widest[0], "at_s": widest[1],
+                                        "tour_at_s": trace.tour_at_s, "end_s": end_s}})
     else:
         remaining = [(float(w["east_m"]), float(w["north_m"]), float(w["alt_m"]))
                      for w in result.get("remaining") or []]
