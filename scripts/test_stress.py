@@ -24,7 +24,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 # The same as the Makefile's `test` target (keep the two in step).
-PYTEST = ["-m", "pytest", "-q", "-n", "4", "--dist", "loadgroup", "--no-loadscope-reorder"]
+PYTEST = ["-m", "pytest", "-q", "-n", "4", "--dist", "loadgroup", "--no-loadscope-reorder",
+          "--max-worker-restart", "0"]
 
 
 def start_hogs(count: int) -> list[subprocess.Popen[bytes]]:
@@ -85,22 +86,27 @@ def main() -> int:
         for run in range(1, args.runs + 1):
             junit = work / f"run{run}.xml"
             start = time.monotonic()
-            done = subprocess.run([sys.executable, *PYTEST, "-p", "no:cacheprovider",
-                                   f"--junitxml={junit}", *args.pytest_args],
-                                  cwd=where, env=env, stdin=subprocess.DEVNULL,
-                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            # Written as it comes (a run that hangs leaves its log), kept when it failed.
+            log_path = work / f"run{run}.log"
+            with open(log_path, "w") as log:
+                done = subprocess.run([sys.executable, *PYTEST, "-p", "no:cacheprovider",
+                                       f"--junitxml={junit}", *args.pytest_args],
+                                      cwd=where, env=env, stdin=subprocess.DEVNULL,
+                                      stdout=log, stderr=subprocess.STDOUT)
             wall = time.monotonic() - start
             ran, bad = failures(junit)
             counts.update(bad)
-            summary = next((line for line in reversed(done.stdout.splitlines())
+            output = log_path.read_text(errors="replace")
+            summary = next((line for line in reversed(output.splitlines())
                             if " in " in line and ("passed" in line or "failed" in line)),
                            f"exit {done.returncode}")
             rows.append((run, wall, ran, len(bad), done.returncode))
             print(f"run {run:2d}: {wall:6.1f} s  exit {done.returncode}  {summary}", flush=True)
-            if bad:
-                (work / f"run{run}.log").write_text(done.stdout)
+            if bad or done.returncode != 0:
                 for test in bad:
                     print(f"         failed: {test}")
+            else:
+                log_path.unlink()
     finally:
         stop_hogs(hogs)
     walls = sorted(r[1] for r in rows)
