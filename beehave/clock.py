@@ -17,6 +17,7 @@ so that it can ask the simulator to hold there until it has answered (see
 from __future__ import annotations
 
 import asyncio
+import functools
 import heapq
 import itertools
 import math
@@ -252,6 +253,10 @@ class PausableClock(WallClock):
         finally:
             self._local.depth -= 1
 
+    def _woken(self, freezes: int, predicate: Callable[[], bool]) -> bool:
+        """A running wait ends on a freeze after the ``freezes``-th, or on its predicate."""
+        return self._freezes != freezes or predicate()
+
     def _running(self) -> bool:
         return self._since is None
 
@@ -283,8 +288,8 @@ class PausableClock(WallClock):
                 if remaining is not None and remaining <= 0:
                     return False
                 freezes = self._freezes
-                self.base.wait(
-                    cond, lambda: self._freezes != freezes or predicate(), remaining)
+                self.base.wait(cond, functools.partial(self._woken, freezes, predicate),
+                               remaining)
                 if self._since is not None:
                     continue
                 if predicate():

@@ -159,7 +159,22 @@ class LockstepLine:
 
     def __init__(self, node: Any) -> None:
         self.publisher = node_publisher(node, String, topics.LOCKSTEP)  # the node's own
+        self.node_name = node.get_fully_qualified_name()
         self.made_s = time.monotonic()
+
+    def announce(self, runnable: Runnable, until_s: float | None, *,
+                 stop: str | None = None) -> None:
+        """Hold the simulation for ``runnable`` at sim time ``until_s`` (None: let go;
+        ``stop``, a ``cmd_vel`` topic the simulator zeroes as it lets go). A STUCK
+        runnable lets go: one that ignores its interrupt must not keep holding it."""
+        if runnable.status is Status.STUCK:
+            until_s = None
+        announcement: dict[str, Any] = {
+            "participant": f"{self.node_name}/{runnable.path}#{id(runnable):x}",
+            "until_s": until_s}
+        if until_s is None and stop is not None:
+            announcement["stop"] = stop
+        self.publisher.publish(String(data=json.dumps(announcement)))
 
     @classmethod
     def of(cls, node: Any) -> LockstepLine:
@@ -199,14 +214,10 @@ def lockstep_sleeps(runnable: Runnable) -> Iterator[Callable[[float], bool]]:
         yield runnable.sleep
         return
     line = LockstepLine.of(node)
-    participant = f"{node.get_fully_qualified_name()}/{runnable.path}#{id(runnable):x}"
     line.wait_matched(lambda: runnable.interrupted)
 
     def hold(until_s: float | None) -> None:
-        if runnable.status is Status.STUCK:
-            until_s = None  # one that ignores its interrupt must not hold the simulation
-        line.publisher.publish(String(data=json.dumps({"participant": participant,
-                                                       "until_s": until_s})))
+        line.announce(runnable, until_s)
 
     def sleep(seconds: float) -> bool:
         if not math.isfinite(seconds):
@@ -322,7 +333,7 @@ class DriveBase(Action):
     rate_hz = 20.0
     uses_odometry = True
     _cmd: Any = None
-    _lockstep: Any = None
+    _lockstep: LockstepLine | None = None
     _cmd_topic: str = ""
     _limit: SpeedLimit | None = None
 
@@ -370,9 +381,8 @@ class DriveBase(Action):
         node = self.manager.node
         if isinstance(clock, SimClock) and node is not None:
             line = LockstepLine.of(node)
-            self._participant = f"{node.get_fully_qualified_name()}/{self.path}#{id(self):x}"
             self._cmd_topic = node.resolve_topic_name(topics.CMD_VEL)
-            self._lockstep = line.publisher
+            self._lockstep = line
             # Held before the first command: the sim may not run past the first period
             # until this action has spoken again.
             line.wait_matched(lambda: self.interrupted)
@@ -389,19 +399,12 @@ class DriveBase(Action):
             return self.sleep(1.0 / self.rate_hz)
 
     def _hold_at(self, until_s: float | None) -> None:
-        if self.status is Status.STUCK:
-            # Its own publishers are destroyed, not the node's shared line: a loop that
-            # ignores its interrupt must not keep holding the simulation.
-            until_s = None
+        # (STUCK: its own publishers are destroyed, not the node's shared line, which
+        # lets go for it.) Released at the end of a drive, the simulator stops the wheels
+        # as it lets go: the zero command went out first, but on cmd_vel, and nothing
+        # orders two topics: a release that overtook it let the sim run on the old command.
         if self._lockstep is not None:
-            announcement: dict[str, Any] = {"participant": self._participant,
-                                            "until_s": until_s}
-            if until_s is None:
-                # Released at the end of a drive: the simulator stops the wheels as it lets
-                # go. The zero command went out first, but on cmd_vel, and nothing orders
-                # two topics: a release that overtook it let the sim run on the old command.
-                announcement["stop"] = self._cmd_topic
-            self._lockstep.publish(String(data=json.dumps(announcement)))
+            self._lockstep.announce(self, until_s, stop=self._cmd_topic)
 
     def _let_go(self) -> None:
         try:

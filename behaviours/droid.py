@@ -318,6 +318,9 @@ class FollowLeader(MavlinkAction):
     MAX_EXTRAPOLATION_S = 1.0
     """The longest a leader's state is carried forward by its velocity."""
     lockstep = True  # a control loop: under sim time the simulator waits for each period
+    FRESH_PERIODS = 1.5
+    """In lockstep, a leader state older than this many periods (sim time) is waited for
+    (see :meth:`_fresh_peer`)."""
     FRESH_WAIT_S = 0.8
     """In lockstep, how long (wall) a period waits for the leader to make progress: a
     period whose leader state is late in sim time waits (the simulation held) while newer
@@ -407,15 +410,15 @@ class FollowLeader(MavlinkAction):
 
     def _fresh_peer(self, fleet: Fleet) -> PeerState | None:
         """The leader's latest state. In lockstep (the simulation waits for this loop, not
-        for the leader's robot), a state older than 1.5 periods of sim time is waited for,
-        the simulation held meanwhile, as long as the leader makes progress (see
-        :attr:`FRESH_WAIT_S`): a simulation faster than the leader's process must not make
+        for the leader's robot), a state older than :attr:`FRESH_PERIODS` periods of sim
+        time is waited for, the simulation held meanwhile, as long as the leader makes
+        progress (see :attr:`FRESH_WAIT_S`): a simulation faster than the leader's process must not make
         the leader look stale or far behind where it is. (Going on with a stale state,
         the follower held while the simulated leader drove on, and fell up to 2.7 m
         behind in stress runs.)"""
         peer = fleet.get(self.leader)
-        if self._lockstep_pub is None or peer is None \
-                or peer.age_s <= 1.5 * self.period_s:
+        if self._lockstep is None or peer is None \
+                or peer.age_s <= self.FRESH_PERIODS * self.period_s:
             self._silent_seq = None
             return peer
         if peer.seq == self._silent_seq:
@@ -430,7 +433,7 @@ class FollowLeader(MavlinkAction):
             newer = fleet.get(self.leader)
             if newer is not None and newer.seq != peer.seq:
                 peer, progress_by = newer, now + self.FRESH_WAIT_S
-                if peer.age_s <= 1.5 * self.period_s:
+                if peer.age_s <= self.FRESH_PERIODS * self.period_s:
                     break
             if now >= progress_by:  # silent: go on with what there is
                 self._silent_seq = peer.seq

@@ -40,7 +40,6 @@ the simulation and needs no holding.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -48,8 +47,6 @@ import threading
 import time
 from collections.abc import Sequence
 from typing import Any
-
-from std_msgs.msg import String
 
 from beehave.action import Action
 from beehave.clock import SimClock
@@ -61,7 +58,6 @@ from beehave.errors import (
     UnknownMode,
     VehicleLost,
 )
-from beehave.status import Status
 from behaviours.actions import LockstepLine  # one /lockstep line per node, shared
 from hal.mavlink import (
     COPTER,
@@ -102,7 +98,7 @@ class MavlinkAction(Action):
     lockstep = False
     """True: under sim time, hold the simulation where each :meth:`pause` ends until this
     action has answered (a control loop); see the module doc."""
-    _lockstep_pub: Any = None
+    _lockstep: LockstepLine | None = None
 
     def __init__(self, *, connection: str, system_id: int | None = None,
                  heartbeat_timeout_s: float = 3.0, connect_timeout_s: float = 5.0,
@@ -156,7 +152,7 @@ class MavlinkAction(Action):
         stands still."""
         self._hold_if_paused()
         clock = self.manager.clock
-        if self._lockstep_pub is not None and isinstance(clock, SimClock):
+        if self._lockstep is not None and isinstance(clock, SimClock):
             with clock.announcing(self._hold_at):
                 awake = self.sleep(seconds)
         else:
@@ -169,29 +165,24 @@ class MavlinkAction(Action):
         if not self.lockstep or node is None or not isinstance(self.manager.clock, SimClock):
             return
         line = LockstepLine.of(node)
-        self._participant = f"{node.get_fully_qualified_name()}/{self.path}#{id(self):x}"
-        self._lockstep_pub = line.publisher
+        self._lockstep = line
         # No hold before the first pause: the set-up (mode, arming) waits for the vehicle's
         # heartbeat, which a held simulation still sends, but on wall time.
         line.wait_matched(lambda: self.interrupted)
 
     def _hold_at(self, until_s: float | None) -> None:
-        pub = self._lockstep_pub
-        if pub is None:
-            return
-        if self.status is Status.STUCK:
-            until_s = None  # a loop that ignores its interrupt must not keep holding
-        pub.publish(String(data=json.dumps({"participant": self._participant,
-                                            "until_s": until_s})))
+        line = self._lockstep
+        if line is not None:
+            line.announce(self, until_s)
 
     def _let_go(self) -> None:
-        if self._lockstep_pub is None:
+        if self._lockstep is None:
             return
         try:
             self._hold_at(None)
         except Exception:  # the node is gone: the simulator's lockstep timeout lets go
             log.debug("%s: could not let the simulation go", self.path, exc_info=True)
-        self._lockstep_pub = None
+        self._lockstep = None
 
     def check_alive(self, link: MavlinkLink, what: str) -> None:
         if not link.alive:

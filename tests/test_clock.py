@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import threading
-import time
 
 from beehave import Behavior, HighLevelBehaviorManager, Status
 from beehave.clock import SimClock
-from beehave.testing import WALL_TIMEOUT_S
+from beehave.testing import WALL_TIMEOUT_S, wait_until
 
 # A negative check (still asleep) runs to its end: short on purpose; a loaded machine can only
 # make it miss a wrong wake-up, never fail a right clock.
@@ -75,16 +74,12 @@ def test_a_pause_its_sleeper_never_saw_still_counts_and_is_announced_again() -> 
 
     thread = threading.Thread(target=sleeper, daemon=True)
     thread.start()
-    deadline = time.monotonic() + WALL_TIMEOUT_S
-    while announced != [11.0] and time.monotonic() < deadline:
-        time.sleep(0.001)
-    assert announced == [11.0]
+    assert wait_until(lambda: announced == [11.0]), announced
     with cond:  # the sleeper cannot run until the pause is over
         clock.freeze()
         base.set_time(10.5)
         clock.thaw()
-    while announced == [11.0] and time.monotonic() < deadline:
-        time.sleep(0.001)
+    assert wait_until(lambda: announced != [11.0])
     assert announced == [11.0, 11.5]
     base.set_time(11.2)
     thread.join(0.05)

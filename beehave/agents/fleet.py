@@ -51,7 +51,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from rclpy.clock import Clock, ClockType
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
@@ -187,9 +188,9 @@ class Fleet(Closing):
             if state is not None:
                 self._own.update(state)
             self._seq += 1
+            sent_at = time.time() if self._sim_clock is None else self._sim_s()
             payload = {"schema": SCHEMA, "agent": self.name, "seq": self._seq,
-                       "sent_at": time.time() if self._sim_clock is None else self._sim_s(),
-                       "state": self._own}
+                       "sent_at": sent_at, "state": self._own}
             if self._sim_clock is not None:
                 payload["clock"] = "sim"
             try:
@@ -199,7 +200,7 @@ class Fleet(Closing):
                 log.error("fleet of agent %r: state is not JSON, not sent: %s", self.name, exc)
                 return
             self._last_text, self._sent_since_resend = text, True
-            self._last_sent_s = payload["sent_at"]
+            self._last_sent_s = sent_at
         self._send(text)
 
     def _catch_up(self) -> None:
@@ -285,11 +286,9 @@ class Fleet(Closing):
         self._closed = True
         detach(self, "fleet")
         node = self.agent.node
-        entities = [("timer", self._timer), ("subscription", self._sub),
-                    ("publisher", self._pub)]
-        if self._resend_timer is not None:
-            entities.insert(1, ("timer", self._resend_timer))
-        for kind, entity in entities:
+        timers = [t for t in (self._timer, self._resend_timer) if t is not None]
+        for kind, entity in [*(("timer", t) for t in timers), ("subscription", self._sub),
+                             ("publisher", self._pub)]:
             try:
                 getattr(node, f"destroy_{kind}")(entity)
             except Exception:  # the node went first (its owner shut it down)
