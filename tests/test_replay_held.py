@@ -6,6 +6,7 @@ lose steps to a jump."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -53,39 +54,65 @@ class Watcher(Behavior):
         self.sleep(10.0)
 
 
+class _Synthetic:
+    """A recording written by hand, of robot ``prefix``: :meth:`put` adds a message at
+    ``t_s`` seconds from its start, :meth:`event` a high-level event."""
+
+    T0_NS = 1_800_000_000 * 10**9
+
+    def __init__(self, prefix: str) -> None:
+        self.prefix = prefix
+        self.messages: list[Recorded] = []
+        self.channels: dict[str, ChannelInfo] = {}
+        for channel, name in ((schema.BLACKBOARD, "beehave.BlackboardChange"),
+                              (schema.EVENTS_LOW, "beehave.Event"),
+                              (schema.OUTPUTS, "beehave.HalCommand")):
+            topic = schema.topic(prefix, channel)
+            self.channels[topic] = ChannelInfo(topic, "json", name)
+
+    def put(self, topic: str, t_s: float, data: object, encoding: str = "json",
+            schema_name: str = "") -> None:
+        info = self.channels.setdefault(topic, ChannelInfo(topic, encoding, schema_name))
+        info.count += 1
+        self.messages.append(Recorded(topic, self.T0_NS + round(t_s * 1e9), data, encoding,
+                                      schema_name))
+
+    def event(self, t_s: float, kind: str, subject: str, status: str | None = None,
+              detail: dict[str, Any] | None = None) -> None:
+        self.put(schema.topic(self.prefix, schema.EVENTS_HIGH), t_s, {
+            "kind": kind, "subject": subject, "status": status, "error": None,
+            "detail": detail or {}})
+
+    def recording(self) -> Recording:
+        self.messages.sort(key=lambda m: m.log_time_ns)
+        return Recording([Path("synthetic.mcap")], self.messages, self.channels, False, {},
+                         {"std_msgs/msg/Float64": schema.ros_msgdef(Float64).encode()})
+
+
 def _recording() -> Recording:
     """What a live run of ``Watcher`` on sim time records: ``level`` is published every
     0.25 s (at 0.1, 0.35, …) with its sim time as value; the recorder has heard it from
     the start."""
-    t0_ns = 1_800_000_000 * 10**9
-    messages: list[Recorded] = []
-    channels: dict[str, ChannelInfo] = {}
-
-    def put(topic: str, t_s: float, data: object, encoding: str = "json",
-            schema_name: str = "") -> None:
-        info = channels.setdefault(topic, ChannelInfo(topic, encoding, schema_name))
-        info.count += 1
-        messages.append(Recorded(topic, t0_ns + round(t_s * 1e9), data, encoding,
-                                 schema_name))
-
-    for channel, name in ((schema.BLACKBOARD, "beehave.BlackboardChange"),
-                          (schema.EVENTS_LOW, "beehave.Event"),
-                          (schema.OUTPUTS, "beehave.HalCommand")):
-        channels[schema.topic("bot", channel)] = ChannelInfo(schema.topic("bot", channel),
-                                                             "json", name)
-    put("/bot/beehave/events/high", 0.0, {
-        "kind": "switch_requested", "subject": "watcher", "status": None, "error": None,
-        "detail": {"params": {}, "source": "external"}})
+    rec = _Synthetic("bot")
+    rec.event(0.0, "switch_requested", "watcher",
+              detail={"params": {}, "source": "external"})
+    # What the live high level did before its shutdown (the replay's clock stands once it
+    # has done as much): the two looks start, hear the next level and end.
+    for t, kind, subject, status in ((0.0, "started", "watcher", "RUNNING"),
+                                     (0.0, "switch_completed", "watcher", None),
+                                     (1.0, "started", "watcher/first", "RUNNING"),
+                                     (2.0, "ended", "watcher/first", "SUCCEEDED"),
+                                     (2.0, "started", "watcher/second", "RUNNING"),
+                                     (2.1, "ended", "watcher/second", "SUCCEEDED")):
+        rec.event(t, kind, subject, status)
     for i in range(61):
         t = i * 0.05
-        put("/bot/beehave/clock", t, {"sim_time_s": 100.0 + t, "stamp": 0.0})
+        rec.put("/bot/beehave/clock", t, {"sim_time_s": 100.0 + t, "stamp": 0.0})
     for i in range(12):
         t = i * 0.25 + 0.1
-        put("/bot/level", t, bytes(serialize_message(Float64(data=100.0 + t))), "cdr",
-            "std_msgs/msg/Float64")
-    messages.sort(key=lambda m: m.log_time_ns)
-    return Recording([Path("synthetic.mcap")], messages, channels, False, {},
-                     {"std_msgs/msg/Float64": schema.ros_msgdef(Float64).encode()})
+        rec.put("/bot/level", t, bytes(serialize_message(Float64(data=100.0 + t))), "cdr",
+                "std_msgs/msg/Float64")
+    return rec.recording()
 
 
 def test_a_new_subscription_hears_the_next_message_not_an_old_one() -> None:
@@ -125,11 +152,9 @@ class _Step(Action):
         self.sleep(0.05)
 
 
-def test_a_behaviour_that_only_sleeps_replays_every_step_without_warnings(
-        tmp_path: Path) -> None:
-    """Issue 23, defect 2: the replay's clock moved only at inputs, so a loop of sleeps
-    was woken once by a jump over several of its deadlines (steps lost) and the replay
-    warned that it "did not catch up with the recording"."""
+def _record_live(tmp_path: Path, behaviour: str, seconds: float) -> tuple[Any, Path]:
+    """Run ``behaviour`` (a class of this file) as a robot's default behaviour for about
+    ``seconds`` of wall time, recorded; returns the robot's configuration and the file."""
     import time
 
     from beehave.recording.cli import finish_recording, robots_started, start_recording
@@ -137,7 +162,8 @@ def test_a_behaviour_that_only_sleeps_replays_every_step_without_warnings(
     from beehave.ros.context import RosContext
 
     config = parse_config({"namespace": "pacer", "hals": ["debug"],
-                           "behaviors": {"pace": {"class": "tests.test_replay_held:Pacer"}},
+                           "behaviors": {"pace": {
+                               "class": f"tests.test_replay_held:{behaviour}"}},
                            "default_behavior": "pace"}, source="pacer.yaml")
     path = tmp_path / "pacer.mcap"
     with RosContext() as ros:
@@ -146,10 +172,21 @@ def test_a_behaviour_that_only_sleeps_replays_every_step_without_warnings(
         try:
             robot.start()
             robots_started(recorder, [robot])
-            time.sleep(2.0)  # a live run of about ten steps, recorded
+            time.sleep(seconds)
         finally:
             robot.shutdown()
             finish_recording(recorder)
+    return config, path
+
+
+def test_a_behaviour_that_only_sleeps_replays_every_step_without_warnings(
+        tmp_path: Path) -> None:
+    """Issue 23, defect 2: the replay's clock moved only at inputs, so a loop of sleeps
+    was woken once by a jump over several of its deadlines (steps lost) and the replay
+    warned that it "did not catch up with the recording". And (CI, a loaded host): live,
+    each step comes a little late, so a step the shutdown cut off live is due earlier in
+    the replay -- the replay must not start it."""
+    config, path = _record_live(tmp_path, "Pacer", 2.0)  # about ten steps
     result = replay(path, config, speed=None)
     def ended_steps(outputs: list[Any]) -> list[str]:
         return [o.key for o in outputs
@@ -160,6 +197,71 @@ def test_a_behaviour_that_only_sleeps_replays_every_step_without_warnings(
     assert result.warnings == [], result.warnings
     assert result.divergence is None, result.divergence
     assert ended_steps(result.outputs) == steps
+
+
+def test_a_step_the_shutdown_cut_off_live_does_not_start_in_the_replay() -> None:
+    """CI, a loaded host: live, each step of ``Pacer`` came 1.5 ms late, so the shutdown
+    at 2.004 s came before the ninth step, which an exact replay has due at 2.0 s; an input
+    at 2.003 s moved the replay's clock past it and the replay started a step the robot
+    never did (a false divergence)."""
+    rec = _Synthetic("pacer")
+    rec.event(0.0, "switch_requested", "pace", detail={"params": {}, "source": "external"})
+    rec.event(0.0, "started", "pace", "RUNNING")
+    rec.event(0.0, "switch_completed", "pace")
+    for k in range(8):
+        t = k * 0.2515
+        name = "pace/_Step" + (f"#{k + 1}" if k else "")
+        rec.event(t, "started", name, "RUNNING", {"action_type": "step"})
+        rec.event(t + 0.05, "ended", name, "SUCCEEDED")
+    rec.put(schema.topic("pacer", schema.BLACKBOARD), 2.003, {
+        "key": "high_level/locks", "value": {}, "stamp": 2.003, "writer": "ros:high_level",
+        "stale": False})
+    rec.event(2.004, "ended", "pace", "INTERRUPTED")
+    config = parse_config({"namespace": "pacer", "hals": ["debug"],
+                           "behaviors": {"pace": {"class": "tests.test_replay_held:Pacer"}},
+                           "default_behavior": "pace"}, source="pacer.yaml")
+    result = replay(rec.recording(), config, speed=None, high=True)
+    assert result.divergence is None, result.divergence
+    assert result.warnings == [], result.warnings
+
+
+STEPS: list[tuple[str, float]] = []  # (what, the behaviour's clock then)
+
+
+class SlowStarter(Behavior):
+    """Computes for a while before its first sleep, then steps every 0.25 s."""
+
+    def run(self) -> None:
+        STEPS.append(("start", self.manager.clock.now()))
+        began = time.monotonic()
+        while time.monotonic() - began < 0.15:  # CPU, not a wait: the clock must not move
+            pass
+        while not self.interrupted:
+            STEPS.append(("step", self.manager.clock.now()))
+            self.start_action(_Step()).wait()
+            self.sleep(0.2)
+
+
+def test_the_replay_clock_waits_for_a_behaviour_still_starting(tmp_path: Path) -> None:
+    """CI, a loaded host: the replay moved its clock to the first input while the default
+    behaviour had not yet reached its first sleep, so every replayed step came that much
+    later than the recorded ones, and one the recording shows just before the shutdown
+    was missing ("did not catch up ... 19 of 20 events")."""
+    import importlib
+
+    steps: list[tuple[str, float]] = importlib.import_module("tests.test_replay_held").STEPS
+    config, path = _record_live(tmp_path, "SlowStarter", 1.2)
+    steps.clear()
+    result = replay(path, config, speed=None)
+    assert steps[0][0] == "start" and len(steps) >= 3, steps
+    started = steps[0][1]
+    times = [t for what, t in steps[1:]]
+    # No time passes on the replay's clock while the behaviour computes; then its steps
+    # come exactly every 0.25 s.
+    assert times == pytest.approx([started + 0.25 * k for k in range(len(times))],
+                                  abs=1e-6), steps
+    assert result.divergence is None, result.divergence
+    assert result.warnings == [], result.warnings
 
 
 def test_at_the_shutdown_an_extra_replayed_output_is_dropped_a_missing_one_is_not() -> None:

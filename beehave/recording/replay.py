@@ -31,7 +31,9 @@ elsewhere using no CPU -- and none is due to run. A driving action's lockstep ho
 the clock at each control period, as it stops a simulator. Before each input of the high
 level, the feed also waits (bounded) until the replayed behaviours have done what the
 recorded ones had done :data:`SYNC_MARGIN_S` earlier, so that a behaviour polling on wall
-time (a queue's ``get(timeout=…)``) cannot fall behind.
+time (a queue's ``get(timeout=…)``) cannot fall behind. Once it has done all the recorded
+ones did before their shutdown, its clock stands: live steps come a little late, replayed
+ones exactly on time, so a step the shutdown cut off live would otherwise start.
 
 Batches. The recorded writes carry the batch in which the logics saw them (see the
 recorder's ``_BatchingTap``): one batch is fed in one go, then the loop turns a few times
@@ -704,6 +706,9 @@ class _HighSide:
         self._settled_at = 0  # the event count when the high level last settled
         self._last_activity: dict[int, float] | None = None
         self._slow = False
+        # How many events the recorded high level emitted before its shutdown: once the
+        # replayed one has emitted as many, its clock stands (see advance).
+        self.settled = _settled_count(recording, prefix)
 
     def on_event(self, event: Any) -> None:  # in the high level's threads
         with self._cond:
@@ -737,15 +742,22 @@ class _HighSide:
         With ``until``, stop for
         good (short of ``t_s``) as soon as ``until()`` holds once the high level settled: an
         input then comes exactly when the replay has done what the recording had done
-        before it, not after a timed step the recording shows after it."""
+        before it, not after a timed step the recording shows after it.
+
+        Once the replay has done all the recorded high level did before its shutdown, the
+        clock stands: live, each step came a little late (the host's latency adds up over
+        a loop of sleeps), so the replay's exact steps run ahead, and a step the shutdown
+        cut off live would start in the replay."""
         target = self.sim0 + t_s
         clock, node = self.clock, self.node
         gone: set[str] = set()
         while not self.abort.is_set():
-            if until is not None:
-                await self.settle()
-                if until():
-                    return
+            # First let whatever runs reach its next wait: a behaviour just started (the
+            # default one, at the replay's start) has not yet asked for its first deadline,
+            # and a clock moved past it would shift all its steps.
+            await self.settle()
+            if (until is not None and until()) or self._events >= self.settled:
+                return
             holds = node.holds()
             early = [h for w, h in holds.items()
                      if w not in gone and h < target - ReplayClock.SLACK_S]
@@ -767,7 +779,7 @@ class _HighSide:
                 gone.update(w for w, h in holds.items() if h <= at)
         if until is not None and until():
             return
-        if target > clock.now():
+        if target > clock.now() and self._events < self.settled:
             clock.set_time(target)
             node.fire_timers(target)
             await self.settle()
@@ -919,14 +931,14 @@ class _HighSide:
             self.warnings.append(f"t={self.state.now_s:.3f} s: a subscription to "
                                  f"{sub.topic} raised {exc!r}")
 
-    async def finish(self, settled: int, end_s: float) -> None:
+    async def finish(self, end_s: float) -> None:
         """After the last input: let the high level do what it did before the recorded
         shutdown (its shutdown follows: its safe states and ends are compared too) --
         moving the clock on towards the recording's end ``end_s`` while it has not: a
         behaviour that only sleeps has no input to move it."""
         self._deliver_late()
-        await self.advance(end_s, until=lambda: self._events >= settled)
-        await self.catch_up(settled)
+        await self.advance(end_s)
+        await self.catch_up(self.settled)
 
     def missing_error(self) -> RecordingError:
         channels = ", ".join(sorted(self.missing))
@@ -1102,8 +1114,7 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
                 fed = low.call(_feed(low, inputs, state, speed=speed, lo=lo, hi=hi,
                                      hal_wait_s=hal_wait_s, warnings=warnings, high=side))
                 if side is not None and not side.abort.is_set() and to_s is None:
-                    low.call(side.finish(_settled_count(rec, prefix),
-                                         timeline(_shutdown_ns(rec, prefix))))
+                    low.call(side.finish(timeline(_shutdown_ns(rec, prefix))))
                 if to_s is not None:
                     state.comparing = False  # the shutdown's safe states lie outside it
             finally:
