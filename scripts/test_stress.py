@@ -88,6 +88,7 @@ def main() -> int:
             start = time.monotonic()
             # Written as it comes (a run that hangs leaves its log), kept when it failed.
             log_path = work / f"run{run}.log"
+            env["BEEHAVE_KEEP_DIR"] = str(work / f"run{run}-kept")  # a failure's recordings
             with open(log_path, "w") as log:
                 done = subprocess.run([sys.executable, *PYTEST, "-p", "no:cacheprovider",
                                        f"--junitxml={junit}", *args.pytest_args],

@@ -6,6 +6,7 @@ import faulthandler
 import importlib
 import os
 import random
+import shutil
 import sys
 import tempfile
 import zlib
@@ -145,6 +146,25 @@ def pytest_runtest_protocol(item: pytest.Item) -> Generator[None, None, None]:
         _arm(bound + _GRACE_S, f"test {item.nodeid} (timeout {bound:.0f} s)")
     yield
     faulthandler.cancel_dump_traceback_later()
+
+
+_KEEP = "BEEHAVE_KEEP_DIR"
+"""Where a failed test's recordings (its ``.mcap`` arguments, e.g. the demo's) are copied,
+so that a failure seen once under load can be replayed later (``make test-stress`` sets
+it)."""
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: Any) -> Generator[None, Any, None]:
+    outcome = yield
+    where = os.environ.get(_KEEP)
+    if not where or not outcome.get_result().failed:
+        return
+    for name, value in getattr(item, "funcargs", {}).items():
+        if isinstance(value, Path) and value.suffix == ".mcap" and value.exists():
+            keep = Path(where) / f"{item.name}-{name}.mcap"
+            keep.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(value, keep)
 
 
 @pytest.hookimpl(trylast=True)
