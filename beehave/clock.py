@@ -114,12 +114,17 @@ class SimClock(WallClock):
         """Wait (wall time) up to ``timeout_s`` for the first ``set_time``; whether it came."""
         return self._started.wait(timeout_s)
 
+    def _due_until(self) -> float:
+        """Deadlines up to this time are reached (the replay's clock may hold some back)."""
+        return self._now
+
     def set_time(self, t_s: float) -> None:
         with self._lock:
             self._now = max(self._now, t_s)
             self._started.set()
             due: list[threading.Condition] = []
-            while self._waiters and self._waiters[0][0] <= self._now + self.SLACK_S:
+            until = self._due_until() + self.SLACK_S
+            while self._waiters and self._waiters[0][0] <= until:
                 due.append(heapq.heappop(self._waiters)[2])
             now, listeners = self._now, self._listeners
         for cond in due:

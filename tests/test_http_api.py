@@ -308,6 +308,9 @@ def test_a_stalled_websocket_client_loses_snapshots_and_slows_nobody(
     writer = threading.Thread(target=robot_writes)
     writer.start()
     try:
+        # The first snapshot must carry the value (a stress run: the writer thread had not
+        # run yet when the fast client connected).
+        assert wait_until(lambda: hl.blackboard.get("odom/x_m") is not None)
         with connect(f"ws://127.0.0.1:{server.port}/api/ws",
                      max_size=None) as fast:
             updates = _read_updates(fast, 30)

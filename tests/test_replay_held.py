@@ -199,11 +199,12 @@ def test_a_behaviour_that_only_sleeps_replays_every_step_without_warnings(
     assert ended_steps(result.outputs) == steps
 
 
-def test_a_step_the_shutdown_cut_off_live_does_not_start_in_the_replay() -> None:
+@pytest.mark.parametrize("cut_by", ["the shutdown", "a switch"])
+def test_a_step_cut_off_live_does_not_start_in_the_replay(cut_by: str) -> None:
     """CI, a loaded host: live, each step of ``Pacer`` came 1.5 ms late, so the shutdown
-    at 2.004 s came before the ninth step, which an exact replay has due at 2.0 s; an input
-    at 2.003 s moved the replay's clock past it and the replay started a step the robot
-    never did (a false divergence)."""
+    (or a switch asked for from outside) at 2.004 s came before the ninth step, which an
+    exact replay has due at 2.0 s; an input at 2.003 s moved the replay's clock past it and
+    the replay started a step the robot never did (a false divergence)."""
     rec = _Synthetic("pacer")
     rec.event(0.0, "switch_requested", "pace", detail={"params": {}, "source": "external"})
     rec.event(0.0, "started", "pace", "RUNNING")
@@ -216,13 +217,23 @@ def test_a_step_the_shutdown_cut_off_live_does_not_start_in_the_replay() -> None
     rec.put(schema.topic("pacer", schema.BLACKBOARD), 2.003, {
         "key": "high_level/locks", "value": {}, "stamp": 2.003, "writer": "ros:high_level",
         "stale": False})
-    rec.event(2.004, "ended", "pace", "INTERRUPTED")
+    if cut_by == "a switch":
+        rec.event(2.004, "switch_requested", "idle",
+                  detail={"params": {}, "source": "external"})
+        rec.event(2.0045, "ended", "pace", "INTERRUPTED")
+        rec.event(2.005, "started", "idle", "RUNNING")
+        rec.event(2.005, "switch_completed", "idle")
+        rec.event(3.0, "ended", "idle", "INTERRUPTED")  # the shutdown
+    else:
+        rec.event(2.004, "ended", "pace", "INTERRUPTED")
     config = parse_config({"namespace": "pacer", "hals": ["debug"],
                            "behaviors": {"pace": {"class": "tests.test_replay_held:Pacer"}},
                            "default_behavior": "pace"}, source="pacer.yaml")
     result = replay(rec.recording(), config, speed=None, high=True)
     assert result.divergence is None, result.divergence
     assert result.warnings == [], result.warnings
+    assert [o.key for o in result.outputs if o.key.startswith("high:pace/_Step")] == \
+        [o.key for o in result.expected if o.key.startswith("high:pace/_Step")]
 
 
 STEPS: list[tuple[str, float]] = []  # (what, the behaviour's clock then)

@@ -110,6 +110,37 @@ def test_the_clock_knows_who_is_due_to_run() -> None:
     assert clock.parked() == set() and not clock.ready()
 
 
+def test_held_wakes_let_time_pass_and_end_no_wait_until_released() -> None:
+    """What a replay does once its behaviours have done all the recording shows before a
+    switch: time moves on, but a sleep due later than that moment does not end (live,
+    the switch came first) until the switch is fed."""
+    clock = ReplayClock()
+    clock.set_time(10.0)
+    cond = threading.Condition()
+    woke = threading.Event()
+
+    def sleeper() -> None:
+        with cond:
+            clock.wait(cond, lambda: False, 0.5)  # due at 10.5
+        woke.set()
+
+    thread = threading.Thread(target=sleeper)
+    thread.start()
+    assert wait_until(lambda: bool(clock.parked()))
+    clock.hold_wakes()
+    clock.set_time(11.0)
+    assert clock.now() == 11.0
+    assert not woke.wait(0.05) and not clock.ready() and clock.next_deadline() is None
+    clock.release_wakes()
+    assert woke.wait(WALL_TIMEOUT_S)
+    thread.join(WALL_TIMEOUT_S)
+    # A wait that starts while held, due before the hold began, still ends at once.
+    clock.hold_wakes()
+    with cond:
+        assert clock.wait(cond, lambda: False, 0.0) is False  # due now: returns at once
+    clock.release_wakes()
+
+
 def test_a_subscription_is_announced_before_it_is_made() -> None:
     node = _node()
     seen: list[tuple[type, str, list[str]]] = []

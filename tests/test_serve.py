@@ -406,15 +406,23 @@ def test_bad_serve_arguments_exit_2_naming_the_problem(
 def test_the_serve_scenario_completes_every_order_and_every_check_holds(
         tmp_path: Path) -> None:
     out = tmp_path / "out"
-    # --signed: every agent signs and takes only what the fleet signed (docs/agents.md).
-    proc = subprocess.run([sys.executable, "-m", "beehave.cli", "fleet", "--scenario",
-                           "serve", "--fast", "--signed", "--out", str(out)], cwd=ROOT,
-                          env=dict(os.environ), capture_output=True, text=True,
-                          timeout=4.7 * WALL_TIMEOUT_S,
-                          preexec_fn=dies_with_parent)  # a worker's timeout: no orphans
-    logs = "".join(f"--- {log.name}\n{log.read_text(errors='replace')[-1500:]}\n"
-                   for log in sorted((out / "serve").glob("*.log")))
-    tail = proc.stdout[-6000:] + proc.stderr[-3000:] + logs
+
+    def logs() -> str:
+        return "".join(f"--- {log.name}\n{log.read_text(errors='replace')[-1500:]}\n"
+                       for log in sorted((out / "serve").glob("*.log")))
+
+    try:
+        # --signed: every agent signs and takes only what the fleet signed (docs/agents.md).
+        proc = subprocess.run([sys.executable, "-m", "beehave.cli", "fleet", "--scenario",
+                               "serve", "--fast", "--signed", "--out", str(out)], cwd=ROOT,
+                              env=dict(os.environ), capture_output=True, text=True,
+                              timeout=4.7 * WALL_TIMEOUT_S,
+                              preexec_fn=dies_with_parent)  # a worker's timeout: no orphans
+    except subprocess.TimeoutExpired as exc:  # say where each process was
+        shown = exc.stdout.decode(errors="replace") if isinstance(exc.stdout, bytes) \
+            else (exc.stdout or "")
+        pytest.fail(f"timed out after {exc.timeout:.0f} s\n{shown[-6000:]}\n{logs()}")
+    tail = proc.stdout[-6000:] + proc.stderr[-3000:] + logs()
     lines = [line for line in proc.stdout.splitlines() if line.startswith('{"serve"')]
     assert lines, f"no result line:\n{tail}"
     result = json.loads(lines[-1])["serve"]

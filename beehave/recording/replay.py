@@ -32,8 +32,9 @@ the clock at each control period, as it stops a simulator. Before each input of 
 level, the feed also waits (bounded) until the replayed behaviours have done what the
 recorded ones had done :data:`SYNC_MARGIN_S` earlier, so that a behaviour polling on wall
 time (a queue's ``get(timeout=…)``) cannot fall behind. Once it has done all the recorded
-ones did before their shutdown, its clock stands: live steps come a little late, replayed
-ones exactly on time, so a step the shutdown cut off live would otherwise start.
+ones did before the next switch requested from outside or before their shutdown, its clock
+stands until then: live steps come a little late, replayed ones exactly on time, so a step
+that the switch or the shutdown cut off live would otherwise start.
 
 Batches. The recorded writes carry the batch in which the logics saw them (see the
 recorder's ``_BatchingTap``): one batch is fed in one go, then the loop turns a few times
@@ -706,9 +707,28 @@ class _HighSide:
         self._settled_at = 0  # the event count when the high level last settled
         self._last_activity: dict[int, float] | None = None
         self._slow = False
-        # How many events the recorded high level emitted before its shutdown: once the
-        # replayed one has emitted as many, its clock stands (see advance).
+        # How many events the recorded high level emitted before its shutdown, and before
+        # each switch requested from outside: once the replayed one has emitted as many as
+        # the recorded one had before the next of them, no timed wait ends until that one
+        # is fed (see advance).
         self.settled = _settled_count(recording, prefix)
+        self._bounds: list[int] = []
+
+    def expect(self, inputs: list[Any]) -> None:
+        """Take note of the switch requests among ``inputs`` (the feed's, in order). Not
+        of pauses: a pause fed early would end the behaviours' time early, and they would
+        be behind the recording after the resume."""
+        self._bounds = [i.logged_before for i in inputs
+                        if isinstance(i, _HighInput) and i.kind == "request"]
+        self._bounds.reverse()  # the next one last: fed ones are popped
+
+    def _hold_if_done(self) -> None:
+        """Once the replay has emitted as many events as the recording had before the next
+        switch request (or its shutdown), hold back every timed wait due from now on until
+        that request (see advance). Not while paused: the behaviours' time stands then."""
+        count = self._bounds[-1] if self._bounds else self.settled
+        if self._events >= count and not self.high.paused:
+            self.clock.hold_wakes()
 
     def on_event(self, event: Any) -> None:  # in the high level's threads
         with self._cond:
@@ -744,10 +764,13 @@ class _HighSide:
         input then comes exactly when the replay has done what the recording had done
         before it, not after a timed step the recording shows after it.
 
-        Once the replay has done all the recorded high level did before its shutdown, the
-        clock stands: live, each step came a little late (the host's latency adds up over
-        a loop of sleeps), so the replay's exact steps run ahead, and a step the shutdown
-        cut off live would start in the replay."""
+        Once the replay has done all the recorded high level did before the next switch
+        requested from outside (or before its shutdown), time moves on but no timed wait
+        due from then on ends until that switch is fed (:meth:`ReplayClock.hold_wakes`):
+        live, each step came a little late (the host's latency adds up over a loop of
+        sleeps; a behaviour's computing takes time live, none in the replay), so the
+        replay's exact steps run ahead, and a step that the switch or the shutdown cut off
+        live would start in the replay."""
         target = self.sim0 + t_s
         clock, node = self.clock, self.node
         gone: set[str] = set()
@@ -756,8 +779,9 @@ class _HighSide:
             # default one, at the replay's start) has not yet asked for its first deadline,
             # and a clock moved past it would shift all its steps.
             await self.settle()
-            if (until is not None and until()) or self._events >= self.settled:
+            if until is not None and until():
                 return
+            self._hold_if_done()
             holds = node.holds()
             early = [h for w, h in holds.items()
                      if w not in gone and h < target - ReplayClock.SLACK_S]
@@ -779,7 +803,7 @@ class _HighSide:
                 gone.update(w for w, h in holds.items() if h <= at)
         if until is not None and until():
             return
-        if target > clock.now() and self._events < self.settled:
+        if target > clock.now():
             clock.set_time(target)
             node.fire_timers(target)
             await self.settle()
@@ -897,6 +921,12 @@ class _HighSide:
             except Exception as exc:  # the recording asked for it; say it did not work
                 self.warnings.append(f"t={item.t_s:.3f} s: switch to behaviour {item.key!r} "
                                      f"failed: {exc!r}")
+            await self.settle()
+            # The switch has interrupted what a held-back wait would have woken (see
+            # advance): the waits due by now end, and time goes on towards the next one.
+            if self._bounds:
+                self._bounds.pop()
+            self.clock.release_wakes()
             await self.settle()
             return
         subs = self.node.subscriptions(item.key)
@@ -1066,6 +1096,7 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
     if with_high:
         side = _high_side(config, rec, prefix, low, state, warnings, timeline)
         inputs = _merge(inputs, _high_inputs(rec, prefix, config.namespace))  # type: ignore[arg-type]
+        side.expect(inputs)
 
     def capture(hal: str, method: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> None:
         state.low_done += 1

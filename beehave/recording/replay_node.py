@@ -247,6 +247,23 @@ class ReplayClock(SimClock):
     def __init__(self) -> None:
         super().__init__()
         self._parked: dict[int, tuple[float, Callable[[], bool]]] = {}
+        self._gate = math.inf  # deadlines after it are not reached yet (hold_wakes)
+
+    def hold_wakes(self) -> None:
+        """From now on, time moves but no timed wait due after the present ends, until
+        :meth:`release_wakes`: as a loaded host's late threads, which a switch or the
+        shutdown cut off before their step."""
+        with self._lock:
+            self._gate = min(self._gate, self._now)
+
+    def release_wakes(self) -> None:
+        """End :meth:`hold_wakes`: the waits due by now end."""
+        with self._lock:
+            self._gate = math.inf
+        self.set_time(self._now)
+
+    def _due_until(self) -> float:
+        return min(self._now, self._gate)
 
     def wait(self, cond: threading.Condition, predicate: Callable[[], bool],
              timeout_s: float | None) -> bool:
@@ -261,7 +278,7 @@ class ReplayClock(SimClock):
             if announce is not None and timeout_s is not None and not predicate():
                 announce(deadline)
             while not predicate():
-                if self._now + self.SLACK_S >= deadline:
+                if self._due_until() + self.SLACK_S >= deadline:
                     return predicate()
                 self._parked[me] = (deadline, predicate)
                 try:
@@ -277,9 +294,12 @@ class ReplayClock(SimClock):
                         heapq.heapify(self._waiters)
 
     def next_deadline(self) -> float | None:
-        """The earliest deadline of a timed wait on this clock (None when nobody waits)."""
+        """The earliest deadline of a timed wait on this clock (None when nobody waits, or
+        while :meth:`hold_wakes` holds it back)."""
         with self._lock:
-            return self._waiters[0][0] if self._waiters else None
+            if not self._waiters or self._waiters[0][0] > self._gate + self.SLACK_S:
+                return None
+            return self._waiters[0][0]
 
     def parked(self) -> set[int]:
         """The threads waiting here for something that has not happened yet."""
@@ -287,7 +307,7 @@ class ReplayClock(SimClock):
 
     def ready(self) -> bool:
         """Whether a thread waiting here is due to run (woken, not yet running)."""
-        now = self._now + self.SLACK_S
+        now = self._due_until() + self.SLACK_S
         for deadline, predicate in list(self._parked.values()):
             if deadline <= now:
                 return True
