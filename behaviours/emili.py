@@ -115,8 +115,8 @@ class Commanded(Behavior):
         self.progress = self.ros.publisher(String, "orders/progress")
         self.ros.subscription(String, "orders", self._orders.put)
         while not self.interrupted:
-            try:
-                msg = self._orders.get(timeout=0.05)
+            try:  # polled on the behaviour's clock (sim time, a replay's), not on wall time
+                msg = self._orders.get_nowait()
             except queue.Empty:
                 self.sleep(0.05)
                 continue

@@ -55,6 +55,7 @@ import asyncio
 import bisect
 import inspect
 import logging
+import math
 import sys
 import threading
 import time
@@ -73,6 +74,7 @@ from beehave.recording.inputs import input_channel
 from beehave.recording.reader import Recording, read_recording
 from beehave.recording.recorder import command_methods
 from beehave.recording.replay_node import Captured, ReplayClock, ReplayNode
+from beehave.threads import _Worker
 
 if TYPE_CHECKING:
     from beehave.config import RobotConfig
@@ -219,7 +221,12 @@ def compare(expected: list[Output], got: list[Output]) -> Divergence | None:
         want[o.key].append(o)
     for o in got:
         have[o.key].append(o)
+    # At the same time, the one produced first: a switch requested too early comes before
+    # the start of the behaviour it switched to.
+    made = {id(o): n for n, o in enumerate(got)}
+    made.update({id(o): len(got) + n for n, o in enumerate(expected)})
     first: Divergence | None = None
+    rank: tuple[float, int] = (math.inf, 0)
     for key in sorted({*want, *have}):
         a, b = want.get(key, []), have.get(key, [])
         for i in range(max(len(a), len(b))):
@@ -230,7 +237,9 @@ def compare(expected: list[Output], got: list[Output]) -> Divergence | None:
             # When the two differ: the earlier of the two (a replayed behaviour that
             # switches too early diverges when it switches, not when the recorded did).
             t = min(o.t_s for o in (x, y) if o is not None)
-            if first is None or t < first.t_s:
+            here = (t, made[id(y if y is not None else x)])
+            if here < rank:
+                rank = here
                 first = Divergence(key, t, i, None if x is None else x.value,
                                    None if y is None else y.value)
             break
@@ -651,6 +660,17 @@ received. A message older than that, or one a subscription has had since, is not
 subscription made now would receive live."""
 
 
+def _quiet_s() -> float:
+    """How long a high-level thread outside any known wait must use no CPU to count as
+    waiting: one that waits for the GIL sleeps between its tries, which come every switch
+    interval (5 ms by default); two of them."""
+    return 2 * sys.getswitchinterval()
+
+
+_IDLE_LOOP = _Worker._loop.__code__
+"""Where a worker thread parked in the high level's pool waits for its next job."""
+
+
 def _runnable(native_id: int | None) -> bool:
     """Whether the OS thread ``native_id`` of this process runs or is ready to (Linux:
     state ``R`` in /proc): a thread preempted on a busy host uses no CPU for a while, yet
@@ -818,12 +838,13 @@ class _HighSide:
         pool = self.high._pool
         with pool._lock:
             workers = list(pool._all)
+            idle = set(pool._idle)
         if any(not w.jobs.empty() for w in workers):
             return None  # a job handed to a thread that has not taken it yet
-        threads = [w.thread for w in workers]
         frames = sys._current_frames()
         used: dict[int, float] = {}
-        for thread in threads:
+        for worker in workers:
+            thread = worker.thread
             ident = thread.ident
             if ident is None:
                 return None  # being started
@@ -831,6 +852,8 @@ class _HighSide:
             if frame is None:
                 continue
             code = frame.f_code
+            if worker in idle and code is _IDLE_LOOP:
+                continue  # parked in the pool, waiting for a job
             if code.co_filename == threading.__file__ and code.co_name == "wait":
                 # Waits on a condition (an event, a child's end, the clock …) -- unless it
                 # was notified already and only waits for its turn to run.
@@ -850,18 +873,28 @@ class _HighSide:
 
     async def settle(self) -> None:
         """Let the high level's threads run until each waits again: on the clock, on a
-        condition or event, or anywhere else where it uses no CPU between two looks (a
-        queue's ``get``). Bounded by :data:`SETTLE_S`."""
-        deadline = time.monotonic() + SETTLE_S
+        condition or event, or anywhere else where it uses no CPU for :func:`_quiet_s`
+        (a blocking call: a queue's ``get``, a socket). Bounded by :data:`SETTLE_S`."""
+        now = time.monotonic()
+        deadline = now + SETTLE_S
         last = self._last_activity
+        since = now  # when the activity was last seen to change
         seen = self._settled_at
         while True:
             # Something ended or started since the last look: whoever waits for it (a
             # parent, the switch) may have been woken and not run yet -- look again.
             events, seen = seen, self._events
             activity = self._activity() if events == seen else None
+            now = time.monotonic()
             if activity is not None and activity == last:
-                break
+                # Every thread waits on the clock, a condition or for a job: settled. One
+                # elsewhere may only wait for the GIL, asleep and using no CPU on a loaded
+                # host (CI: a behaviour computing before its first sleep looked settled and
+                # the clock moved on); it tries again within the switch interval.
+                if not activity or now - since >= _quiet_s():
+                    break
+            else:
+                since = now
             last = activity
             if time.monotonic() > deadline:
                 if not self._slow:
