@@ -27,8 +27,9 @@ Keeping pace. The high level runs in threads, the feed in the low level's event 
 feed moves the high level's clock (a :class:`~beehave.recording.replay_node.ReplayClock`)
 to each input's recorded time, and after every step waits until the high level has
 *settled*: each of its threads waits again -- on the clock, on a condition or event, or
-elsewhere using no CPU -- and none is due to run. A driving action's lockstep hold stops
-the clock at each control period, as it stops a simulator. Before each input of the high
+elsewhere using no CPU for two switch intervals -- and none is due to run. A driving
+action's lockstep hold stops the clock at each control period, as it stops a simulator.
+Before each input of the high
 level, the feed also waits (bounded) until the replayed behaviours have done what the
 recorded ones had done :data:`SYNC_MARGIN_S` earlier, so that a behaviour polling on wall
 time (a queue's ``get(timeout=…)``) cannot fall behind. Once it has done all the recorded
