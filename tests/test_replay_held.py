@@ -236,6 +236,30 @@ def test_a_step_cut_off_live_does_not_start_in_the_replay(cut_by: str) -> None:
         [o.key for o in result.expected if o.key.startswith("high:pace/_Step")]
 
 
+class Beacon(Behavior):
+    """A control loop that emits no event: publishes ``beacon`` every 0.1 s."""
+
+    def run(self) -> None:
+        beacon = self.ros.publisher(Float64, "beacon")
+        while not self.interrupted:
+            beacon.publish(Float64(data=self.manager.clock.now()))
+            self.sleep(0.1)
+
+
+def test_a_loop_without_events_runs_in_the_replay_up_to_the_shutdown(
+        tmp_path: Path) -> None:
+    """The replay holds back the waits that live ended only after the shutdown, not every
+    wait once the last event is done: a loop that emits none (a driving loop publishing
+    cmd_vel) must run as long as it ran live (a replay of Kobuki published 4 of its 1,588
+    cmd_vel messages)."""
+    config, path = _record_live(tmp_path, "Beacon", 1.5)
+    result = replay(path, config, speed=None)
+    sent = [c for c in result.commands if c.topic.endswith("/beacon")]
+    assert result.divergence is None and result.warnings == [], result
+    # Live: one at the start and one every 0.1 s until the shutdown (about 1.5 s).
+    assert 12 <= len(sent) <= 17, [c.t_s for c in sent]
+
+
 STEPS: list[tuple[str, float]] = []  # (what, the behaviour's clock then)
 
 
@@ -261,10 +285,13 @@ def test_the_replay_clock_waits_for_a_behaviour_still_starting(tmp_path: Path) -
     import importlib
 
     steps: list[tuple[str, float]] = importlib.import_module("tests.test_replay_held").STEPS
-    config, path = _record_live(tmp_path, "SlowStarter", 1.2)
+    config, path = _record_live(tmp_path, "SlowStarter", 2.0)
     steps.clear()
     result = replay(path, config, speed=None)
-    assert steps[0][0] == "start" and len(steps) >= 3, steps
+    recorded = [o for o in result.expected
+                if o.key.startswith("high:pace/_Step") and o.value[0] == "started"]
+    assert len(recorded) >= 2, result.expected  # a loaded host starts the robot late
+    assert steps[0][0] == "start" and len(steps) == 1 + len(recorded), (steps, recorded)
     started = steps[0][1]
     times = [t for what, t in steps[1:]]
     # No time passes on the replay's clock while the behaviour computes; then its steps

@@ -127,15 +127,15 @@ def test_held_wakes_let_time_pass_and_end_no_wait_until_released() -> None:
     thread = threading.Thread(target=sleeper)
     thread.start()
     assert wait_until(lambda: bool(clock.parked()))
-    clock.hold_wakes()
+    clock.hold_wakes(10.2)
     clock.set_time(11.0)
     assert clock.now() == 11.0
     assert not woke.wait(0.05) and not clock.ready() and clock.next_deadline() is None
     clock.release_wakes()
     assert woke.wait(WALL_TIMEOUT_S)
     thread.join(WALL_TIMEOUT_S)
-    # A wait that starts while held, due before the hold began, still ends at once.
-    clock.hold_wakes()
+    # A wait due before the hold's start still ends at once.
+    clock.hold_wakes(12.0)
     with cond:
         assert clock.wait(cond, lambda: False, 0.0) is False  # due now: returns at once
     clock.release_wakes()

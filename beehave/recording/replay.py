@@ -668,6 +668,9 @@ def _quiet_s() -> float:
     return 2 * sys.getswitchinterval()
 
 
+_QUIET_LOOKS = 5
+"""... and over at least this many looks, each after the feed let the GIL go."""
+
 _IDLE_LOOP = _Worker._loop.__code__
 """Where a worker thread parked in the high level's pool waits for its next job."""
 
@@ -729,31 +732,43 @@ class _HighSide:
         self._last_activity: dict[int, float] | None = None
         self._slow = False
         # How many events the recorded high level emitted before its shutdown, and before
-        # each switch requested from outside: once the replayed one has emitted as many as
-        # the recorded one had before the next of them, no timed wait ends until that one
-        # is fed (see advance).
+        # each switch requested from outside, and when it came: once the replayed one has
+        # emitted as many as the recorded one had before the next of them, no timed wait
+        # ends that live would have ended after it (see advance).
         self.settled = _settled_count(recording, prefix)
-        self._bounds: list[int] = []
+        timeline = _Timeline(recording, prefix)
+        self._shutdown_s = timeline(_shutdown_ns(recording, prefix))
+        self._bounds: list[tuple[int, float]] = []
+        # When the recorded high level emitted each event, and how far the replayed one is
+        # ahead of it (its clock then, against the recording's time of the same event).
+        self._recorded_s = [timeline(m.log_time_ns)
+                            for m in recording.of(schema.topic(prefix, schema.EVENTS_HIGH))]
+        self._lead_s = 0.0
 
     def expect(self, inputs: list[Any]) -> None:
         """Take note of the switch requests among ``inputs`` (the feed's, in order). Not
         of pauses: a pause fed early would end the behaviours' time early, and they would
         be behind the recording after the resume."""
-        self._bounds = [i.logged_before for i in inputs
+        self._bounds = [(i.logged_before, i.t_s) for i in inputs
                         if isinstance(i, _HighInput) and i.kind == "request"]
         self._bounds.reverse()  # the next one last: fed ones are popped
 
     def _hold_if_done(self) -> None:
         """Once the replay has emitted as many events as the recording had before the next
-        switch request (or its shutdown), hold back every timed wait due from now on until
-        that request (see advance). Not while paused: the behaviours' time stands then."""
-        count = self._bounds[-1] if self._bounds else self.settled
+        switch request (or its shutdown), hold back, until that request, every timed wait
+        that -- the replay being :attr:`_lead_s` ahead of the recording, give or take
+        :data:`SYNC_MARGIN_S` (a late step live) -- live would have ended after it (see
+        advance). Not while paused: the behaviours' time stands then."""
+        count, at_s = self._bounds[-1] if self._bounds else (self.settled, self._shutdown_s)
         if self._events >= count and not self.high.paused:
-            self.clock.hold_wakes()
+            self.clock.hold_wakes(self.sim0 + at_s - max(0.0, self._lead_s) - SYNC_MARGIN_S)
 
     def on_event(self, event: Any) -> None:  # in the high level's threads
         with self._cond:
             self._events += 1
+            n = self._events - 1
+            if n < len(self._recorded_s):
+                self._lead_s = self._recorded_s[n] - (self.clock.now() - self.sim0)
             self._cond.notify_all()
 
     def _on_subscribe(self, sub: Any) -> None:  # in the subscribing behaviour's thread
@@ -786,12 +801,15 @@ class _HighSide:
         before it, not after a timed step the recording shows after it.
 
         Once the replay has done all the recorded high level did before the next switch
-        requested from outside (or before its shutdown), time moves on but no timed wait
-        due from then on ends until that switch is fed (:meth:`ReplayClock.hold_wakes`):
-        live, each step came a little late (the host's latency adds up over a loop of
-        sleeps; a behaviour's computing takes time live, none in the replay), so the
-        replay's exact steps run ahead, and a step that the switch or the shutdown cut off
-        live would start in the replay."""
+        requested from outside (or before its shutdown), a timed wait that live would have
+        ended after that switch -- its deadline shifted by how far the replay is ahead of
+        the recording at its last event, and by :data:`SYNC_MARGIN_S` -- does not end
+        until the switch is fed
+        (:meth:`ReplayClock.hold_wakes`): live, each step came a little late (the host's
+        latency adds up over a loop of sleeps; a behaviour's computing takes time live, none
+        in the replay), so the replay's exact steps run ahead, and a step that the switch or
+        the shutdown cut off live would start in the replay. A control loop that emits no
+        event goes on to there."""
         target = self.sim0 + t_s
         clock, node = self.clock, self.node
         gone: set[str] = set()
@@ -880,6 +898,7 @@ class _HighSide:
         deadline = now + SETTLE_S
         last = self._last_activity
         since = now  # when the activity was last seen to change
+        looks = 0  # how often since then
         seen = self._settled_at
         while True:
             # Something ended or started since the last look: whoever waits for it (a
@@ -891,11 +910,13 @@ class _HighSide:
                 # Every thread waits on the clock, a condition or for a job: settled. One
                 # elsewhere may only wait for the GIL, asleep and using no CPU on a loaded
                 # host (CI: a behaviour computing before its first sleep looked settled and
-                # the clock moved on); it tries again within the switch interval.
-                if not activity or now - since >= _quiet_s():
+                # the clock moved on); it tries again within the switch interval, and gets
+                # it when this loop lets it go between two looks.
+                looks += 1
+                if not activity or (now - since >= _quiet_s() and looks >= _QUIET_LOOKS):
                     break
             else:
-                since = now
+                since, looks = now, 0
             last = activity
             if time.monotonic() > deadline:
                 if not self._slow:
@@ -959,7 +980,7 @@ class _HighSide:
             # The switch has interrupted what a held-back wait would have woken (see
             # advance): the waits due by now end, and time goes on towards the next one.
             if self._bounds:
-                self._bounds.pop()
+                self._bounds.pop()  # the next switch (or the shutdown) bounds it now
             self.clock.release_wakes()
             await self.settle()
             return

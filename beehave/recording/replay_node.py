@@ -249,12 +249,12 @@ class ReplayClock(SimClock):
         self._parked: dict[int, tuple[float, Callable[[], bool]]] = {}
         self._gate = math.inf  # deadlines after it are not reached yet (hold_wakes)
 
-    def hold_wakes(self) -> None:
-        """From now on, time moves but no timed wait due after the present ends, until
-        :meth:`release_wakes`: as a loaded host's late threads, which a switch or the
-        shutdown cut off before their step."""
+    def hold_wakes(self, from_s: float) -> None:
+        """Until :meth:`release_wakes`, time moves but no timed wait due after ``from_s``
+        ends: as a loaded host's late threads, which a switch or the shutdown cut
+        off before their step."""
         with self._lock:
-            self._gate = min(self._gate, self._now)
+            self._gate = from_s
 
     def release_wakes(self) -> None:
         """End :meth:`hold_wakes`: the waits due by now end."""
