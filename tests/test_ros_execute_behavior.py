@@ -156,6 +156,25 @@ class GoalClient:
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
         assert self.action.wait_for_server(timeout_sec=WALL_TIMEOUT_S), "no action server"
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """One goal answered, and its result: ``wait_for_server`` says this client sees
+        the server, not that the server sees this client's response readers; a response
+        sent before they match is lost (rmw: "failed to send response (timeout)"; a test's
+        first goal went unanswered for 60 s beside busy loops). A goal for no behaviour is
+        refused before anything is switched; one whose answer is lost is asked again."""
+        def answered(future: Any, timeout_s: float = 2.0) -> bool:
+            done = threading.Event()
+            future.add_done_callback(lambda _: done.set())
+            return done.wait(timeout_s)
+
+        goal = ExecuteBehavior.Goal(behavior="__warm_up__", params_json="")
+        for _ in range(int(WALL_TIMEOUT_S / 2)):
+            sent = self.action.send_goal_async(goal)
+            if answered(sent) and answered(sent.result().get_result_async()):
+                return
+        raise AssertionError(f"no goal answered; the threads of this process:\n{_stacks()}")
 
     def _spin(self) -> None:
         while self.context.ok():
