@@ -86,6 +86,13 @@ class WorkerPool:
         if fresh:
             worker.thread.start()
 
+    def threads(self) -> list[tuple[threading.Thread, bool, bool]]:
+        """Each worker's thread, whether a job was handed to it that it has not taken
+        yet, and whether it is parked (idle, waiting for a job): for a replay that waits
+        until every thread waits."""
+        with self._lock:
+            return [(w.thread, not w.jobs.empty(), w in self._idle) for w in self._all]
+
     def owns_current(self) -> bool:
         """True when the calling thread is one of this pool's."""
         me = threading.current_thread()

@@ -33,9 +33,10 @@ Before each input of the high
 level, the feed also waits (bounded) until the replayed behaviours have done what the
 recorded ones had done :data:`SYNC_MARGIN_S` earlier, so that a behaviour polling on wall
 time (a queue's ``get(timeout=…)``) cannot fall behind. Once it has done all the recorded
-ones did before the next switch requested from outside or before their shutdown, its clock
-stands until then: live steps come a little late, replayed ones exactly on time, so a step
-that the switch or the shutdown cut off live would otherwise start.
+ones did before the next switch requested from outside or before their shutdown, a timed
+wait that live would have ended after that does not end until then: live steps come a
+little late, replayed ones exactly on time, so a step that the switch or the shutdown cut
+off live would otherwise start (see :meth:`_HighSide.advance`).
 
 Batches. The recorded writes carry the batch in which the logics saw them (see the
 recorder's ``_BatchingTap``): one batch is fed in one go, then the loop turns a few times
@@ -75,7 +76,6 @@ from beehave.recording.inputs import input_channel
 from beehave.recording.reader import Recording, read_recording
 from beehave.recording.recorder import command_methods
 from beehave.recording.replay_node import Captured, ReplayClock, ReplayNode
-from beehave.threads import _Worker
 
 if TYPE_CHECKING:
     from beehave.config import RobotConfig
@@ -671,10 +671,6 @@ def _quiet_s() -> float:
 _QUIET_LOOKS = 5
 """... and over at least this many looks, each after the feed let the GIL go."""
 
-_IDLE_LOOP = _Worker._loop.__code__
-"""Where a worker thread parked in the high level's pool waits for its next job."""
-
-
 def _runnable(native_id: int | None) -> bool:
     """Whether the OS thread ``native_id`` of this process runs or is ready to (Linux:
     state ``R`` in /proc): a thread preempted on a busy host uses no CPU for a while, yet
@@ -854,16 +850,14 @@ class _HighSide:
         if self.clock.ready():
             return None
         parked = self.clock.parked()
-        pool = self.high._pool
-        with pool._lock:
-            workers = list(pool._all)
-            idle = set(pool._idle)
-        if any(not w.jobs.empty() for w in workers):
+        workers = self.high._pool.threads()
+        if any(handed for _, handed, _ in workers):
             return None  # a job handed to a thread that has not taken it yet
         frames = sys._current_frames()
         used: dict[int, float] = {}
-        for worker in workers:
-            thread = worker.thread
+        for thread, _, parked_in_pool in workers:
+            if parked_in_pool:
+                continue  # idle, waiting for a job
             ident = thread.ident
             if ident is None:
                 return None  # being started
@@ -871,8 +865,6 @@ class _HighSide:
             if frame is None:
                 continue
             code = frame.f_code
-            if worker in idle and code is _IDLE_LOOP:
-                continue  # parked in the pool, waiting for a job
             if code.co_filename == threading.__file__ and code.co_name == "wait":
                 # Waits on a condition (an event, a child's end, the clock …) -- unless it
                 # was notified already and only waits for its turn to run.
@@ -1016,13 +1008,13 @@ class _HighSide:
             self.warnings.append(f"t={self.state.now_s:.3f} s: a subscription to "
                                  f"{sub.topic} raised {exc!r}")
 
-    async def finish(self, end_s: float) -> None:
+    async def finish(self) -> None:
         """After the last input: let the high level do what it did before the recorded
         shutdown (its shutdown follows: its safe states and ends are compared too) --
-        moving the clock on towards the recording's end ``end_s`` while it has not: a
-        behaviour that only sleeps has no input to move it."""
+        moving the clock on towards the shutdown while it has not: a behaviour that only
+        sleeps has no input to move it."""
         self._deliver_late()
-        await self.advance(end_s)
+        await self.advance(self._shutdown_s)
         await self.catch_up(self.settled)
 
     def missing_error(self) -> RecordingError:
@@ -1200,7 +1192,7 @@ def replay(recording: Recording | str | Path, config: RobotConfig, *,
                 fed = low.call(_feed(low, inputs, state, speed=speed, lo=lo, hi=hi,
                                      hal_wait_s=hal_wait_s, warnings=warnings, high=side))
                 if side is not None and not side.abort.is_set() and to_s is None:
-                    low.call(side.finish(timeline(_shutdown_ns(rec, prefix))))
+                    low.call(side.finish())
                 if to_s is not None:
                     state.comparing = False  # the shutdown's safe states lie outside it
             finally:
