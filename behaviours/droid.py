@@ -60,6 +60,7 @@ from beehave.errors import (
     NoReply,
     ProtocolFailed,
 )
+from beehave.hal import check_duration_s
 from beehave.logic import Logic
 from behaviours.mavlink import MavlinkAction, RunMission, take_off
 from hal.mavlink import COPTER, LocalFrame, MavlinkLink, Waypoint
@@ -312,8 +313,11 @@ class FollowLeader(MavlinkAction):
     a state that arrives late on a loaded host or network still says where the leader is.
     A Copter takes off to ``alt_m`` first and follows at that altitude. Runs until
     interrupted; with
-    ``give_up_s`` it fails once the leader has been stale that long. Its attributes
-    ``min_gap_m`` and ``holding`` are for tests and pictures."""
+    ``give_up_s`` it fails once the leader has been stale that long. From the first fresh
+    state of the leader until the action ends, this vehicle's fleet state says
+    ``"following": leader`` (a leader with ``followers`` waits for it before it sets off,
+    see :class:`RoverDroid`). Its attributes ``min_gap_m`` and ``holding`` are for tests
+    and pictures."""
 
     MAX_EXTRAPOLATION_S = 1.0
     """The longest a leader's state is carried forward by its velocity."""
@@ -367,7 +371,15 @@ class FollowLeader(MavlinkAction):
         if not link.armed:
             link.arm(True)
         alt = self.alt_m if link.kind == COPTER else None
+        try:
+            self._follow(link, fleet, frame, alt)
+        finally:
+            fleet.update(following=None)
+
+    def _follow(self, link: MavlinkLink, fleet: Fleet, frame: LocalFrame,
+                alt: float | None) -> None:
         stale_since: float | None = None
+        announced = False
         while True:
             self.check_alive(link, f"following {self.leader!r}")
             here = link.local_position()
@@ -385,6 +397,9 @@ class FollowLeader(MavlinkAction):
                                   f"{self.give_up_s} s")
             else:
                 stale_since = None
+                if not announced:  # a leader that waits for its followers may start now
+                    fleet.update(following=self.leader)
+                    announced = True
                 velocity = peer.state.get("velocity") or {} if peer is not None else {}
                 vn = _num(velocity.get("vn_mps")) or 0.0
                 ve = _num(velocity.get("ve_mps")) or 0.0
@@ -412,8 +427,8 @@ class FollowLeader(MavlinkAction):
         """The leader's latest state. In lockstep (the simulation waits for this loop, not
         for the leader's robot), a state older than :attr:`FRESH_PERIODS` periods of sim
         time is waited for, the simulation held meanwhile, as long as the leader makes
-        progress (see :attr:`FRESH_WAIT_S`): a simulation faster than the leader's process must not make
-        the leader look stale or far behind where it is. (Going on with a stale state,
+        progress (see :attr:`FRESH_WAIT_S`): a simulation faster than the leader's process
+        must not make the leader look stale or far behind where it is. (Going on with a stale state,
         the follower held while the simulated leader drove on, and fell up to 2.7 m
         behind in stress runs.)"""
         peer = fleet.get(self.leader)
@@ -521,6 +536,10 @@ class _Inform(AgentAction):
 
 # ---- the two vehicles ---------------------------------------------------------------------
 
+def _follows(peer: PeerState | None, leader: str) -> bool:
+    return peer is not None and not peer.stale and peer.state.get("following") == leader
+
+
 class RoverDroid(AgentBehavior):
     """The DroidRover: run ``waypoints`` (local NED, metres); if it makes no progress for
     ``stall_s`` s, hand the remaining waypoints to the best bidder for the ``mission``
@@ -528,13 +547,31 @@ class RoverDroid(AgentBehavior):
     ``{"status": "completed" | "handed-over", "awardee", "remaining", "home"}``; when no
     vehicle takes the mission it still goes home, then fails with
     :class:`~beehave.errors.ProtocolFailed` naming why. ``speed_mps``, when given, is set
-    as the vehicle's ``WP_SPEED`` parameter (PARAM_SET) before the mission starts."""
+    as the vehicle's ``WP_SPEED`` parameter (PARAM_SET) before the mission starts.
+
+    ``followers`` (agent names): before it sets off, the rover waits until each of them
+    says in its fleet state that it follows this rover and has heard it (``"following"``,
+    set by :class:`FollowLeader`), as a guide waits for the group: a follower that has
+    not yet discovered its leader over DDS would hold while the leader drives away. After
+    ``followers_timeout_s`` (the behaviour's clock) it sets off anyway and logs which
+    follower was missing."""
+
+    WAIT_PERIOD_S = 0.05
+    """How often the fleet state is looked at while waiting for the followers."""
 
     def __init__(self, *, connection: str, waypoints: Sequence[Any], stall_s: float = 3.0,
                  helper_alt_m: float = 3.0, reply_by_s: float = 2.0,
-                 done_timeout_s: float = 300.0, speed_mps: float | None = None) -> None:
+                 done_timeout_s: float = 300.0, speed_mps: float | None = None,
+                 followers: Sequence[str] = (), followers_timeout_s: float = 30.0) -> None:
         from behaviours.mavlink import parse_waypoints
 
+        if isinstance(followers, str) or not all(isinstance(f, str) and f
+                                                 for f in followers):
+            raise ConfigError(f"RoverDroid: followers must be a list of agent names, got "
+                              f"{followers!r}")
+        self.followers = list(followers)
+        self.followers_timeout_s = check_duration_s("RoverDroid: followers_timeout_s",
+                                                    followers_timeout_s)
         self.connection = connection
         self.waypoints = parse_waypoints(list(waypoints))
         self.stall_s = stall_s
@@ -557,9 +594,31 @@ class RoverDroid(AgentBehavior):
             link.wait_heartbeat(timeout_s=10.0)
             return self._run(link)
 
+    def _wait_for_followers(self) -> None:
+        if not self.followers:
+            return
+        me, fleet, clock = self.agent.name, self.fleet, self.manager.clock
+        self._report(status="waiting for followers", followers=self.followers)
+        deadline = clock.now() + self.followers_timeout_s
+        while True:
+            missing = [name for name in self.followers
+                       if not _follows(fleet.get(name), me)]
+            if not missing:
+                log.info("%s: every follower follows (%s); setting off", self.path,
+                         ", ".join(self.followers))
+                return
+            if clock.now() >= deadline:
+                log.warning("%s: setting off without %s: not following %r after %g s",
+                            self.path, ", ".join(map(repr, missing)), me,
+                            self.followers_timeout_s)
+                return
+            if not self.sleep(self.WAIT_PERIOD_S):
+                raise Interrupted(f"{self.path}: interrupted while waiting for followers")
+
     def _run(self, link: MavlinkLink) -> dict[str, Any]:
         if self.speed_mps is not None:
             link.set_param("WP_SPEED", self.speed_mps)
+        self._wait_for_followers()
         self._report(status="running", waypoints=len(self.waypoints))
         mission = self.start_action(RunMission(self.waypoints, stall_s=self.stall_s,
                                                connection=self.connection))

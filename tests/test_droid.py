@@ -269,6 +269,7 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
             following = gaps[start:]
             action = Follow.actions[0]
             assert action.status is Status.RUNNING, action.error
+            assert fleet.own["following"] == "lead"  # what a waiting leader looks for
             assert min(gaps) >= 1.0
             assert 1.7 <= min(following) and max(following) <= 2.6, (min(following),
                                                                       max(following))
@@ -291,6 +292,7 @@ def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_go
             assert action.status is Status.RUNNING
             hl.switch("idle")
             assert action.status is Status.INTERRUPTED
+            assert fleet.own["following"] is None
             fleet.close()
     finally:
         stop_driving.set()
@@ -322,6 +324,68 @@ def test_a_follower_gives_up_after_give_up_s_without_its_leaders_state(
             assert action.holding is not None and "no state" in action.holding
             fleet.close()
         wait_for(lambda: rover.mode == "HOLD", "the safe state (HOLD) after GUIDED")
+    finally:
+        close_all_links()
+        rover.close()
+        sim.close()
+
+
+def test_a_leading_rover_sets_off_once_its_follower_says_it_follows_it(
+        ros: RosContext) -> None:
+    """``followers``: the rover holds until the follower's fleet state says it follows this
+    rover (a follower that had not yet heard its leader held while the leader drove off);
+    without a follower it sets off after ``followers_timeout_s`` and says who was missing."""
+    world = {"name": "guide", "floor": {"size_m": [6, 8]},
+             "robots": [{"namespace": "rover", "kind": "kobuki",
+                         "start": {"x_m": 2, "y_m": 2}}]}
+    sim, url, rover = started_vehicle(world, "rover")
+    try:
+        with Agent("guide", ros=ros, probe_s=PROBE_S) as me, \
+                Agent("tail", ros=ros, probe_s=PROBE_S) as tail_agent, \
+                HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
+            fleet, tail = Fleet(me), Fleet(tail_agent)
+            fleet.attach(hl)
+            me.attach(hl)
+            hl.register("droid", RoverDroid, connection=url, waypoints=[[4.0, 2.0]],
+                        followers=["tail"], followers_timeout_s=600.0)
+            droid = hl.switch("droid")
+            wait_for(lambda: fleet.own.get("mission", {}).get("status")
+                     == "waiting for followers", "the rover to wait for its follower")
+            tail.update(following="someone else")  # heard, but following another rover
+            wait_for(lambda: fleet.get("tail") is not None, "the follower's state")
+            _sim_sleep(sim, 1.0)
+            assert rover.mode != "AUTO" and fleet.own["mission"]["status"] != "running"
+            tail.update(following="guide")
+            wait_for(lambda: rover.mode == "AUTO", "the rover to set off")
+            assert droid.wait(WALL_TIMEOUT_S) and droid.status is Status.SUCCEEDED, droid.error
+            tail.close()
+            fleet.close()
+        with pytest.raises(ConfigError, match="followers must be a list of agent names"):
+            RoverDroid(connection=url, waypoints=[[4.0, 2.0]], followers="tail")
+    finally:
+        close_all_links()
+        rover.close()
+        sim.close()
+
+
+def test_a_leading_rover_sets_off_without_a_missing_follower_after_the_timeout(
+        ros: RosContext, caplog: pytest.LogCaptureFixture) -> None:
+    world = {"name": "guide", "floor": {"size_m": [6, 8]},
+             "robots": [{"namespace": "rover", "kind": "kobuki",
+                         "start": {"x_m": 2, "y_m": 2}}]}
+    sim, url, rover = started_vehicle(world, "rover")
+    try:
+        with Agent("guide", ros=ros, probe_s=PROBE_S) as me, \
+                HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
+            fleet = Fleet(me)
+            fleet.attach(hl)
+            me.attach(hl)
+            hl.register("droid", RoverDroid, connection=url, waypoints=[[3.0, 2.0]],
+                        followers=["tail"], followers_timeout_s=0.5)
+            droid = hl.switch("droid")
+            assert droid.wait(WALL_TIMEOUT_S) and droid.status is Status.SUCCEEDED, droid.error
+            fleet.close()
+        assert "setting off without 'tail': not following 'guide' after 0.5 s" in caplog.text
     finally:
         close_all_links()
         rover.close()
@@ -390,11 +454,11 @@ def test_the_scenario_between_vehicle_processes_over_dds_runs_fast_on_sim_time(
     for part in expected:  # each scenario checks what it promises
         assert any(part in c.name for c in checks), ([c.name for c in checks], part)
     failed = [f"{c.name}: {c.measured}" for c in checks if not c.passed]
-    # Where and when the gap was widest, and what held the follower, first: the whole
-    # dict is cut short in pytest's report.
+    # Where and when the gap was widest, and what held the follower, first, as text: pytest
+    # cuts the repr of a tuple message short (CI showed "{'widest_gap': {'m': 3.1...").
     why = {k: measured.get(k) for k in ("widest_gap", "lockstep_dropped", "went_on_stale",
                                         "wall_s")}
-    assert not failed, (failed, why, measured)
+    assert not failed, f"{failed}\nwhy: {json.dumps(why, default=str)}\nmeasured: {measured}"
     assert measured["fast"]
 
 
