@@ -71,7 +71,7 @@ class GroundStation:
     """A plain pymavlink ground station (system 255, component 190) listening on a UDP
     port; a reader thread keeps every message so tests can wait for one."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, *, connect: bool = True) -> None:
         self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255,
                                                source_component=190)
         self.messages: list[Any] = []
@@ -79,6 +79,14 @@ class GroundStation:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._read, daemon=True)
         self._thread.start()
+        self.vehicle = 0
+        if connect:
+            self.connect()
+
+    def connect(self) -> None:
+        """Wait for the vehicle's heartbeat (a udpin link answers whoever spoke last).
+        Bind first (``connect=False``) and start the vehicle after: its first heartbeat,
+        sent as it starts, then arrives, and nobody waits a second for the next."""
         self.vehicle = self.wait("HEARTBEAT").get_srcSystem()
 
     def _read(self) -> None:
@@ -198,12 +206,18 @@ def rig() -> Iterator[Rig]:
 
     sim = Simulation(world_from_dict(WORLD), real_time_factor=1.0)
     ports = free_ports(2)
-    endpoints = [MavlinkEndpoint(sim, ns, url=f"udpout:127.0.0.1:{port}", system_id=i + 1)
-                 for i, (ns, port) in enumerate(zip(("rover1", "quad1"), ports, strict=True))]
-    sim.start()
     stations: list[GroundStation] = []
+    endpoints: list[MavlinkEndpoint] = []
     try:
-        stations = [GroundStation(port) for port in ports]
+        for port in ports:  # listening before the vehicles start
+            stations.append(GroundStation(port, connect=False))
+        endpoints += [MavlinkEndpoint(sim, ns, url=f"udpout:127.0.0.1:{port}",
+                                      system_id=i + 1)
+                      for i, (ns, port) in enumerate(zip(("rover1", "quad1"), ports,
+                                                         strict=True))]
+        sim.start()
+        for station in stations:
+            station.connect()
         yield Rig(sim, *stations)
         assert sim.error is None, sim.error
         assert [getattr(e, "errors", 0) for e in endpoints] == [0, 0]  # no input crashed it
@@ -754,13 +768,14 @@ def test_fuzzing_every_handled_message_never_stops_beehave_sim(tmp_path: Path) -
     world.write_text(yaml.safe_dump(WORLD))
     base = free_port_pair()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    stations = [GroundStation(base, connect=False), GroundStation(base + 1, connect=False)]
     proc = subprocess.Popen(
         [sys.executable, "-m", "beehave.cli", "sim", str(world), "--mavlink-base-port",
          str(base), "--no-lockstep"],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    stations: list[GroundStation] = []
     try:
-        stations = [GroundStation(base), GroundStation(base + 1)]
+        for station in stations:
+            station.connect()
         rng = random.Random(FUZZ_SEED)
 
         def noise(gs: GroundStation) -> None:
