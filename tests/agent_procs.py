@@ -9,13 +9,22 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import sys
+import tempfile
 import threading
+import time
+import warnings
 from collections.abc import Iterable, Sequence
 from typing import Any
 
 from agents_events import read_events
 
-from beehave.testing import WALL_TIMEOUT_S
+from beehave.testing import WALL_TIMEOUT_S, wall_timeout
+
+TERM_WAIT_S = wall_timeout(0.25)
+"""How long a node gets to end after SIGTERM (it takes well under a second) before its
+stacks are asked for and it is killed: one that hung in its shutdown once held a test's
+teardown for the whole WALL_TIMEOUT_S, and nobody saw where."""
 
 
 class AgentProc:
@@ -24,8 +33,11 @@ class AgentProc:
     def __init__(self, name: str, args: Sequence[str], *, wait_s: float = WALL_TIMEOUT_S) -> None:
         self.name = name
         self.wait_s = wait_s
+        # stderr to a file, copied to this process's stderr when the node is stopped (a
+        # failing test shows it, as before), and read for the stacks of a hung node.
+        self.stderr = tempfile.TemporaryFile(mode="w+", prefix=f"{name}-stderr-")
         self.popen = subprocess.Popen(list(args), stdout=subprocess.PIPE, text=True,
-                                      env=dict(os.environ))
+                                      stderr=self.stderr, env=dict(os.environ))
         self.events: list[dict[str, Any]] = []
         self.cond = threading.Condition()
         assert self.popen.stdout is not None
@@ -62,12 +74,25 @@ class AgentProc:
 
     def stop(self) -> None:
         self.terminate()
+        hung = False
         try:
-            self.popen.wait(WALL_TIMEOUT_S)
+            self.popen.wait(TERM_WAIT_S)
         except subprocess.TimeoutExpired:
+            hung = True
+            self.popen.send_signal(signal.SIGUSR1)  # every thread's stack (agents_events)
+            time.sleep(1.0)
             self.popen.kill()
             self.popen.wait(WALL_TIMEOUT_S)
         self.reader.join(WALL_TIMEOUT_S)
+        if self.stderr.closed:  # stopped before
+            return
+        self.stderr.seek(0)
+        text = self.stderr.read()
+        self.stderr.close()
+        sys.stderr.write(text)
+        if hung:  # shown in pytest's warnings summary even when the test passed
+            warnings.warn(f"{self.name} did not end within {TERM_WAIT_S:g} s of SIGTERM "
+                          f"and was killed; its stderr ends:\n{text[-6000:]}", stacklevel=2)
 
 
 def stop_all(procs: Iterable[AgentProc]) -> None:

@@ -114,6 +114,26 @@ def _spawn(procs: list[Proc], name: str, **options: Any) -> Proc:
     return proc
 
 
+def test_a_node_that_ignores_sigterm_is_killed_with_its_stacks_shown(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The kit's own promise: a node hung in its shutdown costs TERM_WAIT_S, not the whole
+    WALL_TIMEOUT_S, and the warning shows where its threads were."""
+    import agent_procs
+
+    monkeypatch.setattr(agent_procs, "TERM_WAIT_S", 1.0)
+    here = str(Path(__file__).parent)
+    script = (f"import signal, sys, time; sys.path.insert(0, {here!r}); "
+              "import agents_events; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
+              "agents_events.say('ready'); time.sleep(600)")
+    proc = AgentProc("stubborn", [sys.executable, "-c", script])
+    proc.wait_event("ready")
+    with pytest.warns(UserWarning, match="stubborn did not end within 1 s of SIGTERM") as seen:
+        proc.stop()
+    assert proc.popen.returncode == -9
+    stacks = str(seen[0].message)
+    assert "Current thread" in stacks and 'File "<string>", line 1' in stacks, stacks
+
+
 # ---------------------------------------------------------------------- messages
 def test_message_schema_refuses_bad_fields_by_name() -> None:
     good = Message(performative=Performative.CFP, sender="m1", receivers=["a"],
