@@ -217,7 +217,7 @@ class Robot(Running):
                                        lease_s=cfg.agent.lease_s, trust=_trust(cfg))
                     self.agent.attach(self.high)
                 if isinstance(self.high.clock, SimClock):
-                    self._wait_for_sim_clock(self.high.clock)
+                    self._wait_for_sim_clock(self.high.clock, node)
                 # The default behaviour is constructed now: name its entry when it fails.
                 default = cfg.default_behavior
                 with _located(f"{cfg.source}: behaviors.{default}" if default != "idle"
@@ -234,7 +234,7 @@ class Robot(Running):
             raise
         self._started = True
 
-    def _wait_for_sim_clock(self, clock: SimClock) -> None:
+    def _wait_for_sim_clock(self, clock: SimClock, node: Node) -> None:
         """On sim time, behaviours start once the simulation's time has reached the robot
         (its first ``/clock``): started before, they would run at a time of 0 that the
         simulation never had, then see time jump to where it already is -- a loop of
@@ -246,10 +246,17 @@ class Robot(Running):
                  cfg.namespace, cfg.sim_clock_timeout_s)
         t0 = time.monotonic()
         if not clock.wait_started(cfg.sim_clock_timeout_s):
+            try:  # discovery failed, or a publisher that sends nothing: say which
+                publishers = [f"{i.node_namespace.rstrip('/')}/{i.node_name}"
+                              for i in node.get_publishers_info_by_topic("/clock")]
+                seen = (f"this robot sees {len(publishers)} publisher(s) of /clock"
+                        f"{': ' + ', '.join(publishers) if publishers else ''}")
+            except Exception as exc:  # the node went away meanwhile
+                seen = f"its publishers could not be listed ({exc})"
             raise SimClockNotStarted(
                 f"{cfg.source}: use_sim_time is true, but no /clock message arrived within "
-                f"sim_clock_timeout_s={cfg.sim_clock_timeout_s:g} s: start the simulation "
-                f"(beehave sim, or a sim: section) on ROS_DOMAIN_ID="
+                f"sim_clock_timeout_s={cfg.sim_clock_timeout_s:g} s ({seen}): start the "
+                f"simulation (beehave sim, or a sim: section) on ROS_DOMAIN_ID="
                 f"{os.environ.get('ROS_DOMAIN_ID', '0')}, raise sim_clock_timeout_s, or set "
                 f"use_sim_time: false")
         log.info("robot %r: the simulation's time reached it after %.2f s (sim time %.3f s)",
