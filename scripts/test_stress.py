@@ -15,6 +15,7 @@ import collections
 import os
 import shutil
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -113,7 +114,7 @@ def main() -> int:
     walls = sorted(r[1] for r in rows)
     green = sum(1 for r in rows if r[4] == 0)
     print(f"\n{green} of {len(rows)} runs green beside {len(hogs)} busy loops; wall time "
-          f"median {walls[len(walls) // 2]:.1f} s, max {walls[-1]:.1f} s")
+          f"median {statistics.median(walls):.1f} s, max {max(walls):.1f} s")
     if counts:
         print("tests that failed (times):")
         for test, n in counts.most_common():
