@@ -250,7 +250,8 @@ class Robot(Running):
                 publishers = [f"{i.node_namespace.rstrip('/')}/{i.node_name}"
                               for i in node.get_publishers_info_by_topic("/clock")]
                 seen = (f"this robot sees {len(publishers)} publisher(s) of /clock"
-                        f"{': ' + ', '.join(publishers) if publishers else ''}")
+                        + (f": {', '.join(publishers)}, which sent nothing it received "
+                           f"(a simulation that is paused or stuck?)" if publishers else ""))
             except Exception as exc:  # the node went away meanwhile
                 seen = f"its publishers could not be listed ({exc})"
             raise SimClockNotStarted(

@@ -536,8 +536,16 @@ class _Inform(AgentAction):
 
 # ---- the two vehicles ---------------------------------------------------------------------
 
-def _follows(peer: PeerState | None, leader: str) -> bool:
-    return peer is not None and not peer.stale and peer.state.get("following") == leader
+def _not_following(peer: PeerState | None, leader: str) -> str | None:
+    """Why ``peer`` does not (yet) count as following ``leader``; None when it does."""
+    if peer is None:
+        return "never heard"
+    if peer.stale:
+        return f"its state is stale ({peer.age_s:.1f} s old)"
+    following = peer.state.get("following")
+    if following != leader:
+        return f"following {following!r}" if following is not None else "not following"
+    return None
 
 
 class RoverDroid(AgentBehavior):
@@ -565,8 +573,9 @@ class RoverDroid(AgentBehavior):
                  followers: Sequence[str] = (), followers_timeout_s: float = 30.0) -> None:
         from behaviours.mavlink import parse_waypoints
 
-        if isinstance(followers, str) or not all(isinstance(f, str) and f
-                                                 for f in followers):
+        if followers is None or isinstance(followers, str) \
+                or not isinstance(followers, Sequence) \
+                or not all(isinstance(f, str) and f for f in followers):
             raise ConfigError(f"RoverDroid: followers must be a list of agent names, got "
                               f"{followers!r}")
         self.followers = list(followers)
@@ -597,19 +606,29 @@ class RoverDroid(AgentBehavior):
     def _wait_for_followers(self) -> None:
         if not self.followers:
             return
-        me, fleet, clock = self.agent.name, self.fleet, self.manager.clock
+        me = self.agent.name
+        if me in self.followers:
+            raise ConfigError(f"{self.path}: followers names this rover itself ({me!r}); "
+                              f"name the agents that follow it")
+        try:
+            fleet = self.fleet
+        except ConfigError as exc:
+            raise ConfigError(f"{self.path}: followers {self.followers} are waited for in "
+                              f"the fleet state, and this manager has none: {exc}") from exc
+        # The run clock stands while the manager is paused: a pause does not use the wait up.
+        clock = self.manager.run_clock
         self._report(status="waiting for followers", followers=self.followers)
         deadline = clock.now() + self.followers_timeout_s
         while True:
-            missing = [name for name in self.followers
-                       if not _follows(fleet.get(name), me)]
+            missing = {name: _not_following(fleet.get(name), me) for name in self.followers}
+            missing = {name: why for name, why in missing.items() if why is not None}
             if not missing:
                 log.info("%s: every follower follows (%s); setting off", self.path,
                          ", ".join(self.followers))
                 return
             if clock.now() >= deadline:
-                log.warning("%s: setting off without %s: not following %r after %g s",
-                            self.path, ", ".join(map(repr, missing)), me,
+                log.warning("%s: setting off without %s after %g s", self.path,
+                            "; ".join(f"{name!r} ({why})" for name, why in missing.items()),
                             self.followers_timeout_s)
                 return
             if not self.sleep(self.WAIT_PERIOD_S):

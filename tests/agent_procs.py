@@ -12,7 +12,6 @@ import subprocess
 import sys
 import tempfile
 import threading
-import time
 import warnings
 from collections.abc import Iterable, Sequence
 from typing import Any
@@ -22,9 +21,10 @@ from agents_events import read_events
 from beehave.testing import WALL_TIMEOUT_S, wall_timeout
 
 TERM_WAIT_S = wall_timeout(0.25)
-"""How long a node gets to end after SIGTERM (it takes well under a second) before its
-stacks are asked for and it is killed: one that hung in its shutdown once held a test's
-teardown for the whole WALL_TIMEOUT_S, and nobody saw where."""
+"""How long a node gets to end after SIGTERM (it takes well under a second) before it is
+sent SIGABRT, which makes it print its threads' stacks (``PYTHONFAULTHANDLER=1``, set for
+every child by ``tests/conftest.py``) and end: one that hung in its shutdown once held a
+test's teardown for the whole WALL_TIMEOUT_S, and nobody saw where."""
 
 
 class AgentProc:
@@ -33,11 +33,15 @@ class AgentProc:
     def __init__(self, name: str, args: Sequence[str], *, wait_s: float = WALL_TIMEOUT_S) -> None:
         self.name = name
         self.wait_s = wait_s
-        # stderr to a file, copied to this process's stderr when the node is stopped (a
+        # stderr to a file, copied to this process's stderr when the node has ended (a
         # failing test shows it, as before), and read for the stacks of a hung node.
-        self.stderr = tempfile.TemporaryFile(mode="w+", prefix=f"{name}-stderr-")
-        self.popen = subprocess.Popen(list(args), stdout=subprocess.PIPE, text=True,
-                                      stderr=self.stderr, env=dict(os.environ))
+        self.stderr = tempfile.TemporaryFile(prefix=f"{name}-stderr-")
+        try:
+            self.popen = subprocess.Popen(list(args), stdout=subprocess.PIPE, text=True,
+                                          stderr=self.stderr, env=dict(os.environ))
+        except BaseException:
+            self.stderr.close()
+            raise
         self.events: list[dict[str, Any]] = []
         self.cond = threading.Condition()
         assert self.popen.stdout is not None
@@ -67,6 +71,7 @@ class AgentProc:
             self.popen.send_signal(signal.SIGKILL)
         self.popen.wait(WALL_TIMEOUT_S)
         self.reader.join(WALL_TIMEOUT_S)
+        self._drain_stderr()
 
     def terminate(self) -> None:
         if self.popen.poll() is None:
@@ -74,32 +79,47 @@ class AgentProc:
 
     def stop(self) -> None:
         self.terminate()
-        hung = False
         try:
             self.popen.wait(TERM_WAIT_S)
+            hung = False
         except subprocess.TimeoutExpired:
             hung = True
-            self.popen.send_signal(signal.SIGUSR1)  # every thread's stack (agents_events)
-            time.sleep(1.0)
-            self.popen.kill()
-            self.popen.wait(WALL_TIMEOUT_S)
+            self.popen.send_signal(signal.SIGABRT)  # its stacks, then it ends
+            try:
+                self.popen.wait(wall_timeout(0.1))
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait(WALL_TIMEOUT_S)
         self.reader.join(WALL_TIMEOUT_S)
-        if self.stderr.closed:  # stopped before
-            return
-        self.stderr.seek(0)
-        text = self.stderr.read()
-        self.stderr.close()
-        sys.stderr.write(text)
+        text = self._drain_stderr()
         if hung:  # shown in pytest's warnings summary even when the test passed
             warnings.warn(f"{self.name} did not end within {TERM_WAIT_S:g} s of SIGTERM "
-                          f"and was killed; its stderr ends:\n{text[-6000:]}", stacklevel=2)
+                          f"and was aborted; its stderr ends:\n{text[-6000:]}", stacklevel=2)
+
+    def _drain_stderr(self) -> str:
+        """The node's stderr, once it has ended: copied to this process's stderr (where
+        pytest captures it), the file closed; "" when drained before."""
+        if self.stderr.closed:
+            return ""
+        self.stderr.seek(0)
+        text = self.stderr.read().decode("utf-8", errors="replace")
+        self.stderr.close()
+        sys.stderr.write(text)
+        return text
 
 
 def stop_all(procs: Iterable[AgentProc]) -> None:
     """SIGTERM every process first, then wait for each: on a loaded machine one after the
-    other can outrun a test's timeout."""
+    other can outrun a test's timeout. Each is waited for even when another one's stop
+    raised."""
     procs = list(procs)
     for proc in procs:
         proc.terminate()
+    errors: list[BaseException] = []
     for proc in procs:
-        proc.stop()
+        try:
+            proc.stop()
+        except Exception as exc:  # the others still end
+            errors.append(exc)
+    if errors:
+        raise errors[0]

@@ -3,24 +3,16 @@
 A node (``tests/agents_node.py``, ``tests/agents_host_node.py``) reports each step with
 :func:`say`; the test reads its stdout with :func:`read_events`. No beehave import: both
 sides load it as it is.
-
-A node that imports this module prints every thread's stack to its stderr on SIGUSR1
-(:mod:`faulthandler`): :meth:`agent_procs.AgentProc.stop` asks for them from a node that
-does not end after SIGTERM, before it kills it.
 """
 
 from __future__ import annotations
 
-import faulthandler
 import json
-import signal
 import threading
 from collections.abc import Iterable
 from typing import Any
 
 _print_lock = threading.Lock()
-if threading.current_thread() is threading.main_thread():  # (a test importing it: harmless)
-    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
 
 def say(event: str, **detail: Any) -> None:

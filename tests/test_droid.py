@@ -352,7 +352,12 @@ def test_a_leading_rover_sets_off_once_its_follower_says_it_follows_it(
             wait_for(lambda: fleet.own.get("mission", {}).get("status")
                      == "waiting for followers", "the rover to wait for its follower")
             tail.update(following="someone else")  # heard, but following another rover
-            wait_for(lambda: fleet.get("tail") is not None, "the follower's state")
+
+            def heard(value: str) -> bool:
+                peer = fleet.get("tail")
+                return peer is not None and peer.state.get("following") == value
+
+            wait_for(lambda: heard("someone else"), "the follower's state")
             _sim_sleep(sim, 1.0)
             assert rover.mode != "AUTO" and fleet.own["mission"]["status"] != "running"
             tail.update(following="guide")
@@ -360,12 +365,17 @@ def test_a_leading_rover_sets_off_once_its_follower_says_it_follows_it(
             assert droid.wait(WALL_TIMEOUT_S) and droid.status is Status.SUCCEEDED, droid.error
             tail.close()
             fleet.close()
-        with pytest.raises(ConfigError, match="followers must be a list of agent names"):
-            RoverDroid(connection=url, waypoints=[[4.0, 2.0]], followers="tail")
     finally:
         close_all_links()
         rover.close()
         sim.close()
+
+
+@pytest.mark.parametrize("followers", ["tail", None, [""], [3], {"tail": 1}])
+def test_followers_must_be_a_list_of_agent_names(followers: Any) -> None:
+    with pytest.raises(ConfigError, match="followers must be a list of agent names"):
+        RoverDroid(connection="udp:127.0.0.1:14550", waypoints=[[4.0, 2.0]],
+                   followers=followers)
 
 
 def test_a_leading_rover_sets_off_without_a_missing_follower_after_the_timeout(
@@ -385,7 +395,7 @@ def test_a_leading_rover_sets_off_without_a_missing_follower_after_the_timeout(
             droid = hl.switch("droid")
             assert droid.wait(WALL_TIMEOUT_S) and droid.status is Status.SUCCEEDED, droid.error
             fleet.close()
-        assert "setting off without 'tail': not following 'guide' after 0.5 s" in caplog.text
+        assert "setting off without 'tail' (never heard) after 0.5 s" in caplog.text
     finally:
         close_all_links()
         rover.close()

@@ -274,8 +274,6 @@ def test_zoom_with_the_wheel_and_pan_by_dragging(
         return page.evaluate(INSPECT)["zoom"] > graph["zoom"] * 1.1
 
     assert wait_until(zoomed_in), "the wheel did not zoom the graph"
-    # Settled: no wheel turn still on its way changes the view under the drag.
-    page.wait_for_timeout(300)
     tries: list[dict[str, Any]] = []
 
     def dragged() -> bool:
@@ -283,6 +281,8 @@ def test_zoom_with_the_wheel_and_pan_by_dragging(
         and a press on an element does not pan): the whole graph moves with the pointer.
         A drag the page took for something else is tried again, as a user would; what
         each try saw is in the failure message."""
+        # Settled: no wheel turn or drag still on its way changes the view under the drag.
+        page.wait_for_timeout(300)
         before = page.evaluate(INSPECT)
         sx, sy, dx, dy = _empty_spot(before)
         page.mouse.move(sx, sy)
@@ -298,7 +298,7 @@ def test_zoom_with_the_wheel_and_pan_by_dragging(
                       "zoom": (before["zoom"], after["zoom"])})
         return abs(after["pan"]["x"] - before["pan"]["x"]) > 30
 
-    assert wait_until(dragged), f"dragging did not pan the graph: {tries}"
+    assert any(dragged() for _ in range(5)), f"dragging did not pan the graph: {tries}"
     zoomed, panned = ({"pan": tries[-1]["pan"][i], "zoom": tries[-1]["zoom"][i]}
                       for i in (0, 1))
     dx, dy = tries[-1]["step"]

@@ -163,6 +163,10 @@ def test_the_slider_shows_the_robot_as_it_was_and_live_returns_to_now(
                      {childList: true, characterData: true, subtree: true});
         seen.observe(document.querySelector('#timeline'),
                      {attributes: true, attributeFilter: ['data-at']}); })()""")
+    # The socket is up before its first update has reached the timeline (a stress run
+    # read the robot's history in between: undefined).
+    page.wait_for_function("window.beehaveTimeline.robots.emili1 !== undefined",
+                           timeout=WAIT_MS)
     updates = page.evaluate("window.beehaveTimeline.robots.emili1.snaps.length")
     hl.switch("patrol", laps=1.0)
     # The page saw the lap (its locks) and then the robot idle again.

@@ -768,12 +768,15 @@ def test_fuzzing_every_handled_message_never_stops_beehave_sim(tmp_path: Path) -
     world.write_text(yaml.safe_dump(WORLD))
     base = free_port_pair()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    stations = [GroundStation(base, connect=False), GroundStation(base + 1, connect=False)]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "beehave.cli", "sim", str(world), "--mavlink-base-port",
-         str(base), "--no-lockstep"],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    stations: list[GroundStation] = []
+    proc: subprocess.Popen[str] | None = None
     try:
+        for port in (base, base + 1):  # listening before the vehicles start
+            stations.append(GroundStation(port, connect=False))
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "beehave.cli", "sim", str(world), "--mavlink-base-port",
+             str(base), "--no-lockstep"],
+            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         for station in stations:
             station.connect()
         rng = random.Random(FUZZ_SEED)
@@ -808,6 +811,8 @@ def test_fuzzing_every_handled_message_never_stops_beehave_sim(tmp_path: Path) -
     finally:
         for gs in stations:
             gs.close()
-        proc.terminate()
-        out, _ = proc.communicate(timeout=WALL_TIMEOUT_S)
+        out = ""
+        if proc is not None:
+            proc.terminate()
+            out, _ = proc.communicate(timeout=WALL_TIMEOUT_S)
     assert "Traceback" not in out and " ERROR " not in out, out
