@@ -495,18 +495,20 @@ def test_a_hal_cancelled_in_on_load_gets_its_whole_async_safe_state_and_is_not_s
             try:
                 await asyncio.Event().wait()  # the device does not answer yet
             except asyncio.CancelledError:
-                await asyncio.sleep(0.12)     # orderly close of the half-open device
+                await asyncio.sleep(0.9)      # orderly close of the half-open device
                 raise
 
         async def safe_state(self) -> None:
             marks.append("safe_state begins")
-            await asyncio.sleep(0.12)
+            await asyncio.sleep(0.9)
             marks.append("safe_state ends")
 
         def on_unload(self) -> None:
             marks.append("on_unload")
 
-    manager, events = manager_with_events(stop_timeout_s=0.2)
+    # Each 0.9 s within 1.5 s, the two 1.8 s together: 0.6 s to spare for a loaded machine
+    # (with 0.12 s each in 0.2 s, a stress run's safe state was cut short).
+    manager, events = manager_with_events(stop_timeout_s=1.5)
     manager.register(Cam)
 
     async def main() -> set[asyncio.Task[Any]]:

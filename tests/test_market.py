@@ -510,9 +510,12 @@ def test_a_coalition_member_killed_mid_task_dissolves_it_and_the_task_still_comp
     outcome = result[0]
     assert isinstance(outcome, Outcome), outcome
     assert outcome.state is TaskState.COMPLETED, outcome.reason
-    assert [r["members"] for r in outcome.rounds] == [
-        {"fetch": "kill_fetch_cheap", "serve": "kill_serve"},
-        {"fetch": "kill_fetch_dear", "serve": "kill_serve"}]
+    members = [r["members"] for r in outcome.rounds]
+    assert members[0] == {"fetch": "kill_fetch_cheap", "serve": "kill_serve"}, members
+    assert members[-1] == {"fetch": "kill_fetch_dear", "serve": "kill_serve"}, members
+    # On a loaded machine the survivor may still be winding down its cancelled role when
+    # the next call comes: that round forms no coalition, and a later one does.
+    assert all(m == {} for m in members[1:-1]), outcome.rounds
     assert "left the directory" in outcome.rounds[0]["ended"]
     # The survivor of the dissolved coalition was cancelled, then awarded again.
     ends = [e["outcome"] for e in reports.of("ended", broker="kill_serve")]
