@@ -538,7 +538,7 @@ def test_shutdown_with_many_hals_that_ignore_cancellation_is_bounded_once_not_pe
                 hals.append(hal)
             await asyncio.Event().wait()
 
-    ll = LowLevelBehaviorManager(default="u", stop_timeout_s=0.2)
+    ll = LowLevelBehaviorManager(default="u", stop_timeout_s=0.5)
     ll.register("u", UsesAll)
     for n in names:
         ll.hals.register(Deaf, name=n)
@@ -548,7 +548,9 @@ def test_shutdown_with_many_hals_that_ignore_cancellation_is_bounded_once_not_pe
     assert wait_until(lambda: len(hals) == len(names))
     thread = threading.Thread(target=ll.shutdown, daemon=True)
     thread.start()
-    thread.join(2 * 0.2 + 1.0)  # ten sequential unloads would take 10 × 0.2 s at least
+    # Ten sequential unloads would take 10 × 0.5 s at least; together, twice 0.5 s, and 2 s
+    # to spare for a loaded machine.
+    thread.join(2 * 0.5 + 2.0)
     returned = not thread.is_alive()
     for hal in hals:
         hal.let_go = True
