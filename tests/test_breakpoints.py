@@ -229,7 +229,14 @@ def test_the_structure_endpoint_gives_states_labelled_transitions_and_tree_nodes
         client.post(f"{api}/switch", json={"behavior": "patrol"})
         assert wait_until(lambda: [e["kind"] for e in client.get(f"{api}/status").json()
                                    ["engines"]] == ["behaviour_tree"])
-        tree = client.get(f"{api}/structure").json()["engines"][0]
+        seen: list[dict[str, Any]] = []
+
+        def tree_shown() -> bool:  # the structure is read apart from the status: ask again
+            seen[:] = client.get(f"{api}/structure").json()["engines"]
+            return bool(seen) and "nodes" in seen[0]
+
+        assert wait_until(tree_shown), seen
+        tree = seen[0]
         names = [n["name"] for n in tree["nodes"]]
         parents = {n["name"]: names[n["parent"]] if n["parent"] is not None else None
                    for n in tree["nodes"]}
