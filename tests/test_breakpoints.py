@@ -6,6 +6,7 @@ token rules, the structure of the engines that the graphs draw."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
 
