@@ -139,12 +139,18 @@ def test_a_blocking_blackboard_callback_is_found_by_its_line() -> None:
     def slow_callback(change: Any) -> None:
         time.sleep(0.3)
 
+    def blamed() -> list[Any]:  # starvation and beehave's own steps blame no user code
+        return [e for e in events if e.kind is EventKind.LOOP_BLOCKED
+                and not e.detail["starved"] and not e.detail.get("internal")]
+
     with ll:
         ll.blackboard.subscribe("button", slow_callback)
         ll.blackboard.set("button", True)
-        assert wait_until(lambda: any(e.kind is EventKind.LOOP_BLOCKED for e in events))
-    first = next(e for e in events if e.kind is EventKind.LOOP_BLOCKED)
-    assert first.subject == "callback"
+        assert wait_until(lambda: bool(blamed()))
+    # (A loaded machine may first report a starved process, or the loop held mid-step in
+    # beehave's own code, which says so and blames nobody's line: seen beside busy loops.)
+    first = blamed()[0]
+    assert first.subject == "callback", first
     assert first.detail["where"].endswith("in slow_callback")
 
 
