@@ -602,17 +602,24 @@ window.beehaveGraph = (() => {
       if (h || data.paused) cont.removeAttribute("disabled"); else cont.setAttribute("disabled", "");
       if (onChange) onChange(data);
     };
+    // Answers may come back out of order (a loaded server): the list shows the answer to
+    // the latest request, never an older one that arrives after it (a GET sent before an
+    // add, answered after it, hid the breakpoint just set).
+    let asked = 0, shown = 0;
+    const newest = (n, data) => { if (n > shown) { shown = n; fill(data); } };
     const call = async (path, body) => {
+      const n = ++asked;
       try {
         const out = await request(base() + path, {method: "POST", body: JSON.stringify(body || {})});
         msg.textContent = ""; msg.className = "bp-msg";
-        if (out && out.breakpoints) fill(out); else await refresh();
+        if (out && out.breakpoints) newest(n, out); else await refresh();
       } catch (err) {
         msg.textContent = `${err.status || ""} ${err.message}`; msg.className = "bp-msg error";
       }
     };
     const refresh = async () => {
-      try { fill(await request(base() + "/breakpoints")); } catch (err) { msg.textContent = err.message; }
+      const n = ++asked;
+      try { newest(n, await request(base() + "/breakpoints")); } catch (err) { msg.textContent = err.message; }
     };
     kind.addEventListener("change", () => state.data && fill(state.data));
     add.addEventListener("click", () => call("/breakpoints", {kind: kind.value, target: target.value.trim()}));
