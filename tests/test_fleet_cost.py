@@ -163,12 +163,13 @@ def test_the_odometry_hal_reads_one_message_in_every(every: int) -> None:
                               WALL_TIMEOUT_S)
             moves = len(seen) - 1
             # All 50 moves read, or one in 5 (a message lost on a loaded host only
-            # lowers the count; the first one is always read).
+            # lowers the count; the reader's queue of 10 may even drop the first: a stress
+            # run's first read was 1.4 m, the 15th).
             if every == 1:
                 assert 25 < moves <= 50, seen
             else:
                 assert 1 <= moves <= 10, seen
-                assert seen[0] == 0.0
+                assert 0.0 <= seen[0] < 5.0, seen  # one of the burst, read as it came
     finally:
         probe.close()
         ros.shutdown()
