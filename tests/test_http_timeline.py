@@ -153,6 +153,12 @@ def test_the_slider_shows_the_robot_as_it_was_and_live_returns_to_now(
     server, hl = live
     page, errors = open_page(browser, server.url, size)
     page.wait_for_selector("#conn.up", timeout=WAIT_MS)
+    # The socket is up before its first update has reached the timeline, which then writes
+    # the bar for the first time (stress runs: the robot's history read undefined, and
+    # that first write counted as a rewrite).
+    page.wait_for_function("window.beehaveTimeline.robots.emili1 !== undefined"
+                           " && document.querySelector('#timeline').dataset.at === 'live'",
+                           timeout=WAIT_MS)
     # Live, the bar's clock, Live button and moment stay as they are: count rewrites.
     page.evaluate("""(() => {
         window.barWrites = [];
@@ -163,10 +169,6 @@ def test_the_slider_shows_the_robot_as_it_was_and_live_returns_to_now(
                      {childList: true, characterData: true, subtree: true});
         seen.observe(document.querySelector('#timeline'),
                      {attributes: true, attributeFilter: ['data-at']}); })()""")
-    # The socket is up before its first update has reached the timeline (a stress run
-    # read the robot's history in between: undefined).
-    page.wait_for_function("window.beehaveTimeline.robots.emili1 !== undefined",
-                           timeout=WAIT_MS)
     updates = page.evaluate("window.beehaveTimeline.robots.emili1.snaps.length")
     hl.switch("patrol", laps=1.0)
     # The page saw the lap (its locks) and then the robot idle again.
