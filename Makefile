@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml Makefile scripts/setup.sh scripts/build_ros_interfaces.
 # Four pytest-xdist workers on two cores: most tests wait on processes, DDS and sim time.
 # (Six took 230-240 s instead of about 300, but drove the load average to 12-14 with the
 # scenario files all starting at once, and browser, DDS and timing tests then failed,
-# quiet too: 1 of 2 quiet runs and 5 of 7 runs beside busy loops.)
+# quiet too: 1 of 2 quiet runs and 7 of 10 runs beside busy loops.)
 # --no-loadscope-reorder: the order tests/conftest.py gives (longest files first) holds.
 # --max-worker-restart 0: a worker that dies ends the run with its failure; a replaced one
 # can hang loadgroup for good (pytest-xdist#1323, #1378; seen once beside busy loops).
