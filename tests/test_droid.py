@@ -330,45 +330,53 @@ def test_a_follower_gives_up_after_give_up_s_without_its_leaders_state(
         sim.close()
 
 
-def test_a_leading_rover_sets_off_once_its_follower_says_it_follows_it(
-        ros: RosContext) -> None:
-    """``followers``: the rover holds until the follower's fleet state says it follows this
-    rover (a follower that had not yet heard its leader held while the leader drove off);
-    without a follower it sets off after ``followers_timeout_s`` and says who was missing."""
-    world = {"name": "guide", "floor": {"size_m": [6, 8]},
-             "robots": [{"namespace": "rover", "kind": "kobuki",
-                         "start": {"x_m": 2, "y_m": 2}}]}
-    sim, url, rover = started_vehicle(world, "rover")
+GUIDE_WORLD = {"name": "guide", "floor": {"size_m": [6, 8]},
+               "robots": [{"namespace": "rover", "kind": "kobuki",
+                           "start": {"x_m": 2, "y_m": 2}}]}
+
+
+@pytest.fixture
+def guide() -> Iterator[tuple[Simulation, str, MavlinkEndpoint]]:
+    """A leading rover's vehicle alone in a hall: the simulation, its URL, the endpoint."""
+    sim, url, rover = started_vehicle(GUIDE_WORLD, "rover")
     try:
-        with Agent("guide", ros=ros, probe_s=PROBE_S) as me, \
-                Agent("tail", ros=ros, probe_s=PROBE_S) as tail_agent, \
-                HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
-            fleet, tail = Fleet(me), Fleet(tail_agent)
-            fleet.attach(hl)
-            me.attach(hl)
-            hl.register("droid", RoverDroid, connection=url, waypoints=[[4.0, 2.0]],
-                        followers=["tail"], followers_timeout_s=600.0)
-            droid = hl.switch("droid")
-            wait_for(lambda: fleet.own.get("mission", {}).get("status")
-                     == "waiting for followers", "the rover to wait for its follower")
-            tail.update(following="someone else")  # heard, but following another rover
-
-            def heard(value: str) -> bool:
-                peer = fleet.get("tail")
-                return peer is not None and peer.state.get("following") == value
-
-            wait_for(lambda: heard("someone else"), "the follower's state")
-            _sim_sleep(sim, 1.0)
-            assert rover.mode != "AUTO" and fleet.own["mission"]["status"] != "running"
-            tail.update(following="guide")
-            wait_for(lambda: rover.mode == "AUTO", "the rover to set off")
-            assert droid.wait(WALL_TIMEOUT_S) and droid.status is Status.SUCCEEDED, droid.error
-            tail.close()
-            fleet.close()
+        yield sim, url, rover
     finally:
         close_all_links()
         rover.close()
         sim.close()
+
+
+def test_a_leading_rover_sets_off_once_its_follower_says_it_follows_it(
+        ros: RosContext, guide: tuple[Simulation, str, MavlinkEndpoint]) -> None:
+    """``followers``: the rover holds until the follower's fleet state says it follows this
+    rover (a follower that had not yet heard its leader held while the leader drove off)."""
+    sim, url, rover = guide
+    with Agent("guide", ros=ros, probe_s=PROBE_S) as me, \
+            Agent("tail", ros=ros, probe_s=PROBE_S) as tail_agent, \
+            HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
+        fleet, tail = Fleet(me), Fleet(tail_agent)
+        fleet.attach(hl)
+        me.attach(hl)
+        hl.register("droid", RoverDroid, connection=url, waypoints=[[4.0, 2.0]],
+                    followers=["tail"], followers_timeout_s=600.0)
+        droid = hl.switch("droid")
+        wait_for(lambda: fleet.own.get("mission", {}).get("status")
+                 == "waiting for followers", "the rover to wait for its follower")
+        tail.update(following="someone else")  # heard, but following another rover
+
+        def heard(value: str) -> bool:
+            peer = fleet.get("tail")
+            return peer is not None and peer.state.get("following") == value
+
+        wait_for(lambda: heard("someone else"), "the follower's state")
+        _sim_sleep(sim, 1.0)
+        assert rover.mode != "AUTO" and fleet.own["mission"]["status"] != "running"
+        tail.update(following="guide")
+        wait_for(lambda: rover.mode == "AUTO", "the rover to set off")
+        assert droid.wait(WALL_TIMEOUT_S) and droid.status is Status.SUCCEEDED, droid.error
+        tail.close()
+        fleet.close()
 
 
 @pytest.mark.parametrize("followers", ["tail", None, [""], [3], {"tail": 1}])
@@ -379,27 +387,22 @@ def test_followers_must_be_a_list_of_agent_names(followers: Any) -> None:
 
 
 def test_a_leading_rover_sets_off_without_a_missing_follower_after_the_timeout(
-        ros: RosContext, caplog: pytest.LogCaptureFixture) -> None:
-    world = {"name": "guide", "floor": {"size_m": [6, 8]},
-             "robots": [{"namespace": "rover", "kind": "kobuki",
-                         "start": {"x_m": 2, "y_m": 2}}]}
-    sim, url, rover = started_vehicle(world, "rover")
-    try:
-        with Agent("guide", ros=ros, probe_s=PROBE_S) as me, \
-                HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
-            fleet = Fleet(me)
-            fleet.attach(hl)
-            me.attach(hl)
-            hl.register("droid", RoverDroid, connection=url, waypoints=[[3.0, 2.0]],
-                        followers=["tail"], followers_timeout_s=0.5)
-            droid = hl.switch("droid")
-            assert droid.wait(WALL_TIMEOUT_S) and droid.status is Status.SUCCEEDED, droid.error
-            fleet.close()
-        assert "setting off without 'tail' (never heard) after 0.5 s" in caplog.text
-    finally:
-        close_all_links()
-        rover.close()
-        sim.close()
+        ros: RosContext, caplog: pytest.LogCaptureFixture,
+        guide: tuple[Simulation, str, MavlinkEndpoint]) -> None:
+    """Without its follower it sets off after ``followers_timeout_s`` and says who was
+    missing and why."""
+    _, url, _ = guide
+    with Agent("guide", ros=ros, probe_s=PROBE_S) as me, \
+            HighLevelBehaviorManager(stop_timeout_s=1.0) as hl:
+        fleet = Fleet(me)
+        fleet.attach(hl)
+        me.attach(hl)
+        hl.register("droid", RoverDroid, connection=url, waypoints=[[3.0, 2.0]],
+                    followers=["tail"], followers_timeout_s=0.5)
+        droid = hl.switch("droid")
+        assert droid.wait(WALL_TIMEOUT_S) and droid.status is Status.SUCCEEDED, droid.error
+        fleet.close()
+    assert "setting off without 'tail' (never heard) after 0.5 s" in caplog.text
 
 
 # ---- handover ---------------------------------------------------------------------------------
