@@ -14,6 +14,7 @@ import logging
 import queue
 import threading
 from collections.abc import Callable
+from enum import Enum
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +53,17 @@ class _Worker:
                 return
 
 
+class WorkerState(Enum):
+    """Where one of a :class:`WorkerPool`'s threads is."""
+
+    PARKED = "parked"
+    """Idle, waiting for a job."""
+    HANDED = "handed"
+    """A job was handed to it that it has not taken yet."""
+    BUSY = "busy"
+    """Running a job."""
+
+
 class WorkerPool:
     """Threads for behaviours and actions. ``submit(name, fn)`` runs ``fn`` at once in a
     thread named ``name`` (an idle one if any, else a new one)."""
@@ -86,12 +98,13 @@ class WorkerPool:
         if fresh:
             worker.thread.start()
 
-    def threads(self) -> list[tuple[threading.Thread, bool, bool]]:
-        """Each worker's thread, whether a job was handed to it that it has not taken
-        yet, and whether it is parked (idle, waiting for a job): for a replay that waits
-        until every thread waits."""
+    def threads(self) -> list[tuple[threading.Thread, WorkerState]]:
+        """Each worker's thread and its state: for a replay that waits until every thread
+        waits."""
         with self._lock:
-            return [(w.thread, not w.jobs.empty(), w in self._idle) for w in self._all]
+            return [(w.thread, WorkerState.HANDED if not w.jobs.empty()
+                     else WorkerState.PARKED if w in self._idle else WorkerState.BUSY)
+                    for w in self._all]
 
     def owns_current(self) -> bool:
         """True when the calling thread is one of this pool's."""

@@ -76,6 +76,7 @@ from beehave.recording.inputs import input_channel
 from beehave.recording.reader import Recording, read_recording
 from beehave.recording.recorder import command_methods
 from beehave.recording.replay_node import Captured, ReplayClock, ReplayNode
+from beehave.threads import WorkerState
 
 if TYPE_CHECKING:
     from beehave.config import RobotConfig
@@ -671,6 +672,7 @@ def _quiet_s() -> float:
 _QUIET_LOOKS = 5
 """... and over at least this many looks, each after the feed let the GIL go."""
 
+
 def _runnable(native_id: int | None) -> bool:
     """Whether the OS thread ``native_id`` of this process runs or is ready to (Linux:
     state ``R`` in /proc): a thread preempted on a busy host uses no CPU for a while, yet
@@ -851,12 +853,12 @@ class _HighSide:
             return None
         parked = self.clock.parked()
         workers = self.high._pool.threads()
-        if any(handed for _, handed, _ in workers):
+        if any(state is WorkerState.HANDED for _, state in workers):
             return None  # a job handed to a thread that has not taken it yet
         frames = sys._current_frames()
         used: dict[int, float] = {}
-        for thread, _, parked_in_pool in workers:
-            if parked_in_pool:
+        for thread, state in workers:
+            if state is WorkerState.PARKED:
                 continue  # idle, waiting for a job
             ident = thread.ident
             if ident is None:
