@@ -25,7 +25,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 # The same as the Makefile's `test` target (keep the two in step).
-PYTEST = ["-m", "pytest", "-q", "-n", "4", "--dist", "loadgroup", "--no-loadscope-reorder",
+PYTEST = ["-m", "pytest", "-q", "-n", "6", "--dist", "loadgroup", "--no-loadscope-reorder",
           "--max-worker-restart", "0"]
 
 

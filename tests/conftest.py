@@ -62,28 +62,55 @@ if os.environ.get("BEEHAVE_REQUIRE_EXTRAS") == "1":
     pytest.importorskip = _require  # type: ignore[assignment]
 
 
-# The files that take longest (CPU seconds of a run, measured; longest first). They go
-# first, so that none starts late and ends the run alone on one worker.
-_LONG_FILES = ("test_replay_demo", "test_fleet_figures", "test_serve", "test_fleet",
-               "test_droid", "test_http_cli", "test_http_browser", "test_http_timeline",
-               "test_vda5050_sim", "test_scenarios", "test_mavlink_ground_station",
-               "test_cli", "test_agents", "test_three_terminals")
+# The files that start robots, agents or a simulation in processes of their own (several
+# Python processes each, busy for a minute or more): they run in three lanes, each lane's
+# files one after another on one worker, so that at most three of them run at once whatever
+# the number of workers. Four or more at once (as when every worker began with one) put the
+# load of a 2-core machine at 12-14 and starved their processes' real-time parts (MAVLink
+# heartbeats, DDS discovery). Balanced by the seconds each file took in a run (in brackets);
+# a lane's file with its own module fixtures keeps them, as the lane is one worker.
+_LANES = {
+    "lane-a": ("test_droid", "test_vda5050_sim", "test_three_terminals"),      # 115+27+9
+    "lane-b": ("test_fleet", "test_fleet_figures", "test_http_cli"),           # 79+55+20
+    "lane-c": ("test_replay_demo", "test_serve"),                              # 74+73
+}
+_LANE_OF = {name: lane for lane, names in _LANES.items() for name in names}
+# The other files that take longest (seconds of a run, measured; longest first). They go
+# first after the lanes, so that none starts late and ends the run alone on one worker.
+_LONG_FILES = ("test_mavlink_ground_station", "test_mavlink", "test_http_timeline",
+               "test_agents", "test_vda5050", "test_market", "test_agents_trust",
+               "test_scenarios", "test_http_graph", "test_mavlink_signing",
+               "test_loop_starvation", "test_http_browser")
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's, which reads the lanes' groups
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """The order pytest-xdist hands tests out in (each worker applies the same one; ``make
     test`` passes ``--no-loadscope-reorder``, else xdist puts the largest groups first
-    instead): by module, :data:`_LONG_FILES` first, the others in a fixed mix, not
-    alphabetically, so that files that mostly wait (MAVLink links, VDA 5050 brokers) are
-    not all running at once on every worker while the CPUs idle. A module's tests keep
-    their order (an ``xdist_group`` goes to one worker whole; the others are handed out
-    one by one)."""
-    def place(item: pytest.Item) -> tuple[int, int]:
-        name = Path(item.nodeid.split("::", 1)[0]).stem
-        if name in _LONG_FILES:
-            return 0, _LONG_FILES.index(name)
-        return 1, zlib.crc32(name.encode())
+    instead): the lanes (:data:`_LANES`, each one ``xdist_group``), then
+    :data:`_LONG_FILES`, then the others in a fixed mix, not alphabetically, so that files
+    that mostly wait (MAVLink links, VDA 5050 brokers) are not all running at once on every
+    worker while the CPUs idle. A module's tests keep their order (an ``xdist_group`` goes
+    to one worker whole; the others are handed out one by one)."""
+    lanes = list(_LANES)
 
+    def place(item: pytest.Item) -> tuple[int, int, int]:
+        name = Path(item.nodeid.split("::", 1)[0]).stem
+        if name in _LANE_OF:
+            lane = _LANE_OF[name]
+            return 0, lanes.index(lane), _LANES[lane].index(name)
+        if name in _LONG_FILES:
+            return 1, _LONG_FILES.index(name), 0
+        return 2, zlib.crc32(name.encode()), 0
+
+    for item in items:
+        lane = _LANE_OF.get(Path(item.nodeid.split("::", 1)[0]).stem)
+        if lane is not None:
+            if any(item.iter_markers("xdist_group")):
+                raise pytest.UsageError(
+                    f"{item.nodeid}: a file in a lane ({lane}, tests/conftest.py) must not "
+                    f"set an xdist_group of its own: the lane is its group")
+            item.add_marker(pytest.mark.xdist_group(lane))
     items.sort(key=place)  # stable: a module's tests keep their order
 
 

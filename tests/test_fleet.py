@@ -224,7 +224,11 @@ def test_a_killed_station_agent_frees_nothing_twice_and_the_atv_charges_elsewher
         monkeypatch.setenv(key, value)
     # Below the 35 % at which an ATV goes to charge, with enough left to drive anywhere.
     world = fleet.world(capacity_wh=5.0, atv1=0.30)
-    fleet.start("sim", "-m", "beehave.cli", "sim", world, "--robots", "1", "--fast")
+    # Paced, not --fast: the kill must come while atv1 drives to its station (about 14 m,
+    # 35 s of sim time, 9 s at 4x). As fast as it goes, a lone ATV's sim ran so far ahead of
+    # this test on a loaded host that atv1 was charging there before the test killed it.
+    fleet.start("sim", "-m", "beehave.cli", "sim", world, "--robots", "1",
+                "--real-time-factor", "4")
     for station in ("charger1", "charger2"):
         fleet.start(station, "-m", "behaviours.fleet.station", station, "--world", world)
     fleet.atv("atv1", world, charge={"lease_s": 4.0})

@@ -28,8 +28,7 @@ from beehave.testing import WALL_TIMEOUT_S  # noqa: E402
 
 # One real fleet run of 3 sim minutes (11 processes) is set up by the first test: about
 # 30 s on an idle machine, 1 min beside other work; past the suite's 120 s default at load.
-pytestmark = [pytest.mark.xdist_group("test_fleet_figures"),
-              pytest.mark.timeout(int(6 * WALL_TIMEOUT_S))]
+pytestmark = pytest.mark.timeout(int(6 * WALL_TIMEOUT_S))  # one worker: its lane (conftest)
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -31,11 +31,12 @@ from behaviours.demos.warehouse import CONFIG_DIR, run_sim_demo  # noqa: E402
 from behaviours.emili import Commanded  # noqa: E402
 from behaviours.logics import LIGHT_BLUE  # noqa: E402
 
-# One pytest-xdist worker runs this module: its module-scoped rig is built once.
+# One pytest-xdist worker runs this module (its lane, tests/conftest.py): its module-scoped
+# rig is built once.
 # A replay of the whole demo takes 5-25 s depending on the host's load, and some tests here
 # run several (a diverging one waits out its catch-up bounds): 300 s, not the suite's 120 s
 # (a run beside 16 other busy processes hit 120 s).
-pytestmark = [pytest.mark.xdist_group("test_replay_demo"), pytest.mark.timeout(300)]
+pytestmark = pytest.mark.timeout(300)
 
 DEMO_SWITCHES = ["idle", "tour", "commanded", "maintenance"]
 # Negative checks on DDS (nothing more arrives) run to their end: short on purpose; a loaded
