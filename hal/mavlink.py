@@ -37,7 +37,9 @@ vehicle lost: every HAL marks all of its entries stale and sets ``vehicle/connec
 False, and every wait of the protocol functions below raises
 :class:`~beehave.errors.VehicleLost` — so the actions waiting on it stop. The first
 heartbeat that comes back makes the link alive again (the entries become fresh with the
-next messages).
+next messages). The silence is judged only once the link has read everything waiting in
+its socket: a process starved past the timeout (a loaded host) finds the vehicle's latest
+heartbeats behind a backlog of telemetry, and does not call it lost for that.
 
 **What is ignored.** Messages from another system id than the vehicle's (the first
 autopilot heartbeat fixes it unless ``system_id`` is given), MAVLink frames that fail
@@ -90,6 +92,8 @@ CONNECTION_ENV = "BEEHAVE_MAVLINK_CONNECTION"
 """Where a MAVLink HAL loaded by name only (an entry point, no params) finds its link."""
 GCS_SYSTEM_ID = 255
 GCS_COMPONENT_ID = mavlink.MAV_COMP_ID_MISSIONPLANNER
+#: At most this many messages are read in one pass of the reader thread.
+_BURST = 100
 
 _CONNECTION_FORMS = ("udp:HOST:PORT", "udpin:HOST:PORT", "udpout:HOST:PORT", "tcp:HOST:PORT",
                      "a serial device such as /dev/ttyUSB0 or /dev/ttyACM0")
@@ -497,22 +501,26 @@ class MavlinkLink(Closing):
                 except OSError as exc:  # udpin before the peer is known, a closed port
                     log.debug("%s: GCS heartbeat not sent: %s", self.describe(), exc)
             try:
-                messages = self._receive()
+                messages, drained = self._receive()
             except Exception as exc:  # a broken socket must not end the link for good
                 if self._stop.is_set():
                     return
                 log.warning("%s: receive failed: %r", self.describe(), exc)
                 self._stop.wait(0.1)
-                messages = []
+                messages, drained = [], True
             for msg in messages:
                 try:
                     self._dispatch(msg)
                 except Exception:
                     log.exception("%s: handling %s failed", self.describe(), msg.get_type())
-            self._check_heartbeat()
+            if drained:  # else a heartbeat may wait in the socket behind a starved backlog
+                self._check_heartbeat()
 
-    def _receive(self) -> list[Any]:
-        """The messages that arrived, waiting at most 50 ms for the first.
+    def _receive(self) -> tuple[list[Any], bool]:
+        """The messages that arrived, waiting at most 50 ms for the first, and whether
+        nothing more waits (a burst is read at most :data:`_BURST` at a time: after this
+        process was starved, the vehicle's latest heartbeat may still wait behind the
+        backlog, and its silence is not to be judged before it is read).
 
         pymavlink's connections are not thread-safe: reading a UDP server socket adds to
         the set of clients that a write iterates. So the wait happens outside the send
@@ -521,18 +529,18 @@ class MavlinkLink(Closing):
         fd = getattr(self.conn, "fd", None)
         if fd is None:  # no descriptor to wait on: pymavlink waits (not shared with writes)
             msg = self.conn.recv_match(blocking=True, timeout=0.05)
-            return [] if msg is None else [msg]
+            return ([], True) if msg is None else ([msg], False)
         ready, _, _ = select.select([fd], [], [], 0.05)
         if not ready:
-            return []
+            return [], True
         messages = []
         with self._send_lock:
-            for _ in range(100):  # a burst; the rest comes with the next pass
+            for _ in range(_BURST):  # the rest comes with the next pass
                 msg = self.conn.recv_match(blocking=False)
                 if msg is None:
-                    break
+                    return messages, True
                 messages.append(msg)
-        return messages
+        return messages, False
 
     def _dispatch(self, msg: Any) -> None:
         kind = msg.get_type()

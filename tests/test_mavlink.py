@@ -548,3 +548,38 @@ def test_beehave_sim_mavlink_opens_one_port_per_vehicle() -> None:
         proc.terminate()
         out, _ = proc.communicate(timeout=WALL_TIMEOUT_S)
     assert "rover1 is MAVLink rover system 1" in out and f":{base + 1}" in out, out
+
+
+def test_a_starved_reader_reads_its_backlog_before_it_calls_the_vehicle_lost() -> None:
+    """A process starved past ``heartbeat_timeout_s`` (a loaded host) finds the vehicle's
+    heartbeats waiting in its socket behind more telemetry than one pass reads: the link
+    stays alive, as the vehicle never went silent (seen: a follower's link "lost" at
+    start-up beside busy loops)."""
+    from pymavlink import mavutil
+
+    port = free_port()
+    link = open_link(f"udp:127.0.0.1:{port}", timeout_s=0.3, heartbeat_timeout_s=0.5)
+    vehicle = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
+                                         source_component=1)
+    changes: list[bool] = []
+    try:
+        def beat() -> None:
+            vehicle.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GROUND_ROVER,
+                                       mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+
+        beat()
+        link.wait_heartbeat(timeout_s=WALL_TIMEOUT_S)
+        link.on_link(changes.append)
+        with link._send_lock:  # the reader thread stops here, once data waits: as if starved
+            for i in range(250):  # two and a half passes of telemetry, a heartbeat in it
+                vehicle.mav.attitude_send(i, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+                if i == 150:
+                    time.sleep(1.0)  # twice the heartbeat timeout
+                    beat()
+        assert wait_until(lambda: link.latest("ATTITUDE") is not None
+                          and link.latest("ATTITUDE").time_boot_ms == 249)
+        time.sleep(0.1)  # a pass after the backlog
+        assert changes == [] and link.alive, changes
+    finally:
+        vehicle.close()
+        link.close()
