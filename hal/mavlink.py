@@ -533,7 +533,7 @@ class MavlinkLink(Closing):
         ready, _, _ = select.select([fd], [], [], 0.05)
         if not ready:
             return [], True
-        messages = []
+        messages: list[Any] = []
         with self._send_lock:
             for _ in range(_BURST):  # the rest comes with the next pass
                 msg = self.conn.recv_match(blocking=False)
