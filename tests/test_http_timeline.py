@@ -25,6 +25,7 @@ import re
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -561,6 +562,25 @@ def test_the_recorded_page_draws_the_engines_graphs_as_beehave_inspect_says_at_t
         shoot(page, f"recording-graph-{state}", size)  # it fits in every state
     page.close()
     assert not errors, errors
+
+
+def test_a_recording_opens_as_one_when_the_timeline_script_comes_late(
+        viewer: ViewProcess, browser: Any) -> None:
+    """The page's scripts hook into each other: the timeline's script, held back by a
+    slow connection (here 1.5 s, after the robots' list has come), still opens the file
+    as a recording (on a loaded host the page once stayed a live page without robot)."""
+    page = browser.new_page(viewport=DESKTOP)
+    try:
+        def late(route: Any) -> None:
+            time.sleep(1.5)
+            route.continue_()
+
+        page.route("**/static/timeline.js", late)
+        page.goto(viewer.url)
+        page.wait_for_selector("body.recording", timeout=WAIT_MS)
+        assert page.locator("#tl-play").is_visible()
+    finally:
+        page.close()
 
 
 def test_a_recording_without_engines_serves_no_structure_and_refuses_breakpoints(

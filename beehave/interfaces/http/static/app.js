@@ -825,4 +825,9 @@ async function start() {
 
 view.render = render;  // for the console: time a redraw with performance.now()
 readToken();
-start();
+// Start once every script of the page has run: timeline.js, plots.js and sequence.js come
+// after this one and hook into `view` (onRecording, onUpdate). Started at once, the
+// answer of /api/robots could come while the parser still waited for one of them, and a
+// recording opened as a live page that never showed (seen on a loaded host).
+if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", start);
+else start();
