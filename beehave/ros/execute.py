@@ -61,6 +61,11 @@ _TICK_S = 0.1
 #: How long :meth:`ExecuteBehaviorServer.destroy` waits (wall time) for the results of the
 #: goals it ends to be handed to rclpy before the action server goes away.
 _RESULT_FLUSH_S = 1.0
+#: And then, when it ended goals, how long it keeps the server (wall time): a result is
+#: sent reliably, and a sample lost on its first way (a loaded host) is sent again only
+#: while its writer exists (a client once never got the result of a goal its robot ended
+#: by shutting down).
+_RESULT_GRACE_S = 0.5
 
 
 class InterfacesMissing(ConfigError):
@@ -408,8 +413,8 @@ class ExecuteBehaviorServer:
     def destroy(self) -> None:
         """Abort the goals that still execute ("the robot's execute_behavior server shuts
         down"), wait (at most :data:`_RESULT_FLUSH_S`) until their results are handed to
-        rclpy, then remove the action server and the timer from the node (the node
-        stays)."""
+        rclpy and :data:`_RESULT_GRACE_S` more for them to arrive, then remove the action
+        server and the timer from the node (the node stays)."""
         self._unsubscribe()
         with self._lock:
             if self._closed:
@@ -430,6 +435,8 @@ class ExecuteBehaviorServer:
         marker.add_done_callback(lambda _: flushed.set())
         marker.set_result(None)
         flushed.wait(max(0.0, deadline - time.monotonic()))
+        if following:
+            time.sleep(_RESULT_GRACE_S)
         self.node.destroy_timer(self._timer)
         self._server.destroy()
 
