@@ -583,6 +583,34 @@ def test_a_recording_opens_as_one_when_the_timeline_script_comes_late(
         page.close()
 
 
+def test_playing_to_the_end_while_the_server_is_slow_shows_the_end(
+        viewer: ViewProcess, browser: Any) -> None:
+    """Each moment takes the server 0.4 s (a loaded host): playing at x30 reaches the end
+    while a moment is still asked, and the end is asked next and shown (the page once
+    stopped at 0.92 s of 4.1 with its clock saying the end)."""
+    page = browser.new_page(viewport=DESKTOP)
+    try:
+        page.goto(viewer.url)
+        page.wait_for_selector("body.recording", timeout=WAIT_MS)
+        seek(page, 0.0)
+
+        def slow(route: Any) -> None:
+            time.sleep(0.4)
+            route.continue_()
+
+        page.route("**/api/recording/at*", slow)
+        page.select_option("#tl-speed", "30")
+        page.click("#tl-play")
+        page.wait_for_function("document.querySelector('#tl-play').textContent === '▶'",
+                               timeout=WAIT_MS)
+        end = float(page.get_attribute("#timeline", "data-at"))
+        page.wait_for_function(
+            f"Math.abs(Number(document.querySelector('#timeline').dataset.shown) - {end}) "
+            f"< 1e-6", timeout=WAIT_MS)
+    finally:
+        page.close()
+
+
 def test_a_recording_without_engines_serves_no_structure_and_refuses_breakpoints(
         viewer: ViewProcess) -> None:
     """An older recording (no engine channels) still opens: no graphs, no error."""

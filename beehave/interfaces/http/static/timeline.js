@@ -205,7 +205,7 @@
     if (tl.lastFrame !== null) {
       const t = Math.min(tl.recording.duration_s, tl.at + (now - tl.lastFrame) / 1000 * tl.speed);
       tl.at = t;
-      if (!tl.inflight) seek(t); else updateBar();
+      seek(t);  // while one is out, the newest is asked next: the last frame's too
       if (t >= tl.recording.duration_s) { tl.playing = false; play.textContent = "▶"; }
     }
     tl.lastFrame = now;
