@@ -29,6 +29,7 @@ pytest.importorskip("rclpy")
 
 from beehave.procs import dies_with_parent  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, wall_timeout  # noqa: E402
 from behaviours.demos.fleet import Watch, _watch, atv_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -178,7 +179,8 @@ def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_serve
     # Both must be able to bid on the first order (an ATV without odometry yet refuses):
     # else there is nobody to re-award it to, and the machine rightly orders anew instead.
     fleet.wait(lambda: all("transport" in fleet.watch.agents.get(n, {}).get("services", {})
-                           for n in ("atv1", "atv2")), "both ATVs offering transport", 60)
+                           for n in ("atv1", "atv2")), "both ATVs offering transport",
+               WALL_TIMEOUT_S)
     fleet.both_would_bid(("atv1", "atv2"))
     # lathe1 starts at 60 %: below 0.9 it orders as soon as it knows both ATVs. Bids have
     # 5 s, not 1: a loaded test host can delay an ATV's answer past a second.
@@ -186,21 +188,22 @@ def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_serve
                 "--below", "0.9", "--reply-by-s", "5", "--bidders", "2")
     first = fleet.wait(lambda: next((o for o in fleet.watch.orders.values()
                                      if o["state"] == "awarded"), None),
-                       "an award", 90)
+                       "an award", wall_timeout(1.5))
     doomed = first["atv"]
     other = "atv2" if doomed == "atv1" else "atv1"
     # Mid-delivery: it drives its task (in the physics). Not later: on a busy host a
     # loaded ATV can unload at the machine before the kill lands, leaving nothing to test.
     fleet.wait(lambda: _robot(fleet.watch, doomed).get("speed_mps", 0.0) > 0.05,
-               f"{doomed} driving its delivery", 60)
+               f"{doomed} driving its delivery", WALL_TIMEOUT_S)
     fleet.kill(doomed)
     order = first["order"]
     # The bound: the re-award follows the dead ATV's lease (2 s), not the machine's
     # silence timeout (done_timeout_s, 240 s), which this wait stays well below.
     fleet.wait(lambda: fleet.watch.orders[order]["awards"] == [doomed, other],
-               f"{order} re-awarded to {other}", 90)
+               f"{order} re-awarded to {other}", wall_timeout(1.5))
     served = fleet.wait(lambda: fleet.watch.orders[order]["state"] == "delivered"
-                        and fleet.watch.orders[order], f"{order} served by {other}", 150)
+                        and fleet.watch.orders[order], f"{order} served by {other}",
+                        wall_timeout(2.5))
     assert served["awards"] == [doomed, other], served
     assert served["atv"] == other
     assert not fleet.watch.violations
@@ -209,7 +212,7 @@ def test_an_atv_killed_mid_delivery_loses_the_award_and_the_order_is_still_serve
     # on a busy host: the killed robot stands where it died, maybe loaded.)
     fleet.wait(lambda: ("lathe1", other) in [(d["machine"], d["robot"]) for d in
                                              fleet.watch.state["facts"]["deliveries"]],
-               f"{other}'s unload at lathe1", 30)
+               f"{other}'s unload at lathe1", WALL_TIMEOUT_S)
 
 
 @pytest.mark.timeout(300)  # real processes: slow on a loaded machine
@@ -235,15 +238,16 @@ def test_a_killed_station_agent_frees_nothing_twice_and_the_atv_charges_elsewher
     holder = fleet.wait(
         lambda: next((name for name, e in fleet.watch.agents.items()
                       if e.get("services", {}).get("charging", {}).get("holder") == "atv1"),
-                     None), "a reservation by atv1", 90)
+                     None), "a reservation by atv1", wall_timeout(1.5))
     # Usually charger1, the nearest; charger2 when charger1 was not discovered yet.
     spare = "charger2" if holder == "charger1" else "charger1"
     fleet.kill(holder)
     fleet.wait(lambda: fleet.watch.agents.get(spare, {}).get("services", {})
-               .get("charging", {}).get("holder") == "atv1", f"atv1 reserving {spare}", 30)
+               .get("charging", {}).get("holder") == "atv1", f"atv1 reserving {spare}",
+               WALL_TIMEOUT_S)
     # The physics: it charges standing in the spare, never in the dead station's place.
     fleet.wait(lambda: _robot(fleet.watch, "atv1").get("charging_at") == spare,
-               f"atv1 charging in {spare}", 180)
+               f"atv1 charging in {spare}", wall_timeout(3))
     stations = fleet.watch.state["facts"]["stations"]
     assert stations[holder]["max_charging"] == 0, stations
     assert stations[spare]["max_charging"] == 1, stations

@@ -28,7 +28,7 @@ from beehave import Action, Behavior, Logic  # noqa: E402
 from beehave.config import load_config, parse_config  # noqa: E402
 from beehave.errors import ConfigError, Interrupted  # noqa: E402
 from beehave.robot import Robot  # noqa: E402
-from beehave.testing import WALL_TIMEOUT_S, beehave_threads, wait_until  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, beehave_threads, wait_until, wall_timeout  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 CONFIG = HERE / "data" / "rosbot.yaml"
@@ -216,6 +216,23 @@ def _spawn(*args: str) -> subprocess.Popen[str]:
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
+def _ended(proc: subprocess.Popen[str]) -> str:
+    """The output of ``proc`` (sent SIGTERM) once it ended. One that does not end within
+    half the suite's bound is sent SIGABRT (its threads' stacks go to its output: the
+    suite's PYTHONFAULTHANDLER), then SIGKILL: never left running (seen beside busy
+    loops: one outlived a 20 s wait and the test)."""
+    try:
+        return proc.communicate(timeout=wall_timeout(0.5))[0]
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)
+    try:
+        out = proc.communicate(timeout=wall_timeout(0.1))[0]
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out = proc.communicate()[0]
+    return f"(still running {wall_timeout(0.5):g} s after SIGTERM: aborted)\n{out}"
+
+
 def test_two_processes_behave_like_one(probe: Probe) -> None:
     low = _spawn("run", str(CONFIG), "--only", "low")
     high = _spawn("run", str(CONFIG), "--only", "high")
@@ -223,12 +240,9 @@ def test_two_processes_behave_like_one(probe: Probe) -> None:
         seen = observe_switch(probe)
         assert seen["param"] == "idle"
     finally:
-        outputs = []
         for proc in (high, low):
             proc.send_signal(signal.SIGTERM)
-        for proc in (high, low):
-            out, _ = proc.communicate(timeout=20)
-            outputs.append(out)
+        outputs = [_ended(proc) for proc in (high, low)]
     for proc, out in zip((high, low), outputs, strict=True):
         assert proc.returncode == 0, out
         assert "stopped cleanly" in out, out
