@@ -490,6 +490,7 @@ class MavlinkLink(Closing):
 
     def _read(self) -> None:
         next_beat = 0.0
+        backlog_since: float | None = None  # since when each pass left messages waiting
         while not self._stop.is_set():
             now = time.monotonic()
             if now >= next_beat:
@@ -513,7 +514,14 @@ class MavlinkLink(Closing):
                     self._dispatch(msg)
                 except Exception:
                     log.exception("%s: handling %s failed", self.describe(), msg.get_type())
-            if drained:  # else a heartbeat may wait in the socket behind a starved backlog
+            # Not while a backlog waits (a heartbeat may wait behind it, after this process
+            # was starved), unless it lasted a whole heartbeat timeout (a flood must not
+            # keep a lost vehicle from being called lost).
+            if drained:
+                backlog_since = None
+            elif backlog_since is None:
+                backlog_since = now
+            if backlog_since is None or now - backlog_since > self.heartbeat_timeout_s:
                 self._check_heartbeat()
 
     def _receive(self) -> tuple[list[Any], bool]:
@@ -528,8 +536,10 @@ class MavlinkLink(Closing):
         messages are handled after it is released (a callback may send)."""
         fd = getattr(self.conn, "fd", None)
         if fd is None:  # no descriptor to wait on: pymavlink waits (not shared with writes)
+            # One message a call tells nothing of a backlog: taken as drained, or a link
+            # that always has a message waiting would never judge the heartbeat.
             msg = self.conn.recv_match(blocking=True, timeout=0.05)
-            return ([], True) if msg is None else ([msg], False)
+            return ([], True) if msg is None else ([msg], True)
         ready, _, _ = select.select([fd], [], [], 0.05)
         if not ready:
             return [], True

@@ -67,7 +67,7 @@ if os.environ.get("BEEHAVE_REQUIRE_EXTRAS") == "1":
 # files one after another on one worker, so that at most three of them run at once whatever
 # the number of workers. Four or more at once (as when every worker began with one) put the
 # load of a 2-core machine at 12-14 and starved their processes' real-time parts (MAVLink
-# heartbeats, DDS discovery). Balanced by the seconds each file took in a run (in brackets);
+# heartbeats, DDS discovery). Balanced by the seconds each file took in a run (comments);
 # a lane's file with its own module fixtures keeps them, as the lane is one worker.
 _LANES = {
     "lane-a": ("test_droid", "test_vda5050_sim", "test_three_terminals"),      # 115+27+9

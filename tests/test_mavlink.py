@@ -583,3 +583,24 @@ def test_a_starved_reader_reads_its_backlog_before_it_calls_the_vehicle_lost() -
     finally:
         vehicle.close()
         link.close()
+
+
+def test_a_backlog_that_never_drains_still_lets_a_silent_vehicle_be_lost() -> None:
+    """Fault injection: every pass of the reader leaves messages waiting (a flood of
+    foreign traffic): the heartbeat is judged after one heartbeat timeout of backlog, so
+    a vehicle that went silent is still called lost."""
+    from pymavlink import mavutil
+
+    port = free_port()
+    link = open_link(f"udp:127.0.0.1:{port}", timeout_s=0.3, heartbeat_timeout_s=0.3)
+    vehicle = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
+                                         source_component=1)
+    try:
+        vehicle.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GROUND_ROVER,
+                                   mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+        link.wait_heartbeat(timeout_s=WALL_TIMEOUT_S)
+        link._receive = lambda: ([], False)  # type: ignore[method-assign]
+        assert wait_until(lambda: not link.alive)
+    finally:
+        vehicle.close()
+        link.close()
