@@ -804,6 +804,48 @@ def test_a_stalled_observer_does_not_expire_the_leases_of_live_agents(
     assert view.get("peer") is None and departed == ["peer: lease expired"]
 
 
+def test_a_directory_that_reads_behind_does_not_expire_the_leases_of_live_agents(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Its checks run on time, but its own entry has not come back for 5 s: the topic's
+    messages wait in this process (its executor behind on a loaded host), a peer's among
+    them. The peer stays (seen: a machine dropped a live ATV with a killed one, failing
+    the order instead of re-awarding it); once the own entry comes back and the peer has
+    really gone silent, it expires after its lease."""
+    from beehave.agents import directory as d
+
+    clock = [1000.0]
+    monkeypatch.setattr(d.time, "monotonic", lambda: clock[0])  # type: ignore[attr-defined]
+    view = d.Directory("machine")
+
+    def entry(name: str, incarnation: str) -> str:
+        return json.dumps({"schema": d.DIRECTORY_SCHEMA, "agent": name,
+                           "incarnation": incarnation, "started_at": 1.0, "state": "alive",
+                           "lease_s": 2.0, "services": {}})
+
+    own = entry("machine", "m1")
+    view._set_own(d.Announcement.model_validate_json(own))
+    departed: list[str] = []
+    view._on_departure(lambda name, reason: departed.append(f"{name}: {reason}"))
+    view._receive(own)
+    view._receive(entry("atv", "a1"))
+
+    def checks(seconds: float, *, own_back: bool) -> None:
+        for step in range(round(seconds / d.EXPIRY_CHECK_S)):
+            clock[0] += d.EXPIRY_CHECK_S
+            if own_back and step % 5 == 4:  # every 0.5 s, lease / 4
+                view._receive(own)
+            view._expire()
+
+    checks(5.0, own_back=False)  # regular checks; nothing read for 5 s
+    assert view.get("atv") is not None and departed == []
+    view._receive(own)  # the queue is read: our own entry, the peer's...
+    view._receive(entry("atv", "a1"))
+    checks(1.5, own_back=True)
+    assert view.get("atv") is not None
+    checks(1.0, own_back=True)  # the peer silent past its 2 s lease, we read on time
+    assert view.get("atv") is None and departed == ["atv: lease expired"]
+
+
 def test_every_sent_message_is_copied_to_the_messages_topic_for_listeners(
         ros: RosContext) -> None:
     """The sniffer topic: a listener gets each message as sent (same JSON), and its reader

@@ -151,6 +151,9 @@ class Directory:
         self._heard: set[str] = set()  # incarnations heard (probing counts them)
         self.conflict: Announcement | None = None  # who holds our name, if anyone
         self._own_announcement: Announcement | None = None
+        #: When this agent last heard its own entry back (time.monotonic()): a measure of
+        #: how far this process's reading of the topic lags (see :meth:`_receive_lag`).
+        self._own_heard_at: float | None = None
         self._departure_listeners: list[Callable[[str, str], None]] = []
         self._name_lost: Callable[[Announcement], None] | None = None
 
@@ -249,6 +252,8 @@ class Directory:
         if announcement.agent == self._own:
             if own is not None and announcement.incarnation != own.incarnation:
                 self._name_contested(announcement, own)
+            elif own is not None:
+                self._own_heard_at = time.monotonic()
             return
         with self._lock:
             self._heard.add(announcement.incarnation)
@@ -293,8 +298,9 @@ class Directory:
                          "leases", stalled)
                 for entry in self._entries.values():
                     entry.renewed_at += stalled
+            lag = self._receive_lag(now)
             gone = [e for name, e in self._entries.items()
-                    if now - e.renewed_at > e.announcement.lease_s]
+                    if now - e.renewed_at - lag > e.announcement.lease_s]
             for entry in gone:
                 del self._entries[entry.announcement.agent]
         for entry in gone:
@@ -302,6 +308,16 @@ class Directory:
                      entry.announcement.agent, now - entry.renewed_at,
                      entry.announcement.lease_s)
             self._report(entry.announcement, None, "lease expired")
+
+    def _receive_lag(self, now: float) -> float:
+        """How far behind this process reads the topic: the time its own entry, sent every
+        ``lease_s / 4``, has not come back beyond that period. Not counted against anyone's
+        lease: a peer's announcements wait in the same queue as our own (a process busy
+        elsewhere, its executor behind, on a loaded host). 0 without an own live entry."""
+        own = self._own_announcement
+        if own is None or own.state is not EntryState.ALIVE or self._own_heard_at is None:
+            return 0.0
+        return max(0.0, now - self._own_heard_at - own.lease_s / 4)
 
     def _set_own(self, announcement: Announcement | None) -> None:
         """This agent's own entry, kept so that :meth:`search` finds it too."""
