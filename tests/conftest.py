@@ -100,8 +100,11 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     to one worker whole; the others are handed out one by one)."""
     lanes = list(_LANES)
 
+    def stem(item: pytest.Item) -> str:
+        return Path(item.nodeid.split("::", 1)[0]).stem
+
     def place(item: pytest.Item) -> tuple[int, int, int]:
-        name = Path(item.nodeid.split("::", 1)[0]).stem
+        name = stem(item)
         if name in _LANE_OF:
             lane = _LANE_OF[name]
             return 0, lanes.index(lane), _LANES[lane].index(name)
@@ -110,7 +113,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         return 2, zlib.crc32(name.encode()), 0
 
     for item in items:
-        lane = _LANE_OF.get(Path(item.nodeid.split("::", 1)[0]).stem)
+        lane = _LANE_OF.get(stem(item))
         if lane is not None:
             if any(item.iter_markers("xdist_group")):
                 raise pytest.UsageError(
