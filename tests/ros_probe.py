@@ -152,7 +152,7 @@ class FibonacciServer:
             if order == 99:
                 handle.abort()
                 return fib.Result(sequence=[-1])
-            sequence.append(sequence[-1] + sequence[-2])
+            sequence.append((sequence[-1] + sequence[-2]) % 2**31)  # int32 on the wire
             handle.publish_feedback(fib.Feedback(sequence=sequence))
             time.sleep(self.step_s)
         handle.succeed()
