@@ -346,47 +346,6 @@ def _wait_answered(future: Any, cond: threading.Condition, clock: WallClock,
                    max(0.0, deadline - clock.now()))
 
 
-#: How long (wall time) a goal request waits for its answer before it is sent again
-#: (:meth:`RosIO.send_goal`); doubled for each further request. Far above an answer's usual
-#: time (milliseconds), so that a server slow to answer rarely gets a second request.
-_RESEND_S = 2.0
-
-
-def _answered(answered: threading.Event, cond: threading.Condition, _: Any) -> None:
-    answered.set()
-    with cond:
-        cond.notify_all()
-
-
-def _new_goal_id() -> Any:
-    import uuid
-
-    from unique_identifier_msgs.msg import UUID
-
-    return UUID(uuid=list(uuid.uuid4().bytes))
-
-
-def _cancel_attempt(client: Any, action_type: type, goal_id: Any, sent: Any) -> None:
-    """Cancel a goal request that lost (:meth:`RosIO.send_goal`): by its id at once (its
-    answer may never come, and the server may run it all the same), and again if an
-    answer that accepts it still comes."""
-    from rclpy.action.client import ClientGoalHandle
-
-    def cancel_if_accepted(answered: Any) -> None:
-        handle = (None if answered.cancelled() or answered.exception() is not None
-                  else answered.result())
-        if handle is not None and handle.accepted:
-            handle.cancel_goal_async()
-
-    if sent.done():
-        cancel_if_accepted(sent)
-        return
-    sent.add_done_callback(cancel_if_accepted)
-    # A server that never had the request answers "unknown goal": harmless.
-    response = action_type.Impl.SendGoalService.Response(accepted=True)  # type: ignore[attr-defined]
-    ClientGoalHandle(client, goal_id, response).cancel_goal_async()
-
-
 _watchers: dict[int, list[Callable[[type, str], None]]] = {}
 _watchers_lock = threading.Lock()
 
@@ -535,54 +494,31 @@ class RosIO:
                          f"action server {full!r} is not available after "
                          f"{server_timeout_s} s")
         box: list[Goal] = []
-        early: dict[bytes, list[Any]] = {}  # goal id → feedback that overtook its answer
+        early: list[Any] = []
 
         def on_feedback(msg: Any) -> None:
             with cond:
                 if not box:  # feedback can overtake the acceptance: keep it for later
-                    early.setdefault(bytes(msg.goal_id.uuid), []).append(msg)
+                    early.append(msg)
                     return
             box[0]._on_feedback(msg, feedback)  # user code: never under the owner's lock
 
-        # A goal request whose answer does not come within _RESEND_S (wall time; then twice
-        # as long each time) is sent again under a new goal id, the earlier ones still
-        # waited for: the first answer wins, every other attempt is cancelled. Fast DDS
-        # drops a service's answer outright when the server has not yet matched the
-        # client's answer reader 100 ms after the request came ("client will not receive
-        # response": a client that just appeared, a loaded host), and the server then runs
-        # a goal nobody will ever hear of.
-        attempts: list[tuple[Any, Any]] = []  # (goal id, rclpy future)
-        answered = threading.Event()
-        resend_s, next_send = _RESEND_S, time.monotonic()
-        while True:
-            if time.monotonic() >= next_send:
-                goal_id = _new_goal_id()
-                sent = client.send_goal_async(goal, feedback_callback=on_feedback,
-                                              goal_uuid=goal_id)
-                sent.add_done_callback(functools.partial(_answered, answered, cond))
-                attempts.append((goal_id, sent))
-                next_send, resend_s = time.monotonic() + resend_s, 2 * resend_s
-            # The deadline is the clock's (sim time, say); the next request is due in wall
-            # time: wait for the nearer one, taking wall seconds for clock seconds (a
-            # clock that runs faster only wakes this loop early: it looks again).
-            with cond:
-                clock.wait(cond, lambda: answered.is_set() or interrupted(),
-                           max(0.0, min(deadline - clock.now(), next_send - time.monotonic())))
-            winner = next(((i, f) for i, f in attempts if f.done()), None)
-            if winner is not None or interrupted() or clock.now() >= deadline:
-                break
-        for goal_id, sent in attempts:
-            if winner is None or sent is not winner[1]:
-                _cancel_attempt(client, action_type, goal_id, sent)
-        if winner is None:
+        sent = client.send_goal_async(goal, feedback_callback=on_feedback)
+        _wait_answered(sent, cond, clock, interrupted, deadline)
+        if not sent.done():
+            # The server may still accept it: then cancel at once, so that no goal runs on
+            # without an owner (only while the owner lives: see _destroy_action_client).
+            def cancel_if_accepted(answered: Any) -> None:
+                handle = (None if answered.cancelled() or answered.exception() is not None
+                          else answered.result())
+                if handle is not None and handle.accepted:
+                    handle.cancel_goal_async()
+
+            sent.add_done_callback(cancel_if_accepted)
             if interrupted():
                 raise Interrupted(f"{self.owner}: interrupted while sending a goal to {full!r}")
             raise WaitTimeout(f"action server {full!r} did not answer the goal within "
-                              f"{server_timeout_s} s ({len(attempts)} request(s) sent)")
-        if len(attempts) > 1:
-            log.info("%s: action server %r answered a goal only after %d request(s): the "
-                     "others were cancelled", self.owner, full, len(attempts))
-        goal_id, sent = winner
+                              f"{server_timeout_s} s")
         handle = sent.result()
         if not handle.accepted:
             raise GoalFailed(f"{self.owner}: action server {full!r} REJECTED the goal "
@@ -591,7 +527,7 @@ class RosIO:
                         owner=self.owner)
         with cond:
             box.append(accepted)
-            overtaken = early.get(bytes(goal_id.uuid), [])
+            overtaken = list(early)
         for msg in overtaken:
             accepted._on_feedback(msg, feedback)
         try:
