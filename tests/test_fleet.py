@@ -29,7 +29,7 @@ pytest.importorskip("rclpy")
 
 from beehave.procs import dies_with_parent  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
-from beehave.testing import WALL_TIMEOUT_S, wall_timeout  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, native_stacks, wall_timeout  # noqa: E402
 from behaviours.demos.fleet import Watch, _watch, atv_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -136,6 +136,8 @@ class Fleet:
         threads (SIGABRT: faulthandler, on in every child of the suite, see conftest.py)
         and ended: what a process waited for when the test gave up on it."""
         running = [proc for proc in self.procs.values() if proc.poll() is None]
+        native = {name: native_stacks(proc.pid) for name, proc in self.procs.items()
+                  if proc.poll() is None}
         for proc in running:
             proc.send_signal(signal.SIGABRT)
         for proc in running:
@@ -143,7 +145,9 @@ class Fleet:
                 proc.wait(5)
             except subprocess.TimeoutExpired:
                 pass
-        return self.logs(tail=6000)
+        return self.logs(tail=6000) + "".join(
+            f"--- {name}: native stacks (gdb)\n{stacks[-6000:]}\n"
+            for name, stacks in native.items() if stacks)
 
     def close(self) -> None:
         for proc in self.procs.values():

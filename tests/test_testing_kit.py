@@ -591,3 +591,24 @@ def test_an_interrupt_reaches_an_engine_driven_from_a_plain_behaviour(
     clock.advance(1.0)
     high_level.switch("idle")
     assert custom.status is Status.INTERRUPTED
+
+
+def test_native_stacks_reads_a_child_s_c_stacks_with_gdb_or_says_nothing() -> None:
+    import shutil
+    import subprocess
+    import sys
+
+    from beehave.testing import native_stacks
+
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        time.sleep(0.3)
+        stacks = native_stacks(child.pid)
+        if shutil.which("gdb") is None:
+            assert stacks == ""
+        else:
+            assert stacks.startswith("Thread 1 ") and "sleep" in stacks, stacks[:500]
+        assert child.poll() is None  # read, not ended
+    finally:
+        child.kill()
+        child.wait()

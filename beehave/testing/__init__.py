@@ -22,6 +22,7 @@ from beehave.testing.fakes import (
     ScriptedHAL,
     Timeline,
     beehave_threads,
+    native_stacks,
     no_thread_left,
     wait_until,
     wall_timeout,
@@ -31,7 +32,8 @@ from beehave.testing.lockstep import Lockstep
 __all__ = [
     "SLOWDOWN", "WALL_TIMEOUT_S", "ClockNotSettled", "Entry", "EventLog", "Lockstep", "Mark",
     "Scripted", "ScriptedAction", "ScriptedHAL", "Timeline", "VirtualClock",
-    "assert_lock_held_by", "assert_safe_state_ran", "beehave_threads", "no_thread_left",
+    "assert_lock_held_by", "assert_safe_state_ran", "beehave_threads", "native_stacks",
+    "no_thread_left",
     "wait_until",
     "wall_timeout",
 ]

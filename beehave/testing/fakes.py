@@ -14,6 +14,8 @@ from __future__ import annotations
 import asyncio
 import math
 import os
+import shutil
+import subprocess
 import threading
 import time
 from collections import Counter
@@ -286,3 +288,23 @@ def wait_until(predicate: Callable[[], bool], timeout_s: float | None = None) ->
             return True
         time.sleep(0.002)
     return bool(predicate())
+
+
+def native_stacks(pid: int, timeout_s: float = 30.0) -> str:
+    """The C stacks of every thread of process ``pid``, read with gdb when it is installed
+    (empty text otherwise, or when gdb cannot attach). For a child that hangs inside a
+    native library (a DDS participant that never finishes starting, say), where the Python
+    stacks that ``faulthandler`` writes on SIGABRT stop at the call into it. Call it before
+    ending the process; it pauses the process while gdb reads it."""
+    gdb = shutil.which("gdb")
+    if gdb is None:
+        return ""
+    try:
+        run = subprocess.run([gdb, "-p", str(pid), "-batch", "-nx",
+                              "-ex", "thread apply all bt 25"],
+                             capture_output=True, text=True, timeout=timeout_s)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"(gdb could not read process {pid}: {exc})"
+    lines = [line for line in run.stdout.splitlines()
+             if line.startswith(("Thread ", "#"))]
+    return "\n".join(lines)
