@@ -355,9 +355,15 @@ class LoopWatchdog:
 
     def _declare_blocked(self, culprit: Culprit, lag: float) -> None:
         error = self._error(culprit, lag)
-        with self._lock:
-            self._blocked = error
-            watched, self._watched = self._watched, set()
+        with self._answer_lock:
+            # A watchdog starved between its wait and here may come after the loop answered:
+            # declaring then would fail a caller that began once the loop ran again (seen
+            # beside busy loops: a call right after the block ended got its LoopBlocked).
+            if self._answered.is_set():
+                return
+            with self._lock:
+                self._blocked = error
+                watched, self._watched = self._watched, set()
         for future in watched:
             _fail(future, error)
 

@@ -375,3 +375,30 @@ def test_a_loop_that_runs_again_during_the_escalation_unloads_after_the_forced_s
     assert wait_until(lambda: ll._thread is not None and not ll._thread.is_alive(), WAIT_S)
     assert wait_until(lambda: len(marks) == 3, WAIT_S)
     assert marks == ["safe_state begins", "safe_state ends", "on_unload"]
+
+
+@pytest.mark.parametrize("answered", [True, False])
+def test_a_block_declared_after_the_loop_answered_fails_nobody(answered: bool) -> None:
+    """A watchdog thread starved between its last wait and its declaration came after the
+    loop had answered: it failed, with the old block's LoopBlocked, a call that began once
+    the loop ran again (seen beside busy loops). A declaration now looks first."""
+    import concurrent.futures
+
+    from beehave.events import EventBus
+    from beehave.watchdog import Culprit, LoopWatchdog
+
+    loop = asyncio.new_event_loop()
+    try:
+        dog = LoopWatchdog(loop, threading.get_ident(), EventBus(), warn_s=0.05, block_s=0.1)
+        if answered:
+            dog._answered.set()  # the loop answered: the block is over
+        call: concurrent.futures.Future[None] = concurrent.futures.Future()
+        dog.watch(call)  # a caller that began after that
+        dog._declare_blocked(Culprit("logic:hog", "logic 'hog'", "x.py:1 in run"), 0.4)
+        if answered:
+            assert dog.blocked() is None and not call.done()
+        else:  # still blocked: declared, and the caller fails with it
+            assert isinstance(dog.blocked(), LoopBlocked)
+            assert isinstance(call.exception(0), LoopBlocked)
+    finally:
+        loop.close()
