@@ -135,12 +135,11 @@ class Fleet:
         """The logs after every process still running has written the stacks of its
         threads (SIGABRT: faulthandler, on in every child of the suite, see conftest.py)
         and ended: what a process waited for when the test gave up on it."""
-        running = [proc for proc in self.procs.values() if proc.poll() is None]
-        native = {name: native_stacks(proc.pid) for name, proc in self.procs.items()
-                  if proc.poll() is None}
-        for proc in running:
+        running = {name: proc for name, proc in self.procs.items() if proc.poll() is None}
+        native = {name: native_stacks(proc.pid) for name, proc in running.items()}
+        for proc in running.values():
             proc.send_signal(signal.SIGABRT)
-        for proc in running:
+        for proc in running.values():
             try:
                 proc.wait(5)
             except subprocess.TimeoutExpired:

@@ -600,9 +600,11 @@ def test_native_stacks_reads_a_child_s_c_stacks_with_gdb_or_says_nothing() -> No
 
     from beehave.testing import native_stacks
 
-    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    child = subprocess.Popen([sys.executable, "-c",
+                              "import time; print('asleep', flush=True); time.sleep(60)"],
+                             stdout=subprocess.PIPE, text=True)
     try:
-        time.sleep(0.3)
+        assert child.stdout is not None and child.stdout.readline() == "asleep\n"
         stacks = native_stacks(child.pid)
         if shutil.which("gdb") is None:
             assert stacks == ""
