@@ -382,9 +382,17 @@ def test_the_recorded_page_at_t_says_what_beehave_inspect_says_at_t(
         == ["emili1", "kobuki1"]
     behaviours = set()
     timeline = inspect_timeline(recording)
+    # The moments to look at come from the recording: its stamps are wall time, so a loaded
+    # machine stretches the laps (kobuki1's half lap took 3.65 s beside two busy loops).
+    # Two inside kobuki1's patrol, one between its switch to idle and emili1's.
+    idle_at = {who: when for when, who, kind, subject in timeline
+               if kind == "switch_completed" and subject == "idle"}
+    assert set(idle_at) == {"emili1", "kobuki1"}, timeline
+    moments = (round(idle_at["kobuki1"] / 4, 2), round(idle_at["kobuki1"] * 3 / 4, 2),
+               round((idle_at["kobuki1"] + idle_at["emili1"]) / 2, 2))
     for robot in ("emili1", "kobuki1"):
         page.select_option("#robot-select", robot)
-        for t_s in (0.5, 2.0, 3.5):
+        for t_s in moments:
             seek(page, t_s)
             said = inspect_at(recording, t_s)[robot]
             behaviours.add((robot, t_s, said["behavior"]))
@@ -415,8 +423,9 @@ def test_the_recorded_page_at_t_says_what_beehave_inspect_says_at_t(
             marker = page.locator(f"#robot-{robot}")
             assert float(marker.get_attribute("data-x")) == pytest.approx(
                 raw["odom/x_m"], abs=0.002)
-    # The two robots did different things: kobuki1's half lap was over at 3.5 s.
-    assert ("emili1", 3.5, "patrol") in behaviours and ("kobuki1", 3.5, "idle") in behaviours
+    # The two robots did different things: kobuki1's half lap was over, emili1's lap not.
+    assert ("emili1", moments[2], "patrol") in behaviours
+    assert ("kobuki1", moments[2], "idle") in behaviours
     page.select_option("#robot-select", "emili1")
     # Play at ×5: the moment moves on by itself; pause holds it.
     seek(page, 0.0)
