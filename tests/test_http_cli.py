@@ -3,10 +3,13 @@ anything starts, with exit status 2 and a message that says what to change."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -50,47 +53,54 @@ def test_help_names_the_http_option() -> None:
 
 def test_the_demo_serves_both_robots_and_prints_the_url(tmp_path: Path) -> None:
     """``beehave demo --http``: the URL is printed, and while the demo runs the API
-    serves both simulated robots and the warehouse map."""
+    serves both simulated robots and the warehouse map, and a page draws both."""
     import re
 
     import httpx
 
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "beehave.cli", "demo", "--fast", "--http", "127.0.0.1:0",
-         "--out", str(tmp_path)], cwd=ROOT, env=dict(os.environ), stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT, text=True)
-    try:
-        assert proc.stdout is not None
-        lines, match = [], None
-        for line in proc.stdout:
-            lines.append(line)
-            match = re.search(r"web view: (http://127\.0\.0\.1:\d+/)", line)
-            if match:
-                break
-        assert match, "".join(lines)
-        robots = httpx.get(match.group(1) + "api/robots", timeout=10).json()
-        assert [r["name"] for r in robots["robots"]] == ["emili1", "kobuki1"]
-        assert robots["world"] is True
-        assert "walls" in httpx.get(match.group(1) + "api/world", timeout=10).json()
-        # Issue 22 item 11: the page draws both robots (the demo keeps the odometry and
-        # battery HALs loaded for the view, as `beehave run --http` does).
-        from beehave.testing import wait_until
+    from beehave.testing import wait_until
 
-        for name in ("emili1", "kobuki1"):
-            assert wait_until(lambda name=name: httpx.get(
-                f"{match.group(1)}api/robots/{name}/blackboard", params={"key": "odom/x_m"},
-                timeout=10).status_code == 200), f"{name}: no odometry on the blackboard"
-        _page_draws(match.group(1), ["emili1", "kobuki1"])
-        rest = proc.communicate(timeout=180)[0]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
+    # The browser starts before the demo and opens the URL first: the demo (at --fast) serves
+    # only while it runs, and beside two busy loops it ended before chromium had started.
+    with _browser_page() as page:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "beehave.cli", "demo", "--fast", "--http", "127.0.0.1:0",
+             "--out", str(tmp_path)], cwd=ROOT, env=dict(os.environ), stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT, text=True)
+        try:
+            assert proc.stdout is not None
+            lines, match = [], None
+            for line in proc.stdout:
+                lines.append(line)
+                match = re.search(r"web view: (http://127\.0\.0\.1:\d+/)", line)
+                if match:
+                    break
+            assert match, "".join(lines)
+            url = match.group(1)
+            page.goto(url)
+            robots = httpx.get(url + "api/robots", timeout=10).json()
+            assert [r["name"] for r in robots["robots"]] == ["emili1", "kobuki1"]
+            assert robots["world"] is True
+            assert "walls" in httpx.get(url + "api/world", timeout=10).json()
+            # Issue 22 item 11: the page draws both robots (the demo keeps the odometry and
+            # battery HALs loaded for the view, as `beehave run --http` does).
+            for name in ("emili1", "kobuki1"):
+                assert wait_until(lambda name=name: httpx.get(
+                    f"{url}api/robots/{name}/blackboard", params={"key": "odom/x_m"},
+                    timeout=10).status_code == 200), f"{name}: no odometry on the blackboard"
+                page.wait_for_selector(f"#robot-{name}", state="attached",
+                                       timeout=WALL_TIMEOUT_S * 1000)
+            rest = proc.communicate(timeout=180)[0]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
     assert proc.returncode == 0 and "demo OK" in rest, "".join(lines) + rest
 
 
-def _page_draws(url: str, robots: list[str]) -> None:
-    """A chromium page of ``url`` shows a marker for each of ``robots``."""
+@contextlib.contextmanager
+def _browser_page() -> Iterator[Any]:
+    """A chromium page (headless), open until the block ends."""
     sync_api = pytest.importorskip("playwright.sync_api")
     if not Path("/usr/bin/chromium").exists():  # pragma: no cover - `make setup` installs it
         pytest.skip("/usr/bin/chromium is not installed")
@@ -99,10 +109,6 @@ def _page_draws(url: str, robots: list[str]) -> None:
         browser = playwright.chromium.launch(executable_path="/usr/bin/chromium",
                                              headless=True)
         try:
-            page = browser.new_page()
-            page.goto(url)
-            for name in robots:
-                page.wait_for_selector(f"#robot-{name}", state="attached",
-                                       timeout=WALL_TIMEOUT_S * 1000)
+            yield browser.new_page()
         finally:
             browser.close()
