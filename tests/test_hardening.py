@@ -145,10 +145,11 @@ def test_a_hanging_safe_state_becomes_stuck_and_does_not_block_the_switch(
 def test_an_action_refused_for_a_busy_type_can_be_started_again(
         hl: HighLevelBehaviorManager) -> None:
     def body(b: Behavior) -> Status:
-        first = b.start_action(ScriptedAction("lift", duration_s=0.05))
+        first = b.start_action(ScriptedAction("lift", duration_s=WALL_TIMEOUT_S))
         again = ScriptedAction("lift")
         with pytest.raises(ActionTypeBusy):
             b.start_action(again)
+        first.interrupt()  # (the lock was held for sure while `again` was refused)
         first.wait()
         b.start_action(again).wait()  # the same object, now that the type is free
         return again.status

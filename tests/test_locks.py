@@ -8,7 +8,7 @@ import time
 import pytest
 
 from beehave import Action, ActionTypeBusy, Behavior, HighLevelBehaviorManager, Status
-from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, Timeline, wall_timeout
+from beehave.testing import WALL_TIMEOUT_S, ScriptedAction, Timeline, wait_until, wall_timeout
 
 
 class Parallel(Behavior):
@@ -70,29 +70,27 @@ def test_preempt_waits_for_the_holders_safe_state(two: Parallel) -> None:
     assert old.status is Status.INTERRUPTED and old.safe_state_calls == 1
     assert new.status is Status.RUNNING
     (safe_done,) = timeline.times("safe", old.path)
-    wait_deadline = time.monotonic() + 2
-    while not timeline.times("run", new.path) and time.monotonic() < wait_deadline:
-        time.sleep(0.001)
+    assert wait_until(lambda: timeline.times("run", new.path))
     (new_run,) = timeline.times("run", new.path)
     assert safe_done <= new_run
     assert timeline.max_concurrent["driving"] == 1
 
 
-def test_no_third_action_slips_in_while_preempting(two: Parallel) -> None:
+def test_no_third_action_slips_in_while_preempting(
+        two: Parallel, hl: HighLevelBehaviorManager) -> None:
     """The holder takes a while to stop; meanwhile a plain start must be rejected."""
+    # The holder's 0.15 s must end within the stop timeout, also when its thread runs late.
+    hl.stop_timeout_s = wall_timeout(0.05)
     slow = two.left.start_action(ScriptedAction("driving", duration_s=30,
                                                 ignore_interrupt_s=0.15))
     result: list[Action] = []
     preempter = threading.Thread(target=lambda: result.append(
         two.right.start_action(ScriptedAction("driving", duration_s=30), preempt=True)))
     preempter.start()
-    deadline = time.monotonic() + 2
-    while not slow.interrupted and time.monotonic() < deadline:
-        time.sleep(0.001)
-    assert slow.interrupted
+    assert wait_until(lambda: slow.interrupted)
     with pytest.raises(ActionTypeBusy):
         two.left.start_action(ScriptedAction("driving"))
-    preempter.join(2)
+    preempter.join(WALL_TIMEOUT_S)
     assert result and result[0].status is Status.RUNNING
     assert slow.status is Status.INTERRUPTED
 

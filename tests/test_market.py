@@ -48,6 +48,9 @@ LEASE_S = 1.0
 # takes no longer than before.
 WAIT_S = wall_timeout(0.5)
 PROBE_S = 0.3
+#: How long a broker may take to start its role (the liar never does): long enough that an
+#: honest start over DDS on a loaded host is not taken for a lie.
+START_S = 3.0
 
 
 # ---------------------------------------------------------------------- fixtures
@@ -378,11 +381,11 @@ def test_a_broker_that_bids_but_never_starts_is_timed_out_and_the_role_re_awarde
     task = Task.make("deliver", id="t_lie", roles=[
         Role("carry", "carry", params={"script": ["sleep:0.01"]})])
     steps = Steps()
-    outcome = auction(boss, task, reply_by_s=WAIT_S, start_timeout_s=0.5, observer=steps)
+    outcome = auction(boss, task, reply_by_s=WAIT_S, start_timeout_s=START_S, observer=steps)
     assert outcome.state is TaskState.COMPLETED
     assert outcome.members == {"carry": "honest"}
     assert [r["members"] for r in outcome.rounds] == [{"carry": "liar"}, {"carry": "honest"}]
-    assert "did not start within 0.5 s" in outcome.rounds[0]["ended"]
+    assert f"did not start within {START_S} s" in outcome.rounds[0]["ended"]
     assert outcome.excluded == {"liar"}
     reports.wait("ignored", broker="liar")
     assert steps.wait("dissolved")["broker"] == "liar"

@@ -101,8 +101,14 @@ def vehicles() -> Iterator[Vehicles]:
         sim.close()
 
 
+#: How long a test's link waits for an answer before it sends again: long enough that a
+#: loaded host's slow answer (the vehicle shares its process with the physics) is not taken
+#: for a lost one, so ``resends`` counts only the drops a test injects.
+RESEND_S = 2.0
+
+
 def link_to(url: str, **options: Any) -> Any:
-    link = open_link(url, timeout_s=0.3, **options)
+    link = open_link(url, timeout_s=RESEND_S, **options)
     link.wait_heartbeat(timeout_s=WALL_TIMEOUT_S)
     return link
 

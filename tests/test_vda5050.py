@@ -457,7 +457,10 @@ def test_a_pause_from_elsewhere_shows_on_the_state_and_holds_the_order(agv: Agv)
     paused = agv.master.wait_state(lambda s: s["paused"] is True, timeout_s=WALL_TIMEOUT_S)
     done_when_paused = list(FakeDrive.done)
     time.sleep(2 * EDGE_S)  # long enough to reach the next node, had the pause not held
-    assert FakeDrive.done == done_when_paused and paused["lastNodeId"] == "n0"
+    # The pause may come after n1 (the master hears of n0 through the broker, late on a
+    # loaded host); either way the state says the last node reached, and no other comes.
+    assert FakeDrive.done == done_when_paused
+    assert paused["lastNodeId"] == [n for n in done_when_paused if n in ("n0", "n1")][-1]
     agv.hl.resume()
     agv.master.wait_state(lambda s: s["lastNodeId"] == "n2" and not s["paused"],
                           timeout_s=WALL_TIMEOUT_S)
