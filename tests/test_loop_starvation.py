@@ -27,8 +27,15 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 class Sleeper(Logic):
+    """Blocks the loop, again until ``enough`` is set: one block may come while the whole
+    process is starved, and then it is rightly blamed on nobody."""
+
+    enough = threading.Event()
+
     async def run(self) -> None:
-        time.sleep(1.0)  # the user's mistake: this line is to blame
+        while not Sleeper.enough.is_set():
+            time.sleep(1.0)  # the user's mistake: this line is to blame
+            await asyncio.sleep(0.2)
         await asyncio.Event().wait()
 
 
@@ -50,11 +57,17 @@ def test_a_blocking_callback_is_blamed_with_the_users_line(use_uvloop: bool) -> 
     ll.register("sleeper", Sleeper)
     events: list[Event] = []
     ll.subscribe(events.append)
+
+    def blamed() -> list[Event]:  # a loaded machine may also report a starved process
+        return [e for e in _blocked(events)
+                if not e.detail["starved"] and not e.detail.get("internal")]
+
+    Sleeper.enough.clear()
     with ll:
-        assert wait_until(lambda: any(e.detail["ended"] for e in _blocked(events)))
-    first = _blocked(events)[0]
+        assert wait_until(lambda: any(e.detail["ended"] for e in blamed()))
+        Sleeper.enough.set()
+    first = blamed()[0]
     assert first.subject == "logic:sleeper"
-    assert first.detail["starved"] is False
     assert first.detail["where"].startswith(__file__) and "in run" in first.detail["where"]
 
 

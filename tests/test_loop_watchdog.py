@@ -48,8 +48,15 @@ class Forever(Logic):
 
 
 class Sleeper(Logic):
+    """Blocks the loop, again until ``enough`` is set: one block may come while the whole
+    process is starved, and then it is rightly blamed on nobody."""
+
+    enough = threading.Event()
+
     async def run(self) -> None:
-        time.sleep(0.3)  # the classic mistake
+        while not Sleeper.enough.is_set():
+            time.sleep(0.3)  # the classic mistake
+            await asyncio.sleep(0.2)
         await asyncio.Event().wait()
 
 
@@ -86,16 +93,27 @@ def test_a_logic_that_blocks_the_loop_is_named_in_a_warning_and_an_event(
     ll = LowLevelBehaviorManager(default="sleeper", loop_lag_warn_s=0.05)
     ll.register("sleeper", Sleeper)
     events = events_of(ll)
+
+    def blamed() -> list[Event]:
+        # (A loaded machine may report a starved process, which blames nobody, or the loop
+        # held in beehave's own code, which says so: seen beside busy loops.)
+        return [e for e in events if e.kind is EventKind.LOOP_BLOCKED
+                and not e.detail["starved"] and not e.detail.get("internal")]
+
+    Sleeper.enough.clear()
     with caplog.at_level(logging.WARNING, logger="beehave.watchdog"), ll:
-        assert wait_until(lambda: any(e.kind is EventKind.LOOP_BLOCKED and e.detail["ended"]
-                                      for e in events), WAIT_S)
-    blocked = [e for e in events if e.kind is EventKind.LOOP_BLOCKED]
-    assert [e.detail["ended"] for e in blocked] == [False, True]
+        assert wait_until(lambda: any(e.detail["ended"] for e in blamed()), WAIT_S)
+        Sleeper.enough.set()
+    blocked = blamed()
+    assert [e.detail["ended"] for e in blocked[:2]] == [False, True]
     assert {e.subject for e in blocked} == {"logic:sleeper"}
     assert all(e.detail["culprit"] == "logic 'sleeper'" for e in blocked)
     where = blocked[0].detail["where"]
     assert "test_loop_watchdog.py" in where and where.endswith("in run")
-    warning = next(r.getMessage() for r in caplog.records if "blocked" in r.getMessage())
+    assert {e.subject for e in events if e.kind is EventKind.LOOP_BLOCKED} <= \
+        {"logic:sleeper", "process"}  # nobody else is ever blamed
+    warning = next(r.getMessage() for r in caplog.records
+                   if "blocked" in r.getMessage() and "logic 'sleeper'" in r.getMessage())
     assert "logic 'sleeper'" in warning and "await asyncio.sleep" in warning
     assert "asyncio.to_thread" in warning
 
@@ -345,13 +363,16 @@ def test_a_loop_that_runs_again_during_the_escalation_unloads_after_the_forced_s
     safe_state still uses it."""
     marks: list[str] = []
     blocking = threading.Event()
+    finish_safe_state = threading.Event()
 
     class Device(HAL):
         name = "device"
 
         def safe_state(self) -> None:
             marks.append("safe_state begins")
-            time.sleep(0.3)  # longer than the escalation waits for it (stop_timeout_s)
+            # Longer than the escalation waits for it (stop_timeout_s): until the test saw
+            # that the escalation gave up.
+            finish_safe_state.wait(WAIT_S)
             marks.append("safe_state ends")
 
         def on_unload(self) -> None:
@@ -372,6 +393,7 @@ def test_a_loop_that_runs_again_during_the_escalation_unloads_after_the_forced_s
             assert blocking.wait(WAIT_S)
     assert marks == ["safe_state begins"]  # the escalation gave up waiting for it
     gate.set()                              # the loop runs again and tears down
+    finish_safe_state.set()
     assert wait_until(lambda: ll._thread is not None and not ll._thread.is_alive(), WAIT_S)
     assert wait_until(lambda: len(marks) == 3, WAIT_S)
     assert marks == ["safe_state begins", "safe_state ends", "on_unload"]

@@ -568,6 +568,7 @@ def test_a_starved_reader_reads_its_backlog_before_it_calls_the_vehicle_lost() -
     vehicle = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
                                          source_component=1)
     changes: list[bool] = []
+    beating: threading.Thread | None = None
     try:
         def beat() -> None:
             vehicle.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GROUND_ROVER,
@@ -582,12 +583,25 @@ def test_a_starved_reader_reads_its_backlog_before_it_calls_the_vehicle_lost() -
                 if i == 150:
                     time.sleep(1.0)  # twice the heartbeat timeout
                     beat()
+        # The vehicle beats on (behind the backlog), so that a slow test thread cannot see
+        # a loss that comes only after the backlog was read.
+        stop_beating = threading.Event()
+
+        def beat_on() -> None:
+            while not stop_beating.wait(0.1):
+                beat()
+
+        beating = threading.Thread(target=beat_on)
+        beating.start()
         # Read to its end: a link that judged the silence before reading the heartbeat
         # (pass one, 100 messages) has called the vehicle lost by now.
         assert wait_until(lambda: link.latest("ATTITUDE") is not None
                           and link.latest("ATTITUDE").time_boot_ms == 249)
         assert changes == [] and link.alive, changes
     finally:
+        if beating is not None:
+            stop_beating.set()
+            beating.join()
         vehicle.close()
         link.close()
 

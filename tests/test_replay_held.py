@@ -6,6 +6,7 @@ lose steps to a jump."""
 
 from __future__ import annotations
 
+import collections
 import time
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ from beehave.config import parse_config  # noqa: E402
 from beehave.recording import schema  # noqa: E402
 from beehave.recording.reader import ChannelInfo, Recorded, Recording  # noqa: E402
 from beehave.recording.replay import HOLD_S, replay  # noqa: E402
+from beehave.testing import wait_until  # noqa: E402
 
 SEEN: list[tuple[str, float, float]] = []  # (action, sim time it started, first value heard)
 
@@ -150,13 +152,25 @@ class _Step(Action):
 
     def run(self) -> None:
         self.sleep(0.05)
+        COUNTS["step"] += 1
 
 
-def _record_live(tmp_path: Path, behaviour: str, seconds: float) -> tuple[Any, Path]:
-    """Run ``behaviour`` (a class of this file) as a robot's default behaviour for about
-    ``seconds`` of wall time, recorded; returns the robot's configuration and the file."""
-    import time
+#: What the live robot did (the module as the robot imports it: ``tests.test_replay_held``).
+COUNTS: collections.Counter[str] = collections.Counter()
 
+
+def _live() -> Any:
+    """This module as the robot's configuration imports it (pytest may import the test
+    file under another name): where the live robot's ``COUNTS`` and ``STEPS`` are."""
+    import importlib
+
+    return importlib.import_module("tests.test_replay_held")
+
+
+def _record_live(tmp_path: Path, behaviour: str, what: str, count: int) -> tuple[Any, Path]:
+    """Run ``behaviour`` (a class of this file) as a robot's default behaviour, recorded,
+    until it has done ``what`` ``count`` times (``COUNTS``; not a wall time, which a loaded
+    host shortens); returns the robot's configuration and the file."""
     from beehave.recording.cli import finish_recording, robots_started, start_recording
     from beehave.robot import Robot
     from beehave.ros.context import RosContext
@@ -166,13 +180,14 @@ def _record_live(tmp_path: Path, behaviour: str, seconds: float) -> tuple[Any, P
                                "class": f"tests.test_replay_held:{behaviour}"}},
                            "default_behavior": "pace"}, source="pacer.yaml")
     path = tmp_path / "pacer.mcap"
+    _live().COUNTS.clear()
     with RosContext() as ros:
         robot = Robot(config, ros=ros)
         recorder = start_recording(path, [robot])
         try:
             robot.start()
             robots_started(recorder, [robot])
-            time.sleep(seconds)
+            assert wait_until(lambda: _live().COUNTS[what] >= count), dict(_live().COUNTS)
         finally:
             robot.shutdown()
             finish_recording(recorder)
@@ -186,7 +201,7 @@ def test_a_behaviour_that_only_sleeps_replays_every_step_without_warnings(
     warned that it "did not catch up with the recording". And (CI, a loaded host): live,
     each step comes a little late, so a step the shutdown cut off live is due earlier in
     the replay -- the replay must not start it."""
-    config, path = _record_live(tmp_path, "Pacer", 2.0)  # about ten steps
+    config, path = _record_live(tmp_path, "Pacer", "step", 8)  # about 2 s
     result = replay(path, config, speed=None)
     def ended_steps(outputs: list[Any]) -> list[str]:
         return [o.key for o in outputs
@@ -243,6 +258,7 @@ class Beacon(Behavior):
         beacon = self.ros.publisher(Float64, "beacon")
         while not self.interrupted:
             beacon.publish(Float64(data=self.manager.clock.now()))
+            COUNTS["beacon"] += 1
             self.sleep(0.1)
 
 
@@ -252,12 +268,13 @@ def test_a_loop_without_events_runs_in_the_replay_up_to_the_shutdown(
     wait once the last event is done: a loop that emits none (a driving loop publishing
     cmd_vel) must run as long as it ran live (a replay of Kobuki published 4 of its 1,588
     cmd_vel messages)."""
-    config, path = _record_live(tmp_path, "Beacon", 1.5)
+    config, path = _record_live(tmp_path, "Beacon", "beacon", 15)  # about 1.5 s
+    live = _live().COUNTS["beacon"]
     result = replay(path, config, speed=None)
     sent = [c for c in result.commands if c.topic.endswith("/beacon")]
     assert result.divergence is None and result.warnings == [], result
-    # Live: one at the start and one every 0.1 s until the shutdown (about 1.5 s).
-    assert 12 <= len(sent) <= 17, [c.t_s for c in sent]
+    # As many as live published: one at the start and one every 0.1 s until the shutdown.
+    assert live - 2 <= len(sent) <= live + 1, (live, [c.t_s for c in sent])
 
 
 STEPS: list[tuple[str, float]] = []  # (what, the behaviour's clock then)
@@ -282,10 +299,8 @@ def test_the_replay_clock_waits_for_a_behaviour_still_starting(tmp_path: Path) -
     behaviour had not yet reached its first sleep, so every replayed step came that much
     later than the recorded ones, and one the recording shows just before the shutdown
     was missing ("did not catch up ... 19 of 20 events")."""
-    import importlib
-
-    steps: list[tuple[str, float]] = importlib.import_module("tests.test_replay_held").STEPS
-    config, path = _record_live(tmp_path, "SlowStarter", 2.0)
+    steps: list[tuple[str, float]] = _live().STEPS
+    config, path = _record_live(tmp_path, "SlowStarter", "step", 8)  # about 2 s
     steps.clear()
     result = replay(path, config, speed=None)
     recorded = [o for o in result.expected
