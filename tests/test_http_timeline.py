@@ -110,6 +110,23 @@ def fits(page: Any, width: int) -> None:
                              f"{page.evaluate(_WIDER, width)}")
 
 
+def click_until(page: Any, selector: str, shown: str) -> None:
+    """Click ``selector`` until the JavaScript expression ``shown`` is true. The live page
+    may move the target between playwright's aim and its click (a panel above it grows
+    with an update): beside two busy loops a click on a fleet member landed on the one
+    above it. Clicking again is what a user does."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    for _ in range(5):
+        page.click(selector)
+        try:
+            page.wait_for_function(shown, timeout=WAIT_MS / 5)
+            return
+        except PlaywrightTimeout:
+            continue
+    raise AssertionError(f"clicking {selector} 5 times never showed {shown}")
+
+
 def shoot(page: Any, view: str, size: dict[str, int]) -> None:
     """Save the page as ``out/webview-{view}-{desktop|phone}.png``; it fits the screen."""
     OUT.mkdir(exist_ok=True)
@@ -756,12 +773,13 @@ def test_the_fleet_lists_its_members_and_draws_a_conversation_as_a_sequence_diag
             assert pixels_near(diagram.screenshot(), BLUE) > 100
             shoot(page, "fleet", size)
             # An agent's button filters its messages; a robot's opens its full view.
-            page.click('#fleet-members [data-member="press1"] button')
+            click_until(page, '#fleet-members [data-member="press1"] button',
+                        "document.querySelectorAll('#sequence-svg .seq-msg').length === 1")
             assert page.locator("#sequence-svg .seq-msg").count() == 1  # c1 + press1
             page.select_option("#seq-conversation", "")
             assert page.locator("#sequence-svg .seq-msg").count() == 2
-            page.click('#fleet-members [data-member="emili1"] button')
-            assert page.input_value("#robot-select") == "emili1"
+            click_until(page, '#fleet-members [data-member="emili1"] button',
+                        "document.querySelector('#robot-select').value === 'emili1'")
             page.wait_for_function("document.querySelectorAll('#behavior-choice option')"
                                    ".length > 1", timeout=WAIT_MS)
             page.close()
