@@ -44,12 +44,12 @@ else:
 # test module's asserts again. Child processes and xdist workers inherit this.
 os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 sys.dont_write_bytecode = False
-# DDS over UDP only, not Fast DDS's shared memory: the suite kills processes on purpose
-# (fault injection), and a process killed while it sets up a shared-memory port leaves it
-# corrupted; the next process to open that port spun in `SharedMemGlobal::open_port` for
-# ever, deaf to SIGTERM (seen in a stress run, stacks read with gdb; eProsima/Fast-DDS
-# #1144, #3490). Real DDS all the same; the benchmarks keep the default transports.
-os.environ.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
+# Fast DDS's shared memory stays on: with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST the ROS 2
+# middleware adds that transport itself, whatever FASTDDS_BUILTIN_TRANSPORTS says (this
+# file set UDPv4 there, to no effect: the stress runs' hangs were still in
+# SharedMemGlobal::open_port, read with gdb). A process the suite kills while it sets up a
+# port leaves it unfinished, and every later participant that opens that port hangs;
+# RosContext clears such ports before it starts (beehave.ros.context.clear_dead_shm_ports).
 # Every Python child writes its threads' stacks to its stderr on a fatal signal: a harness
 # that gives up on a hung child sends it SIGABRT and the test's failure shows where it hung.
 os.environ["PYTHONFAULTHANDLER"] = "1"

@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import logging
+import os
+import re
+import sys
 import threading
+import time
 import weakref
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import rclpy
@@ -30,6 +35,56 @@ CLOCK_QOS = 10
 _owners: weakref.WeakValueDictionary[int, RosContext] = weakref.WeakValueDictionary()
 
 
+#: Where Fast DDS keeps its shared-memory ports (``fastdds_port<N>``), and how long a port
+#: may stay unfinished before it counts as left behind (its creator finishes it within
+#: microseconds).
+SHM_DIR = Path("/dev/shm")
+DEAD_PORT_AGE_S = 10.0
+_PORT = re.compile(r"fastdds_port\d+")
+#: The first word of a port's segment (Boost.Interprocess' managed_open_or_create_impl):
+#: 2 once the segment is set up; 0 (created) or 1 (being set up) before; 3 corrupted.
+_SEGMENT_READY = 2
+
+
+def clear_dead_shm_ports(shm_dir: Path = SHM_DIR, *, min_age_s: float = DEAD_PORT_AGE_S
+                         ) -> list[str]:
+    """Remove the Fast DDS shared-memory ports that a killed process left unfinished;
+    returns their names.
+
+    A process killed while it sets up a port (``/dev/shm/fastdds_port<N>``) leaves the
+    segment marked "being set up". The next process of that domain to open port N (in
+    ``rcl_node_init``, creating its participant) waits in ``SharedMemGlobal::open_port``
+    for it to be ready, for ever and deaf to SIGTERM. The file outlives every process, so
+    every later start on that port hangs the same way (eProsima/Fast-DDS#1144, #3490;
+    seen in our stress runs, the native stack read with gdb). With
+    ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` the ROS 2 middleware always adds the
+    shared-memory transport, whatever ``FASTDDS_BUILTIN_TRANSPORTS`` says. A port still
+    unfinished after ``min_age_s`` has no live creator; removed, the next process makes it
+    anew. Ports that are set up are never touched."""
+    removed = []
+    now = time.time()
+    try:
+        names = [n for n in os.listdir(shm_dir) if _PORT.fullmatch(n)]
+    except OSError:  # no /dev/shm (not Linux): nothing to do
+        return removed
+    for name in names:
+        path = shm_dir / name
+        try:
+            with open(path, "rb") as f:
+                head = f.read(4)
+            state = int.from_bytes(head, sys.byteorder) if len(head) == 4 else None
+            if state != _SEGMENT_READY and now - path.stat().st_mtime > min_age_s:
+                path.unlink()
+                removed.append(name)
+        except OSError:  # gone meanwhile, or not ours to remove
+            continue
+    if removed:
+        log.warning("removed %d unfinished Fast DDS shared-memory port(s) left by killed "
+                    "processes (each would hang the next participant that opens it): %s",
+                    len(removed), ", ".join(sorted(removed)))
+    return removed
+
+
 def in_executor_thread() -> bool:
     """Whether the calling code runs in a :class:`RosContext`'s executor thread (a ROS
     callback): waiting there for something that needs another ROS callback — a service
@@ -50,6 +105,7 @@ class RosContext(Running):
     """
 
     def __init__(self, *, args: Sequence[str] | None = None, spin_timeout_s: float = 0.05) -> None:
+        clear_dead_shm_ports()  # before this process's participant opens its ports
         self.context = Context()
         rclpy.init(args=list(args) if args is not None else None, context=self.context)
         self.executor = EventsExecutor(context=self.context)
