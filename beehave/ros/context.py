@@ -61,7 +61,7 @@ def clear_dead_shm_ports(shm_dir: Path = SHM_DIR, *, min_age_s: float = DEAD_POR
     shared-memory transport, whatever ``FASTDDS_BUILTIN_TRANSPORTS`` says. A port still
     unfinished after ``min_age_s`` has no live creator; removed, the next process makes it
     anew. Ports that are set up are never touched."""
-    removed = []
+    removed: list[str] = []
     now = time.time()
     try:
         names = [n for n in os.listdir(shm_dir) if _PORT.fullmatch(n)]
