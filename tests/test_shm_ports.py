@@ -62,11 +62,16 @@ def test_a_node_starts_where_a_killed_process_left_its_domains_ports_unfinished(
             "with RosContext() as ros:\n"
             "    ros.create_node('after_a_crash')\n"
             "print('node up', flush=True)\n")
+    being_set_up = (1).to_bytes(4, sys.byteorder)
     try:
         done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                               text=True, timeout=wall_timeout(0.5))
+        stuck = [p.name for p in made if p.exists() and p.read_bytes()[:4] == being_set_up]
     finally:
         for path in made:
             path.unlink(missing_ok=True)
+    # (The child names the ports it removed, unless another beehave process on this
+    # machine, a test of another worker, started first and removed them: a stress run saw
+    # that. Either way no port was left to hang the node.)
     assert done.returncode == 0 and "node up" in done.stdout, done.stderr
-    assert "unfinished Fast DDS shared-memory port" in done.stderr
+    assert stuck == []
