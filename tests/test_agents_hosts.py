@@ -10,8 +10,11 @@ as a real fleet configures it: multicast on the subnet (``ROS_AUTOMATIC_DISCOVER
 SUBNET``) or, where there is no multicast, a list of peers (``ROS_STATIC_PEERS``).
 
 Fast DDS offers shared memory between processes of one machine, and both namespaces share
-``/dev/shm``: ``FASTDDS_BUILTIN_TRANSPORTS=UDPv4`` keeps the test honest (UDP over the veth
-only, as between real hosts), and the veth's packet counters show the traffic crossed it.
+``/dev/shm``. ``FASTDDS_BUILTIN_TRANSPORTS=UDPv4`` keeps the multicast case on UDP, as
+between real hosts. It does not bind the static-peers case: with
+``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` the ROS 2 middleware adds the shared-memory
+transport itself (``docs/ros.md``). In both cases the veth's packet counters show that
+the traffic crossed the wire.
 
 Needs root (``ip netns add``). Where the namespaces cannot be created, the test is skipped
 with the command and its error. Namespace and veth names carry this process's pid, and are
@@ -167,7 +170,7 @@ def _counters(host: Host) -> dict[str, int]:
 def test_contract_net_between_two_hosts(hosts: tuple[Host, Host], discovery: str) -> None:
     a, b = hosts
     deadline = time.monotonic() + DEADLINE_S
-    base = dict(os.environ, FASTDDS_BUILTIN_TRANSPORTS="UDPv4")  # no shared memory
+    base = dict(os.environ, FASTDDS_BUILTIN_TRANSPORTS="UDPv4")  # (SUBNET only: above)
     base.pop("ROS_STATIC_PEERS", None)
 
     def env(peer: Host) -> dict[str, str]:

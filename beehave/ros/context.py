@@ -35,9 +35,10 @@ CLOCK_QOS = 10
 _owners: weakref.WeakValueDictionary[int, RosContext] = weakref.WeakValueDictionary()
 
 
-#: Where Fast DDS keeps its shared-memory ports (``fastdds_port<N>``), and how long a port
-#: may stay unfinished before it counts as left behind (its creator finishes it within
-#: microseconds).
+#: Where Fast DDS keeps its shared-memory transport's ports (``fastdds_port<N>``, each
+#: with a named semaphore ``sem.fastdds_port<N>_mutex``), and how long a port may stay
+#: unfinished before it counts as left behind (a live creator finishes it within
+#: milliseconds).
 SHM_DIR = Path("/dev/shm")
 DEAD_PORT_AGE_S = 10.0
 _PORT = re.compile(r"fastdds_port\d+")
@@ -48,19 +49,21 @@ _SEGMENT_READY = 2
 
 def clear_dead_shm_ports(shm_dir: Path = SHM_DIR, *, min_age_s: float = DEAD_PORT_AGE_S
                          ) -> list[str]:
-    """Remove the Fast DDS shared-memory ports that a killed process left unfinished;
-    returns their names.
+    """Remove the Fast DDS shared-memory ports that a killed process left unfinished,
+    with their mutexes; returns the ports' names.
 
     A process killed while it sets up a port (``/dev/shm/fastdds_port<N>``) leaves the
-    segment marked "being set up". The next process of that domain to open port N (in
-    ``rcl_node_init``, creating its participant) waits in ``SharedMemGlobal::open_port``
-    for it to be ready, for ever and deaf to SIGTERM. The file outlives every process, so
-    every later start on that port hangs the same way (eProsima/Fast-DDS#1144, #3490;
-    seen in our stress runs, the native stack read with gdb). With
+    segment marked "being set up", and may leave the port's mutex
+    (``sem.fastdds_port<N>_mutex``) locked. The next process of that domain to open port N
+    (in ``rcl_node_init``, creating its participant) waits for the segment to be ready for
+    ever, deaf to SIGTERM; a locked mutex alone costs it 2 s. The
+    files outlive every process, so every later start on that port hangs the same way
+    (eProsima/Fast-DDS#3878; seen in our stress runs, the native stack read with gdb). With
     ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` the ROS 2 middleware always adds the
     shared-memory transport, whatever ``FASTDDS_BUILTIN_TRANSPORTS`` says. A port still
     unfinished after ``min_age_s`` has no live creator; removed, the next process makes it
-    anew. Ports that are set up are never touched."""
+    anew. Ports that are set up, and their mutexes, are never touched; a file is removed
+    only if it is still the one that was read (same inode)."""
     removed: list[str] = []
     now = time.time()
     try:
@@ -70,14 +73,36 @@ def clear_dead_shm_ports(shm_dir: Path = SHM_DIR, *, min_age_s: float = DEAD_POR
     for name in names:
         path = shm_dir / name
         try:
-            with open(path, "rb") as f:
-                head = f.read(4)
-            state = int.from_bytes(head, sys.byteorder) if len(head) == 4 else None
-            if state != _SEGMENT_READY and now - path.stat().st_mtime > min_age_s:
-                path.unlink()
-                removed.append(name)
-        except OSError:  # gone meanwhile, or not ours to remove
+            fd = os.open(path, os.O_RDONLY)
+        except OSError:  # gone meanwhile, or not readable
             continue
+        try:
+            seen = os.fstat(fd)
+            head = os.read(fd, 4)
+        except OSError:
+            continue
+        finally:
+            os.close(fd)
+        state = int.from_bytes(head, sys.byteorder) if len(head) == 4 else None
+        if state == _SEGMENT_READY or now - seen.st_mtime <= min_age_s:
+            continue
+        try:
+            if os.stat(path).st_ino != seen.st_ino:  # replaced meanwhile: a new port
+                continue
+            path.unlink()
+        except FileNotFoundError:
+            continue
+        except PermissionError:
+            log.warning("cannot remove the unfinished Fast DDS port %s (owner uid %d): "
+                        "it will hang the next participant that opens it", path,
+                        seen.st_uid)
+            continue
+        removed.append(name)
+        try:  # its mutex, maybe left locked by the same process
+            (shm_dir / f"sem.{name}_mutex").unlink(missing_ok=True)
+        except OSError as err:
+            log.warning("cannot remove the mutex of the unfinished Fast DDS port %s: %s",
+                        name, err)
     if removed:
         log.warning("removed %d unfinished Fast DDS shared-memory port(s) left by killed "
                     "processes (each would hang the next participant that opens it): %s",
