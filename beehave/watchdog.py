@@ -31,7 +31,10 @@ with nothing holding it. The watchdog tells the two apart before blaming anyone:
   loop; uvloop's C loop under the frame that started it) — so nothing held it;
 - or the watchdog thread itself woke more than ``warn_s`` (and :data:`STARVED_LATE_S`)
   late: then no thread of the process was getting CPU, and what the loop happened to be
-  running when it was stopped is not to blame.
+  running when it was stopped is not to blame;
+- or the loop answered late, but before the watchdog thread woke to notice (the process
+  resumed, and the loop's thread got the interpreter first): reported when the watchdog
+  wakes, as a starvation that has already ended.
 
 Either way the warning says "the process was starved of CPU for X s" (with the process's
 CPU time over that wall time) and names no line. A loop held inside beehave's own code
@@ -190,6 +193,7 @@ class LoopWatchdog:
         self._warned: Culprit | None = None  # who held the loop when it was last warned about
         # Orders _warned against the loop's answer (the loop thread and this one).
         self._answer_lock = threading.Lock()
+        self._answered_at = 0.0  # when the loop last answered (monotonic; under _answer_lock)
         self._thread = threading.Thread(target=self._main, name="beehave-lowlevel-watchdog",
                                         daemon=True)
         # Subscribers run here, not in _thread: see the module docstring.
@@ -271,6 +275,7 @@ class LoopWatchdog:
             except RuntimeError:  # the loop closed
                 return
             if self._answered.wait(self.warn_s):
+                self._late_answer(sent, cpu)
                 self._stop.wait(self._period_s)
                 continue
             woke = time.monotonic()
@@ -294,13 +299,30 @@ class LoopWatchdog:
         late_s = woke - (sent + (self.warn_s if waited_s is None else waited_s))
         idle = loop_is_idle(frame)
         if idle or late_s > max(self.warn_s, STARVED_LATE_S):
-            wall_s = time.monotonic() - sent
-            cpu_s = time.process_time() - cpu
-            how = ("the loop was idle, waiting for work" if idle else
-                   f"the watchdog itself woke {late_s:.3f} s late")
-            return Culprit("process", "CPU starvation of the process", "", starved=True,
-                           why=f"it used {cpu_s:.3f} s of CPU in {wall_s:.3f} s; {how}")
+            return _starvation(sent, cpu, "the loop was idle, waiting for work" if idle
+                               else f"the watchdog itself woke {late_s:.3f} s late")
         return find_culprit(self.loop, self.thread_id)
+
+    def _late_answer(self, sent: float, cpu: float) -> None:
+        """The loop answered ``sent``'s ping more than ``warn_s`` late, yet before this
+        thread woke to notice: the whole process was stopped or starved of CPU (SIGSTOP, a
+        machine at load 27), and when it ran again the loop's thread got the interpreter
+        first. Reported as a starvation that has ended (both events at once), not dropped.
+        A late answer while this thread woke on time is a block that ended as it looked:
+        nobody can be named any more, and the next one is reported as usual."""
+        woke = time.monotonic()
+        with self._answer_lock:
+            held = self._answered_at - sent
+        if held <= self.warn_s or woke - (sent + self.warn_s) <= max(self.warn_s,
+                                                                      STARVED_LATE_S):
+            return
+        culprit = _starvation(sent, cpu, f"the watchdog itself woke "
+                                         f"{woke - sent - self.warn_s:.3f} s late")
+        self.warnings += 1
+        log.warning("%s event loop %s", self.name, culprit.describe(held))
+        self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject,
+                         detail=_detail(culprit, held, ended=False)))
+        self._report_answer(culprit, held)
 
     def _notify(self) -> None:
         while (event := self._outbox.get()) is not None:
@@ -370,6 +392,7 @@ class LoopWatchdog:
     def _answer(self, sent: float) -> None:
         # In the loop's thread: it runs again.
         with self._answer_lock:
+            self._answered_at = time.monotonic()
             culprit = self._warned
             self._warned = None
             self._blocked = None
@@ -388,6 +411,15 @@ class LoopWatchdog:
         # Through the notifier too: after the "blocked" event, never before it.
         self._post(Event(EventKind.LOOP_BLOCKED, culprit.subject,
                          detail=_detail(culprit, held, ended=True)))
+
+
+def _starvation(sent: float, cpu: float, how: str) -> Culprit:
+    """The process, starved of CPU since ``sent`` (monotonic; ``cpu``: its
+    ``time.process_time()`` then); ``how`` it was told apart from a blocking callback."""
+    wall_s = time.monotonic() - sent
+    cpu_s = time.process_time() - cpu
+    return Culprit("process", "CPU starvation of the process", "", starved=True,
+                   why=f"it used {cpu_s:.3f} s of CPU in {wall_s:.3f} s; {how}")
 
 
 def _detail(culprit: Culprit, lag: float, *, ended: bool) -> dict[str, Any]:

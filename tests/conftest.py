@@ -7,6 +7,7 @@ import importlib
 import os
 import random
 import shutil
+import signal
 import sys
 import tempfile
 import zlib
@@ -163,6 +164,13 @@ def pytest_configure(config: pytest.Config) -> None:
         crash = Path(os.environ[_HANGS]) / f"crash-{_WORKER}-{os.getpid()}.txt"
         config._beehave_crash_file = crash.open("w")  # type: ignore[attr-defined]
         faulthandler.enable(file=config._beehave_crash_file, all_threads=True)  # type: ignore[attr-defined]
+        # A worker ended by a signal that faulthandler does not watch (a stress run lost
+        # one at the start of a test, with no trace) says which, and where it was.
+        config._beehave_signal_files = []  # type: ignore[attr-defined]
+        for signum in (signal.SIGTERM, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2):
+            out = crash.with_name(f"{crash.stem}-{signal.Signals(signum).name}.txt").open("w")
+            config._beehave_signal_files.append(out)  # type: ignore[attr-defined]
+            faulthandler.register(signum, file=out, all_threads=True, chain=True)
 
 
 def _arm(seconds: float, why: str) -> None:

@@ -147,7 +147,9 @@ def test_snapshot_holds_the_tree_and_the_low_level_in_strict_json() -> None:
         core = ControlPlane(hl, low=ll, blackboard=ll.blackboard, name="kobuki")
         try:
             core.switch("drive")
-            assert wait_until(lambda: "driving" in core.status()["locks"])
+            # (An action holds its lock a moment before it joins the behaviour's children.)
+            assert wait_until(lambda: "driving" in core.status()["locks"]
+                              and core.snapshot()["tree"].get("children"))
             snap = core.snapshot()
             assert strict_json(snap) == snap
             assert snap["robot"] == "kobuki" and snap["behavior"] == "drive"

@@ -184,15 +184,82 @@ def test_a_stopped_process_is_starvation_not_a_line_of_beehave() -> None:
             proc.send_signal(signal.SIGCONT)
             proc.kill()
             proc.wait(WALL_TIMEOUT_S)
+    assert proc.stderr is not None
+    log = proc.stderr.read()
     for report in reports:  # whatever caused it, beehave never blames itself
         assert "lowlevel.py" not in json.dumps(report), report
     stopped_reports = [r for r in reports if of_a_stop(r)]
-    assert stopped_reports, f"no LOOP_BLOCKED report of a stop: {reports}"
+    assert stopped_reports, f"no LOOP_BLOCKED report of a stop: {reports}; the child: {log}"
     for report in stopped_reports:
         assert "<string>" not in report["where"], report  # the Busy logic's line
         assert report["subject"] == "process" and report["where"] == "", report
         assert report["starved"] is True, report
-    assert proc.stderr is not None
-    log = proc.stderr.read()
     assert "the process was starved of CPU for" in log, log
     assert "_thread_main" not in log, log
+
+
+class _LateWake(threading.Event):
+    """The process stopped while a ping is on its way (injected, once ``starve`` is set):
+    the loop is held ``hold_s`` as the watchdog sends its ping, and the watchdog's wait
+    for the answer returns ``late_s`` after it began, whatever its timeout, as a thread of
+    a stopped process does when the process resumes. The loop's thread, which ran first,
+    has answered by then."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, *, hold_s: float,
+                 late_s: float) -> None:
+        super().__init__()
+        self.loop, self.hold_s, self.late_s = loop, hold_s, late_s
+        self.starve = threading.Event()
+        self.starving = False
+
+    def clear(self) -> None:  # the watchdog's first step before it sends a ping
+        super().clear()
+        if self.starve.is_set() and not self.starving:
+            self.starving = True
+            holds = threading.Event()
+            self.loop.call_soon_threadsafe(lambda: (holds.set(), time.sleep(self.hold_s)))
+            assert holds.wait(WALL_TIMEOUT_S)  # the ping queues behind the hold
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if not self.starving:
+            return super().wait(timeout)
+        self.starving = False
+        self.starve.clear()
+        time.sleep(self.late_s)
+        return self.is_set()
+
+
+def test_a_late_answer_that_beat_the_starved_watchdog_is_reported_not_dropped() -> None:
+    """A stopped process resumes and its loop's thread runs first: the ping sent before
+    the stop is answered late, just before the watchdog wakes to find it answered. It was
+    taken for an answer in time (a stress run: a minute of 1 s SIGSTOPs, not one report);
+    it is a starvation that has ended."""
+    from beehave.events import EventBus
+    from beehave.watchdog import LoopWatchdog
+
+    loop = asyncio.new_event_loop()
+    runner = threading.Thread(target=loop.run_forever, daemon=True)
+    runner.start()
+    events: list[Event] = []
+    bus = EventBus()
+    bus.subscribe(events.append)
+    assert runner.ident is not None
+    dog = LoopWatchdog(loop, runner.ident, bus, warn_s=0.3, block_s=5.0)
+    late = _LateWake(loop, hold_s=0.6, late_s=1.0)
+    dog._answered = late  # the fault: how the watchdog waits for its answers
+    try:
+        dog.start()
+        time.sleep(0.5)  # answers in time (on a loaded machine, maybe a real starvation)
+        before = len(_blocked(events))
+        late.starve.set()
+        assert wait_until(lambda: any(e.detail["ended"] for e in _blocked(events)[before:]))
+    finally:
+        dog.stop()
+        loop.call_soon_threadsafe(loop.stop)
+        runner.join(WALL_TIMEOUT_S)
+        loop.close()
+    reported = _blocked(events)[before:]
+    assert [e.detail["ended"] for e in reported][:2] == [False, True]
+    for event in reported:  # the callback that held the loop was not to blame
+        assert event.subject == "process" and event.detail["starved"] is True, event
+        assert event.detail["where"] == ""
