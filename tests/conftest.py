@@ -165,12 +165,24 @@ def pytest_configure(config: pytest.Config) -> None:
         config._beehave_crash_file = crash.open("w")  # type: ignore[attr-defined]
         faulthandler.enable(file=config._beehave_crash_file, all_threads=True)  # type: ignore[attr-defined]
         # A worker ended by a signal that faulthandler does not watch (a stress run lost
-        # one at the start of a test, with no trace) says which, and where it was.
-        config._beehave_signal_files = []  # type: ignore[attr-defined]
-        for signum in (signal.SIGTERM, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2):
-            out = crash.with_name(f"{crash.stem}-{signal.Signals(signum).name}.txt").open("w")
-            config._beehave_signal_files.append(out)  # type: ignore[attr-defined]
-            faulthandler.register(signum, file=out, all_threads=True, chain=True)
+        # one at the start of a test, with no trace) says which, and where it was. (It
+        # then dies: rclpy's own SIGTERM handler passes the signal on, where before it
+        # only shut rclpy down and left a worker without ROS.) Registered again before
+        # each test: a test of `beehave run` in this process restores SIGTERM's default.
+        config._beehave_signal_files = {  # type: ignore[attr-defined]
+            signum: crash.with_name(f"{crash.stem}-{signum.name}.txt").open("w")
+            for signum in _DUMP_SIGNALS}
+        _register_dumps(config)
+
+
+_DUMP_SIGNALS = (signal.SIGTERM, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2)
+
+
+def _register_dumps(config: pytest.Config) -> None:
+    for signum, out in getattr(config, "_beehave_signal_files", {}).items():
+        if signal.getsignal(signum) in (signal.SIG_DFL, None):  # (None: not Python's)
+            faulthandler.unregister(signum)  # it would not install itself again
+        faulthandler.register(signum, file=out, all_threads=True, chain=True)
 
 
 def _arm(seconds: float, why: str) -> None:
@@ -188,6 +200,7 @@ def pytest_runtest_protocol(item: pytest.Item) -> Generator[None, None, None]:
         item.config.getini("timeout") or 120)
     if bound > 0:
         _arm(bound + _GRACE_S, f"test {item.nodeid} (timeout {bound:.0f} s)")
+    _register_dumps(item.config)
     yield
     faulthandler.cancel_dump_traceback_later()
 

@@ -41,29 +41,40 @@ _owners: weakref.WeakValueDictionary[int, RosContext] = weakref.WeakValueDiction
 #: milliseconds).
 SHM_DIR = Path("/dev/shm")
 DEAD_PORT_AGE_S = 10.0
+#: How often a starting context looks again at an unfinished port of its domain (see
+#: :func:`await_unfinished_shm_ports`).
+DEAD_PORT_POLL_S = 0.1
 _PORT = re.compile(r"fastdds_port\d+")
 #: The first word of a port's segment (Boost.Interprocess' managed_open_or_create_impl):
 #: 2 once the segment is set up; 0 (created) or 1 (being set up) before; 3 corrupted.
 _SEGMENT_READY = 2
+_SEGMENT_CORRUPTED = 3
 
 
 def clear_dead_shm_ports(shm_dir: Path = SHM_DIR, *, min_age_s: float = DEAD_PORT_AGE_S
                          ) -> list[str]:
-    """Remove the Fast DDS shared-memory ports that a killed process left unfinished,
-    with their mutexes; returns the ports' names.
+    """Release and remove the Fast DDS shared-memory ports that a killed process left
+    unfinished, with their mutexes; returns the ports' names.
 
     A process killed while it sets up a port (``/dev/shm/fastdds_port<N>``) leaves the
     segment marked "being set up", and may leave the port's mutex
-    (``sem.fastdds_port<N>_mutex``) locked. The next process of that domain to open port N
+    (``sem.fastdds_port<N>_mutex``) locked. A process of that domain that opens port N
     (in ``rcl_node_init``, creating its participant) waits for the segment to be ready for
-    ever, deaf to SIGTERM; a locked mutex alone costs it 2 s. The
-    files outlive every process, so every later start on that port hangs the same way
-    (eProsima/Fast-DDS#3878; seen in our stress runs, the native stack read with gdb). With
+    ever, deaf to SIGTERM; a locked mutex alone costs it 2 s. The files outlive every
+    process, so every later start on that port hangs the same way (eProsima/Fast-DDS#3878;
+    seen in our stress runs, the native stack read with gdb). With
     ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` the ROS 2 middleware always adds the
-    shared-memory transport, whatever ``FASTDDS_BUILTIN_TRANSPORTS`` says. A port still
-    unfinished after ``min_age_s`` has no live creator; removed, the next process makes it
-    anew. Ports that are set up, and their mutexes, are never touched; a file is removed
-    only if it is still the one that was read (same inode)."""
+    shared-memory transport, whatever ``FASTDDS_BUILTIN_TRANSPORTS`` says.
+
+    A port still unfinished after ``min_age_s`` has no live creator. It is first marked
+    corrupted, in place: a process already waiting on it then gives up waiting and goes
+    on (Fast DDS carries on without that port; removing the file alone does not free a
+    process that has it mapped). Then the file and its mutex are removed, so the next
+    process makes the port anew. Ports that are set up, and their mutexes, are never
+    touched. A port is removed only if it is still the file that was marked (same inode)
+    just before: that narrows the race with a process that replaces it at that moment to
+    microseconds, without closing it (Fast DDS replaces an unfinished port only when its
+    creator has been gone or stopped for 10 s)."""
     removed: list[str] = []
     now = time.time()
     try:
@@ -73,29 +84,31 @@ def clear_dead_shm_ports(shm_dir: Path = SHM_DIR, *, min_age_s: float = DEAD_POR
     for name in names:
         path = shm_dir / name
         try:
-            fd = os.open(path, os.O_RDONLY)
-        except OSError:  # gone meanwhile, or not readable
+            fd = os.open(path, os.O_RDWR)
+        except FileNotFoundError:
+            continue
+        except OSError as err:  # not ours (PermissionError): only a look, to warn
+            _warn_if_dead(path, now, min_age_s, err)
             continue
         try:
             seen = os.fstat(fd)
-            head = os.read(fd, 4)
+            state = _state(os.pread(fd, 4, 0))
+            if state == _SEGMENT_READY or now - seen.st_mtime <= min_age_s:
+                continue
+            os.pwrite(fd, _SEGMENT_CORRUPTED.to_bytes(4, sys.byteorder), 0)
         except OSError:
             continue
         finally:
             os.close(fd)
-        state = int.from_bytes(head, sys.byteorder) if len(head) == 4 else None
-        if state == _SEGMENT_READY or now - seen.st_mtime <= min_age_s:
-            continue
         try:
             if os.stat(path).st_ino != seen.st_ino:  # replaced meanwhile: a new port
                 continue
             path.unlink()
         except FileNotFoundError:
             continue
-        except PermissionError:
-            log.warning("cannot remove the unfinished Fast DDS port %s (owner uid %d): "
-                        "it will hang the next participant that opens it", path,
-                        seen.st_uid)
+        except OSError as err:
+            log.warning("cannot remove the unfinished Fast DDS port %s (owner uid %d): %s; "
+                        "marked corrupted, so nobody waits on it", path, seen.st_uid, err)
             continue
         removed.append(name)
         try:  # its mutex, maybe left locked by the same process
@@ -105,9 +118,77 @@ def clear_dead_shm_ports(shm_dir: Path = SHM_DIR, *, min_age_s: float = DEAD_POR
                         name, err)
     if removed:
         log.warning("removed %d unfinished Fast DDS shared-memory port(s) left by killed "
-                    "processes (each would hang the next participant that opens it): %s",
+                    "processes (each would hang the participant that opens it): %s",
                     len(removed), ", ".join(sorted(removed)))
     return removed
+
+
+def _state(head: bytes) -> int | None:
+    return int.from_bytes(head, sys.byteorder) if len(head) == 4 else None
+
+
+def _warn_if_dead(path: Path, now: float, min_age_s: float, err: OSError) -> None:
+    try:
+        with open(path, "rb") as f:
+            state = _state(f.read(4))
+            age_s = now - os.fstat(f.fileno()).st_mtime
+    except OSError:
+        return
+    if state != _SEGMENT_READY and age_s > min_age_s:
+        log.warning("cannot release the unfinished Fast DDS port %s: %s; it will hang the "
+                    "participant that opens it", path, err)
+
+
+def await_unfinished_shm_ports(domain_id: int, *, poll_s: float = DEAD_PORT_POLL_S) -> None:
+    """Clear dead ports (:func:`clear_dead_shm_ports`), then wait while a port of
+    ``domain_id`` is still unfinished: until it is ready (its creator was at work) or old
+    enough to clear (its creator was killed less than ``DEAD_PORT_AGE_S`` ago), at most
+    ``DEAD_PORT_AGE_S``. Called before a context makes its participant: once it waits in
+    ``rcl_node_init`` on such a port, it holds the interpreter's lock, and nothing in the
+    process can release it any more."""
+    deadline = time.monotonic() + DEAD_PORT_AGE_S + poll_s
+    warned = False
+    while True:
+        clear_dead_shm_ports()
+        young = _unfinished_ports(domain_id)
+        if not young or time.monotonic() > deadline:
+            return
+        if not warned:
+            log.warning("waiting up to %.0f s for unfinished Fast DDS port(s) of ROS domain "
+                        "%d (%s): being set up, or left by a process killed just now; the "
+                        "participant would wait on them for ever", DEAD_PORT_AGE_S,
+                        domain_id, ", ".join(sorted(young)))
+            warned = True
+        time.sleep(poll_s)
+
+
+def _unfinished_ports(domain_id: int, shm_dir: Path = SHM_DIR) -> list[str]:
+    """The ports of ``domain_id`` that are not set up. (RTPS 9.6.1.1 gives each domain
+    250 ports from 7400 + 250 * domain; a participant's shared-memory port is its user-data
+    unicast port, + 11 + 2 * its participant id.)"""
+    base = 7400 + 250 * domain_id
+    unfinished: list[str] = []
+    try:
+        names = os.listdir(shm_dir)
+    except OSError:
+        return unfinished
+    for name in names:
+        if not _PORT.fullmatch(name) or not base <= int(name[len("fastdds_port"):]) < base + 250:
+            continue
+        try:
+            with open(shm_dir / name, "rb") as f:
+                if _state(f.read(4)) != _SEGMENT_READY:
+                    unfinished.append(name)
+        except OSError:
+            continue
+    return unfinished
+
+
+def _domain_id() -> int:
+    try:
+        return int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
+    except ValueError:  # rclpy names the problem when it reads it
+        return 0
 
 
 def in_executor_thread() -> bool:
@@ -130,7 +211,8 @@ class RosContext(Running):
     """
 
     def __init__(self, *, args: Sequence[str] | None = None, spin_timeout_s: float = 0.05) -> None:
-        clear_dead_shm_ports()  # before this process's participant opens its ports
+        # Before this process's participant opens its shared-memory ports.
+        await_unfinished_shm_ports(_domain_id())
         self.context = Context()
         rclpy.init(args=list(args) if args is not None else None, context=self.context)
         self.executor = EventsExecutor(context=self.context)
