@@ -47,6 +47,7 @@ class Behavior(Runnable):
     _unobserved_failures: list[Runnable]
     _accepting: bool
     _hook_errors: list[Exception]
+    _hook_pending: bool  # interrupted, and its on_interrupt() hook has not run yet
     _names: Counter[str]
     _awaiting: set[Runnable] | None
     #: The decision engine driving this behaviour now (set by ``DecisionEngine.drive``).
@@ -63,7 +64,7 @@ class Behavior(Runnable):
         self = super().__new__(cls)
         self.__dict__.update(_engine=None, _children=[], _names=Counter(),
                              _unobserved_failures=[], _hook_errors=[], _accepting=True,
-                             _awaiting=None)
+                             _awaiting=None, _hook_pending=False)
         return self
 
     def start_action(self, action: A, *, preempt: bool = False) -> A:
@@ -187,16 +188,21 @@ class Behavior(Runnable):
             children = list(self._children)
         for child in children:
             child._interrupt(deadline)
+        # The hook before its own thread is woken; the thread, which may see its interrupt
+        # flag without being woken, waits for the hook before it decides its status
+        # (_hook_pending, _after_run): an error the hook raises decides it. (A loaded
+        # machine's thread ended INTERRUPTED before the hook had raised; a stress run.)
+        try:
+            self.on_interrupt()
+        except Exception as exc:  # must not break the switch that is interrupting us
+            self._hook_failed("on_interrupt", exc)
         # Its own thread last (its interrupt flag is set already): woken threads queue for
         # the interpreter roughly in the order they were woken, so when this one's turn
         # comes its children have mostly ended, and it collects them at once instead of
         # waiting for them and being woken a second time.
         with self._cond_lock:
+            self._hook_pending = False
             self._cond.notify_all()
-        try:
-            self.on_interrupt()
-        except Exception as exc:  # must not break the switch that is interrupting us
-            self._hook_failed("on_interrupt", exc)
 
     def _after_run(self, error: BaseException | None) -> BaseException | None:
         assert self._manager is not None
@@ -227,6 +233,12 @@ class Behavior(Runnable):
                 if child._status is not Status.STUCK and not child._ended._on:
                     # It has decided; its clean-up is just finishing (bounded all the same).
                     child._join(max(0.0, deadline - time.monotonic()) + 0.05)
+        if self._hook_pending:  # the interrupting thread is in on_interrupt()
+            def hooked() -> bool:
+                return not self._hook_pending
+
+            with self._manager.clock.blocked(hooked), self._cond_lock:
+                self._cond.wait_for(hooked, max(0.0, deadline - time.monotonic()))
         with self._cond_lock:
             if error is None and self._hook_errors:
                 error = self._hook_errors[0]

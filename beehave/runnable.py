@@ -756,6 +756,8 @@ class Runnable(abc.ABC):
             self._stop_deadline = deadline
             if not self._HAS_CHILDREN:
                 self._cond.notify_all()
+            else:  # until its on_interrupt() hook has run (Behavior._after_run waits)
+                self._hook_pending = True
         self._on_interrupt(deadline)
 
     def _on_interrupt(self, deadline: float | None) -> None:
