@@ -236,9 +236,13 @@ def test_subscribers_get_every_event_and_one_that_raises_breaks_nothing(
     unsubscribe_broken = plane.subscribe(broken)
     unsubscribe = plane.subscribe(record)
     plane.switch("drive")
-    # Up to the action's start: no event of this switch is still on its way to `record`.
+    # Up to the action's start and the switch's end, whichever comes last (the switching
+    # thread may report its end after the behaviour started the action: a stress run): no
+    # event of this switch is still on its way to `record`.
     assert wait_until(lambda: any(e["kind"] == "started" and e["subject"] == "drive/to_station"
-                                  for e in list(got)))
+                                  for e in list(got))
+                      and any(e["kind"] == "switch_completed" and e["subject"] == "drive"
+                              for e in list(got)))
     assert hl.current == "drive"
     unsubscribe()
     unsubscribe_broken()
