@@ -125,10 +125,12 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 @pytest.fixture
-def hl() -> Iterator[HighLevelBehaviorManager]:
-    """A started manager with a short stop timeout; checks that nothing leaks."""
+def hl(request: pytest.FixtureRequest) -> Iterator[HighLevelBehaviorManager]:
+    """A started manager with a short stop timeout (a module's ``HL_STOP_TIMEOUT_S``, 0.3 s
+    by default); checks that nothing leaks."""
     with no_thread_left("shutdown"):
-        manager = HighLevelBehaviorManager(stop_timeout_s=0.3)
+        manager = HighLevelBehaviorManager(
+            stop_timeout_s=getattr(request.module, "HL_STOP_TIMEOUT_S", 0.3))
         manager.start()
         try:
             yield manager

@@ -33,7 +33,7 @@ numpy = pytest.importorskip("numpy")
 from beehave import HighLevelBehaviorManager  # noqa: E402
 from beehave.engines import EngineBehavior  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
-from beehave.testing import WALL_TIMEOUT_S, no_thread_left, wait_until, wall_timeout  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, wait_until, wall_timeout  # noqa: E402
 from behaviours.demos.graphs import delivery_machine, patrol_tree  # noqa: E402
 from tests.chromium import CHROMIUM, chromium  # noqa: E402
 from tests.http_fixtures import served  # noqa: E402
@@ -74,18 +74,10 @@ def _empty_spot(seen: dict[str, Any]) -> tuple[float, float, float, float]:
     raise AssertionError(f"no empty spot on the canvas: {canvas} {boxes}")
 
 
-@pytest.fixture
-def hl() -> Iterator[HighLevelBehaviorManager]:
-    """conftest's manager, with a stop timeout for a loaded machine: a breakpoint pauses
-    the tree through its actions' safe states, and an action whose thread got no CPU for
-    conftest's 0.3 s was declared STUCK and failed the tree (a stress run)."""
-    with no_thread_left("shutdown"):
-        manager = HighLevelBehaviorManager(stop_timeout_s=wall_timeout(0.05))
-        manager.start()
-        try:
-            yield manager
-        finally:
-            manager.shutdown()
+#: conftest's ``hl`` fixture, with a stop timeout for a loaded machine: a breakpoint
+#: pauses the tree through its actions' safe states, and an action whose thread got no CPU
+#: for conftest's 0.3 s was declared STUCK and failed the tree (a stress run).
+HL_STOP_TIMEOUT_S = wall_timeout(0.05)
 
 
 @pytest.fixture

@@ -77,11 +77,7 @@ def clear_dead_shm_ports(shm_dir: Path = SHM_DIR, *, min_age_s: float = DEAD_POR
     creator has been gone or stopped for 10 s)."""
     removed: list[str] = []
     now = time.time()
-    try:
-        names = [n for n in os.listdir(shm_dir) if _PORT.fullmatch(n)]
-    except OSError:  # no /dev/shm (not Linux): nothing to do
-        return removed
-    for name in names:
+    for name in _port_names(shm_dir):
         path = shm_dir / name
         try:
             fd = os.open(path, os.O_RDWR)
@@ -121,6 +117,14 @@ def clear_dead_shm_ports(shm_dir: Path = SHM_DIR, *, min_age_s: float = DEAD_POR
                     "processes (each would hang the participant that opens it): %s",
                     len(removed), ", ".join(sorted(removed)))
     return removed
+
+
+def _port_names(shm_dir: Path) -> list[str]:
+    """The names of the ports in ``shm_dir`` (none without it: not Linux)."""
+    try:
+        return [n for n in os.listdir(shm_dir) if _PORT.fullmatch(n)]
+    except OSError:
+        return []
 
 
 def _state(head: bytes) -> int | None:
@@ -168,12 +172,8 @@ def _unfinished_ports(domain_id: int, shm_dir: Path = SHM_DIR) -> list[str]:
     unicast port, + 11 + 2 * its participant id.)"""
     base = 7400 + 250 * domain_id
     unfinished: list[str] = []
-    try:
-        names = os.listdir(shm_dir)
-    except OSError:
-        return unfinished
-    for name in names:
-        if not _PORT.fullmatch(name) or not base <= int(name[len("fastdds_port"):]) < base + 250:
+    for name in _port_names(shm_dir):
+        if not base <= int(name[len("fastdds_port"):]) < base + 250:
             continue
         try:
             with open(shm_dir / name, "rb") as f:
