@@ -5,7 +5,13 @@ for the whole run, as other work does on a shared CI machine. Each run is the ex
 `make test` runs. The report gives each run's wall time and counts, and every test that
 failed or errored in any run, with how often. Exit status 0 only when every run passed.
 
-    python scripts/test_stress.py [--runs 10] [--hogs N] [--no-clone] [-- PYTEST ARGS]
+    python scripts/test_stress.py [--runs 10] [--hogs N] [--no-clone] [--core-dumps]
+                                  [-- PYTEST ARGS]
+
+``--core-dumps`` lifts the core-file size limit for the suite and its processes and lists
+the core files a run left in the checkout (where the robots and sims run), for a native
+crash that faulthandler can only show from the Python side. The kernel decides where a core
+goes (``/proc/sys/kernel/core_pattern``: ``core.%p`` keeps one per process).
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from __future__ import annotations
 import argparse
 import collections
 import os
+import resource
 import shutil
 import signal
 import statistics
@@ -41,6 +48,12 @@ def stop_hogs(hogs: list[subprocess.Popen[bytes]]) -> None:
         hog.wait()
 
 
+def _allow_cores() -> None:
+    """In the suite's process, before it starts: core files of any size (inherited)."""
+    _soft, hard = resource.getrlimit(resource.RLIMIT_CORE)
+    resource.setrlimit(resource.RLIMIT_CORE, (hard, hard))
+
+
 def failures(junit: Path) -> tuple[int, list[str]]:
     """(tests run, ids of those that failed or errored) from a JUnit XML report."""
     if not junit.exists():
@@ -61,6 +74,8 @@ def main() -> int:
                         help="busy-loop processes beside the suite (default: one per core)")
     parser.add_argument("--no-clone", dest="clone", action="store_false",
                         help="run in this checkout instead of a clean clone of HEAD")
+    parser.add_argument("--core-dumps", action="store_true",
+                        help="allow core files and list those a run left in the checkout")
     parser.add_argument("pytest_args", nargs="*")
     args = parser.parse_args()
 
@@ -90,11 +105,13 @@ def main() -> int:
             # Written as it comes (a run that hangs leaves its log), kept when it failed.
             log_path = work / f"run{run}.log"
             env["BEEHAVE_KEEP_DIR"] = str(work / f"run{run}-kept")  # a failure's recordings
+            cores_before = set(where.glob("core*"))
             with open(log_path, "w") as log:
                 done = subprocess.run([sys.executable, *PYTEST, "-p", "no:cacheprovider",
                                        f"--junitxml={junit}", *args.pytest_args],
                                       cwd=where, env=env, stdin=subprocess.DEVNULL,
-                                      stdout=log, stderr=subprocess.STDOUT)
+                                      stdout=log, stderr=subprocess.STDOUT,
+                                      preexec_fn=_allow_cores if args.core_dumps else None)
             wall = time.monotonic() - start
             ran, bad = failures(junit)
             counts.update(bad)
@@ -107,6 +124,8 @@ def main() -> int:
             if bad or done.returncode != 0:
                 for test in bad:
                     print(f"         failed: {test}")
+            for core in sorted(set(where.glob("core*")) - cores_before):
+                print(f"         core file: {core}")
             else:
                 log_path.unlink()
     finally:
