@@ -22,11 +22,15 @@ from beehave.engines import EngineBehavior  # noqa: E402
 from beehave.errors import BadRequest  # noqa: E402
 from beehave.interfaces import ControlPlane  # noqa: E402
 from beehave.interfaces.http import TOKEN_ENV, HttpServer  # noqa: E402
-from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, wait_until, wall_timeout  # noqa: E402
 from behaviours.demos.graphs import delivery_machine, patrol_tree  # noqa: E402
 from tests.http_fixtures import served  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("test_breakpoints")
+
+#: conftest's ``hl`` fixture, with a stop timeout for a loaded machine: a breakpoint pauses
+#: the robot through its actions' safe states (see test_http_graph, where 0.3 s failed).
+HL_STOP_TIMEOUT_S = wall_timeout(0.05)
 
 
 @pytest.fixture
