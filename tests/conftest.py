@@ -51,6 +51,14 @@ sys.dont_write_bytecode = False
 # SharedMemGlobal::open_port, read with gdb). A process the suite kills while it sets up a
 # port leaves it unfinished, and every later participant that opens that port hangs;
 # RosContext clears such ports before it starts (beehave.ros.context.clear_dead_shm_ports).
+# Every process of the suite, the plain rclpy clients and probes included, uses beehave's
+# Fast DDS profile (no TypeLookup service: Fast DDS 3.2 races in it, and a robot process of
+# a stress run died of SIGSEGV there; beehave.ros.context.use_fastdds_profile). Set before
+# any participant exists: Fast DDS reads it once per process.
+# (The file's path, not beehave.ros.context's constant: that module needs rclpy.)
+os.environ.setdefault("FASTDDS_DEFAULT_PROFILES_FILE",
+                      str(Path(__file__).resolve().parent.parent / "beehave" / "ros"
+                          / "fastdds_profile.xml"))
 # Every Python child writes its threads' stacks to its stderr on a fatal signal: a harness
 # that gives up on a hung child sends it SIGABRT and the test's failure shows where it hung.
 os.environ["PYTHONFAULTHANDLER"] = "1"
