@@ -121,11 +121,11 @@ def main() -> int:
                            f"exit {done.returncode}")
             rows.append((run, wall, ran, len(bad), done.returncode))
             print(f"run {run:2d}: {wall:6.1f} s  exit {done.returncode}  {summary}", flush=True)
+            for core in sorted(set(where.glob("core*")) - cores_before):
+                print(f"         core file: {core}")
             if bad or done.returncode != 0:
                 for test in bad:
                     print(f"         failed: {test}")
-            for core in sorted(set(where.glob("core*")) - cores_before):
-                print(f"         core file: {core}")
             else:
                 log_path.unlink()
     finally:
