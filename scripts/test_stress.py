@@ -9,9 +9,12 @@ failed or errored in any run, with how often. Exit status 0 only when every run 
                                   [-- PYTEST ARGS]
 
 ``--core-dumps`` lifts the core-file size limit for the suite and its processes and lists
-the core files a run left in the checkout (where the robots and sims run), for a native
-crash that faulthandler can only show from the Python side. The kernel decides where a core
-goes (``/proc/sys/kernel/core_pattern``: ``core.%p`` keeps one per process).
+the core files a run left where the robots and sims run (the clone, or this checkout with
+``--no-clone``), for a native crash that faulthandler can only show from the Python side;
+the clone is then kept. The kernel decides where a core goes
+(``/proc/sys/kernel/core_pattern``: ``core.%p`` keeps one per process; a pattern starting
+with ``|`` hands it to a program instead). ``test_agents`` sends one child SIGABRT on
+purpose: its small core appears in every run.
 """
 
 from __future__ import annotations
@@ -54,6 +57,17 @@ def _allow_cores() -> None:
     resource.setrlimit(resource.RLIMIT_CORE, (hard, hard))
 
 
+def _warn_if_no_core_files() -> None:
+    if resource.getrlimit(resource.RLIMIT_CORE)[1] == 0:
+        print("--core-dumps: the hard core-file limit is 0 here: no core files will appear")
+    try:
+        pattern = Path("/proc/sys/kernel/core_pattern").read_text().strip()
+    except OSError:
+        return
+    if pattern.startswith("|"):
+        print(f"--core-dumps: the kernel hands cores to a program ({pattern}), not to files")
+
+
 def failures(junit: Path) -> tuple[int, list[str]]:
     """(tests run, ids of those that failed or errored) from a JUnit XML report."""
     if not junit.exists():
@@ -75,7 +89,7 @@ def main() -> int:
     parser.add_argument("--no-clone", dest="clone", action="store_false",
                         help="run in this checkout instead of a clean clone of HEAD")
     parser.add_argument("--core-dumps", action="store_true",
-                        help="allow core files and list those a run left in the checkout")
+                        help="allow core files and list those a run left (keeps the clone)")
     parser.add_argument("pytest_args", nargs="*")
     args = parser.parse_args()
 
@@ -95,6 +109,9 @@ def main() -> int:
         p for p in (str(where), os.environ.get("PYTHONPATH", "")) if p)
     counts: collections.Counter[str] = collections.Counter()
     rows = []
+    cores: list[Path] = []
+    if args.core_dumps:
+        _warn_if_no_core_files()
     hogs = start_hogs(args.hogs)
     print(f"{len(hogs)} busy-loop processes running beside the suite: "
           f"{[h.pid for h in hogs]}")
@@ -122,6 +139,7 @@ def main() -> int:
             rows.append((run, wall, ran, len(bad), done.returncode))
             print(f"run {run:2d}: {wall:6.1f} s  exit {done.returncode}  {summary}", flush=True)
             for core in sorted(set(where.glob("core*")) - cores_before):
+                cores.append(core)
                 print(f"         core file: {core}")
             if bad or done.returncode != 0:
                 for test in bad:
@@ -139,7 +157,9 @@ def main() -> int:
         for test, n in counts.most_common():
             print(f"  {n}x  {test}")
         print(f"logs of the failed runs: {work}")
-    else:
+    if cores:
+        print(f"{len(cores)} core file(s) kept in {where} (gdb {sys.executable} <core>)")
+    elif not counts:
         shutil.rmtree(work, ignore_errors=True)
     return 0 if green == len(rows) else 1
 

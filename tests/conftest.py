@@ -53,12 +53,11 @@ sys.dont_write_bytecode = False
 # RosContext clears such ports before it starts (beehave.ros.context.clear_dead_shm_ports).
 # Every process of the suite, the plain rclpy clients and probes included, uses beehave's
 # Fast DDS profile (no TypeLookup service: Fast DDS 3.2 races in it, and a robot process of
-# a stress run died of SIGSEGV there; beehave.ros.context.use_fastdds_profile). Set before
+# a stress run died of SIGSEGV there; beehave.fastdds). Set before
 # any participant exists: Fast DDS reads it once per process.
-# (The file's path, not beehave.ros.context's constant: that module needs rclpy.)
-os.environ.setdefault("FASTDDS_DEFAULT_PROFILES_FILE",
-                      str(Path(__file__).resolve().parent.parent / "beehave" / "ros"
-                          / "fastdds_profile.xml"))
+from beehave.fastdds import use_fastdds_profile  # noqa: E402
+
+use_fastdds_profile()
 # Every Python child writes its threads' stacks to its stderr on a fatal signal: a harness
 # that gives up on a hung child sends it SIGABRT and the test's failure shows where it hung.
 os.environ["PYTHONFAULTHANDLER"] = "1"

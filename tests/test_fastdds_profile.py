@@ -1,7 +1,7 @@
-"""beehave's Fast DDS profile (beehave/ros/fastdds_profile.xml): a RosContext's process runs
-without Fast DDS's TypeLookup service, whose reply thread crashed a robot process of a stress
-run (SIGSEGV in TypeLookupManager::notify_callbacks, from its core file), and still talks to
-a plain rclpy program that keeps Fast DDS's defaults.
+"""beehave's Fast DDS profile (beehave/fastdds.py, beehave/fastdds_profile.xml): a RosContext's
+process runs without Fast DDS's TypeLookup service, whose reply thread crashed a robot process
+of a stress run (SIGSEGV in TypeLookupManager::notify_callbacks, from its core file), and
+still talks, both ways, to a plain rclpy program that keeps Fast DDS's defaults.
 
 The processes are real: what runs is read from /proc (the threads Fast DDS names), what is
 said is received over DDS."""
@@ -12,31 +12,30 @@ import logging
 import os
 import subprocess
 import sys
-import xml.etree.ElementTree as ET
+import tomllib
 from pathlib import Path
 
 import pytest
 
-from beehave.testing import wall_timeout
-
-pytest.importorskip("rclpy")
-
-from beehave.ros import context  # noqa: E402
-from beehave.ros.context import (  # noqa: E402
+from beehave import fastdds
+from beehave.fastdds import (
     FASTDDS_PROFILE,
     FASTDDS_PROFILE_ENV,
+    LEGACY_PROFILE_ENV,
+    type_propagation,
     use_fastdds_profile,
 )
+from beehave.testing import wall_timeout
 
 ROOT = Path(__file__).resolve().parent.parent
-#: Fast DDS 3.2 names its TypeLookup service's threads dds.tls.request and dds.tls.replies.
+#: Fast DDS 3.2 names its TypeLookup service's threads dds.tls.requests.<n> and
+#: dds.tls.replies.<n> (/proc shows the first 15 characters).
 TYPELOOKUP_THREADS = "dds.tls."
 
 # A child that makes one participant and prints the names of its process's threads.
 THREADS = """
 import os, sys
-mode = sys.argv[1]
-if mode == "beehave":
+if sys.argv[1] == "beehave":
     from beehave.ros.context import RosContext
     ctx = RosContext()
     node = ctx.create_node("profile_probe")
@@ -48,40 +47,58 @@ print(" ".join(sorted(open(f"/proc/self/task/{t}/comm").read().strip()
                       for t in os.listdir("/proc/self/task"))), flush=True)
 """
 
-# A RosContext's node publishes nav_msgs/Odometry (a type the listener's process has not
-# used before it subscribes) until a plain rclpy listener with Fast DDS's defaults has five.
+# One side publishes nav_msgs/Odometry (a type the other process has not used before)
+# until the other has five; either side is a RosContext or plain rclpy (Fast DDS defaults).
 TALKER = """
-import time
+import sys, time
 from nav_msgs.msg import Odometry
-from beehave.ros.context import RosContext
-ctx = RosContext()
-ctx.start()
-node = ctx.create_node("profile_talker")
+end = time.monotonic() + float(sys.argv[2])
+if sys.argv[1] == "beehave":
+    from beehave.ros.context import RosContext
+    ctx = RosContext()
+    node = ctx.create_node("profile_talker")
+else:
+    import rclpy
+    rclpy.init()
+    node = rclpy.create_node("profile_talker")
 pub = node.create_publisher(Odometry, "profile_check", 10)
-end = time.monotonic() + float(__import__("sys").argv[1])
 while time.monotonic() < end:
     pub.publish(Odometry())
     time.sleep(0.05)
-ctx.shutdown()
 """
 LISTENER = """
 import sys, time
-import rclpy
 from nav_msgs.msg import Odometry
-rclpy.init()
-node = rclpy.create_node("plain_listener")
 got = []
-node.create_subscription(Odometry, "profile_check", got.append, 10)
-end = time.monotonic() + float(sys.argv[1])
-while time.monotonic() < end and len(got) < 5:
-    rclpy.spin_once(node, timeout_sec=0.05)
+end = time.monotonic() + float(sys.argv[2])
+if sys.argv[1] == "beehave":
+    from beehave.ros.context import RosContext
+    ctx = RosContext()
+    ctx.start()
+    node = ctx.create_node("profile_listener")
+    node.create_subscription(Odometry, "profile_check", got.append, 10)
+    while time.monotonic() < end and len(got) < 5:
+        time.sleep(0.05)
+    ctx.shutdown()
+else:
+    import rclpy
+    rclpy.init()
+    node = rclpy.create_node("profile_listener")
+    node.create_subscription(Odometry, "profile_check", got.append, 10)
+    while time.monotonic() < end and len(got) < 5:
+        rclpy.spin_once(node, timeout_sec=0.05)
 print("received", len(got), flush=True)
 """
 
 
 def _env_without_profile() -> dict[str, str]:
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    """The suite's environment without its profile (conftest sets it for every process):
+    what a plain rclpy program or a fresh RosContext starts with."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
     env.pop(FASTDDS_PROFILE_ENV, None)
+    env.pop(LEGACY_PROFILE_ENV, None)
     return env
 
 
@@ -93,18 +110,13 @@ def _threads(mode: str) -> set[str]:
 
 
 def test_the_profile_turns_type_propagation_off_and_is_packaged() -> None:
-    root = ET.parse(FASTDDS_PROFILE).getroot()
-    ns = {"d": "http://www.eprosima.com"}
-    participant = root.find("d:profiles/d:participant", ns)
-    assert participant is not None and participant.get("is_default_profile") == "true"
-    props = {p.findtext("d:name", namespaces=ns): p.findtext("d:value", namespaces=ns)
-             for p in participant.iterfind(".//d:property", ns)}
-    assert props == {"fastdds.type_propagation": "disabled"}
-    pyproject = (ROOT / "pyproject.toml").read_text()
-    assert '"ros/fastdds_profile.xml"' in pyproject  # shipped with the wheel
+    assert type_propagation(FASTDDS_PROFILE) == "disabled"
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert "fastdds_profile.xml" in data["tool"]["setuptools"]["package-data"]["beehave"]
 
 
 def test_a_ros_context_runs_without_the_typelookup_service() -> None:
+    pytest.importorskip("rclpy")
     plain = _threads("plain")
     ours = _threads("beehave")
     # The control: Fast DDS's defaults start the service (else this test proves nothing).
@@ -113,43 +125,87 @@ def test_a_ros_context_runs_without_the_typelookup_service() -> None:
     assert any(t.startswith("dds.") for t in ours), ours  # a participant was made
 
 
-def test_a_ros_context_talks_to_a_plain_rclpy_program_with_the_defaults() -> None:
+@pytest.mark.parametrize("talker,listener", [("beehave", "plain"), ("plain", "beehave")])
+def test_a_ros_context_and_a_plain_rclpy_program_with_the_defaults_hear_each_other(
+        talker: str, listener: str) -> None:
+    pytest.importorskip("rclpy")
     env = _env_without_profile()
     bound_s = wall_timeout(0.5)
-    talker = subprocess.Popen([sys.executable, "-c", TALKER, str(bound_s)], env=env, cwd=ROOT,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    speaker = subprocess.Popen([sys.executable, "-c", TALKER, talker, str(bound_s)], env=env,
+                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                               text=True)
     try:
-        listener = subprocess.run([sys.executable, "-c", LISTENER, str(bound_s)], env=env,
-                                  capture_output=True, text=True, timeout=bound_s * 2)
+        heard = subprocess.run([sys.executable, "-c", LISTENER, listener, str(bound_s)],
+                               env=env, cwd=ROOT, capture_output=True, text=True,
+                               timeout=bound_s * 2)
     finally:
-        talker.kill()
-        talker.communicate()
-    assert listener.returncode == 0, listener.stderr[-2000:]
-    assert "received 5" in listener.stdout, (listener.stdout, listener.stderr[-2000:])
+        speaker.terminate()
+        try:
+            said = speaker.communicate(timeout=wall_timeout(0.2))[0]
+        except subprocess.TimeoutExpired:
+            speaker.kill()
+            said = speaker.communicate()[0]
+    assert heard.returncode == 0, (heard.stderr[-2000:], said[-2000:])
+    # (The executor thread of a RosContext may add one more before the loop looks.)
+    count = int(heard.stdout.split()[-1]) if heard.stdout.startswith("received") else 0
+    assert count >= 5, (heard.stdout, heard.stderr[-2000:], said[-2000:])
 
 
-def test_a_profile_of_the_users_own_is_kept_and_a_missing_property_is_named(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
-) -> None:
-    monkeypatch.setattr(context, "_warned_profile", set())
+@pytest.fixture
+def checked(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each test sees its profiles checked afresh (the module warns once per file)."""
+    monkeypatch.setattr(fastdds, "_checked", set())
+
+
+def _default_profile(value: str | None, *, default: bool = True) -> str:
+    prop = "" if value is None else (
+        f"<propertiesPolicy><properties><property><name>fastdds.type_propagation</name>"
+        f"<value>{value}</value></property></properties></propertiesPolicy>")
+    flag = ' is_default_profile="true"' if default else ""
+    return (f'<dds xmlns="http://www.eprosima.com"><profiles><participant profile_name="p"'
+            f"{flag}><rtps>{prop}</rtps></participant></profiles></dds>")
+
+
+def test_no_profile_of_the_users_gets_beehaves(checked: None) -> None:
+    env: dict[str, str] = {}
+    assert use_fastdds_profile(env) == FASTDDS_PROFILE
+    assert env == {FASTDDS_PROFILE_ENV: str(FASTDDS_PROFILE)}
+
+
+@pytest.mark.parametrize("variable", [FASTDDS_PROFILE_ENV, LEGACY_PROFILE_ENV])
+@pytest.mark.parametrize("body,warned", [
+    (_default_profile("disabled"), False),
+    (_default_profile("registration_only"), False),
+    (_default_profile(None), True),
+    (_default_profile("enabled"), True),
+    (_default_profile("disabled", default=False), True),  # not the default participant
+    ("<dds><not closed", True),
+])
+def test_a_profile_of_the_users_own_is_kept_and_checked(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture, checked: None, variable: str,
+        body: str, warned: bool) -> None:
     own = tmp_path / "mine.xml"
-    own.write_text('<dds xmlns="http://www.eprosima.com"><profiles/></dds>')
-    monkeypatch.setenv(FASTDDS_PROFILE_ENV, str(own))
-    with caplog.at_level(logging.WARNING, logger="beehave.ros.context"):
-        assert use_fastdds_profile() == str(own)
-        use_fastdds_profile()  # said once per file
-    assert os.environ[FASTDDS_PROFILE_ENV] == str(own)
+    own.write_text(body)
+    env = {variable: str(own)}
+    with caplog.at_level(logging.WARNING, logger="beehave.fastdds"):
+        assert use_fastdds_profile(env) == own
+        use_fastdds_profile(env)  # said once per file
+    assert env == {variable: str(own)}  # kept, and nothing added
     said = [r.getMessage() for r in caplog.records]
-    assert len(said) == 1 and "fastdds.type_propagation" in said[0] and str(own) in said[0]
+    assert len(said) == int(warned), said
+    if warned:
+        assert str(own) in said[0]
 
-    caplog.clear()
-    fine = tmp_path / "fine.xml"
-    fine.write_text(FASTDDS_PROFILE.read_text())
-    monkeypatch.setenv(FASTDDS_PROFILE_ENV, str(fine))
-    with caplog.at_level(logging.WARNING, logger="beehave.ros.context"):
-        assert use_fastdds_profile() == str(fine)
-    assert not caplog.records
 
-    monkeypatch.delenv(FASTDDS_PROFILE_ENV)
-    assert use_fastdds_profile() == str(FASTDDS_PROFILE)
-    assert os.environ[FASTDDS_PROFILE_ENV] == str(FASTDDS_PROFILE)
+def test_a_profile_in_the_working_directory_is_checked(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture,
+        checked: None) -> None:
+    (tmp_path / "DEFAULT_FASTDDS_PROFILES.xml").write_text(_default_profile("enabled"))
+    monkeypatch.chdir(tmp_path)
+    with caplog.at_level(logging.WARNING, logger="beehave.fastdds"):
+        use_fastdds_profile({"SKIP_DEFAULT_XML_FILE": "1"})  # Fast DDS skips it: so do we
+        assert not caplog.records
+        env: dict[str, str] = {}
+        assert use_fastdds_profile(env) == FASTDDS_PROFILE
+    assert env[FASTDDS_PROFILE_ENV] == str(FASTDDS_PROFILE)
+    assert len(caplog.records) == 1 and "DEFAULT_FASTDDS_PROFILES.xml" in caplog.text

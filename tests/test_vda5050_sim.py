@@ -119,16 +119,21 @@ def test_emili_executes_a_vda5050_order_in_the_physics(tmp_path: Path) -> None:
             assert probe.wait(lambda: len(odom) > count + 30)
             still = odom[-1]
             assert abs(still.twist.twist.linear.x) < 0.01, still.twist.twist
-            # The bound: the wheels stand within 0.5 s of sim time of the cancel's
-            # arrival. Its sim time is read from EMILI's own first state that reports the
-            # cancel: its agvPosition is the odometry EMILI had then, found again in the
-            # sim's odometry. (Not the probe's last odometry when the master sends: on a
+            # The bound: the wheels stand within 0.5 s of sim time of when EMILI
+            # first reported the cancel. That sim time is read from EMILI's own first state
+            # that lists it: its agvPosition is the odometry EMILI had then, found again in
+            # the sim's odometry. (Not the probe's last odometry when the master sends: on a
             # loaded machine the probe's stream and mosquitto lag sim seconds behind.)
             ack = next(s for s in list(master.received["state"]) if "cancel1" in _status(s))
             ax, ay = ack["agvPosition"]["x"], ack["agvPosition"]["y"]
             drive = list(odom)[first_o2:]
-            t_ack = _stamp_s(min(drive, key=lambda m: math.hypot(
-                m.pose.pose.position.x - ax, m.pose.pose.position.y - ay)))
+            match = min(drive, key=lambda m: math.hypot(m.pose.pose.position.x - ax,
+                                                        m.pose.pose.position.y - ay))
+            # (Should EMILI's state publisher be slower than the stop, the report shows the
+            # standstill and this bound holds trivially; the checks above still hold it to
+            # a standstill short of "back". Beside busy loops the report came 0.08-0.19 s of
+            # sim time before the wheels stood, in 6 runs.)
+            t_ack = _stamp_s(match)
             stopped = next(_stamp_s(m) for m in drive if _stamp_s(m) >= t_ack
                            and abs(m.twist.twist.linear.x) < 0.01)
             assert stopped - t_ack <= 0.5, (stopped - t_ack, ack["actionStates"])

@@ -20,6 +20,7 @@ from rclpy.experimental.events_executor import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from beehave.fastdds import use_fastdds_profile
 from beehave.lifecycle import Running
 
 log = logging.getLogger(__name__)
@@ -49,48 +50,6 @@ _PORT = re.compile(r"fastdds_port\d+")
 #: 2 once the segment is set up; 0 (created) or 1 (being set up) before; 3 corrupted.
 _SEGMENT_READY = 2
 _SEGMENT_CORRUPTED = 3
-
-
-#: The Fast DDS profile a RosContext gives its process when ``FASTDDS_DEFAULT_PROFILES_FILE``
-#: is unset (see :func:`use_fastdds_profile`).
-FASTDDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
-FASTDDS_PROFILE_ENV = "FASTDDS_DEFAULT_PROFILES_FILE"
-_TYPE_PROPAGATION = "fastdds.type_propagation"
-_warned_profile: set[str] = set()
-
-
-def use_fastdds_profile() -> str:
-    """Point ``FASTDDS_DEFAULT_PROFILES_FILE`` at beehave's profile (``fastdds_profile.xml``,
-    which turns Fast DDS's XTypes type propagation and TypeLookup service off) unless it
-    already names a file; returns the file in use. Called before ``rclpy.init``: Fast DDS
-    reads the variable once per process, when it makes the first participant, and child
-    processes inherit it.
-
-    Why: Fast DDS 3.2 (ROS 2 Kilted's) reads its pending type requests in the TypeLookup
-    reply thread without a lock while discovery adds to them; a robot process discovering
-    endpoints of types it does not use itself died of SIGSEGV in
-    ``TypeLookupManager::notify_callbacks`` in our stress runs (the native stack from its core
-    file). Without the service, endpoints match by type name, as ROS 2 expects. A profile of
-    the user's own is kept; a warning says when it leaves type propagation on."""
-    own = os.environ.get(FASTDDS_PROFILE_ENV)
-    if not own:
-        os.environ[FASTDDS_PROFILE_ENV] = str(FASTDDS_PROFILE)
-        return str(FASTDDS_PROFILE)
-    if own not in _warned_profile:
-        _warned_profile.add(own)
-        try:
-            text = Path(own).read_text(errors="replace")
-        except OSError as err:
-            log.warning("%s=%s cannot be read (%s); Fast DDS will report it too",
-                        FASTDDS_PROFILE_ENV, own, err)
-            return own
-        if _TYPE_PROPAGATION not in text:
-            log.warning("%s=%s does not set the participant property %s: Fast DDS 3.2's "
-                        "TypeLookup service can crash a process under load (see docs/ros.md); "
-                        "add <property><name>%s</name><value>disabled</value></property>, as "
-                        "%s does", FASTDDS_PROFILE_ENV, own, _TYPE_PROPAGATION,
-                        _TYPE_PROPAGATION, FASTDDS_PROFILE)
-    return own
 
 
 def clear_dead_shm_ports(shm_dir: Path = SHM_DIR, *, min_age_s: float = DEAD_PORT_AGE_S
