@@ -35,7 +35,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from beehave import Behavior  # noqa: E402
 from beehave.config import parse_config  # noqa: E402
 from beehave.robot import Robot  # noqa: E402
-from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, wait_until, wall_timeout  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("test_ros_execute_behavior")
 
@@ -101,7 +101,7 @@ class Sent:
         goal = ExecuteBehavior.Goal(behavior=behavior, params_json=params_json)
         future = client.action.send_goal_async(
             goal, feedback_callback=lambda m: self.feedback.append(m.feedback))
-        self.handle = client.wait(future)
+        self.handle = client.wait_goal_answer(future)
         assert self.handle.accepted, f"goal {behavior!r} not accepted"
         self.id = str(uuid.UUID(bytes=bytes(self.handle.goal_id.uuid)))
         self._result = self.handle.get_result_async()
@@ -192,6 +192,31 @@ class GoalClient:
         future.add_done_callback(lambda _: done.set())
         assert done.wait(WALL_TIMEOUT_S), f"no answer; the threads of this process:\n{_stacks()}"
         return future.result()
+
+    def wait_goal_answer(self, future: Any) -> Any:
+        """The answer to a goal request. One went unanswered for 60 s in a stress run with
+        every thread idle; should it happen again, the failure says which side lost it: a
+        second goal (refused, no side effect) is sent, and if the first's answer then comes
+        the server had not noticed the first request (an executor event lost), else the
+        request or its answer was lost in DDS."""
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        if done.wait(WALL_TIMEOUT_S):
+            return future.result()
+        stacks = _stacks()
+        nudge = self.action.send_goal_async(
+            ExecuteBehavior.Goal(behavior="__nudge__", params_json=""))
+        nudged = threading.Event()
+        nudge.add_done_callback(lambda _: nudged.set())
+        nudged.wait(wall_timeout(0.1))
+        late = done.wait(wall_timeout(0.1))
+        side = ("the server answered it only after a second goal came: it had not noticed "
+                "the first request (an executor event lost)" if late else
+                "no answer even after a second goal "
+                f"({'answered' if nudged.is_set() else 'unanswered too'}): the request or "
+                "its answer was lost between the client's and the server's DDS participants")
+        raise AssertionError(f"goal request unanswered for {WALL_TIMEOUT_S:g} s; {side}; "
+                             f"the threads of this process:\n{stacks}")
 
     def send(self, behavior: str, params: Any = None, *, raw: str | None = None) -> Sent:
         text = raw if raw is not None else ("" if params is None else json.dumps(params))
@@ -671,3 +696,4 @@ def test_interface_build_does_nothing_when_the_installed_build_matches(tmp_path:
     (share / "beehave_build.sha256").write_text("0" * 64 + "\n")
     done = _run_script(script, venv, env)
     assert done.returncode == 1 and "'cmake' is missing" in done.stderr, done
+
