@@ -89,11 +89,17 @@ a wall, the quadrotor finishes its mission; ``droid``: both at once (the copter 
 rover, then takes its mission over)."""
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
+def free_udp_ports(count: int) -> list[int]:
+    """Distinct free UDP ports (held together while choosing: the kernel may hand the same
+    port out again once it is closed)."""
+    sockets = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
+    try:
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
 
 
 @dataclass
@@ -243,7 +249,7 @@ def run(*, scenario: str = "droid", timeout_s: float = 150.0, picture: Path | No
     # Real time while the robots' processes start (nothing to simulate yet; with --fast
     # the physics would run minutes ahead and take the CPU they start on), then --fast.
     sim = Simulation(world, real_time_factor=1.0)
-    ports = {"rover1": free_udp_port(), other: free_udp_port()}
+    ports = dict(zip(("rover1", other), free_udp_ports(2), strict=True))
     endpoints = {name: MavlinkEndpoint(sim, name, url=f"udpout:127.0.0.1:{port}",
                                        system_id=i + 1)
                  for i, (name, port) in enumerate(ports.items())}
