@@ -27,10 +27,9 @@ import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # type: ignore[import-untyped]  # noqa: E402
-from udp_ports import free_udp_port_pair, free_udp_ports  # noqa: E402
 
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402  (timeouts only)
-from tests.test_mavlink_ground_station import GroundStation  # noqa: E402
+from tests.test_mavlink_ground_station import GroundStation, free_port_pair  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("test_mavlink_signing")
 
@@ -102,7 +101,7 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
     world, key_file = folder / "signed.yaml", folder / "mavlink.key"
     world.write_text(WORLD)
     key_file.write_text(PASSPHRASE + "\n")
-    base = free_udp_port_pair()
+    base = free_port_pair()
     proc = subprocess.Popen(
         [sys.executable, "-m", "beehave.cli", "sim", str(world), "--mavlink-base-port",
          str(base), "--mavlink-key-file", str(key_file), "--no-lockstep"],
@@ -261,6 +260,7 @@ def test_beehave_links_sign_with_their_key_file_and_drop_what_is_not_signed(
     from robots.mavlink_endpoint import MavlinkEndpoint
     from robots.sim import Simulation
     from robots.world import world_from_dict
+    from tests.test_mavlink import free_ports
 
     key_file = tmp_path / "mavlink.key"
     key_file.write_text(KEY.hex())  # 64 hex digits: the key itself
@@ -268,7 +268,7 @@ def test_beehave_links_sign_with_their_key_file_and_drop_what_is_not_signed(
              "robots": [{"namespace": "signed", "kind": "kobuki", "start": {"x_m": 1, "y_m": 1}},
                         {"namespace": "plain", "kind": "kobuki", "start": {"x_m": 4, "y_m": 3}}]}
     sim = Simulation(world_from_dict(world), real_time_factor=1.0)
-    ports = free_udp_ports(3)
+    ports = free_ports(3)
     signed = MavlinkEndpoint(sim, "signed", url=f"udpout:127.0.0.1:{ports[0]}", system_id=1,
                              signing_key=KEY)
     plain = MavlinkEndpoint(sim, "plain", url=f"udpout:127.0.0.1:{ports[1]}", system_id=2)
