@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -13,7 +14,6 @@ from typing import Any
 import pytest
 from builtin_interfaces.msg import Time
 from std_msgs.msg import String
-from udp_ports import free_udp_port  # noqa: E402
 
 from beehave import Behavior, HighLevelBehaviorManager, Status
 from beehave.agents import Agent
@@ -30,12 +30,19 @@ from robots.world import world_from_dict
 PROBE_S = 0.3
 
 
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
 def started_vehicle(world: dict[str, Any], namespace: str,
                     ) -> tuple[Simulation, str, MavlinkEndpoint]:
     """A real-time simulation of ``world``, started, with ``namespace`` as MAVLink system 1
     on a free UDP port: the simulation, the URL to connect to and the endpoint."""
     sim = Simulation(world_from_dict(world), real_time_factor=1.0)
-    port = free_udp_port()
+    port = free_port()
     endpoint = MavlinkEndpoint(sim, namespace, url=f"udpout:127.0.0.1:{port}", system_id=1)
     sim.start()
     return sim, f"udp:127.0.0.1:{port}", endpoint
@@ -222,7 +229,7 @@ def _held_still(sim: Simulation, robot: Any) -> Any:
 def test_follow_keeps_its_distance_and_holds_below_safety_and_when_the_leader_goes_stale(
         ros: RosContext) -> None:
     sim = Simulation(world_from_dict(FOLLOW_WORLD), real_time_factor=1.0)
-    port = free_udp_port()
+    port = free_port()
     quad = MavlinkEndpoint(sim, "quad", url=f"udpout:127.0.0.1:{port}", system_id=2)
     gaps: list[float] = []
     lead, flyer = sim.robot("lead"), sim.robot("quad")
@@ -409,7 +416,7 @@ WALL_WORLD = {"name": "wall", "floor": {"size_m": [10, 6]},
 def test_a_blocked_rover_without_any_helper_reports_failure_and_goes_home(
         ros: RosContext) -> None:
     sim = Simulation(world_from_dict(WALL_WORLD), real_time_factor=1.0)
-    port = free_udp_port()
+    port = free_port()
     rover = MavlinkEndpoint(sim, "rover", url=f"udpout:127.0.0.1:{port}", system_id=1)
     sim.start()
     try:

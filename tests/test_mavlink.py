@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
-from udp_ports import free_udp_port, free_udp_port_pair, free_udp_ports  # noqa: E402
 
 from beehave import Behavior, HighLevelBehaviorManager, Status
 from beehave.blackboard import Blackboard
@@ -47,6 +46,25 @@ WORLD = {"name": "mav", "floor": {"size_m": [12, 8]},
                     {"namespace": "quad1", "kind": "quad", "start": {"x_m": 2, "y_m": 5}}]}
 
 
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def free_ports(count: int) -> list[int]:
+    """Distinct free UDP ports (held open together while choosing: none repeats)."""
+    sockets = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
+    try:
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
+
+
 @pytest.fixture
 def cleanup(hl: HighLevelBehaviorManager) -> Iterator[Callable[[Callable[[], None]], None]]:
     """Clean-ups that run before the ``hl`` fixture checks for leaked threads."""
@@ -68,7 +86,7 @@ class Vehicles:
 @pytest.fixture
 def vehicles() -> Iterator[Vehicles]:
     sim = Simulation(world_from_dict(WORLD), real_time_factor=1.0)
-    ports = free_udp_ports(2)
+    ports = free_ports(2)
     rover = MavlinkEndpoint(sim, "rover1", url=f"udpout:127.0.0.1:{ports[0]}", system_id=1,
                             rerequest_s=30.0)  # the client's retries must do the work
     quad = MavlinkEndpoint(sim, "quad1", url=f"udpout:127.0.0.1:{ports[1]}", system_id=2)
@@ -208,7 +226,7 @@ def test_a_malformed_connection_names_the_supported_forms() -> None:
 def test_the_link_refuses_non_finite_targets_before_sending_them() -> None:
     """A NaN target, takeoff altitude or parameter is a mistake of the caller: ConfigError
     at once, naming it (the vehicle would refuse it anyway)."""
-    link = open_link(f"udp:127.0.0.1:{free_udp_port()}")
+    link = open_link(f"udp:127.0.0.1:{free_port()}")
     try:
         with pytest.raises(ConfigError, match="position target must be finite"):
             link.goto_local(math.nan, 1.0, 2.0)
@@ -432,7 +450,7 @@ def test_the_worlds_mavlink_option_is_checked_and_numbers_the_vehicles() -> None
     assert world.mavlink is not None and world.mavlink.base_port == 14900
     sim = Simulation(world, real_time_factor=None)
     try:
-        endpoints = open_endpoints(sim, base_port=free_udp_port_pair())
+        endpoints = open_endpoints(sim, base_port=free_port())
         try:
             assert [(e.namespace, e.kind, e.system_id) for e in endpoints.values()] == \
                 [("rover1", "rover", 1), ("quad1", "copter", 2)]
@@ -452,7 +470,7 @@ def test_sending_while_new_peers_appear_never_breaks_the_link() -> None:
     (the reader thread) and writes (any thread) must not interleave."""
     from pymavlink import mavutil
 
-    port = free_udp_port()
+    port = free_port()
     link = open_link(f"udp:127.0.0.1:{port}")
     stop = threading.Event()
 
@@ -516,7 +534,7 @@ def test_beehave_sim_mavlink_opens_one_port_per_vehicle() -> None:
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
-    base = free_udp_port_pair()
+    base = free_port()
     proc = subprocess.Popen(
         [sys.executable, "-m", "beehave.cli", "sim", "robots/worlds/droid.yaml",
          "--mavlink-base-port", str(base), "--duration-s", "30"],
@@ -545,7 +563,7 @@ def test_a_starved_reader_reads_its_backlog_before_it_calls_the_vehicle_lost() -
     start-up beside busy loops)."""
     from pymavlink import mavutil
 
-    port = free_udp_port()
+    port = free_port()
     link = open_link(f"udp:127.0.0.1:{port}", timeout_s=0.3, heartbeat_timeout_s=0.5)
     vehicle = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
                                          source_component=1)
@@ -594,7 +612,7 @@ def test_a_backlog_that_never_drains_still_lets_a_silent_vehicle_be_lost() -> No
     a vehicle that went silent is still called lost."""
     from pymavlink import mavutil
 
-    port = free_udp_port()
+    port = free_port()
     link = open_link(f"udp:127.0.0.1:{port}", timeout_s=0.3, heartbeat_timeout_s=0.3)
     vehicle = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
                                          source_component=1)

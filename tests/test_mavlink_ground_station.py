@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import random
+import socket
 import subprocess
 import sys
 import threading
@@ -25,9 +26,9 @@ import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # type: ignore[import-untyped]  # noqa: E402
-from udp_ports import free_udp_port_pair, free_udp_ports  # noqa: E402
 
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402  (timeouts only)
+from tests.test_mavlink import free_ports  # noqa: E402
 
 mav = mavutil.mavlink
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,6 +43,21 @@ USE_VELOCITY = 0b1101_1100_0111   # vx, vy, vz
 # ArduPilot's SITL home (CMAC), the origin of the simulated vehicles' local frame
 ORIGIN = (-35.363262, 149.165237)
 R_EARTH = 6378137.0
+
+
+def free_port_pair() -> int:
+    """A free UDP port whose successor is free too (``beehave sim`` uses BASE and BASE+1)."""
+    for _ in range(100):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as first:
+            first.bind(("127.0.0.1", 0))
+            base: int = first.getsockname()[1]
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as second:
+                try:
+                    second.bind(("127.0.0.1", base + 1))
+                except OSError:
+                    continue
+                return base
+    raise AssertionError("no two consecutive free UDP ports")
 
 
 def to_global(north_m: float, east_m: float) -> tuple[int, int]:
@@ -189,7 +205,7 @@ def rig() -> Iterator[Rig]:
     from robots.world import world_from_dict
 
     sim = Simulation(world_from_dict(WORLD), real_time_factor=1.0)
-    ports = free_udp_ports(2)
+    ports = free_ports(2)
     stations: list[GroundStation] = []
     endpoints: list[MavlinkEndpoint] = []
     try:
@@ -750,7 +766,7 @@ def test_fuzzing_every_handled_message_never_stops_beehave_sim(tmp_path: Path) -
 
     world = tmp_path / "gcs.yaml"
     world.write_text(yaml.safe_dump(WORLD))
-    base = free_udp_port_pair()
+    base = free_port_pair()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     stations: list[GroundStation] = []
     proc: subprocess.Popen[str] | None = None

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import asyncio
+import socket
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
 from hal_contract import HALContract
-from udp_ports import free_udp_port  # noqa: E402
 
 from hal.mavlink import MavlinkPositionHAL
 from robots.mavlink_endpoint import MavlinkEndpoint
@@ -23,7 +23,9 @@ _PORT: list[int] = []
 
 @pytest.fixture(scope="module", autouse=True)
 def vehicle() -> Iterator[None]:
-    _PORT.append(free_udp_port())
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        _PORT.append(s.getsockname()[1])
     sim = Simulation(world_from_dict({"name": "contract", "floor": {"size_m": [6, 6]},
                                       "robots": [{"namespace": "rover", "kind": "kobuki",
                                                   "start": {"x_m": 1, "y_m": 1}}]}),
