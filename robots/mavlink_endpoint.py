@@ -90,6 +90,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import socket
 import threading
 import time
 from collections import Counter
@@ -1604,6 +1605,19 @@ class MavlinkEndpoint:
     def __repr__(self) -> str:
         return (f"<MavlinkEndpoint {self.namespace} {self.kind} sys={self.system_id} "
                 f"{self.url} mode={self.mode} armed={self.armed}>")
+
+
+def free_udp_ports(count: int) -> list[int]:
+    """Distinct free UDP ports on 127.0.0.1 for endpoints' links (held together while
+    choosing: the kernel may hand the same port out again once it is closed)."""
+    sockets = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
+    try:
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
 
 
 def open_endpoints(sim: Simulation, *, base_port: int, host: str = "127.0.0.1",

@@ -32,62 +32,56 @@ ROOT = Path(__file__).resolve().parent.parent
 #: dds.tls.replies.<n> (/proc shows the first 15 characters).
 TYPELOOKUP_THREADS = "dds.tls."
 
-# A child that makes one participant and prints the names of its process's threads.
-THREADS = """
-import os, sys
-if sys.argv[1] == "beehave":
-    from beehave.ros.context import RosContext
-    ctx = RosContext()
-    node = ctx.create_node("profile_probe")
-else:
-    import rclpy
-    rclpy.init()
-    node = rclpy.create_node("profile_probe")
-print(" ".join(sorted(open(f"/proc/self/task/{t}/comm").read().strip()
-                      for t in os.listdir("/proc/self/task"))), flush=True)
-"""
-
-# One side publishes nav_msgs/Odometry (a type the other process has not used before)
-# until the other has five; either side is a RosContext or plain rclpy (Fast DDS defaults).
-TALKER = """
-import sys, time
-from nav_msgs.msg import Odometry
-end = time.monotonic() + float(sys.argv[2])
-if sys.argv[1] == "beehave":
-    from beehave.ros.context import RosContext
-    ctx = RosContext()
-    node = ctx.create_node("profile_talker")
-else:
-    import rclpy
-    rclpy.init()
-    node = rclpy.create_node("profile_talker")
-pub = node.create_publisher(Odometry, "profile_check", 10)
-while time.monotonic() < end:
-    pub.publish(Odometry())
-    time.sleep(0.05)
-"""
-LISTENER = """
-import sys, time
-from nav_msgs.msg import Odometry
-got = []
-end = time.monotonic() + float(sys.argv[2])
+# The first lines of every child: a node named argv[2], made by a RosContext ("beehave", its
+# executor thread serving it) or by plain rclpy with Fast DDS's defaults ("plain").
+NODE = """
+import os, sys, time
 if sys.argv[1] == "beehave":
     from beehave.ros.context import RosContext
     ctx = RosContext()
     ctx.start()
-    node = ctx.create_node("profile_listener")
-    node.create_subscription(Odometry, "profile_check", got.append, 10)
-    while time.monotonic() < end and len(got) < 5:
-        time.sleep(0.05)
-    ctx.shutdown()
+    node = ctx.create_node(sys.argv[2])
 else:
     import rclpy
     rclpy.init()
-    node = rclpy.create_node("profile_listener")
-    node.create_subscription(Odometry, "profile_check", got.append, 10)
-    while time.monotonic() < end and len(got) < 5:
+    node = rclpy.create_node(sys.argv[2])
+
+
+def done():
+    if sys.argv[1] == "beehave":
+        ctx.shutdown()
+"""
+
+# Prints the names of its process's threads.
+THREADS = NODE + """
+print(" ".join(sorted(open(f"/proc/self/task/{t}/comm").read().strip()
+                      for t in os.listdir("/proc/self/task"))), flush=True)
+done()
+"""
+
+# One side publishes nav_msgs/Odometry (a type the other process has not used before) for
+# argv[3] seconds; the other listens until it has five or argv[3] seconds have passed.
+TALKER = NODE + """
+from nav_msgs.msg import Odometry
+end = time.monotonic() + float(sys.argv[3])
+pub = node.create_publisher(Odometry, "profile_check", 10)
+while time.monotonic() < end:
+    pub.publish(Odometry())
+    time.sleep(0.05)
+done()
+"""
+LISTENER = NODE + """
+from nav_msgs.msg import Odometry
+end = time.monotonic() + float(sys.argv[3])
+got = []
+node.create_subscription(Odometry, "profile_check", got.append, 10)
+while time.monotonic() < end and len(got) < 5:
+    if sys.argv[1] == "beehave":
+        time.sleep(0.05)  # the context's executor thread takes the messages
+    else:
         rclpy.spin_once(node, timeout_sec=0.05)
 print("received", len(got), flush=True)
+done()
 """
 
 
@@ -103,8 +97,9 @@ def _env_without_profile() -> dict[str, str]:
 
 
 def _threads(mode: str) -> set[str]:
-    out = subprocess.run([sys.executable, "-c", THREADS, mode], env=_env_without_profile(),
-                         capture_output=True, text=True, timeout=wall_timeout(1.0), cwd=ROOT)
+    out = subprocess.run([sys.executable, "-c", THREADS, mode, "profile_probe"],
+                         env=_env_without_profile(), capture_output=True, text=True,
+                         timeout=wall_timeout(1.0), cwd=ROOT)
     assert out.returncode == 0, out.stderr[-2000:]
     return set(out.stdout.split())
 
@@ -131,11 +126,12 @@ def test_a_ros_context_and_a_plain_rclpy_program_with_the_defaults_hear_each_oth
     pytest.importorskip("rclpy")
     env = _env_without_profile()
     bound_s = wall_timeout(0.5)
-    speaker = subprocess.Popen([sys.executable, "-c", TALKER, talker, str(bound_s)], env=env,
-                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                               text=True)
+    speaker = subprocess.Popen([sys.executable, "-c", TALKER, talker, "profile_talker",
+                                str(bound_s)], env=env, cwd=ROOT, stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True)
     try:
-        heard = subprocess.run([sys.executable, "-c", LISTENER, listener, str(bound_s)],
+        heard = subprocess.run([sys.executable, "-c", LISTENER, listener, "profile_listener",
+                                str(bound_s)],
                                env=env, cwd=ROOT, capture_output=True, text=True,
                                timeout=bound_s * 2)
     finally:

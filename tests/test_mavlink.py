@@ -37,6 +37,7 @@ from hal.mavlink import (
     open_link,
 )
 from robots.mavlink_endpoint import MavlinkEndpoint
+from robots.mavlink_endpoint import free_udp_ports as free_ports
 from robots.sim import Simulation
 from robots.world import world_from_dict
 
@@ -51,18 +52,6 @@ def free_port() -> int:
         s.bind(("127.0.0.1", 0))
         port: int = s.getsockname()[1]
         return port
-
-
-def free_ports(count: int) -> list[int]:
-    """Distinct free UDP ports (held open together while choosing: none repeats)."""
-    sockets = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
-    try:
-        for s in sockets:
-            s.bind(("127.0.0.1", 0))
-        return [s.getsockname()[1] for s in sockets]
-    finally:
-        for s in sockets:
-            s.close()
 
 
 @pytest.fixture

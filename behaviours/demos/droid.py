@@ -43,7 +43,6 @@ import math
 import os
 import queue
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -57,7 +56,7 @@ import yaml
 
 from beehave.procs import dies_with_parent
 from beehave.ros.context import RosContext
-from robots.mavlink_endpoint import MavlinkEndpoint
+from robots.mavlink_endpoint import MavlinkEndpoint, free_udp_ports
 from robots.node import SimNode
 from robots.quad import Quad
 from robots.sim import SimState, Simulation
@@ -87,19 +86,6 @@ SCENARIOS = ("follow", "handover", "droid")
 """``follow``: rover1 leads a tour, rover2 follows it at 2 m; ``handover``: rover1 meets
 a wall, the quadrotor finishes its mission; ``droid``: both at once (the copter follows the
 rover, then takes its mission over)."""
-
-
-def free_udp_ports(count: int) -> list[int]:
-    """Distinct free UDP ports (held together while choosing: the kernel may hand the same
-    port out again once it is closed)."""
-    sockets = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
-    try:
-        for s in sockets:
-            s.bind(("127.0.0.1", 0))
-        return [s.getsockname()[1] for s in sockets]
-    finally:
-        for s in sockets:
-            s.close()
 
 
 @dataclass
