@@ -108,7 +108,7 @@ class FibonacciServer:
 
     def __init__(self, name: str, *, step_s: float = 0.01) -> None:
         import rclpy
-        from rclpy.action import ActionServer, CancelResponse, GoalResponse
+        from rclpy.action import ActionServer, CancelResponse
         from rclpy.callback_groups import ReentrantCallbackGroup
         from rclpy.context import Context
         from rclpy.executors import MultiThreadedExecutor
@@ -120,14 +120,14 @@ class FibonacciServer:
         self.stop_delay_s = 0.0
         self.cancelled: list[int] = []
         self.succeeded: list[int] = []
+        self.requested = threading.Event()  # a goal request came
         self.executing = threading.Event()
         self.context = Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node("fibonacci_server", context=self.context)
         self.server = ActionServer(
             self.node, Fibonacci, name, execute_callback=self._execute,
-            goal_callback=lambda goal: (time.sleep(self.accept_delay_s) or (
-                GoalResponse.REJECT if goal.order < 0 else GoalResponse.ACCEPT)),
+            goal_callback=self._on_goal,
             cancel_callback=lambda _handle: CancelResponse.ACCEPT,
             callback_group=ReentrantCallbackGroup())
         self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
@@ -135,6 +135,13 @@ class FibonacciServer:
         self._thread = threading.Thread(target=self.executor.spin, name="fibonacci-server",
                                         daemon=True)
         self._thread.start()
+
+    def _on_goal(self, goal: Any) -> Any:
+        from rclpy.action import GoalResponse
+
+        self.requested.set()
+        time.sleep(self.accept_delay_s)
+        return GoalResponse.REJECT if goal.order < 0 else GoalResponse.ACCEPT
 
     def _execute(self, handle: Any) -> Any:
         fib = self._fib

@@ -4,6 +4,9 @@ interrupt (their safe state)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -13,6 +16,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 
+from rclpy.action import ActionClient  # noqa: E402
 from ros_probe import FibonacciServer, Probe  # noqa: E402
 from test_msgs.action import Fibonacci  # noqa: E402
 from test_msgs.srv import BasicTypes  # noqa: E402
@@ -21,7 +25,7 @@ from beehave import Behavior, HighLevelBehaviorManager  # noqa: E402
 from beehave.errors import ConfigError, GoalFailed  # noqa: E402
 from beehave.ros.actions import RosActionGoal, ServiceCall  # noqa: E402
 from beehave.ros.context import RosContext  # noqa: E402
-from beehave.ros.io import WaitTimeout  # noqa: E402
+from beehave.ros.io import RosIO, WaitTimeout, node_action_client  # noqa: E402
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
 
 NS = "rosacts"
@@ -204,6 +208,129 @@ def test_an_interrupt_waits_cancel_timeout_s_once_not_twice(server: FibonacciSer
         assert hl.snapshot()["stuck"] == []
 
 
+@pytest.mark.parametrize("how", ["server_timeout", "interrupt"])
+def test_a_goal_accepted_after_its_sender_gave_up_is_cancelled(
+        hl: HighLevelBehaviorManager, server: FibonacciServer, how: str) -> None:
+    """The owner ends right after giving up; the node's action client outlives it, so the
+    late acceptance is answered with a cancel rather than left running with no owner."""
+    server.step_s = 0.05
+    server.accept_delay_s = 1.0
+    # The node's client (the one the action will use) sees the server: the 0.3 s are the
+    # server's to answer, not discovery's.
+    assert node_action_client(hl.node, Fibonacci, "fibonacci").wait_for_server(
+        timeout_sec=WALL_TIMEOUT_S)
+    action = Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=1000),  # ~50 s
+                 server_timeout_s=0.3 if how == "server_timeout" else 30.0)
+    hl.register("runs", Runs, action=action)
+    assert hl.switch("runs").ready.wait(WALL_TIMEOUT_S)  # type: ignore[attr-defined]
+    if how == "interrupt":
+        assert server.requested.wait(WALL_TIMEOUT_S)  # sent, not yet answered
+        hl.switch("idle")
+        assert action.status.name == "INTERRUPTED", (action.status, action.error)
+    else:
+        assert action.wait(WALL_TIMEOUT_S)
+        assert isinstance(action.error, WaitTimeout), action.error
+    assert wait_until(lambda: server.cancelled == [1000]), (server.cancelled,
+                                                            server.succeeded)
+
+
+CHURN = textwrap.dedent("""
+    import sys, threading, time
+    import rclpy
+    from rclpy.action import ActionServer, CancelResponse
+    from rclpy.callback_groups import ReentrantCallbackGroup
+    from rclpy.context import Context
+    from rclpy.executors import MultiThreadedExecutor
+    from test_msgs.action import Fibonacci
+    from beehave.ros.context import RosContext
+    from beehave.ros.io import RosIO
+
+    def execute(handle):  # feedback every millisecond until cancelled
+        for i in range(2000):
+            if handle.is_cancel_requested:
+                handle.canceled()
+                return Fibonacci.Result()
+            handle.publish_feedback(Fibonacci.Feedback(sequence=[i]))
+            time.sleep(0.001)
+        handle.succeed()
+        return Fibonacci.Result()
+
+    server_context = Context()
+    rclpy.init(context=server_context)
+    server_node = rclpy.create_node("churn_server", context=server_context)
+    server = ActionServer(server_node, Fibonacci, "/churn/fib", execute_callback=execute,
+                          cancel_callback=lambda _: CancelResponse.ACCEPT,
+                          callback_group=ReentrantCallbackGroup())
+    executor = MultiThreadedExecutor(num_threads=6, context=server_context)
+    executor.add_node(server_node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    ros = RosContext()
+    node = ros.create_node("churn_client")
+    ros.start()
+    ended = []
+
+    def owner(k):
+        for i in range(int(sys.argv[1])):
+            io = RosIO(node, owner=f"owner{k}.{i}")
+            io.send_goal(Fibonacci, "/churn/fib", Fibonacci.Goal(order=5),
+                         feedback=lambda _: None, server_timeout_s=float(sys.argv[2]))
+            time.sleep(0.02)  # the server streams feedback while the owner ends
+            io.destroy_all()
+            ended.append(k)
+
+    threads = [threading.Thread(target=owner, args=(k,)) for k in range(3)]
+    for t in threads: t.start()
+    for t in threads: t.join()
+    print("owners ended:", len(ended), flush=True)
+    ros.shutdown()
+    executor.shutdown()
+    rclpy.shutdown(context=server_context)
+""")
+
+
+def test_owners_that_end_while_their_server_streams_feedback_leave_the_process_alive() -> None:
+    """rclpy 9.1.2's EventsExecutor died of SIGSEGV when an action client left it while an
+    answer for it was queued (the dropped event released a context manager without the
+    GIL); every owner's client was destroyed as it ended, while its server still sent
+    feedback. Three owner threads, 40 owners each, in a process of their own."""
+    done = subprocess.run([sys.executable, "-X", "faulthandler", "-c", CHURN, "40",
+                           str(WALL_TIMEOUT_S)], capture_output=True, text=True,
+                          timeout=4 * WALL_TIMEOUT_S)
+    assert done.returncode == 0, (done.returncode, done.stderr[-3000:])
+    assert "owners ended: 120" in done.stdout, done.stdout
+
+
+class _SlowFirstSet(dict):  # type: ignore[type-arg]
+    """Fault injection: the first assignment waits, so an answer can come meanwhile."""
+
+    def __init__(self, pause_s: float) -> None:
+        super().__init__()
+        self.pause_s = pause_s
+
+    def __setitem__(self, key: Any, value: Any) -> None:
+        pause, self.pause_s = self.pause_s, 0.0
+        threading.Event().wait(pause)
+        super().__setitem__(key, value)
+
+
+def test_a_goal_answer_that_comes_while_send_goal_async_returns_is_not_lost(
+        hl: HighLevelBehaviorManager, server: FibonacciServer) -> None:
+    """rclpy 9.1.2's send_goal_async files a second future outside its lock and returns it:
+    an answer handled in between completed the first, and the returned one never completed
+    (a goal answer lost in a stress run). Fault injection: registering the feedback
+    callback — which rclpy did in that window — takes 0.5 s."""
+    io = RosIO(hl.node, owner="test")
+    try:
+        client = io.action_client(Fibonacci, "fibonacci")
+        assert client.wait_for_server(timeout_sec=WALL_TIMEOUT_S)
+        client._feedback_callbacks = _SlowFirstSet(0.5)
+        goal = io.send_goal(Fibonacci, "fibonacci", Fibonacci.Goal(order=3),
+                            feedback=lambda _: None, server_timeout_s=WALL_TIMEOUT_S)
+        assert list(goal.wait(timeout_s=WALL_TIMEOUT_S).sequence) == [0, 1, 1, 2, 3]
+    finally:
+        io.destroy_all()
+
+
 class Sends(Behavior):
     """Sends goals one after the other in one behaviour, as a patrol loop would."""
 
@@ -227,8 +354,10 @@ def test_finished_goals_are_not_kept_by_their_owner(hl: HighLevelBehaviorManager
     behavior = hl.switch("sends")
     assert behavior.done.wait(WALL_TIMEOUT_S)  # type: ignore[attr-defined]
     assert wait_until(lambda: not [k for k, _ in behavior.ros.entities if k == "goal"])
-    # ... while the one action client they shared stays until the owner ends.
-    assert [k for k, _ in behavior.ros.entities].count("action_client") == 1
+    # ... and they shared one action client: the node's, which no owner holds.
+    assert "action_client" not in [k for k, _ in behavior.ros.entities]
+    clients = [w for w in hl.node.waitables if isinstance(w, ActionClient)]
+    assert len(clients) == 1, clients
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -1.0])
@@ -236,8 +365,6 @@ def test_non_finite_or_negative_timeouts_are_refused_at_once(
         hl: HighLevelBehaviorManager, bad: float) -> None:
     """call(timeout_s=nan) waited forever: nan compares false with every deadline."""
     from std_srvs.srv import Trigger
-
-    from beehave.ros.io import RosIO
 
     io = RosIO(hl.node, owner="test")
     outcome: list[BaseException] = []
@@ -267,10 +394,6 @@ def test_an_action_client_made_while_the_executor_spins_is_never_seen_half_built
     executor thread that looked at the node in between raised AttributeError ('_lock') and
     lost the client's goal answer (a flaky WaitTimeout in CI). Fault injection: the window
     is held open for 0.3 s, long enough for the executor to look."""
-    from rclpy.action.client import ActionClient
-
-    from beehave.ros.io import RosIO
-
     ros = RosContext()
     node = ros.create_node("half_built", namespace=NS)
     ros.start()

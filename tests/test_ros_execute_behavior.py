@@ -35,7 +35,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from beehave import Behavior  # noqa: E402
 from beehave.config import parse_config  # noqa: E402
 from beehave.robot import Robot  # noqa: E402
-from beehave.testing import WALL_TIMEOUT_S, wait_until, wall_timeout  # noqa: E402
+from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("test_ros_execute_behavior")
 
@@ -99,9 +99,9 @@ class Sent:
     def __init__(self, client: GoalClient, behavior: str, params_json: str) -> None:
         self.feedback: list[Any] = []
         goal = ExecuteBehavior.Goal(behavior=behavior, params_json=params_json)
-        future = client.action.send_goal_async(
+        future = client.send_goal_async(
             goal, feedback_callback=lambda m: self.feedback.append(m.feedback))
-        self.handle = client.wait_goal_answer(future)
+        self.handle = client.wait(future)
         assert self.handle.accepted, f"goal {behavior!r} not accepted"
         self.id = str(uuid.UUID(bytes=bytes(self.handle.goal_id.uuid)))
         self._result = self.handle.get_result_async()
@@ -153,6 +153,7 @@ class GoalClient:
         self.cmd: list[float] = []
         self.cmd_sub = self.node.create_subscription(
             Twist, f"/{namespace}/cmd_vel", self._on_cmd, 50)
+        self._spinning = threading.Lock()  # see send_goal_async
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
         assert self.action.wait_for_server(timeout_sec=WALL_TIMEOUT_S), "no action server"
@@ -171,7 +172,7 @@ class GoalClient:
 
         goal = ExecuteBehavior.Goal(behavior="__warm_up__", params_json="")
         for _ in range(int(WALL_TIMEOUT_S / 2)):
-            sent = self.action.send_goal_async(goal)
+            sent = self.send_goal_async(goal)
             if answered(sent) and answered(sent.result().get_result_async()):
                 return
         raise AssertionError(f"no goal answered; the threads of this process:\n{_stacks()}")
@@ -179,9 +180,19 @@ class GoalClient:
     def _spin(self) -> None:
         while self.context.ok():
             try:
-                self.executor.spin_once(timeout_sec=0.05)
+                with self._spinning:
+                    self.executor.spin_once(timeout_sec=0.05)
             except Exception:  # the context went away under us: done
                 return
+
+    def send_goal_async(self, goal: Any, feedback_callback: Any = None) -> Any:
+        """``ActionClient.send_goal_async`` while the executor does not spin: rclpy
+        9.1.2's files the answer's future, and outside its lock a second one that it
+        returns; an answer handled in between completes the first, and the returned one
+        never completes (rclpy#1123 come back; a goal "unanswered" for 60 s in a stress
+        run)."""
+        with self._spinning:
+            return self.action.send_goal_async(goal, feedback_callback=feedback_callback)
 
     def _on_cmd(self, msg: Twist) -> None:
         with self.cmd_lock:
@@ -192,31 +203,6 @@ class GoalClient:
         future.add_done_callback(lambda _: done.set())
         assert done.wait(WALL_TIMEOUT_S), f"no answer; the threads of this process:\n{_stacks()}"
         return future.result()
-
-    def wait_goal_answer(self, future: Any) -> Any:
-        """The answer to a goal request. One went unanswered for 60 s in a stress run with
-        every thread idle; should it happen again, the failure says which side lost it: a
-        second goal (refused, no side effect) is sent, and if the first's answer then comes
-        the server had not noticed the first request (an executor event lost), else the
-        request or its answer was lost in DDS."""
-        done = threading.Event()
-        future.add_done_callback(lambda _: done.set())
-        if done.wait(WALL_TIMEOUT_S):
-            return future.result()
-        stacks = _stacks()
-        nudge = self.action.send_goal_async(
-            ExecuteBehavior.Goal(behavior="__nudge__", params_json=""))
-        nudged = threading.Event()
-        nudge.add_done_callback(lambda _: nudged.set())
-        nudged.wait(wall_timeout(0.1))
-        late = done.wait(wall_timeout(0.1))
-        side = ("the server answered it only after a second goal came: it had not noticed "
-                "the first request (an executor event lost)" if late else
-                "no answer even after a second goal "
-                f"({'answered' if nudged.is_set() else 'unanswered too'}): the request or "
-                "its answer was lost between the client's and the server's DDS participants")
-        raise AssertionError(f"goal request unanswered for {WALL_TIMEOUT_S:g} s; {side}; "
-                             f"the threads of this process:\n{stacks}")
 
     def send(self, behavior: str, params: Any = None, *, raw: str | None = None) -> Sent:
         text = raw if raw is not None else ("" if params is None else json.dumps(params))

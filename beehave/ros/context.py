@@ -22,6 +22,7 @@ from rclpy.parameter import Parameter
 
 from beehave.fastdds import use_fastdds_profile
 from beehave.lifecycle import Running
+from beehave.ros.io import destroy_node_action_clients
 
 log = logging.getLogger(__name__)
 
@@ -327,6 +328,7 @@ class RosContext(Running):
             self._unhost_clock(node)
             self._nodes.remove(node)
         self.executor.remove_node(node)
+        destroy_node_action_clients(node)
         node.destroy_node()
 
     def start(self) -> None:
@@ -358,6 +360,7 @@ class RosContext(Running):
             thread.join()
         self.executor.shutdown()
         for node in nodes:
+            destroy_node_action_clients(node)
             node.destroy_node()
         if self.context.ok():
             rclpy.shutdown(context=self.context)

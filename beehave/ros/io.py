@@ -31,6 +31,7 @@ import logging
 import math
 import threading
 import time
+import uuid
 import weakref
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
@@ -371,15 +372,24 @@ def watch_subscriptions(node: Any, callback: Callable[[type, str], None]) -> Cal
 
 @functools.cache
 def _whole_action_client() -> type:
-    """``rclpy.action.ActionClient`` whose lock exists before the node can see it.
+    """``rclpy.action.ActionClient`` with two races of rclpy 9.1.2 closed.
 
-    rclpy 9.1.2's constructor adds the client to the node (``add_waitable``) and only then
-    makes ``self._lock``: an executor spinning in another thread that counts the node's
-    entities in between raises ``AttributeError: ... '_lock'`` and misses the client's
-    entities, so a goal answer is lost (a 5 s ``WaitTimeout``). Here the lock is made
-    first, and the constructor's own later assignment keeps it (one lock for the client's
-    whole life, never swapped while someone holds it)."""
+    - Its constructor adds the client to the node (``add_waitable``) and only then makes
+      ``self._lock``: an executor spinning in another thread that counts the node's
+      entities in between raises ``AttributeError: ... '_lock'`` and misses the client's
+      entities, so a goal answer is lost (a 5 s ``WaitTimeout``). Here the lock is made
+      first, and the constructor's own later assignment keeps it (one lock for the
+      client's whole life, never swapped while someone holds it).
+    - Its ``send_goal_async`` files the request's future under the lock and then, outside
+      it, files a second future in its place and returns that one (a merge left the code
+      from before the fix of rclpy#1123 behind it): an answer the executor thread handles
+      in between completes the first future, and the returned one never completes — a
+      goal answer lost on a loaded host. Here one future is filed, under the lock, and the
+      feedback callback before the request goes out (feedback that overtakes the answer
+      was dropped), and taken off again when the server refuses the goal."""
     from rclpy.action.client import ActionClient
+    from rclpy.task import Future
+    from unique_identifier_msgs.msg import UUID
 
     class WholeActionClient(ActionClient[Any, Any, Any]):
         @property
@@ -395,7 +405,78 @@ def _whole_action_client() -> type:
             self._lock = threading.Lock()
             super().__init__(*args, **kwargs)
 
+        def send_goal_async(self, goal: Any, feedback_callback: Callable[[Any], None] | None
+                            = None, goal_uuid: Any = None) -> Any:
+            if not isinstance(goal, self._action_type.Goal):
+                raise TypeError(f"Expected goal type ({self._action_type.Goal}) but received "
+                                f"({type(goal)})")
+            request = self._action_type.Impl.SendGoalService.Request()
+            request.goal_id = (UUID(uuid=list(uuid.uuid4().bytes)) if goal_uuid is None
+                               else goal_uuid)
+            request.goal = goal
+            key = bytes(request.goal_id.uuid)
+            future: Any = Future()
+            with self._lock:
+                if feedback_callback is not None:
+                    self._feedback_callbacks[key] = feedback_callback
+                try:
+                    sequence_number = self._client_handle.send_goal_request(request)
+                except BaseException:
+                    self._feedback_callbacks.pop(key, None)
+                    raise
+                if sequence_number in self._pending_goal_requests:
+                    raise RuntimeError(f"Sequence ({sequence_number}) conflicts with pending "
+                                       "goal request")
+                self._pending_goal_requests[sequence_number] = future
+                self._goal_sequence_number_to_goal_id[sequence_number] = request.goal_id
+                future.add_done_callback(self._remove_pending_goal_request)
+                self.add_future(future)
+
+            def refused(answered: Any) -> None:
+                if (answered.cancelled() or answered.exception() is not None
+                        or not answered.result().accepted):
+                    self._feedback_callbacks.pop(key, None)
+
+            future.add_done_callback(refused)
+            return future
+
     return WholeActionClient
+
+
+_node_action_clients_lock = threading.Lock()
+
+
+def node_action_client(node: Node, action_type: type, name: str) -> Any:
+    """The action client of ``action_type`` for the server ``name`` that ``node`` keeps for
+    its whole life, made on first use and shared by every owner on the node
+    (:meth:`RosContext.destroy_node` destroys it with the node).
+
+    Why for the node's life, not the owner's: rclpy 9.1.2's ``EventsExecutor`` crashes the
+    process (SIGSEGV) when an action client — any Waitable — leaves it while an answer for
+    it is queued: the queued event, dropped, releases the last reference to a context
+    manager without the interpreter lock. Action clients destroyed when their owner ended,
+    while the server still sent status, feedback or results, did exactly that. A client
+    that stays also keeps its DDS endpoints matched, so the next owner's first goal is not
+    sent to a server that has not yet discovered it."""
+    whole = _whole_action_client()
+    key = (action_type, node.resolve_topic_name(name))
+    with _node_action_clients_lock:
+        for waitable in node.waitables:  # a client destroyed by its user has left this list
+            if isinstance(waitable, whole) and waitable.__dict__.get("_beehave_key") == key:
+                return waitable
+        client = whole(node, action_type, name)
+        client._beehave_key = key
+        return client
+
+
+def destroy_node_action_clients(node: Node) -> None:
+    """Destroy the clients :func:`node_action_client` made on ``node`` (with the node)."""
+    whole = _whole_action_client()
+    with _node_action_clients_lock:
+        clients: list[Any] = [w for w in node.waitables if isinstance(w, whole)
+                   and "_beehave_key" in w.__dict__]
+    for client in clients:
+        client.destroy()
 
 
 class RosIO:
@@ -416,10 +497,10 @@ class RosIO:
         self._lock = threading.Lock()
         self._entities: list[tuple[str, Any]] = []
         self._closed = False
-        # The clients call() and send_goal() use, one per (kind, type, resolved name): a
-        # behaviour that polls a service in a loop must not leave a client (and its DDS
-        # readers) per call.
-        self._call_clients: dict[tuple[str, type, str], Any] = {}
+        # The clients call() uses, one per (type, resolved name): a behaviour that polls a
+        # service in a loop must not leave a client (and its DDS readers) per call.
+        # send_goal() uses the node's action client (node_action_client).
+        self._call_clients: dict[tuple[type, str], Any] = {}
 
     def _track(self, kind: str, entity: Any) -> Any:
         with self._lock:
@@ -461,13 +542,15 @@ class RosIO:
         return self._track("timer", self.node.create_timer(period_s, callback))
 
     def action_client(self, action_type: type, name: str) -> Any:
-        """An ``rclpy.action.ActionClient`` for the action server ``name``; prefer
-        :meth:`send_goal`, which waits interruptibly."""
+        """The ``rclpy.action.ActionClient`` for the action server ``name`` that the node
+        keeps for its whole life, shared by every owner on the node (see
+        :func:`node_action_client`; do not destroy it). Prefer :meth:`send_goal`, which
+        waits interruptibly and cancels the owner's goals when it ends."""
+        self._refuse_when_ended("action client")
         make = getattr(self.node, "create_action_client", None)
         if make is not None:  # a stand-in node (a replay's) makes its own, or refuses
-            return self._track("action_client", make(action_type, name))
-        return self._track("action_client", _whole_action_client()(self.node, action_type,
-                                                                   name))
+            return make(action_type, name)
+        return node_action_client(self.node, action_type, name)
 
     def send_goal(self, action_type: type, name: str, goal: Any, *,
                   feedback: Callable[[Any], None] | None = None,
@@ -480,11 +563,12 @@ class RosIO:
         :class:`~beehave.errors.GoalFailed` (``status="REJECTED"``) when it refuses,
         :class:`~beehave.errors.Interrupted` as soon as the owner is interrupted.
         ``feedback(msg)`` runs in the executor thread for each feedback message (keep it
-        short); ``Goal.feedback`` always holds the newest. Goals to one server share one
-        client; a goal still running when the owner ends is cancelled.
+        short); ``Goal.feedback`` always holds the newest. Goals to one server share the
+        node's client; a goal still running when the owner ends is cancelled, and so is one
+        the server accepts after its sender gave up.
         """
         check_duration(self.owner, "server_timeout_s", server_timeout_s)
-        client = self._cached_client("action_client", action_type, name)
+        client = self.action_client(action_type, name)
         cond = self._cond if self._cond is not None else threading.Condition()
         clock = self._clock or WallClock()
         interrupted = self._interrupted or (lambda: False)
@@ -507,7 +591,7 @@ class RosIO:
         _wait_answered(sent, cond, clock, interrupted, deadline)
         if not sent.done():
             # The server may still accept it: then cancel at once, so that no goal runs on
-            # without an owner (only while the owner lives: see _destroy_action_client).
+            # without an owner (the node's client outlives the owner to do so).
             def cancel_if_accepted(answered: Any) -> None:
                 handle = (None if answered.cancelled() or answered.exception() is not None
                           else answered.result())
@@ -547,22 +631,25 @@ class RosIO:
             except ValueError:
                 pass
 
-    def _cached_client(self, kind: str, msg_type: type, name: str) -> Any:
-        key = (msg_type, self.node.resolve_topic_name(name)
-               if kind == "action_client" else self.node.resolve_service_name(name))
+    def _cached_client(self, srv_type: type, name: str) -> Any:
+        key = (srv_type, self.node.resolve_service_name(name))
         cache = self._call_clients
         with self._lock:
-            client = cache.get((kind, *key))
+            client = cache.get(key)
         if client is None:
-            client = (self.action_client(msg_type, name) if kind == "action_client"
-                      else self.client(msg_type, name))  # refused once the owner has ended
+            client = self.client(srv_type, name)  # refused once the owner has ended
             with self._lock:
                 # Two threads of one owner may race here: keep the first, drop the other.
-                kept = cache.setdefault((kind, *key), client)
+                kept = cache.setdefault(key, client)
             if kept is not client:
-                self._untrack(kind, client)
+                self._untrack("client", client)
                 client = kept
         return client
+
+    def _refuse_when_ended(self, what: str) -> None:
+        with self._lock:
+            if self._closed:
+                raise BeehaveError(f"{self.owner}: has ended; cannot create a {what}")
 
     def _wait_ready(self, ready: Callable[[], bool], cond: threading.Condition,
                     clock: WallClock, interrupted: Callable[[], bool], deadline: float,
@@ -588,7 +675,7 @@ class RosIO:
         soon as the owner is interrupted. Calls to one service (name and type) share one
         client, created at the first call and destroyed with the owner."""
         check_duration(self.owner, "timeout_s", timeout_s)
-        client = self._cached_client("client", srv_type, name)
+        client = self._cached_client(srv_type, name)
         cond = self._cond if self._cond is not None else threading.Condition()
         clock = self._clock or WallClock()
         interrupted = self._interrupted or (lambda: False)
@@ -622,9 +709,8 @@ class RosIO:
         """Destroy everything created here; later creations are refused.
 
         Goals still running are asked to cancel (not waited for); publishers first wait,
-        :data:`FLUSH_S` at most, for their reliable subscribers' acknowledgements. Action
-        clients are destroyed at once: a goal the server accepts only later is not
-        cancelled (a known limitation, docs/ros.md)."""
+        :data:`FLUSH_S` at most, for their reliable subscribers' acknowledgements. The node's
+        action clients stay (:func:`node_action_client`)."""
         with self._lock:
             self._closed = True
             entities, self._entities = self._entities, []
@@ -637,19 +723,9 @@ class RosIO:
             # The owner ended (after safe_state): a goal still running must not go on
             # driving the robot. Ask once, do not wait here.
             entity.cancel(timeout_s=0.0)
-        elif kind == "action_client":
-            self._destroy_action_client(entity)
         elif kind == "shared_publisher":
             entity.close()
         else:
             if kind == "publisher":
                 flush(entity)
             getattr(self.node, f"destroy_{kind}")(entity)
-
-    def _destroy_action_client(self, client: Any) -> None:
-        # Destroyed at once. Keeping it alive until late answers arrive (so that a goal the
-        # server accepts after its sender gave up could still be cancelled) crashed rclpy's
-        # EventsExecutor here (SIGSEGV in about half the runs), whether it was destroyed
-        # from a node timer or from a thread of its own: that case is a documented
-        # limitation instead (docs/ros.md).
-        client.destroy()
