@@ -87,9 +87,12 @@ a type, or go silent (a lost radio link).
 
 from __future__ import annotations
 
+import functools
+import itertools
 import logging
 import math
 import os
+import random
 import socket
 import threading
 import time
@@ -1607,17 +1610,68 @@ class MavlinkEndpoint:
                 f"{self.url} mode={self.mode} armed={self.armed}>")
 
 
-def free_udp_ports(count: int) -> list[int]:
-    """Distinct free UDP ports on 127.0.0.1 for endpoints' links (held together while
-    choosing: the kernel may hand the same port out again once it is closed)."""
-    sockets = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(count)]
+def _port_window() -> range:
+    """The UDP ports :func:`free_udp_ports` hands out: outside the kernel's ephemeral range
+    (Linux: ``/proc/sys/net/ipv4/ip_local_port_range``, 32768-60999 by default), so that
+    no socket bound to port 0 — a DDS participant's sender, another test's probe — can be
+    given one between the choice and the link's bind: above it when there is room,
+    else just below it."""
+    lo, hi = 32768, 60999
     try:
-        for s in sockets:
-            s.bind(("127.0.0.1", 0))
-        return [s.getsockname()[1] for s in sockets]
-    finally:
-        for s in sockets:
-            s.close()
+        with open("/proc/sys/net/ipv4/ip_local_port_range", encoding="ascii") as f:
+            lo, hi = (int(n) for n in f.read().split())
+    except (OSError, ValueError):
+        pass
+    above = range(hi + 1, 65536)
+    return above if len(above) >= 1000 else range(max(1024, lo - 4000), lo)
+
+
+_ports_lock = threading.Lock()
+_port_cursor = itertools.count()
+
+
+@functools.cache
+def _port_start() -> tuple[range, int]:
+    """The window of :func:`_port_window` and this process's random place in it."""
+    window = _port_window()
+    return window, random.randrange(len(window))
+
+
+def free_udp_ports(count: int) -> list[int]:
+    """``count`` distinct free UDP ports on 127.0.0.1 for endpoints' links.
+
+    Never one the kernel gives a socket bound to port 0 (see :func:`_port_window`), never
+    the same twice in one process (a vehicle closed late may still send to a port it was
+    given), never one of this process's DDS domain's well-known ports
+    (7400 + 250 × ``ROS_DOMAIN_ID`` and the 249 after it), and each is free when chosen.
+    Processes start at random places in the window, so that two of them rarely meet."""
+    domain = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
+    dds = range(7400 + 250 * domain, 7400 + 250 * domain + 250)
+    window, start = _port_start()
+    ports: list[int] = []
+    held: list[socket.socket] = []
+    with _ports_lock:
+        try:
+            for _ in range(len(window)):
+                if len(ports) == count:
+                    break
+                port = window[(start + next(_port_cursor)) % len(window)]
+                if port in dds:
+                    continue
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                try:
+                    s.bind(("127.0.0.1", port))
+                except OSError:
+                    s.close()
+                    continue  # in use
+                held.append(s)
+                ports.append(port)
+        finally:
+            for s in held:
+                s.close()
+    if len(ports) == count:
+        return ports
+    raise RuntimeError(f"no {count} free UDP ports left in {window.start}-{window.stop - 1}")
 
 
 def open_endpoints(sim: Simulation, *, base_port: int, host: str = "127.0.0.1",

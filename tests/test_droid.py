@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -23,7 +22,7 @@ from beehave.ros.context import RosContext
 from beehave.testing import WALL_TIMEOUT_S, wait_until
 from behaviours.droid import FollowLeader, RoverDroid, check_mission
 from hal.mavlink import close_all_links
-from robots.mavlink_endpoint import DEFAULT_ORIGIN, MavlinkEndpoint
+from robots.mavlink_endpoint import DEFAULT_ORIGIN, MavlinkEndpoint, free_udp_ports
 from robots.sim import Simulation
 from robots.world import world_from_dict
 
@@ -31,10 +30,7 @@ PROBE_S = 0.3
 
 
 def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
+    return free_udp_ports(1)[0]
 
 
 def started_vehicle(world: dict[str, Any], namespace: str,
