@@ -60,6 +60,7 @@ from typing import Any, Self
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import BatteryState, LaserScan
@@ -92,6 +93,41 @@ SENSOR_QOS = 10
 
 LOCKSTEP_QOS = 100
 """QoS of ``/lockstep``: reliable, deep enough for many controllers answering at once."""
+
+_publish_drops: Counter[str] = Counter()
+_publish_drops_lock = threading.Lock()
+
+
+def _publish(publisher: Any, msg: Any) -> None:
+    """``publisher.publish(msg)`` from the stepping thread, except that a message Fast DDS
+    gives up on is logged and dropped instead of ending the simulation.
+
+    Fast DDS refuses a write ("cannot publish data") when the writer's history is still
+    full after ``max_blocking_time`` (100 ms) — readers on a starved host that have not
+    acknowledged yet. Raised in the stepping thread, that stopped the whole simulation
+    (a fleet's sim, once in a stress run). Every topic here is a stream or is published
+    again soon (the factory's state at its own rate, the state echoes every step or
+    period), so the next message replaces the lost one; the count per topic is in
+    :func:`publish_drops` and each first and hundredth drop is logged."""
+    try:
+        publisher.publish(msg)
+    except _rclpy.RCLError as exc:
+        if "cannot publish data" not in str(exc):
+            raise
+        topic = publisher.topic_name
+        with _publish_drops_lock:
+            _publish_drops[topic] += 1
+            n = _publish_drops[topic]
+        if n == 1 or n % 100 == 0:
+            log.warning("sim: Fast DDS refused a message on %s (%s); dropped, the next "
+                        "one replaces it (%d so far)", topic, exc, n)
+
+
+def publish_drops() -> dict[str, int]:
+    """Messages :func:`_publish` dropped in this process, per topic."""
+    with _publish_drops_lock:
+        return dict(_publish_drops)
+
 
 CLOCK_REPEAT_S = 0.1
 """While the simulation is held, ``/clock`` is published again at the held time this often
@@ -162,7 +198,7 @@ class _RobotPorts:
         if scan is not None and scan.time_s > self._last_scan_s:
             self._last_scan_s = scan.time_s
             if self._scan_pub.get_subscription_count():
-                self._scan_pub.publish(LaserScan(
+                _publish(self._scan_pub, LaserScan(
                     header=self._header(scan.time_s), angle_min=scan.angle_min_rad,
                     angle_max=scan.angle_max_rad, angle_increment=scan.angle_increment_rad,
                     time_increment=0.0, scan_time=scan.scan_time_s,
@@ -180,7 +216,7 @@ class _RobotPorts:
         pose.orientation.w = math.cos(o.yaw_rad / 2.0)
         msg.twist.twist.linear.x = o.linear_mps
         msg.twist.twist.angular.z = o.angular_rps
-        self._odom_pub.publish(msg)
+        _publish(self._odom_pub, msg)
 
     def publish_parts(self, time_s: float, echo: bool) -> None:
         """The kind's own sensors; ``echo``: republish the states that only go out on
@@ -190,7 +226,7 @@ class _RobotPorts:
         if not self._battery_pub.get_subscription_count():
             return
         b = self.robot.battery()
-        self._battery_pub.publish(BatteryState(
+        _publish(self._battery_pub, BatteryState(
             header=self._header(b.time_s), voltage=b.voltage_v, current=b.current_a,
             temperature=math.nan, charge=math.nan, capacity=math.nan,
             design_capacity=math.nan, percentage=b.fraction,
@@ -247,18 +283,18 @@ class _EmiliPorts(_RobotPorts):
     def publish_parts(self, time_s: float, echo: bool) -> None:
         robot = self.robot
         if self._lift_pub.get_subscription_count():
-            self._lift_pub.publish(Float64(data=robot.lift_height()))
+            _publish(self._lift_pub, Float64(data=robot.lift_height()))
         if self._line_pub.get_subscription_count():
             offset = robot.line_sensor()
-            self._line_pub.publish(Float64(data=math.nan if offset is None else offset))
+            _publish(self._line_pub, Float64(data=math.nan if offset is None else offset))
         leds = robot.leds()
         if echo or leds != self._leds_sent:
             self._leds_sent = leds
-            self._leds_pub.publish(ColorRGBA(r=leds[0], g=leds[1], b=leds[2], a=1.0))
+            _publish(self._leds_pub, ColorRGBA(r=leds[0], g=leds[1], b=leds[2], a=1.0))
         text = robot.display()
         if echo or text != self._display_sent:
             self._display_sent = text
-            self._display_pub.publish(String(data=text))
+            _publish(self._display_pub, String(data=text))
 
 
 def _mask(*bits: bool) -> Int32:
@@ -300,15 +336,15 @@ class _KobukiPorts(_RobotPorts):
         robot = self.robot
         if self._bumpers_pub.get_subscription_count():
             b = robot.bumpers()
-            self._bumpers_pub.publish(_mask(b.left, b.center, b.right))
+            _publish(self._bumpers_pub, _mask(b.left, b.center, b.right))
         if self._cliffs_pub.get_subscription_count():
             c = robot.cliffs()
-            self._cliffs_pub.publish(_mask(c.left, c.center, c.right))
+            _publish(self._cliffs_pub, _mask(c.left, c.center, c.right))
         if self._wheel_drop_pub.get_subscription_count():
             w = robot.wheel_drop()
-            self._wheel_drop_pub.publish(_mask(w.left, w.right))
+            _publish(self._wheel_drop_pub, _mask(w.left, w.right))
         if self._buttons_pub.get_subscription_count():
-            self._buttons_pub.publish(_mask(*robot.buttons()))
+            _publish(self._buttons_pub, _mask(*robot.buttons()))
 
 
 _PORTS: dict[type[SimRobot], type[_RobotPorts]] = {Emili: _EmiliPorts, Kobuki: _KobukiPorts,
@@ -427,7 +463,7 @@ class SimNode:
     def _publish_clock(self, time_s: float) -> None:
         self._last_clock_s = time_s
         self._clock_sent_wall = time.monotonic()
-        self._clock_pub.publish(Clock(clock=stamp(time_s)))
+        _publish(self._clock_pub, Clock(clock=stamp(time_s)))
 
     def _gate(self, time_s: float) -> bool:
         """Hold before the next step while a participant is due (see the class doc)."""
@@ -484,7 +520,7 @@ class SimNode:
             return
         # A delivery and the periodic tick may come from one step: one message at a time.
         with self._factory_lock:
-            self._factory_pub.publish(String(data=json.dumps(factory.state())))
+            _publish(self._factory_pub, String(data=json.dumps(factory.state())))
 
     # ---- executor thread ------------------------------------------------------------
 

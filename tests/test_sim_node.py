@@ -39,7 +39,7 @@ from beehave.ros.context import RosContext  # noqa: E402
 from beehave.testing import WALL_TIMEOUT_S, beehave_threads, wait_until  # noqa: E402
 from robots import topics  # noqa: E402
 from robots.node import SimNode, sim_main  # noqa: E402
-from robots.sim import Simulation  # noqa: E402
+from robots.sim import SimState, Simulation  # noqa: E402
 from robots.world import World, world_from_dict  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -479,3 +479,39 @@ def test_destroy_leaves_a_gate_that_is_not_its_own(rig: Rig) -> None:
     remove()
     assert rig.sim.gate is None
     assert rig.probe.wait(lambda: rig.sim.time_s > held_at + 0.2)
+
+
+def test_a_message_fast_dds_refuses_is_dropped_and_logged_and_the_simulation_goes_on(
+        rig: Rig, caplog: pytest.LogCaptureFixture) -> None:
+    """Fast DDS refuses a write whose history stays full for max_blocking_time (readers on
+    a starved host): raised in the stepping thread, that stopped a fleet's simulation in a
+    stress run. Fault injection: the odometry publisher refuses three messages."""
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
+    from robots.node import publish_drops
+
+    ports = rig.node.ports[rig.emili]
+    real = ports._odom_pub
+    refusals = itertools.count()
+
+    class Refusing:
+        def __getattr__(self, name: str) -> Any:
+            return getattr(real, name)
+
+        def publish(self, msg: Any) -> None:
+            if next(refusals) < 3:
+                raise _rclpy.RCLError("Failed to publish: cannot publish data, at "
+                                      "rmw_publish.cpp:66")
+            real.publish(msg)
+
+    odom: list[Odometry] = []
+    rig.probe.node.create_subscription(Odometry, rig.topic(rig.emili, "odom"), odom.append,
+                                       10)
+    before = publish_drops().get(real.topic_name, 0)
+    with caplog.at_level(logging.WARNING, logger="robots.node"):
+        ports._odom_pub = Refusing()
+        start_s = rig.sim.time_s
+        assert rig.probe.wait(lambda: len(odom) >= 5 and rig.sim.time_s > start_s + 0.5)
+    assert rig.sim.state is SimState.RUNNING, rig.sim.state
+    assert publish_drops()[real.topic_name] == before + 3
+    assert f"Fast DDS refused a message on {real.topic_name}" in caplog.text, caplog.text
