@@ -11,6 +11,7 @@ from typing import Any
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters, SetParameters
+from rclpy.qos import QoSProfile
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -28,11 +29,16 @@ class Probe:
         self.messages: dict[str, list[Any]] = {}
 
     def record(self, msg_type: type, topic: str, *, latched: bool = False) -> list[Any]:
-        """Collect every message on ``topic`` (returns the live list)."""
+        """Collect every message on ``topic`` (returns the live list). ``latched``: also
+        the last one sent before this subscribed; the reader keeps 100, not LATCHED's 1,
+        so that a message followed closely by the next one is not overwritten before the
+        executor takes it (a factory's pick-up state was, on a loaded machine)."""
         box: list[Any] = []
         with self._lock:
             self.messages[topic] = box
-        self.node.create_subscription(msg_type, topic, box.append, LATCHED if latched else 10)
+        qos = QoSProfile(depth=100, history=LATCHED.history, reliability=LATCHED.reliability,
+                         durability=LATCHED.durability) if latched else 10
+        self.node.create_subscription(msg_type, topic, box.append, qos)
         return box
 
     def wait(self, predicate: Callable[[], bool], timeout_s: float = WALL_TIMEOUT_S) -> bool:
