@@ -19,7 +19,7 @@ from beehave.testing import wall_timeout
 
 pytest.importorskip("rclpy")
 
-from beehave.ros.context import clear_dead_shm_ports  # noqa: E402
+from beehave.ros.context import clear_dead_shm_ports, clear_dead_shm_segments  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SEGMENT_BYTES = 52400  # a port's size as Fast DDS makes it
@@ -138,3 +138,72 @@ def _node_after_a_crash(domain: int, ports: list[Path], killed_s_ago: float) -> 
     # a test of another worker, does. A stress run saw that.)
     assert done.returncode == 0 and "node up" in done.stdout, done.stderr
     assert stuck == [] and locked == []
+
+
+# -- data segments ---------------------------------------------------------------------------
+
+def test_only_segments_whose_lock_nobody_holds_are_removed(tmp_path: Path) -> None:
+    """A live participant holds an exclusive flock on its segment's ``_el`` file; a killed
+    one's lock file is free. Here the live owner is another open file of this process."""
+    dead, live = tmp_path / "fastdds_00000000000000aa", tmp_path / "fastdds_00000000000000bb"
+    for segment in (dead, live):
+        segment.write_bytes(bytes(SEGMENT_BYTES))
+        (tmp_path / f"{segment.name}_el").touch()
+    lone = tmp_path / "fastdds_00000000000000cc_el"  # its owner died before the segment
+    lone.touch()
+    port = _port(tmp_path / "fastdds_port7411", 2, 60.0)
+    port_lock = tmp_path / "fastdds_port7411_el"  # a port's lock: not a segment's
+    port_lock.touch()
+    with open(tmp_path / f"{live.name}_el", "rb") as owner:
+        fcntl.flock(owner, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        assert clear_dead_shm_segments(tmp_path) == 2
+        assert live.exists() and (tmp_path / f"{live.name}_el").exists()
+    assert not dead.exists() and not (tmp_path / f"{dead.name}_el").exists()
+    assert not lone.exists() and port.exists() and port_lock.exists()
+    assert clear_dead_shm_segments(tmp_path / "missing") == 0
+
+
+@pytest.mark.skipif(not SHM.is_dir(), reason="Fast DDS's segments live in /dev/shm")
+def test_a_killed_participants_segment_is_removed_and_a_live_ones_kept() -> None:
+    """A process SIGKILLed with a participant leaves its segment (half a megabyte of RAM,
+    for ever); a live participant's segment — this process's — stays, and it still talks."""
+    from std_msgs.msg import String
+
+    from beehave.ros.context import RosContext
+
+    def mapped(pid: int | str) -> set[str]:
+        maps = Path(f"/proc/{pid}/maps").read_text(encoding="ascii", errors="replace")
+        return {line.rsplit("/", 1)[1] for line in maps.splitlines()
+                if "/dev/shm/fastdds_" in line and "port" not in line.rsplit("/", 1)[1]}
+
+    code = ("import time\nfrom beehave.ros.context import RosContext\n"
+            "ros = RosContext(); ros.create_node('doomed'); ros.start()\n"
+            "print('up', flush=True); time.sleep(600)\n")
+    child = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE,
+                             text=True)
+    try:
+        assert child.stdout is not None and child.stdout.readline() == "up\n"
+        deadline = time.monotonic() + wall_timeout(0.2)
+        while not (theirs := mapped(child.pid)) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert theirs, "the child maps no Fast DDS segment"
+    finally:
+        child.kill()
+        child.wait()
+    assert all((SHM / name).exists() for name in theirs)  # left behind
+    with RosContext() as ros:
+        node = ros.create_node("survivor")
+        got: list[str] = []
+        node.create_subscription(String, "/segment_test", lambda m: got.append(m.data), 10)
+        pub = node.create_publisher(String, "/segment_test", 10)
+        ros.start()
+        ours = mapped("self")
+        assert ours
+        clear_dead_shm_segments()
+        assert not any((SHM / name).exists() for name in theirs)
+        assert all((SHM / name).exists() for name in ours)
+        deadline = time.monotonic() + wall_timeout(0.2)
+        while not got and time.monotonic() < deadline:
+            pub.publish(String(data="still here"))
+            time.sleep(0.05)
+        assert got and got[0] == "still here"

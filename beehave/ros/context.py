@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
 import re
@@ -47,6 +48,7 @@ DEAD_PORT_AGE_S = 10.0
 #: :func:`await_unfinished_shm_ports`).
 DEAD_PORT_POLL_S = 0.1
 _PORT = re.compile(r"fastdds_port\d+")
+_SEGMENT_LOCK = re.compile(r"fastdds_[0-9a-f]{16}_el")
 #: The first word of a port's segment (Boost.Interprocess' managed_open_or_create_impl):
 #: 2 once the segment is set up; 0 (created) or 1 (being set up) before; 3 corrupted.
 _SEGMENT_READY = 2
@@ -121,6 +123,49 @@ def clear_dead_shm_ports(shm_dir: Path = SHM_DIR, *, min_age_s: float = DEAD_POR
     return removed
 
 
+def clear_dead_shm_segments(shm_dir: Path = SHM_DIR) -> int:
+    """Remove the Fast DDS shared-memory data segments whose processes are gone; returns
+    how many.
+
+    Each participant's segment (``fastdds_<16 hex digits>``, half a megabyte or more)
+    lives in RAM until removed, and only its process removes it — at a clean exit. Every
+    killed or crashed process leaves its segment behind: a machine that runs the suite
+    again and again filled ``/dev/shm`` with hundreds of megabytes. A live owner holds an
+    exclusive ``flock`` on the segment's ``_el`` file for the segment's whole life, so an
+    ``_el`` file we can lock has no owner (Fast DDS's own ``fastdds shm clean`` tells them
+    apart the same way); we remove the segment, then the lock file, while holding it. A
+    participant that opened that lock file at the same moment sees it gone and makes
+    another (Fast DDS checks for that after it locks)."""
+    try:
+        names = [n for n in os.listdir(shm_dir) if _SEGMENT_LOCK.fullmatch(n)]
+    except OSError:
+        return 0
+    removed = 0
+    for name in names:
+        lock_path = shm_dir / name
+        try:
+            fd = os.open(lock_path, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # held: its process lives
+            os.close(fd)
+            continue
+        try:
+            (shm_dir / name[:-len("_el")]).unlink(missing_ok=True)
+            lock_path.unlink(missing_ok=True)
+            removed += 1
+        except OSError as err:  # another user's (sticky /dev/shm): theirs to clear
+            log.debug("cannot remove the dead Fast DDS segment %s: %s", name[:-3], err)
+        finally:
+            os.close(fd)
+    if removed:
+        log.info("removed %d Fast DDS shared-memory segment(s) left by processes that are "
+                 "gone", removed)
+    return removed
+
+
 def _port_names(shm_dir: Path) -> list[str]:
     """The names of the ports in ``shm_dir`` (none without it: not Linux)."""
     try:
@@ -146,12 +191,14 @@ def _warn_if_dead(path: Path, now: float, min_age_s: float, err: OSError) -> Non
 
 
 def await_unfinished_shm_ports(domain_id: int, *, poll_s: float = DEAD_PORT_POLL_S) -> None:
-    """Clear dead ports (:func:`clear_dead_shm_ports`), then wait while a port of
+    """Clear dead segments and ports (:func:`clear_dead_shm_segments`,
+    :func:`clear_dead_shm_ports`), then wait while a port of
     ``domain_id`` is still unfinished: until it is ready (its creator was at work) or old
     enough to clear (its creator was killed less than ``DEAD_PORT_AGE_S`` ago), at most
     ``DEAD_PORT_AGE_S``. Called before a context makes its participant: once it waits in
     ``rcl_node_init`` on such a port, it holds the interpreter's lock, and nothing in the
     process can release it any more."""
+    clear_dead_shm_segments()
     deadline = time.monotonic() + DEAD_PORT_AGE_S + poll_s
     warned = False
     while True:
