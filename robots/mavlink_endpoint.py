@@ -1610,20 +1610,21 @@ class MavlinkEndpoint:
                 f"{self.url} mode={self.mode} armed={self.armed}>")
 
 
-def _port_window() -> range:
+def _port_window() -> range | None:
     """The UDP ports :func:`free_udp_ports` hands out: outside the kernel's ephemeral range
     (Linux: ``/proc/sys/net/ipv4/ip_local_port_range``, 32768-60999 by default), so that
     no socket bound to port 0 — a DDS participant's sender, another test's probe — can be
     given one between the choice and the link's bind: above it when there is room,
-    else just below it."""
+    else just below it; None when neither has 1,000 ports (a range of 1024-65535, as some
+    containers set)."""
     lo, hi = 32768, 60999
     try:
         with open("/proc/sys/net/ipv4/ip_local_port_range", encoding="ascii") as f:
             lo, hi = (int(n) for n in f.read().split())
     except (OSError, ValueError):
         pass
-    above = range(hi + 1, 65536)
-    return above if len(above) >= 1000 else range(max(1024, lo - 4000), lo)
+    above, below = range(hi + 1, 65536), range(max(1024, lo - 4000), lo)
+    return next((w for w in (above, below) if len(w) >= 1000), None)
 
 
 _ports_lock = threading.Lock()
@@ -1632,8 +1633,14 @@ _port_cursor = itertools.count()
 
 @functools.cache
 def _port_start() -> tuple[range, int]:
-    """The window of :func:`_port_window` and this process's random place in it."""
+    """The window of :func:`_port_window` and this process's random place in it; the
+    kernel's ports (bind to port 0) when there is no window."""
     window = _port_window()
+    if window is None:
+        log.info("MAVLink ports: the kernel's ephemeral range leaves no 1,000 ports free "
+                 "around it; ports come from bind(0), which another socket may take "
+                 "before the link binds")
+        return range(0), 0
     return window, random.randrange(len(window))
 
 
@@ -1650,6 +1657,16 @@ def free_udp_ports(count: int) -> list[int]:
     window, start = _port_start()
     ports: list[int] = []
     held: list[socket.socket] = []
+    if not window:  # the kernel's: held together, so that they are distinct
+        try:
+            for _ in range(count):
+                held.append(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+                held[-1].bind(("127.0.0.1", 0))
+                ports.append(held[-1].getsockname()[1])
+            return ports
+        finally:
+            for s in held:
+                s.close()
     with _ports_lock:
         try:
             for _ in range(len(window)):

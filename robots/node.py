@@ -98,7 +98,7 @@ _publish_drops: Counter[str] = Counter()
 _publish_drops_lock = threading.Lock()
 
 
-def _publish(publisher: Any, msg: Any) -> None:
+def _publish(publisher: Any, msg: Any) -> bool:
     """``publisher.publish(msg)`` from the stepping thread, except that a message Fast DDS
     gives up on is logged and dropped instead of ending the simulation.
 
@@ -106,11 +106,13 @@ def _publish(publisher: Any, msg: Any) -> None:
     full after ``max_blocking_time`` (100 ms) — readers on a starved host that have not
     acknowledged yet. Raised in the stepping thread, that stopped the whole simulation
     (a fleet's sim, once in a stress run). Every topic here is a stream or is published
-    again soon (the factory's state at its own rate, the state echoes every step or
-    period), so the next message replaces the lost one; the count per topic is in
-    :func:`publish_drops` and each first and hundredth drop is logged."""
+    again soon (the factory's state at its own rate; a state echo's change is sent again
+    at the next step until one goes out), so the next message replaces the lost one; the
+    count per topic is in :func:`publish_drops` and each first and hundredth drop is
+    logged. Returns whether the message went out."""
     try:
         publisher.publish(msg)
+        return True
     except _rclpy.RCLError as exc:
         if "cannot publish data" not in str(exc):
             raise
@@ -121,6 +123,7 @@ def _publish(publisher: Any, msg: Any) -> None:
         if n == 1 or n % 100 == 0:
             log.warning("sim: Fast DDS refused a message on %s (%s); dropped, the next "
                         "one replaces it (%d so far)", topic, exc, n)
+        return False
 
 
 def publish_drops() -> dict[str, int]:
@@ -288,13 +291,13 @@ class _EmiliPorts(_RobotPorts):
             offset = robot.line_sensor()
             _publish(self._line_pub, Float64(data=math.nan if offset is None else offset))
         leds = robot.leds()
-        if echo or leds != self._leds_sent:
-            self._leds_sent = leds
-            _publish(self._leds_pub, ColorRGBA(r=leds[0], g=leds[1], b=leds[2], a=1.0))
+        if (echo or leds != self._leds_sent) and _publish(
+                self._leds_pub, ColorRGBA(r=leds[0], g=leds[1], b=leds[2], a=1.0)):
+            self._leds_sent = leds  # (a change dropped goes out again at the next step)
         text = robot.display()
-        if echo or text != self._display_sent:
+        if (echo or text != self._display_sent) and _publish(self._display_pub,
+                                                             String(data=text)):
             self._display_sent = text
-            _publish(self._display_pub, String(data=text))
 
 
 def _mask(*bits: bool) -> Int32:

@@ -614,3 +614,25 @@ def test_a_backlog_that_never_drains_still_lets_a_silent_vehicle_be_lost() -> No
     finally:
         vehicle.close()
         link.close()
+
+
+def test_free_ports_are_distinct_never_repeated_and_outside_the_kernels_range(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A port chosen by bind(0) and closed went to another socket before the link bound it
+    ("Address already in use", a stress run): ports come from outside the kernel's
+    ephemeral range, and never twice in a process."""
+    from pathlib import Path
+
+    import robots.mavlink_endpoint as endpoint
+
+    lo, hi = (int(n) for n in Path("/proc/sys/net/ipv4/ip_local_port_range")
+              .read_text(encoding="ascii").split())
+    seen = [p for _ in range(20) for p in free_ports(3)]
+    assert len(set(seen)) == len(seen) == 60
+    window = endpoint._port_window()
+    if window is not None:
+        assert not any(lo <= p <= hi for p in seen), (lo, hi, seen)
+    # Without a window (a range of 1024-65535): the kernel's ports, still distinct.
+    monkeypatch.setattr(endpoint, "_port_start", lambda: (range(0), 0))
+    kernel = free_ports(5)
+    assert len(set(kernel)) == 5

@@ -312,7 +312,7 @@ def test_the_replay_clock_waits_for_a_behaviour_still_starting(tmp_path: Path) -
     # No time passes on the replay's clock while the behaviour computes; then its steps
     # come exactly every 0.25 s.
     assert times == pytest.approx([started + 0.25 * k for k in range(len(times))],
-                                  abs=1e-6), steps
+                                  abs=1e-6), (steps, result.warnings)
     assert result.divergence is None, result.divergence
     assert result.warnings == [], result.warnings
 

@@ -331,6 +331,26 @@ def test_a_goal_answer_that_comes_while_send_goal_async_returns_is_not_lost(
         io.destroy_all()
 
 
+def test_the_nodes_action_client_outlives_a_destroy_and_still_serves_the_next_owner(
+        hl: HighLevelBehaviorManager, server: FibonacciServer,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Every owner on the node shares its client: one owner's destroy() must not take it
+    from the others (their goals would never end), nor leave the executor mid-answer."""
+    first, second = RosIO(hl.node, owner="first"), RosIO(hl.node, owner="second")
+    try:
+        client = first.action_client(Fibonacci, "fibonacci")
+        with caplog.at_level("WARNING", logger="beehave.ros.io"):
+            client.destroy()
+        assert "not destroyed; it is the node's" in caplog.text
+        assert second.action_client(Fibonacci, "fibonacci") is client
+        goal = second.send_goal(Fibonacci, "fibonacci", Fibonacci.Goal(order=3),
+                                server_timeout_s=WALL_TIMEOUT_S)
+        assert list(goal.wait(timeout_s=WALL_TIMEOUT_S).sequence) == [0, 1, 1, 2, 3]
+    finally:
+        first.destroy_all()
+        second.destroy_all()
+
+
 class Sends(Behavior):
     """Sends goals one after the other in one behaviour, as a patrol loop would."""
 

@@ -190,7 +190,7 @@ def test_a_killed_participants_segment_is_removed_and_a_live_ones_kept() -> None
     finally:
         child.kill()
         child.wait()
-    assert all((SHM / name).exists() for name in theirs)  # left behind
+    # (Left behind; another worker's RosContext, or Fast DDS itself, may remove them now.)
     with RosContext() as ros:
         node = ros.create_node("survivor")
         got: list[str] = []

@@ -133,9 +133,10 @@ def clear_dead_shm_segments(shm_dir: Path = SHM_DIR) -> int:
     again and again filled ``/dev/shm`` with hundreds of megabytes. A live owner holds an
     exclusive ``flock`` on the segment's ``_el`` file for the segment's whole life, so an
     ``_el`` file we can lock has no owner (Fast DDS's own ``fastdds shm clean`` tells them
-    apart the same way); we remove the segment, then the lock file, while holding it. A
-    participant that opened that lock file at the same moment sees it gone and makes
-    another (Fast DDS checks for that after it locks)."""
+    apart the same way); we remove the segment, then the lock file, while holding it.
+    A live participant is never touched: it takes its lock before it makes its segment,
+    and removes the segment before it lets go. (A name the check holds for that moment
+    is refused to a new participant, which draws another at random.)"""
     try:
         names = [n for n in os.listdir(shm_dir) if _SEGMENT_LOCK.fullmatch(n)]
     except OSError:

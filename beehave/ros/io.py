@@ -401,9 +401,21 @@ def _whole_action_client() -> type:
         def _lock(self, value: threading.Lock) -> None:
             self.__dict__.setdefault("_whole_lock", value)
 
-        def __init__(self, *args: Any, **kwargs: Any) -> None:
+        def __init__(self, *args: Any, node_lived: bool = False, **kwargs: Any) -> None:
             self._lock = threading.Lock()
+            self._node_lived = node_lived
             super().__init__(*args, **kwargs)
+
+        def destroy(self) -> None:
+            if self._node_lived:  # shared by every owner on the node: see node_action_client
+                log.warning("action client of %r: not destroyed; it is the node's, shared by "
+                            "every owner on it, and goes with the node", self._action_name)
+                return
+            super().destroy()
+
+        def _release(self) -> None:
+            self._node_lived = False
+            self.destroy()
 
         def send_goal_async(self, goal: Any, feedback_callback: Callable[[Any], None] | None
                             = None, goal_uuid: Any = None) -> Any:
@@ -425,6 +437,7 @@ def _whole_action_client() -> type:
                     self._feedback_callbacks.pop(key, None)
                     raise
                 if sequence_number in self._pending_goal_requests:
+                    self._feedback_callbacks.pop(key, None)
                     raise RuntimeError(f"Sequence ({sequence_number}) conflicts with pending "
                                        "goal request")
                 self._pending_goal_requests[sequence_number] = future
@@ -456,27 +469,31 @@ def node_action_client(node: Node, action_type: type, name: str) -> Any:
     it is queued: the queued event, dropped, releases the last reference to a context
     manager without the interpreter lock. Action clients destroyed when their owner ended,
     while the server still sent status, feedback or results, did exactly that. A client
-    that stays also keeps its DDS endpoints matched, so the next owner's first goal is not
-    sent to a server that has not yet discovered it."""
-    whole = _whole_action_client()
+    that stays also keeps its DDS endpoints matched, so once one goal went to a server,
+    a later owner's goal does not meet a server that has not discovered the client yet.
+    Its ``destroy()`` only warns: the node's clients go with the node."""
     key = (action_type, node.resolve_topic_name(name))
     with _node_action_clients_lock:
-        for waitable in node.waitables:  # a client destroyed by its user has left this list
-            if isinstance(waitable, whole) and waitable.__dict__.get("_beehave_key") == key:
-                return waitable
-        client = whole(node, action_type, name)
-        client._beehave_key = key
+        # Kept on the node itself: collected with it, and no walk over node.waitables,
+        # which other threads change meanwhile (every publisher and subscription adds to
+        # it, every owner that ends takes from it).
+        clients: dict[tuple[type, str], Any] = node.__dict__.setdefault(_NODE_CLIENTS, {})
+        client = clients.get(key)
+        if client is None:
+            client = clients[key] = _whole_action_client()(node, action_type, name,
+                                                           node_lived=True)
         return client
+
+
+_NODE_CLIENTS = "_beehave_action_clients"
 
 
 def destroy_node_action_clients(node: Node) -> None:
     """Destroy the clients :func:`node_action_client` made on ``node`` (with the node)."""
-    whole = _whole_action_client()
     with _node_action_clients_lock:
-        clients: list[Any] = [w for w in node.waitables if isinstance(w, whole)
-                   and "_beehave_key" in w.__dict__]
-    for client in clients:
-        client.destroy()
+        clients: dict[tuple[type, str], Any] = node.__dict__.pop(_NODE_CLIENTS, {})
+    for client in clients.values():
+        client._release()
 
 
 class RosIO:
@@ -579,9 +596,12 @@ class RosIO:
                          f"{server_timeout_s} s")
         box: list[Goal] = []
         early: list[Any] = []
+        gave_up: list[bool] = []
 
         def on_feedback(msg: Any) -> None:
             with cond:
+                if gave_up:  # a late-accepted goal, being cancelled: nobody reads it
+                    return
                 if not box:  # feedback can overtake the acceptance: keep it for later
                     early.append(msg)
                     return
@@ -591,13 +611,18 @@ class RosIO:
         _wait_answered(sent, cond, clock, interrupted, deadline)
         if not sent.done():
             # The server may still accept it: then cancel at once, so that no goal runs on
-            # without an owner (the node's client outlives the owner to do so).
+            # without an owner (the node's client outlives the owner to do so), and ask for
+            # its result, whose answer makes rclpy forget the goal's feedback callback.
             def cancel_if_accepted(answered: Any) -> None:
                 handle = (None if answered.cancelled() or answered.exception() is not None
                           else answered.result())
                 if handle is not None and handle.accepted:
                     handle.cancel_goal_async()
+                    handle.get_result_async()
 
+            with cond:
+                gave_up.append(True)
+                early.clear()
             sent.add_done_callback(cancel_if_accepted)
             if interrupted():
                 raise Interrupted(f"{self.owner}: interrupted while sending a goal to {full!r}")
