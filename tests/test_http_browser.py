@@ -112,16 +112,13 @@ class RobotProcess:
         return math.hypot(x - where[0], y - where[1])
 
     def settled(self) -> bool:
-        """EMILI stood still (under 5 mm) for half a second of wall time and its odometry
-        says it stands (under 5 mm/s; at rest the physics' twist jitters by 2 mm/s): on a
-        loaded machine half a second of wall time is less of the physics', and the
-        braking's slow tail passed the first test alone (then crept 10 mm while "held", a
-        stress run)."""
+        """EMILI moved under 2 mm in half a second of wall time. (5 mm let the braking's
+        slow tail pass on a loaded machine, where half a second of wall time is less of
+        the physics': it then crept 10 mm while "held", a stress run. Its odometry's twist
+        is no help: at rest it jitters by 2 mm/s, and by more beside busy loops.)"""
         before = self.pose()
         time.sleep(0.5)
-        board = self.api("api/robots/emili1/blackboard", params={"pattern": "odom/*"})
-        return (self.moved_from(before) < 0.005
-                and abs(board["odom/linear_mps"]["value"]) < 0.005)
+        return self.moved_from(before) < 0.002
 
     def stop(self) -> str:
         self.proc.terminate()
