@@ -12,6 +12,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 import warnings
 from collections.abc import Iterable, Sequence
 from typing import Any
@@ -123,3 +124,22 @@ def stop_all(procs: Iterable[AgentProc]) -> None:
             errors.append(exc)
     if errors:
         raise errors[0]
+
+
+def directory_state(agent: Any, what: str) -> str:
+    """``what``, and why an agent's directory may not have changed as expected (in stress
+    runs a killed agent stayed 60 s, a new one never appeared in 30 s): whether its expiry
+    timer still runs, when it last heard its own announcement, how far behind it reads
+    (counted off every lease), and each entry's age."""
+    d = agent.directory
+    now = time.monotonic()
+
+    def ago(t: float | None) -> str:
+        return "never" if t is None else f"{now - t:.2f} s ago"
+
+    entries = {name: f"renewed {ago(e.renewed_at)}, lease {e.announcement.lease_s} s"
+               for name, e in list(d._entries.items())}
+    return (f"{what}; the agent's last expiry check {ago(d._checked_at)}, its own "
+            f"announcement last heard {ago(d._own_heard_at)}, receive lag "
+            f"{d._receive_lag(now):.2f} s; entries: {entries}; threads: "
+            f"{[t.name for t in threading.enumerate()]}")

@@ -23,7 +23,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from agent_procs import AgentProc, stop_all  # noqa: E402
+from agent_procs import AgentProc, directory_state, stop_all  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from beehave import (  # noqa: E402
@@ -213,24 +213,6 @@ def test_register_search_by_constraints_subscribe_and_deregister(ros: RosContext
         unsubscribe()
 
 
-def _directory_state(agent: Agent, what: str) -> str:
-    """``what``, and why the directory may not have expired an entry (twice in stress runs
-    a killed agent stayed 60 s): whether its expiry timer still runs, how far behind it
-    reads its own announcements (counted off every lease), and each entry's age."""
-    d = agent.directory
-    now = time.monotonic()
-
-    def ago(t: float | None) -> str:
-        return "never" if t is None else f"{now - t:.2f} s ago"
-
-    entries = {name: f"renewed {ago(e.renewed_at)}, lease {e.announcement.lease_s} s"
-               for name, e in list(d._entries.items())}
-    return (f"{what}; the watcher's last expiry check {ago(d._checked_at)}, its own "
-            f"announcement last heard {ago(d._own_heard_at)}, receive lag "
-            f"{d._receive_lag(now):.2f} s; entries: {entries}; threads: "
-            f"{[t.name for t in threading.enumerate()]}")
-
-
 def test_killed_agent_disappears_within_its_lease(ros: RosContext,
                                                    procs: list[Proc]) -> None:
     proc = _spawn(procs, "dir_victim")
@@ -247,7 +229,7 @@ def test_killed_agent_disappears_within_its_lease(ros: RosContext,
         _wait(lambda: watcher.directory.alive("dir_victim"), "dir_victim in the directory")
         killed_at = time.monotonic()
         proc.kill()
-        assert gone.wait(WAIT_S), _directory_state(watcher, "the killed agent never left "
+        assert gone.wait(WAIT_S), directory_state(watcher, "the killed agent never left "
                                                    "the directory")
         # Gone because its lease ran out, not for another reason. How late is no check: the
         # directory adds the time its own process stalled to every lease, and beside two

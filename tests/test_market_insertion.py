@@ -13,6 +13,8 @@ import pytest
 
 pytest.importorskip("rclpy")
 
+from agent_procs import directory_state  # noqa: E402
+
 from beehave import Action, HighLevelBehaviorManager, Status  # noqa: E402
 from beehave.agents import (  # noqa: E402
     Agent,
@@ -126,7 +128,8 @@ def test_a_short_role_is_bid_and_queued_before_a_long_one(ros: RosContext) -> No
         robot_hl.register("broker", Inserting, started=started, gate=gate)
         robot_hl.switch("broker")
         assert wait_until(lambda: [i.name for i in boss.directory.search("broker")]
-                          == ["ins_broker"], WAIT_S)
+                          == ["ins_broker"], WAIT_S), directory_state(
+            boss, f"the broker is not in the boss's directory after {WAIT_S:g} s")
         boss.attach(boss_hl)
         # Sequential: each task is announced once the one before is awarded, so the
         # broker bids on the queue the earlier awards made. "hold" runs until the gate
