@@ -1655,34 +1655,25 @@ def free_udp_ports(count: int) -> list[int]:
     domain = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
     dds = range(7400 + 250 * domain, 7400 + 250 * domain + 250)
     window, start = _port_start()
+    # Port 0 for each without a window: the kernel's, held together so they are distinct.
+    candidates = ((window[(start + next(_port_cursor)) % len(window)] for _ in window)
+                  if window else iter([0] * count))
     ports: list[int] = []
     held: list[socket.socket] = []
-    if not window:  # the kernel's: held together, so that they are distinct
-        try:
-            for _ in range(count):
-                held.append(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
-                held[-1].bind(("127.0.0.1", 0))
-                ports.append(held[-1].getsockname()[1])
-            return ports
-        finally:
-            for s in held:
-                s.close()
     with _ports_lock:
         try:
-            for _ in range(len(window)):
+            for port in candidates:
                 if len(ports) == count:
                     break
-                port = window[(start + next(_port_cursor)) % len(window)]
                 if port in dds:
                     continue
                 s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                held.append(s)
                 try:
                     s.bind(("127.0.0.1", port))
                 except OSError:
-                    s.close()
                     continue  # in use
-                held.append(s)
-                ports.append(port)
+                ports.append(s.getsockname()[1])
         finally:
             for s in held:
                 s.close()
