@@ -317,6 +317,39 @@ def test_the_replay_clock_waits_for_a_behaviour_still_starting(tmp_path: Path) -
     assert result.warnings == [], result.warnings
 
 
+def test_the_settle_bound_counts_the_threads_cpu_time_not_wall_time() -> None:
+    """CI, a loaded host: the default behaviour began its computing late, the settle's
+    bound (then 1 s of wall time) ran out during it, and the clock moved on. A thread that
+    gets no CPU (here: one that sleeps) spends none of the bound; one that computes does."""
+    import threading
+
+    from beehave.recording.replay import _CpuBudget
+    from beehave.threads import WorkerPool
+
+    pool = WorkerPool()
+    try:
+        idle = _CpuBudget(pool, 0.05)
+        done = threading.Event()
+        pool.submit("sleeper", lambda: time.sleep(0.3) or done.set())
+        assert wait_until(done.is_set)
+        assert not idle.spent()
+
+        busy = _CpuBudget(pool, 0.05)
+        stop = threading.Event()
+
+        def compute() -> None:
+            while not stop.is_set():
+                pass
+
+        pool.submit("computer", compute)
+        try:
+            assert wait_until(busy.spent)  # 0.05 s of CPU time
+        finally:
+            stop.set()
+    finally:
+        pool.shutdown(timeout_s=5.0)
+
+
 def test_at_the_shutdown_an_extra_replayed_output_is_dropped_a_missing_one_is_not() -> None:
     """The live logics raced the recorded shutdown: one that had no time to react to the
     last input before its HAL's safe state is not a divergence of the replay, which was fed

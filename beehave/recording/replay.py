@@ -643,9 +643,14 @@ SYNC_MARGIN_S = 0.1
 the replayed one must have done before the input at ``t`` is fed (seconds of the
 recording's time)."""
 SETTLE_S = 1.0
-"""How long (wall time) the feed waits, after each step, for the high level's threads to
-wait again (see :meth:`_HighSide.settle`): a thread that computes for longer is left to
-it, and the feed goes on."""
+"""How long the feed waits, after each step, for the high level's threads to wait again
+(see :meth:`_HighSide.settle`), counted in the CPU time those threads use meanwhile: a
+thread that computes for longer is left to it, and the feed goes on. CPU time, not wall
+time: on a loaded host a behaviour that starts late or computes slowly must not look like
+one that never stops (CI: the default behaviour began its 0.15 s of computing late, and
+the clock moved on during it)."""
+SETTLE_WALL_S = 30.0
+"""... and at most this long in wall time: threads that get no CPU at all."""
 _MAX_MISSES = 3
 """After this many catch-ups timed out the replay has diverged: the feed stops waiting."""
 CATCH_UP_S = 10.0
@@ -685,6 +690,44 @@ def _runnable(native_id: int | None) -> bool:
     except OSError:
         return False
     return stat[stat.rfind(b")") + 2:][:1] == b"R"
+
+
+class _CpuBudget:
+    """The CPU time a pool's threads use from now on, against a budget (seconds). Threads
+    that end meanwhile take what they used with them: a bound, not an account."""
+
+    _EVERY_S = 0.01  # wall time between two sums: a look at each thread costs a syscall
+
+    def __init__(self, pool: Any, budget_s: float) -> None:
+        self._pool = pool
+        self._budget_s = budget_s
+        self._began = time.monotonic()
+        self._next = self._began + self._EVERY_S
+        self._start = self._used()
+
+    def _used(self) -> dict[int, float]:
+        used = {}
+        for thread, _state in self._pool.threads():
+            ident = thread.ident
+            if ident is None:
+                continue
+            try:
+                used[ident] = time.clock_gettime(time.pthread_getcpuclockid(ident))
+            except (OSError, AttributeError):  # ended, or no per-thread CPU clock here
+                continue
+        return used
+
+    def spent(self) -> bool:
+        """Whether the threads have used the budget (looked at every 10 ms of wall time)."""
+        now = time.monotonic()
+        if now < self._next:
+            return False
+        self._next = now + self._EVERY_S
+        if not hasattr(time, "pthread_getcpuclockid"):  # no per-thread CPU clock: wall time
+            return now - self._began >= self._budget_s
+        start = self._start
+        return sum(max(0.0, t - start.get(ident, 0.0))
+                   for ident, t in self._used().items()) >= self._budget_s
 
 
 async def _wait(cond: threading.Condition, predicate: Callable[[], bool],
@@ -887,9 +930,11 @@ class _HighSide:
     async def settle(self) -> None:
         """Let the high level's threads run until each waits again: on the clock, on a
         condition or event, or anywhere else where it uses no CPU for :func:`_quiet_s`
-        (a blocking call: a queue's ``get``, a socket). Bounded by :data:`SETTLE_S`."""
+        (a blocking call: a queue's ``get``, a socket). Bounded by :data:`SETTLE_S` of the
+        threads' CPU time, and :data:`SETTLE_WALL_S`."""
         now = time.monotonic()
-        deadline = now + SETTLE_S
+        deadline = now + SETTLE_WALL_S
+        budget = _CpuBudget(self.high._pool, SETTLE_S)
         last = self._last_activity
         since = now  # when the activity was last seen to change
         looks = 0  # how often since then
@@ -912,12 +957,14 @@ class _HighSide:
             else:
                 since, looks = now, 0
             last = activity
-            if time.monotonic() > deadline:
+            spent = time.monotonic() > deadline
+            if spent or budget.spent():
                 if not self._slow:
                     self._slow = True
                     self.warnings.append(
                         f"t={self.state.now_s:.3f} s: the high level was still busy after "
-                        f"{SETTLE_S} s (wall time); the replay went on")
+                        + (f"{SETTLE_WALL_S} s (wall time)" if spent else
+                           f"{SETTLE_S} s of CPU time") + "; the replay went on")
                 break
             await asyncio.sleep(_POLL_S)
         self._settled_at = self._events
