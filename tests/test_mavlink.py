@@ -36,8 +36,7 @@ from hal.mavlink import (
     close_all_links,
     open_link,
 )
-from robots.mavlink_endpoint import MavlinkEndpoint
-from robots.mavlink_endpoint import free_udp_ports as free_ports
+from robots.mavlink_endpoint import MavlinkEndpoint, free_udp_ports
 from robots.sim import Simulation
 from robots.world import world_from_dict
 
@@ -75,7 +74,7 @@ class Vehicles:
 @pytest.fixture
 def vehicles() -> Iterator[Vehicles]:
     sim = Simulation(world_from_dict(WORLD), real_time_factor=1.0)
-    ports = free_ports(2)
+    ports = free_udp_ports(2)
     rover = MavlinkEndpoint(sim, "rover1", url=f"udpout:127.0.0.1:{ports[0]}", system_id=1,
                             rerequest_s=30.0)  # the client's retries must do the work
     quad = MavlinkEndpoint(sim, "quad1", url=f"udpout:127.0.0.1:{ports[1]}", system_id=2)
@@ -627,12 +626,12 @@ def test_free_ports_are_distinct_never_repeated_and_outside_the_kernels_range(
 
     lo, hi = (int(n) for n in Path("/proc/sys/net/ipv4/ip_local_port_range")
               .read_text(encoding="ascii").split())
-    seen = [p for _ in range(20) for p in free_ports(3)]
+    seen = [p for _ in range(20) for p in free_udp_ports(3)]
     assert len(set(seen)) == len(seen) == 60
     window = endpoint._port_window()
     if window is not None:
         assert not any(lo <= p <= hi for p in seen), (lo, hi, seen)
     # Without a window (a range of 1024-65535): the kernel's ports, still distinct.
     monkeypatch.setattr(endpoint, "_port_start", lambda: (range(0), 0))
-    kernel = free_ports(5)
+    kernel = free_udp_ports(5)
     assert len(set(kernel)) == 5

@@ -28,7 +28,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # type: ignore[import-untyped]  # noqa: E402
 
 from beehave.testing import WALL_TIMEOUT_S, wait_until  # noqa: E402  (timeouts only)
-from tests.test_mavlink import free_ports  # noqa: E402
+from robots.mavlink_endpoint import free_udp_ports  # noqa: E402
 
 mav = mavutil.mavlink
 ROOT = Path(__file__).resolve().parents[1]
@@ -205,7 +205,7 @@ def rig() -> Iterator[Rig]:
     from robots.world import world_from_dict
 
     sim = Simulation(world_from_dict(WORLD), real_time_factor=1.0)
-    ports = free_ports(2)
+    ports = free_udp_ports(2)
     stations: list[GroundStation] = []
     endpoints: list[MavlinkEndpoint] = []
     try:

@@ -257,10 +257,9 @@ def test_beehave_links_sign_with_their_key_file_and_drop_what_is_not_signed(
     without the key hears a signing vehicle but cannot command it."""
     from beehave.errors import ConfigError, MavlinkError
     from hal.mavlink import MavlinkPositionHAL, close_all_links, open_link
-    from robots.mavlink_endpoint import MavlinkEndpoint
+    from robots.mavlink_endpoint import MavlinkEndpoint, free_udp_ports
     from robots.sim import Simulation
     from robots.world import world_from_dict
-    from tests.test_mavlink import free_ports
 
     key_file = tmp_path / "mavlink.key"
     key_file.write_text(KEY.hex())  # 64 hex digits: the key itself
@@ -268,7 +267,7 @@ def test_beehave_links_sign_with_their_key_file_and_drop_what_is_not_signed(
              "robots": [{"namespace": "signed", "kind": "kobuki", "start": {"x_m": 1, "y_m": 1}},
                         {"namespace": "plain", "kind": "kobuki", "start": {"x_m": 4, "y_m": 3}}]}
     sim = Simulation(world_from_dict(world), real_time_factor=1.0)
-    ports = free_ports(3)
+    ports = free_udp_ports(3)
     signed = MavlinkEndpoint(sim, "signed", url=f"udpout:127.0.0.1:{ports[0]}", system_id=1,
                              signing_key=KEY)
     plain = MavlinkEndpoint(sim, "plain", url=f"udpout:127.0.0.1:{ports[1]}", system_id=2)
