@@ -166,6 +166,7 @@ _HANGS = "BEEHAVE_HANG_DIR"
 @pytest.hookimpl(trylast=True)  # after pytest's faulthandler plugin: this one stays
 def pytest_configure(config: pytest.Config) -> None:
     if "PYTEST_XDIST_WORKER" not in os.environ and _HANGS not in os.environ:
+        _sweep_hang_dirs()
         os.environ[_HANGS] = tempfile.mkdtemp(prefix="beehave-hangs-")
     if "PYTEST_XDIST_WORKER" in os.environ and _HANGS in os.environ:
         # A worker that crashes (a segfault in a C extension) is only "node down" in the
@@ -182,6 +183,27 @@ def pytest_configure(config: pytest.Config) -> None:
             signum: crash.with_name(f"{crash.stem}-{signum.name}.txt").open("w")
             for signum in _DUMP_SIGNALS}
         _register_dumps(config)
+
+
+def _has_stacks(dump: Path) -> bool:
+    text = dump.read_text(errors="replace")
+    return "File " in text or "Fatal Python error" in text  # a watchdog fired, a crash
+
+
+def _sweep_hang_dirs(min_age_s: float = 3600.0) -> None:
+    """Remove the hang folders of earlier runs that hold no stacks (every run leaves one:
+    its watchdogs' files, armed and never fired), once they are an hour old (a run beside
+    this one may still use its own)."""
+    import time
+
+    for old in Path(tempfile.gettempdir()).glob("beehave-hangs-*"):
+        try:
+            if time.time() - old.stat().st_mtime < min_age_s or any(
+                    _has_stacks(dump) for dump in old.glob("*.txt")):
+                continue
+        except OSError:
+            continue
+        shutil.rmtree(old, ignore_errors=True)
 
 
 _DUMP_SIGNALS = (signal.SIGTERM, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2)
@@ -244,8 +266,7 @@ def pytest_terminal_summary(terminalreporter: Any) -> None:
     if "PYTEST_XDIST_WORKER" in os.environ or not where:
         return
     for dump in sorted(Path(where).glob("*.txt")):
-        text = dump.read_text(errors="replace")
-        if "File " in text or "Fatal Python error" in text:  # a watchdog fired, a crash
+        if _has_stacks(dump):
             what = "crashed" if dump.name.startswith("crash-") else "stuck"
             terminalreporter.write_sep("=", f"{what}: {dump.name}")
-            terminalreporter.write(text[-20000:] + "\n")
+            terminalreporter.write(dump.read_text(errors="replace")[-20000:] + "\n")
