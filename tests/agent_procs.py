@@ -13,6 +13,7 @@ import sys
 import tempfile
 import threading
 import time
+import traceback
 import warnings
 from collections.abc import Iterable, Sequence
 from typing import Any
@@ -139,7 +140,14 @@ def directory_state(agent: Any, what: str) -> str:
 
     entries = {name: f"renewed {ago(e.renewed_at)}, lease {e.announcement.lease_s} s"
                for name, e in list(d._entries.items())}
+    frames = sys._current_frames()
+    executors = "".join(
+        f"\n{t.name} ({'alive' if t.is_alive() else 'ended'}):\n"
+        + "".join(traceback.format_stack(frames[t.ident])[-8:])
+        for t in threading.enumerate()
+        if t.name == "beehave:ros-executor" and t.ident in frames)
     return (f"{what}; the agent's last expiry check {ago(d._checked_at)}, its own "
             f"announcement last heard {ago(d._own_heard_at)}, receive lag "
             f"{d._receive_lag(now):.2f} s; entries: {entries}; threads: "
-            f"{[t.name for t in threading.enumerate()]}")
+            f"{[t.name for t in threading.enumerate()]}; the ROS executors' stacks:"
+            f"{executors or ' none'}")

@@ -395,6 +395,9 @@ class RosContext(Running):
                 self.executor.spin_once(timeout_sec=self.spin_timeout_s)
             except Exception:  # a callback's bug must not stop every other callback
                 log.exception("a ROS callback raised; the executor goes on")
+        if not self._stop.is_set():
+            log.error("the ROS context was shut down from outside (rclpy.shutdown, a "
+                      "signal): this process's subscriptions, timers and services stop")
 
     def shutdown(self) -> None:
         """Stop and join the executor thread, destroy the nodes, shut the context down."""
