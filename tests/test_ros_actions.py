@@ -234,6 +234,34 @@ def test_a_goal_accepted_after_its_sender_gave_up_is_cancelled(
                                                             server.succeeded)
 
 
+def test_a_lost_goal_answer_is_taken_from_the_servers_status(
+        hl: HighLevelBehaviorManager, server: FibonacciServer,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A stress run: rmw_fastrtps's server dropped its answer to a goal ("failed to send
+    response (timeout): client will not receive response": its discovery had not matched
+    the client's answer reader within 100 ms), ran the goal, and the action failed with "did
+    not answer the goal within 5.0 s". The server's status (transient local) lists the goal:
+    accepted. Here the client loses the answer (fault injection)."""
+    client = node_action_client(hl.node, Fibonacci, "fibonacci")  # the one the action uses
+    take = client.take_data
+    lost: list[Any] = []
+
+    def losing() -> Any:
+        data = take()
+        if "goal" in data and not lost:
+            lost.append(data.pop("goal"))
+        return data
+
+    client.take_data = losing
+    with caplog.at_level("INFO", logger="beehave.ros.io"):
+        action = run_action(hl, Fib(Fibonacci, "fibonacci", Fibonacci.Goal(order=5)))
+    assert lost, "the executor took no goal answer through take_data"
+    assert action.status.name == "SUCCEEDED", action.error
+    assert list(action.result.sequence) == [0, 1, 1, 2, 3, 5, 8]
+    assert "taken as accepted" in caplog.text
+    assert server.succeeded == [5]
+
+
 CHURN = textwrap.dedent("""
     import sys, threading, time
     import rclpy

@@ -386,10 +386,21 @@ def _whole_action_client() -> type:
       in between completes the first future, and the returned one never completes — a
       goal answer lost on a loaded host. Here one future is filed, under the lock, and the
       feedback callback before the request goes out (feedback that overtakes the answer
-      was dropped), and taken off again when the server refuses the goal."""
-    from rclpy.action.client import ActionClient
+      was dropped), and taken off again when the server refuses the goal.
+
+    And one race of rmw_fastrtps: a server drops its answer to a goal when its own
+    discovery has not yet matched the client's answer reader after 100 ms (``failed to
+    send response (timeout): client will not receive response``; the client's
+    ``server_is_ready`` only says what the client has discovered). The server runs the
+    goal all the same, and lists it on its status topic (transient local): here a goal
+    whose answer is still pending is taken as accepted once the status lists it (logged),
+    and its answer, should it come later, is dropped."""
+    from action_msgs.msg import GoalStatus
+    from rclpy.action.client import ActionClient, ClientGoalHandle
     from rclpy.task import Future
     from unique_identifier_msgs.msg import UUID
+
+    ended = (GoalStatus.STATUS_SUCCEEDED, GoalStatus.STATUS_CANCELED, GoalStatus.STATUS_ABORTED)
 
     class WholeActionClient(ActionClient[Any, Any, Any]):
         @property
@@ -404,7 +415,49 @@ def _whole_action_client() -> type:
         def __init__(self, *args: Any, node_lived: bool = False, **kwargs: Any) -> None:
             self._lock = threading.Lock()
             self._node_lived = node_lived
+            self._answered_by_status: set[int] = set()  # requests' sequence numbers
             super().__init__(*args, **kwargs)
+
+        async def execute(self, taken_data: Any) -> None:
+            answer = taken_data.get("goal")
+            if answer is not None and answer[0] in self._answered_by_status:
+                self._answered_by_status.discard(answer[0])  # late: the status told already
+                taken_data = {k: v for k, v in taken_data.items() if k != "goal"}
+            await super().execute(taken_data)
+            if "status" in taken_data:
+                self._accept_listed(taken_data["status"].status_list)
+
+        def _accept_listed(self, listed: Any) -> None:
+            """Goals whose answer is pending but which the server's status lists: accepted
+            (their answer was lost, see above)."""
+            done = []
+            with self._lock:
+                pending = {bytes(goal_id.uuid): seq for seq, goal_id
+                           in self._goal_sequence_number_to_goal_id.items()}
+                for entry in listed if pending else ():
+                    key = bytes(entry.goal_info.goal_id.uuid)
+                    seq = pending.get(key)
+                    if seq is None or entry.status == GoalStatus.STATUS_UNKNOWN:
+                        continue
+                    future = self._pending_goal_requests.get(seq)
+                    if future is None or future.done():
+                        continue
+                    answer = self._action_type.Impl.SendGoalService.Response(
+                        accepted=True, stamp=entry.goal_info.stamp)
+                    handle = ClientGoalHandle(self, entry.goal_info.goal_id, answer)
+                    handle._status = entry.status
+                    if entry.status not in ended:
+                        self._goal_handles[key] = weakref.ref(handle)
+                    self._answered_by_status.add(seq)
+                    done.append((future, handle))
+            for future, handle in done:
+                # Not a warning: the status may just have overtaken the answer (another
+                # topic), which is then dropped when it comes.
+                log.info("action server %r: its status lists goal %s before its answer "
+                         "came; taken as accepted (an answer the server's middleware "
+                         "dropped never comes)", self._action_name,
+                         uuid.UUID(bytes=bytes(handle.goal_id.uuid)))
+                future.set_result(handle)
 
         def destroy(self) -> None:
             if self._node_lived:  # shared by every owner on the node: see node_action_client
