@@ -650,7 +650,8 @@ time: on a loaded host a behaviour that starts late or computes slowly must not 
 one that never stops (CI: the default behaviour began its 0.15 s of computing late, and
 the clock moved on during it)."""
 SETTLE_WALL_S = 30.0
-"""... and at most this long in wall time: threads that get no CPU at all."""
+"""... and at most this long in wall time: threads that get no CPU at all. Once either
+bound ran out in a replay, its later settles wait :data:`SETTLE_S` of wall time at most."""
 _MAX_MISSES = 3
 """After this many catch-ups timed out the replay has diverged: the feed stops waiting."""
 CATCH_UP_S = 10.0
@@ -693,8 +694,9 @@ def _runnable(native_id: int | None) -> bool:
 
 
 class _CpuBudget:
-    """The CPU time a pool's threads use from now on, against a budget (seconds). Threads
-    that end meanwhile take what they used with them: a bound, not an account."""
+    """The CPU time a pool's busy threads use from now on, against a budget (seconds).
+    Idle (parked) threads are not looked at: they use none, and one may end meanwhile (an
+    ended thread's CPU clock must not be read). A bound, not an account."""
 
     _EVERY_S = 0.01  # wall time between two sums: a look at each thread costs a syscall
 
@@ -705,15 +707,15 @@ class _CpuBudget:
         self._next = self._began + self._EVERY_S
         self._start = self._used()
 
-    def _used(self) -> dict[int, float]:
+    def _used(self) -> dict[threading.Thread, float]:
         used = {}
-        for thread, _state in self._pool.threads():
+        for thread, state in self._pool.threads():
             ident = thread.ident
-            if ident is None:
+            if ident is None or state is WorkerState.PARKED:
                 continue
             try:
-                used[ident] = time.clock_gettime(time.pthread_getcpuclockid(ident))
-            except (OSError, AttributeError):  # ended, or no per-thread CPU clock here
+                used[thread] = time.clock_gettime(time.pthread_getcpuclockid(ident))
+            except (OSError, AttributeError):  # no per-thread CPU clock here
                 continue
         return used
 
@@ -726,8 +728,8 @@ class _CpuBudget:
         if not hasattr(time, "pthread_getcpuclockid"):  # no per-thread CPU clock: wall time
             return now - self._began >= self._budget_s
         start = self._start
-        return sum(max(0.0, t - start.get(ident, 0.0))
-                   for ident, t in self._used().items()) >= self._budget_s
+        return sum(max(0.0, t - start.get(thread, 0.0))
+                   for thread, t in self._used().items()) >= self._budget_s
 
 
 async def _wait(cond: threading.Condition, predicate: Callable[[], bool],
@@ -933,7 +935,10 @@ class _HighSide:
         (a blocking call: a queue's ``get``, a socket). Bounded by :data:`SETTLE_S` of the
         threads' CPU time, and :data:`SETTLE_WALL_S`."""
         now = time.monotonic()
-        deadline = now + SETTLE_WALL_S
+        # Once a settle ran out, the later ones wait SETTLE_S of wall time at most (as
+        # before the CPU budget): a state that looks busy yet uses no CPU (a notified
+        # waiter whose lock's holder blocks elsewhere) must not cost every step 30 s.
+        deadline = now + (SETTLE_S if self._slow else SETTLE_WALL_S)
         budget = _CpuBudget(self.high._pool, SETTLE_S)
         last = self._last_activity
         since = now  # when the activity was last seen to change
@@ -957,14 +962,15 @@ class _HighSide:
             else:
                 since, looks = now, 0
             last = activity
-            spent = time.monotonic() > deadline
-            if spent or budget.spent():
+            past_wall_cap = time.monotonic() > deadline
+            if past_wall_cap or budget.spent():
                 if not self._slow:
                     self._slow = True
                     self.warnings.append(
                         f"t={self.state.now_s:.3f} s: the high level was still busy after "
-                        + (f"{SETTLE_WALL_S} s (wall time)" if spent else
-                           f"{SETTLE_S} s of CPU time") + "; the replay went on")
+                        + (f"{SETTLE_WALL_S} s (wall time)" if past_wall_cap else
+                           f"{SETTLE_S} s of CPU time") + "; the replay went on (and "
+                        f"waits at most {SETTLE_S} s of wall time from now on)")
                 break
             await asyncio.sleep(_POLL_S)
         self._settled_at = self._events

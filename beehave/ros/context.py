@@ -396,8 +396,8 @@ class RosContext(Running):
             except Exception:  # a callback's bug must not stop every other callback
                 log.exception("a ROS callback raised; the executor goes on")
         if not self._stop.is_set():
-            log.error("the ROS context was shut down from outside (rclpy.shutdown, a "
-                      "signal): this process's subscriptions, timers and services stop")
+            log.warning("the ROS context was shut down from outside (rclpy.shutdown, a "
+                        "signal): this process's subscriptions, timers and services stop")
 
     def shutdown(self) -> None:
         """Stop and join the executor thread, destroy the nodes, shut the context down."""

@@ -26,6 +26,7 @@ Topic names are relative to the robot's namespace (the manager's node).
 
 from __future__ import annotations
 
+import collections
 import functools
 import logging
 import math
@@ -415,13 +416,15 @@ def _whole_action_client() -> type:
         def __init__(self, *args: Any, node_lived: bool = False, **kwargs: Any) -> None:
             self._lock = threading.Lock()
             self._node_lived = node_lived
-            self._answered_by_status: set[int] = set()  # requests' sequence numbers
+            # Requests answered from the status: their answer, if it comes, is dropped.
+            # The latest few (a lost answer never comes to take its number off again).
+            self._answered_by_status: collections.deque[int] = collections.deque(maxlen=64)
             super().__init__(*args, **kwargs)
 
         async def execute(self, taken_data: Any) -> None:
             answer = taken_data.get("goal")
             if answer is not None and answer[0] in self._answered_by_status:
-                self._answered_by_status.discard(answer[0])  # late: the status told already
+                self._answered_by_status.remove(answer[0])  # late: the status told already
                 taken_data = {k: v for k, v in taken_data.items() if k != "goal"}
             await super().execute(taken_data)
             if "status" in taken_data:
@@ -432,8 +435,9 @@ def _whole_action_client() -> type:
             (their answer was lost, see above)."""
             done = []
             with self._lock:
+                # (A copy first: rclpy takes entries off without this lock.)
                 pending = {bytes(goal_id.uuid): seq for seq, goal_id
-                           in self._goal_sequence_number_to_goal_id.items()}
+                           in list(self._goal_sequence_number_to_goal_id.items())}
                 for entry in listed if pending else ():
                     key = bytes(entry.goal_info.goal_id.uuid)
                     seq = pending.get(key)
@@ -448,7 +452,7 @@ def _whole_action_client() -> type:
                     handle._status = entry.status
                     if entry.status not in ended:
                         self._goal_handles[key] = weakref.ref(handle)
-                    self._answered_by_status.add(seq)
+                    self._answered_by_status.append(seq)
                     done.append((future, handle))
             for future, handle in done:
                 # Not a warning: the status may just have overtaken the answer (another
