@@ -977,3 +977,29 @@ def test_bridges_refuse_rates_and_periods_that_are_not_positive_numbers(
         assert not node.has_parameter("behavior") and not node.has_parameter("logic")
     finally:
         ros.shutdown()
+
+
+LEFT_RUNNING = """
+import time
+from std_msgs.msg import String
+from beehave.ros.context import RosContext
+ros = RosContext()
+node = ros.create_node("left_running")
+ros.start()
+node.create_subscription(String, "left_running", lambda msg: None, 10)
+publisher = node.create_publisher(String, "left_running", 10)
+for _ in range(50):
+    publisher.publish(String(data="still talking"))
+    time.sleep(0.001)
+print("end of script", flush=True)
+"""
+
+
+def test_a_context_left_running_at_exit_is_shut_down_not_aborted() -> None:
+    """A script that never called ``shutdown()`` ended with SIGABRT (6 of 6 here): its
+    executor thread, back from rclpy's wait during the interpreter's finalization, was ended
+    by pthread_exit, whose unwinding through rclpy's C++ frames called std::terminate."""
+    done = subprocess.run([sys.executable, "-c", LEFT_RUNNING], capture_output=True,
+                          text=True, timeout=WALL_TIMEOUT_S, stdin=subprocess.DEVNULL)
+    assert done.returncode == 0, (done.returncode, done.stderr[-3000:])
+    assert "end of script" in done.stdout

@@ -302,7 +302,8 @@ CHURN = textwrap.dedent("""
                           callback_group=ReentrantCallbackGroup())
     executor = MultiThreadedExecutor(num_threads=6, context=server_context)
     executor.add_node(server_node)
-    threading.Thread(target=executor.spin, daemon=True).start()
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
     ros = RosContext()
     node = ros.create_node("churn_client")
     ros.start()
@@ -323,6 +324,10 @@ CHURN = textwrap.dedent("""
     print("owners ended:", len(ended), flush=True)
     ros.shutdown()
     executor.shutdown()
+    # Joined before the interpreter ends: a daemon thread that comes back from rclpy's
+    # wait during the finalization is ended by pthread_exit, whose unwinding through
+    # rclpy's C++ frames calls std::terminate (SIGABRT; a stress run's core file).
+    spinner.join()
     rclpy.shutdown(context=server_context)
 """)
 

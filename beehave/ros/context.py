@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import atexit
 import fcntl
 import logging
 import os
@@ -241,6 +242,22 @@ def _domain_id() -> int:
         return 0
 
 
+@atexit.register
+def _shutdown_left_running() -> None:
+    """At the interpreter's exit, shut down the contexts a program left running: their
+    executor thread, back from rclpy's wait during the finalization, would be ended by
+    ``pthread_exit``, whose unwinding through rclpy's C++ frames aborts the process
+    (SIGABRT, and a core file, after an otherwise clean run)."""
+    for context in list(_owners.values()):
+        if context._closed:
+            continue
+        log.info("shutting down a RosContext left running at exit")
+        try:
+            context.shutdown()
+        except Exception:  # the interpreter is ending: say so, and go on with the others
+            log.exception("a RosContext's shutdown at exit failed")
+
+
 def in_executor_thread() -> bool:
     """Whether the calling code runs in a :class:`RosContext`'s executor thread (a ROS
     callback): waiting there for something that needs another ROS callback — a service
@@ -256,7 +273,8 @@ class RosContext(Running):
     other threads, while ``EventsExecutor`` handles ~40k msg/s — but its ``spin()`` in a
     non-main thread hangs the process. So the thread calls ``spin_once(timeout_sec=…)`` in a
     loop, and :meth:`shutdown` stops and joins it before the nodes are destroyed (an unjoined
-    executor thread aborts the interpreter at exit). Each context is independent, so tests
+    executor thread aborts the interpreter at exit: a context still running then is shut
+    down by an ``atexit`` hook). Each context is independent, so tests
     and multi-robot programs can hold several.
     """
 
