@@ -94,7 +94,9 @@ class WorkerPool:
                 fresh = True
             else:
                 fresh = False
-        worker.jobs.put((name, fn))
+            # Under the lock: threads() must never see a worker taken from the idle list
+            # without its job (neither parked nor handed: a replay took it as waiting).
+            worker.jobs.put((name, fn))
         if fresh:
             worker.thread.start()
 
