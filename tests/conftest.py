@@ -10,6 +10,7 @@ import shutil
 import signal
 import sys
 import tempfile
+import time
 import zlib
 from collections.abc import Generator, Iterator
 from pathlib import Path
@@ -194,8 +195,6 @@ def _sweep_hang_dirs(min_age_s: float = 3600.0) -> None:
     """Remove the hang folders of earlier runs that hold no stacks (every run leaves one:
     its watchdogs' files, armed and never fired), once they are an hour old (a run beside
     this one may still use its own)."""
-    import time
-
     for old in Path(tempfile.gettempdir()).glob("beehave-hangs-*"):
         try:
             dumps = list(old.glob("*.txt"))

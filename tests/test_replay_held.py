@@ -278,6 +278,7 @@ def test_a_loop_without_events_runs_in_the_replay_up_to_the_shutdown(
     # on a loaded host: a stress run's live loop published 15, the replay 18 in the same
     # recorded time; a loop that emits no event is not held back by the replay's lead).
     pace = {o.value[0]: o.t_s for o in result.expected if o.key == "high:pace"}
+    assert {"started", "ended"} <= pace.keys(), result.expected
     fits = int((pace["ended"] - pace["started"]) / 0.1) + 1
     assert live - 2 <= len(sent) <= max(live, fits) + 1, (live, pace, [c.t_s for c in sent])
 

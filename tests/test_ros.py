@@ -1003,3 +1003,35 @@ def test_a_context_left_running_at_exit_is_shut_down_not_aborted() -> None:
                           text=True, timeout=WALL_TIMEOUT_S, stdin=subprocess.DEVNULL)
     assert done.returncode == 0, (done.returncode, done.stderr[-3000:])
     assert "end of script" in done.stdout
+
+
+STUCK_AT_EXIT = """
+import threading
+from std_msgs.msg import String
+from beehave.ros.context import RosContext
+ros = RosContext()
+node = ros.create_node("stuck_at_exit")
+ros.start()
+entered = threading.Event()
+
+def blocks_for_ever(msg):
+    entered.set()
+    threading.Event().wait()
+
+node.create_subscription(String, "stuck_at_exit", blocks_for_ever, 10)
+publisher = node.create_publisher(String, "stuck_at_exit", 10)
+while not entered.is_set():
+    publisher.publish(String(data="block"))
+    entered.wait(0.05)
+print("end of script", flush=True)
+"""
+
+
+def test_a_context_left_in_a_callback_that_never_returns_does_not_hang_the_exit() -> None:
+    """The exit's shutdown waits EXIT_JOIN_S for the executor thread, not for ever, and
+    says where it is stuck."""
+    done = subprocess.run([sys.executable, "-c", STUCK_AT_EXIT], capture_output=True,
+                          text=True, timeout=WALL_TIMEOUT_S, stdin=subprocess.DEVNULL)
+    assert "end of script" in done.stdout, done.stderr[-3000:]
+    assert "still in a callback" in done.stderr and "blocks_for_ever" in done.stderr, \
+        done.stderr[-3000:]

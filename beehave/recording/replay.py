@@ -693,6 +693,15 @@ def _runnable(native_id: int | None) -> bool:
     return stat[stat.rfind(b")") + 2:][:1] == b"R"
 
 
+def _thread_cpu_s(ident: int) -> float | None:
+    """The CPU time thread ``ident`` (alive: an ended thread's clock must not be read) has
+    used; None where there is no per-thread CPU clock."""
+    try:
+        return time.clock_gettime(time.pthread_getcpuclockid(ident))
+    except (OSError, AttributeError):
+        return None
+
+
 class _CpuBudget:
     """The CPU time a pool's busy threads use from now on, against a budget (seconds).
     Idle (parked) threads are not looked at: they use none, and one may end meanwhile (an
@@ -713,10 +722,9 @@ class _CpuBudget:
             ident = thread.ident
             if ident is None or state is WorkerState.PARKED:
                 continue
-            try:
-                used[thread] = time.clock_gettime(time.pthread_getcpuclockid(ident))
-            except (OSError, AttributeError):  # no per-thread CPU clock here
-                continue
+            cpu_s = _thread_cpu_s(ident)
+            if cpu_s is not None:
+                used[thread] = cpu_s
         return used
 
     def spent(self) -> bool:
@@ -923,10 +931,10 @@ class _HighSide:
                 continue
             if _runnable(thread.native_id):
                 return None  # on a CPU, or waiting for one (a loaded host)
-            try:
-                used[ident] = time.clock_gettime(time.pthread_getcpuclockid(ident))
-            except (OSError, AttributeError):  # no per-thread CPU clock here: by its frame
-                used[ident] = float(hash((id(frame), frame.f_lasti)))
+            cpu_s = _thread_cpu_s(ident)
+            # (No per-thread CPU clock here: by its frame.)
+            used[ident] = cpu_s if cpu_s is not None else float(hash((id(frame),
+                                                                       frame.f_lasti)))
         return used
 
     async def settle(self) -> None:

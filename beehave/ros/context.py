@@ -10,6 +10,7 @@ import re
 import sys
 import threading
 import time
+import traceback
 import weakref
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -242,18 +243,25 @@ def _domain_id() -> int:
         return 0
 
 
+EXIT_JOIN_S = 3.0
+"""At the interpreter's exit, how long a context left running waits for its executor
+thread to leave the callback it is in (wall time): one that blocks for ever must not turn
+the exit into a hang."""
+
+
 @atexit.register
 def _shutdown_left_running() -> None:
     """At the interpreter's exit, shut down the contexts a program left running: their
     executor thread, back from rclpy's wait during the finalization, would be ended by
     ``pthread_exit``, whose unwinding through rclpy's C++ frames aborts the process
-    (SIGABRT, and a core file, after an otherwise clean run)."""
+    (SIGABRT, and a core file, after an otherwise clean run). Not those a forked child
+    inherited: they are its parent's."""
     for context in list(_owners.values()):
-        if context._closed:
+        if context._closed or context._pid != os.getpid():
             continue
         log.info("shutting down a RosContext left running at exit")
         try:
-            context.shutdown()
+            context._shutdown(join_timeout_s=EXIT_JOIN_S)
         except Exception:  # the interpreter is ending: say so, and go on with the others
             log.exception("a RosContext's shutdown at exit failed")
 
@@ -298,6 +306,7 @@ class RosContext(Running):
         self._ros_clocks: dict[Node, Any] = {}
         self._clock_listeners: tuple[Callable[[float], None], ...] = ()
         _owners[id(self.context)] = self
+        self._pid = os.getpid()  # a forked child's copy is not its to shut down at exit
 
     @staticmethod
     def of(node: Node) -> RosContext | None:
@@ -419,6 +428,9 @@ class RosContext(Running):
 
     def shutdown(self) -> None:
         """Stop and join the executor thread, destroy the nodes, shut the context down."""
+        self._shutdown(join_timeout_s=None)
+
+    def _shutdown(self, *, join_timeout_s: float | None) -> None:
         with self._lock:
             if self._closed:
                 return
@@ -426,7 +438,14 @@ class RosContext(Running):
             thread, nodes = self._thread, list(self._nodes)
         self._stop.set()
         if thread is not None and thread is not threading.current_thread():
-            thread.join()
+            thread.join(join_timeout_s)
+            if thread.is_alive():  # only with a bound: at exit
+                frame = sys._current_frames().get(thread.ident or -1)
+                log.warning("the ROS executor thread is still in a callback %.1f s after "
+                            "the stop; its executor and nodes are left as they are. It is "
+                            "in:\n%s", join_timeout_s,
+                            "".join(traceback.format_stack(frame)) if frame else "?")
+                return
         self.executor.shutdown()
         for node in nodes:
             destroy_node_action_clients(node)

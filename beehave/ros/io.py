@@ -219,6 +219,8 @@ class Latest(Generic[M]):
 _STATUS_NAMES = {0: "UNKNOWN", 1: "ACCEPTED", 2: "EXECUTING", 3: "CANCELING", 4: "SUCCEEDED",
                  5: "CANCELED", 6: "ABORTED"}
 _SUCCEEDED = 4
+_UNKNOWN = 0
+_ENDED = (4, 5, 6)  # SUCCEEDED, CANCELED, ABORTED
 
 
 class Goal:
@@ -396,12 +398,9 @@ def _whole_action_client() -> type:
     goal all the same, and lists it on its status topic (transient local): here a goal
     whose answer is still pending is taken as accepted once the status lists it (logged),
     and its answer, should it come later, is dropped."""
-    from action_msgs.msg import GoalStatus
     from rclpy.action.client import ActionClient, ClientGoalHandle
     from rclpy.task import Future
     from unique_identifier_msgs.msg import UUID
-
-    ended = (GoalStatus.STATUS_SUCCEEDED, GoalStatus.STATUS_CANCELED, GoalStatus.STATUS_ABORTED)
 
     class WholeActionClient(ActionClient[Any, Any, Any]):
         @property
@@ -441,7 +440,7 @@ def _whole_action_client() -> type:
                 for entry in listed if pending else ():
                     key = bytes(entry.goal_info.goal_id.uuid)
                     seq = pending.get(key)
-                    if seq is None or entry.status == GoalStatus.STATUS_UNKNOWN:
+                    if seq is None or entry.status == _UNKNOWN:
                         continue
                     future = self._pending_goal_requests.get(seq)
                     if future is None or future.done():
@@ -450,7 +449,7 @@ def _whole_action_client() -> type:
                         accepted=True, stamp=entry.goal_info.stamp)
                     handle = ClientGoalHandle(self, entry.goal_info.goal_id, answer)
                     handle._status = entry.status
-                    if entry.status not in ended:
+                    if entry.status not in _ENDED:
                         self._goal_handles[key] = weakref.ref(handle)
                     self._answered_by_status.append(seq)
                     done.append((future, handle))
